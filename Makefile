@@ -1,0 +1,40 @@
+# Two commands for a newcomer: `make run` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+OUT    ?= results
+
+.PHONY: run test test-fast bench venv net clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+## make run: the main experiment, one hour of the Turin-like arterial under TLR and VSR, and their comparison report
+run: $(STAMP)
+	$(VENV)/bin/coloc run experiments/arterial_tlr.toml --out $(OUT)/arterial_tlr
+	$(VENV)/bin/coloc run experiments/arterial_vsr.toml --out $(OUT)/arterial_vsr
+	$(VENV)/bin/coloc report $(OUT)/arterial_tlr $(OUT)/arterial_vsr --out $(OUT)/compare
+	@echo "Open $(OUT)/compare/report.html (per-run reports: $(OUT)/arterial_tlr/report.html, $(OUT)/arterial_vsr/report.html)"
+
+## make test: the whole test suite, slow tests included
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(PY) bench/coupled_vs_sumo.py
+
+## make net: rebuild sumo_nets/arterial from its plain XML sources (deterministic)
+net: $(STAMP)
+	$(PY) -m couplers.netbuild sumo_nets/arterial
+
+clean:
+	rm -rf $(VENV) $(OUT)

@@ -1,0 +1,57 @@
+"""``gnss``: the non-cooperative benchmark of Brambilla et al.
+
+A Kalman tracker per vehicle with model (1) driven by the inertial input and
+updated by the GNSS fix of model (3) with the zone-dependent covariance the
+frame carries. All vehicles of a frame are processed as one batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from coloc.frame import Frame, StepEstimate
+from coloc.models import MotionParams, driving_noise_cov, kalman_update, predict
+from coloc.vehicles import carry_states
+
+
+def gnss_predict_update(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    accel: np.ndarray,
+    gnss_z: np.ndarray,
+    gnss_R: np.ndarray,
+    dt: float,
+    motion: MotionParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One tracker step for a batch: predict by model (1), update by GNSS (3)."""
+    q = driving_noise_cov(mean[:, 2:], dt, motion)
+    m, p = predict(mean, cov, accel, dt, q)
+    return kalman_update(m, p, gnss_z, gnss_R)
+
+
+@dataclass
+class GnssTracker:
+    """Stateful wrapper: keeps each vehicle's posterior between frames."""
+
+    motion: MotionParams = field(default_factory=MotionParams)
+    name: str = "gnss"
+    _ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
+    _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+    _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
+
+    def step(self, frame: Frame) -> StepEstimate:
+        mean, cov, fresh = carry_states(
+            self._ids, self._mean, self._cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
+        )
+        # A fresh vehicle's prior is already at time t: it is only updated.
+        old = ~fresh
+        if old.any():
+            mean[old], cov[old] = gnss_predict_update(
+                mean[old], cov[old], frame.accel[old], frame.gnss_z[old], frame.gnss_R[old], frame.dt, self.motion
+            )
+        if fresh.any():
+            mean[fresh], cov[fresh] = kalman_update(mean[fresh], cov[fresh], frame.gnss_z[fresh], frame.gnss_R[fresh])
+        self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
+        return StepEstimate(mean=mean.copy(), cov=cov.copy())

@@ -1,0 +1,5 @@
+"""couplers: simulation -> measurement frames.
+
+Imports libsumo, sumolib, shapely and numpy; produces ``coloc.frame.Frame``
+objects, the only thing that crosses into the estimators.
+"""

@@ -1,0 +1,195 @@
+"""A net folder (DESIGN "A net folder"): scenario.toml, the net, demand, zones, areas, features.
+
+Parsing only; geometry lookups are in ``couplers.zones``.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import shapely
+from shapely.geometry import shape
+
+from couplers.errors import InputError
+
+REQUIRED_FILES = ("net", "routes", "zones", "areas", "features")
+
+
+@dataclass(frozen=True)
+class Region:
+    """A named polygon with properties (a GNSS zone or an analysis area)."""
+
+    name: str
+    polygon: shapely.Geometry
+    sigma_p: float = float("nan")
+    sigma_v: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Features:
+    ids: np.ndarray  # (K,) str
+    kinds: np.ndarray  # (K,) str
+    xy: np.ndarray  # (K, 2)
+
+
+@dataclass(frozen=True)
+class NetFolder:
+    root: Path
+    name: str
+    net: Path
+    routes: Path
+    zones: tuple[Region, ...]
+    areas: tuple[Region, ...]
+    features: Features
+    tls_off: dict[str, bool]
+    scenario: dict
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, None, f"not valid TOML ({exc})") from None
+
+
+def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(path, None, f"not valid JSON ({exc})") from None
+    feats = data.get("features") if isinstance(data, dict) else None
+    if not isinstance(feats, list) or not feats:
+        raise InputError(path, "features", "expected a GeoJSON FeatureCollection with at least one polygon")
+    regions = []
+    for i, feat in enumerate(feats):
+        props = feat.get("properties") or {}
+        name = props.get(key)
+        if not isinstance(name, str) or not name:
+            raise InputError(path, f"features[{i}].properties.{key}", "missing or not a string")
+        try:
+            poly = shape(feat["geometry"])
+        except Exception as exc:  # shapely raises several types on malformed geometry
+            raise InputError(path, f"features[{i}].geometry", f"not a valid geometry ({exc})") from None
+        if poly.geom_type not in ("Polygon", "MultiPolygon") or not poly.is_valid or poly.area <= 0:
+            raise InputError(path, f"features[{i}].geometry", "expected a valid, non-empty Polygon or MultiPolygon")
+        sp = sv = float("nan")
+        if with_sigmas:
+            for fld in ("sigma_p", "sigma_v"):
+                val = props.get(fld)
+                if not isinstance(val, (int, float)) or isinstance(val, bool) or not val > 0:
+                    raise InputError(path, f"features[{i}].properties.{fld}", "missing or not a positive number")
+            sp, sv = float(props["sigma_p"]), float(props["sigma_v"])
+        shapely.prepare(poly)
+        regions.append(Region(name=name, polygon=poly, sigma_p=sp, sigma_v=sv))
+    return tuple(regions)
+
+
+def _read_features(path: Path) -> Features:
+    try:
+        root = ET.parse(path).getroot()
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    except ET.ParseError as exc:
+        raise InputError(path, None, f"not valid XML ({exc})") from None
+    ids, kinds, xy = [], [], []
+    for i, poi in enumerate(root.iter("poi")):
+        try:
+            x, y = float(poi.attrib["x"]), float(poi.attrib["y"])
+        except (KeyError, ValueError):
+            raise InputError(path, f"poi[{i}].x/y", "missing or not a number (lane-relative POIs are not supported)") from None
+        ids.append(poi.attrib.get("id", f"poi{i}"))
+        kinds.append(poi.attrib.get("type", ""))
+        xy.append((x, y))
+    return Features(
+        ids=np.array(ids, dtype=object),
+        kinds=np.array(kinds, dtype=object),
+        xy=np.array(xy, dtype=float).reshape(-1, 2),
+    )
+
+
+def load_net_folder(root: str | Path) -> NetFolder:
+    """Read and validate a net folder; raises ``InputError`` naming the file and field."""
+    root = Path(root)
+    scen_path = root / "scenario.toml"
+    if not root.is_dir():
+        raise InputError(root, None, "net folder not found")
+    scen = _read_toml(scen_path)
+    files = scen.get("files")
+    if not isinstance(files, dict):
+        raise InputError(scen_path, "files", "missing table")
+    paths = {}
+    for key in REQUIRED_FILES:
+        val = files.get(key)
+        if not isinstance(val, str):
+            raise InputError(scen_path, f"files.{key}", "missing or not a string")
+        p = root / val
+        if not p.is_file():
+            raise InputError(scen_path, f"files.{key}", f"file {p} not found")
+        paths[key] = p
+    controls = scen.get("controls", {"tlr": {"tls_off": False}, "vsr": {"tls_off": True}})
+    tls_off = {}
+    for name, spec in controls.items():
+        if not isinstance(spec, dict) or not isinstance(spec.get("tls_off"), bool):
+            raise InputError(scen_path, f"controls.{name}.tls_off", "missing or not a boolean")
+        tls_off[name] = spec["tls_off"]
+    return NetFolder(
+        root=root.resolve(),
+        name=str(scen.get("name", root.name)),
+        net=paths["net"],
+        routes=paths["routes"],
+        zones=_read_regions(paths["zones"], "zone", with_sigmas=True),
+        areas=_read_regions(paths["areas"], "area", with_sigmas=False),
+        features=_read_features(paths["features"]),
+        tls_off=tls_off,
+        scenario=scen,
+    )
+
+
+def lane_shape_points(net_path: Path) -> tuple[np.ndarray, list[str]]:
+    """All lane shape points of a SUMO net (internal lanes included), and each point's lane id."""
+    pts: list[tuple[float, float]] = []
+    owners: list[str] = []
+    try:
+        for _event, elem in ET.iterparse(net_path, events=("end",)):
+            if elem.tag == "lane":
+                for pair in elem.attrib.get("shape", "").split():
+                    x, y = pair.split(",")[:2]
+                    pts.append((float(x), float(y)))
+                    owners.append(elem.attrib.get("id", "?"))
+            elif elem.tag == "edge":
+                elem.clear()
+    except ET.ParseError as exc:
+        raise InputError(net_path, None, f"net file does not parse as XML ({exc})") from None
+    if not pts:
+        raise InputError(net_path, "lane", "the net has no lanes")
+    return np.array(pts, dtype=float), owners
+
+
+def check_region_coverage(folder: NetFolder) -> None:
+    """Zones and areas must cover every lane of the net (DESIGN "Reliability")."""
+    import shapely as _shp
+
+    xy, owners = lane_shape_points(folder.net)
+    files = folder.scenario["files"]
+    for regions, key in ((folder.zones, "zones"), (folder.areas, "areas")):
+        union = _shp.union_all([r.polygon for r in regions])
+        inside = _shp.intersects_xy(union, xy[:, 0], xy[:, 1])
+        if not inside.all():
+            bad = np.flatnonzero(~inside)
+            i = int(bad[0])
+            raise InputError(
+                folder.root / files[key],
+                "features",
+                f"the polygons leave {bad.size} lane shape points of {folder.net.name} uncovered "
+                f"(first: lane {owners[i]} at x={xy[i, 0]:.1f}, y={xy[i, 1]:.1f})",
+            )

@@ -1,0 +1,151 @@
+"""What vehicles sense, given true states: the measurement side of Brambilla et al. Sec. II.
+
+Pure numpy/scipy: used by the SUMO coupler and by the controlled scenarios, so
+every source of frames synthesises measurements the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from coloc.frame import Frame, Truth
+from coloc.models import gnss_cov
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """On-board sensing (DESIGN table, urban arterial column unless noted)."""
+
+    accel_sigma: float = 0.05  # m/s^2, white noise per axis on the inertial input a_{t-1}
+    v2f_range_m: float = 50.0  # Rs
+    v2f_sigma_p: float = 0.1  # m, model (4)
+    v2f_sigma_v: float = 0.1  # m/s
+    v2v_range_m: float = 250.0  # Rc
+    prior_sigma_p: float = 2.0  # m, fast-start prior (Sec. VI-A)
+    prior_sigma_v: float = 0.1  # m/s
+
+
+class SensorNoise:
+    """Independent, seeded random streams, one per sensor, so that adding a
+    sensor or changing one's use does not shift the others' noise."""
+
+    STREAMS = ("prior", "accel", "gnss", "v2f", "shuffle")
+
+    def __init__(self, seed: int):
+        children = np.random.SeedSequence([int(seed), 0xC0C]).spawn(len(self.STREAMS))
+        for name, child in zip(self.STREAMS, children):
+            setattr(self, name, np.random.default_rng(child))
+
+
+def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
+    return gnss_cov(np.full(n, sigma_p), np.full(n, sigma_v))
+
+
+def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
+    """V2V links: symmetric boolean CSR of vehicle pairs within ``radius`` (KD-tree, no all-pairs loop)."""
+    n = xy.shape[0]
+    if n < 2:
+        return sp.csr_matrix((n, n), dtype=bool)
+    pairs = cKDTree(xy).query_pairs(radius, output_type="ndarray")
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    adj = sp.csr_matrix((np.ones(rows.size, dtype=bool), (rows, cols)), shape=(n, n))
+    adj.sort_indices()
+    return adj
+
+
+def features_in_range(vehicle_xy: np.ndarray, feature_tree: cKDTree | None, radius: float):
+    """All (vehicle, feature) pairs within ``radius``: (owner (O,), feature (O,)) sorted by owner, feature."""
+    if feature_tree is None or vehicle_xy.shape[0] == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    # The record-array output keeps pairs at exactly zero distance (a COO matrix would drop them).
+    pairs = cKDTree(vehicle_xy).sparse_distance_matrix(feature_tree, radius, output_type="ndarray")
+    owner = pairs["i"].astype(np.int64)
+    feat = pairs["j"].astype(np.int64)
+    order = np.lexsort((feat, owner))
+    return owner[order], feat[order]
+
+
+def shuffle_within_owner(owner: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Permutation that keeps rows grouped by owner but randomises order inside each group."""
+    keys = rng.random(owner.size)
+    return np.lexsort((keys, owner))
+
+
+def synthesize_frame(
+    *,
+    t: float,
+    dt: float,
+    vehicle_ids: np.ndarray,
+    entered: np.ndarray,
+    x_true: np.ndarray,
+    accel_true: np.ndarray,
+    heading: np.ndarray,
+    gnss_sigma_p: np.ndarray,
+    gnss_sigma_v: np.ndarray,
+    features_true: np.ndarray,
+    feature_tree: cKDTree | None,
+    params: SensorParams,
+    noise: SensorNoise,
+    zone: np.ndarray,
+    area: np.ndarray,
+    feature_ids: np.ndarray | None = None,
+) -> Frame:
+    """Turn true states into one frame of measurements (models (1), (3), (4))."""
+    n = x_true.shape[0]
+    entered = np.asarray(entered, dtype=bool)
+
+    # Fast-start prior for vehicles entering now: N(x_true, diag(sp^2, sp^2, sv^2, sv^2)).
+    prior_z = np.full((n, 4), np.nan)
+    prior_R = np.full((n, 4, 4), np.nan)
+    k = int(entered.sum())
+    if k:
+        sig = np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2)
+        prior_z[entered] = x_true[entered] + noise.prior.standard_normal((k, 4)) * sig
+        prior_R[entered] = _diag_cov(k, params.prior_sigma_p, params.prior_sigma_v)
+
+    accel = accel_true + params.accel_sigma * noise.accel.standard_normal((n, 2))
+
+    # GNSS, model (3): z = x + n, zone-dependent R.
+    gnss_R = gnss_cov(gnss_sigma_p, gnss_sigma_v)
+    gsig = np.stack([gnss_sigma_p, gnss_sigma_p, gnss_sigma_v, gnss_sigma_v], axis=1)
+    gnss_z = x_true + noise.gnss.standard_normal((n, 4)) * gsig
+
+    # V2F, model (4): z = x_F - x_V + n for every feature within Rs; rows shuffled per vehicle.
+    owner, feat = features_in_range(x_true[:, :2], feature_tree, params.v2f_range_m)
+    perm = shuffle_within_owner(owner, noise.shuffle)
+    owner, feat = owner[perm], feat[perm]
+    o = owner.size
+    vsig = np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2)
+    v2f_z = features_true[feat] - x_true[owner] + noise.v2f.standard_normal((o, 4)) * vsig
+    v2f_R = _diag_cov(o, params.v2f_sigma_p, params.v2f_sigma_v)
+
+    truth = Truth(
+        x_true=x_true,
+        v2f_feature=feat,
+        features_true=features_true,
+        zone=zone,
+        area=area,
+        heading=heading,
+        feature_ids=feature_ids,
+    )
+    return Frame(
+        t=float(t),
+        dt=float(dt),
+        vehicle_ids=vehicle_ids,
+        entered=entered,
+        prior_z=prior_z,
+        prior_R=prior_R,
+        accel=accel,
+        gnss_z=gnss_z,
+        gnss_R=gnss_R,
+        v2f_z=v2f_z,
+        v2f_owner=owner,
+        v2f_R=v2f_R,
+        neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
+        truth=truth,
+    )

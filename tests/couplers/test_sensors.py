@@ -1,0 +1,112 @@
+"""Measurement synthesis: detection range, shuffling, V2V graph and noise statistics."""
+
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.spatial import cKDTree
+
+from couplers.sensors import SensorNoise, SensorParams, neighbor_graph, synthesize_frame
+
+
+def scene(seed=0, n=60, k=40, extent=600.0):
+    rng = np.random.default_rng(seed)
+    x = np.hstack([rng.uniform(0, extent, (n, 2)), rng.normal(0, 8, (n, 2))])
+    feats = np.hstack([rng.uniform(0, extent, (k, 2)), np.zeros((k, 2))])
+    return x, feats
+
+
+def frame_for(x, feats, seed=1, params=SensorParams(), sp=5.0, sv=0.2, entered=None):
+    n = x.shape[0]
+    return synthesize_frame(
+        t=1.0, dt=0.75, vehicle_ids=np.array([f"v{i}" for i in range(n)], dtype=object),
+        entered=np.ones(n, bool) if entered is None else entered,
+        x_true=x, accel_true=np.zeros((n, 2)), heading=np.arctan2(x[:, 3], x[:, 2]),
+        gnss_sigma_p=np.full(n, sp), gnss_sigma_v=np.full(n, sv), features_true=feats,
+        feature_tree=cKDTree(feats[:, :2]), params=params, noise=SensorNoise(seed),
+        zone=np.array(["A"] * n), area=np.array(["1"] * n),
+    )
+
+
+def test_v2f_detections_are_exactly_the_features_in_range():
+    x, feats = scene()
+    params = SensorParams(v2f_range_m=50.0)
+    fr = frame_for(x, feats, params=params)
+    d = np.linalg.norm(x[:, None, :2] - feats[None, :, :2], axis=2)
+    expected = {(i, j) for i, j in zip(*np.nonzero(d <= 50.0))}
+    got = set(zip(fr.v2f_owner.tolist(), fr.truth.v2f_feature.tolist()))
+    assert got == expected
+    assert len(got) == fr.v2f_owner.size  # no duplicates
+    # Rows are grouped by owner (owners non-decreasing).
+    assert np.all(np.diff(fr.v2f_owner) >= 0)
+
+
+def test_v2f_rows_are_shuffled_within_each_vehicle():
+    x, feats = scene(n=30, k=200, extent=300)
+    orders, pair_sets = [], []
+    for seed in range(5):
+        fr = frame_for(x, feats, seed=seed)
+        orders.append(fr.truth.v2f_feature.copy())
+        pair_sets.append(sorted(zip(fr.v2f_owner.tolist(), fr.truth.v2f_feature.tolist())))
+    # Same detections whatever the seed; only their order changes.
+    assert all(p == pair_sets[0] for p in pair_sets)
+    # Within a vehicle the true feature indices are not sorted (the association is hidden).
+    fr = frame_for(x, feats, seed=0)
+    sorted_groups = 0
+    groups = 0
+    for v in np.unique(fr.v2f_owner):
+        f = fr.truth.v2f_feature[fr.v2f_owner == v]
+        if f.size >= 5:
+            groups += 1
+            sorted_groups += bool(np.all(np.diff(f) > 0))
+    assert groups >= 10 and sorted_groups == 0
+    assert not all(np.array_equal(orders[0], o) for o in orders[1:])
+
+
+def test_v2f_measurement_is_relative_feature_state():
+    x, feats = scene(n=10, k=30, extent=100)
+    params = SensorParams(v2f_sigma_p=1e-9, v2f_sigma_v=1e-9)
+    fr = frame_for(x, feats, params=params)
+    np.testing.assert_allclose(fr.v2f_z, feats[fr.truth.v2f_feature] - x[fr.v2f_owner], atol=1e-6)
+
+
+def test_neighbor_graph_matches_all_pairs():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 1000, (150, 2))
+    adj = neighbor_graph(xy, 250.0).toarray()
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    expected = (d <= 250.0) & ~np.eye(150, dtype=bool)
+    np.testing.assert_array_equal(adj, expected)
+    assert neighbor_graph(xy[:1], 250.0).shape == (1, 1)
+    assert neighbor_graph(xy[:0], 250.0).shape == (0, 0)
+
+
+@pytest.mark.parametrize("field", ["gnss", "v2f", "prior"])
+def test_noise_is_gaussian_with_the_stated_covariance(field):
+    """Chi-square test: sum of squared normalised residuals ~ chi2(dof); two-sided 0.1 % level."""
+    x, feats = scene(n=400, k=300, extent=800)
+    fr = frame_for(x, feats, seed=2024, sp=7.0, sv=0.3)
+    if field == "gnss":
+        resid, cov = fr.gnss_z - x, fr.gnss_R
+    elif field == "v2f":
+        resid, cov = fr.v2f_z - (feats[fr.truth.v2f_feature] - x[fr.v2f_owner]), fr.v2f_R
+    else:
+        resid, cov = fr.prior_z - x, fr.prior_R
+    q = np.einsum("ni,nij,nj->n", resid, np.linalg.inv(cov), resid)
+    dof = 4 * q.size
+    assert q.size > 300
+    lo, hi = stats.chi2.ppf([0.0005, 0.9995], dof)
+    assert lo < q.sum() < hi
+    # Per-component variances too (each about 1 after normalisation, 5-sigma band).
+    z = resid / np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    np.testing.assert_allclose(z.var(axis=0), 1.0, atol=5 * np.sqrt(2 / q.size))
+
+
+def test_prior_only_for_entering_vehicles_and_noise_streams_independent():
+    x, feats = scene(n=20)
+    entered = np.zeros(20, bool)
+    entered[[2, 5]] = True
+    fr = frame_for(x, feats, entered=entered)
+    assert np.isfinite(fr.prior_z[entered]).all() and np.isnan(fr.prior_z[~entered]).all()
+    # Changing which vehicles enter does not shift the GNSS noise draws.
+    fr2 = frame_for(x, feats, entered=np.ones(20, bool))
+    np.testing.assert_array_equal(fr.gnss_z, fr2.gnss_z)
