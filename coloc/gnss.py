@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.frame import Frame, StepEstimate
+from coloc.kalman_kernels import gnss_step_kernel
 from coloc.models import MotionParams, driving_noise_cov, kalman_update, predict
 from coloc.vehicles import carry_states
 
@@ -46,12 +47,11 @@ class GnssTracker:
             self._ids, self._mean, self._cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
         )
         # A fresh vehicle's prior is already at time t: it is only updated.
-        old = ~fresh
-        if old.any():
-            mean[old], cov[old] = gnss_predict_update(
-                mean[old], cov[old], frame.accel[old], frame.gnss_z[old], frame.gnss_R[old], frame.dt, self.motion
-            )
-        if fresh.any():
-            mean[fresh], cov[fresh] = kalman_update(mean[fresh], cov[fresh], frame.gnss_z[fresh], frame.gnss_R[fresh])
+        m = self.motion
+        gnss_step_kernel(
+            mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
+            np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
+            m.sigma_along, m.sigma_cross, m.heading_min_speed,
+        )
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         return StepEstimate(mean=mean.copy(), cov=cov.copy())

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy.spatial import cKDTree
 
 from coloc.frame import Frame, Truth
@@ -45,16 +46,60 @@ def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
     return gnss_cov(np.full(n, sigma_p), np.full(n, sigma_v))
 
 
+@njit(cache=True)
+def _radius_graph_csr(xy, radius):
+    """Sort-and-sweep along x: CSR (indptr, indices) of all pairs within ``radius``.
+
+    Cost O(N log N + N k), k the vehicles within ``radius`` in x; rows sorted."""
+    n = xy.shape[0]
+    order = np.argsort(xy[:, 0])
+    r2 = radius * radius
+    deg = np.zeros(n, dtype=np.int64)
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            dx = xy[j, 0] - xy[i, 0]
+            if dx > radius:
+                break
+            dy = xy[j, 1] - xy[i, 1]
+            if dx * dx + dy * dy <= r2:
+                deg[i] += 1
+                deg[j] += 1
+    indptr = np.zeros(n + 1, dtype=np.int32)
+    for i in range(n):
+        indptr[i + 1] = indptr[i] + deg[i]
+    indices = np.empty(indptr[n], dtype=np.int32)
+    fill = indptr[:n].copy()
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            dx = xy[j, 0] - xy[i, 0]
+            if dx > radius:
+                break
+            dy = xy[j, 1] - xy[i, 1]
+            if dx * dx + dy * dy <= r2:
+                indices[fill[i]] = j
+                fill[i] += 1
+                indices[fill[j]] = i
+                fill[j] += 1
+    for i in range(n):
+        indices[indptr[i]:indptr[i + 1]].sort()
+    return indptr, indices
+
+
 def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
-    """V2V links: symmetric boolean CSR of vehicle pairs within ``radius`` (KD-tree, no all-pairs loop)."""
+    """V2V links: symmetric boolean CSR of vehicle pairs within ``radius``, empty diagonal.
+
+    A numba sort-and-sweep writes the CSR arrays directly: scipy's KD-tree pair
+    query plus COO->CSR conversion was the coupler's largest cost at ~150 vehicles."""
     n = xy.shape[0]
     if n < 2:
         return sp.csr_matrix((n, n), dtype=bool)
-    pairs = cKDTree(xy).query_pairs(radius, output_type="ndarray")
-    rows = np.concatenate([pairs[:, 0], pairs[:, 1]])
-    cols = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    adj = sp.csr_matrix((np.ones(rows.size, dtype=bool), (rows, cols)), shape=(n, n))
-    adj.sort_indices()
+    indptr, indices = _radius_graph_csr(np.ascontiguousarray(xy, dtype=np.float64), float(radius))
+    adj = sp.csr_matrix((np.ones(indices.size, dtype=bool), indices, indptr), shape=(n, n))
+    adj.has_sorted_indices = True
     return adj
 
 

@@ -23,14 +23,12 @@ class RegionIndex:
     def locate(self, xy: np.ndarray) -> np.ndarray:
         """Index of the containing region for each point (N,), -1 outside all regions."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        out = np.full(xy.shape[0], -1, dtype=np.int64)
-        for i, region in enumerate(self.regions):  # a handful of polygons; vectorised over points
-            todo = out < 0
-            if not todo.any():
-                break
-            inside = shapely.intersects_xy(region.polygon, xy[todo, 0], xy[todo, 1])
-            out[np.flatnonzero(todo)[inside]] = i
-        return out
+        if xy.shape[0] == 0:
+            return np.empty(0, dtype=np.int64)
+        # A handful of prepared polygons, each tested against all points at once.
+        hits = np.stack([shapely.intersects_xy(r.polygon, xy[:, 0], xy[:, 1]) for r in self.regions])
+        first = np.argmax(hits, axis=0)
+        return np.where(hits[first, np.arange(xy.shape[0])], first, -1).astype(np.int64)
 
     def names_at(self, xy: np.ndarray, outside: str = "") -> np.ndarray:
         idx = self.locate(xy)

@@ -192,3 +192,26 @@ def test_tracker_output_does_not_depend_on_truth():
         outs.append(trk.step(fr).mean)
     np.testing.assert_array_equal(outs[0], outs[1])
     np.testing.assert_array_equal(outs[0], outs[2])
+
+
+def test_numba_kernel_matches_numpy_reference():
+    from coloc.kalman_kernels import gnss_step_kernel
+
+    rng = np.random.default_rng(5)
+    n = 50
+    motion = MotionParams(sigma_along=0.35, sigma_cross=0.05)
+    mean = rng.normal(size=(n, 4)) * [100, 100, 8, 8]
+    mean[:5, 2:] = 0.1  # slow vehicles: isotropic driving noise
+    l = rng.normal(size=(n, 4, 4))
+    cov = l @ np.swapaxes(l, 1, 2) + np.eye(4)
+    acc = rng.normal(size=(n, 2))
+    z = mean + rng.normal(size=(n, 4))
+    r = np.tile(np.diag([25.0, 25.0, 0.04, 0.04]), (n, 1, 1))
+    mask = rng.random(n) < 0.8
+    exp_m, exp_p = mean.copy(), cov.copy()
+    exp_m[mask], exp_p[mask] = gnss_predict_update(mean[mask], cov[mask], acc[mask], z[mask], r[mask], 0.75, motion)
+    exp_m[~mask], exp_p[~mask] = kalman_update(mean[~mask], cov[~mask], z[~mask], r[~mask])
+    got_m, got_p = mean.copy(), cov.copy()
+    gnss_step_kernel(got_m, got_p, acc, z, r, mask, 0.75, 0.35, 0.05, 1.0)
+    np.testing.assert_allclose(got_m, exp_m, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(got_p, exp_p, rtol=1e-9, atol=1e-9)

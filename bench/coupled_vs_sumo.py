@@ -1,0 +1,99 @@
+"""Benchmark: what coupling costs on top of SUMO, measured in one run.
+
+Prints the wall time of
+  1. the `sumo` binary alone on the arterial (same options as the coupler),
+  2. libsumo stepping with the per-vehicle getters only (the floor of any coupler),
+  3. libsumo stepping + the coupler producing frames (no estimator),
+  4. the coupled run with the chosen estimators (frames + estimators, no files),
+and their ratios to 1. Target (issue 2): coupled GNSS run within 2x of SUMO alone.
+
+    python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss]
+
+Not a test: it asserts nothing and prints numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import sumolib
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from couplers.netfolder import load_net_folder  # noqa: E402
+from couplers.sensors import SensorParams  # noqa: E402
+from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
+from couplers.sumo_traffic import SumoTraffic  # noqa: E402
+from experiments.config import load_config  # noqa: E402
+from experiments.runner import build_estimators  # noqa: E402
+
+
+def time_sumo_binary(scenario: SumoScenario) -> float:
+    cmd = scenario.sumo_options().command()
+    cmd[0] = sumolib.checkBinary("sumo")
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    return time.perf_counter() - t0
+
+
+def time_libsumo_floor(scenario: SumoScenario) -> float:
+    """libsumo stepping plus the three per-vehicle getters: what any coupler must pay."""
+    t0 = time.perf_counter()
+    with SumoTraffic(scenario.sumo_options()) as traffic:
+        while not traffic.done():
+            traffic.step()
+    return time.perf_counter() - t0
+
+
+def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list) -> tuple[float, int, dict]:
+    per_method = {e.name: 0.0 for e in estimators}
+    steps = 0
+    t0 = time.perf_counter()
+    with SumoCoupler(scenario, sensors) as coupler:
+        for frame in coupler.frames():
+            steps += 1
+            blind = frame.without_truth()
+            for est in estimators:
+                s = time.perf_counter()
+                est.step(blind)
+                per_method[est.name] += time.perf_counter() - s
+    return time.perf_counter() - t0, steps, per_method
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--control", default="tlr", choices=["tlr", "vsr"])
+    ap.add_argument("--duration", type=float, default=3600.0)
+    ap.add_argument("--methods", default="gnss")
+    args = ap.parse_args()
+
+    cfg = load_config(
+        ROOT / "experiments" / f"arterial_{args.control}.toml",
+        {"run.duration_s": args.duration, "run.methods": args.methods.split(",")},
+    )
+    net = load_net_folder(cfg.net_dir)
+    scenario = SumoScenario(
+        net=net, control=cfg.scenario.control, seed=cfg.run.seed, step_length=cfg.scenario.step_s,
+        duration_s=cfg.run.duration_s, ballistic=cfg.scenario.ballistic,
+    )
+    sumo_alone = time_sumo_binary(scenario)
+    floor = time_libsumo_floor(scenario)
+    coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [])
+    coupled, _, per_method = time_coupled(scenario, cfg.sensors, build_estimators(cfg))
+
+    print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")
+    print(f"  sumo binary alone        {sumo_alone:8.2f} s")
+    print(f"  libsumo step + getters   {floor:8.2f} s   ratio to sumo {floor / sumo_alone:5.2f}")
+    print(f"  coupler (frames only)    {coupler_only:8.2f} s   ratio to sumo {coupler_only / sumo_alone:5.2f}")
+    print(f"  coupled ({args.methods:>14}) {coupled:8.2f} s   ratio to sumo {coupled / sumo_alone:5.2f}")
+    for name, sec in per_method.items():
+        print(f"    estimator {name:<14} {sec:8.2f} s   {1e3 * sec / max(steps, 1):.3f} ms/step")
+
+
+if __name__ == "__main__":
+    main()

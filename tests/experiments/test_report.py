@@ -1,0 +1,237 @@
+"""Tests for experiments.report: run and comparison reports from synthetic run directories."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from experiments import report  # noqa: E402
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+METHODS = ["gnss", "icp_da_lc"]
+AREAS = [str(i) for i in range(1, 7)]
+ZONES = ["A", "B", "C"]
+
+
+# --------------------------------------------------------------------------- #
+# Synthetic inputs
+# --------------------------------------------------------------------------- #
+
+
+def _rect(x0, y0, x1, y1):
+    return [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]]
+
+
+@pytest.fixture(scope="module")
+def net_dir(tmp_path_factory) -> Path:
+    """Tiny net folder: a 2-node, 600 m road built with netconvert, zones, areas, features."""
+    sumolib = pytest.importorskip("sumolib")
+    d = tmp_path_factory.mktemp("net")
+    (d / "n.nod.xml").write_text(
+        '<nodes><node id="a" x="0" y="0"/><node id="b" x="600" y="0"/></nodes>\n')
+    (d / "n.edg.xml").write_text(
+        '<edges><edge id="ab" from="a" to="b" numLanes="2"/><edge id="ba" from="b" to="a"/></edges>\n')
+    try:
+        exe = sumolib.checkBinary("netconvert")
+        subprocess.run([exe, "-n", "n.nod.xml", "-e", "n.edg.xml", "-o", "tlr.net.xml",
+                        "--no-warnings"], cwd=d, check=True, capture_output=True, timeout=60)
+    except Exception as exc:  # pragma: no cover - environment without SUMO
+        pytest.skip(f"netconvert unavailable: {exc!r}")
+    zones = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"zone": z, "sigma_p": sp, "sigma_v": sv},
+         "geometry": {"type": "Polygon", "coordinates": _rect(200 * i, -50, 200 * (i + 1), 50)}}
+        for i, (z, sp, sv) in enumerate([("A", 3, 0.1), ("C", 15, 0.45), ("B", 8, 0.17)])]}
+    areas = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"area": a},
+         "geometry": {"type": "Polygon", "coordinates": _rect(100 * i, -30, 100 * (i + 1), 30)}}
+        for i, a in enumerate(AREAS)]}
+    (d / "zones.geojson").write_text(json.dumps(zones))
+    (d / "areas.geojson").write_text(json.dumps(areas))
+    pois = "".join(f'<poi id="f{i}" type="sign" x="{50 + 100 * i}" y="8" color="red"/>' for i in range(6))
+    (d / "features.add.xml").write_text(f"<additional>{pois}</additional>\n")
+    (d / "scenario.toml").write_text(
+        '[files]\nnet = "tlr.net.xml"\nzones = "zones.geojson"\nareas = "areas.geojson"\n'
+        'features = "features.add.xml"\n')
+    return d
+
+
+def _make_run(root: Path, name: str, control: str, seed: int, net_dir: Path | None,
+              with_features: bool = True) -> Path:
+    d = root / name
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    n_t, n_v = 40, 4
+    t = np.repeat(np.arange(n_t) * 0.75 * 20, n_v)  # 0 .. ~585 s
+    veh = np.tile([f"v{i}" for i in range(n_v)], n_t)
+    rows = []
+    for m, scale in (("gnss", 4.0), ("icp_da_lc", 0.7)):
+        n = t.size
+        ea, ec = rng.normal(0, scale, n), rng.normal(0, scale, n)
+        x = rng.uniform(0, 600, n)
+        rows.append(pd.DataFrame({
+            "run": name, "method": m, "t": t, "vehicle": veh,
+            "px": x + ea, "py": ec, "vx": 10.0, "vy": 0.0,
+            "px_true": x, "py_true": 0.0, "vx_true": 10.0, "vy_true": 0.0,
+            "err_pos": np.hypot(ea, ec), "err_vel": np.abs(rng.normal(0, scale / 10, n)),
+            "err_along": ea, "err_cross": ec,
+            "zone": np.array(ZONES)[np.minimum((x // 200).astype(int), 2)],
+            "area": np.array(AREAS)[np.minimum((x // 100).astype(int), 5)],
+            "var_px": scale ** 2, "var_py": scale ** 2,
+        }))
+    est = pd.concat(rows, ignore_index=True)
+    est.to_parquet(d / "estimates.parquet", index=False)
+    if with_features:
+        ft = np.repeat(np.arange(20) * 30.0, 3)
+        pd.DataFrame({"method": "icp_da_lc", "t": ft, "track": np.tile(["k0", "k1", "k2"], 20),
+                      "err_pos": np.abs(rng.normal(0, 0.5, ft.size))}).to_parquet(
+            d / "features.parquet", index=False)
+    starts = np.arange(0, 3600, 300.0)
+    pd.DataFrame({"interval_start_s": starts, "interval_end_s": starts + 300,
+                  "mean_vehicles": 100 + rng.uniform(0, 20, starts.size),
+                  "exit_flow_vph": np.linspace(2800, 1800, starts.size),
+                  "mean_queue": np.linspace(40, 20, starts.size),
+                  "stop_time_s_per_km": np.linspace(40, 35, starts.size),
+                  "teleports": 0}).to_parquet(d / "traffic.parquet", index=False)
+    pd.DataFrame({"method": "icp_da_lc", "t": [0.0, 0.75], "correct": [10, 12], "wrong": [1, 0],
+                  "discarded": [2, 3]}).to_parquet(d / "association.parquet", index=False)
+
+    def stats(g):
+        e = g["err_pos"].to_numpy()
+        return {"rmse_pos_m": float(np.sqrt(np.mean(e ** 2))), "p95_pos_m": float(np.quantile(e, 0.95)),
+                "n": int(e.size)}
+
+    methods = {}
+    for m, g in est.groupby("method"):
+        e = g["err_pos"].to_numpy()
+        methods[m] = {
+            "rmse_pos_m": float(np.sqrt(np.mean(e ** 2))),
+            "rmse_vel_mps": float(np.sqrt(np.mean(g["err_vel"] ** 2))),
+            "p50_pos_m": float(np.median(e)), "p95_pos_m": float(np.quantile(e, 0.95)),
+            "by_area": {a: stats(gg) for a, gg in g.groupby("area")},
+            "by_zone": {z: stats(gg) for z, gg in g.groupby("zone")},
+            "seconds": 1.25,
+        }
+    summary = {"config": f"experiments/arterial_{control}.toml", "seed": seed, "sumo_version": "1.28.0",
+               "git": "abc1234", "methods": methods,
+               "association": {"icp_da_lc": {"correct": 22, "wrong": 1, "discarded": 5}},
+               "traffic": {"mean_vehicles": 110.5, "exit_flow_vph": 2300.25, "mean_queue": 30.0,
+                           "stop_time_s_per_km": 37.5}}
+    (d / "summary.json").write_text(json.dumps(summary))
+    scen = f'[scenario]\ncontrol = "{control}"\n'
+    if net_dir is not None:
+        scen += f'net_dir = "{net_dir.as_posix()}"\n'
+    (d / "config.toml").write_text(
+        f'[run]\nname = "{name}"\nseed = {seed}\n\n{scen}\n[report]\ntrack_area = "5"\n')
+    return d
+
+
+def _img_srcs(page: str) -> list[str]:
+    return re.findall(r'<img src="([^"]+)"', page)
+
+
+def _check_pngs(base: Path, srcs: list[str]) -> None:
+    for s in srcs:
+        p = base / s
+        assert p.exists(), s
+        data = p.read_bytes()
+        assert data.startswith(PNG_MAGIC) and len(data) > 2000, s
+
+
+# --------------------------------------------------------------------------- #
+# Tests
+# --------------------------------------------------------------------------- #
+
+
+def test_run_report_full(tmp_path, net_dir):
+    d = _make_run(tmp_path, "tlr", "tlr", 1, net_dir)
+    out = report.write_run_report(d)
+    assert out == d / "report.html"
+    page = out.read_text(encoding="utf-8")
+    srcs = _img_srcs(page)
+    expected = {"rmse_time.png", "cdf_area.png", "cdf_zone.png", "track_errors.png", "traffic.png",
+                "map.png"}
+    assert {Path(s).name for s in srcs} == expected
+    # Every figure file that exists is referenced, and every reference exists.
+    on_disk = {p.name for p in (d / "figures").glob("*.png")}
+    assert on_disk == expected
+    _check_pngs(d, srcs)
+    assert all(s.startswith("figures/") for s in srcs)
+    # Summary table numbers.
+    summary = json.loads((d / "summary.json").read_text())
+    for m, s in summary["methods"].items():
+        for k in ("rmse_pos_m", "rmse_vel_mps", "p50_pos_m", "p95_pos_m"):
+            assert f"{s[k]:.3f}" in page, (m, k)
+        for a, sa in s["by_area"].items():
+            assert f"{sa['p95_pos_m']:.3f}" in page and f"/ {sa['n']}<" in page
+        for z, sz in s["by_zone"].items():
+            assert f"{sz['p95_pos_m']:.3f}" in page
+    assert "GNSS" in page and "ICP-DA-LC" in page
+    assert "2300.25" in page  # traffic summary
+    assert "fraction correct" in page  # association table
+    assert "1.28.0" in page and "abc1234" in page
+    # Self-contained: no scripts, no external resources.
+    assert "<script" not in page.lower()
+    assert not re.search(r'(src|href)="(https?:)?//', page)
+    # No temp directories left behind.
+    assert not list(d.glob(".report-*"))
+    # Deterministic: writing again gives identical HTML and PNG bytes.
+    figs1 = {p.name: p.read_bytes() for p in (d / "figures").glob("*.png")}
+    assert report.write_run_report(d).read_text(encoding="utf-8") == page
+    assert {p.name: p.read_bytes() for p in (d / "figures").glob("*.png")} == figs1
+
+
+def test_run_report_without_net_and_features(tmp_path):
+    d = _make_run(tmp_path, "ctl", "tlr", 2, None, with_features=False)
+    (d / "association.parquet").unlink()
+    (d / "figures").mkdir()
+    (d / "figures" / "stale.png").write_bytes(b"x")  # a previous report's leftovers are replaced
+    page = report.write_run_report(d).read_text(encoding="utf-8")
+    srcs = _img_srcs(page)
+    assert "figures/map.png" not in srcs
+    assert not (d / "figures" / "map.png").exists()
+    assert {Path(s).name for s in srcs} == {p.name for p in (d / "figures").glob("*.png")}
+    _check_pngs(d, srcs)
+    assert "feature position estimates" not in page  # no feature RMSE without features.parquet
+
+
+def test_comparison_report(tmp_path, net_dir):
+    a = _make_run(tmp_path / "runs", "arterial_tlr", "tlr", 1, net_dir)
+    b = _make_run(tmp_path / "runs", "arterial_vsr", "vsr", 1, None)
+    # Per-run reports are built on demand when missing.
+    out_dir = tmp_path / "cmp"
+    out = report.write_comparison_report([a, b], out_dir)
+    assert out == out_dir / "report.html"
+    page = out.read_text(encoding="utf-8")
+    assert 'href="../runs/arterial_tlr/report.html"' in page
+    assert 'href="../runs/arterial_vsr/report.html"' in page
+    assert (a / "report.html").exists() and (b / "report.html").exists()
+    srcs = _img_srcs(page)
+    assert {Path(s).name for s in srcs} == {"compare_traffic.png", "compare_rmse_time.png"}
+    _check_pngs(out_dir, srcs)
+    # Per-area p95 table: every (run, method, area) value appears.
+    for d in (a, b):
+        s = json.loads((d / "summary.json").read_text())
+        for m in s["methods"]:
+            for sa in s["methods"][m]["by_area"].values():
+                assert f"{sa['p95_pos_m']:.3f}" in page
+    again = report.write_comparison_report([a, b], out_dir).read_bytes()
+    assert again == out.read_bytes()
+
+
+def test_method_styles():
+    assert report.method_label("gnss") == "GNSS"
+    assert report.method_color("icp_known_da") == "black"
+    assert report.method_label("my_new_method") == "my_new_method"
+    assert report.method_color("my_new_method") == report.method_color("my_new_method")
+    assert report.order_methods(["zeta", "icp_da_lc", "gnss", "alpha"]) == ["gnss", "icp_da_lc", "alpha", "zeta"]
