@@ -1,0 +1,416 @@
+"""Gaussian ICP machinery shared by the ICP estimators (Brambilla et al. Secs. III, IV-B, IV-D).
+
+With the association fixed (known, or decided by ICP-DA-LC's MAP rule (30)-(31)),
+the V2F likelihood (18) of a row (vehicle i, feature k) is the single Gaussian
+p(z_ik | x_Vi, x_Fk) = N(z_ik; x_Fk - x_Vi, R_ik) of model (4), every belief is
+Gaussian and the BPA-L of eqs. (19)-(22) is Gaussian message passing, i.e. the
+distributed Kalman filter of Soatti et al. [40] ("LC" implementation, Sec. IV-D).
+Everything here works in information form (Lambda = P^-1, eta = P^-1 m),
+batched over the O V2F rows with numpy (no per-vehicle Python loops).
+
+Mapping of the equations to code (one BPA-L iteration n, :func:`bpa_localization`):
+
+* (11)/(12) prior beliefs b^(0): supplied by the caller (GNSS-updated vehicle
+  prediction; predicted feature tracks, uniform -- zero information -- for a
+  feature nobody tracked before).
+* (19) vehicle -> feature message. The cavity b_i^(n-1) / m_{k->i}^(n-1) is
+  Lambda_i - Lambda_{k->i}; integrating the likelihood over x_Vi gives
+  x_Fk ~ N(m_cav + z_ik, P_cav + R_ik)  (:func:`relative_message`, offset +z).
+* (20) feature belief b_k = b_k^(0) prod_{i in V_k} m_{i->k}: the product is a
+  sum of information, computed *by average consensus* among the vehicles that
+  sense k, over the V2V links between them (:func:`consensus_graph`): every
+  participant holds its own message, the consensus average is multiplied by
+  the number of participants of its component |V_k ∩ C| and the prior
+  information b_k^(0) (shared track, held by every participant) is added
+  locally. Each participant ends with its own copy of b_k; with finitely many
+  consensus rounds the copies differ.
+* (21) feature -> vehicle message: vehicle i divides its copy of b_k by its own
+  message (extrinsic information Lambda_k - Lambda_{i->k}) and integrates the
+  likelihood over x_Fk: x_Vi ~ N(m_ext - z_ik, P_ext + R_ik).
+* (22) vehicle belief b_i = b_i^(0) prod_k m_{k->i}: information sum over the
+  vehicle's rows (a sparse (N, O) incidence product).
+
+Iterations stop by the rule of Sec. V-A: every vehicle's position mean moved
+by less than ``stop_pos_m`` and its velocity by less than ``stop_vel_mps``
+(the global "all vehicles" test a max consensus would give), or after
+``bpa_max_iterations``.
+
+Consensus design: the per-feature groups are run in *one* call of
+:func:`coloc.consensus.average_consensus` on a graph whose nodes are the V2F
+rows: rows (i, k) and (j, k) are linked iff vehicles i and j are V2V
+neighbours. Its Metropolis weights are exactly those of each feature's
+participant-induced subgraph, so one numba kernel runs every feature's
+consensus at once (cost O(iterations * edges * 20)). The participant count
+|V_k ∩ C| is the size of the row's connected component; a vehicle learns it
+exactly by flooding participant ids for diameter-many rounds (a max
+consensus), which we compute directly with ``connected_components``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from coloc.consensus import average_consensus, connected_components
+from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
+
+__all__ = [
+    "IcpParams",
+    "BpaResult",
+    "FeatureStore",
+    "to_information",
+    "from_information",
+    "relative_message",
+    "psd_clip",
+    "consensus_graph",
+    "row_components",
+    "bpa_localization",
+    "validate_association",
+]
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """Parameters of the Gaussian ICP (BPA-L with consensus).
+
+    ``feature_sigma_par`` / ``feature_sigma_perp``: velocity random walk of
+    model (2), m/s per step (Q_F = G diag(sv_par^2, sv_perp^2) G^T). Static
+    features get a small default, sv_par = 0.01 m/s (the crossroad rule
+    sv_par = vf/100 at vf = 1 m/s) so that tracks stay slightly open and their
+    information does not grow without bound; sv_perp defaults to sv_par/2.
+    A feature whose estimated speed is below ``feature_heading_min_speed``
+    has no trusted heading and gets the isotropic Q_F (sv_par on both axes).
+
+    A feature track no vehicle observed for more than
+    ``feature_drop_after_s`` seconds is dropped (the paper resets an unobserved
+    feature to a uniform belief; keeping it a while lets vehicles arriving
+    later reuse what earlier vehicles learned).
+    """
+
+    motion: MotionParams = field(default_factory=MotionParams)
+    consensus_iterations: int = 20
+    bpa_max_iterations: int = 10
+    stop_pos_m: float = 0.1
+    stop_vel_mps: float = 0.1
+    feature_sigma_par: float = 0.01
+    feature_sigma_perp: float | None = None
+    feature_heading_min_speed: float = 0.5
+    feature_drop_after_s: float = 10.0
+
+    def __post_init__(self):
+        if self.consensus_iterations < 0:
+            raise ValueError("consensus_iterations must be >= 0")
+        if self.bpa_max_iterations < 1:
+            raise ValueError("bpa_max_iterations must be >= 1")
+        if self.stop_pos_m < 0 or self.stop_vel_mps < 0:
+            raise ValueError("stopping thresholds must be >= 0")
+        if self.feature_sigma_par < 0 or (self.feature_sigma_perp is not None and self.feature_sigma_perp < 0):
+            raise ValueError("feature driving noise must be >= 0")
+        if self.feature_drop_after_s < 0:
+            raise ValueError("feature_drop_after_s must be >= 0")
+
+    @property
+    def feature_sigma_perp_value(self) -> float:
+        return self.feature_sigma_par / 2 if self.feature_sigma_perp is None else self.feature_sigma_perp
+
+
+# ----------------------------------------------------------------------------- Gaussian algebra
+
+
+def _inv_spd(m: np.ndarray) -> np.ndarray:
+    return symmetrize(np.linalg.inv(m))
+
+
+def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean (..,4), cov (..,4,4)) -> (Lambda, eta) = (P^-1, P^-1 m)."""
+    lam = _inv_spd(cov)
+    return lam, np.einsum("...ij,...j->...i", lam, mean)
+
+
+def from_information(lam: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Lambda, eta) -> (mean, cov); Lambda must be positive definite."""
+    cov = _inv_spd(lam)
+    return np.einsum("...ij,...j->...i", cov, eta), cov
+
+
+def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Project information matrices on the PSD cone (eigenvalues < floor -> floor).
+
+    Only needed for extrinsic information after *finite* consensus: count *
+    average - own message can be slightly indefinite. The eta component along
+    a clipped direction is removed too (no information -> no mean there).
+    """
+    w, v = np.linalg.eigh(symmetrize(lam))
+    bad = w < floor
+    if not bad.any():
+        return lam, eta
+    keep = ~bad
+    w = np.where(keep, w, floor)
+    lam_c = np.einsum("...ik,...k,...jk->...ij", v, w, v)
+    # Remove the part of eta in the clipped eigen-directions.
+    coef = np.einsum("...ki,...k->...i", v, eta) * keep
+    eta_c = np.einsum("...ik,...k->...i", v, coef)
+    return symmetrize(lam_c), eta_c
+
+
+def relative_message(
+    lam: np.ndarray, eta: np.ndarray, offset: np.ndarray, r: np.ndarray, r_inv: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Information form of y = x + offset + n, x ~ (Lambda, eta), n ~ N(0, R), batched.
+
+    This is the integral in (19) (offset +z: x_F = x_V + z) and (21)
+    (offset -z: x_V = x_F - z) of a Gaussian belief against the V2F likelihood
+    of model (4). Moments: N(m + offset, P + R). Computed without inverting
+    Lambda so that a singular Lambda (uniform belief, e.g. a feature seen for
+    the first time) gives the zero message:
+        S = Lambda + R^-1,  Lambda_y = (P + R)^-1 = Lambda S^-1 R^-1,
+        eta_y = R^-1 S^-1 eta + Lambda_y offset.
+    """
+    if r_inv is None:
+        r_inv = _inv_spd(r)
+    s = lam + r_inv
+    s_inv = _inv_spd(s)
+    lam_y = symmetrize(lam @ s_inv @ r_inv)
+    eta_y = np.einsum("nij,nj->ni", r_inv @ s_inv, eta) + np.einsum("nij,nj->ni", lam_y, offset)
+    return lam_y, eta_y
+
+
+# ----------------------------------------------------------------------------- consensus groups
+
+
+def consensus_graph(owner: np.ndarray, group: np.ndarray, adjacency: sp.spmatrix) -> sp.csr_matrix:
+    """(O, O) graph on V2F rows: rows (i, k), (j, k) linked iff i, j are V2V neighbours.
+
+    ``group`` (O,) is the feature each row is paired with (rows with group < 0
+    take no part: no edges). One average consensus on this graph equals one
+    consensus per feature restricted to the vehicles sensing it.
+    """
+    owner = np.asarray(owner, dtype=np.int64)
+    group = np.asarray(group, dtype=np.int64)
+    o = owner.size
+    n = adjacency.shape[0]
+    if o == 0:
+        return sp.csr_matrix((0, 0), dtype=bool)
+    used = group >= 0
+    rows_idx = np.flatnonzero(used)
+    own = sp.csr_matrix((np.ones(rows_idx.size), (rows_idx, owner[used])), shape=(o, n))
+    _, g = np.unique(group[used], return_inverse=True)
+    feat = sp.csr_matrix((np.ones(rows_idx.size), (rows_idx, g)), shape=(o, int(g.max()) + 1 if g.size else 0))
+    adj = sp.csr_matrix(adjacency, dtype=np.float64)
+    linked = (own @ adj @ own.T).multiply(feat @ feat.T)
+    out = sp.csr_matrix(linked, dtype=bool)
+    out.setdiag(False)
+    out.eliminate_zeros()
+    out.sort_indices()
+    return out
+
+
+def row_components(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """Component label and size (participant count |V_k ∩ C|) of every row."""
+    n_comp, labels = connected_components(graph)
+    sizes = np.bincount(labels, minlength=n_comp).astype(np.float64) if labels.size else np.zeros(0)
+    return labels, sizes[labels] if labels.size else np.zeros(0)
+
+
+def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
+    """Check a per-row feature id array; returns it as int64.
+
+    Ids are stable integers (>= 0) across steps; -1 marks a row that is not
+    used. A vehicle cannot measure the same feature twice in one step.
+    """
+    f = np.asarray(feature)
+    if f.shape != (n_rows,):
+        raise ValueError(f"association must have one entry per V2F row: shape ({n_rows},), got {f.shape}")
+    if n_rows and not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"association must be integer feature ids, got dtype {f.dtype}")
+    f = f.astype(np.int64)
+    if (f < -1).any():
+        raise ValueError("association ids must be >= 0 (or -1 for an unused row)")
+    used = f >= 0
+    if used.any():
+        pairs = np.stack([np.asarray(owner)[used], f[used]], axis=1)
+        if np.unique(pairs, axis=0).shape[0] != pairs.shape[0]:
+            raise ValueError("a vehicle has two V2F rows associated with the same feature")
+    return f
+
+
+# ----------------------------------------------------------------------------- feature tracks
+
+
+@dataclass
+class FeatureStore:
+    """Feature beliefs kept between steps: stable ids, Gaussian moments, last time observed."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+    cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
+    last_seen: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+    def feature_q(self, dt: float, params: IcpParams) -> np.ndarray:
+        """Q_F of model (2) for every track, isotropic below the heading speed."""
+        v = self.mean[:, 2:].copy()
+        slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
+        v[slow] = 0.0
+        return feature_noise_cov(v, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
+
+    def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
+        """Eq. (12): prediction of every track by model (2) (no input)."""
+        if self.ids.size == 0:
+            return self
+        q = self.feature_q(dt, params)
+        m, p = predict(self.mean, self.cov, np.zeros((self.ids.size, 2)), dt, q)
+        return FeatureStore(self.ids, m, p, self.last_seen)
+
+    def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
+        keep = (t - self.last_seen) <= params.feature_drop_after_s
+        return FeatureStore(self.ids[keep], self.mean[keep], self.cov[keep], self.last_seen[keep])
+
+    def lookup(self, feature_ids: np.ndarray) -> np.ndarray:
+        """Row of each id in the store, -1 where absent."""
+        if self.ids.size == 0:
+            return np.full(len(feature_ids), -1, dtype=np.int64)
+        order = np.argsort(self.ids)
+        pos = np.searchsorted(self.ids[order], feature_ids)
+        pos = np.minimum(pos, self.ids.size - 1)
+        hit = self.ids[order][pos] == feature_ids
+        return np.where(hit, order[pos], -1)
+
+    def prior_information(self, feature_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Information of b_k^(0) for the given ids; a new feature has a uniform prior (zeros)."""
+        k = len(feature_ids)
+        lam = np.zeros((k, 4, 4))
+        eta = np.zeros((k, 4))
+        idx = self.lookup(feature_ids)
+        have = idx >= 0
+        if have.any():
+            lam[have], eta[have] = to_information(self.mean[idx[have]], self.cov[idx[have]])
+        return lam, eta
+
+    def upsert(self, feature_ids: np.ndarray, mean: np.ndarray, cov: np.ndarray, t: float) -> "FeatureStore":
+        """Replace (or add) the beliefs of the observed ids and mark them seen at t."""
+        idx = self.lookup(feature_ids)
+        ids, m, p, seen = self.ids.copy(), self.mean.copy(), self.cov.copy(), self.last_seen.copy()
+        have = idx >= 0
+        m[idx[have]], p[idx[have]], seen[idx[have]] = mean[have], cov[have], t
+        new = ~have
+        ids = np.concatenate([ids, np.asarray(feature_ids, dtype=np.int64)[new]])
+        m = np.concatenate([m, mean[new]])
+        p = np.concatenate([p, cov[new]])
+        seen = np.concatenate([seen, np.full(int(new.sum()), float(t))])
+        order = np.argsort(ids, kind="stable")
+        return FeatureStore(ids[order], m[order], p[order], seen[order])
+
+
+# ----------------------------------------------------------------------------- BPA-L
+
+
+@dataclass(frozen=True)
+class BpaResult:
+    mean: np.ndarray  # (N, 4) vehicle beliefs (22)
+    cov: np.ndarray  # (N, 4, 4)
+    feature_ids: np.ndarray  # (K,) ids of the features observed this step (sorted)
+    feature_mean: np.ndarray  # (K, 4) merged feature beliefs (20) carried to the next step
+    feature_cov: np.ndarray  # (K, 4, 4)
+    iterations: int
+    converged: bool
+
+
+def _pack(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
+    return np.concatenate([lam.reshape(lam.shape[0], 16), eta], axis=1)
+
+
+def _unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return symmetrize(x[:, :16].reshape(-1, 4, 4)), x[:, 16:]
+
+
+def bpa_localization(
+    prior_mean: np.ndarray,
+    prior_cov: np.ndarray,
+    owner: np.ndarray,
+    feature: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    adjacency: sp.spmatrix,
+    features: FeatureStore,
+    params: IcpParams,
+) -> BpaResult:
+    """Gaussian BPA-L, eqs. (19)-(22), with the feature product (20) by consensus.
+
+    ``prior_mean``/``prior_cov`` (N, ...): b_i^(0) of (11) (GNSS-updated
+    prediction). ``owner``/``feature``/``z``/``r`` (O, ...): the V2F rows with
+    their stable feature ids (-1 = row not used). ``features`` holds the
+    predicted tracks b_k^(0) of (12) (ids not in it start uniform).
+    Vehicles without used rows keep b^(0) exactly.
+    """
+    n = prior_mean.shape[0]
+    feature = np.asarray(feature, dtype=np.int64)
+    used = feature >= 0
+    owner_u = np.asarray(owner, dtype=np.int64)[used]
+    feat_u = feature[used]
+    z_u = np.asarray(z, dtype=float)[used]
+    r_u = np.asarray(r, dtype=float)[used]
+    o = owner_u.size
+    empty = np.empty(0, dtype=np.int64)
+    if o == 0 or n == 0:
+        return BpaResult(prior_mean.copy(), prior_cov.copy(), empty, np.empty((0, 4)), np.empty((0, 4, 4)), 0, True)
+
+    fids, fidx = np.unique(feat_u, return_inverse=True)
+    f_lam0, f_eta0 = features.prior_information(fids)
+    lam_f0_row, eta_f0_row = f_lam0[fidx], f_eta0[fidx]
+
+    graph = consensus_graph(owner_u, feat_u, adjacency)
+    _, count = row_components(graph)
+    incidence = sp.csr_matrix((np.ones(o), (owner_u, np.arange(o))), shape=(n, o))
+    r_inv = _inv_spd(r_u)
+
+    v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
+    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
+    mean = prior_mean.copy()
+    # m_{k->i}^(0) = 1 (zero information).
+    m_fv_lam = np.zeros((o, 4, 4))
+    m_fv_eta = np.zeros((o, 4))
+    converged = False
+    it = 0
+    avg_lam = avg_eta = None
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): cavity b_i^(n-1) / m_{k->i}^(n-1), then integrate the likelihood over x_V.
+        cav_lam = v_lam[owner_u] - m_fv_lam
+        cav_eta = v_eta[owner_u] - m_fv_eta
+        m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
+        avg = average_consensus(_pack(m_vf_lam, m_vf_eta), graph, params.consensus_iterations)
+        avg_lam, avg_eta = _unpack(avg)
+        loc_lam = lam_f0_row + count[:, None, None] * avg_lam
+        loc_eta = eta_f0_row + count[:, None] * avg_eta
+        # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
+        ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
+        m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
+        # (22): b_i = b_i^(0) prod_k m_{k->i}.
+        v_lam = symmetrize(v_lam0 + (incidence @ m_fv_lam.reshape(o, 16)).reshape(n, 4, 4))
+        v_eta = v_eta0 + incidence @ m_fv_eta
+        new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
+        dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
+        dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
+        mean = new_mean
+        # Stopping rule of Sec. V-A (all vehicles).
+        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
+            converged = True
+            break
+
+    mean, cov = from_information(v_lam, v_eta)
+    alone = np.bincount(owner_u, minlength=n) == 0
+    mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]
+
+    # Track carried to the next step: the mean of the participants' local copies of (20),
+    # i.e. the prior plus the sum of the consensus averages (consensus preserves each
+    # component's sum, so this is prior + sum of all final messages; separate components
+    # sensing the same feature contribute their independent evidence).
+    k = fids.size
+    sum_lam = np.zeros((k, 16))
+    sum_eta = np.zeros((k, 4))
+    np.add.at(sum_lam, fidx, avg_lam.reshape(o, 16))
+    np.add.at(sum_eta, fidx, avg_eta)
+    f_mean, f_cov = from_information(symmetrize(f_lam0 + sum_lam.reshape(k, 4, 4)), f_eta0 + sum_eta)
+    return BpaResult(mean, cov, fids, f_mean, f_cov, it, converged)

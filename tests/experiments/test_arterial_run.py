@@ -1,0 +1,67 @@
+"""`coloc run` on the shipped arterial: a short run always, the full hour of both controls as `slow`."""
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from experiments.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "experiments"
+
+
+def demand_profile_vph() -> np.ndarray:
+    """Vehicles inserted per 5-minute bin according to demand.rou.xml, as veh/h."""
+    root = ET.parse(ROOT / "sumo_nets" / "arterial" / "demand.rou.xml").getroot()
+    bins = np.zeros(12)
+    for flow in root.iter("flow"):
+        begin, end = float(flow.get("begin")), float(flow.get("end"))
+        if flow.get("number") is not None:
+            n = float(flow.get("number"))
+        elif flow.get("vehsPerHour") is not None:
+            n = float(flow.get("vehsPerHour")) * (end - begin) / 3600.0
+        else:
+            n = (end - begin) / float(flow.get("period"))
+        bins[min(int(begin // 300), 11)] += n
+    return bins * 12.0
+
+
+def test_short_arterial_run(tmp_path):
+    out = tmp_path / "tlr"
+    assert main(["run", str(CONFIGS / "arterial_tlr.toml"), "--out", str(out), "--duration", "300", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    zones = summary["methods"]["gnss"]["by_zone"]
+    assert set(zones) == {"A", "B", "C"}
+    assert zones["C"]["rmse_pos_m"] > zones["A"]["rmse_pos_m"]
+    est = pd.read_parquet(out / "estimates.parquet")
+    assert set(est["area"]) <= {"1", "2", "3", "4", "5", "6"}
+    assert est["t"].max() == pytest.approx(300.0)
+
+
+@pytest.mark.slow
+def test_full_hour_tlr_vs_vsr(tmp_path):
+    """Issue 2's claims on the full hour: TLR holds more vehicles and longer queues than VSR,
+    both exit flows follow the demand profile, GNSS error orders by zone (C worst, A best)."""
+    summaries, traffic = {}, {}
+    for control in ("tlr", "vsr"):
+        out = tmp_path / control
+        assert main(["run", str(CONFIGS / f"arterial_{control}.toml"), "--out", str(out), "--quiet"]) == 0
+        summaries[control] = json.loads((out / "summary.json").read_text())
+        traffic[control] = pd.read_parquet(out / "traffic.parquet")
+    tlr, vsr = summaries["tlr"]["traffic"], summaries["vsr"]["traffic"]
+    assert tlr["mean_vehicles"] > 1.2 * vsr["mean_vehicles"]
+    assert tlr["mean_queue"] > 10 * vsr["mean_queue"]
+    assert tlr["stop_time_s_per_km"] > 10 * vsr["stop_time_s_per_km"]
+    demand = demand_profile_vph()
+    assert demand[0] == pytest.approx(2800, rel=0.05) and demand[-1] == pytest.approx(1800, rel=0.05)
+    for control, tr in traffic.items():
+        assert len(tr) == 12
+        # The net starts empty: the first bin fills it. Afterwards exit flow follows demand within 12 %.
+        np.testing.assert_allclose(tr["exit_flow_vph"].to_numpy()[1:], demand[1:], rtol=0.12, err_msg=control)
+        zones = summaries[control]["methods"]["gnss"]["by_zone"]
+        assert zones["C"]["rmse_pos_m"] > zones["B"]["rmse_pos_m"] > zones["A"]["rmse_pos_m"], control
+        assert summaries[control]["traffic"]["teleports"] <= 0.01 * tr["arrived"].sum()
