@@ -47,43 +47,55 @@ def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _radius_graph_csr(xy, radius):
-    """Sort-and-sweep along x: CSR (indptr, indices) of all pairs within ``radius``.
+def _sweep_pairs(xy, order, radius, first, second):
+    """Sort-and-sweep along x over points sorted by ``order``: writes the pairs within
+    ``radius`` into ``first``/``second`` when they are large enough; returns the count."""
+    n = xy.shape[0]
+    r2 = radius * radius
+    count = 0
+    store = first.shape[0] > 0
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            dx = xy[j, 0] - xy[i, 0]
+            if dx > radius:
+                break
+            dy = xy[j, 1] - xy[i, 1]
+            if dx * dx + dy * dy <= r2:
+                if store:
+                    first[count] = i
+                    second[count] = j
+                count += 1
+    return count
 
-    Cost O(N log N + N k), k the vehicles within ``radius`` in x; rows sorted."""
+
+@njit(cache=True)
+def _radius_graph_csr(xy, radius):
+    """CSR (indptr, indices) of all pairs within ``radius``, rows sorted.
+
+    Cost O(N log N + N k), k the vehicles within ``radius`` in x."""
     n = xy.shape[0]
     order = np.argsort(xy[:, 0])
-    r2 = radius * radius
-    deg = np.zeros(n, dtype=np.int64)
-    for a in range(n):
-        i = order[a]
-        for b in range(a + 1, n):
-            j = order[b]
-            dx = xy[j, 0] - xy[i, 0]
-            if dx > radius:
-                break
-            dy = xy[j, 1] - xy[i, 1]
-            if dx * dx + dy * dy <= r2:
-                deg[i] += 1
-                deg[j] += 1
+    empty = np.empty(0, dtype=np.int64)
+    m = _sweep_pairs(xy, order, radius, empty, empty)
+    first = np.empty(m, dtype=np.int64)
+    second = np.empty(m, dtype=np.int64)
+    _sweep_pairs(xy, order, radius, first, second)
     indptr = np.zeros(n + 1, dtype=np.int32)
+    for k in range(m):
+        indptr[first[k] + 1] += 1
+        indptr[second[k] + 1] += 1
     for i in range(n):
-        indptr[i + 1] = indptr[i] + deg[i]
-    indices = np.empty(indptr[n], dtype=np.int32)
+        indptr[i + 1] += indptr[i]
+    indices = np.empty(2 * m, dtype=np.int32)
     fill = indptr[:n].copy()
-    for a in range(n):
-        i = order[a]
-        for b in range(a + 1, n):
-            j = order[b]
-            dx = xy[j, 0] - xy[i, 0]
-            if dx > radius:
-                break
-            dy = xy[j, 1] - xy[i, 1]
-            if dx * dx + dy * dy <= r2:
-                indices[fill[i]] = j
-                fill[i] += 1
-                indices[fill[j]] = i
-                fill[j] += 1
+    for k in range(m):
+        i, j = first[k], second[k]
+        indices[fill[i]] = j
+        fill[i] += 1
+        indices[fill[j]] = i
+        fill[j] += 1
     for i in range(n):
         indices[indptr[i]:indptr[i + 1]].sort()
     return indptr, indices

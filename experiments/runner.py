@@ -106,6 +106,11 @@ class EstimateLog:
         return pd.concat(frames, ignore_index=True)
 
 
+def association_table(rows: list[dict]) -> pd.DataFrame:
+    columns = {"method": "string", "t": "float64", "correct": "int64", "wrong": "int64", "discarded": "int64"}
+    return pd.DataFrame(rows, columns=list(columns)).astype(columns)
+
+
 def write_parquet(df: pd.DataFrame, path: Path) -> None:
     """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd."""
     table = pa.Table.from_pandas(df, preserve_index=False)
@@ -173,6 +178,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
         write_parquet(estimates, tmp / "estimates.parquet")
         write_parquet(traffic, tmp / "traffic.parquet")
+        # Association scoring (correct / wrong / discarded V2F rows per method and step) is
+        # filled by methods that associate; a GNSS-only run writes the schema with no rows.
+        write_parquet(association_table([]), tmp / "association.parquet")
         summary = {
             "config": str(cfg.path),
             "seed": cfg.run.seed,

@@ -53,7 +53,7 @@ def two_runs(cross_net, tmp_path_factory):
 
 def test_run_writes_every_output(two_runs):
     out = two_runs[0]
-    for name in ("config.toml", "estimates.parquet", "traffic.parquet", "summary.json", "report.html"):
+    for name in ("config.toml", "estimates.parquet", "association.parquet", "traffic.parquet", "summary.json", "report.html"):
         assert (out / name).is_file(), name
     est = pd.read_parquet(out / "estimates.parquet")
     expected = ["run", "method", "t", "vehicle", "px", "py", "vx", "vy", "px_true", "py_true", "vx_true", "vy_true",
