@@ -18,7 +18,7 @@ from coloc.models import MotionParams
 from couplers.errors import InputError
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss",)
+KNOWN_METHODS = ("gnss", "icp_known_da")
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,18 @@ class ScenarioSection:
 
 
 @dataclass(frozen=True)
+class IcpSection:
+    """Gaussian ICP (BPA-L with consensus), coloc.icp.IcpParams; motion comes from [motion]."""
+
+    consensus_iterations: int = 20
+    bpa_max_iterations: int = 10
+    stop_pos_m: float = 0.1  # BPA-L stopping rule, Brambilla Sec. V-A
+    stop_vel_mps: float = 0.1
+    feature_sigma_par: float = 0.01  # m/s per step, model (2) for static features
+    feature_drop_after_s: float = 10.0
+
+
+@dataclass(frozen=True)
 class ReportSection:
     track_area: str = "5"  # analysis area of the along/cross-track figure (paper Fig. 18b)
     figures: bool = True
@@ -51,6 +63,7 @@ class Config:
     scenario: ScenarioSection = field(default_factory=ScenarioSection)
     sensors: SensorParams = field(default_factory=SensorParams)
     motion: MotionParams = field(default_factory=MotionParams)
+    icp: IcpSection = field(default_factory=IcpSection)
     report: ReportSection = field(default_factory=ReportSection)
 
     @property
@@ -63,6 +76,7 @@ SECTIONS: dict[str, type] = {
     "scenario": ScenarioSection,
     "sensors": SensorParams,
     "motion": MotionParams,
+    "icp": IcpSection,
     "report": ReportSection,
 }
 
@@ -136,6 +150,13 @@ def _validate(cfg: Config) -> None:
         val = getattr(cfg.sensors, name)
         if val < 0 or (val == 0 and name.startswith(("prior", "v2f_sigma"))):
             raise InputError(p, f"sensors.{name}", "must be positive")
+    if cfg.icp.consensus_iterations < 0:
+        raise InputError(p, "icp.consensus_iterations", "must be >= 0")
+    if cfg.icp.bpa_max_iterations < 1:
+        raise InputError(p, "icp.bpa_max_iterations", "must be >= 1")
+    for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
+        if not getattr(cfg.icp, name) > 0:
+            raise InputError(p, f"icp.{name}", "must be positive")
     for name in ("sigma_along", "sigma_cross"):
         if not getattr(cfg.motion, name) > 0:
             raise InputError(p, f"motion.{name}", "must be positive")

@@ -6,6 +6,7 @@ hidden sibling folder that is renamed into place at the end.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -23,6 +24,8 @@ from tqdm import tqdm
 
 from coloc.frame import Frame, StepEstimate
 from coloc.gnss import GnssTracker
+from coloc.icp import IcpParams
+from coloc.icp_known_da import IcpKnownDA
 from couplers.errors import InputError
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
@@ -31,12 +34,15 @@ from experiments.config import Config, config_to_toml
 from experiments.scoring import along_cross_errors, method_summary, traffic_summary
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
+KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da"})
 
 
 def build_estimators(cfg: Config) -> list:
     """Estimator objects for ``cfg.run.methods``, in that order."""
+    icp = IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp))
     factories = {
         "gnss": lambda: GnssTracker(motion=cfg.motion),
+        "icp_known_da": lambda: IcpKnownDA(params=icp),
     }
     return [factories[m]() for m in cfg.run.methods]
 
@@ -63,6 +69,7 @@ class EstimateLog:
 
     truth_parts: list = field(default_factory=list)
     method_parts: dict = field(default_factory=dict)
+    feature_parts: list = field(default_factory=list)
 
     def add_truth(self, frame: Frame) -> None:
         tr = frame.truth
@@ -74,6 +81,27 @@ class EstimateLog:
         self.method_parts.setdefault(method, []).append(
             (est.mean, est.cov[:, 0, 0], est.cov[:, 1, 1])
         )
+
+    def add_features(self, method: str, frame: Frame, est: StepEstimate) -> None:
+        """Feature-track errors; track ids of known-DA methods are true feature indices."""
+        if est.feature_mean is None or est.feature_track_ids is None or est.feature_mean.shape[0] == 0:
+            return
+        ids = np.asarray(est.feature_track_ids, dtype=np.int64)
+        err = est.feature_mean[:, :2] - frame.truth.features_true[ids, :2]
+        self.feature_parts.append((method, frame.t, ids, np.hypot(err[:, 0], err[:, 1])))
+
+    def feature_table(self) -> pd.DataFrame:
+        cols = {"method": "string", "t": "float64", "track": "int64", "err_pos": "float64"}
+        if not self.feature_parts:
+            return pd.DataFrame(columns=list(cols)).astype(cols)
+        return pd.DataFrame(
+            {
+                "method": np.concatenate([np.full(ids.size, m, dtype=object) for m, _, ids, _ in self.feature_parts]),
+                "t": np.concatenate([np.full(ids.size, t) for _, t, ids, _ in self.feature_parts]),
+                "track": np.concatenate([ids for _, _, ids, _ in self.feature_parts]),
+                "err_pos": np.concatenate([e for _, _, _, e in self.feature_parts]),
+            }
+        ).astype(cols)
 
     def table(self, run_name: str) -> pd.DataFrame:
         if not self.truth_parts:
@@ -169,8 +197,14 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 blind = frame.without_truth()
                 for est in estimators:
                     t0 = time.perf_counter()
-                    log.add(est.name, est.step(blind))
+                    if est.name in KNOWN_ASSOCIATION_METHODS:
+                        # The bound is told the true association, by the runner, never from the frame.
+                        res = est.step_with_association(blind, frame.truth.v2f_feature)
+                    else:
+                        res = est.step(blind)
                     seconds[est.name] += time.perf_counter() - t0
+                    log.add(est.name, res)
+                    log.add_features(est.name, frame, res)
         wall = time.perf_counter() - t_start
         traffic = pd.DataFrame(coupler.traffic.stats.rows)
         estimates = log.table(cfg.run.name)
@@ -181,6 +215,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         # Association scoring (correct / wrong / discarded V2F rows per method and step) is
         # filled by methods that associate; a GNSS-only run writes the schema with no rows.
         write_parquet(association_table([]), tmp / "association.parquet")
+        features = log.feature_table()
+        if len(features):
+            write_parquet(features, tmp / "features.parquet")
         summary = {
             "config": str(cfg.path),
             "seed": cfg.run.seed,
@@ -194,6 +231,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         for method in cfg.run.methods:
             block = method_summary(estimates[estimates["method"] == method])
             block["seconds"] = seconds[method]
+            feat = features[features["method"] == method]["err_pos"].to_numpy()
+            if feat.size:
+                block["features"] = {"rmse_pos_m": float(np.sqrt(np.mean(feat**2))), "p95_pos_m": float(np.quantile(feat, 0.95)), "n": int(feat.size)}
             summary["methods"][method] = block
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:

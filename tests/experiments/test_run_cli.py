@@ -151,3 +151,17 @@ def test_failed_run_keeps_previous_output(cross_net, tmp_path):
     cfg.write_text(cfg.read_text().replace('control = "tlr"', 'control = "allgreen"'))
     assert main(["run", str(cfg), "--out", str(out), "--quiet"]) == 2
     assert (out / "keep.txt").read_text() == "old"
+
+
+def test_known_association_bound_runs_and_reports_features(cross_net, tmp_path):
+    """icp_known_da gets the true association from the runner (not the frame) and its
+    feature-track errors land in features.parquet and summary.json."""
+    cfg = write_config(tmp_path, cross_net, duration=60.0, extra="[icp]\nconsensus_iterations = 30\n")
+    out = tmp_path / "out"
+    assert main(["run", str(cfg), "--out", str(out), "--methods", "gnss,icp_known_da", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["methods"]) == {"gnss", "icp_known_da"}
+    feats = pd.read_parquet(out / "features.parquet")
+    assert set(feats["method"]) == {"icp_known_da"} and len(feats) > 0
+    assert summary["methods"]["icp_known_da"]["features"]["n"] == len(feats)
+    assert "consensus_iterations = 30" in (out / "config.toml").read_text()
