@@ -31,7 +31,7 @@ from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from couplers.sumo_traffic import sumo_version
 from experiments.config import Config, config_to_toml
-from experiments.scoring import along_cross_errors, method_summary, traffic_summary
+from experiments.scoring import along_cross_errors, feature_summary, method_summary, traffic_summary
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da"})
@@ -134,9 +134,10 @@ class EstimateLog:
         return pd.concat(frames, ignore_index=True)
 
 
-def association_table(rows: list[dict]) -> pd.DataFrame:
+def empty_association_table() -> pd.DataFrame:
+    """The association.parquet schema (correct / wrong / discarded V2F rows per method and step)."""
     columns = {"method": "string", "t": "float64", "correct": "int64", "wrong": "int64", "discarded": "int64"}
-    return pd.DataFrame(rows, columns=list(columns)).astype(columns)
+    return pd.DataFrame(columns=list(columns)).astype(columns)
 
 
 def write_parquet(df: pd.DataFrame, path: Path) -> None:
@@ -214,7 +215,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         write_parquet(traffic, tmp / "traffic.parquet")
         # Association scoring (correct / wrong / discarded V2F rows per method and step) is
         # filled by methods that associate; a GNSS-only run writes the schema with no rows.
-        write_parquet(association_table([]), tmp / "association.parquet")
+        write_parquet(empty_association_table(), tmp / "association.parquet")
         features = log.feature_table()
         if len(features):
             write_parquet(features, tmp / "features.parquet")
@@ -233,7 +234,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             block["seconds"] = seconds[method]
             feat = features[features["method"] == method]["err_pos"].to_numpy()
             if feat.size:
-                block["features"] = {"rmse_pos_m": float(np.sqrt(np.mean(feat**2))), "p95_pos_m": float(np.quantile(feat, 0.95)), "n": int(feat.size)}
+                block["features"] = feature_summary(feat)
             summary["methods"][method] = block
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:

@@ -56,6 +56,11 @@ def method_summary(est: pd.DataFrame) -> dict:
     return _nan_to_none(out)
 
 
+def feature_summary(err_pos: np.ndarray) -> dict:
+    """summary.json "features" block of a method: accuracy of its feature estimates."""
+    return {"rmse_pos_m": _rmse(err_pos), "p95_pos_m": _q(err_pos, 0.95), "n": int(np.asarray(err_pos).size)}
+
+
 def traffic_summary(traffic: pd.DataFrame) -> dict:
     """Whole-run traffic figures from the 5-minute rows (time-weighted)."""
     if traffic.empty:
