@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.frame import Frame, StepEstimate
-from coloc.icp import FeatureStore, IcpParams, validate_association
+from coloc.icp import IcpParams, feature_track_q, validate_association
 from coloc.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
 from coloc.vehicles import match_ids
 
@@ -98,8 +98,7 @@ def centralized_step(
         p = np.einsum("ij,ajbk,lk->aibl", a, pv, a).reshape(4 * m, 4 * m)
         # Q of model (1) oriented by the previous posterior velocity, as in the GNSS tracker.
         q_v = driving_noise_cov(x.reshape(-1, 4)[:ns, 2:], dt, params.motion)
-        fstore = FeatureStore(state.feature_ids, x.reshape(-1, 4)[ns:], np.zeros((k_prev, 4, 4)), state.feature_last_seen)
-        q_f = fstore.feature_q(dt, params)
+        q_f = feature_track_q(x.reshape(-1, 4)[ns:], dt, params)
         _block_diag_add(p, q_v, 0)
         _block_diag_add(p, q_f, ns)
         x = xb.ravel()
@@ -190,7 +189,8 @@ def _add_v2f_information(lam, eta, n, feature_ids, owner, assoc, z, r) -> None:
 def one_step_joint(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
-    features: FeatureStore,
+    feature_prior_lam: np.ndarray,
+    feature_prior_eta: np.ndarray,
     owner: np.ndarray,
     assoc: np.ndarray,
     z: np.ndarray,
@@ -199,7 +199,8 @@ def one_step_joint(
     """Exact marginals of b^(0)_V x b^(0)_F x prod of V2F likelihoods (one time step).
 
     The product prior is the one BPA-L starts from in (11)-(12) (independent
-    vehicle and feature beliefs; features absent from ``features`` uniform), so
+    vehicle and feature beliefs; ``feature_prior_*`` in information form for the
+    sorted unique ids of the used rows, zeros = uniform), so
     converged Gaussian BP with exact consensus must reproduce these means.
     Returns (vehicle mean (N,4), vehicle cov (N,4,4), feature ids (K,), feature
     mean (K,4), feature cov (K,4,4)) for the features observed in the step.
@@ -214,9 +215,8 @@ def one_step_joint(
     lv0 = symmetrize(np.linalg.inv(prior_cov))
     _block_diag_add(lam, lv0, 0)
     eta[: 4 * n] = np.einsum("nij,nj->ni", lv0, prior_mean).ravel()
-    fl, fe = features.prior_information(fids)
-    _block_diag_add(lam, fl, n)
-    eta[4 * n :] = fe.ravel()
+    _block_diag_add(lam, feature_prior_lam, n)
+    eta[4 * n :] = feature_prior_eta.ravel()
     _add_v2f_information(lam, eta, n, fids, owner, assoc, z, r)
     cov = symmetrize(np.linalg.inv(symmetrize(lam)))
     mean = (cov @ eta).reshape(m, 4)

@@ -19,12 +19,17 @@ Per step:
    update -> b^(0) of (11); vehicles fresh this step start from the frame's
    fast-start prior (updated by GNSS, not predicted), exactly as
    :class:`coloc.gnss.GnssTracker`;
-2. features: tracks predicted by model (2) with Q_F -> b^(0) of (12); a
-   feature seen for the first time starts from a uniform belief;
+   the vehicle's own-sensor track (GNSS + inertial only) is advanced the
+   same way; it is what the vehicle tells features in (19)
+   (:func:`coloc.icp.bpa_localization` explains why);
+2. features: tracks predicted by model (2) with Q_F -> b^(0) of (12),
+   without the messages the observing vehicles are about to replace; a
+   feature seen for the first time starts from the birth prior (uniform by
+   default);
 3. BPA-L iterations until the stopping rule of Sec. V-A;
-4. tracks of the features observed are replaced by the fused belief; tracks
-   nobody observed keep their last belief (predicted every step) and are
-   dropped after ``feature_drop_after_s``.
+4. each observing vehicle's final message replaces its previous one in the
+   track (:class:`coloc.icp.FeatureStore`); tracks nobody observed are
+   predicted every step and dropped after ``feature_drop_after_s``.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, vali
 from coloc.models import kalman_update
 from coloc.vehicles import carry_states
 
-__all__ = ["IcpKnownDA", "IcpParams", "vehicle_prior_beliefs", "icp_known_da_step"]
+__all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
 
 
 def vehicle_prior_beliefs(
@@ -59,28 +64,45 @@ def vehicle_prior_beliefs(
     return mean, cov
 
 
-def icp_known_da_step(
-    prev_ids: np.ndarray,
-    prev_mean: np.ndarray,
-    prev_cov: np.ndarray,
-    features: FeatureStore,
-    frame: Frame,
-    v2f_feature: np.ndarray,
-    params: IcpParams,
-) -> tuple[BpaResult, FeatureStore]:
-    """One time step of ICP with known association (pure function).
-
-    ``features`` is the track store after the previous step (not yet
-    predicted). Returns the BPA-L result and the updated store.
-    """
+def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams) -> tuple[BpaResult, "IcpState"]:
+    """One time step of ICP with known association (pure function of the previous state)."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
-    b0_mean, b0_cov = vehicle_prior_beliefs(prev_ids, prev_mean, prev_cov, frame, params)
-    predicted = features.predict(frame.dt, params)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params)
+    predicted = state.features.predict(frame.dt, params)
+    used = assoc >= 0
+    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[np.asarray(frame.v2f_owner, dtype=np.int64)[used]]
+    fids = np.unique(assoc[used])
+    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params)
     res = bpa_localization(
-        b0_mean, b0_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors, predicted, params
+        b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
+        f_lam0, f_eta0, params,
     )
-    store = predicted.upsert(res.feature_ids, res.feature_mean, res.feature_cov, frame.t).drop_stale(frame.t, params)
-    return res, store
+    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params)
+    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store)
+
+
+@dataclass(frozen=True)
+class IcpState:
+    """What a Gaussian ICP carries between steps (vehicle rows in ``ids`` order)."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
+    mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # beliefs (22)
+    cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
+    own_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # own-sensor (GNSS-only) beliefs
+    own_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
+    features: FeatureStore = field(default_factory=FeatureStore)
+
+    def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
+        f_mean, f_cov = self.features.moments(params)
+        return StepEstimate(
+            mean=self.mean.copy(),
+            cov=self.cov.copy(),
+            feature_mean=f_mean,
+            feature_cov=f_cov,
+            feature_track_ids=self.features.ids.copy(),
+            v2f_assignment=np.asarray(v2f_assignment, dtype=np.int64).copy(),
+        )
 
 
 @dataclass
@@ -91,10 +113,7 @@ class IcpKnownDA:
     name: str = "icp_known_da"
     last_iterations: int = 0
     last_converged: bool = True
-    _ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
-    _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
-    _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
-    _features: FeatureStore = field(default_factory=FeatureStore)
+    state: IcpState = field(default_factory=IcpState)
 
     def step(self, frame: Frame) -> StepEstimate:
         raise TypeError(
@@ -104,17 +123,6 @@ class IcpKnownDA:
         )
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
-        res, store = icp_known_da_step(
-            self._ids, self._mean, self._cov, self._features, frame, v2f_feature, self.params
-        )
-        self._ids, self._mean, self._cov, self._features = frame.vehicle_ids, res.mean, res.cov, store
+        res, self.state = icp_known_da_step(self.state, frame, v2f_feature, self.params)
         self.last_iterations, self.last_converged = res.iterations, res.converged
-        assoc = np.asarray(v2f_feature, dtype=np.int64).copy()
-        return StepEstimate(
-            mean=res.mean.copy(),
-            cov=res.cov.copy(),
-            feature_mean=store.mean.copy(),
-            feature_cov=store.cov.copy(),
-            feature_track_ids=store.ids.copy(),
-            v2f_assignment=assoc,
-        )
+        return self.state.estimate(v2f_feature, self.params)

@@ -18,13 +18,14 @@ from coloc.gnss import GnssTracker
 from coloc.icp import (
     FeatureStore,
     IcpParams,
+    birth_information,
     bpa_localization,
     consensus_graph,
     relative_message,
     row_components,
     validate_association,
 )
-from coloc.icp_known_da import IcpKnownDA, vehicle_prior_beliefs
+from coloc.icp_known_da import IcpKnownDA, IcpState, vehicle_prior_beliefs
 from coloc.models import MotionParams, input_matrix, transition_matrix
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
 
@@ -92,20 +93,26 @@ def assert_spd(cov):
 def per_step_gap(frames, params):
     """Run the ICP step by step; at each step compare BPA-L to the exact joint of the same prior (11)-(12).
 
+    BPA-L runs with the paper's own cavity in (19) (own belief = b^(0)), so that
+    converged Gaussian BP must give the one-step joint means.
     Returns per-step (max vehicle position-mean gap, max vehicle covariance gap).
     """
-    ids, mean, cov, store = np.empty(0, dtype=object), np.empty((0, 4)), np.empty((0, 4, 4)), FeatureStore()
+    state = IcpState()
     gaps = []
     for f in frames:
         assert connected_components(f.neighbors)[0] == 1, "the comparison scene must stay connected"
         assoc = f.truth.v2f_feature
-        b0_mean, b0_cov = vehicle_prior_beliefs(ids, mean, cov, f, params)
-        pred = store.predict(f.dt, params)
-        res = bpa_localization(b0_mean, b0_cov, f.v2f_owner, assoc, f.v2f_z, f.v2f_R, f.neighbors, pred, params)
-        jm, jc, _, _, _ = one_step_joint(b0_mean, b0_cov, pred, f.v2f_owner, assoc, f.v2f_z, f.v2f_R)
+        used = assoc >= 0
+        rows_vehicle = f.vehicle_ids[f.v2f_owner[used]]
+        b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, f, params)
+        pred = state.features.predict(f.dt, params)
+        fl, fe = pred.prior_information(np.unique(assoc[used]), assoc[used], rows_vehicle, params)
+        res = bpa_localization(b0_mean, b0_cov, b0_mean, b0_cov, f.v2f_owner, assoc, f.v2f_z, f.v2f_R,
+                               f.neighbors, fl, fe, params)
+        jm, jc, _, _, _ = one_step_joint(b0_mean, b0_cov, fl, fe, f.v2f_owner, assoc, f.v2f_z, f.v2f_R)
         gaps.append((np.abs(res.mean[:, :2] - jm[:, :2]).max(), np.abs(res.cov - jc).max()))
-        ids, mean, cov = f.vehicle_ids, res.mean, res.cov
-        store = pred.upsert(res.feature_ids, res.feature_mean, res.feature_cov, f.t).drop_stale(f.t, params)
+        store = pred.record(assoc[used], rows_vehicle, res.msg_lam, res.msg_eta, f.t, params)
+        state = IcpState(f.vehicle_ids, res.mean, res.cov, b0_mean, b0_cov, store)
     return np.array(gaps)
 
 
