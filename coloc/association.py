@@ -62,6 +62,7 @@ __all__ = [
     "association_marginals_exact",
     "association_marginals_exact_both",
     "bp_association_kernel",
+    "association_marginals_batch",
     "EXACT_MAX_ASSIGNMENTS",
 ]
 
@@ -289,3 +290,41 @@ def association_marginals_exact_both(eta: np.ndarray) -> tuple[np.ndarray, np.nd
 def association_marginals_exact(eta: np.ndarray) -> np.ndarray:
     """Feature-side exact marginals; see :func:`association_marginals_exact_both`."""
     return association_marginals_exact_both(eta)[0]
+
+
+@njit(cache=True)
+def _batch_kernel(eta_flat, k_sizes, m_sizes, eta_offsets, new_offsets, iterations, tol, pf_flat, pn_flat):
+    for p in range(k_sizes.size):
+        k, m1 = k_sizes[p], m_sizes[p] + 1
+        a, b = eta_offsets[p], eta_offsets[p] + k * m1
+        bp_association_kernel(
+            eta_flat[a:b].reshape((k, m1)), iterations, tol,
+            pf_flat[a:b].reshape((k, m1)), pn_flat[new_offsets[p]:new_offsets[p] + m1 - 1],
+        )
+
+
+def association_marginals_batch(
+    eta_flat: np.ndarray, k_sizes: np.ndarray, m_sizes: np.ndarray, iterations: int = 100, tol: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`association_marginals_both` for many independent problems in one numba call.
+
+    Problem p is the (k_sizes[p], m_sizes[p] + 1) block stored row-major at its
+    offset in ``eta_flat`` (blocks back to back). Returns the feature-side
+    marginals in the same flat layout and the measurement "new" marginals
+    concatenated (m_sizes[p] per problem).
+    """
+    eta_flat = np.ascontiguousarray(eta_flat, dtype=np.float64)
+    k_sizes = np.asarray(k_sizes, dtype=np.int64)
+    m_sizes = np.asarray(m_sizes, dtype=np.int64)
+    sizes = k_sizes * (m_sizes + 1)
+    if eta_flat.shape != (int(sizes.sum()),):
+        raise ValueError("eta_flat must hold the problems' blocks back to back")
+    if eta_flat.size and (not np.all(np.isfinite(eta_flat)) or np.any(eta_flat < 0.0)):
+        raise ValueError("eta must be finite and non-negative")
+    eta_offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    new_offsets = np.concatenate([[0], np.cumsum(m_sizes)[:-1]]).astype(np.int64)
+    pf = np.empty_like(eta_flat)
+    pn = np.empty(int(m_sizes.sum()))
+    if k_sizes.size:
+        _batch_kernel(eta_flat, k_sizes, m_sizes, eta_offsets, new_offsets, int(iterations), float(tol), pf, pn)
+    return pf, pn

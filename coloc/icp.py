@@ -450,6 +450,49 @@ class FeatureStore:
             msg_time=msg_time[keep_msg],
         )
 
+    def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
+        """Merge track ``absorbed[j]`` into track ``into[j]`` (ids; every absorbed id distinct, not a target).
+
+        The merged track keeps the target id; folded parts multiply; of two
+        messages of the same vehicle the more recent one is kept (the older
+        is subsumed by it, as in :meth:`record`); last_seen is the later one.
+        """
+        absorbed = np.asarray(absorbed, dtype=np.int64)
+        into = np.asarray(into, dtype=np.int64)
+        if absorbed.size == 0:
+            return self
+        ra, ri = self.lookup(absorbed), self.lookup(into)
+        if (ra < 0).any() or (ri < 0).any() or np.isin(into, absorbed).any():
+            raise ValueError("merge: unknown track id, or a track both absorbed and absorbing")
+        folded_lam, folded_eta, last_seen = self.folded_lam.copy(), self.folded_eta.copy(), self.last_seen.copy()
+        np.add.at(folded_lam, ri, folded_lam[ra])
+        np.add.at(folded_eta, ri, folded_eta[ra])
+        np.maximum.at(last_seen, ri, last_seen[ra])
+        msg_track = self.msg_track.copy()
+        hit = self.lookup(msg_track)
+        remap = np.arange(self.ids.size)
+        remap[ra] = ri
+        msg_track = self.ids[remap[hit]]
+        # One message per (track, vehicle): keep the latest (stable order breaks ties).
+        key, _ = _pair_keys(msg_track, self.msg_vehicle, np.empty(0, np.int64), np.empty(0, dtype=object))
+        order = np.lexsort((-self.msg_time, key))
+        first = np.ones(order.size, bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        keep = np.sort(order[first])
+        live = np.ones(self.ids.size, bool)
+        live[ra] = False
+        return FeatureStore(
+            ids=self.ids[live],
+            last_seen=last_seen[live],
+            folded_lam=symmetrize(folded_lam[live]),
+            folded_eta=folded_eta[live],
+            msg_track=msg_track[keep],
+            msg_vehicle=self.msg_vehicle[keep],
+            msg_mean=self.msg_mean[keep],
+            msg_cov=self.msg_cov[keep],
+            msg_time=self.msg_time[keep],
+        )
+
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""
         empty = np.empty(0, dtype=np.int64)
