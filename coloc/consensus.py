@@ -34,6 +34,7 @@ from scipy.sparse.csgraph import connected_components as _cc
 __all__ = [
     "metropolis_weights",
     "average_consensus",
+    "average_consensus_with_weights",
     "max_consensus",
     "connected_components",
     "restrict_adjacency",
@@ -158,9 +159,22 @@ def average_consensus(
     x = _as_2d(values, n)
     if n == 0 or x.shape[1] == 0 or iterations == 0:
         return x.reshape(values.shape).copy()
-    W = metropolis_weights(A)
+    return average_consensus_with_weights(values, metropolis_weights(A), iterations)
+
+
+def average_consensus_with_weights(values: np.ndarray, weights: sp.csr_matrix, iterations: int) -> np.ndarray:
+    """:func:`average_consensus` with the weight matrix already built (e.g. by
+    :func:`metropolis_weights`), for callers that run several consensus on the
+    same graph (BPA-L iterations within one time step)."""
+    if iterations < 0:
+        raise ValueError("iterations must be >= 0")
+    n = weights.shape[0]
+    values = np.asarray(values)
+    x = _as_2d(values, n)
+    if n == 0 or x.shape[1] == 0 or iterations == 0:
+        return x.reshape(values.shape).copy()
     out = _average_kernel(
-        W.indptr.astype(np.int64), W.indices.astype(np.int64), W.data, x, int(iterations)
+        weights.indptr.astype(np.int64), weights.indices.astype(np.int64), weights.data, x, int(iterations)
     )
     return out.reshape(values.shape)
 

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from coloc.consensus import average_consensus, connected_components
+from coloc.consensus import average_consensus_with_weights, connected_components, metropolis_weights
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
 
 __all__ = [
@@ -572,6 +572,7 @@ def bpa_localization(
 
     graph = consensus_graph(owner_u, feat_u, adjacency)
     _, count = row_components(graph)
+    weights = metropolis_weights(graph)  # one graph for every BPA-L iteration of this step
     incidence = sp.csr_matrix((np.ones(o), (owner_u, np.arange(o))), shape=(n, o))
     r_inv = _inv_spd(r_u)
 
@@ -592,7 +593,9 @@ def bpa_localization(
         cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
         m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
         # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        avg_lam, avg_eta = _unpack(average_consensus(_pack(m_vf_lam, m_vf_eta), graph, params.consensus_iterations))
+        avg_lam, avg_eta = _unpack(
+            average_consensus_with_weights(_pack(m_vf_lam, m_vf_eta), weights, params.consensus_iterations)
+        )
         loc_lam = lam_f0_row + count[:, None, None] * avg_lam
         loc_eta = eta_f0_row + count[:, None] * avg_eta
         # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.

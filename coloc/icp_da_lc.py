@@ -48,6 +48,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
@@ -176,7 +177,9 @@ def map_pairing(
 
     Returns ``(row_track, row_new)``: the track index paired with each row (-1
     = none) and each row's belief of coming from no track (1 for rows of
-    vehicles without candidates).
+    vehicles without gated pairs). One BP problem per vehicle, K_i tracks x
+    (M_i + 1) options, assembled with array operations and solved in one
+    numba call.
     """
     row_track = np.full(n_rows, -1, dtype=np.int64)
     row_new = np.ones(n_rows)
@@ -184,41 +187,55 @@ def map_pairing(
     pv, pt, pr, w = pair_vehicle[keep], pair_track[keep], pair_row[keep], weight[keep]
     if pv.size == 0:
         return row_track, row_new
-    # One BP problem per vehicle with gated pairs: K_i tracks x (M_i + 1) options.
-    probs = np.unique(pv)
-    tracks_u, t_local = [], []
-    k_sizes, m_sizes, blocks, row_lists = [], [], [], []
-    for v in probs:  # problems are tiny (a few tracks x a few rows); assembling them is O(pairs)
-        sel = pv == v
-        tk, ti = np.unique(pt[sel], return_inverse=True)
-        rk, ri = np.unique(pr[sel], return_inverse=True)
-        eta = np.zeros((tk.size, rk.size + 1))
-        eta[:, 0] = 1.0 - lc.detection_probability
-        eta[ti, ri + 1] = w[sel]
-        k_sizes.append(tk.size)
-        m_sizes.append(rk.size)
-        blocks.append(eta.ravel())
-        tracks_u.append(tk)
-        row_lists.append(rk)
-        t_local.append(ti)
-    pf, pn = association_marginals_batch(np.concatenate(blocks), np.array(k_sizes), np.array(m_sizes),
-                                         lc.bp_iterations, lc.bp_tol)
-    off = noff = 0
-    for tk, rk in zip(tracks_u, row_lists):
-        k, m1 = tk.size, rk.size + 1
-        b = pf[off:off + k * m1].reshape(k, m1)
-        row_new[rk] = pn[noff:noff + m1 - 1]
-        off += k * m1
-        noff += m1 - 1
-        # (30): detected iff b(alpha = 0) < eta_TH; paired with the most probable row.
-        best = np.argmax(b[:, 1:], axis=1)
-        score = b[np.arange(k), best + 1]
-        detected = (b[:, 0] < lc.eta_threshold) & (score > 0)
-        if lc.eta_threshold >= 1.0:  # "keep all": every track with a gated row is paired
-            detected = score > 0
-        for j in np.argsort(-score, kind="stable"):  # conflicts: the larger belief wins
-            if detected[j] and row_track[rk[best[j]]] < 0:
-                row_track[rk[best[j]]] = tk[j]
+    n_t = int(pt.max()) + 1
+    # Problem-local indices: (vehicle, track) combos and rows, both sorted by vehicle.
+    combo, c_inv = np.unique(pv * n_t + pt, return_inverse=True)
+    c_vehicle, c_track = combo // n_t, combo % n_t
+    rows_u, r_inv = np.unique(pr, return_inverse=True)  # a row belongs to one vehicle
+    r_vehicle = np.zeros(rows_u.size, dtype=np.int64)
+    r_vehicle[r_inv] = pv
+    order_r = np.lexsort((rows_u, r_vehicle))  # rows sorted by (vehicle, row)
+    rank_r = np.empty_like(order_r)
+    rank_r[order_r] = np.arange(order_r.size)
+    k_sizes = np.bincount(c_vehicle, minlength=n_vehicles)
+    m_sizes = np.bincount(r_vehicle, minlength=n_vehicles)
+    probs = np.flatnonzero(k_sizes > 0)  # every vehicle with a gated pair has >= 1 track and row
+    k_sizes, m_sizes = k_sizes[probs], m_sizes[probs]
+    prob_of_vehicle = np.full(n_vehicles, -1, dtype=np.int64)
+    prob_of_vehicle[probs] = np.arange(probs.size)
+    block = k_sizes * (m_sizes + 1)
+    block_off = np.concatenate([[0], np.cumsum(block)[:-1]])
+    c_first = np.concatenate([[0], np.cumsum(k_sizes)[:-1]])
+    r_first = np.concatenate([[0], np.cumsum(m_sizes)[:-1]])
+    c_prob = prob_of_vehicle[c_vehicle]
+    c_local = np.arange(combo.size) - c_first[c_prob]
+    c_start = block_off[c_prob] + c_local * (m_sizes[c_prob] + 1)  # flat index of (track, option 0)
+    eta = np.zeros(int(block.sum()))
+    eta[c_start] = 1.0 - lc.detection_probability
+    r_local = rank_r[r_inv] - r_first[prob_of_vehicle[pv]]
+    eta[c_start[c_inv] + 1 + r_local] = w
+    pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
+    row_new[rows_u[order_r]] = pn
+    # (30): a track is detected iff b(alpha = 0) < eta_TH (eta_TH = 1: every track with a gated
+    # row) and is paired with its most probable row; the larger belief wins a contested row.
+    m_c = m_sizes[c_prob]
+    seg = np.repeat(np.arange(combo.size), m_c)
+    opt = np.arange(seg.size) - np.repeat(np.cumsum(m_c) - m_c, m_c)
+    vals = pf[np.repeat(c_start, m_c) + 1 + opt]
+    best_val = np.zeros(combo.size)
+    np.maximum.at(best_val, seg, vals)
+    is_best = vals == best_val[seg]
+    best_opt = np.full(combo.size, np.iinfo(np.int64).max)
+    np.minimum.at(best_opt, seg[is_best], opt[is_best])
+    detected = best_val > 0
+    if lc.eta_threshold < 1.0:
+        detected &= pf[c_start] < lc.eta_threshold
+    cand = np.flatnonzero(detected)
+    cand_row = rows_u[order_r][r_first[c_prob[cand]] + best_opt[cand]]
+    order = np.lexsort((cand, -best_val[cand]))
+    _, first = np.unique(cand_row[order], return_index=True)
+    win = order[first]
+    row_track[cand_row[win]] = c_track[cand[win]]
     return row_track, row_new
 
 
@@ -256,8 +273,14 @@ def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.nd
     return labels
 
 
-def merge_candidates(store: FeatureStore, params: IcpParams, lc: LcParams, observed_together: set) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (absorbed, into) of tracks to merge (module docstring, step 8); into = the older (lower) id."""
+def merge_candidates(
+    store: FeatureStore, params: IcpParams, lc: LcParams, row_owner: np.ndarray, row_track: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (absorbed, into) of tracks to merge (module docstring, step 8); into = the older (lower) id.
+
+    ``row_owner``/``row_track``: this step's paired rows; two tracks one vehicle
+    observed at this step are distinct features and never merged.
+    """
     if store.size < 2 or lc.merge_gate_m <= 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
     mean, cov = store.moments(params)
@@ -269,12 +292,17 @@ def merge_candidates(store: FeatureStore, params: IcpParams, lc: LcParams, obser
     s = cov[a, :2, :2] + cov[b, :2, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
     ok = d2 <= chi2.ppf(0.99, 2)
+    if row_owner.size and ok.any():
+        n_v = int(row_owner.max()) + 1
+        inc = sp.csr_matrix((np.ones(row_owner.size), (store.lookup(row_track), row_owner)), shape=(store.size, n_v))
+        together = np.asarray((inc[a[ok]].multiply(inc[b[ok]])).sum(axis=1)).ravel() > 0
+        ok[np.flatnonzero(ok)[together]] = False
     absorbed, into = [], []
     taken: set = set()
     order = np.argsort(d2[ok], kind="stable")  # closest pairs first
     for i, j in zip(a[ok][order].tolist(), b[ok][order].tolist()):
         lo, hi = sorted((int(store.ids[i]), int(store.ids[j])))
-        if (lo, hi) in observed_together or lo in taken or hi in taken:
+        if lo in taken or hi in taken:
             continue
         absorbed.append(hi)
         into.append(lo)
@@ -331,16 +359,14 @@ def icp_da_lc_step(
         f_lam0, f_eta0, params,
     )
     store = predicted.record(row_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params)
-    # Merging (step 8): never two tracks one vehicle observed at this step.
-    together = set()
-    for v in np.unique(owner[used]):
-        tr = np.sort(row_track[used][owner[used] == v])
-        together.update((int(a), int(b)) for i, a in enumerate(tr) for b in tr[i + 1:])
-    absorbed, into = merge_candidates(store, params, lc, together)
+    # Merging (step 8).
+    absorbed, into = merge_candidates(store, params, lc, owner[used], row_track[used])
     store = store.merge(absorbed, into)
     if absorbed.size:
-        remap = dict(zip(absorbed.tolist(), into.tolist()))
-        row_track = np.array([remap.get(int(x), int(x)) for x in row_track], dtype=np.int64)
+        order = np.argsort(absorbed)
+        pos = np.minimum(np.searchsorted(absorbed[order], row_track), absorbed.size - 1)
+        hit = absorbed[order][pos] == row_track
+        row_track = np.where(hit, into[order][pos], row_track)
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()), born, int((row_track < 0).sum()), int(absorbed.size),
                       res.iterations)
     return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store), next_id, info

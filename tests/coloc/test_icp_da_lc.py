@@ -196,3 +196,48 @@ def test_empty_frames_and_no_features():
     for f in scenario(steps=3, n_feat=0):
         e = est.step(f)
         assert e.mean.shape == (f.n_vehicles, 4)
+
+
+def _map_pairing_reference(pv, pt, pr, w, n_rows, lc):
+    """Per-vehicle loop: BP on each vehicle's (track x row) matrix, then (30) with conflicts."""
+    row_track = np.full(n_rows, -1)
+    row_new = np.ones(n_rows)
+    keep = w > 0
+    pv, pt, pr, w = pv[keep], pt[keep], pr[keep], w[keep]
+    for v in np.unique(pv):
+        sel = pv == v
+        tk, ti = np.unique(pt[sel], return_inverse=True)
+        rk, ri = np.unique(pr[sel], return_inverse=True)
+        eta = np.zeros((tk.size, rk.size + 1))
+        eta[:, 0] = 1.0 - lc.detection_probability
+        eta[ti, ri + 1] = w[sel]
+        b, new = association_marginals_both(eta, lc.bp_iterations, lc.bp_tol)
+        row_new[rk] = new
+        best = np.argmax(b[:, 1:], axis=1)
+        score = b[np.arange(tk.size), best + 1]
+        det = (score > 0) & ((b[:, 0] < lc.eta_threshold) | (lc.eta_threshold >= 1.0))
+        for j in np.argsort(-score, kind="stable"):
+            if det[j] and row_track[rk[best[j]]] < 0:
+                row_track[rk[best[j]]] = tk[j]
+    return row_track, row_new
+
+
+@pytest.mark.parametrize("eta_th", [0.5, 1.0])
+def test_vectorised_map_pairing_equals_the_per_vehicle_loop(eta_th):
+    rng = np.random.default_rng(11)
+    lc = LcParams(eta_threshold=eta_th)
+    for _ in range(50):
+        n_veh, n_trk = rng.integers(1, 6), rng.integers(1, 7)
+        owner = np.sort(rng.integers(0, n_veh, rng.integers(1, 15)))
+        pv, pt, pr = [], [], []
+        for v in range(n_veh):
+            rows = np.flatnonzero(owner == v)
+            for k in rng.choice(n_trk, rng.integers(0, n_trk + 1), replace=False):
+                for r in rows:
+                    pv.append(v), pt.append(k), pr.append(r)
+        pv, pt, pr = (np.array(a, dtype=np.int64) for a in (pv, pt, pr))
+        w = rng.exponential(5.0, pv.size) * (rng.random(pv.size) < 0.7)
+        got = map_pairing(pv, pt, pr, w, n_veh, owner.size, lc)
+        ref = _map_pairing_reference(pv, pt, pr, w, owner.size, lc)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_allclose(got[1], ref[1], rtol=1e-12)
