@@ -2,6 +2,34 @@
 
 Every table maps onto a frozen dataclass; unknown keys and wrong types are
 errors naming the file and the dotted field.
+
+Scenario kinds (``[scenario] kind``):
+
+* ``"sumo"``: SUMO traffic on a net folder (``scenario.net_dir``).
+* ``"single_road"`` / ``"crossroad"``: the controlled scenarios of Brambilla
+  Sec. V-A / V-B (:mod:`couplers.scenarios`), parameterised by the table of the
+  same name, whose keys are the fields of ``SingleRoadParams`` /
+  ``CrossroadParams``. These scenarios carry their own truth model and sensors,
+  so the estimators must use the same model (1):
+
+  - ``[sensors]`` is taken from the scenario table (same field names); a
+    ``[sensors]`` value that differs from it is refused (set it in the scenario
+    table instead);
+  - ``[motion] sigma_along / sigma_cross`` and ``[scenario] step_s`` are taken
+    from the scenario table when not given; given values that differ are
+    refused (an estimator with another driving noise than the truth is not
+    what the paper evaluates);
+  - ``[icp] feature_sigma_par`` is vf / 100 (the paper's model (2) for moving
+    features, Sec. V-B) when the crossroad's features move and the key is not
+    given.
+
+  The saved config spells the derived values out with a comment saying where
+  they come from. SUMO-only keys (``net_dir``, ``control``, ``ballistic``) are
+  refused for these kinds.
+
+``[lc]`` holds the ICP-DA-LC parameters (the fields of
+:class:`coloc.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
+range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
 """
 
 from __future__ import annotations
@@ -14,11 +42,17 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coloc.icp_da_lc import LcParams
 from coloc.models import MotionParams
 from couplers.errors import InputError
+from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da")
+KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc")
+SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
+#: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
+SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
+SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic")
 
 
 @dataclass(frozen=True)
@@ -64,30 +98,58 @@ class Config:
     sensors: SensorParams = field(default_factory=SensorParams)
     motion: MotionParams = field(default_factory=MotionParams)
     icp: IcpSection = field(default_factory=IcpSection)
+    lc: LcParams = field(default_factory=LcParams)
+    single_road: SingleRoadParams = field(default_factory=SingleRoadParams)
+    crossroad: CrossroadParams = field(default_factory=CrossroadParams)
     report: ReportSection = field(default_factory=ReportSection)
+    # (dotted field or table name, comment) pairs written into the saved config:
+    # where a derived value comes from.
+    notes: tuple[tuple[str, str], ...] = ()
 
     @property
     def net_dir(self) -> Path:
         return Path(self.scenario.net_dir)
 
+    @property
+    def is_controlled_scenario(self) -> bool:
+        return self.scenario.kind in SCENARIO_TABLES
+
+    def scenario_params(self) -> SingleRoadParams | CrossroadParams:
+        """Parameters of a controlled scenario (``scenario.kind`` single_road or crossroad)."""
+        if not self.is_controlled_scenario:
+            raise ValueError(f"scenario kind {self.scenario.kind!r} has no scenario parameters")
+        return getattr(self, self.scenario.kind)
+
 
 SECTIONS: dict[str, type] = {
     "run": RunSection,
     "scenario": ScenarioSection,
+    "single_road": SingleRoadParams,
+    "crossroad": CrossroadParams,
     "sensors": SensorParams,
     "motion": MotionParams,
     "icp": IcpSection,
+    "lc": LcParams,
     "report": ReportSection,
 }
 
 
+def _allows_infinity(where: str) -> bool:
+    """Ranges may be ``inf`` (TOML ``inf``): "always in range", e.g. the single road's V2V links."""
+    return where.split("[")[0].endswith("_range_m")
+
+
 def _check_value(value, annotation, where: str, path: Path):
-    """Coerce/validate one TOML value against a dataclass annotation."""
+    """Coerce/validate one TOML value against a dataclass annotation.
+
+    ``X | None`` fields take an X (TOML has no null: leave the key out for None);
+    ``tuple[T, ...]`` takes a list, ``tuple[T, T]`` a list of exactly two.
+    """
     origin = typing.get_origin(annotation)
     if annotation is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise InputError(path, where, f"expected a number, got {value!r}")
-        if not math.isfinite(value):
+        if math.isnan(value) or (math.isinf(value) and not (value > 0 and _allows_infinity(where))):
             raise InputError(path, where, "must be finite")
         return float(value)
     if annotation is int:
@@ -103,11 +165,20 @@ def _check_value(value, annotation, where: str, path: Path):
             raise InputError(path, where, f"expected a string, got {value!r}")
         return value
     if origin is tuple:
-        (inner, _ellipsis) = typing.get_args(annotation)
+        args = typing.get_args(annotation)
         if not isinstance(value, list):
             raise InputError(path, where, f"expected a list, got {value!r}")
-        return tuple(_check_value(v, inner, f"{where}[{i}]", path) for i, v in enumerate(value))
+        if len(args) == 2 and args[1] is Ellipsis:
+            inner_types = [args[0]] * len(value)
+        else:
+            if len(value) != len(args):
+                raise InputError(path, where, f"expected a list of {len(args)} values, got {len(value)}")
+            inner_types = list(args)
+        return tuple(_check_value(v, t, f"{where}[{i}]", path) for i, (v, t) in enumerate(zip(value, inner_types)))
     if origin in (typing.Union, types.UnionType):
+        inner = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(inner) == 1:
+            return _check_value(value, inner[0], where, path)
         raise TypeError(f"unsupported annotation {annotation} for {where}")
     raise TypeError(f"unsupported annotation {annotation} for {where}")
 
@@ -126,7 +197,16 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
             kwargs[key] = _check_value(table[key], hints[key], f"{name}.{key}", path)
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise InputError(path, f"{name}.{key}", "required key missing")
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as exc:
+        # The dataclass's own checks (__post_init__): name the key that fails on its own.
+        for key in kwargs:
+            try:
+                cls(**{key: kwargs[key]})
+            except (ValueError, TypeError):
+                raise InputError(path, f"{name}.{key}", str(exc)) from None
+        raise InputError(path, name, str(exc)) from None
 
 
 def _validate(cfg: Config) -> None:
@@ -142,8 +222,9 @@ def _validate(cfg: Config) -> None:
         raise InputError(p, "run.duration_s", "must be positive")
     if cfg.run.seed < 0:
         raise InputError(p, "run.seed", "must be a non-negative integer")
-    if cfg.scenario.kind != "sumo":
-        raise InputError(p, "scenario.kind", f"unknown scenario kind {cfg.scenario.kind!r} (available: sumo)")
+    if cfg.scenario.kind not in SCENARIO_KINDS:
+        raise InputError(p, "scenario.kind",
+                         f"unknown scenario kind {cfg.scenario.kind!r} (available: {', '.join(SCENARIO_KINDS)})")
     if not cfg.scenario.step_s > 0:
         raise InputError(p, "scenario.step_s", "must be positive")
     for name in ("accel_sigma", "v2f_range_m", "v2f_sigma_p", "v2f_sigma_v", "v2v_range_m", "prior_sigma_p", "prior_sigma_v"):
@@ -167,13 +248,68 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.net_dir", f"no net folder (scenario.toml) at {cfg.scenario.net_dir}")
 
 
+def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[str, str]]:
+    """Make sensors, motion, step and feature model equal to the controlled scenario's own.
+
+    Explicitly given values that differ are refused (see the module docstring).
+    Returns the notes for the saved config.
+    """
+    kind = sections["scenario"].kind
+    params = sections[kind]
+    notes: list[tuple[str, str]] = []
+    for key in SUMO_ONLY_KEYS:
+        if key in data.get("scenario", {}):
+            raise InputError(path, f"scenario.{key}", f"only for scenario.kind = \"sumo\" (this is {kind!r})")
+    for other in SCENARIO_TABLES:
+        if other != kind and other in data:
+            raise InputError(path, other, f"table given but scenario.kind is {kind!r}")
+
+    given = data.get("sensors", {})
+    sensors = params.sensor_params()
+    for f in dataclasses.fields(SensorParams):
+        mine = getattr(sensors, f.name)
+        if f.name in given and getattr(sections["sensors"], f.name) != mine:
+            raise InputError(path, f"sensors.{f.name}",
+                             f"the {kind} scenario senses with its own parameters ({kind}.{f.name} = {mine!r}); "
+                             f"set {kind}.{f.name} instead, or leave [sensors] out")
+    sections["sensors"] = sensors
+    notes.append(("sensors", f"= the [{kind}] scenario's sensing parameters (couplers.scenarios)"))
+
+    given = data.get("motion", {})
+    motion = sections["motion"]
+    for key in ("sigma_along", "sigma_cross"):
+        mine = getattr(params, key)
+        if key in given and getattr(motion, key) != mine:
+            raise InputError(path, f"motion.{key}",
+                             f"must equal {kind}.{key} = {mine!r}: the estimators use the scenario's own "
+                             f"model (1); leave it out to take it from [{kind}]")
+        notes.append((f"motion.{key}", f"= {kind}.{key} (the scenario's model (1) driving noise)"))
+    sections["motion"] = dataclasses.replace(motion, sigma_along=params.sigma_along, sigma_cross=params.sigma_cross)
+
+    if "step_s" in data.get("scenario", {}) and sections["scenario"].step_s != params.dt:
+        raise InputError(path, "scenario.step_s", f"must equal {kind}.dt = {params.dt!r} (the scenario's Ts)")
+    sections["scenario"] = dataclasses.replace(sections["scenario"], step_s=params.dt)
+    notes.append(("scenario.step_s", f"= {kind}.dt"))
+    notes.append(("run.duration_s", "caps the run; the scenario also ends by itself"))
+
+    vf = getattr(params, "feature_speed_mps", 0.0)
+    if vf > 0 and "feature_sigma_par" not in data.get("icp", {}):
+        # Paper Sec. V-B: sv_par = vf / 100 for features moving at vf (model (2)).
+        sections["icp"] = dataclasses.replace(sections["icp"], feature_sigma_par=vf / 100.0)
+        notes.append(("icp.feature_sigma_par", f"= {kind}.feature_speed_mps / 100 (paper Sec. V-B)"))
+    return notes
+
+
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
     # A saved (resolved) config carries its provenance; it is informative, not input.
     data = {k: v for k, v in data.items() if k != "provenance"}
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
         raise InputError(path, unknown[0], f"unknown table (known: {', '.join(SECTIONS)})")
-    data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            raise InputError(path, name, "expected a table")
+    data = {k: dict(v) for k, v in data.items()}
     for dotted, value in (overrides or {}).items():
         sec, key = dotted.split(".")
         data.setdefault(sec, {})[key] = value
@@ -181,10 +317,23 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
         raise InputError(path, "run", "required table missing")
     sections = {name: section_from_table(cls, data.get(name, {}), name, path) for name, cls in SECTIONS.items()}
     scen = sections["scenario"]
+    if scen.kind not in SCENARIO_KINDS:
+        raise InputError(path, "scenario.kind",
+                         f"unknown scenario kind {scen.kind!r} (available: {', '.join(SCENARIO_KINDS)})")
     if scen.net_dir:
         net_dir = (path.parent / scen.net_dir).resolve()
         sections["scenario"] = dataclasses.replace(scen, net_dir=str(net_dir))
-    cfg = Config(path=path.resolve(), **sections)
+    notes: list[tuple[str, str]] = []
+    if scen.kind in SCENARIO_TABLES:
+        notes += _derive_from_scenario(sections, data, path)
+    else:
+        for name in SCENARIO_TABLES:
+            if name in data:
+                raise InputError(path, name, f"table given but scenario.kind is {scen.kind!r}")
+    if "sensing_range_m" not in data.get("lc", {}):
+        sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=sections["sensors"].v2f_range_m)
+        notes.append(("lc.sensing_range_m", "= sensors.v2f_range_m (the V2F range Rs in force)"))
+    cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg
 
@@ -218,13 +367,30 @@ def _toml_value(value) -> str:
     raise TypeError(f"cannot write {value!r} as TOML")
 
 
+def written_sections(cfg: Config) -> list[str]:
+    """Tables a saved config spells out: every section but the unused scenario table(s)."""
+    return [n for n in SECTIONS if n not in SCENARIO_TABLES or n == cfg.scenario.kind]
+
+
 def config_to_toml(cfg: Config, provenance: dict[str, str | int | float]) -> str:
-    """The fully resolved config (every default spelled out) plus provenance, as TOML."""
+    """The fully resolved config (every default spelled out) plus provenance, as TOML.
+
+    Keys whose value is None (TOML has no null) are written as comments; derived
+    values carry a comment naming their source (``cfg.notes``).
+    """
+    notes = dict(cfg.notes)
     lines = [f"# Resolved from {cfg.path}", ""]
-    for name in SECTIONS:
-        lines.append(f"[{name}]")
+    for name in written_sections(cfg):
+        lines.append(f"[{name}]" + (f"  # {notes[name]}" if name in notes else ""))
         for f in dataclasses.fields(getattr(cfg, name)):
-            lines.append(f"{f.name} = {_toml_value(getattr(getattr(cfg, name), f.name))}")
+            if name == "scenario" and cfg.is_controlled_scenario and f.name in SUMO_ONLY_KEYS:
+                continue
+            value = getattr(getattr(cfg, name), f.name)
+            note = notes.get(f"{name}.{f.name}")
+            if value is None:
+                lines.append(f"# {f.name}: not set (the default rule applies)")
+                continue
+            lines.append(f"{f.name} = {_toml_value(value)}" + (f"  # {note}" if note else ""))
         lines.append("")
     lines.append("[provenance]")
     for key, val in provenance.items():

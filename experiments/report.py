@@ -827,8 +827,8 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                     "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
                     "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
                     "cooperative method should flatten that difference."))
-        if {"err_along", "err_cross", "area"} <= set(est.columns):
-            area = str((run.config.get("report") or {}).get("track_area", "5"))
+        area = str((run.config.get("report") or {}).get("track_area", "5"))
+        if {"err_along", "err_cross", "area"} <= set(est.columns) and area in set(est["area"].astype(str)):
             w = _fig_track(run, area, figdir / "track_errors.png")
             blocks.append(_figure_html(
                 "track_errors.png", f"Along-track and cross-track accuracy in area {area} (paper Fig. 18)",
@@ -842,9 +842,10 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
 def _run_html(run: _Run, blocks: list[str]) -> str:
     s = run.summary
     parts: list[str] = []
-    meta = [("run", run.name), ("seed", s.get("seed", run.seed)),
+    kind = str((run.config.get("scenario") or {}).get("kind", "sumo"))
+    meta = [("run", run.name), ("seed", s.get("seed", run.seed)), ("scenario", kind),
             ("control", run.control or "–"), ("config", s.get("config", "–")),
-            ("SUMO version", s.get("sumo_version", "–")), ("git", s.get("git", "–"))]
+            ("SUMO version", s.get("sumo_version") or "–"), ("git", s.get("git", "–"))]
     parts.append('<dl class="meta">' + "".join(f"<dt>{_esc(k)}</dt><dd>{_esc(v)}</dd>" for k, v in meta)
                  + "</dl>")
     for n in run.notes:
@@ -868,6 +869,9 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
         keys = [k for k in lab if k in traffic] + sorted(k for k in traffic if k not in lab)
         parts.append(_table(["quantity", "value"],
                             [[_esc(lab.get(k, k)), _fmt(traffic[k], 2)] for k in keys]))
+    elif "traffic" in s and s["traffic"] is None:
+        parts.append("<p>No traffic statistics: the frames come from a controlled scenario "
+                     "(couplers.scenarios), not from SUMO.</p>")
     else:
         parts.append("<p>No traffic summary in summary.json.</p>")
 

@@ -1,13 +1,27 @@
-"""One run: SUMO coupler -> estimators -> Parquet files, summary.json, report.
+"""One run: frames (SUMO coupler or a controlled scenario) -> estimators -> Parquet files, summary.json, report.
 
 The output folder appears complete or not at all: everything is written into a
 hidden sibling folder that is renamed into place at the end.
+
+Frames come from the SUMO coupler (``scenario.kind = "sumo"``) or from
+:func:`couplers.scenarios.scenario_frames` (``"single_road"``, ``"crossroad"``;
+Brambilla Sec. V), capped at ``run.duration_s``. A controlled scenario has no
+traffic statistics: its traffic.parquet has the schema and no rows and
+summary["traffic"] is None.
+
+Association scoring (outside the estimators): every method whose StepEstimate
+carries ``v2f_assignment`` is scored with
+:func:`experiments.scoring.score_association` (track labels over the whole run),
+giving association.parquet rows and summary["association"][method]. Feature
+errors of such methods compare each track with its label's true feature; for
+the known-association bound the track ids are the true feature indices.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -28,23 +42,50 @@ from coloc.icp import IcpParams
 from coloc.icp_known_da import IcpKnownDA
 from couplers.errors import InputError
 from couplers.netfolder import check_region_coverage, load_net_folder
+from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from couplers.sumo_traffic import sumo_version
 from experiments.config import Config, config_to_toml
-from experiments.scoring import along_cross_errors, feature_summary, method_summary, traffic_summary
+from experiments.scoring import (
+    along_cross_errors,
+    association_summary,
+    feature_summary,
+    method_summary,
+    score_association,
+    traffic_summary,
+)
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da"})
 
 
+def icp_da_lc_class():
+    """``coloc.icp_da_lc.IcpDaLc`` when that estimator exists in this build, else None."""
+    try:
+        from coloc.icp_da_lc import IcpDaLc
+    except ImportError:
+        return None
+    return IcpDaLc
+
+
 def build_estimators(cfg: Config) -> list:
     """Estimator objects for ``cfg.run.methods``, in that order."""
     icp = IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp))
-    factories = {
-        "gnss": lambda: GnssTracker(motion=cfg.motion),
-        "icp_known_da": lambda: IcpKnownDA(params=icp),
-    }
-    return [factories[m]() for m in cfg.run.methods]
+    out = []
+    for i, m in enumerate(cfg.run.methods):
+        if m == "gnss":
+            out.append(GnssTracker(motion=cfg.motion))
+        elif m == "icp_known_da":
+            out.append(IcpKnownDA(params=icp))
+        elif m == "icp_da_lc":
+            cls = icp_da_lc_class()
+            if cls is None:
+                raise InputError(cfg.path, f"run.methods[{i}]",
+                                 "icp_da_lc is not available in this build yet (coloc.icp_da_lc has no IcpDaLc)")
+            out.append(cls(params=icp, lc=cfg.lc))
+        else:  # config validation lists the known methods; this is a programming error
+            raise ValueError(f"no estimator for method {m!r}")
+    return out
 
 
 def git_revision() -> str:
@@ -70,6 +111,10 @@ class EstimateLog:
     truth_parts: list = field(default_factory=list)
     method_parts: dict = field(default_factory=dict)
     feature_parts: list = field(default_factory=list)
+    # method -> per step (t, assignment (O,), true feature (O,))
+    assoc_parts: dict = field(default_factory=dict)
+    # method -> per step (t, track ids (T,), estimated xy (T, 2), true feature xy (K, 2))
+    track_parts: dict = field(default_factory=dict)
 
     def add_truth(self, frame: Frame) -> None:
         tr = frame.truth
@@ -82,24 +127,85 @@ class EstimateLog:
             (est.mean, est.cov[:, 0, 0], est.cov[:, 1, 1])
         )
 
+    def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
+        """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
+        if est.v2f_assignment is None:
+            return
+        assign = np.asarray(est.v2f_assignment, dtype=np.int64)
+        truth = np.asarray(frame.truth.v2f_feature, dtype=np.int64)
+        if assign.shape != truth.shape:
+            raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
+        self.assoc_parts.setdefault(method, []).append((frame.t, assign, truth))
+
     def add_features(self, method: str, frame: Frame, est: StepEstimate) -> None:
-        """Feature-track errors; track ids of known-DA methods are true feature indices."""
+        """Feature-track estimates; scored against the truth once the track labels are known."""
         if est.feature_mean is None or est.feature_track_ids is None or est.feature_mean.shape[0] == 0:
             return
         ids = np.asarray(est.feature_track_ids, dtype=np.int64)
-        err = est.feature_mean[:, :2] - frame.truth.features_true[ids, :2]
-        self.feature_parts.append((method, frame.t, ids, np.hypot(err[:, 0], err[:, 1])))
+        self.track_parts.setdefault(method, []).append(
+            (frame.t, ids, est.feature_mean[:, :2].copy(), frame.truth.features_true[:, :2].copy())
+        )
 
-    def feature_table(self) -> pd.DataFrame:
-        cols = {"method": "string", "t": "float64", "track": "int64", "err_pos": "float64"}
-        if not self.feature_parts:
+    def association_scores(self) -> dict[str, tuple[np.ndarray, np.ndarray, dict[int, int]]]:
+        """method -> (t (S,), counts (S, 3) [correct, wrong, discarded], track labels)."""
+        out = {}
+        for method, parts in self.assoc_parts.items():
+            counts, labels = score_association([(a, f) for _, a, f in parts])
+            out[method] = (np.array([t for t, _, _ in parts], dtype=float), counts, labels)
+        return out
+
+    def association_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
+        table = empty_association_table()
+        parts = []
+        for m in methods:
+            if m in scores:
+                t, counts, _ = scores[m]
+                parts.append(pd.DataFrame({"method": m, "t": t, "correct": counts[:, 0],
+                                           "wrong": counts[:, 1], "discarded": counts[:, 2]}))
+        if not parts:
+            return table
+        return pd.concat(parts, ignore_index=True).astype(table.dtypes.to_dict())
+
+    def feature_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
+        """Feature errors: known-association tracks are true feature indices; other tracks are
+        compared with their label's true feature (tracks without a label are not scored)."""
+        cols = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
+        rows = []
+        for m in methods:
+            if m not in self.track_parts:
+                continue
+            if m in KNOWN_ASSOCIATION_METHODS:
+                label_of = None
+            elif m in scores:
+                labels = scores[m][2]
+                keys = np.array(sorted(labels), dtype=np.int64)
+                vals = np.array([labels[k] for k in keys], dtype=np.int64)
+                label_of = (keys, vals)
+            else:
+                continue  # tracks without any pairing cannot be scored
+            for t, ids, xy, truth_xy in self.track_parts[m]:
+                if label_of is None:
+                    feat = ids
+                else:
+                    keys, vals = label_of
+                    if keys.size == 0:
+                        continue
+                    pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
+                    has = keys[pos] == ids
+                    ids, xy, feat = ids[has], xy[has], vals[pos[has]]
+                if ids.size == 0:
+                    continue
+                err = xy - truth_xy[feat]
+                rows.append((m, t, ids, feat, np.hypot(err[:, 0], err[:, 1])))
+        if not rows:
             return pd.DataFrame(columns=list(cols)).astype(cols)
         return pd.DataFrame(
             {
-                "method": np.concatenate([np.full(ids.size, m, dtype=object) for m, _, ids, _ in self.feature_parts]),
-                "t": np.concatenate([np.full(ids.size, t) for _, t, ids, _ in self.feature_parts]),
-                "track": np.concatenate([ids for _, _, ids, _ in self.feature_parts]),
-                "err_pos": np.concatenate([e for _, _, _, e in self.feature_parts]),
+                "method": np.concatenate([np.full(ids.size, m, dtype=object) for m, _, ids, _, _ in rows]),
+                "t": np.concatenate([np.full(ids.size, t) for _, t, ids, _, _ in rows]),
+                "track": np.concatenate([ids for _, _, ids, _, _ in rows]),
+                "feature": np.concatenate([f for _, _, _, f, _ in rows]),
+                "err_pos": np.concatenate([e for _, _, _, _, e in rows]),
             }
         ).astype(cols)
 
@@ -140,6 +246,16 @@ def empty_association_table() -> pd.DataFrame:
     return pd.DataFrame(columns=list(columns)).astype(columns)
 
 
+def empty_traffic_table() -> pd.DataFrame:
+    """The traffic.parquet schema (5-minute SUMO statistics) with no rows: controlled scenarios."""
+    columns = {
+        "interval_start_s": "float64", "interval_end_s": "float64", "mean_vehicles": "float64",
+        "exit_flow_vph": "float64", "mean_queue": "float64", "stop_time_s_per_km": "float64",
+        "teleports": "int64", "vehicle_seconds": "float64", "distance_km": "float64", "arrived": "int64",
+    }
+    return pd.DataFrame(columns=list(columns)).astype(columns)
+
+
 def write_parquet(df: pd.DataFrame, path: Path) -> None:
     """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd."""
     table = pa.Table.from_pandas(df, preserve_index=False)
@@ -167,30 +283,88 @@ def _commit_dir(tmp: Path, out_dir: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+class _ScenarioSource:
+    """Frames of a controlled scenario (Sec. V), capped at ``run.duration_s``; the
+    same interface as the SUMO coupler's where the runner needs it."""
+
+    sumo_version = None
+
+    def __init__(self, cfg: Config):
+        self.params = cfg.scenario_params()
+        self.seed = cfg.run.seed
+        self.duration_s = cfg.run.duration_s
+        steps = self.params.n_steps if hasattr(self.params, "n_steps") else self.params.max_steps
+        self.n_steps = min(steps, int(math.floor(self.duration_s / self.params.dt + 1e-9)) + 1)
+
+    def __enter__(self) -> "_ScenarioSource":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def frames(self):
+        for frame in scenario_frames(self.params, self.seed):
+            if frame.t > self.duration_s + 1e-9:
+                return
+            yield frame
+
+    def traffic_table(self) -> pd.DataFrame:
+        return empty_traffic_table()
+
+
+class _SumoSource:
+    """The SUMO coupler for a net folder."""
+
+    def __init__(self, cfg: Config):
+        net = load_net_folder(cfg.net_dir)
+        check_region_coverage(net)
+        self.scenario = SumoScenario(
+            net=net,
+            control=cfg.scenario.control,
+            seed=cfg.run.seed,
+            step_length=cfg.scenario.step_s,
+            duration_s=cfg.run.duration_s,
+            ballistic=cfg.scenario.ballistic,
+        )
+        self.scenario.sumo_options()  # validates the control name before anything is started
+        self.sensors = cfg.sensors
+        self.coupler = None
+
+    def __enter__(self) -> "_SumoSource":
+        self.coupler = SumoCoupler(self.scenario, self.sensors).__enter__()
+        self.sumo_version = self.coupler.traffic.sumo_version
+        self.n_steps = self.coupler.n_steps
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.coupler.__exit__(*exc)
+
+    def frames(self):
+        return self.coupler.frames()
+
+    def traffic_table(self) -> pd.DataFrame:
+        return pd.DataFrame(self.coupler.traffic.stats.rows)
+
+
+def frame_source(cfg: Config):
+    """The frame source of a config: the SUMO coupler or a controlled scenario (context manager)."""
+    return _ScenarioSource(cfg) if cfg.is_controlled_scenario else _SumoSource(cfg)
+
+
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True) -> dict:
     """Run one config; returns the summary dict also written to summary.json."""
     out_dir = Path(out_dir)
-    net = load_net_folder(cfg.net_dir)
-    check_region_coverage(net)
-    scenario = SumoScenario(
-        net=net,
-        control=cfg.scenario.control,
-        seed=cfg.run.seed,
-        step_length=cfg.scenario.step_s,
-        duration_s=cfg.run.duration_s,
-        ballistic=cfg.scenario.ballistic,
-    )
-    scenario.sumo_options()  # validates the control name before anything is started
+    source = frame_source(cfg)
     estimators = build_estimators(cfg)
     tmp = _fresh_partial_dir(out_dir)
     try:
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
         t_start = time.perf_counter()
-        with SumoCoupler(scenario, cfg.sensors) as coupler:
-            version = coupler.traffic.sumo_version
+        with source:
+            version = source.sumo_version
             bar = tqdm(
-                coupler.frames(), total=coupler.n_steps, desc=cfg.run.name, unit="step",
+                source.frames(), total=source.n_steps, desc=cfg.run.name, unit="step",
                 disable=(not sys.stderr.isatty()) if progress is None else (not progress), mininterval=1.0,
             )
             for frame in bar:
@@ -205,18 +379,25 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                         res = est.step(blind)
                     seconds[est.name] += time.perf_counter() - t0
                     log.add(est.name, res)
+                    log.add_association(est.name, frame, res)
                     log.add_features(est.name, frame, res)
         wall = time.perf_counter() - t_start
-        traffic = pd.DataFrame(coupler.traffic.stats.rows)
+        traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
-        provenance = {"sumo_version": version, "git": git_revision(), "config_source": str(cfg.path)}
+        provenance = {"git": git_revision(), "config_source": str(cfg.path)}
+        if version is not None:
+            provenance = {"sumo_version": version, **provenance}
+        else:
+            provenance["frames"] = f"couplers.scenarios ({cfg.scenario.kind}), no SUMO"
+        methods = list(cfg.run.methods)
+        scores = log.association_scores()
         (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
         write_parquet(estimates, tmp / "estimates.parquet")
         write_parquet(traffic, tmp / "traffic.parquet")
-        # Association scoring (correct / wrong / discarded V2F rows per method and step) is
-        # filled by methods that associate; a GNSS-only run writes the schema with no rows.
-        write_parquet(empty_association_table(), tmp / "association.parquet")
-        features = log.feature_table()
+        # Correct / wrong / discarded V2F rows per method and step, for methods that pair
+        # measurements with tracks; a GNSS-only run writes the schema with no rows.
+        write_parquet(log.association_table(methods, scores), tmp / "association.parquet")
+        features = log.feature_table(methods, scores)
         if len(features):
             write_parquet(features, tmp / "features.parquet")
         summary = {
@@ -226,16 +407,18 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "git": provenance["git"],
             "methods": {},
             "association": {},
-            "traffic": traffic_summary(traffic),
+            "traffic": traffic_summary(traffic) if version is not None else None,
             "wall_seconds": wall,
         }
-        for method in cfg.run.methods:
+        for method in methods:
             block = method_summary(estimates[estimates["method"] == method])
             block["seconds"] = seconds[method]
             feat = features[features["method"] == method]["err_pos"].to_numpy()
             if feat.size:
                 block["features"] = feature_summary(feat)
             summary["methods"][method] = block
+            if method in scores:
+                summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:
             from experiments.report import write_run_report

@@ -76,3 +76,73 @@ def traffic_summary(traffic: pd.DataFrame) -> dict:
         "stop_time_s_per_km": stop / dist if dist > 0 else 0.0,
         "teleports": int(traffic["teleports"].sum()),
     }
+
+
+# --------------------------------------------------------------------------- #
+# Association scoring (DESIGN "Features without a map": tracks are mapped to true
+# features outside the estimator)
+# --------------------------------------------------------------------------- #
+
+
+def track_labels(track: np.ndarray, feature: np.ndarray) -> dict[int, int]:
+    """Label each feature track with the true feature it was most often paired with.
+
+    ``track`` and ``feature`` are the paired (track id, true feature index) of
+    every V2F row that was not discarded, over the whole run. Ties go to the
+    smallest feature index. Tracks never paired with a row get no label.
+    """
+    track = np.asarray(track, dtype=np.int64)
+    feature = np.asarray(feature, dtype=np.int64)
+    if track.size == 0:
+        return {}
+    pairs, counts = np.unique(np.stack([track, feature], axis=1), axis=0, return_counts=True)
+    # Order: track ascending, count descending, feature ascending; the first row per track wins.
+    order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+    pairs = pairs[order]
+    first = np.ones(len(pairs), dtype=bool)
+    first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+    return {int(t): int(f) for t, f in pairs[first]}
+
+
+def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, dict[int, int]]:
+    """Correct / wrong / discarded V2F rows per step.
+
+    ``steps``: per step, (assignment (O,), true feature (O,)), where assignment is
+    the feature-track id the estimator paired each V2F row with, -1 = discarded.
+    A row is correct when its true feature equals its track's label
+    (:func:`track_labels` over the whole run), wrong otherwise, discarded when
+    its assignment is -1. Returns the (S, 3) int64 counts [correct, wrong,
+    discarded] and the track labels.
+    """
+    assign = [np.asarray(a, dtype=np.int64) for a, _ in steps]
+    truth = [np.asarray(f, dtype=np.int64) for _, f in steps]
+    for a, f in zip(assign, truth):
+        if a.shape != f.shape:
+            raise ValueError(f"assignment {a.shape} and true features {f.shape} differ in shape")
+    all_a = np.concatenate(assign) if assign else np.empty(0, dtype=np.int64)
+    all_f = np.concatenate(truth) if truth else np.empty(0, dtype=np.int64)
+    step = np.repeat(np.arange(len(steps)), [a.size for a in assign]).astype(np.int64)
+    kept = all_a >= 0
+    labels = track_labels(all_a[kept], all_f[kept])
+    keys = np.array(sorted(labels), dtype=np.int64)
+    vals = np.array([labels[k] for k in keys], dtype=np.int64)
+    correct = np.zeros(all_a.size, dtype=bool)
+    if keys.size:
+        correct[kept] = vals[np.searchsorted(keys, all_a[kept])] == all_f[kept]
+    n = len(steps)
+    counts = np.stack([
+        np.bincount(step[correct], minlength=n),
+        np.bincount(step[kept & ~correct], minlength=n),
+        np.bincount(step[~kept], minlength=n),
+    ], axis=1).astype(np.int64)
+    return counts, labels
+
+
+def association_summary(correct: int, wrong: int, discarded: int) -> dict:
+    """summary.json "association" block: counts and percentages of all V2F rows."""
+    total = correct + wrong + discarded
+    pct = (lambda n: 100.0 * n / total) if total else (lambda n: None)
+    return {
+        "correct": int(correct), "wrong": int(wrong), "discarded": int(discarded),
+        "correct_pct": pct(correct), "wrong_pct": pct(wrong), "discarded_pct": pct(discarded),
+    }

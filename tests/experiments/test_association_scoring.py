@@ -1,0 +1,44 @@
+"""Association scoring outside the estimator: track labels over the run, correct / wrong / discarded rows."""
+
+import numpy as np
+import pytest
+
+from experiments.scoring import association_summary, score_association, track_labels
+
+
+def test_hand_made_example():
+    # Track 5 is paired with features 0, 1, 0 -> label 0; track 7 with 1, 1, 0 -> label 1;
+    # track 9 with 2 and 3 once each -> tie, the smallest feature (2) wins.
+    steps = [
+        (np.array([5, 5, -1, 7]), np.array([0, 1, 2, 1])),
+        (np.array([5, 7, 7, 9]), np.array([0, 1, 0, 2])),
+        (np.array([], dtype=int), np.array([], dtype=int)),  # a step without V2F rows
+        (np.array([9, -1, -1]), np.array([3, 0, 1])),
+    ]
+    counts, labels = score_association(steps)
+    assert labels == {5: 0, 7: 1, 9: 2}
+    assert counts.tolist() == [
+        [2, 1, 1],  # (5,0) ok, (5,1) wrong, discarded, (7,1) ok
+        [3, 1, 0],  # (5,0) ok, (7,1) ok, (7,0) wrong, (9,2) ok
+        [0, 0, 0],
+        [0, 1, 2],  # (9,3) wrong, two discarded
+    ]
+    s = association_summary(*counts.sum(axis=0).tolist())
+    assert (s["correct"], s["wrong"], s["discarded"]) == (5, 3, 3)
+    assert s["correct_pct"] == pytest.approx(100 * 5 / 11)
+    assert s["correct_pct"] + s["wrong_pct"] + s["discarded_pct"] == pytest.approx(100.0)
+
+
+def test_true_assignment_is_all_correct_and_no_rows_gives_no_percentages():
+    rng = np.random.default_rng(3)
+    steps = [(f, f) for f in (rng.integers(0, 6, size=n) for n in (0, 4, 9, 2))]
+    counts, labels = score_association(steps)
+    assert counts[:, 1:].sum() == 0 and counts[:, 0].sum() == 15
+    assert all(k == v for k, v in labels.items())
+    assert association_summary(0, 0, 0)["correct_pct"] is None
+
+
+def test_labels_ignore_discarded_rows_and_shapes_must_match():
+    assert track_labels(np.array([], dtype=int), np.array([], dtype=int)) == {}
+    with pytest.raises(ValueError):
+        score_association([(np.array([1, 2]), np.array([1]))])
