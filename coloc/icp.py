@@ -93,7 +93,7 @@ class IcpParams:
 
     ``feature_velocity_prior_sigma``: a newborn track has a uniform position
     and, if set, a N(0, s^2 I) velocity (features known to be landmarks or
-    slow objects); None is the paper's uniform belief.
+    slow objects); None or 0 is the paper's uniform belief.
     ``message_memory_s``: how long the latest message of a vehicle that
     stopped observing a track is kept apart (to be replaced if the vehicle
     observes the track again) before it is folded into the track
@@ -123,8 +123,8 @@ class IcpParams:
             raise ValueError("feature driving noise must be >= 0")
         if self.feature_drop_after_s < 0:
             raise ValueError("feature_drop_after_s must be >= 0")
-        if self.feature_velocity_prior_sigma is not None and not self.feature_velocity_prior_sigma > 0:
-            raise ValueError("feature_velocity_prior_sigma must be positive (or None: uniform)")
+        if self.feature_velocity_prior_sigma is not None and self.feature_velocity_prior_sigma < 0:
+            raise ValueError("feature_velocity_prior_sigma must be >= 0 (0 or None: uniform)")
         if self.message_memory_s < 0:
             raise ValueError("message_memory_s must be >= 0")
 
@@ -268,7 +268,7 @@ def birth_information(params: IcpParams) -> np.ndarray:
     """Information (4, 4) of a newborn track: uniform position; velocity N(0, s^2 I) if s is set."""
     lam = np.zeros((4, 4))
     s = params.feature_velocity_prior_sigma
-    if s is not None:
+    if s:  # None or 0: uniform
         lam[2, 2] = lam[3, 3] = 1.0 / (s * s)
     return lam
 

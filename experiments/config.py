@@ -82,6 +82,9 @@ class IcpSection:
     stop_vel_mps: float = 0.1
     feature_sigma_par: float = 0.01  # m/s per step, model (2) for static features
     feature_drop_after_s: float = 10.0
+    # Velocity prior of a newborn track, N(0, s^2 I) m/s; 0 = uniform (the paper's reset).
+    feature_velocity_prior_sigma: float = 0.0
+    message_memory_s: float = 10.0  # latest message per vehicle kept apart this long (coloc.icp.FeatureStore)
 
 
 @dataclass(frozen=True)
@@ -235,6 +238,9 @@ def _validate(cfg: Config) -> None:
         raise InputError(p, "icp.consensus_iterations", "must be >= 0")
     if cfg.icp.bpa_max_iterations < 1:
         raise InputError(p, "icp.bpa_max_iterations", "must be >= 1")
+    for name in ("feature_velocity_prior_sigma", "message_memory_s"):
+        if getattr(cfg.icp, name) < 0:
+            raise InputError(p, f"icp.{name}", "must be >= 0")
     for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
         if not getattr(cfg.icp, name) > 0:
             raise InputError(p, f"icp.{name}", "must be positive")
