@@ -1,4 +1,4 @@
-"""The ``coloc`` command line: run, report (sweep and net come with their issues).
+"""The ``coloc`` command line: run, sweep, report (net comes with its issue).
 
 Bad input prints one line naming the file and field and exits with status 2;
 no traceback, nothing half-written.
@@ -37,12 +37,45 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"{method:>14}: RMSE {block['rmse_pos_m']:.2f} m, p50 {block['p50_pos_m']:.2f} m, "
             f"p95 {block['p95_pos_m']:.2f} m, velocity RMSE {block['rmse_vel_mps']:.3f} m/s"
         )
+    for method, block in summary.get("association", {}).items():
+        if block.get("correct_pct") is not None:
+            print(
+                f"{method:>14}: association {block['correct_pct']:.1f} % correct, {block['wrong_pct']:.1f} % wrong, "
+                f"{block['discarded_pct']:.1f} % discarded of {block['correct'] + block['wrong'] + block['discarded']} "
+                "V2F measurements"
+            )
     tr = summary["traffic"]
-    print(
-        f"{'traffic':>14}: {tr['mean_vehicles']:.0f} vehicles in net, exit flow {tr['exit_flow_vph']:.0f} veh/h, "
-        f"mean queue {tr['mean_queue']:.1f}, stop time {tr['stop_time_s_per_km']:.1f} s/km, teleports {tr['teleports']}"
-    )
+    if tr is not None:  # None for the controlled scenarios (no SUMO traffic)
+        print(
+            f"{'traffic':>14}: {tr['mean_vehicles']:.0f} vehicles in net, exit flow {tr['exit_flow_vph']:.0f} veh/h, "
+            f"mean queue {tr['mean_queue']:.1f}, stop time {tr['stop_time_s_per_km']:.1f} s/km, "
+            f"teleports {tr['teleports']}"
+        )
     print(f"wrote {args.out}/report.html")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from experiments.sweep import SweepFailed, run_sweep
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError(None, "--workers", "must be >= 1")
+    try:
+        res = run_sweep(args.sweep, Path(args.out), scheduler=args.scheduler, workers=args.workers,
+                        progress=not args.quiet, dry_run=args.dry_run)
+    except SweepFailed as exc:
+        print(f"coloc: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("coloc: interrupted; completed runs are kept: rerun the same command to resume", file=sys.stderr)
+        return 130
+    if res.dry_run:
+        print(f"{args.sweep}: valid, {res.n_runs} runs (nothing was run)")
+        return 0
+    where = (f"scheduler {args.scheduler}" if args.scheduler else f"{res.workers} local workers"
+             if res.computed else "this process (nothing to compute)")
+    print(f"{res.n_runs} runs ({res.computed} computed, {res.present} already present) in {res.seconds:.1f} s on {where}")
+    print(f"wrote {res.out}/sweep.parquet, {res.out}/curves.parquet, {res.out}/report.html")
     return 0
 
 
@@ -50,6 +83,14 @@ def cmd_report(args: argparse.Namespace) -> int:
     from experiments.report import write_comparison_report, write_run_report
 
     dirs = [Path(d) for d in args.dirs]
+    if len(dirs) == 1 and args.out is None and (dirs[0] / "sweep.toml").is_file():
+        from experiments.sweep_report import write_sweep_report
+
+        for name in ("sweep.parquet", "curves.parquet"):
+            if not (dirs[0] / name).is_file():
+                raise InputError(dirs[0] / name, None, "not found: has this sweep finished?")
+        print(f"wrote {write_sweep_report(dirs[0])}")
+        return 0
     for d in dirs:
         for name in ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml"):
             if not (d / name).is_file():
@@ -76,8 +117,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
-    rep = sub.add_parser("report", help="rebuild a run's report, or compare several runs")
-    rep.add_argument("dirs", nargs="+", help="run output folders")
+    sw = sub.add_parser("sweep", help="Monte Carlo / parameter sweep on Dask (resumable)")
+    sw.add_argument("sweep", help="sweep TOML, e.g. experiments/sweeps/fig7_single_road.toml")
+    sw.add_argument("--out", required=True, help="sweep folder (runs/, sweep.parquet, curves.parquet, report.html)")
+    sw.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
+    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4))")
+    sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.set_defaults(func=cmd_sweep)
+
+    rep = sub.add_parser("report", help="rebuild a run's or a sweep's report, or compare several runs")
+    rep.add_argument("dirs", nargs="+", help="run output folders (or one sweep folder)")
     rep.add_argument("--out", help="comparison output folder (default: <first>/../compare)")
     rep.set_defaults(func=cmd_report)
     return p

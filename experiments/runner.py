@@ -44,7 +44,6 @@ from couplers.errors import InputError
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
-from couplers.sumo_traffic import sumo_version
 from experiments.config import Config, config_to_toml
 from experiments.scoring import (
     along_cross_errors,

@@ -1,0 +1,740 @@
+"""Monte Carlo and parameter sweeps on Dask: ``coloc sweep SWEEP.toml --out DIR``.
+
+A sweep file names a base run config, the seeds and a grid of parameters::
+
+    [sweep]
+    name = "fig8_9_crossroad_nf"
+    base = "../crossroad.toml"            # relative to the sweep file
+    seeds = {start = 1, count = 200}      # or a list: [1, 2, 3]
+    methods = ["gnss", "icp_known_da"]    # optional: overrides [run] methods
+    distance_bin_m = 20.0                 # optional: bin of the RMSE-vs-distance curves (crossroad)
+
+    [sweep.set]                           # optional: fixed overrides of the base config
+    "run.duration_s" = 30.0
+
+    [sweep.grid]                          # dotted keys -> lists; runs = product x seeds
+    "crossroad.n_features" = [3, 10, 20, 60]
+    "lc.eta_threshold" = [0.5, 1.0]
+
+Every run is an ordinary run (:func:`experiments.runner.run_experiment`, without
+the per-run HTML report) written to ``DIR/runs/<run_id>/`` where run_id is
+built from the swept values and the seed (e.g.
+``n_features=20,eta_threshold=0.5,seed=7``). Runs execute on a
+``dask.distributed`` LocalCluster of single-threaded worker processes (libsumo
+holds one simulation per process), or on a running scheduler given with
+``--scheduler`` (its workers must import this package and see DIR).
+
+Resumable: a run folder appears complete or not at all (atomic rename), so a
+restart computes only the missing runs and removes the hidden partial folders
+a killed run left behind. The resolved sweep (including a hash of the resolved
+base config) is stored in ``DIR/sweep.toml``; a restart with a different sweep
+into the same DIR is refused. A lock file keeps two sweeps from writing into
+one DIR at once.
+
+Outputs, computed from the run files only and byte-identical for the same
+sweep (sorted rows, no timestamps):
+
+* ``DIR/sweep.parquet``: one row per (run, method): run_id, seed, every swept
+  parameter as a column named by its dotted key, the summary numbers.
+* ``DIR/curves.parquet``: per (setting, method) aggregates over the Monte Carlo
+  runs, one ``curve`` kind per figure of Brambilla Sec. V:
+  ``time`` (RMSE over time, Fig. 7: x = t), ``feature_time`` (feature RMSE
+  over time), ``distance`` (RMSE versus the distance of the true position to
+  the junction centre, Figs. 8 and 10: x = bin centre, crossroad only),
+  ``association`` (correct / wrong / discarded percentages of all V2F rows,
+  Figs. 9 and 11), ``overall`` and ``feature_overall`` (pooled RMSE).
+  RMSE = sqrt(mean of the squared error over all runs and vehicles).
+* ``DIR/report.html`` with ``DIR/figures/*.png`` (:mod:`experiments.sweep_report`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import hashlib
+import itertools
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import sys
+import threading
+import time
+import tomllib
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from couplers.errors import InputError
+from experiments.config import SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+
+SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set")
+FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
+DEFAULT_DISTANCE_BIN_M = 20.0
+RUNS_DIR = "runs"
+CURVE_KINDS = ("time", "feature_time", "distance", "association", "overall", "feature_overall")
+
+
+# --------------------------------------------------------------------------- #
+# The sweep file
+# --------------------------------------------------------------------------- #
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    path: Path
+    name: str
+    base: Path
+    seeds: tuple[int, ...]
+    methods: tuple[str, ...] | None
+    grid: tuple[tuple[str, tuple], ...]  # (dotted key, values) in file order
+    fixed: tuple[tuple[str, object], ...]  # [sweep.set]
+    distance_bin_m: float
+
+    @property
+    def grid_keys(self) -> list[str]:
+        return [k for k, _ in self.grid]
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    run_id: str
+    setting: int  # index of the grid combination (file order)
+    seed: int
+    params: tuple[tuple[str, object], ...]  # the swept (dotted key, value) of this run
+    cfg: Config
+
+
+def _flatten(table: dict, prefix: str = "") -> dict:
+    """Grid / set tables: accept quoted dotted keys ("a.b" = ...) and TOML's nested form (a.b = ...)."""
+    out = {}
+    for key, value in table.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, dotted + "."))
+        else:
+            out[dotted] = value
+    return out
+
+
+def _check_dotted(dotted: str, path: Path, where: str) -> None:
+    parts = dotted.split(".")
+    if len(parts) != 2 or parts[0] not in SECTIONS:
+        raise InputError(path, where, f"unknown parameter {dotted!r}: expected \"table.key\" with a table among "
+                                      f"{', '.join(SECTIONS)}")
+    names = [f.name for f in dataclasses.fields(SECTIONS[parts[0]])]
+    if parts[1] not in names:
+        raise InputError(path, where, f"unknown parameter {dotted!r} (keys of [{parts[0]}]: {', '.join(names)})")
+    if dotted in FORBIDDEN_KEYS:
+        raise InputError(path, where, f"{dotted} cannot be swept or set here: {FORBIDDEN_KEYS[dotted]}")
+
+
+def _seeds(value, path: Path) -> tuple[int, ...]:
+    where = "sweep.seeds"
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - {"start", "count"})
+        if unknown:
+            raise InputError(path, f"{where}.{unknown[0]}", "unknown key (known: count, start)")
+        start, count = value.get("start", 1), value.get("count")
+        for key, v in (("start", start), ("count", count)):
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise InputError(path, f"{where}.{key}", f"expected an integer, got {v!r}")
+        if start < 0:
+            raise InputError(path, f"{where}.start", "must be >= 0")
+        if count < 1:
+            raise InputError(path, f"{where}.count", "must be >= 1")
+        return tuple(range(start, start + count))
+    if isinstance(value, list):
+        if not value:
+            raise InputError(path, where, "at least one seed is needed")
+        for i, v in enumerate(value):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise InputError(path, f"{where}[{i}]", f"expected a non-negative integer, got {v!r}")
+        if len(set(value)) != len(value):
+            raise InputError(path, where, "a seed is listed twice")
+        return tuple(value)
+    raise InputError(path, where, f"expected a list of integers or a table {{start, count}}, got {value!r}")
+
+
+def load_sweep(path: str | Path) -> SweepSpec:
+    """Read and check a sweep file's own fields (the configs it makes are checked by :func:`expand_runs`)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(path, None, "sweep file not found") from None
+    except IsADirectoryError:
+        raise InputError(path, None, "is a directory, not a sweep file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, None, f"not valid TOML ({exc})") from None
+    extra = sorted(set(data) - {"sweep"})
+    if extra:
+        raise InputError(path, extra[0], "unknown table (a sweep file has only [sweep], [sweep.grid], [sweep.set])")
+    sw = data.get("sweep")
+    if not isinstance(sw, dict):
+        raise InputError(path, "sweep", "required table missing")
+    unknown = sorted(set(sw) - set(SPEC_KEYS))
+    if unknown:
+        raise InputError(path, f"sweep.{unknown[0]}", f"unknown key (known: {', '.join(SPEC_KEYS)})")
+    for key in ("name", "base", "seeds"):
+        if key not in sw:
+            raise InputError(path, f"sweep.{key}", "required key missing")
+    name = sw["name"]
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(path, "sweep.name", f"expected a non-empty string, got {name!r}")
+    if not isinstance(sw["base"], str) or not sw["base"]:
+        raise InputError(path, "sweep.base", f"expected the path of a run config, got {sw['base']!r}")
+    base = (path.parent / sw["base"]).resolve()
+    if not base.is_file():
+        raise InputError(path, "sweep.base", f"no run config at {base}")
+    seeds = _seeds(sw["seeds"], path)
+    methods = sw.get("methods")
+    if methods is not None:
+        if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
+            raise InputError(path, "sweep.methods", f"expected a list of method names, got {methods!r}")
+        methods = tuple(methods)
+    dbin = sw.get("distance_bin_m", DEFAULT_DISTANCE_BIN_M)
+    if isinstance(dbin, bool) or not isinstance(dbin, (int, float)) or not (math.isfinite(dbin) and dbin > 0):
+        raise InputError(path, "sweep.distance_bin_m", f"expected a positive number, got {dbin!r}")
+    grid_t = sw.get("grid", {})
+    set_t = sw.get("set", {})
+    for key, t in (("grid", grid_t), ("set", set_t)):
+        if not isinstance(t, dict):
+            raise InputError(path, f"sweep.{key}", "expected a table")
+    grid = []
+    for dotted, values in _flatten(grid_t).items():
+        where = f"sweep.grid.{dotted}"
+        _check_dotted(dotted, path, where)
+        if not isinstance(values, list) or not values:
+            raise InputError(path, where, f"expected a non-empty list of values, got {values!r}")
+        frozen = [tuple(v) if isinstance(v, list) else v for v in values]
+        if len(set(map(repr, frozen))) != len(frozen):
+            raise InputError(path, where, "a value is listed twice")
+        grid.append((dotted, tuple(values)))
+    fixed = []
+    for dotted, value in _flatten(set_t).items():
+        where = f"sweep.set.{dotted}"
+        _check_dotted(dotted, path, where)
+        if dotted in dict(grid):
+            raise InputError(path, where, "also swept in [sweep.grid]")
+        fixed.append((dotted, value))
+    return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
+                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin))
+
+
+def _load_base(spec: SweepSpec) -> dict:
+    try:
+        with open(spec.base, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(spec.base, None, f"not valid TOML ({exc})") from None
+
+
+def _config(spec: SweepSpec, base_data: dict, overrides: dict, where: str, swept_key: str | None = None,
+            context: str = "") -> Config:
+    """A config of the sweep; errors name the sweep file and the sweep field that caused them."""
+    try:
+        return config_from_dict(base_data, spec.base, overrides)
+    except InputError as exc:
+        detail = exc.message if exc.field in (None, swept_key) else f"{exc.field}: {exc.message}"
+        raise InputError(spec.path, where, context + detail) from None
+
+
+def _value_text(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "x".join(_value_text(v) for v in value)
+    return str(value)
+
+
+def _safe(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._+-]", "_", text)
+
+
+def _short_names(keys: list[str]) -> dict[str, str]:
+    """Run-id names of the grid keys: the key without its table unless two would collide."""
+    last = [k.split(".")[1] for k in keys]
+    return {k: (s if last.count(s) == 1 else k) for k, s in zip(keys, last)}
+
+
+def run_id_of(params: tuple[tuple[str, object], ...], seed: int, short: dict[str, str]) -> str:
+    parts = [f"{short[k]}={_safe(_value_text(v))}" for k, v in params]
+    return ",".join(parts + [f"seed={seed}"])
+
+
+def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
+    """The base config (with [sweep.set] and methods) and every run, each config validated."""
+    base_data = _load_base(spec)
+    config_from_dict(base_data, spec.base)  # the base alone: its own errors name the base file
+    fixed = dict(spec.fixed)
+    if spec.methods is not None:
+        _config(spec, base_data, {"run.methods": list(spec.methods)}, "sweep.methods", "run.methods")
+        fixed["run.methods"] = list(spec.methods)
+    for dotted, value in spec.fixed:
+        _config(spec, base_data, {dotted: value}, f"sweep.set.{dotted}", dotted)
+    base_cfg = _config(spec, base_data, fixed, "sweep.set")
+    for dotted, values in spec.grid:
+        for i, value in enumerate(values):
+            _config(spec, base_data, {**fixed, dotted: value}, f"sweep.grid.{dotted}[{i}]", dotted)
+    short = _short_names(spec.grid_keys)
+    runs: list[SweepRun] = []
+    combos = list(itertools.product(*[values for _, values in spec.grid]))
+    for setting, combo in enumerate(combos):
+        params = tuple(zip(spec.grid_keys, combo))
+        text = ", ".join(f"{k} = {_value_text(v)}" for k, v in params)
+        cfg = _config(spec, base_data, {**fixed, **dict(params)}, "sweep.grid", context=f"with {text}: ")
+        for seed in spec.seeds:
+            run_id = run_id_of(params, seed, short)
+            run_cfg = dataclasses.replace(
+                cfg, run=dataclasses.replace(cfg.run, seed=seed, name=f"{spec.name}/{run_id}"))
+            runs.append(SweepRun(run_id=run_id, setting=setting, seed=seed, params=params, cfg=run_cfg))
+    ids = [r.run_id for r in runs]
+    if len(set(ids)) != len(ids):
+        dup = next(i for i in ids if ids.count(i) > 1)
+        raise InputError(spec.path, "sweep.grid", f"two runs get the same folder name {dup!r}; make the values distinct")
+    return base_cfg, runs
+
+
+def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
+    """What DIR/sweep.toml holds: the sweep as resolved; a restart must resolve to the same."""
+    base_text = config_to_toml(base_cfg, {})
+    lines = [
+        f"# coloc sweep resolved from {spec.path}",
+        "# A restart into this folder must resolve to the same values (the sweep file's path may differ).",
+        "",
+        "[sweep]",
+        f"name = {_toml_value(spec.name)}",
+        f"base = {_toml_value(str(spec.base))}",
+        f"base_config_sha256 = {_toml_value(hashlib.sha256(base_text.encode()).hexdigest())}",
+        f"seeds = {_toml_value(list(spec.seeds))}",
+        f"methods = {_toml_value(list(base_cfg.run.methods))}",
+        f"distance_bin_m = {_toml_value(spec.distance_bin_m)}",
+        f"runs = {n_runs}",
+        "",
+        "[sweep.set]",
+    ]
+    lines += [f"{_toml_value(k)} = {_toml_value(v)}" for k, v in spec.fixed]
+    lines += ["", "[sweep.grid]"]
+    lines += [f"{_toml_value(k)} = {_toml_value(list(v))}" for k, v in spec.grid]
+    return "\n".join(lines) + "\n"
+
+
+def _first_difference(a: dict, b: dict, prefix: str = "") -> str | None:
+    for key in list(a) + [k for k in b if k not in a]:
+        if key not in a or key not in b:
+            return f"{prefix}{key}"
+        if isinstance(a[key], dict) and isinstance(b[key], dict):
+            d = _first_difference(a[key], b[key], f"{prefix}{key}.")
+            if d:
+                return d
+        elif a[key] != b[key]:
+            return f"{prefix}{key}"
+    return None
+
+
+# --------------------------------------------------------------------------- #
+# Output folder: lock, spec check, leftovers
+# --------------------------------------------------------------------------- #
+
+
+def _acquire_lock(out: Path, spec_path: Path):
+    fh = open(out / ".coloc-sweep.lock", "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.close()
+        raise InputError(spec_path, None, f"another coloc sweep is writing into {out}") from None
+    return fh
+
+
+def _check_spec(out: Path, text: str, spec_path: Path) -> None:
+    """Refuse a sweep that resolves differently from the one stored in ``out/sweep.toml``."""
+    target = out / "sweep.toml"
+    try:
+        old = tomllib.loads(target.read_text())
+    except tomllib.TOMLDecodeError:
+        old = {}
+    new = tomllib.loads(text)
+    if old != new:
+        diff = _first_difference(new, old) or "sweep"
+        raise InputError(spec_path, diff,
+                         f"{out} holds a different sweep ({target} has another {diff}); "
+                         "use another --out folder, or remove that one to start over")
+
+
+def _check_or_write_spec(out: Path, text: str, spec_path: Path) -> None:
+    target = out / "sweep.toml"
+    if target.exists():
+        _check_spec(out, text, spec_path)
+        return
+    if (out / RUNS_DIR).exists():
+        raise InputError(spec_path, None, f"{out / RUNS_DIR} exists without {target}: not a sweep folder of this sweep")
+    _write_atomic(target, text.encode())
+
+
+def _write_atomic(target: Path, data: bytes) -> None:
+    tmp = target.parent / f".{target.name}.tmp-{os.getpid()}"
+    tmp.write_bytes(data)
+    os.replace(tmp, target)
+
+
+def clean_leftovers(out: Path) -> list[Path]:
+    """Remove the hidden partial folders and temporary files a killed sweep or run left behind."""
+    removed = []
+    candidates = list(out.glob(".*.tmp-*")) + list(out.glob(".report-*"))
+    runs = out / RUNS_DIR
+    if runs.is_dir():
+        candidates += [p for p in runs.iterdir() if p.name.startswith(".") and (".partial-" in p.name or ".old-" in p.name)]
+    for p in sorted(candidates):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
+def run_complete(run_dir: Path) -> bool:
+    # run_experiment renames a finished folder into place: if it exists it is complete.
+    return (run_dir / "summary.json").is_file()
+
+
+# --------------------------------------------------------------------------- #
+# Work done on a Dask worker
+# --------------------------------------------------------------------------- #
+
+# libsumo holds one simulation per process: on a multi-threaded worker, SUMO runs are serialised.
+_SUMO_LOCK = threading.Lock()
+
+
+def execute_run(cfg: Config, run_dir: str, distance_bin_m: float) -> dict:
+    """Run (unless already complete) and return the run's partial sums for the sweep outputs.
+
+    Never raises: errors (libsumo's cannot be pickled) come back as text.
+    """
+    run_dir = Path(run_dir)
+    status = "present"
+    try:
+        if not run_complete(run_dir):
+            from experiments.runner import run_experiment
+
+            if cfg.is_controlled_scenario:
+                run_experiment(cfg, run_dir, progress=False, write_report=False)
+            else:
+                with _SUMO_LOCK:
+                    run_experiment(cfg, run_dir, progress=False, write_report=False)
+            status = "computed"
+        centre = tuple(cfg.crossroad.centre) if cfg.scenario.kind == "crossroad" else None
+        return {"status": status, "partials": run_partials(run_dir, centre, distance_bin_m)}
+    except BaseException as exc:  # noqa: BLE001 - reported to the client as text
+        if isinstance(exc, KeyboardInterrupt):
+            raise
+        msg = exc.describe() if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
+        return {"status": "error", "error": msg, "traceback": traceback.format_exc()}
+
+
+def _sse(df: pd.DataFrame, keys: list[str], cols: dict[str, str]) -> pd.DataFrame:
+    """Sums of squares of ``cols`` (source -> output name) and counts per ``keys``."""
+    tmp = df[keys].copy()
+    for src, dst in cols.items():
+        v = df[src].to_numpy(dtype=float)
+        tmp[dst] = v * v
+    tmp["n"] = 1
+    return tmp.groupby(keys, sort=True, observed=True).sum().reset_index()
+
+
+def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin_m: float) -> dict:
+    """Per-run sums for the sweep outputs, read from the run's files (never from memory)."""
+    import pyarrow.parquet as pq
+
+    summary = json.loads((run_dir / "summary.json").read_text())
+    rows = []
+    for method, block in summary["methods"].items():
+        assoc = (summary.get("association") or {}).get(method) or {}
+        feat = block.get("features") or {}
+        rows.append({
+            "method": method,
+            "rmse_pos_m": block.get("rmse_pos_m"), "rmse_vel_mps": block.get("rmse_vel_mps"),
+            "p50_pos_m": block.get("p50_pos_m"), "p95_pos_m": block.get("p95_pos_m"), "n": block.get("n"),
+            "correct_pct": assoc.get("correct_pct"), "wrong_pct": assoc.get("wrong_pct"),
+            "discarded_pct": assoc.get("discarded_pct"),
+            "feature_rmse_pos_m": feat.get("rmse_pos_m"),
+        })
+    est = pq.read_table(run_dir / "estimates.parquet",
+                        columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true"]).to_pandas()
+    est["method"] = est["method"].astype(str)
+    out = {"summary": rows}
+    out["time"] = _sse(est, ["method", "t"], {"err_pos": "sse_pos", "err_vel": "sse_vel"}).rename(columns={"t": "x"})
+    out["overall"] = _sse(est, ["method"], {"err_pos": "sse_pos", "err_vel": "sse_vel"})
+    if centre is not None:
+        d = np.hypot(est["px_true"].to_numpy() - centre[0], est["py_true"].to_numpy() - centre[1])
+        est["x"] = (np.floor(d / distance_bin_m) + 0.5) * distance_bin_m
+        out["distance"] = _sse(est, ["method", "x"], {"err_pos": "sse_pos", "err_vel": "sse_vel"})
+    fpath = run_dir / "features.parquet"
+    if fpath.exists():
+        feat = pq.read_table(fpath, columns=["method", "t", "err_pos"]).to_pandas()
+        feat["method"] = feat["method"].astype(str)
+        out["feature_time"] = _sse(feat, ["method", "t"], {"err_pos": "sse_pos"}).rename(columns={"t": "x"})
+        out["feature_overall"] = _sse(feat, ["method"], {"err_pos": "sse_pos"})
+    assoc = pq.read_table(run_dir / "association.parquet", columns=["method", "correct", "wrong", "discarded"]).to_pandas()
+    assoc["method"] = assoc["method"].astype(str)
+    out["association"] = assoc.groupby("method", sort=True).sum().reset_index()
+    return out
+
+
+# --------------------------------------------------------------------------- #
+# Aggregation (client side, deterministic)
+# --------------------------------------------------------------------------- #
+
+
+def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarray | pd.Series]:
+    """One column per swept key for the given setting indices, typed from the values."""
+    combos = list(itertools.product(*[values for _, values in spec.grid]))
+    cols = {}
+    for j, (key, values) in enumerate(spec.grid):
+        vals = [c[j] for c in combos]
+        if all(isinstance(v, bool) for v in values):
+            arr = np.array(vals, dtype=bool)
+        elif all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+            arr = np.array(vals, dtype=np.int64)
+        elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            arr = np.array(vals, dtype=np.float64)
+        else:
+            arr = np.array([v if isinstance(v, str) else _toml_value(v) for v in vals], dtype=object)
+        col = arr[settings]
+        cols[key] = pd.Series(col, dtype="string") if col.dtype == object else col
+    return cols
+
+
+def aggregate(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """sweep.parquet and curves.parquet tables from the runs' partial sums (in run order)."""
+    method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
+    # sweep.parquet: one row per (run, method)
+    rows = []
+    for k, (run, part) in enumerate(zip(runs, partials)):
+        for r in part["summary"]:
+            rows.append({"_run": k, "_setting": run.setting, "run_id": run.run_id, "seed": run.seed, **r})
+    sweep = pd.DataFrame(rows)
+    if len(sweep):
+        sweep["_rank"] = sweep["method"].map(lambda m: method_rank.get(m, len(method_rank)))
+        sweep = sweep.sort_values(["_setting", "seed", "_rank", "method"], kind="mergesort").reset_index(drop=True)
+    params = _param_columns(spec, sweep["_setting"].to_numpy(dtype=np.int64))
+    front = pd.DataFrame({"run_id": sweep["run_id"].astype("string"), "seed": sweep["seed"].astype("int64"), **params})
+    numeric = ["rmse_pos_m", "rmse_vel_mps", "p50_pos_m", "p95_pos_m", "correct_pct", "wrong_pct",
+               "discarded_pct", "feature_rmse_pos_m"]
+    table = pd.concat([front, sweep[["method"]].astype("string"),
+                       sweep[numeric].astype("float64"), sweep[["n"]].astype("int64")], axis=1)
+
+    # curves.parquet
+    n_runs = np.bincount([r.setting for r in runs], minlength=1 + max((r.setting for r in runs), default=0))
+    parts = []
+    for kind in CURVE_KINDS:
+        frames = []
+        for run, part in zip(runs, partials):
+            df = part.get(kind)
+            if df is not None and len(df):
+                df = df.copy()
+                df.insert(0, "_setting", run.setting)
+                frames.append(df)
+        if not frames:
+            continue
+        df = pd.concat(frames, ignore_index=True)
+        keys = ["_setting", "method"] + (["x"] if "x" in df.columns else [])
+        g = df.groupby(keys, sort=True, observed=True).sum(numeric_only=True).reset_index()
+        res = pd.DataFrame({"_setting": g["_setting"].to_numpy(dtype=np.int64), "method": g["method"].astype(str)})
+        res["x"] = g["x"].to_numpy(dtype=float) if "x" in g else np.nan
+        res["n_runs"] = n_runs[res["_setting"].to_numpy()]
+        nan = np.full(len(g), np.nan)
+        if kind == "association":
+            total = (g["correct"] + g["wrong"] + g["discarded"]).to_numpy(dtype=float)
+            safe = np.where(total > 0, total, np.nan)
+            res["n_samples"] = total.astype(np.int64)
+            res["rmse_pos_m"], res["rmse_vel_mps"] = nan, nan
+            for c in ("correct", "wrong", "discarded"):
+                res[f"{c}_pct"] = 100.0 * g[c].to_numpy(dtype=float) / safe
+        else:
+            n = g["n"].to_numpy(dtype=float)
+            res["n_samples"] = g["n"].to_numpy(dtype=np.int64)
+            res["rmse_pos_m"] = np.sqrt(g["sse_pos"].to_numpy(dtype=float) / n)
+            res["rmse_vel_mps"] = np.sqrt(g["sse_vel"].to_numpy(dtype=float) / n) if "sse_vel" in g else nan
+            for c in ("correct", "wrong", "discarded"):
+                res[f"{c}_pct"] = nan
+        res.insert(0, "curve", kind)
+        parts.append(res)
+    cols = ["curve", "_setting", "method", "x", "n_runs", "n_samples", "rmse_pos_m", "rmse_vel_mps",
+            "correct_pct", "wrong_pct", "discarded_pct"]
+    curves = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=cols)
+    curves["_kind"] = curves["curve"].map({k: i for i, k in enumerate(CURVE_KINDS)})
+    curves["_rank"] = curves["method"].map(lambda m: method_rank.get(m, len(method_rank)))
+    curves = curves.sort_values(["_kind", "_setting", "_rank", "method", "x"], kind="mergesort").reset_index(drop=True)
+    params = _param_columns(spec, curves["_setting"].to_numpy(dtype=np.int64))
+    curves_out = pd.concat([
+        pd.DataFrame({"curve": curves["curve"].astype("string"), **params,
+                      "method": curves["method"].astype("string")}),
+        curves[["x"]].astype("float64"),
+        curves[["n_runs", "n_samples"]].astype("int64"),
+        curves[["rmse_pos_m", "rmse_vel_mps", "correct_pct", "wrong_pct", "discarded_pct"]].astype("float64"),
+    ], axis=1)
+    return table, curves_out
+
+
+# --------------------------------------------------------------------------- #
+# Driver
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class SweepResult:
+    out: Path
+    n_runs: int
+    computed: int
+    present: int
+    failed: list[tuple[str, str]]
+    seconds: float
+    workers: int
+    dry_run: bool = False
+
+
+class SweepFailed(Exception):
+    """Some runs of a sweep failed; the completed ones are kept for a restart."""
+
+
+def default_workers() -> int:
+    try:
+        ncpu = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        ncpu = os.cpu_count() or 1
+    return max(1, min(ncpu, 4))
+
+
+class _DaskClient:
+    """A Client on a new LocalCluster of processes, or on a running scheduler."""
+
+    def __init__(self, scheduler: str | None, workers: int, connect_timeout: str = "20s"):
+        self.scheduler, self.workers, self.connect_timeout = scheduler, workers, connect_timeout
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        from dask.distributed import Client, LocalCluster
+
+        if self.scheduler:
+            try:
+                self.client = Client(self.scheduler, timeout=self.connect_timeout)
+            except (OSError, TimeoutError) as exc:
+                raise InputError(None, "--scheduler", f"cannot connect to {self.scheduler} ({exc})") from None
+        else:
+            self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                        dashboard_address=None, silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+        return self.client
+
+    def __exit__(self, *exc):
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def _check_methods_available(spec: SweepSpec, base_cfg: Config) -> None:
+    from experiments.runner import icp_da_lc_class
+
+    if "icp_da_lc" in base_cfg.run.methods and icp_da_lc_class() is None:
+        src, where = (spec.path, "sweep.methods") if spec.methods is not None else (spec.base, "run.methods")
+        raise InputError(src, where, "icp_da_lc is not available in this build yet (coloc.icp_da_lc has no IcpDaLc)")
+
+
+def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = None, workers: int | None = None,
+              progress: bool = True, dry_run: bool = False, write_report: bool = True,
+              connect_timeout: str = "20s") -> SweepResult:
+    """Run (or resume) a sweep; returns counts. Raises InputError on bad input, SweepFailed on failed runs."""
+    t0 = time.perf_counter()
+    spec = load_sweep(spec_path)
+    base_cfg, runs = expand_runs(spec)
+    out = Path(out)
+    workers = workers or default_workers()
+    if dry_run:
+        return SweepResult(out, len(runs), 0, 0, [], time.perf_counter() - t0, workers, dry_run=True)
+    _check_methods_available(spec, base_cfg)
+    if workers < 1:
+        raise InputError(None, "--workers", "must be >= 1")
+    spec_text = resolved_spec_toml(spec, base_cfg, len(runs))
+    if (out / "sweep.toml").exists():
+        _check_spec(out, spec_text, spec.path)  # refuse a different sweep before starting anything
+    need = [r for r in runs if not run_complete(out / RUNS_DIR / r.run_id)]
+    # Nothing to compute (e.g. rebuilding the outputs): the runs are read here, no cluster needed.
+    # Otherwise the cluster is started (or the scheduler reached) before anything is written.
+    with (_DaskClient(scheduler, workers, connect_timeout) if need else contextlib.nullcontext()) as client:
+        out.mkdir(parents=True, exist_ok=True)
+        lock = _acquire_lock(out, spec.path)
+        try:
+            return _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0)
+        finally:
+            lock.close()
+
+
+def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str, client, progress: bool,
+                write_report: bool, workers: int, t0: float) -> SweepResult:
+    _check_or_write_spec(out, spec_text, spec.path)
+    clean_leftovers(out)
+    (out / RUNS_DIR).mkdir(exist_ok=True)
+    partials: list[dict | None] = [None] * len(runs)
+    failed: list[tuple[str, str]] = []
+    computed = present = 0
+    from tqdm import tqdm
+
+    # Redirected stderr (logs, CI): a line every 30 s instead of a carriage-return stream.
+    bar = tqdm(total=len(runs), desc=spec.name, unit="run", file=sys.stderr, disable=not progress,
+               mininterval=0.5 if sys.stderr.isatty() else 30.0)
+
+    def collect(k: int, res: dict) -> None:
+        nonlocal computed, present
+        if res["status"] == "error":
+            failed.append((runs[k].run_id, res["error"]))
+        else:
+            partials[k] = res["partials"]
+            computed += res["status"] == "computed"
+            present += res["status"] == "present"
+        bar.set_postfix(computed=computed, present=present, failed=len(failed), refresh=False)
+        bar.update(1)
+
+    if client is None:
+        for k, run in enumerate(runs):
+            collect(k, execute_run(run.cfg, str(out / RUNS_DIR / run.run_id), spec.distance_bin_m))
+    else:
+        from dask.distributed import as_completed
+
+        futures = {}
+        for k, run in enumerate(runs):
+            fut = client.submit(execute_run, run.cfg, str(out / RUNS_DIR / run.run_id), spec.distance_bin_m,
+                                key=f"coloc-sweep-{k}-{os.getpid()}-{time.time_ns()}", pure=False)
+            futures[fut] = k
+        for fut in as_completed(futures):
+            collect(futures[fut], fut.result())
+            fut.release()
+    bar.close()
+    if failed:
+        failed.sort()
+        raise SweepFailed(f"{len(failed)} of {len(runs)} runs failed (first: {failed[0][0]}: {failed[0][1]}); "
+                          "completed runs are kept: rerun the same command to retry the others")
+    table, curves = aggregate(spec, runs, partials)
+    from experiments.runner import write_parquet
+
+    for name, df in (("sweep.parquet", table), ("curves.parquet", curves)):
+        tmp = out / f".{name}.tmp-{os.getpid()}"
+        write_parquet(df, tmp)
+        os.replace(tmp, out / name)
+    if write_report:
+        from experiments.sweep_report import write_sweep_report
+
+        write_sweep_report(out)
+    return SweepResult(out, len(runs), computed, present, [], time.perf_counter() - t0, workers)
