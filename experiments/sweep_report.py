@@ -190,7 +190,12 @@ def _fig_association(curves: pd.DataFrame, keys: list[str], path: Path) -> None:
     for ax, col in zip(axes, ycols):
         ax.set_title(titles[col])
         ax.set_ylabel("% of V2F measurements")
-        ax.set_ylim(-2, 102)
+        # Own scale per panel: correct is often near 100 %, wrong / discarded a few percent.
+        lo, hi = ax.get_ylim()
+        if col == "correct_pct":
+            ax.set_ylim(max(0.0, min(lo, 99.0)), 100.5)
+        else:
+            ax.set_ylim(0.0, max(1.0, hi))
         ax.set_xlabel(_key_label(first) if first else "")
         if first is not None and not numeric:
             ax.set_xticks(range(len(xs)), [_value_label(v) for v in xs])

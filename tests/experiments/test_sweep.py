@@ -187,6 +187,9 @@ def test_rerun_computes_nothing_and_writes_identical_files(tiny):
     assert main(["sweep", str(spec), "--out", str(out), "--quiet"]) == 0
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/summary.json")} == before
     assert {n: (out / n).read_bytes() for n in data} == data
+    html = (out / "report.html").read_text()
+    assert main(["report", str(out)]) == 0  # `coloc report DIR` rebuilds a sweep's report from its files
+    assert (out / "report.html").read_text() == html
 
 
 def test_other_sweep_into_the_same_folder_is_refused(tiny):
@@ -257,3 +260,28 @@ def test_killed_sweep_resumes_with_every_run_once(tmp_path):
     assert f"{len(done)} already present" in res.stdout
     assert len(pd.read_parquet(out / "sweep.parquet")) == 16
     assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".coloc-sweep.lock"]
+
+
+def test_sumo_sweep_runs_in_worker_processes(cross_net, tmp_path):
+    """SUMO runs (libsumo: one simulation per process) in a sweep: traffic kept, no distance curve."""
+    (tmp_path / "base.toml").write_text(f"""
+[run]
+name = "cross"
+duration_s = 30.0
+methods = ["gnss"]
+[scenario]
+kind = "sumo"
+net_dir = "{cross_net}"
+[motion]
+sigma_cross = 0.1
+""")
+    spec = tmp_path / "sweep.toml"
+    spec.write_text(SWEEP.format(seeds="[1, 2]", more="", grid='"scenario.control" = ["tlr", "vsr"]'))
+    out = tmp_path / "out"
+    from experiments.sweep import run_sweep
+
+    assert run_sweep(spec, out, workers=2, progress=False).computed == 4
+    table = pd.read_parquet(out / "sweep.parquet")
+    assert len(table) == 4 and list(table["scenario.control"]) == ["tlr", "tlr", "vsr", "vsr"]
+    assert set(pd.read_parquet(out / "curves.parquet")["curve"]) == {"time", "overall"}
+    assert len(pd.read_parquet(out / "runs" / "control=vsr,seed=2" / "traffic.parquet")) > 0
