@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 
@@ -17,3 +18,20 @@ class InputError(Exception):
     def describe(self) -> str:
         parts = [p for p in (self.path, self.field) if p]
         return ": ".join(parts + [self.message])
+
+
+def read_toml(path: str | Path, kind: str = "file") -> dict:
+    """Parse a TOML file; a missing file, a directory or broken TOML is an :class:`InputError`.
+
+    ``kind`` names the file in the messages ("config file", "sweep file", ...).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(path, None, f"{kind} not found") from None
+    except IsADirectoryError:
+        raise InputError(path, None, f"is a directory, not a {kind}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, None, f"not valid TOML ({exc})") from None

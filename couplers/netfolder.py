@@ -6,7 +6,6 @@ Parsing only; geometry lookups are in ``couplers.zones``.
 from __future__ import annotations
 
 import json
-import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +14,7 @@ import numpy as np
 import shapely
 from shapely.geometry import shape
 
-from couplers.errors import InputError
+from couplers.errors import InputError, read_toml
 
 REQUIRED_FILES = ("net", "routes", "zones", "areas", "features")
 
@@ -48,16 +47,6 @@ class NetFolder:
     features: Features
     tls_off: dict[str, bool]
     scenario: dict
-
-
-def _read_toml(path: Path) -> dict:
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise InputError(path, None, "file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, None, f"not valid TOML ({exc})") from None
 
 
 def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
@@ -123,7 +112,7 @@ def load_net_folder(root: str | Path) -> NetFolder:
     scen_path = root / "scenario.toml"
     if not root.is_dir():
         raise InputError(root, None, "net folder not found")
-    scen = _read_toml(scen_path)
+    scen = read_toml(scen_path)
     files = scen.get("files")
     if not isinstance(files, dict):
         raise InputError(scen_path, "files", "missing table")

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -44,7 +43,7 @@ from pathlib import Path
 
 from coloc.icp_da_lc import LcParams
 from coloc.models import MotionParams
-from couplers.errors import InputError
+from couplers.errors import InputError, read_toml
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
@@ -347,16 +346,7 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
 def load_config(path: str | Path, overrides: dict | None = None) -> Config:
     """Read and validate a config; ``overrides`` maps "section.key" to a value (command-line options)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise InputError(path, None, "config file not found") from None
-    except IsADirectoryError:
-        raise InputError(path, None, "is a directory, not a config file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, None, f"not valid TOML ({exc})") from None
-    return config_from_dict(data, path, overrides)
+    return config_from_dict(read_toml(path, "config file"), path, overrides)
 
 
 def _toml_value(value) -> str:

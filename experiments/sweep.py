@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from couplers.errors import InputError
+from couplers.errors import InputError, read_toml
 from experiments.config import SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set")
@@ -165,15 +165,7 @@ def _seeds(value, path: Path) -> tuple[int, ...]:
 def load_sweep(path: str | Path) -> SweepSpec:
     """Read and check a sweep file's own fields (the configs it makes are checked by :func:`expand_runs`)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise InputError(path, None, "sweep file not found") from None
-    except IsADirectoryError:
-        raise InputError(path, None, "is a directory, not a sweep file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, None, f"not valid TOML ({exc})") from None
+    data = read_toml(path, "sweep file")
     extra = sorted(set(data) - {"sweep"})
     if extra:
         raise InputError(path, extra[0], "unknown table (a sweep file has only [sweep], [sweep.grid], [sweep.set])")
@@ -230,11 +222,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
 
 
 def _load_base(spec: SweepSpec) -> dict:
-    try:
-        with open(spec.base, "rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(spec.base, None, f"not valid TOML ({exc})") from None
+    return read_toml(spec.base, "config file")
 
 
 def _config(spec: SweepSpec, base_data: dict, overrides: dict, where: str, swept_key: str | None = None,
@@ -645,14 +633,6 @@ class _DaskClient:
             self.cluster.close()
 
 
-def _check_methods_available(spec: SweepSpec, base_cfg: Config) -> None:
-    from experiments.runner import icp_da_lc_class
-
-    if "icp_da_lc" in base_cfg.run.methods and icp_da_lc_class() is None:
-        src, where = (spec.path, "sweep.methods") if spec.methods is not None else (spec.base, "run.methods")
-        raise InputError(src, where, "icp_da_lc is not available in this build yet (coloc.icp_da_lc has no IcpDaLc)")
-
-
 def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = None, workers: int | None = None,
               progress: bool = True, dry_run: bool = False, write_report: bool = True,
               connect_timeout: str = "20s") -> SweepResult:
@@ -664,7 +644,6 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
     workers = workers or default_workers()
     if dry_run:
         return SweepResult(out, len(runs), 0, 0, [], time.perf_counter() - t0, workers, dry_run=True)
-    _check_methods_available(spec, base_cfg)
     if workers < 1:
         raise InputError(None, "--workers", "must be >= 1")
     spec_text = resolved_spec_toml(spec, base_cfg, len(runs))
