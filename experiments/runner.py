@@ -39,8 +39,8 @@ from tqdm import tqdm
 from coloc.frame import Frame, StepEstimate
 from coloc.gnss import GnssTracker
 from coloc.icp import IcpParams
+from coloc.icp_da_lc import IcpDaLc
 from coloc.icp_known_da import IcpKnownDA
-from couplers.errors import InputError
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
@@ -58,30 +58,17 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da"})
 
 
-def icp_da_lc_class():
-    """``coloc.icp_da_lc.IcpDaLc`` when that estimator exists in this build, else None."""
-    try:
-        from coloc.icp_da_lc import IcpDaLc
-    except ImportError:
-        return None
-    return IcpDaLc
-
-
 def build_estimators(cfg: Config) -> list:
     """Estimator objects for ``cfg.run.methods``, in that order."""
     icp = IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp))
     out = []
-    for i, m in enumerate(cfg.run.methods):
+    for m in cfg.run.methods:
         if m == "gnss":
             out.append(GnssTracker(motion=cfg.motion))
         elif m == "icp_known_da":
             out.append(IcpKnownDA(params=icp))
         elif m == "icp_da_lc":
-            cls = icp_da_lc_class()
-            if cls is None:
-                raise InputError(cfg.path, f"run.methods[{i}]",
-                                 "icp_da_lc is not available in this build yet (coloc.icp_da_lc has no IcpDaLc)")
-            out.append(cls(params=icp, lc=cfg.lc))
+            out.append(IcpDaLc(params=icp, lc=cfg.lc))
         else:  # config validation lists the known methods; this is a programming error
             raise ValueError(f"no estimator for method {m!r}")
     return out

@@ -12,10 +12,8 @@ import pytest
 from couplers.errors import InputError
 from experiments.cli import main
 from experiments.config import config_from_dict, load_config
-from experiments.runner import icp_da_lc_class
 
 PROJECT = Path(__file__).resolve().parents[2]
-HAS_LC = icp_da_lc_class() is not None
 
 SINGLE = """
 [run]
@@ -166,14 +164,6 @@ def test_crossroad_run_capped_with_ring_areas_and_report_without_net(tmp_path):
     assert main(["report", str(out)]) == 0  # rebuilding needs no net folder either
 
 
-@pytest.mark.skipif(HAS_LC, reason="coloc.icp_da_lc.IcpDaLc exists")
-def test_icp_da_lc_missing_is_a_clear_error(tmp_path):
-    path = _cfg(tmp_path, SINGLE)
-    assert main(["run", str(path), "--out", str(tmp_path / "o"), "--methods", "gnss,icp_da_lc", "--quiet"]) == 2
-    assert not (tmp_path / "o").exists()
-
-
-@pytest.mark.skipif(not HAS_LC, reason="coloc.icp_da_lc.IcpDaLc not available yet")
 def test_icp_da_lc_run_is_scored(tmp_path):
     out = tmp_path / "o"
     assert main(["run", str(_cfg(tmp_path, SINGLE)), "--out", str(out), "--methods", "gnss,icp_da_lc", "--quiet"]) == 0
