@@ -20,9 +20,18 @@ def _methods(text: str) -> list[str]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from couplers.errors import read_toml
     from experiments.config import load_config
     from experiments.runner import run_experiment
+    from experiments.studies import is_study, run_study
 
+    data = read_toml(args.config, "config file")
+    if is_study(data):  # a study of another source paper (experiments/studies)
+        summary = run_study(data, Path(args.config), Path(args.out), args.seed, progress=not args.quiet)
+        for line in summary.get("lines", []):
+            print(line)
+        print(f"wrote {args.out}/report.html")
+        return 0
     overrides = {}
     if args.seed is not None:
         overrides["run.seed"] = args.seed
