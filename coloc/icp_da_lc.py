@@ -57,7 +57,10 @@ from coloc.frame import Frame, StepEstimate
 from coloc.icp import FeatureStore, IcpParams, bpa_localization
 from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
 
-__all__ = ["LcParams", "IcpDaLc", "LcStepInfo", "association_weights", "map_pairing", "icp_da_lc_step"]
+__all__ = [
+    "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
+    "map_pairing", "icp_da_lc_step", "candidate_rows", "new_feature_log_density",
+]
 
 
 @dataclass(frozen=True)
@@ -136,16 +139,10 @@ def candidate_pairs(
     return vi.astype(np.int64), ti.astype(np.int64)
 
 
-def association_weights(
-    v_mean, v_cov, t_mean, t_cov, owner, z, r, lc: LcParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """eta of (13) for every vehicle's (candidate track, row) pair, as BP problems.
-
-    Returns ``(pair_vehicle, pair_track, pair_row, weight)`` with one entry per
-    (vehicle i, candidate track k, row l of i): weight = eta(alpha_ik = l)
-    normalised by the new-feature density (module docstring, step 3); 0
-    outside the gate.
-    """
+def candidate_rows(
+    v_mean: np.ndarray, v_cov: np.ndarray, t_mean: np.ndarray, t_cov: np.ndarray, owner: np.ndarray, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vehicle, track, row) for every row of a vehicle and every candidate track of that vehicle."""
     owner = np.asarray(owner, dtype=np.int64)
     n = v_mean.shape[0]
     vi, ti = candidate_pairs(v_mean, v_cov, t_mean, t_cov, lc)
@@ -156,37 +153,78 @@ def association_weights(
     pv, pt = np.repeat(vi, reps), np.repeat(ti, reps)
     within = np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)
     pr = rows_by_vehicle[np.repeat(start[vi], reps) + within]
+    return pv, pt, pr
+
+
+def new_feature_log_density(v_mean: np.ndarray, v_cov: np.ndarray, z: np.ndarray, r: np.ndarray, lc: LcParams) -> np.ndarray:
+    """log of mu_new f_new(z): a row from an untracked feature (module docstring, step 3), per row.
+
+    Position uniform in the sensing disc, v_F ~ N(0, s^2 I), so z_v = v_F - v_V
+    is Gaussian around -v_V; ``v_mean``/``v_cov`` are the measuring vehicle's.
+    """
+    s_v = v_cov[:, 2:, 2:] + r[:, 2:, 2:] + lc.new_feature_velocity_sigma**2 * np.eye(2)
+    log_new_v, _ = _log_gauss(z[:, 2:] + v_mean[:, 2:], s_v)
+    return math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2) + log_new_v
+
+
+def association_weights(
+    v_mean, v_cov, t_mean, t_cov, owner, z, r, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """eta of (13) for every vehicle's (candidate track, row) pair, as BP problems.
+
+    Returns ``(pair_vehicle, pair_track, pair_row, weight)`` with one entry per
+    (vehicle i, candidate track k, row l of i): weight = eta(alpha_ik = l)
+    normalised by the new-feature density (module docstring, step 3); 0
+    outside the gate.
+    """
+    pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
     if pr.size == 0:
         return pv, pt, pr, np.empty(0)
     nu = z[pr] - (t_mean[pt] - v_mean[pv])
     log_lik, d2 = _log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
-    # Density of the row under "an untracked feature": uniform position in the disc, v_F ~ N(0, s^2 I).
-    s_v = v_cov[pv][:, 2:, 2:] + r[pr][:, 2:, 2:] + lc.new_feature_velocity_sigma**2 * np.eye(2)
-    log_new_v, _ = _log_gauss(z[pr][:, 2:] + v_mean[pv][:, 2:], s_v)
-    log_new = math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2) + log_new_v
+    log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     log_w = math.log(lc.detection_probability) + log_lik - log_new
     w = np.exp(np.minimum(log_w, 600.0))
     w[d2 > chi2.ppf(lc.gate_probability, 4)] = 0.0
     return pv, pt, pr, w
 
 
-def map_pairing(
-    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """BPA-DA per vehicle (14)-(17) and the MAP decision (30).
+@dataclass(frozen=True)
+class AssociationBeliefs:
+    """BPA-DA (14)-(17) marginals of all vehicles' problems, indexed by (vehicle, track) combo.
 
-    Returns ``(row_track, row_new)``: the track index paired with each row (-1
-    = none) and each row's belief of coming from no track (1 for rows of
-    vehicles without gated pairs). One BP problem per vehicle, K_i tracks x
-    (M_i + 1) options, assembled with array operations and solved in one
-    numba call.
+    ``combo_vehicle``/``combo_track`` (C,): the combos with at least one gated
+    row; ``combo_start`` (C,): flat index of (combo, option 0) in ``belief``;
+    ``combo_rows`` (C,): rows of the combo's vehicle; option l >= 1 of a combo
+    is row ``rows[row_first[c] + l - 1]`` (rows sorted by (vehicle, row)).
+    ``row_new`` (O,): each row's belief of coming from no track.
     """
-    row_track = np.full(n_rows, -1, dtype=np.int64)
+
+    belief: np.ndarray
+    combo_vehicle: np.ndarray
+    combo_track: np.ndarray
+    combo_start: np.ndarray
+    combo_rows: np.ndarray
+    row_first: np.ndarray
+    rows: np.ndarray
+    row_new: np.ndarray
+
+    def row_of_option(self, combo: np.ndarray, option: np.ndarray) -> np.ndarray:
+        """Row index of option ``option`` (>= 1) of ``combo``."""
+        return self.rows[self.row_first[combo] + option - 1]
+
+
+def association_beliefs(
+    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
+) -> AssociationBeliefs | None:
+    """BPA-DA per vehicle (14)-(17): one BP problem per vehicle, K_i tracks x
+    (M_i + 1) options, assembled with array operations and solved in one
+    numba call. None when no pair is gated."""
     row_new = np.ones(n_rows)
     keep = weight > 0
     pv, pt, pr, w = pair_vehicle[keep], pair_track[keep], pair_row[keep], weight[keep]
     if pv.size == 0:
-        return row_track, row_new
+        return None
     n_t = int(pt.max()) + 1
     # Problem-local indices: (vehicle, track) combos and rows, both sorted by vehicle.
     combo, c_inv = np.unique(pv * n_t + pt, return_inverse=True)
@@ -215,28 +253,46 @@ def map_pairing(
     r_local = rank_r[r_inv] - r_first[prob_of_vehicle[pv]]
     eta[c_start[c_inv] + 1 + r_local] = w
     pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
-    row_new[rows_u[order_r]] = pn
+    rows_sorted = rows_u[order_r]
+    row_new[rows_sorted] = pn
+    return AssociationBeliefs(pf, c_vehicle, c_track, c_start, m_sizes[c_prob], r_first[c_prob], rows_sorted, row_new)
+
+
+def map_pairing(
+    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """BPA-DA per vehicle (14)-(17) (:func:`association_beliefs`) and the MAP decision (30).
+
+    Returns ``(row_track, row_new)``: the track index paired with each row (-1
+    = none) and each row's belief of coming from no track (1 for rows of
+    vehicles without gated pairs).
+    """
+    row_track = np.full(n_rows, -1, dtype=np.int64)
+    ab = association_beliefs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
+    if ab is None:
+        return row_track, np.ones(n_rows)
+    pf, c_start, c_track, combo_n = ab.belief, ab.combo_start, ab.combo_track, ab.combo_vehicle.size
     # (30): a track is detected iff b(alpha = 0) < eta_TH (eta_TH = 1: every track with a gated
     # row) and is paired with its most probable row; the larger belief wins a contested row.
-    m_c = m_sizes[c_prob]
-    seg = np.repeat(np.arange(combo.size), m_c)
+    m_c = ab.combo_rows
+    seg = np.repeat(np.arange(combo_n), m_c)
     opt = np.arange(seg.size) - np.repeat(np.cumsum(m_c) - m_c, m_c)
     vals = pf[np.repeat(c_start, m_c) + 1 + opt]
-    best_val = np.zeros(combo.size)
+    best_val = np.zeros(combo_n)
     np.maximum.at(best_val, seg, vals)
     is_best = vals == best_val[seg]
-    best_opt = np.full(combo.size, np.iinfo(np.int64).max)
+    best_opt = np.full(combo_n, np.iinfo(np.int64).max)
     np.minimum.at(best_opt, seg[is_best], opt[is_best])
     detected = best_val > 0
     if lc.eta_threshold < 1.0:
         detected &= pf[c_start] < lc.eta_threshold
     cand = np.flatnonzero(detected)
-    cand_row = rows_u[order_r][r_first[c_prob[cand]] + best_opt[cand]]
+    cand_row = ab.row_of_option(cand, best_opt[cand] + 1)
     order = np.lexsort((cand, -best_val[cand]))
     _, first = np.unique(cand_row[order], return_index=True)
     win = order[first]
     row_track[cand_row[win]] = c_track[cand[win]]
-    return row_track, row_new
+    return row_track, ab.row_new
 
 
 def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.ndarray, gate_d2: float) -> np.ndarray:

@@ -30,6 +30,9 @@ Scenario kinds (``[scenario] kind``):
 ``[lc]`` holds the ICP-DA-LC parameters (the fields of
 :class:`coloc.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
 range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
+``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
+without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
+``[icp]`` and ``[lc]`` (association, tracks).
 """
 
 from __future__ import annotations
@@ -42,12 +45,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from coloc.icp_da_lc import LcParams
+from coloc.icp_da_pf import PfParams
 from coloc.models import MotionParams
 from couplers.errors import InputError, read_toml
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc")
+KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf")
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
@@ -87,6 +91,18 @@ class IcpSection:
 
 
 @dataclass(frozen=True)
+class PfSection:
+    """ICP-DA-PF, coloc.icp_da_pf.PfParams; its generators are seeded with [run] seed."""
+
+    vehicle_particles: int = 1000
+    feature_particles: int = 1000
+    kernel: str = "grid"  # "grid" (pruned, exact to kernel_rel_tol per entry) or "brute"
+    kernel_cutoff_d2: float = 55.0
+    kernel_rel_tol: float = 1e-6
+    min_association_belief: float = 1e-6
+
+
+@dataclass(frozen=True)
 class ReportSection:
     track_area: str = "5"  # analysis area of the along/cross-track figure (paper Fig. 18b)
     figures: bool = True
@@ -101,6 +117,7 @@ class Config:
     motion: MotionParams = field(default_factory=MotionParams)
     icp: IcpSection = field(default_factory=IcpSection)
     lc: LcParams = field(default_factory=LcParams)
+    pf: PfSection = field(default_factory=PfSection)
     single_road: SingleRoadParams = field(default_factory=SingleRoadParams)
     crossroad: CrossroadParams = field(default_factory=CrossroadParams)
     report: ReportSection = field(default_factory=ReportSection)
@@ -132,6 +149,7 @@ SECTIONS: dict[str, type] = {
     "motion": MotionParams,
     "icp": IcpSection,
     "lc": LcParams,
+    "pf": PfSection,
     "report": ReportSection,
 }
 
@@ -224,6 +242,10 @@ def _validate(cfg: Config) -> None:
         raise InputError(p, "run.duration_s", "must be positive")
     if cfg.run.seed < 0:
         raise InputError(p, "run.seed", "must be a non-negative integer")
+    try:
+        PfParams(**dataclasses.asdict(cfg.pf))
+    except ValueError as exc:
+        raise InputError(p, "pf", str(exc)) from None
     if cfg.scenario.kind not in SCENARIO_KINDS:
         raise InputError(p, "scenario.kind",
                          f"unknown scenario kind {cfg.scenario.kind!r} (available: {', '.join(SCENARIO_KINDS)})")

@@ -40,6 +40,7 @@ from coloc.frame import Frame, StepEstimate
 from coloc.gnss import GnssTracker
 from coloc.icp import IcpParams
 from coloc.icp_da_lc import IcpDaLc
+from coloc.icp_da_pf import IcpDaPf, PfParams
 from coloc.icp_known_da import IcpKnownDA
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.scenarios import scenario_frames
@@ -69,6 +70,8 @@ def build_estimators(cfg: Config) -> list:
             out.append(IcpKnownDA(params=icp))
         elif m == "icp_da_lc":
             out.append(IcpDaLc(params=icp, lc=cfg.lc))
+        elif m == "icp_da_pf":
+            out.append(IcpDaPf(params=icp, lc=cfg.lc, pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf))))
         else:  # config validation lists the known methods; this is a programming error
             raise ValueError(f"no estimator for method {m!r}")
     return out

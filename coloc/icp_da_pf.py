@@ -1,0 +1,735 @@
+"""``icp_da_pf``: particle-based ICP-DA (Brambilla et al. Sec. IV-C, eqs. (23)-(29)).
+
+Vehicle beliefs are sets of Jv particles, feature-track beliefs sets of Jf
+particles. Per time step:
+
+1. prediction by model (1) (vehicles: inertial input, driving noise rotated to
+   the heading of the vehicle's MMSE velocity) and model (2) (tracks); a
+   vehicle that enters samples its particles from the fast-start prior. b_i^(0)
+   of (23): equal weights times the GNSS likelihood N(z; s, R) of (3);
+   b_k^(0) of (24): the track's carried weights (equal after resampling);
+2. eta of (25) for every (vehicle i, candidate track k, row l of i): the
+   double sum over vehicle and feature particles,
+       eta(alpha = l) = P_D sum_v w_i^(v) (1/Jf) sum_f N(z_l; s_k^(f) - s_i^(v), R_l) / (mu_new f_new(z_l)),
+   normalised by the density of a measurement from an untracked feature exactly
+   as ICP-DA-LC (:mod:`coloc.icp_da_lc`, step 3) so that the two
+   implementations take the same decisions on the same beliefs;
+   eta(alpha = 0) = 1 - P_D. Candidate triples are pre-gated with the
+   particle clouds' moments (chi-square, ``lc.gate_probability``): outside the
+   gate the double sum is not evaluated and eta = 0;
+3. BPA-DA (14)-(17), the same numba BP as LC (:func:`coloc.icp_da_lc.association_beliefs`);
+4. the V2F likelihood (18) for localization, a mixture over the association
+   beliefs, with p(z | x, alpha = 0) = 1 - P_D and
+   p(z | x, alpha = l) = P_D N(z_l; x_F - x_V, R_l) / (mu_new f_new(z_l)),
+   the same scale as eta; options with belief below
+   ``pf.min_association_belief`` are left out of the mixture;
+5. BPA-L (19)-(22) on particles: message i -> k, weights on the feature
+   particles (the expression after (25)); feature belief (26) through (28)-(29):
+   every vehicle of V_k holds log w_{i->k}, an *average consensus* over the
+   V2V links among V_k gives the mean log-weight, times |V_k| (the component's
+   participant count), followed by a *max consensus* so that every vehicle of
+   the component holds identical weights; message k -> i (weights on the
+   vehicle particles, after (26)) with the feature cavity b_k / m_{i->k};
+   vehicle belief (27). Iterations stop by the rule of Sec. V-A on the MMSE
+   estimates of vehicles and features (10 cm, 0.1 m/s);
+6. MMSE estimates and weighted covariances, then systematic resampling of
+   vehicles and observed tracks (equal weights for (23)-(24) next step);
+7. feature tracks without a map as in LC: a row whose "new" belief is at
+   least ``lc.birth_probability`` starts a track (rows of several vehicles
+   implying the same position start one, :func:`coloc.icp_da_lc.birth_clusters`).
+   A newborn track's particles are drawn from the Gaussian the row implies
+   (vehicle moments + z, with the velocity prior of ``IcpParams`` if set) and
+   carry importance weights prior / proposal, i.e. the paper's uniform belief
+   (times the velocity prior) represented on those particles; the row's own
+   message then multiplies in during BPA-L. Merging: LC's rule on the
+   particle moments, the older track kept; dropping after
+   ``feature_drop_after_s``.
+
+Identical particle sets at all vehicles (the paper's synchronized local
+generators): every random draw of a vehicle's or a track's particles comes from
+a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
+CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
+track k draws the same particles without communicating. The pairwise sums are
+the kernels of :mod:`coloc.pf_kernels` (a grid kernel exact to
+``kernel_rel_tol`` per entry, or the brute force).
+
+What this recursion does *not* have: the own-sensor cavity and latest-message
+track store that :mod:`coloc.icp` adds to the Gaussian ICP against the
+feedback of a feature's information through the vehicle belief (the paper's
+(19) uses b_i^(n-1) and b_k^(0) carries the previous posterior). ICP-DA-PF
+follows the paper as written.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.special import logsumexp
+from scipy.stats import chi2
+
+from coloc.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
+from coloc.frame import Frame, StepEstimate
+from coloc.icp import IcpParams, consensus_graph, row_components
+from coloc.icp_da_lc import (
+    LcParams,
+    _log_gauss,
+    association_beliefs,
+    birth_clusters,
+    candidate_rows,
+    merge_candidates,
+    new_feature_log_density,
+)
+from coloc.models import input_matrix, rotated_diag, transition_matrix
+from coloc.pf_kernels import KERNELS, transform_batch
+from coloc.vehicles import match_ids
+
+__all__ = [
+    "PfParams", "PfState", "PfStepInfo", "IcpDaPf", "icp_da_pf_step", "pf_bpa_localization", "entity_rng",
+    "systematic_resample", "weighted_moments",
+]
+
+RECURSIONS = ("latest_message", "paper")
+_LOG_FLOOR = -700.0  # log-weights are kept finite (consensus averages them)
+_PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
+            "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
+
+
+@dataclass(frozen=True)
+class PfParams:
+    """ICP-DA-PF settings (the paper: Jv = Jf = 5000 on the single road).
+
+    ``recursion``: "paper" is the time recursion as written: vehicle particle
+    sets carry the cooperative posterior (b_i^(0) of (23) from the propagated
+    belief (27)), and a track's b_k^(0) of (24) is its propagated posterior,
+    so each step multiplies in again, through the vehicle and through the
+    track, the evidence of earlier steps. "latest_message" (default) is the
+    particle counterpart of what :mod:`coloc.icp` does for the Gaussian ICP:
+    a vehicle's particle set is its own-sensor belief (GNSS + inertial,
+    resampled by its GNSS weights; the cooperative belief (27) is its output),
+    and a track keeps, per observing vehicle, the log-value of that vehicle's
+    latest message at each of its particles (carried through resampling by
+    index and through prediction as the ancestor's value): when the vehicle
+    observes the track again its old message is divided out of b_k^(0) and the
+    new one replaces it; messages older than ``message_memory_s`` are left
+    folded into the track.
+    ``regularize``: after resampling, move the particles by the Liu-West
+    kernel shrinkage x' = a x + (1 - a) m + h L e, a = sqrt(1 - h^2),
+    h = (4 / ((d + 2) J))^(1 / (d + 4)) (Silverman's bandwidth, d = 4), L L^T
+    the weighted covariance: mean and covariance are kept, duplicates are
+    spread. Static features (model (2) noise 0.01 m/s) otherwise never
+    rejuvenate: after a few resamplings a track is a handful of distinct
+    particles and its messages become spiky. The paper does not say how it
+    fights this degeneracy; False = plain resampling.
+    ``kernel``: "grid" (pruned, exact to ``kernel_rel_tol`` per entry) or
+    "brute" (every particle pair); ``kernel_cutoff_d2``: squared whitened
+    radius of the grid kernel. ``min_association_belief``: options of (18)
+    with a smaller BPA-DA belief are left out of the mixture.
+    """
+
+    vehicle_particles: int = 1000
+    feature_particles: int = 1000
+    seed: int = 0
+    kernel: str = "grid"
+    kernel_cutoff_d2: float = 55.0
+    kernel_rel_tol: float = 1e-6
+    min_association_belief: float = 1e-6
+    recursion: str = "latest_message"
+    regularize: bool = True
+
+    def __post_init__(self):
+        if self.vehicle_particles < 1 or self.feature_particles < 1:
+            raise ValueError("vehicle_particles and feature_particles must be >= 1")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {', '.join(KERNELS)}")
+        if not self.kernel_cutoff_d2 > 0 or not self.kernel_rel_tol > 0:
+            raise ValueError("kernel_cutoff_d2 and kernel_rel_tol must be positive")
+        if self.recursion not in RECURSIONS:
+            raise ValueError(f"recursion must be one of {', '.join(RECURSIONS)}")
+        if not 0.0 <= self.min_association_belief < 1.0:
+            raise ValueError("min_association_belief must be in [0, 1)")
+
+
+# ----------------------------------------------------------------------------- particle utilities
+
+
+def entity_rng(seed: int, purpose: str, entity: int, step: int) -> np.random.Generator:
+    """The synchronized generator of one entity (vehicle or track) for one purpose and step."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, _PURPOSE[purpose], int(entity) & 0xFFFFFFFF,
+                                  int(step) & 0xFFFFFFFF])
+
+
+def _vehicle_entity(vehicle_id) -> int:
+    return zlib.crc32(str(vehicle_id).encode())
+
+
+def normalize_log(logw: np.ndarray) -> np.ndarray:
+    """Log-weights normalised along the last axis (log-sum-exp = 0), floored at -700."""
+    out = logw - logsumexp(logw, axis=-1, keepdims=True)
+    return np.maximum(out, _LOG_FLOOR)
+
+
+def weighted_moments(particles: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J)."""
+    w = np.exp(normalize_log(logw))
+    w /= w.sum(-1, keepdims=True)
+    mean = np.einsum("...j,...ja->...a", w, particles)
+    d = particles - mean[..., None, :]
+    cov = np.einsum("...j,...ja,...jb->...ab", w, d, d)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2)) + 1e-9 * np.eye(4)
+    return mean, cov
+
+
+def systematic_resample(logw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Indices of a systematic resampling of one set (J,) of log-weights."""
+    j = logw.shape[0]
+    w = np.exp(normalize_log(logw))
+    c = np.cumsum(w)
+    c /= c[-1]
+    u = (rng.random() + np.arange(j)) / j
+    return np.minimum(np.searchsorted(c, u), j - 1)
+
+
+def regularized_resample(particles: np.ndarray, logw: np.ndarray, index: np.ndarray, rng: np.random.Generator,
+                         regularize: bool) -> np.ndarray:
+    """``particles[index]`` (a resampling of the set), then (if ``regularize``) Liu-West shrinkage jitter (PfParams)."""
+    out = particles[index]
+    if not regularize:
+        return out
+    j, d = particles.shape
+    mean, cov = weighted_moments(particles, logw)
+    h2 = (4.0 / ((d + 2) * j)) ** (2.0 / (d + 4))
+    a = math.sqrt(1.0 - h2)
+    vals, vecs = np.linalg.eigh(cov)
+    root = vecs * np.sqrt(np.maximum(vals, 0.0))
+    return a * out + (1.0 - a) * mean + math.sqrt(h2) * (rng.standard_normal((j, d)) @ root.T)
+
+
+def _sample_gaussian(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    root = vecs * np.sqrt(np.maximum(vals, 0.0))
+    return mean + rng.standard_normal((n, mean.size)) @ root.T
+
+
+def _gaussian_log_pdf(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    lp, _ = _log_gauss(x - mean, np.broadcast_to(cov, x.shape + (x.shape[-1],)))
+    return lp
+
+
+def predict_vehicle_particles(particles: np.ndarray, accel: np.ndarray, dt: float, params: IcpParams,
+                              noise: np.ndarray) -> np.ndarray:
+    """Model (1) on (N, J, 4) particles; ``noise`` (N, J, 2) standard normal draws.
+
+    The driving noise is rotated to the heading of each vehicle's mean
+    velocity (isotropic below ``motion.heading_min_speed``), as the Gaussian
+    trackers orient Q.
+    """
+    a, b = transition_matrix(dt), input_matrix(dt)
+    mp = params.motion
+    v = particles[..., 2:].mean(axis=1)
+    heading = np.arctan2(v[:, 1], v[:, 0])
+    c, s = np.cos(heading), np.sin(heading)
+    slow = np.hypot(v[:, 0], v[:, 1]) < mp.heading_min_speed
+    s_cross = np.where(slow, mp.sigma_along, mp.sigma_cross)
+    along = noise[..., 0] * mp.sigma_along
+    cross = noise[..., 1] * s_cross[:, None]
+    acc = np.stack([c[:, None] * along - s[:, None] * cross, s[:, None] * along + c[:, None] * cross], axis=-1)
+    return particles @ a.T + (accel[:, None, :] + acc) @ b.T
+
+
+def predict_track_particles(particles: np.ndarray, logw: np.ndarray, dt: float, params: IcpParams,
+                            noise: np.ndarray) -> np.ndarray:
+    """Model (2) on (K, J, 4) track particles; ``noise`` (K, J, 2) standard normal draws."""
+    a = transition_matrix(dt)
+    g = np.vstack([dt * np.eye(2), np.eye(2)])
+    mean, _ = weighted_moments(particles, logw)
+    v = mean[:, 2:]
+    heading = np.arctan2(v[:, 1], v[:, 0])
+    slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
+    par, perp = params.feature_sigma_par, params.feature_sigma_perp_value
+    c, s = np.cos(heading), np.sin(heading)
+    s_perp = np.where(slow, par, perp)
+    along = noise[..., 0] * par
+    cross = noise[..., 1] * s_perp[:, None]
+    dv = np.stack([c[:, None] * along - s[:, None] * cross, s[:, None] * along + c[:, None] * cross], axis=-1)
+    return particles @ a.T + dv @ g.T
+
+
+def gnss_log_likelihood(particles: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """log N(z_i; s_i^(v), R_i) of (23) for (N, J, 4) particles."""
+    lp, _ = _log_gauss(z[:, None, :] - particles, np.broadcast_to(r[:, None], particles.shape + (4,)))
+    return lp
+
+
+# ----------------------------------------------------------------------------- BPA-L on particles
+
+
+@dataclass(frozen=True)
+class PfBpaResult:
+    vehicle_logw: np.ndarray  # (N, Jv) final beliefs (27), normalised
+    entry_feature_logw: np.ndarray  # (E, Jf) each participant's copy of (26) after max consensus
+    entry_message_logw: np.ndarray  # (E, Jf) the final messages m_{i->k} (19), normalised
+    track_entry: np.ndarray  # (K,) entry whose copy is the track's posterior (-1: track not observed)
+    iterations: int
+    converged: bool
+    pair_evaluations: int
+
+
+def _segment_logsumexp(values: np.ndarray, seg: np.ndarray, n_seg: int, init: np.ndarray) -> np.ndarray:
+    """log(exp(init[e]) + sum_{t: seg[t] = e} exp(values[t])) per segment, (n_seg, J)."""
+    j = values.shape[1] if values.ndim == 2 else 1
+    top = np.broadcast_to(init[:, None], (n_seg, j)).copy()
+    if values.shape[0]:
+        np.maximum.at(top, seg, values)
+    top = np.where(np.isfinite(top), top, 0.0)
+    acc = np.exp(init[:, None] - top)
+    if values.shape[0]:
+        np.add.at(acc, seg, np.exp(values - top[seg]))
+    with np.errstate(divide="ignore"):
+        return top + np.log(acc)
+
+
+def pf_bpa_localization(
+    vehicle_particles: np.ndarray,
+    vehicle_log_b0: np.ndarray,
+    track_particles: np.ndarray,
+    track_log_b0: np.ndarray,
+    entry_vehicle: np.ndarray,
+    entry_track: np.ndarray,
+    entry_log_c0: np.ndarray,
+    term_entry: np.ndarray,
+    term_row: np.ndarray,
+    term_log_c: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    adjacency: sp.spmatrix,
+    params: IcpParams,
+    pf: PfParams,
+    output_particles: np.ndarray | None = None,
+    output_log_b0: np.ndarray | None = None,
+) -> PfBpaResult:
+    """Particle BPA-L (19)-(22) with the feature product (26) by consensus (28)-(29).
+
+    Entries e = (vehicle, track) pairs of the likelihood (18); each has the
+    constant term ``entry_log_c0`` (log of b(alpha = 0) p(z | alpha = 0),
+    -inf if none) and terms t (row, log coefficient) for the options alpha = l.
+    Vehicle and track beliefs b^(0) are given as normalised log-weights.
+    ``output_particles``/``output_log_b0``: another particle set per vehicle
+    (the carried cooperative belief of the "latest_message" recursion) onto
+    which the converged messages m_{k->i} are also evaluated, giving the
+    returned ``vehicle_logw`` (27) on that set; None = the same set.
+    """
+    n, jv = vehicle_log_b0.shape
+    k, jf = track_log_b0.shape[0], track_particles.shape[1]
+    e = entry_vehicle.size
+    logb_v = normalize_log(vehicle_log_b0)
+    if e == 0:
+        if output_particles is not None:
+            logb_v = normalize_log(output_log_b0)
+        return PfBpaResult(logb_v, np.empty((0, jf)), np.empty((0, jf)), np.full(k, -1, np.int64), 0, True, 0)
+    t_vehicle, t_track = entry_vehicle[term_entry], entry_track[term_entry]
+    t_z, t_r = z[term_row], r[term_row]
+    zero_shift = np.zeros((term_row.size, 4))
+    graph = consensus_graph(entry_vehicle, entry_track, adjacency)
+    _, count = row_components(graph)
+    weights = metropolis_weights(graph)
+    log_b0_e = normalize_log(track_log_b0[entry_track])
+    log_m_fv = np.zeros((e, jv))  # m_{k->i}^(0) = 1
+    log_m_vf = np.zeros((e, jf))
+    v_mean, _ = weighted_moments(vehicle_particles, logb_v)
+    f_mean, _ = weighted_moments(track_particles[entry_track], log_b0_e)
+    converged, pairs, it = False, 0, 0
+    logb_f = log_b0_e
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
+        cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
+        s_out, p1 = transform_batch(vehicle_particles, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track,
+                                    zero_shift, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+        log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
+        # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
+        avg = average_consensus_with_weights(log_m_vf, weights, params.consensus_iterations)
+        loc = log_b0_e + count[:, None] * avg
+        loc = loc - loc.max(axis=1, keepdims=True)
+        logb_f = normalize_log(max_consensus(loc, graph, max(params.consensus_iterations, 1)))
+        # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
+        cav_f = normalize_log(logb_f - log_m_vf)
+        t_out, p2 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
+                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+        log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
+        pairs += int(p1.sum() + p2.sum())
+        # (27): b_i = b_i^(0) prod_k m_{k->i}.
+        acc = vehicle_log_b0.copy()
+        np.add.at(acc, entry_vehicle, log_m_fv)
+        logb_v = normalize_log(acc)
+        new_v, _ = weighted_moments(vehicle_particles, logb_v)
+        new_f, _ = weighted_moments(track_particles[entry_track], logb_f)
+        dv = np.concatenate([np.hypot(*(new_v[:, :2] - v_mean[:, :2]).T), np.hypot(*(new_f[:, :2] - f_mean[:, :2]).T)])
+        dw = np.concatenate([np.hypot(*(new_v[:, 2:] - v_mean[:, 2:]).T), np.hypot(*(new_f[:, 2:] - f_mean[:, 2:]).T)])
+        v_mean, f_mean = new_v, new_f
+        if dv.max() < params.stop_pos_m and dw.max() < params.stop_vel_mps:  # Sec. V-A
+            converged = True
+            break
+    if output_particles is not None:
+        t_out, p3 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, output_particles,
+                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+        pairs += int(p3.sum())
+        acc = output_log_b0.copy()
+        np.add.at(acc, entry_vehicle, normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e,
+                                                                         entry_log_c0)))
+        logb_v = normalize_log(acc)
+    # A track's posterior: the copy of its largest consensus component (lowest entry on ties).
+    comp_size = count
+    order = np.lexsort((np.arange(e), -comp_size, entry_track))
+    first = np.ones(e, bool)
+    first[1:] = entry_track[order][1:] != entry_track[order][:-1]
+    track_entry = np.full(k, -1, np.int64)
+    track_entry[entry_track[order][first]] = order[first]
+    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs)
+
+
+# ----------------------------------------------------------------------------- state and step
+
+
+@dataclass(frozen=True)
+class PfState:
+    """What ICP-DA-PF carries between steps (resampled, equal-weight vehicle sets)."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
+    particles: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 4)))  # beliefs (27), resampled
+    own_particles: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 4)))  # own-sensor sets (latest_message)
+    track_ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    track_particles: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 4)))
+    track_logw: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
+    track_last_seen: np.ndarray = field(default_factory=lambda: np.empty(0))
+    # Latest message per (track, vehicle) at the track's particles ("latest_message" recursion).
+    msg_track: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    msg_vehicle: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
+    msg_logv: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
+    msg_time: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+
+@dataclass(frozen=True)
+class PfStepInfo:
+    row_track: np.ndarray
+    born: int
+    discarded: int
+    merged: int
+    iterations: int
+    pair_evaluations: int
+
+
+@dataclass(frozen=True)
+class _TrackMoments:
+    """The piece of the track-store interface :func:`coloc.icp_da_lc.merge_candidates` reads."""
+
+    ids: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.ids.size)
+
+    def moments(self, params):
+        return self.mean, self.cov
+
+    def lookup(self, feature_ids: np.ndarray) -> np.ndarray:
+        pos = np.searchsorted(self.ids, feature_ids)
+        return np.minimum(pos, max(self.ids.size - 1, 0))
+
+
+def _birth_particles(v_mean, v_cov, z_rows, r_rows, entities, step, params: IcpParams, pf: PfParams):
+    """Particles and log-weights (prior / proposal) of newborn tracks, one per cluster seed row."""
+    jf = pf.feature_particles
+    out = np.empty((len(entities), jf, 4))
+    logw = np.empty((len(entities), jf))
+    s = params.feature_velocity_prior_sigma
+    for c, ent in enumerate(entities):
+        mean = v_mean[c] + z_rows[c]
+        cov = v_cov[c] + r_rows[c]
+        if s:  # velocity prior N(0, s^2 I) times the implied velocity: proposal closer to the posterior
+            pv = np.linalg.inv(cov[2:, 2:])
+            post = np.linalg.inv(pv + np.eye(2) / (s * s))
+            mean = mean.copy()
+            mean[2:] = post @ (pv @ mean[2:])
+            cov = cov.copy()
+            cov[2:, 2:] = post
+            cov[:2, 2:] = cov[2:, :2] = 0.0
+        x = _sample_gaussian(mean, cov, jf, entity_rng(pf.seed, "track_birth", ent, step))
+        log_q = _gaussian_log_pdf(x, mean, cov)
+        log_prior = _gaussian_log_pdf(x[:, 2:], np.zeros(2), s * s * np.eye(2)) if s else 0.0
+        out[c] = x
+        logw[c] = normalize_log(log_prior - log_q)
+    return out, logw
+
+
+def icp_da_pf_step(
+    state: PfState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams, pf: PfParams,
+    known_association: np.ndarray | None = None,
+) -> tuple[PfState, int, PfStepInfo, StepEstimate]:
+    """One ICP-DA-PF step (pure). ``known_association`` (O,) stable feature ids: the known-DA
+    variant used by tests (association BP skipped, tracks keyed by the given ids)."""
+    jv, jf = pf.vehicle_particles, pf.feature_particles
+    step = int(round(frame.t / frame.dt)) if frame.dt > 0 else 0
+    n = frame.n_vehicles
+    owner = np.asarray(frame.v2f_owner, dtype=np.int64)
+    o = owner.size
+    z, r = np.asarray(frame.v2f_z, float), np.asarray(frame.v2f_R, float)
+    ents = np.array([_vehicle_entity(v) for v in frame.vehicle_ids], dtype=np.int64)
+
+    # 1. Vehicles: model (1) or the fast-start prior, then (23).
+    latest = pf.recursion == "latest_message"
+    idx = match_ids(state.ids, frame.vehicle_ids)
+    fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
+    for i in np.flatnonzero(fresh):
+        if not np.all(np.isfinite(frame.prior_z[i])):
+            raise ValueError("frame marks a vehicle as new but carries no fast-start prior for it")
+
+    def vehicle_sets(carried: np.ndarray, predict_purpose: str, prior_purpose: str) -> np.ndarray:
+        out = np.empty((n, jv, 4))
+        old = np.flatnonzero(~fresh)
+        if old.size:
+            noise = np.stack([entity_rng(pf.seed, predict_purpose, ents[i], step).standard_normal((jv, 2)) for i in old])
+            out[old] = predict_vehicle_particles(carried[idx[old]], frame.accel[old], frame.dt, params, noise)
+        for i in np.flatnonzero(fresh):
+            out[i] = _sample_gaussian(frame.prior_z[i], frame.prior_R[i], jv, entity_rng(pf.seed, prior_purpose, ents[i], step))
+        return out
+
+    particles = vehicle_sets(state.particles, "vehicle_predict", "vehicle_prior")
+    log_gnss = normalize_log(gnss_log_likelihood(particles, frame.gnss_z, frame.gnss_R)) if n else np.empty((0, jv))
+    v_mean, v_cov = weighted_moments(particles, log_gnss) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+    if latest:  # the own-sensor sets carry no feature evidence; they run BPA-L, the belief sets get its messages
+        own = vehicle_sets(state.own_particles, "own_predict", "own_prior")
+        log_own = normalize_log(gnss_log_likelihood(own, frame.gnss_z, frame.gnss_R)) if n else np.empty((0, jv))
+        own_mean, own_cov = weighted_moments(own, log_own) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+        # eta and births as LC: the mean of b_i^(0), the spread of the own-sensor belief.
+        assoc_particles = own + (v_mean - own_mean)[:, None, :]
+        assoc_logw, assoc_cov = log_own, own_cov
+    else:
+        own, log_own = particles, log_gnss
+        assoc_particles, assoc_logw, assoc_cov = particles, log_gnss, v_cov
+
+    # 2. Tracks: model (2), (24).
+    k_old = state.track_ids.size
+    if k_old:
+        noise = np.stack([entity_rng(pf.seed, "track_predict", t, step).standard_normal((jf, 2)) for t in state.track_ids])
+        t_particles = predict_track_particles(state.track_particles, state.track_logw, frame.dt, params, noise)
+        t_logw = state.track_logw
+    else:
+        t_particles, t_logw = np.empty((0, jf, 4)), np.empty((0, jf))
+    t_ids = state.track_ids.copy()
+    t_mean, t_cov = weighted_moments(t_particles, t_logw) if k_old else (np.empty((0, 4)), np.empty((0, 4, 4)))
+
+    row_track = np.full(o, -1, dtype=np.int64)  # track id per row
+    log_pd, log_1mpd = math.log(lc.detection_probability), math.log(1.0 - lc.detection_probability)
+    if known_association is not None:
+        assoc = np.asarray(known_association, dtype=np.int64)
+        new_ids = np.setdiff1d(np.unique(assoc[assoc >= 0]), t_ids)
+        birth_rows = np.array([np.flatnonzero(assoc == f)[0] for f in new_ids], dtype=np.int64)
+        birth_ids = new_ids
+        term_rows = np.flatnonzero(assoc >= 0)
+        term_track_id = assoc[term_rows]
+        term_log_c = np.zeros(term_rows.size)
+        row_track[term_rows] = term_track_id
+        combo_c0 = None
+    else:
+        # 2-3. eta (25) on the pre-gated candidates, BPA-DA (14)-(17).
+        pv, pt, pr = candidate_rows(v_mean, assoc_cov, t_mean, t_cov, owner, lc)
+        if pr.size:
+            _, d2 = _log_gauss(z[pr] - (t_mean[pt] - v_mean[pv]), t_cov[pt] + assoc_cov[pv] + r[pr])
+            keep = d2 <= chi2.ppf(lc.gate_probability, 4)
+            pv, pt, pr = pv[keep], pt[keep], pr[keep]
+        w = np.zeros(pr.size)
+        log_new = np.zeros(0)
+        if pr.size:
+            g, _ = transform_batch(t_particles, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), assoc_particles,
+                                   pv, z[pr], r[pr], pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+            log_eta = logsumexp(assoc_logw[pv] + g, axis=1)
+            log_new = new_feature_log_density(v_mean[pv], assoc_cov[pv], z[pr], r[pr], lc)
+            w = np.exp(np.minimum(log_pd + log_eta - log_new, 600.0))
+        ab = association_beliefs(pv, pt, pr, w, n, o, lc)
+        row_new = np.ones(o) if ab is None else ab.row_new
+        # Terms of (18) for every combo option with a belief worth keeping.
+        term_rows = np.empty(0, np.int64)
+        term_track_id = np.empty(0, np.int64)
+        term_log_c = np.empty(0)
+        combo_c0 = None
+        if ab is not None:
+            c_n = ab.combo_vehicle.size
+            m_c = ab.combo_rows
+            seg = np.repeat(np.arange(c_n), m_c)
+            opt = np.arange(seg.size) - np.repeat(np.cumsum(m_c) - m_c, m_c) + 1
+            bel = ab.belief[ab.combo_start[seg] + opt]
+            rows = ab.row_of_option(seg, opt)
+            keep = bel >= max(pf.min_association_belief, 1e-300)
+            # log_new per (vehicle, row): recompute for the kept options.
+            lnew = new_feature_log_density(v_mean[ab.combo_vehicle[seg[keep]]], assoc_cov[ab.combo_vehicle[seg[keep]]],
+                                           z[rows[keep]], r[rows[keep]], lc)
+            term_rows = rows[keep]
+            term_track_id = t_ids[ab.combo_track[seg[keep]]]
+            term_log_c = np.log(bel[keep]) + log_pd - lnew
+            b0 = ab.belief[ab.combo_start]
+            combo_c0 = (ab.combo_vehicle, t_ids[ab.combo_track], np.log(np.maximum(b0, 1e-300)) + log_1mpd)
+            # Row -> track: the option of largest belief, if it beats "new".
+            best = np.full(o, -1.0)
+            best_track = np.full(o, -1, np.int64)
+            order = np.lexsort((-bel, rows))
+            firsts = np.ones(order.size, bool)
+            firsts[1:] = rows[order][1:] != rows[order][:-1]
+            best[rows[order][firsts]] = bel[order][firsts]
+            best_track[rows[order][firsts]] = t_ids[ab.combo_track[seg[order][firsts]]]
+            take = best > row_new
+            row_track[take] = best_track[take]
+        # Births (LC step 6).
+        birth_rows_all = np.flatnonzero((row_track < 0) & (row_new >= lc.birth_probability))
+        labels = birth_clusters(owner[birth_rows_all], v_mean[owner[birth_rows_all], :2] + z[birth_rows_all, :2],
+                                assoc_cov[owner[birth_rows_all], :2, :2] + r[birth_rows_all, :2, :2], chi2.ppf(0.99, 2))
+        n_born = int(labels.max()) + 1 if labels.size else 0
+        birth_ids = next_id + np.arange(n_born, dtype=np.int64)
+        birth_rows = np.array([birth_rows_all[np.flatnonzero(labels == c)[0]] for c in range(n_born)], dtype=np.int64)
+        row_track[birth_rows_all] = next_id + labels
+        next_id += n_born
+        term_rows = np.concatenate([term_rows, birth_rows_all])
+        term_track_id = np.concatenate([term_track_id, next_id - n_born + labels])
+        term_log_c = np.concatenate([term_log_c, np.zeros(birth_rows_all.size)])
+
+    # Newborn tracks (prior / proposal weights).
+    if birth_rows.size:
+        b_part, b_logw = _birth_particles(v_mean[owner[birth_rows]], assoc_cov[owner[birth_rows]], z[birth_rows],
+                                          r[birth_rows], birth_ids, step, params, pf)
+        t_particles = np.concatenate([t_particles, b_part])
+        t_logw = np.concatenate([t_logw, b_logw])
+        t_ids = np.concatenate([t_ids, birth_ids])
+        srt = np.argsort(t_ids, kind="stable")
+        t_particles, t_logw, t_ids = t_particles[srt], t_logw[srt], t_ids[srt]
+    t_last = np.concatenate([state.track_last_seen, np.full(birth_rows.size, frame.t)])
+    if birth_rows.size:
+        t_last = t_last[srt]
+
+    # Entries (vehicle, track) and their terms.
+    term_vehicle = owner[term_rows]
+    term_track = np.searchsorted(t_ids, term_track_id)
+    if combo_c0 is not None:
+        c_vehicle, c_trackid, c_logc0 = combo_c0
+        keys = np.concatenate([term_vehicle * (t_ids.size + 1) + term_track])
+        entry_keys, term_entry = np.unique(keys, return_inverse=True)
+        entry_vehicle, entry_track = entry_keys // (t_ids.size + 1), entry_keys % (t_ids.size + 1)
+        entry_log_c0 = np.full(entry_keys.size, -np.inf)
+        ck = c_vehicle * (t_ids.size + 1) + np.searchsorted(t_ids, c_trackid)
+        pos = np.searchsorted(entry_keys, ck)
+        ok = (pos < entry_keys.size) & (entry_keys[np.minimum(pos, entry_keys.size - 1)] == ck)
+        entry_log_c0[pos[ok]] = c_logc0[ok]
+    else:
+        keys = term_vehicle * (t_ids.size + 1) + term_track
+        entry_keys, term_entry = np.unique(keys, return_inverse=True)
+        entry_vehicle, entry_track = entry_keys // (t_ids.size + 1), entry_keys % (t_ids.size + 1)
+        entry_log_c0 = np.full(entry_keys.size, -np.inf)
+    term_entry = np.asarray(term_entry, dtype=np.int64).ravel()
+
+    entry_vehicle, entry_track = entry_vehicle.astype(np.int64), entry_track.astype(np.int64)
+    vids = np.asarray(frame.vehicle_ids, dtype=object)
+    msg_track, msg_vehicle, msg_logv, msg_time = state.msg_track, state.msg_vehicle, state.msg_logv, state.msg_time
+    t_log_b0 = t_logw
+    replaced = np.zeros(msg_track.size, bool)
+    if latest and msg_track.size and entry_vehicle.size:
+        # b_k^(0) without the previous messages of this step's observers (they are about to be replaced).
+        e_keys = {(int(t_ids[entry_track[e]]), vids[entry_vehicle[e]]) for e in range(entry_vehicle.size)}
+        replaced = np.array([(int(a), b) in e_keys for a, b in zip(msg_track, msg_vehicle)], dtype=bool)
+        if replaced.any():
+            t_log_b0 = t_logw.copy()
+            np.subtract.at(t_log_b0, np.searchsorted(t_ids, msg_track[replaced]), msg_logv[replaced])
+            t_log_b0 = normalize_log(t_log_b0)
+    res = pf_bpa_localization(own, log_own, t_particles, t_log_b0, entry_vehicle,
+                              entry_track, entry_log_c0, term_entry, term_rows, term_log_c, z, r,
+                              frame.neighbors, params, pf, particles if latest else None, log_gnss if latest else None)
+    # Posterior weights of observed tracks; estimates.
+    t_post = t_logw.copy()
+    seen = res.track_entry >= 0
+    if seen.any():
+        t_post[seen] = res.entry_feature_logw[res.track_entry[seen]]
+    mean, cov = weighted_moments(particles, res.vehicle_logw) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+    f_mean, f_cov = weighted_moments(t_particles, t_post) if t_ids.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
+    # Tracks observed this step: a detected option (belief >= 0.5) or a birth.
+    observed_ids = np.unique(row_track[row_track >= 0])
+    t_last = np.where(np.isin(t_ids, observed_ids), frame.t, t_last)
+
+    # Latest messages: this step's replace the observers' previous ones; old ones stay folded.
+    if latest:
+        keep_m = ~replaced & (frame.t - msg_time <= params.message_memory_s)
+        msg_track = np.concatenate([msg_track[keep_m], t_ids[entry_track]])
+        msg_vehicle = np.concatenate([msg_vehicle[keep_m], vids[entry_vehicle]])
+        msg_logv = np.concatenate([msg_logv[keep_m].reshape(-1, jf), res.entry_message_logw])
+        msg_time = np.concatenate([msg_time[keep_m], np.full(entry_vehicle.size, frame.t)])
+    # Resampling (so that (23)-(24) start from equal weights); own-sensor sets by their GNSS weights.
+    new_particles = np.empty_like(particles)
+    new_own = np.empty_like(own) if latest else np.empty((n, 0, 4))
+    for i in range(n):
+        g = entity_rng(pf.seed, "vehicle_resample", ents[i], step)
+        new_particles[i] = regularized_resample(particles[i], res.vehicle_logw[i],
+                                                systematic_resample(res.vehicle_logw[i], g), g, pf.regularize)
+        if latest:
+            g = entity_rng(pf.seed, "own_resample", ents[i], step)
+            new_own[i] = regularized_resample(own[i], log_own[i], systematic_resample(log_own[i], g), g, pf.regularize)
+    new_t_particles, new_t_logw = t_particles.copy(), t_post.copy()
+    for kk in np.flatnonzero(seen):
+        g = entity_rng(pf.seed, "track_resample", t_ids[kk], step)
+        sel = systematic_resample(t_post[kk], g)
+        new_t_particles[kk] = regularized_resample(t_particles[kk], t_post[kk], sel, g, pf.regularize)
+        new_t_logw[kk] = -math.log(jf)
+        if latest:
+            mine = msg_track == t_ids[kk]
+            msg_logv[mine] = msg_logv[mine][:, sel]
+
+    # Merging and dropping (LC steps 8).
+    merged = 0
+    keep_t = np.ones(t_ids.size, bool)
+    if known_association is None and t_ids.size > 1:
+        absorbed, into = merge_candidates(_TrackMoments(t_ids, f_mean, f_cov), params, lc, owner[row_track >= 0],
+                                          row_track[row_track >= 0])
+        if absorbed.size:
+            merged = int(absorbed.size)
+            keep_t &= ~np.isin(t_ids, absorbed)
+            pos = np.searchsorted(t_ids, into)
+            t_last[pos] = np.maximum(t_last[pos], t_last[np.searchsorted(t_ids, absorbed)])
+            for a_id, i_id in zip(absorbed, into):
+                row_track[row_track == a_id] = i_id
+    keep_t &= (frame.t - t_last) <= params.feature_drop_after_s
+    estimate = StepEstimate(
+        mean=mean, cov=cov, feature_mean=f_mean[keep_t], feature_cov=f_cov[keep_t],
+        feature_track_ids=t_ids[keep_t].copy(), v2f_assignment=row_track.copy(),
+    )
+    if latest:
+        keep_m = np.isin(msg_track, t_ids[keep_t])
+        msg_track, msg_vehicle, msg_logv, msg_time = msg_track[keep_m], msg_vehicle[keep_m], msg_logv[keep_m], msg_time[keep_m]
+    new_state = PfState(vids.copy(), new_particles, new_own, t_ids[keep_t], new_t_particles[keep_t], new_t_logw[keep_t],
+                        t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time)
+    info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
+                      res.pair_evaluations)
+    return new_state, next_id, info, estimate
+
+
+@dataclass
+class IcpDaPf:
+    """Stateful ICP-DA-PF: ``step(frame)`` reads only the measurements."""
+
+    params: IcpParams = field(default_factory=IcpParams)
+    lc: LcParams = field(default_factory=LcParams)
+    pf: PfParams = field(default_factory=PfParams)
+    name: str = "icp_da_pf"
+    state: PfState = field(default_factory=PfState)
+    next_id: int = 0
+    last: PfStepInfo | None = None
+
+    def step(self, frame: Frame) -> StepEstimate:
+        self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
+                                                                   self.lc, self.pf)
+        return est
+
+    def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
+        """Known-DA variant (tests: PF against the Kalman bound)."""
+        self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
+                                                                   self.lc, self.pf, known_association=v2f_feature)
+        return est

@@ -1,0 +1,179 @@
+"""ICP-DA-PF (Brambilla et al. Sec. IV-C, eqs. (23)-(29)): particle BPA-L against the exact joint,
+consensus, synchronized generators, the estimator end to end."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.special import logsumexp
+
+from coloc.centralized import one_step_joint
+from coloc.frame import Truth
+from coloc.gnss import GnssTracker
+from coloc.icp import IcpParams
+from coloc.icp_da_pf import (
+    IcpDaPf, PfParams, entity_rng, pf_bpa_localization, regularized_resample, systematic_resample, weighted_moments,
+)
+from tests.coloc.test_icp_known_da import MOTION, scenario
+
+PF_SMALL = PfParams(vehicle_particles=300, feature_particles=300, seed=3)
+
+
+def _tree_problem():
+    """Two vehicles, one feature, one V2F row each (a tree: BP is exact), Gaussian priors."""
+    rng = np.random.default_rng(0)
+    pm = np.array([[0.0, 0.0, 10.0, 0.0], [5.0, 0.0, 10.0, 0.0]])
+    pc = np.array([np.diag([4.0, 4.0, 0.04, 0.04])] * 2)
+    fm, fc = np.array([20.0, 5.0, 0.0, 0.0]), np.diag([9.0, 9.0, 0.01, 0.01])
+    xv = pm + rng.normal(size=(2, 4)) * np.sqrt(np.diagonal(pc, axis1=1, axis2=2))
+    r1 = np.diag([0.04, 0.04, 0.01, 0.01])
+    z = fm - xv + rng.normal(size=(2, 4)) * np.sqrt(np.diag(r1))
+    return pm, pc, fm, fc, z, np.array([r1, r1])
+
+
+def _pf_tree(j, seed):
+    pm, pc, fm, fc, z, r = _tree_problem()
+    g = np.random.default_rng(seed)
+    vp = np.stack([g.multivariate_normal(pm[i], pc[i], j) for i in range(2)])
+    fp = g.multivariate_normal(fm, fc, j)[None]
+    adj = sp.csr_matrix(np.array([[0, 1], [1, 0]], dtype=bool))
+    res = pf_bpa_localization(
+        vp, np.zeros((2, j)), fp, np.zeros((1, j)), np.array([0, 1]), np.array([0, 0]), np.full(2, -np.inf),
+        np.array([0, 1]), np.array([0, 1]), np.zeros(2), z, r, adj,
+        IcpParams(bpa_max_iterations=20, stop_pos_m=1e-4, stop_vel_mps=1e-4), PfParams(),
+    )
+    m, _ = weighted_moments(vp, res.vehicle_logw)
+    f, _ = weighted_moments(fp, res.entry_feature_logw[:1])
+    return m, f[0], res
+
+
+def test_particle_bpa_converges_to_the_exact_joint_as_particles_grow():
+    """Linear-Gaussian, known association: the PF MMSE estimates approach the exact one-step joint
+    posterior; mean absolute error over 4 seeds measured 0.14 m (J = 500) and 0.05 m (J = 4000)."""
+    pm, pc, fm, fc, z, r = _tree_problem()
+    lam = np.linalg.inv(fc)
+    vm, _, _, f_exact, _ = one_step_joint(pm, pc, lam[None], (lam @ fm)[None], np.array([0, 1]), np.array([0, 0]), z, r)
+    err = {}
+    for j in (500, 4000):
+        e = []
+        for seed in range(4):
+            m, f, res = _pf_tree(j, seed)
+            e.append(max(np.abs(m[:, :2] - vm[:, :2]).max(), np.abs(f[:2] - f_exact[0, :2]).max()))
+            np.testing.assert_allclose(logsumexp(res.vehicle_logw, axis=1), 0.0, atol=1e-9)  # normalised
+        err[j] = float(np.mean(e))
+    print(f"PF vs exact joint: {err}")
+    assert err[4000] < 0.6 * err[500]
+    assert err[4000] < 0.15
+
+
+def test_all_participants_hold_identical_feature_weights_after_max_consensus():
+    """Three vehicles in a chain sense one feature; 2 average-consensus rounds leave them apart,
+    the max consensus makes the copies identical."""
+    j = 200
+    g = np.random.default_rng(1)
+    vp = g.normal(size=(3, j, 4)) + np.array([0.0, 5.0, 10.0])[:, None, None] * np.array([1, 0, 0, 0])
+    fp = g.normal(size=(1, j, 4)) * 2.0 + np.array([5.0, 5.0, 0.0, 0.0])
+    r = np.tile(np.diag([0.5, 0.5, 0.5, 0.5]), (3, 1, 1))
+    z = np.array([5.0, 5.0, 0.0, 0.0]) - np.array([[0.0, 0, 0, 0], [5.0, 0, 0, 0], [10.0, 0, 0, 0]])
+    chain = sp.csr_matrix(np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=bool))
+    res = pf_bpa_localization(vp, np.zeros((3, j)), fp, np.zeros((1, j)), np.arange(3), np.zeros(3, np.int64),
+                              np.full(3, -np.inf), np.arange(3), np.arange(3), np.zeros(3), z, r, chain,
+                              IcpParams(consensus_iterations=2, bpa_max_iterations=3), PfParams())
+    w = res.entry_feature_logw
+    np.testing.assert_array_equal(w[0], w[1])
+    np.testing.assert_array_equal(w[1], w[2])
+    np.testing.assert_allclose(logsumexp(w[0]), 0.0, atol=1e-9)
+
+
+def test_synchronized_generators_and_resampling():
+    a = entity_rng(5, "track_predict", 17, 42).standard_normal(8)
+    b = entity_rng(5, "track_predict", 17, 42).standard_normal(8)
+    c = entity_rng(5, "track_predict", 18, 42).standard_normal(8)
+    np.testing.assert_array_equal(a, b)  # every vehicle holding track 17 draws the same particles
+    assert not np.array_equal(a, c)
+    logw = np.log(np.array([0.1, 0.0001, 0.5, 0.3999]))
+    idx = systematic_resample(logw, np.random.default_rng(0))
+    counts = np.bincount(systematic_resample(np.repeat(logw, 250), np.random.default_rng(1)) // 250, minlength=4)
+    np.testing.assert_allclose(counts / 1000, np.exp(logw), atol=2e-3)  # systematic: within 1/J of the weights
+    assert idx.shape == (4,)
+    # Liu-West regularisation keeps mean and covariance (up to Monte Carlo error).
+    g = np.random.default_rng(2)
+    x = g.normal(size=(20000, 4)) * np.array([1.0, 2.0, 0.1, 0.2])
+    lw = np.zeros(20000)
+    y = regularized_resample(x, lw, systematic_resample(lw, g), g, True)
+    np.testing.assert_allclose(y.mean(0), x.mean(0), atol=0.03)
+    np.testing.assert_allclose(y.std(0) / x.std(0), 1.0, atol=0.03)
+
+
+def test_without_v2f_the_pf_is_the_gnss_kalman_filter_within_monte_carlo_error():
+    """No V2F rows: ICP-DA-PF is a bootstrap PF with GNSS; its RMSE is within 10 % of the KF's."""
+    frames = scenario(steps=15, n_feat=0, seed=2)
+    pf = IcpDaPf(params=IcpParams(motion=MOTION), pf=PfParams(vehicle_particles=2000, feature_particles=10, seed=1))
+    kf = GnssTracker(motion=MOTION)
+    e_pf, e_kf = [], []
+    for f in frames:
+        x = f.truth.x_true[:, :2]
+        e_pf.append(np.sum((pf.step(f.without_truth()).mean[:, :2] - x) ** 2, 1))
+        e_kf.append(np.sum((kf.step(f.without_truth()).mean[:, :2] - x) ** 2, 1))
+    r_pf, r_kf = np.sqrt(np.mean(np.concatenate(e_pf))), np.sqrt(np.mean(np.concatenate(e_kf)))
+    print(f"RMSE PF {r_pf:.3f} m, KF {r_kf:.3f} m")
+    assert abs(r_pf - r_kf) < 0.1 * r_kf
+
+
+def test_output_independent_of_truth_fields_and_deterministic():
+    frames = scenario(steps=5, v2v_range=25.0)
+    rng = np.random.default_rng(5)
+    a, b, c = IcpDaPf(pf=PF_SMALL), IcpDaPf(pf=PF_SMALL), IcpDaPf(pf=PF_SMALL)
+    for f in frames:
+        tr = f.truth
+        scrambled = replace(
+            f,
+            truth=Truth(x_true=rng.normal(size=tr.x_true.shape), v2f_feature=rng.permutation(tr.v2f_feature),
+                        features_true=rng.normal(size=tr.features_true.shape), zone=tr.zone[::-1], area=tr.area[::-1]),
+        )
+        ea, eb, ec = a.step(f), b.step(scrambled), c.step(f.without_truth())
+        for e in (eb, ec):
+            np.testing.assert_array_equal(ea.mean, e.mean)
+            np.testing.assert_array_equal(ea.v2f_assignment, e.v2f_assignment)
+            np.testing.assert_array_equal(ea.feature_mean, e.feature_mean)
+        assert np.all(np.linalg.eigvalsh(ea.cov) > 0) and np.allclose(ea.cov, np.swapaxes(ea.cov, 1, 2))
+
+
+def test_separated_features_are_associated_and_tracked():
+    """Features 30 m apart: every V2F row goes to one track per feature, one feature per track.
+
+    Accuracy is printed, not asserted: with J = 300 the particle sums are Monte Carlo noise (a
+    vehicle particle meets ~0.1 feature particles within the 4-D V2F kernel); measured RMSE PF
+    2.08 m (J = 300), 1.87 m (J = 1000) against GNSS 1.58 m and ICP-DA-LC 0.55 m."""
+    frames = scenario(steps=10, spacing=10.0)
+    pf = IcpDaPf(params=IcpParams(motion=MOTION), pf=PF_SMALL)
+    kf = GnssTracker(motion=MOTION)
+    pairs, e_pf, e_kf = set(), [], []
+    for f in frames:
+        est = pf.step(f.without_truth())
+        pairs |= {(int(t), int(k)) for t, k in zip(est.v2f_assignment, f.truth.v2f_feature) if t >= 0}
+        assert np.all(est.v2f_assignment >= 0)
+        x = f.truth.x_true[:, :2]
+        e_pf.append(np.sum((est.mean[:, :2] - x) ** 2, 1))
+        e_kf.append(np.sum((kf.step(f.without_truth()).mean[:, :2] - x) ** 2, 1))
+    tracks_of = {}
+    for trk, feat in pairs:
+        tracks_of.setdefault(feat, set()).add(trk)
+    assert all(len(v) == 1 for v in tracks_of.values()), tracks_of
+    assert len({trk for trk, _ in pairs}) == len(tracks_of)
+    r_pf, r_kf = np.sqrt(np.mean(np.concatenate(e_pf))), np.sqrt(np.mean(np.concatenate(e_kf)))
+    print(f"RMSE PF {r_pf:.3f} m, GNSS {r_kf:.3f} m")
+    assert np.isfinite(r_pf)
+
+
+def test_empty_frames_and_bad_parameters():
+    from coloc.frame import empty_frame
+
+    est = IcpDaPf(pf=PF_SMALL)
+    assert est.step(empty_frame(0.0, 1.0)).mean.shape == (0, 4)
+    for f in scenario(steps=2, n_feat=0):
+        assert est.step(f).mean.shape == (f.n_vehicles, 4)
+    for bad in ({"kernel": "fft"}, {"vehicle_particles": 0}, {"recursion": "other"}, {"kernel_rel_tol": 0.0}):
+        with pytest.raises(ValueError):
+            PfParams(**bad)
