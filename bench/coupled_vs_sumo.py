@@ -9,6 +9,7 @@ and their ratios to 1. Targets: coupled GNSS run within 2x of SUMO alone (issue 
 coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
 
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
+    (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config)
 
 Not a test: it asserts nothing and prints numbers.
 """
