@@ -172,3 +172,12 @@ def test_labelled_kalman_update_matches_information_form():
     np.testing.assert_allclose(m, np.linalg.solve(info, np.linalg.solve(cov, mean) + h.T @ gps.reshape(-1) / 50.0),
                                rtol=1e-8, atol=1e-8)
     assert power_sums(np.array([1.0, 2.0]), 2).tolist() == [3.0, 5.0]
+
+
+def test_uninformative_sensor_reduces_to_sme_without_topology():
+    """With a sensor variance of 1e12 m^2 the topology pseudo-measurement carries no information."""
+    mean, cov, gps, sensor, _ = prediction_and_measurements(7)
+    a = sme_update(mean, cov, gps, sensor, SmeParams(sensor_var=1e12))
+    b = sme_update(mean, cov, gps, sensor, SmeParams(use_topology=False))
+    np.testing.assert_allclose(a[0], b[0], atol=1e-6)
+    np.testing.assert_allclose(a[1], b[1], atol=1e-6)
