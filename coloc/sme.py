@@ -48,9 +48,15 @@ documented choice):
 * Jacobian of the mean with respect to the state: d/dmu E[(mu + e)^k] = k M_{k-1}(mu).
 
 The x and y power sums are symmetric in x and y separately, so (9) does not
-tie each x to its y: pairings that swap x coordinates between vehicles produce
-the same y_1. Only the prior, the dynamics and (10) disambiguate. This is the
-paper's construction and is kept.
+tie each x to its y: pairings that permute the y coordinates among vehicles
+produce the same y_1. Nor does (10) help: sum_{i<j} |p_i - p_j|^2 =
+sum_axes (N s_2 - s_1^2) is a function of the first two power sums per axis, so
+such ghosts give exactly the same (9) and (10). Only the prior and the dynamics
+disambiguate. In Zhang's own scenario (east, north-east, north from one point)
+the ghost (80t, 0), (45t, 80t), (0, 45t) is one; 1 of 200 seeded runs of the
+shipped study locks onto it and diverges (tests and study report). This is the
+paper's construction and is kept; a pairing-aware SME (complex power sums
+sum_i (x_i + j y_i)^k, Kamen's 2-D form) would remove it.
 
 The baseline ``kf`` is the joint Kalman filter told the GPS association, which
 cannot use the infrastructure sensor (Zhang Sec. IV). With N = 1 and no

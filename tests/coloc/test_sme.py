@@ -181,3 +181,22 @@ def test_uninformative_sensor_reduces_to_sme_without_topology():
     b = sme_update(mean, cov, gps, sensor, SmeParams(use_topology=False))
     np.testing.assert_allclose(a[0], b[0], atol=1e-6)
     np.testing.assert_allclose(a[1], b[1], atol=1e-6)
+
+
+def test_paper_pseudo_measurements_have_an_exact_xy_pairing_ghost():
+    """(10) is a function of (9): sum_{i<j} |p_i - p_j|^2 = sum_axes (N s_2 - s_1^2). So permuting the y
+    coordinates among vehicles leaves (9) and (10) unchanged: in Zhang's scenario the ghost
+    (80t, 0), (45t, 80t), (0, 45t) of the truth (80t, 0), (45t, 45t), (0, 80t) is indistinguishable,
+    which is what the shipped study's one ghost-locked run in 200 follows."""
+    from coloc.topology import sum_sq_pairwise
+
+    t = 7.0
+    truth = np.array([[80 * t, 0.0], [45 * t, 45 * t], [0.0, 80 * t]])
+    ghost = truth.copy()
+    ghost[:, 1] = truth[[0, 2, 1], 1]
+    for axis in range(2):
+        np.testing.assert_allclose(power_sums(ghost[:, axis], 3), power_sums(truth[:, axis], 3))
+    assert sum_sq_pairwise(ghost) == pytest.approx(sum_sq_pairwise(truth), rel=1e-12)
+    s1, s2 = power_sums(truth[:, 0], 2)
+    r1, r2 = power_sums(truth[:, 1], 2)
+    assert sum_sq_pairwise(truth) == pytest.approx(3 * s2 - s1**2 + 3 * r2 - r1**2, rel=1e-12)
