@@ -56,6 +56,15 @@ def _whiten(x, shift, linv, out):
         out[a] = acc
 
 
+@nb.njit(cache=True, inline="always")
+def _sq_dist(u, v):
+    d2 = 0.0
+    for a in range(4):
+        d = u[a] - v[a]
+        d2 += d * d
+    return d2
+
+
 @nb.njit(cache=True)
 def _exact_log_sum(src_w, src_logw, wmax, tgt):
     """log sum_s exp(logw_s - |u_s - u_t|^2 / 2), exact.
@@ -66,19 +75,13 @@ def _exact_log_sum(src_w, src_logw, wmax, tgt):
     """
     acc = 0.0
     for s in range(src_w.shape[0]):
-        d2 = 0.0
-        for a in range(4):
-            d = src_w[s, a] - tgt[a]
-            d2 += d * d
+        d2 = _sq_dist(src_w[s], tgt)
         acc += math.exp(src_logw[s] - wmax - 0.5 * d2)
     if acc > 1e-250:
         return wmax + math.log(acc)
     best = -np.inf
     for s in range(src_w.shape[0]):
-        d2 = 0.0
-        for a in range(4):
-            d = src_w[s, a] - tgt[a]
-            d2 += d * d
+        d2 = _sq_dist(src_w[s], tgt)
         v = src_logw[s] - 0.5 * d2
         if v > best:
             best = v
@@ -86,10 +89,7 @@ def _exact_log_sum(src_w, src_logw, wmax, tgt):
         return -np.inf
     acc = 0.0
     for s in range(src_w.shape[0]):
-        d2 = 0.0
-        for a in range(4):
-            d = src_w[s, a] - tgt[a]
-            d2 += d * d
+        d2 = _sq_dist(src_w[s], tgt)
         acc += math.exp(src_logw[s] - 0.5 * d2 - best)
     return best + math.log(acc)
 
