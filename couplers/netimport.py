@@ -4,7 +4,8 @@ From one ``.net.xml`` or ``.osm[.gz]`` file this derives everything a net
 folder holds (DESIGN "A net folder"), and says what it could not derive:
 
 * the net: netconvert with the options SUMO recommends for OSM imports (the
-  DESIGN's "SUMO notes"), or the user's net re-written by netconvert; the
+  DESIGN's "SUMO notes") and osmWebWizard's urban typemaps, cars only, or the
+  user's net re-written by netconvert; the
   dated netconvert header is replaced by a fixed comment so that the same
   inputs give identical bytes. TLR is the net as built; VSR switches every
   signal off at run time (``[controls] vsr = { tls_off = true }``). A net
@@ -149,16 +150,23 @@ class _Report:
 # SUMO tools from the eclipse-sumo wheel
 # --------------------------------------------------------------------------
 
-def _sumo_env() -> dict[str, str]:
-    env = dict(os.environ)
+def _wheel_home() -> str:
+    """SUMO_HOME of the eclipse-sumo wheel (bin/, tools/, data/typemap); else the environment's."""
     try:
         import sumo  # noqa: PLC0415  (the eclipse-sumo wheel)
 
-        home = sumo.SUMO_HOME
+        return sumo.SUMO_HOME
     except ImportError:  # pragma: no cover - environment problem
-        home = env.get("SUMO_HOME", "")
+        return os.environ.get("SUMO_HOME", "")
+
+
+def _sumo_env() -> dict[str, str]:
+    """Environment of the SUMO tools: the wheel's SUMO_HOME (libsumo may point it at its data-only
+    package) and its PROJ data (polyconvert needs proj.db)."""
+    env = dict(os.environ)
+    home = _wheel_home()
     if home:
-        env.setdefault("SUMO_HOME", home)
+        env["SUMO_HOME"] = home
         proj = os.path.join(home, "data", "proj")
         if os.path.isdir(proj):
             env["PROJ_LIB"] = env["PROJ_DATA"] = proj
@@ -166,9 +174,9 @@ def _sumo_env() -> dict[str, str]:
 
 
 def _sumo_home() -> Path:
-    home = _sumo_env().get("SUMO_HOME")
-    if not home or not Path(home).is_dir():
-        raise InputError(None, "SUMO_HOME", "SUMO not found: install the eclipse-sumo package")
+    home = _wheel_home()
+    if not home or not (Path(home) / "tools" / "randomTrips.py").is_file():
+        raise InputError(None, "SUMO_HOME", f"SUMO tools not found in {home!r}: install the eclipse-sumo package")
     return Path(home)
 
 
@@ -269,9 +277,12 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
     out = work / "tlr.net.xml"
     cmd = [_binary("netconvert")]
     if opts.osm is not None:
-        typemap = _sumo_home() / "data" / "typemap" / "osmNetconvert.typ.xml"
+        typemaps = _sumo_home() / "data" / "typemap"
         cmd += [
-            "--osm-files", str(src), "--type-files", str(typemap),
+            # osmWebWizard's "urban" typemaps: roads without a maxspeed tag get urban speeds
+            # (primary/secondary/tertiary 50 km/h instead of the rural 100/100/80 km/h)
+            "--osm-files", str(src), "--type-files",
+            f"{typemaps / 'osmNetconvert.typ.xml'},{typemaps / 'osmNetconvertUrbanDe.typ.xml'}",
             # SUMO's recommended OSM import (DESIGN "SUMO notes")
             "--geometry.remove", "true", "--ramps.guess", "true", "--junctions.join", "true",
             "--tls.guess-signals", "true", "--tls.discard-simple", "true", "--tls.join", "true",
@@ -293,7 +304,7 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
                    encoding="utf-8", newline="\n")
     home = str(_sumo_home())
     report.derived["netconvert"] = " ".join(
-        opts.source.name if a == str(src) else Path(a).name if a.startswith(home)
+        opts.source.name if a == str(src) else ",".join(Path(x).name for x in a.split(",")) if a.startswith(home)
         else "stops.add.xml(read,not-kept)" if a.startswith(".stops") else a for a in cmd[1:])
     return out
 
@@ -534,8 +545,8 @@ def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report) -> None:
     report.lines.append(f"areas: default {ncol} x {nrow} grid (1..{ncol * nrow})")
 
 
-def _user_geojson(src: Path, dest: Path, key: str, with_sigmas: bool, lane_xy: np.ndarray,
-                  net_name: str, report: _Report) -> None:
+def _read_user_geojson(src: Path, key: str, with_sigmas: bool):
+    """The user's zones/areas GeoJSON: net x/y CRS and valid polygons (checked before any conversion)."""
     try:
         doc = json.loads(src.read_text())
     except FileNotFoundError:
@@ -547,7 +558,12 @@ def _user_geojson(src: Path, dest: Path, key: str, with_sigmas: bool, lane_xy: n
         raise InputError(src, "crs", f"expected net x/y metres ({{\"type\": \"name\", \"properties\": {{\"name\": "
                                      f"\"{NET_CRS_NAME}\"}}}}), got {crs!r}: convert lon/lat to the net's x/y first "
                                      "(sumolib net.convertLonLat2XY)")
-    regions = read_regions(src, key, with_sigmas)
+    return read_regions(src, key, with_sigmas)
+
+
+def _user_geojson(src: Path, dest: Path, key: str, with_sigmas: bool, lane_xy: np.ndarray,
+                  net_name: str, report: _Report) -> None:
+    regions = _read_user_geojson(src, key, with_sigmas)
     union = shapely.union_all([r.polygon for r in regions])
     inside = shapely.intersects_xy(union, lane_xy[:, 0], lane_xy[:, 1])
     if not inside.any():
@@ -892,6 +908,10 @@ def import_net(opts: ImportOptions,
     osm_counts = scan_osm(opts.osm) if opts.osm is not None else None
     if opts.net is not None:
         _check_net_xml(opts.net)
+    if opts.zones is not None:
+        _read_user_geojson(opts.zones, "zone", True)
+    if opts.areas is not None:
+        _read_user_geojson(opts.areas, "area", False)
     parent = opts.out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{opts.name}-import-", dir=parent))

@@ -41,7 +41,7 @@ def osm_grid(*, roads: bool = True, buildings: bool = True, signals: bool = True
         for r in range(ROWS):
             refs = "".join(f'<nd ref="{_nid(c, r)}"/>' for c in range(COLS))
             if r == PRIMARY_ROW:
-                tags = '<tag k="highway" v="primary"/><tag k="lanes" v="4"/><tag k="name" v="Corso Test"/>'
+                tags = '<tag k="highway" v="primary"/><tag k="lanes" v="4"/><tag k="maxspeed" v="50"/><tag k="name" v="Corso Test"/>'
                 if bus_stop:
                     # a stop position on the primary between columns 0 and 1
                     stop = next_node
