@@ -107,7 +107,7 @@ def test_demand_follows_the_falling_profile_and_every_route_exists(imported):
     dem = scen["derived"]["demand"]
     per_bin = dem["vehicles_per_bin"]
     assert len(per_bin) == 12 and all(x >= y for x, y in zip(per_bin, per_bin[1:]))
-    expected = falling_profile_bins(2800 * dem["network_scale"], 1800 * dem["network_scale"], 3600.0)
+    expected = falling_profile_bins(2800 * dem["scale"], 1800 * dem["scale"], 3600.0)
     assert per_bin == [int(round(x)) for x in expected]
     assert per_bin[0] / per_bin[-1] == pytest.approx(2758.3 / 1841.7, rel=0.03)
     root = ET.parse(out / "demand.rou.xml").getroot()
