@@ -280,3 +280,16 @@ def test_check_reports_one_line_per_problem(tmp_path, imported):
 def test_check_of_a_folder_that_does_not_load(tmp_path):
     problems, _ = check_net_folder(tmp_path / "missing")
     assert len(problems) == 1 and "not found" in problems[0]
+
+
+def test_demand_too_high_for_the_net_is_scaled_down_until_no_gridlock(tmp_path, osm):
+    """Ten times the density-matched demand jams the grid: the calibration scales it down and says so."""
+    out = tmp_path / "jam"
+    res = import_net(ImportOptions(name="jam", out=out, osm=osm, seed=3, demand_scale=10.0))
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    dem, cal = scen["derived"]["demand"], scen["derived"]["demand_calibration"]
+    assert len(cal["trials"]) >= 2
+    assert "no gridlock" not in cal["trials"][0]  # the first trial jammed
+    assert cal["trials"][-1].count("no gridlock") == 2  # the last one passed under VSR and TLR
+    assert dem["scale"] == pytest.approx(10.0 * dem["density_scale"] * 0.6 ** (len(cal["trials"]) - 1), rel=1e-3)
+    assert sum(1 for line in res.lines if "gridlock trial" in line) == len(cal["trials"])
