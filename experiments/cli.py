@@ -129,7 +129,8 @@ def cmd_net_import(args: argparse.Namespace) -> int:
         zones=_path(args.zones), areas=_path(args.areas), routes=_path(args.routes),
         additional=_path(args.additional), demand_start_vph=args.demand[0], demand_end_vph=args.demand[1],
         demand_scale=args.demand_scale, fringe_factor=args.fringe_factor, duration_s=args.duration,
-        zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, max_density_scale=args.max_density_scale,
+        zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, calibration_s=args.calibration_s,
+        max_density_scale=args.max_density_scale,
         force=args.force,
     )
     source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
@@ -221,8 +222,10 @@ def build_parser() -> argparse.ArgumentParser:
     ni.add_argument("--max-density-scale", type=float, default=4.0,
                     help="cap of the density match, as a multiple of the arterial's demand (default 4)")
     ni.add_argument("--no-calibrate", action="store_true",
-                    help="keep the density-matched demand (default: scale it down until the first 10 min, "
-                         "the peak, run without gridlock under VSR and TLR)")
+                    help="keep the density-matched demand (default: scale it down by 0.6 until it runs "
+                         "without gridlock under VSR and TLR)")
+    ni.add_argument("--calibration-s", type=float,
+                    help="simulated seconds of each gridlock trial (default: the whole demand, --duration)")
     ni.add_argument("--zone-cell", type=float, default=200.0, help="cell size of building-density zones, m")
     ni.add_argument("--force", action="store_true", help="replace an existing folder and configs")
     ni.set_defaults(func=cmd_net_import)

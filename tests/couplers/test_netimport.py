@@ -30,6 +30,7 @@ from osmfixture import _nid, write_osm_grid  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ARTERIAL = ROOT / "sumo_nets" / "arterial"
+CALIB_S = 900.0  # gridlock trials over the peak only: keeps the tests short
 FILES = ("tlr.net.xml", "demand.rou.xml", "zones.geojson", "areas.geojson", "features.add.xml", "scenario.toml")
 
 
@@ -41,7 +42,7 @@ def osm(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def imported(tmp_path_factory, osm):
     out = tmp_path_factory.mktemp("nets") / "grid"
-    res = import_net(ImportOptions(name="grid", out=out, osm=osm, seed=3))
+    res = import_net(ImportOptions(name="grid", out=out, osm=osm, seed=3, calibration_s=CALIB_S))
     return out, res
 
 
@@ -124,11 +125,11 @@ def test_demand_follows_the_falling_profile_and_every_route_exists(imported):
 def test_reimport_gives_identical_files_and_another_seed_other_demand(tmp_path, osm, imported):
     out, _ = imported
     again = tmp_path / "grid"
-    import_net(ImportOptions(name="grid", out=again, osm=osm, seed=3))
+    import_net(ImportOptions(name="grid", out=again, osm=osm, seed=3, calibration_s=CALIB_S))
     for name in FILES:
         assert (again / name).read_bytes() == (out / name).read_bytes(), name
     other = tmp_path / "grid7"
-    import_net(ImportOptions(name="grid", out=other, osm=osm, seed=7))
+    import_net(ImportOptions(name="grid", out=other, osm=osm, seed=7, calibrate=False))
     assert (other / "tlr.net.xml").read_bytes() == (out / "tlr.net.xml").read_bytes()
     assert (other / "demand.rou.xml").read_bytes() != (out / "demand.rou.xml").read_bytes()
 
@@ -209,7 +210,7 @@ def test_net_without_traffic_lights_asks_for_guess_signals(tmp_path):
     osm = write_osm_grid(tmp_path / "nosig.osm", signals=False)
     _expect_error(tmp_path, "--guess-signals", osm=osm)
     out = tmp_path / "guessed"
-    res = import_net(ImportOptions(name="guessed", out=out, osm=osm, guess_signals=True))
+    res = import_net(ImportOptions(name="guessed", out=out, osm=osm, guess_signals=True, calibrate=False))
     net = sumolib.net.readNet(str(out / "tlr.net.xml"))
     assert len(net.getTrafficLights()) >= 1
     assert tomllib.loads((out / "scenario.toml").read_text())["import"]["guess_signals"] is True
@@ -285,7 +286,7 @@ def test_check_of_a_folder_that_does_not_load(tmp_path):
 def test_demand_too_high_for_the_net_is_scaled_down_until_no_gridlock(tmp_path, osm):
     """Ten times the density-matched demand jams the grid: the calibration scales it down and says so."""
     out = tmp_path / "jam"
-    res = import_net(ImportOptions(name="jam", out=out, osm=osm, seed=3, demand_scale=10.0))
+    res = import_net(ImportOptions(name="jam", out=out, osm=osm, seed=3, demand_scale=10.0, calibration_s=600.0))
     scen = tomllib.loads((out / "scenario.toml").read_text())
     dem, cal = scen["derived"]["demand"], scen["derived"]["demand_calibration"]
     assert len(cal["trials"]) >= 2

@@ -19,7 +19,7 @@ def _import(tmp_path: Path, *extra: str) -> tuple[int, Path, Path]:
     osm = write_osm_grid(tmp_path / "grid.osm")
     out, exps = tmp_path / "nets" / "grid", tmp_path / "exps"
     rc = main(["net", "import", "--osm", str(osm), "--name", "grid", "--out", str(out),
-               "--experiments-dir", str(exps), "--seed", "2", *extra])
+               "--experiments-dir", str(exps), "--seed", "2", "--calibration-s", "600", *extra])
     return rc, out, exps
 
 
