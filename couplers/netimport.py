@@ -55,7 +55,7 @@ from typing import Callable
 import numpy as np
 import shapely
 import shapely.ops
-from shapely.geometry import LineString, Point, box, mapping
+from shapely.geometry import LineString, box, mapping
 
 from couplers.errors import InputError
 from couplers.netfolder import lane_shape_points, read_regions

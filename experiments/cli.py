@@ -134,6 +134,11 @@ def cmd_net_import(args: argparse.Namespace) -> int:
         force=args.force,
     )
     source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
+    if not args.force:  # refuse before the (possibly long) import, not after it
+        for control in ("tlr", "vsr"):
+            cfg = experiments_dir / f"{args.name}_{control}.toml"
+            if cfg.exists():
+                raise InputError(cfg, None, "already exists (pass --force to replace it)")
 
     def configs(result):
         return net_configs(args.name, out, experiments_dir, result.track_area, source)

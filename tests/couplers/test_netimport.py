@@ -10,6 +10,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+from shapely.geometry import LineString, Point
 import pytest
 
 sumolib = pytest.importorskip("sumolib")
@@ -294,3 +295,21 @@ def test_demand_too_high_for_the_net_is_scaled_down_until_no_gridlock(tmp_path, 
     assert cal["trials"][-1].count("no gridlock") == 2  # the last one passed under VSR and TLR
     assert dem["scale"] == pytest.approx(10.0 * dem["density_scale"] * 0.6 ** (len(cal["trials"]) - 1), rel=1e-3)
     assert sum(1 for line in res.lines if "gridlock trial" in line) == len(cal["trials"])
+
+
+def test_net_input_takes_bus_stops_and_car_parks_from_additionals(tmp_path, imported):
+    out, _ = imported
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    lane = max((e for e in _drivable_edges(net)), key=lambda e: e.getLength()).getLane(0)
+    add = tmp_path / "stops.add.xml"
+    add.write_text(f'<additional><busStop id="bs1" lane="{lane.getID()}" startPos="10" endPos="25"/>'
+                   f'<parkingArea id="pa1" lane="{lane.getID()}" startPos="-30" endPos="-5"/></additional>')
+    dest = tmp_path / "withstops"
+    import_net(ImportOptions(name="withstops", out=dest, net=out / "tlr.net.xml", additional=add, calibrate=False))
+    folder = load_net_folder(dest)
+    kinds = list(folder.features.kinds)
+    assert kinds.count("bus_stop") == 1 and kinds.count("parking") == 1
+    for kind in ("bus_stop", "parking"):
+        xy = folder.features.xy[kinds.index(kind)]
+        d = LineString(lane.getShape()).distance(Point(*xy))
+        assert lane.getWidth() / 2 < d < lane.getWidth() / 2 + 4.0  # beside the lane, on the sidewalk
