@@ -21,6 +21,7 @@ from couplers.netfolder import load_net_folder  # noqa: E402
 from couplers.netimport import (  # noqa: E402
     ARTERIAL_LANE_KM,
     ARTERIAL_MEAN_ROUTE_M,
+    VTYPE,
     ImportOptions,
     _drivable_edges,
     falling_profile_bins,
@@ -162,6 +163,8 @@ def test_scaling_constants_are_the_shipped_arterials():
     n = sum(int(f.get("number")) for f in root.iter("flow"))
     mean = sum(int(f.get("number")) * length[f.get("route")] for f in root.iter("flow")) / n
     assert mean == pytest.approx(ARTERIAL_MEAN_ROUTE_M, abs=0.5)
+    # imported demand drives the arterial's car
+    assert root.find("vType").attrib == VTYPE
 
 
 # --------------------------------------------------------------------------
