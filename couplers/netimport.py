@@ -1026,8 +1026,8 @@ def _validate_options(opts: ImportOptions) -> None:
         raise InputError(None, "--features", "must be >= 0")
     bad = [k for k in opts.feature_kinds if k not in FEATURE_KINDS]
     if bad or not opts.feature_kinds:
-        raise InputError(None, "--feature-kinds", f"unknown kind {bad[0]!r}" if bad else "at least one kind"
-                         + f" (available: {', '.join(FEATURE_KINDS)})")
+        what = f"unknown kind {bad[0]!r}" if bad else "at least one kind is needed"
+        raise InputError(None, "--feature-kinds", f"{what} (available: {', '.join(FEATURE_KINDS)})")
     for key in ("demand_start_vph", "demand_end_vph"):
         if not getattr(opts, key) >= 0:
             raise InputError(None, "--demand", "rates must be >= 0 veh/h")

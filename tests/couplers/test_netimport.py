@@ -316,3 +316,14 @@ def test_net_input_takes_bus_stops_and_car_parks_from_additionals(tmp_path, impo
         xy = folder.features.xy[kinds.index(kind)]
         d = LineString(lane.getShape()).distance(Point(*xy))
         assert lane.getWidth() / 2 < d < lane.getWidth() / 2 + 4.0  # beside the lane, on the sidewalk
+
+
+def test_feature_count_and_kinds_are_options(tmp_path, osm):
+    out = tmp_path / "few"
+    import_net(ImportOptions(name="few", out=out, osm=osm, feature_count=5, feature_kinds=("traffic_light",),
+                             calibrate=False))
+    kinds = list(load_net_folder(out).features.kinds)
+    assert kinds == ["traffic_light"] * 5
+    with pytest.raises(InputError, match="unknown kind 'tree'"):
+        import_net(ImportOptions(name="bad", out=tmp_path / "bad", osm=osm, feature_kinds=("tree",)))
+    assert not (tmp_path / "bad").exists()
