@@ -83,6 +83,11 @@ def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]
     return tuple(regions)
 
 
+def read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
+    """GNSS zones (``key="zone"``, with sigma_p/sigma_v) or analysis areas (``key="area"``) of a GeoJSON file."""
+    return _read_regions(Path(path), key, with_sigmas)
+
+
 def _read_features(path: Path) -> Features:
     try:
         root = ET.parse(path).getroot()

@@ -1,4 +1,4 @@
-"""The ``coloc`` command line: run, sweep, report (net comes with its issue).
+"""The ``coloc`` command line: run, sweep, report, net import / net check.
 
 Bad input prints one line naming the file and field and exits with status 2;
 no traceback, nothing half-written.
@@ -113,6 +113,62 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _kinds(text: str) -> tuple[str, ...]:
+    return tuple(k.strip() for k in text.split(",") if k.strip())
+
+
+def cmd_net_import(args: argparse.Namespace) -> int:
+    from couplers.netimport import ImportOptions, import_net
+    from experiments.netconfigs import net_configs
+
+    out = Path(args.out) if args.out else Path("sumo_nets") / args.name
+    experiments_dir = Path(args.experiments_dir)
+    opts = ImportOptions(
+        name=args.name, out=out, net=_path(args.net), osm=_path(args.osm), seed=args.seed,
+        feature_count=args.features, feature_kinds=_kinds(args.feature_kinds), guess_signals=args.guess_signals,
+        zones=_path(args.zones), areas=_path(args.areas), routes=_path(args.routes),
+        additional=_path(args.additional), demand_start_vph=args.demand[0], demand_end_vph=args.demand[1],
+        demand_scale=args.demand_scale, fringe_factor=args.fringe_factor, duration_s=args.duration,
+        zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, calibration_s=args.calibration_s,
+        max_density_scale=args.max_density_scale,
+        force=args.force,
+    )
+    source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
+    if not args.force:  # refuse before the (possibly long) import, not after it
+        for control in ("tlr", "vsr"):
+            cfg = experiments_dir / f"{args.name}_{control}.toml"
+            if cfg.exists():
+                raise InputError(cfg, None, "already exists (pass --force to replace it)")
+
+    def configs(result):
+        return net_configs(args.name, out, experiments_dir, result.track_area, source)
+
+    res = import_net(opts, finalize=configs)
+    for line in res.lines:
+        print(line)
+    print(f"wrote {out} in {res.seconds:.1f} s, and {experiments_dir}/{args.name}_tlr.toml, "
+          f"{experiments_dir}/{args.name}_vsr.toml")
+    print(f"next: coloc net check {out}; coloc run {experiments_dir}/{args.name}_tlr.toml --out results/{args.name}_tlr")
+    return 0
+
+
+def _path(text: str | None) -> Path | None:
+    return None if text is None else Path(text)
+
+
+def cmd_net_check(args: argparse.Namespace) -> int:
+    from couplers.netcheck import check_net_folder
+
+    problems, info = check_net_folder(Path(args.dir), max_feature_distance_m=args.max_feature_distance)
+    for p in problems:
+        print(p)
+    if problems:
+        print(f"{args.dir}: {len(problems)} problem(s)", file=sys.stderr)
+        return 1
+    print(f"{args.dir}: ok ({info})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="coloc", description="Traffic-coupled evaluation of cooperative vehicle localization.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -139,6 +195,50 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("dirs", nargs="+", help="run output folders (or one sweep folder)")
     rep.add_argument("--out", help="comparison output folder (default: <first>/../compare)")
     rep.set_defaults(func=cmd_report)
+
+    net = sub.add_parser("net", help="plug-in nets: import a SUMO net or an OSM extract, check a net folder")
+    nsub = net.add_subparsers(dest="net_command", required=True)
+    ni = nsub.add_parser("import", help="build a net folder and TLR/VSR configs from a .net.xml or .osm[.gz]")
+    src = ni.add_mutually_exclusive_group(required=True)
+    src.add_argument("--net", help="a SUMO net (FILE.net.xml)")
+    src.add_argument("--osm", help="an OpenStreetMap extract (FILE.osm or FILE.osm.gz)")
+    ni.add_argument("--name", required=True, help="name of the net folder and of the configs")
+    ni.add_argument("--out", help="net folder to write (default: sumo_nets/NAME)")
+    ni.add_argument("--experiments-dir", default="experiments",
+                    help="where NAME_tlr.toml and NAME_vsr.toml go (default: experiments)")
+    ni.add_argument("--seed", type=int, default=1, help="seed of trips, route choice and feature choice (default 1)")
+    ni.add_argument("--features", type=int, default=64, help="number of features (default 64, the paper's)")
+    ni.add_argument("--feature-kinds", default="traffic_light,bus_stop,parking,sign",
+                    help="comma-separated kinds to place (default: all four)")
+    ni.add_argument("--guess-signals", action="store_true",
+                    help="let netconvert place traffic lights at major junctions (needed when the net has none)")
+    ni.add_argument("--zones", help="GNSS zones GeoJSON in net x/y (crs urn:coloc:sumo-net-xy); "
+                                    "default: from building density, else a default layout")
+    ni.add_argument("--areas", help="analysis areas GeoJSON in net x/y; default: a 3 x 2 grid")
+    ni.add_argument("--routes", help="your own SUMO route file (instead of the generated demand)")
+    ni.add_argument("--additional", help="busStop / parkingArea additionals for a --net input (feature places)")
+    ni.add_argument("--demand", type=float, nargs=2, default=(2800.0, 1800.0), metavar=("START", "END"),
+                    help="falling profile on the arterial, veh/h at the start and end of the hour (default 2800 1800)")
+    ni.add_argument("--demand-scale", type=float, default=1.0,
+                    help="multiplies the demand after scaling it to the net's size (default 1)")
+    ni.add_argument("--fringe-factor", type=float, default=10.0,
+                    help="randomTrips --fringe-factor: weight of trips entering/leaving at the net's edge (default 10)")
+    ni.add_argument("--duration", type=float, default=3600.0, help="demand duration, s (default 3600)")
+    ni.add_argument("--max-density-scale", type=float, default=4.0,
+                    help="cap of the density match, as a multiple of the arterial's demand (default 4)")
+    ni.add_argument("--no-calibrate", action="store_true",
+                    help="keep the density-matched demand (default: scale it down by 0.6 until it runs "
+                         "without gridlock under VSR and TLR)")
+    ni.add_argument("--calibration-s", type=float,
+                    help="simulated seconds of each gridlock trial (default: the whole demand, --duration)")
+    ni.add_argument("--zone-cell", type=float, default=200.0, help="cell size of building-density zones, m")
+    ni.add_argument("--force", action="store_true", help="replace an existing folder and configs")
+    ni.set_defaults(func=cmd_net_import)
+    nc = nsub.add_parser("check", help="validate a net folder: one line per problem, non-zero exit if any")
+    nc.add_argument("dir", help="net folder, e.g. sumo_nets/arterial")
+    nc.add_argument("--max-feature-distance", type=float, default=30.0,
+                    help="features farther than this from a drivable lane are a problem (default 30 m)")
+    nc.set_defaults(func=cmd_net_check)
     return p
 
 

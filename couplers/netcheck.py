@@ -1,0 +1,84 @@
+"""``coloc net check DIR``: validate a net folder, one line per problem.
+
+Checks: scenario.toml and the files it names load (:func:`load_net_folder`);
+the net parses and has edges open to passenger cars and traffic lights (else
+TLR and VSR are the same); the GNSS zones and the analysis areas cover every
+lane shape point of the net; every feature lies within a given distance of a
+drivable lane; every vehicle, flow or trip of the demand has a route whose
+edges exist in the net and follow each other.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import shapely
+from shapely.geometry import LineString
+
+from couplers.errors import InputError
+from couplers.netfolder import lane_shape_points, load_net_folder
+from couplers.netimport import route_problems
+
+
+def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[list[str], str]:
+    """(problems, one-line description of what was checked); no problems means the folder is usable."""
+    import sumolib  # noqa: PLC0415
+
+    root = Path(root)
+    try:
+        folder = load_net_folder(root)
+    except InputError as exc:
+        return [exc.describe()], ""
+    problems: list[str] = []
+    net_name = folder.net.name
+    try:
+        net = sumolib.net.readNet(str(folder.net))
+    except Exception as exc:  # noqa: BLE001 - sumolib raises several types
+        return [f"{folder.net}: the net does not parse ({exc})"], ""
+    drivable = [e for e in net.getEdges(withInternal=False) if e.getFunction() == "" and e.allows("passenger")]
+    if not drivable:
+        problems.append(f"{folder.net}: no edge open to passenger cars")
+    if not net.getTrafficLights() and any(not off for off in folder.tls_off.values()):
+        problems.append(f"{folder.net}: no traffic lights: TLR and VSR are the same "
+                        "(re-import with --guess-signals)")
+
+    try:
+        xy, owners = lane_shape_points(folder.net)
+    except InputError as exc:
+        problems.append(exc.describe())
+        xy, owners = np.empty((0, 2)), []
+    files = folder.scenario["files"]
+    for regions, key in ((folder.zones, "zones"), (folder.areas, "areas")):
+        if not len(xy):
+            break
+        union = shapely.union_all([r.polygon for r in regions])
+        inside = shapely.intersects_xy(union, xy[:, 0], xy[:, 1])
+        if not inside.all():
+            bad = np.flatnonzero(~inside)
+            i = int(bad[0])
+            problems.append(f"{root / files[key]}: leaves {bad.size} of {len(inside)} lane shape points of "
+                            f"{net_name} uncovered (first: lane {owners[i]} at x={xy[i, 0]:.1f}, y={xy[i, 1]:.1f})")
+
+    feats = folder.features
+    if len(feats.ids) == 0:
+        problems.append(f"{root / files['features']}: no features (POIs)")
+    elif drivable:
+        lines = [LineString(l.getShape()) for e in drivable for l in e.getLanes()]
+        tree = shapely.STRtree(lines)
+        pts = shapely.points(feats.xy)
+        _, dist = tree.query_nearest(pts, return_distance=True, all_matches=False)
+        # query_nearest returns one match per point in input order when all_matches=False
+        far = np.flatnonzero(dist > max_feature_distance_m)
+        for i in far[:10]:
+            problems.append(f"{root / files['features']}: poi {feats.ids[i]!r} ({feats.kinds[i]}) is "
+                            f"{dist[i]:.1f} m from the nearest drivable lane (more than {max_feature_distance_m:g} m)")
+        if far.size > 10:
+            problems.append(f"{root / files['features']}: ... and {far.size - 10} more features far from roads")
+
+    rproblems, n = route_problems(net, folder.routes)
+    problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes)) else p for p in rproblems]
+    info = (f"{len(net.getNodes())} junctions, {len(drivable)} drivable edges, {len(net.getTrafficLights())} "
+            f"traffic lights, {len(feats.ids)} features, {n} vehicles/flows/trips, {len(folder.zones)} zones, "
+            f"{len(folder.areas)} areas")
+    return problems, info

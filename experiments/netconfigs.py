@@ -1,0 +1,47 @@
+"""Experiment configs for an imported net: the arterial's TLR/VSR configs pointed at another net folder.
+
+Every estimator and sensor parameter is the shipped arterial's (the paper's
+Sec. VI set-up, ``experiments/arterial_{tlr,vsr}.toml``); only the run name,
+the net folder, the control and the report's along/cross-track area change.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+CONTROLS = ("tlr", "vsr")
+
+
+def _replace_once(text: str, pattern: str, repl: str, template: Path) -> str:
+    new, n = re.subn(pattern, repl, text, count=1, flags=re.MULTILINE)
+    if n != 1:  # the template changed shape: fail loudly rather than write a wrong config
+        raise RuntimeError(f"{template}: pattern {pattern!r} not found")
+    return new
+
+
+def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Path, track_area: str,
+                    source: str) -> str:
+    """The text of ``<experiments_dir>/<name>_<control>.toml`` for the net folder ``net_dir``."""
+    template = HERE / f"arterial_{control}.toml"
+    text = template.read_text()
+    rel = os.path.relpath(Path(net_dir).resolve(), Path(experiments_dir).resolve())
+    label = "TLR control" if control == "tlr" else "VSR control (every signal switched off)"
+    # header: the first comment block of the template
+    body = re.sub(r"\A(#[^\n]*\n)+", "", text)
+    header = (f"# {name}: imported by `coloc net import` from {source}, {label}.\n"
+              f"# Parameters as experiments/arterial_{control}.toml (paper Sec. VI set-up).\n"
+              f"# `coloc run {Path(experiments_dir).name}/{name}_{control}.toml --out results/{name}_{control}`\n")
+    body = _replace_once(body, r'^name = "[^"]*"', f'name = "{name}_{control}"', template)
+    body = _replace_once(body, r'^net_dir = "[^"]*"', f'net_dir = "{Path(rel).as_posix()}"', template)
+    body = _replace_once(body, r'^track_area = "[^"]*"[^\n]*',
+                         f'track_area = "{track_area}"      # the area holding the most road length', template)
+    return header + body
+
+
+def net_configs(name: str, net_dir: Path, experiments_dir: Path, track_area: str, source: str) -> dict[Path, str]:
+    experiments_dir = Path(experiments_dir)
+    return {experiments_dir / f"{name}_{c}.toml": net_config_text(name, c, net_dir, experiments_dir, track_area, source)
+            for c in CONTROLS}

@@ -1,0 +1,329 @@
+"""coloc net import / net check on a small OSM extract written by the test (tests/osmfixture.py)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import tomllib
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import LineString, Point
+import pytest
+
+sumolib = pytest.importorskip("sumolib")
+
+from couplers.errors import InputError  # noqa: E402
+from couplers.netcheck import check_net_folder  # noqa: E402
+from couplers.netfolder import load_net_folder  # noqa: E402
+from couplers.netimport import (  # noqa: E402
+    ARTERIAL_LANE_KM,
+    ARTERIAL_MEAN_ROUTE_M,
+    VTYPE,
+    ImportOptions,
+    _drivable_edges,
+    falling_profile_bins,
+    import_net,
+)
+from couplers.zones import RegionIndex  # noqa: E402
+from osmfixture import _nid, write_osm_grid  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+ARTERIAL = ROOT / "sumo_nets" / "arterial"
+CALIB_S = 900.0  # gridlock trials over the peak only: keeps the tests short
+FILES = ("tlr.net.xml", "demand.rou.xml", "zones.geojson", "areas.geojson", "features.add.xml", "scenario.toml")
+
+
+@pytest.fixture(scope="module")
+def osm(tmp_path_factory) -> Path:
+    return write_osm_grid(tmp_path_factory.mktemp("osm") / "grid.osm")
+
+
+@pytest.fixture(scope="module")
+def imported(tmp_path_factory, osm):
+    out = tmp_path_factory.mktemp("nets") / "grid"
+    res = import_net(ImportOptions(name="grid", out=out, osm=osm, seed=3, calibration_s=CALIB_S))
+    return out, res
+
+
+def _no_leftovers(parent: Path) -> list[str]:
+    return sorted(p.name for p in parent.iterdir()) if parent.exists() else []
+
+
+# --------------------------------------------------------------------------
+# the import
+# --------------------------------------------------------------------------
+
+def test_osm_import_writes_a_loadable_net_folder(imported):
+    out, res = imported
+    assert sorted(p.name for p in out.iterdir()) == sorted(FILES)
+    folder = load_net_folder(out)
+    assert folder.tls_off == {"tlr": False, "vsr": True}
+    net = sumolib.net.readNet(str(folder.net))
+    # the two OSM signals became traffic lights; roads are cars-only
+    assert len(net.getTrafficLights()) == 2
+    assert all(e.allows("passenger") for e in net.getEdges())
+    assert "dated" not in (out / "tlr.net.xml").read_text()[:400]
+    assert "generated on" not in (out / "tlr.net.xml").read_text()[:400]
+    problems, _ = check_net_folder(out)
+    assert problems == []
+
+
+def test_features_from_signals_bus_stop_car_park_and_signs(imported):
+    out, _ = imported
+    folder = load_net_folder(out)
+    kinds = dict(zip(*np.unique(folder.features.kinds.astype(str), return_counts=True)))
+    # 2 signalised junctions with 4 approaches each -> 8 stop-line poles; the OSM stop on a
+    # two-way street -> 2 bus stops; 1 car park; signs at the minor approaches
+    assert kinds["traffic_light"] == 8
+    assert kinds["bus_stop"] == 2
+    assert kinds["parking"] == 1
+    assert kinds["sign"] >= 4
+    xy = folder.features.xy
+    d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    assert d[np.triu_indices(len(xy), 1)].min() >= 4.0  # no two features on the same spot
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    # fewer candidate places than the 64 asked for: said plainly
+    assert any("64 features" in s for s in scen["not_derived"]["items"])
+
+
+def test_zones_follow_building_density(imported):
+    out, _ = imported
+    folder = load_net_folder(out)
+    net = sumolib.net.readNet(str(folder.net))
+    zones = RegionIndex(folder.zones)
+    # dense buildings fill the blocks around the secondary street north of the primary
+    a = np.array(net.getNode(str(_nid(2, 1))).getCoord())
+    b = np.array(net.getNode(str(_nid(2, 2))).getCoord())
+    dense = zones.names_at(((a + b) / 2)[None, :])[0]
+    outskirts = zones.names_at(np.array(net.getNode(str(_nid(1, 0))).getCoord())[None, :])[0]
+    assert (dense, outskirts) == ("C", "A")
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    assert "building density" in scen["derived"]["zones"]
+
+
+def test_demand_follows_the_falling_profile_and_every_route_exists(imported):
+    out, _ = imported
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    dem = scen["derived"]["demand"]
+    per_bin = dem["vehicles_per_bin"]
+    assert len(per_bin) == 12 and all(x >= y for x, y in zip(per_bin, per_bin[1:]))
+    expected = falling_profile_bins(2800 * dem["scale"], 1800 * dem["scale"], 3600.0)
+    assert per_bin == [int(round(x)) for x in expected]
+    assert per_bin[0] / per_bin[-1] == pytest.approx(2758.3 / 1841.7, rel=0.03)
+    root = ET.parse(out / "demand.rou.xml").getroot()
+    vehicles = root.findall("vehicle")
+    assert len(vehicles) == sum(per_bin) == dem["vehicles"]
+    departs = [float(v.get("depart")) for v in vehicles]
+    assert departs == sorted(departs) and departs[-1] < 3600.0
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    for r in root.findall("route"):
+        edges = [net.getEdge(e) for e in r.get("edges").split()]
+        assert all(b in a.getOutgoing() for a, b in zip(edges, edges[1:]))
+
+
+def test_reimport_gives_identical_files_and_another_seed_other_demand(tmp_path, osm, imported):
+    out, _ = imported
+    again = tmp_path / "grid"
+    import_net(ImportOptions(name="grid", out=again, osm=osm, seed=3, calibration_s=CALIB_S))
+    for name in FILES:
+        assert (again / name).read_bytes() == (out / name).read_bytes(), name
+    other = tmp_path / "grid7"
+    import_net(ImportOptions(name="grid", out=other, osm=osm, seed=7, calibrate=False))
+    assert (other / "tlr.net.xml").read_bytes() == (out / "tlr.net.xml").read_bytes()
+    assert (other / "demand.rou.xml").read_bytes() != (out / "demand.rou.xml").read_bytes()
+
+
+def test_net_input_with_user_zones_areas_and_routes(tmp_path, imported):
+    """A .net.xml input: re-written by netconvert, the user's GeoJSON and route file taken as given."""
+    out, _ = imported
+    routes = tmp_path / "mine.rou.xml"
+    shutil.copyfile(out / "demand.rou.xml", routes)
+    dest = tmp_path / "fromnet"
+    res = import_net(ImportOptions(name="fromnet", out=dest, net=out / "tlr.net.xml", zones=out / "zones.geojson",
+                                   areas=out / "areas.geojson", routes=routes, seed=3))
+    assert (dest / "zones.geojson").read_bytes() == (out / "zones.geojson").read_bytes()
+    assert (dest / "demand.rou.xml").read_bytes() == routes.read_bytes()
+    scen = tomllib.loads((dest / "scenario.toml").read_text())
+    items = " ".join(scen["not_derived"]["items"])
+    assert "bus_stop" in items and "parking" in items  # a .net.xml holds no stops: said so
+    assert "check it before sharing" in scen["licence"]
+    assert check_net_folder(dest)[0] == []
+    assert any("user's route file" in line for line in res.lines)
+
+
+def test_scaling_constants_are_the_shipped_arterials():
+    net = sumolib.net.readNet(str(ARTERIAL / "tlr.net.xml"))
+    lane_km = sum(e.getLength() * e.getLaneNumber() for e in _drivable_edges(net)) / 1000.0
+    assert lane_km == pytest.approx(ARTERIAL_LANE_KM, abs=0.01)
+    root = ET.parse(ARTERIAL / "demand.rou.xml").getroot()
+    length = {r.get("id"): sum(net.getEdge(e).getLength() for e in r.get("edges").split()) for r in root.iter("route")}
+    n = sum(int(f.get("number")) for f in root.iter("flow"))
+    mean = sum(int(f.get("number")) * length[f.get("route")] for f in root.iter("flow")) / n
+    assert mean == pytest.approx(ARTERIAL_MEAN_ROUTE_M, abs=0.5)
+    # imported demand drives the arterial's car
+    assert root.find("vType").attrib == VTYPE
+
+
+# --------------------------------------------------------------------------
+# bad inputs: one clear message, nothing left behind
+# --------------------------------------------------------------------------
+
+def _expect_error(tmp_path, match: str, **kw) -> InputError:
+    parent = tmp_path / "nets"
+    parent.mkdir(exist_ok=True)
+    before = _no_leftovers(parent)
+    with pytest.raises(InputError, match=match) as exc:
+        import_net(ImportOptions(name="bad", out=parent / "bad", **kw))
+    assert _no_leftovers(parent) == before  # no folder, no temporary folder
+    return exc.value
+
+
+def test_non_xml_osm_and_net(tmp_path):
+    junk = tmp_path / "junk.osm"
+    junk.write_bytes(b"\x89PNG\r\n not xml at all")
+    err = _expect_error(tmp_path, "not valid XML", osm=junk)
+    assert err.path == str(junk)
+    junk_net = tmp_path / "junk.net.xml"
+    junk_net.write_text("hello")
+    _expect_error(tmp_path, "not valid XML", net=junk_net)
+    other = tmp_path / "other.osm"
+    other.write_text("<routes/>")
+    _expect_error(tmp_path, "not an OpenStreetMap file", osm=other)
+
+
+def test_osm_without_roads(tmp_path):
+    osm = write_osm_grid(tmp_path / "paths.osm", roads=False)
+    err = _expect_error(tmp_path, "no road open to cars", osm=osm)
+    assert err.field == "way[highway]"
+
+
+def test_net_without_drivable_edges(tmp_path):
+    (tmp_path / "f.nod.xml").write_text('<nodes><node id="a" x="0" y="0"/><node id="b" x="200" y="0"/>'
+                                        '<node id="c" x="200" y="200"/></nodes>')
+    (tmp_path / "f.edg.xml").write_text('<edges><edge id="ab" from="a" to="b" allow="pedestrian"/>'
+                                        '<edge id="bc" from="b" to="c" allow="pedestrian bicycle"/></edges>')
+    subprocess.run([sumolib.checkBinary("netconvert"), "-n", "f.nod.xml", "-e", "f.edg.xml", "-o", "foot.net.xml",
+                    "--no-warnings", "true"], cwd=tmp_path, check=True, capture_output=True)
+    _expect_error(tmp_path, "no edge open to passenger cars", net=tmp_path / "foot.net.xml")
+
+
+def test_net_without_traffic_lights_asks_for_guess_signals(tmp_path):
+    osm = write_osm_grid(tmp_path / "nosig.osm", signals=False)
+    _expect_error(tmp_path, "--guess-signals", osm=osm)
+    out = tmp_path / "guessed"
+    res = import_net(ImportOptions(name="guessed", out=out, osm=osm, guess_signals=True, calibrate=False))
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    assert len(net.getTrafficLights()) >= 1
+    assert tomllib.loads((out / "scenario.toml").read_text())["import"]["guess_signals"] is True
+    assert any("guessed by netconvert" in line for line in res.lines)
+
+
+def _zones_doc(crs: str | None, x0: float, y0: float, x1: float, y1: float, area: bool = False) -> dict:
+    props = {"area": "1"} if area else {"zone": "B", "sigma_p": 8.0, "sigma_v": 0.17}
+    doc = {"type": "FeatureCollection",
+           "features": [{"type": "Feature", "properties": props,
+                         "geometry": {"type": "Polygon",
+                                      "coordinates": [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]]}}]}
+    if crs is not None:
+        doc["crs"] = {"type": "name", "properties": {"name": crs}}
+    return doc
+
+
+def test_geojson_in_wrong_crs_or_outside_the_net(tmp_path, osm):
+    wgs = tmp_path / "wgs84.geojson"
+    wgs.write_text(json.dumps(_zones_doc(None, 7.67, 45.06, 7.70, 45.08)))
+    err = _expect_error(tmp_path, "expected net x/y metres", osm=osm, zones=wgs)
+    assert err.field == "crs"
+    far = tmp_path / "far.geojson"
+    far.write_text(json.dumps(_zones_doc("urn:coloc:sumo-net-xy", 1e6, 1e6, 1e6 + 500, 1e6 + 500)))
+    _expect_error(tmp_path, "outside the net", osm=osm, zones=far)
+    part = tmp_path / "part.geojson"
+    part.write_text(json.dumps(_zones_doc("urn:coloc:sumo-net-xy", 0, 0, 100, 100, area=True)))
+    _expect_error(tmp_path, "uncovered", osm=osm, areas=part)
+
+
+def test_existing_folder_needs_force(tmp_path, osm, imported):
+    out, _ = imported
+    with pytest.raises(InputError, match="--force"):
+        import_net(ImportOptions(name="grid", out=out, osm=osm))
+
+
+# --------------------------------------------------------------------------
+# net check
+# --------------------------------------------------------------------------
+
+def test_check_passes_the_shipped_arterial():
+    problems, info = check_net_folder(ARTERIAL)
+    assert problems == []
+    assert "64 features" in info
+
+
+def test_check_reports_one_line_per_problem(tmp_path, imported):
+    out, _ = imported
+    bad = tmp_path / "broken"
+    shutil.copytree(out, bad)
+    # a feature far from any road
+    feats = (bad / "features.add.xml").read_text()
+    feats = feats.replace("</additional>", '    <poi id="lost" type="sign" x="5000" y="5000"/>\n</additional>')
+    (bad / "features.add.xml").write_text(feats)
+    # zones shrunk to a corner
+    (bad / "zones.geojson").write_text(json.dumps(_zones_doc("urn:coloc:sumo-net-xy", 0, 0, 50, 50)))
+    # a route through an edge that is not in the net
+    dem = (bad / "demand.rou.xml").read_text()
+    dem = dem.replace("</routes>", '    <vehicle id="ghost" depart="0"><route edges="nowhere"/></vehicle>\n</routes>')
+    (bad / "demand.rou.xml").write_text(dem)
+    problems, _ = check_net_folder(bad)
+    assert len(problems) == 3, problems
+    assert any("'lost'" in p and "from the nearest drivable lane" in p for p in problems)
+    assert any("zones.geojson" in p and "uncovered" in p for p in problems)
+    assert any("'ghost'" in p and "'nowhere' is not in the net" in p for p in problems)
+
+
+def test_check_of_a_folder_that_does_not_load(tmp_path):
+    problems, _ = check_net_folder(tmp_path / "missing")
+    assert len(problems) == 1 and "not found" in problems[0]
+
+
+def test_demand_too_high_for_the_net_is_scaled_down_until_no_gridlock(tmp_path, osm):
+    """Ten times the density-matched demand jams the grid: the calibration scales it down and says so."""
+    out = tmp_path / "jam"
+    res = import_net(ImportOptions(name="jam", out=out, osm=osm, seed=3, demand_scale=10.0, calibration_s=600.0))
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    dem, cal = scen["derived"]["demand"], scen["derived"]["demand_calibration"]
+    assert len(cal["trials"]) >= 2
+    assert "no gridlock" not in cal["trials"][0]  # the first trial jammed
+    assert cal["trials"][-1].count("no gridlock") == 2  # the last one passed under VSR and TLR
+    assert dem["scale"] == pytest.approx(10.0 * dem["density_scale"] * 0.6 ** (len(cal["trials"]) - 1), rel=1e-3)
+    assert sum(1 for line in res.lines if "gridlock trial" in line) == len(cal["trials"])
+
+
+def test_net_input_takes_bus_stops_and_car_parks_from_additionals(tmp_path, imported):
+    out, _ = imported
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    lane = max((e for e in _drivable_edges(net)), key=lambda e: e.getLength()).getLane(0)
+    add = tmp_path / "stops.add.xml"
+    add.write_text(f'<additional><busStop id="bs1" lane="{lane.getID()}" startPos="10" endPos="25"/>'
+                   f'<parkingArea id="pa1" lane="{lane.getID()}" startPos="-30" endPos="-5"/></additional>')
+    dest = tmp_path / "withstops"
+    import_net(ImportOptions(name="withstops", out=dest, net=out / "tlr.net.xml", additional=add, calibrate=False))
+    folder = load_net_folder(dest)
+    kinds = list(folder.features.kinds)
+    assert kinds.count("bus_stop") == 1 and kinds.count("parking") == 1
+    for kind in ("bus_stop", "parking"):
+        xy = folder.features.xy[kinds.index(kind)]
+        d = LineString(lane.getShape()).distance(Point(*xy))
+        assert lane.getWidth() / 2 < d < lane.getWidth() / 2 + 4.0  # beside the lane, on the sidewalk
+
+
+def test_feature_count_and_kinds_are_options(tmp_path, osm):
+    out = tmp_path / "few"
+    import_net(ImportOptions(name="few", out=out, osm=osm, feature_count=5, feature_kinds=("traffic_light",),
+                             calibrate=False))
+    kinds = list(load_net_folder(out).features.kinds)
+    assert kinds == ["traffic_light"] * 5
+    with pytest.raises(InputError, match="unknown kind 'tree'"):
+        import_net(ImportOptions(name="bad", out=tmp_path / "bad", osm=osm, feature_kinds=("tree",)))
+    assert not (tmp_path / "bad").exists()

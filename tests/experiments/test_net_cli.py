@@ -1,0 +1,96 @@
+"""`coloc net import` / `coloc net check` through the command line, and the generated configs run."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from experiments.cli import main
+from experiments.config import load_config
+from osmfixture import write_osm_grid
+
+PROJECT = Path(__file__).resolve().parents[2]
+
+
+def _import(tmp_path: Path, *extra: str) -> tuple[int, Path, Path]:
+    osm = write_osm_grid(tmp_path / "grid.osm")
+    out, exps = tmp_path / "nets" / "grid", tmp_path / "exps"
+    rc = main(["net", "import", "--osm", str(osm), "--name", "grid", "--out", str(out),
+               "--experiments-dir", str(exps), "--seed", "2", "--calibration-s", "600", *extra])
+    return rc, out, exps
+
+
+def test_import_writes_folder_and_both_configs(tmp_path, capsys):
+    rc, out, exps = _import(tmp_path)
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "features:" in text and "demand:" in text and "zones: from building density" in text
+    for control, tls_off in (("tlr", False), ("vsr", True)):
+        cfg = load_config(exps / f"grid_{control}.toml")
+        assert cfg.run.name == f"grid_{control}"
+        assert cfg.scenario.control == control
+        assert Path(cfg.scenario.net_dir) == out.resolve()
+        scen = tomllib.loads((out / "scenario.toml").read_text())
+        assert scen["controls"][control]["tls_off"] is tls_off
+        assert cfg.report.track_area == scen["derived"]["track_area"]
+        # everything else is the arterial's Sec. VI set-up
+        art = load_config(PROJECT / "experiments" / f"arterial_{control}.toml")
+        assert (cfg.sensors, cfg.motion, cfg.icp, cfg.lc) == (art.sensors, art.motion, art.icp, art.lc)
+    assert main(["net", "check", str(out)]) == 0
+    assert "ok (" in capsys.readouterr().out
+    # a second import without --force refuses and changes nothing
+    before = {p.name: p.read_bytes() for p in exps.iterdir()}
+    rc, _, _ = _import(tmp_path)
+    assert rc == 2
+    assert "--force" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in exps.iterdir()} == before
+
+
+@pytest.mark.parametrize("case", ["non_xml", "no_roads", "wrong_crs"])
+def test_bad_input_one_message_exit_2_nothing_written(tmp_path, capsys, case):
+    osm = write_osm_grid(tmp_path / "grid.osm", roads=case != "no_roads")
+    args = ["net", "import", "--osm", str(osm), "--name", "bad", "--out", str(tmp_path / "nets" / "bad"),
+            "--experiments-dir", str(tmp_path / "exps")]
+    if case == "non_xml":
+        osm.write_bytes(b"PK\x03\x04 a zip file, not OSM")
+    if case == "wrong_crs":
+        z = tmp_path / "zones.geojson"
+        z.write_text(json.dumps({"type": "FeatureCollection", "crs": {"type": "name", "properties": {
+            "name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}, "features": []}))
+        args += ["--zones", str(z)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("coloc: error: ")
+    named = {"non_xml": str(osm), "no_roads": str(osm), "wrong_crs": str(tmp_path / "zones.geojson")}[case]
+    assert named in err[0]
+    assert not (tmp_path / "nets").exists() or list((tmp_path / "nets").iterdir()) == []
+    assert not (tmp_path / "exps").exists() or list((tmp_path / "exps").iterdir()) == []
+
+
+def test_check_exit_status(tmp_path, capsys):
+    assert main(["net", "check", str(PROJECT / "sumo_nets" / "arterial")]) == 0
+    capsys.readouterr()
+    assert main(["net", "check", str(tmp_path / "nowhere")]) == 1
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "not found" in out[0]
+
+
+@pytest.mark.slow
+def test_generated_configs_run_with_gnss_and_icp_da_lc(tmp_path, capsys):
+    """Import the OSM grid, run TLR and VSR for 120 s with gnss and icp_da_lc: reports come out."""
+    rc, out, exps = _import(tmp_path)
+    assert rc == 0
+    for control in ("tlr", "vsr"):
+        res = tmp_path / "results" / control
+        assert main(["run", str(exps / f"grid_{control}.toml"), "--out", str(res), "--duration", "120",
+                     "--methods", "gnss,icp_da_lc", "--quiet"]) == 0
+        summary = json.loads((res / "summary.json").read_text())
+        assert set(summary["methods"]) == {"gnss", "icp_da_lc"}
+        assert summary["traffic"]["mean_vehicles"] > 5
+        assert summary["traffic"]["teleports"] == 0
+        assert (res / "report.html").is_file()
+        for block in summary["methods"].values():
+            assert 0 < block["rmse_pos_m"] < 15
