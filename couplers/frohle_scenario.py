@@ -59,8 +59,9 @@ class FrohleScenario:
     v2f_feature: np.ndarray  # (T, S*K) true feature of each row (scoring only)
 
 
-def simulate(params: FrohleScenarioParams, seed: int) -> FrohleScenario:
-    """One Monte Carlo realisation; same params and seed give identical arrays."""
+def simulate(params: FrohleScenarioParams, seed: int | list[int]) -> FrohleScenario:
+    """One Monte Carlo realisation; same params and seed (an int or a list of ints, the entropy of a
+    SeedSequence) give identical arrays."""
     motion_rng, feature_rng, gnss_rng, v2f_rng, order_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
     )
