@@ -255,3 +255,29 @@ def test_same_seed_same_result():
     a = rsu_bp_filter(sc.gnss_z, sc.gnss_cov, sc.v2f_z, sc.v2f_cov, sc.v2f_owner, 3, params, np.random.default_rng(9))
     b = rsu_bp_filter(sc.gnss_z, sc.gnss_cov, sc.v2f_z, sc.v2f_cov, sc.v2f_owner, 3, params, np.random.default_rng(9))
     assert np.array_equal(a.vehicle_mean, b.vehicle_mean) and np.array_equal(a.feature_mean, b.feature_mean)
+
+
+@pytest.mark.slow
+def test_trends_of_figs_4_and_5():
+    """The shapes of Figs. 4-5 on short seeded runs (120 steps, Np = 300, two runs per point, common
+    random numbers): vehicle 2's RMSE rises with the V2F variance (0.1 < 1 < 10 m^2) and falls from
+    K = 1 to K = 3 features; at 10 m^2 it is still not above the Kalman filter's."""
+    params = RsuBpParams(n_particles=300)
+
+    def mean_rmse(v2f_var, k):
+        bp, kf = [], []
+        for seed in (21, 22):
+            sc = simulate(FrohleScenarioParams(n_steps=120, n_features=k, v2f_var=v2f_var), seed)
+            run = rsu_bp_filter(sc.gnss_z, sc.gnss_cov, sc.v2f_z, sc.v2f_cov, sc.v2f_owner, k, params,
+                                np.random.default_rng(seed))
+            km, _ = cv_kalman_filter(sc.gnss_z, sc.gnss_cov, *_kf_prior(sc, params), params.dt,
+                                     params.process_intensity)
+            for est, acc in ((run.vehicle_mean, bp), (km, kf)):
+                acc.append(np.sqrt(np.mean(np.sum((est[:, 1, :2] - sc.x_true[:, 1, :2]) ** 2, axis=1))))
+        return np.mean(bp), np.mean(kf)
+
+    low, base, high = mean_rmse(0.1, 3), mean_rmse(1.0, 3), mean_rmse(10.0, 3)
+    assert low[0] < base[0] < high[0]
+    assert high[0] <= 1.05 * high[1]
+    one = mean_rmse(1.0, 1)
+    assert one[0] > base[0]
