@@ -295,26 +295,37 @@ def _fig_cdf(results: pd.DataFrame, path: Path) -> None:
 
 
 def _fig_sweep(results: pd.DataFrame, point: str, key: str, xlabel: str, path: Path, logx: bool) -> None:
+    """Mean RMSE (error bars: standard error over runs) against the swept value, one panel per
+    vehicle (their scales differ by an order of magnitude)."""
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
     from experiments.report import _new_fig, _save
 
     sub = results[results["point"] == point]
-    fig = _new_fig(5.2, 3.6)
-    ax = fig.subplots()
-    markers = {"1": "o", "2": "s"}
-    for veh in sorted(sub["vehicle"].unique(), key=int):
+    vehicles = sorted(sub["vehicle"].unique(), key=int)
+    fig = _new_fig(4.2 * len(vehicles), 3.4)
+    axes = fig.subplots(1, len(vehicles), squeeze=False)[0]
+    for ax, veh in zip(axes, vehicles):
         for method in METHODS:
             g = sub[(sub["vehicle"] == veh) & (sub["method"] == method)].groupby(key)["rmse_pos_m"]
             mean, sem = g.mean(), g.sem().fillna(0.0)
-            style = "-" if method == "rsu_bp" else ":"
-            ax.errorbar(mean.index, mean.to_numpy(), yerr=sem.to_numpy(), color=METHOD_COLORS[method],
-                        linestyle=style, marker=markers.get(veh, "^"), ms=4, capsize=2,
-                        label=f"vehicle {veh}, {METHOD_LABELS[method]}")
-    if logx:
-        ax.set_xscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("mean position RMSE over the run [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+            ax.errorbar(mean.index.to_numpy(dtype=float), mean.to_numpy(), yerr=sem.to_numpy(),
+                        color=METHOD_COLORS[method], linestyle="-" if method == "rsu_bp" else ":", marker="o",
+                        ms=4, capsize=2, label=METHOD_LABELS[method])
+        if logx:
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(ScalarFormatter())
+            ax.xaxis.set_minor_formatter(NullFormatter())
+            ax.set_xticks(sorted(sub[key].unique()))
+        else:
+            ax.set_xticks(sorted(sub[key].unique()))
+        ax.set_ylim(bottom=0)
+        gnss_var = sub[sub["vehicle"] == veh]["gnss_var"].iloc[0]
+        ax.set_title(f"vehicle {veh} (GNSS variance {gnss_var:g} m²)")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("mean position RMSE over the run [m]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
     _save(fig, path)
 
 
@@ -412,3 +423,21 @@ def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> 
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return summary
+
+
+def rebuild_report(out: Path) -> Path:
+    """Re-draw report.html and figures/ of a finished study folder from its config.toml, results.parquet
+    and summary.json (e.g. after a change of the report code; the numbers are not recomputed)."""
+    from couplers.errors import read_toml
+
+    out = Path(out)
+    for name in ("config.toml", "results.parquet", "summary.json"):
+        if not (out / name).is_file():
+            raise InputError(out / name, None, "not found: is this an rsu_bp study output folder?")
+    data = read_toml(out / "config.toml", "config file")
+    data.pop("provenance", None)
+    cfg = load_study(data, out / "config.toml")
+    results = pd.read_parquet(out / "results.parquet")
+    summary = json.loads((out / "summary.json").read_text())
+    write_report(out, cfg, results, summary)
+    return out / "report.html"
