@@ -113,3 +113,17 @@ def test_bad_input_names_file_and_field(tmp_path, capsys, old, new, field):
     err = capsys.readouterr().err
     assert str(path) in err and field in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_rebuild_report(runs, tmp_path):
+    import shutil
+
+    from experiments.studies.rsu_bp import rebuild_report
+
+    copy = tmp_path / "copy"
+    shutil.copytree(runs["a"], copy)
+    shutil.rmtree(copy / "figures")
+    (copy / "report.html").unlink()
+    assert rebuild_report(copy) == copy / "report.html"
+    assert (copy / "figures" / "fig5_rmse_features.png").is_file()
+    assert (copy / "report.html").read_text().count("<figure") == 3
