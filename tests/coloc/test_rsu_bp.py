@@ -281,3 +281,26 @@ def test_trends_of_figs_4_and_5():
     assert high[0] <= 1.05 * high[1]
     one = mean_rmse(1.0, 1)
     assert one[0] > base[0]
+
+
+def test_cv_model_matrices_of_eqs_28_29():
+    from coloc.rsu_bp import cv_process_cov, cv_transition
+
+    a = cv_transition(0.5)
+    np.testing.assert_array_equal(a, [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1]])
+    q = cv_process_cov(0.5, 0.1)
+    np.testing.assert_allclose(q[0, 0], 0.1 * 0.5**3 / 3)
+    np.testing.assert_allclose(q[0, 2], 0.1 * 0.5**2 / 2)
+    np.testing.assert_allclose(q[2, 2], 0.1 * 0.5)
+    assert q[0, 1] == q[0, 3] == 0.0 and np.linalg.eigvalsh(q).min() > 0
+
+
+def test_several_correction_iterations():
+    """I = 2 recomputes (21) with rho^(1) (24); the outputs stay normalised and the estimate finite."""
+    sc = _scenario(n_steps=4)
+    params = RsuBpParams(n_particles=120, correction_iterations=2)
+    run = rsu_bp_filter(sc.gnss_z, sc.gnss_cov, sc.v2f_z, sc.v2f_cov, sc.v2f_owner, 3, params, np.random.default_rng(1))
+    assert np.all(np.isfinite(run.vehicle_mean)) and np.all(np.isfinite(run.feature_mean))
+    np.testing.assert_allclose(run.v2f_association.sum(axis=2), 1.0, rtol=1e-12)
+    err = np.linalg.norm(run.vehicle_mean[:, 0, :2] - sc.x_true[:, 0, :2], axis=1)
+    assert err.max() < 1.0  # vehicle 1 (GNSS std 0.1 m) stays put
