@@ -42,6 +42,7 @@ random generator), so it can run per RSU on the vehicles in its range.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -497,8 +498,6 @@ def rsu_bp_filter(
 
     gnss_z (T, S, D), gnss_cov (S, D, D); v2f_z (T, O, 2), v2f_cov (O, 2, 2), v2f_owner (O,)
     (rows in any order at each step; O = S K or 0). Step 0 starts from :func:`initial_beliefs`."""
-    import time
-
     n_t, n_s = gnss_z.shape[0], gnss_z.shape[1]
     n_o = v2f_z.shape[1] if n_features else 0
     vmean = np.empty((n_t, n_s, 4))
