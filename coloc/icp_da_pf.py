@@ -53,11 +53,17 @@ track k draws the same particles without communicating. The pairwise sums are
 the kernels of :mod:`coloc.pf_kernels` (a grid kernel exact to
 ``kernel_rel_tol`` per entry, or the brute force).
 
-What this recursion does *not* have: the own-sensor cavity and latest-message
-track store that :mod:`coloc.icp` adds to the Gaussian ICP against the
-feedback of a feature's information through the vehicle belief (the paper's
-(19) uses b_i^(n-1) and b_k^(0) carries the previous posterior). ICP-DA-PF
-follows the paper as written.
+The time recursion (``PfParams.recursion``): "paper" is (23)-(24) as written
+(vehicle sets carry the cooperative belief, tracks their posterior); the
+default "latest_message" is the particle counterpart of the own-sensor cavity
+and latest-message store that :mod:`coloc.icp` adds to the Gaussian ICP
+against the feedback of a feature's information through the vehicle belief
+(measured in the tests' 5-vehicle scenario with known association, J = 1000:
+1.60 m against 2.46 m for "paper"; Gaussian bound 0.53 m, GNSS 1.58 m). With
+J of a few thousand the particle sums remain Monte Carlo limited: a vehicle
+particle meets on average well under one feature particle inside the 4-D V2F
+kernel (0.1 m, 0.1 m/s), which is why this implementation stays above the
+bound (see the README).
 """
 
 from __future__ import annotations
