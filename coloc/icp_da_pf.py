@@ -50,7 +50,7 @@ generators): every random draw of a vehicle's or a track's particles comes from
 a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
 CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
 track k draws the same particles without communicating. The pairwise sums are
-the kernels of :mod:`coloc.pf_kernels` (a grid kernel exact to
+the kernels of :mod:`coloc.pf_kernels` (a k-d tree kernel exact to
 ``kernel_rel_tol`` per entry, or the brute force).
 
 The time recursion (``PfParams.recursion``): "paper" is (23)-(24) as written
@@ -130,17 +130,15 @@ class PfParams:
     rejuvenate: after a few resamplings a track is a handful of distinct
     particles and its messages become spiky. The paper does not say how it
     fights this degeneracy; False = plain resampling.
-    ``kernel``: "grid" (pruned, exact to ``kernel_rel_tol`` per entry) or
-    "brute" (every particle pair); ``kernel_cutoff_d2``: squared whitened
-    radius of the grid kernel. ``min_association_belief``: options of (18)
+    ``kernel``: "tree" (k-d tree pruned, exact to ``kernel_rel_tol`` per
+    entry) or "brute" (every particle pair). ``min_association_belief``: options of (18)
     with a smaller BPA-DA belief are left out of the mixture.
     """
 
     vehicle_particles: int = 1000
     feature_particles: int = 1000
     seed: int = 0
-    kernel: str = "grid"
-    kernel_cutoff_d2: float = 55.0
+    kernel: str = "tree"
     kernel_rel_tol: float = 1e-6
     min_association_belief: float = 1e-6
     recursion: str = "latest_message"
@@ -151,8 +149,8 @@ class PfParams:
             raise ValueError("vehicle_particles and feature_particles must be >= 1")
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {', '.join(KERNELS)}")
-        if not self.kernel_cutoff_d2 > 0 or not self.kernel_rel_tol > 0:
-            raise ValueError("kernel_cutoff_d2 and kernel_rel_tol must be positive")
+        if not self.kernel_rel_tol > 0:
+            raise ValueError("kernel_rel_tol must be positive")
         if self.recursion not in RECURSIONS:
             raise ValueError(f"recursion must be one of {', '.join(RECURSIONS)}")
         if not 0.0 <= self.min_association_belief < 1.0:
@@ -353,7 +351,7 @@ def pf_bpa_localization(
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
         cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
         s_out, p1 = transform_batch(vehicle_particles, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track,
-                                    zero_shift, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+                                    zero_shift, t_r, pf.kernel, pf.kernel_rel_tol)
         log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
         avg = average_consensus_with_weights(log_m_vf, weights, params.consensus_iterations)
@@ -363,7 +361,7 @@ def pf_bpa_localization(
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
         t_out, p2 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
-                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_rel_tol)
         log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
         pairs += int(p1.sum() + p2.sum())
         # (27): b_i = b_i^(0) prod_k m_{k->i}.
@@ -380,7 +378,7 @@ def pf_bpa_localization(
             break
     if output_particles is not None:
         t_out, p3 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, output_particles,
-                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+                                    t_vehicle, t_z, t_r, pf.kernel, pf.kernel_rel_tol)
         pairs += int(p3.sum())
         acc = output_log_b0.copy()
         np.add.at(acc, entry_vehicle, normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e,
@@ -552,7 +550,7 @@ def icp_da_pf_step(
         log_new = np.zeros(0)
         if pr.size:
             g, _ = transform_batch(t_particles, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), assoc_particles,
-                                   pv, z[pr], r[pr], pf.kernel, pf.kernel_cutoff_d2, pf.kernel_rel_tol)
+                                   pv, z[pr], r[pr], pf.kernel, pf.kernel_rel_tol)
             log_eta = logsumexp(assoc_logw[pv] + g, axis=1)
             log_new = new_feature_log_density(v_mean[pv], assoc_cov[pv], z[pr], r[pr], lc)
             w = np.exp(np.minimum(log_pd + log_eta - log_new, 600.0))

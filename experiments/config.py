@@ -96,8 +96,7 @@ class PfSection:
 
     vehicle_particles: int = 1000
     feature_particles: int = 1000
-    kernel: str = "grid"  # "grid" (pruned, exact to kernel_rel_tol per entry) or "brute"
-    kernel_cutoff_d2: float = 55.0
+    kernel: str = "tree"  # "tree" (k-d tree pruned, exact to kernel_rel_tol per entry) or "brute"
     kernel_rel_tol: float = 1e-6
     min_association_belief: float = 1e-6
 
