@@ -53,8 +53,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
-from coloc.consensus import average_consensus_with_weights, connected_components, metropolis_weights
+from coloc.consensus import _average_kernel, connected_components
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
 
 __all__ = [
@@ -69,6 +70,7 @@ __all__ = [
     "psd_clip",
     "consensus_graph",
     "row_components",
+    "row_consensus_weights",
     "bpa_localization",
     "validate_association",
 ]
@@ -229,6 +231,201 @@ def row_components(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     n_comp, labels = connected_components(graph)
     sizes = np.bincount(labels, minlength=n_comp).astype(np.float64) if labels.size else np.zeros(0)
     return labels, sizes[labels] if labels.size else np.zeros(0)
+
+
+@njit(cache=True)
+def _pairwise_leaf(a, lo, n):
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum(a, lo, n):
+    """numpy's pairwise summation of a[lo:lo+n] (8 accumulators, halves above 128), bit for bit.
+
+    The recursion is run on an explicit stack (numba's on-disk cache and recursion do not mix)."""
+    if n <= 128:
+        return _pairwise_leaf(a, lo, n)
+    depth = 64
+    w_lo = np.empty(depth * 3, dtype=np.int64)
+    w_n = np.empty(depth * 3, dtype=np.int64)
+    w_op = np.empty(depth * 3, dtype=np.int64)
+    vals = np.empty(depth * 3)
+    top, nv = 0, 0
+    w_lo[0], w_n[0], w_op[0] = lo, n, 0
+    top = 1
+    while top > 0:
+        top -= 1
+        if w_op[top] == 1:  # combine the two last values: left + right
+            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
+            nv -= 1
+            continue
+        cl, cn = w_lo[top], w_n[top]
+        if cn <= 128:
+            vals[nv] = _pairwise_leaf(a, cl, cn)
+            nv += 1
+            continue
+        n2 = cn // 2
+        n2 -= n2 % 8
+        w_op[top] = 1
+        top += 1
+        w_lo[top], w_n[top], w_op[top] = cl + n2, cn - n2, 0
+        top += 1
+        w_lo[top], w_n[top], w_op[top] = cl, n2, 0
+        top += 1
+    return vals[0]
+
+
+@njit(cache=True)
+def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_data, n_vehicles):
+    """Metropolis weights (CSR, diagonal included, columns sorted) of the row graph of
+    :func:`consensus_graph` and each row's component size |V_k ∩ C| (:func:`row_components`).
+
+    Same numbers as ``metropolis_weights(consensus_graph(...))``: off-diagonal
+    w_rs = 1 / (1 + max(d_r, d_s)), w_rr = 1 - (sum of the row's off-diagonal
+    weights in column order, summed as scipy's CSR row sum, i.e. numpy's add.reduceat).
+    ``group`` (O,) in [0, n_groups) (every row used); rows of one group are
+    linked iff their owners are V2V neighbours (a stored nonzero of the adjacency).
+    """
+    o = owner.size
+    # Dense V2V lookup (N is a few hundred vehicles).
+    adj = np.zeros((n_vehicles, n_vehicles), dtype=np.bool_)
+    for i in range(n_vehicles):
+        for p in range(adj_indptr[i], adj_indptr[i + 1]):
+            if adj_data[p] != 0:
+                adj[i, adj_indices[p]] = True
+    # Rows of each group, ascending (counting sort keeps row order).
+    g_count = np.zeros(n_groups + 1, dtype=np.int64)
+    for r in range(o):
+        g_count[group[r] + 1] += 1
+    for g in range(n_groups):
+        g_count[g + 1] += g_count[g]
+    g_rows = np.empty(o, dtype=np.int64)
+    fill = g_count[:n_groups].copy()
+    for r in range(o):
+        g_rows[fill[group[r]]] = r
+        fill[group[r]] += 1
+    # Degrees, and components by union-find (links never cross groups).
+    deg = np.zeros(o, dtype=np.int64)
+    parent = np.arange(o)
+    for g in range(n_groups):
+        for a in range(g_count[g], g_count[g + 1]):
+            r = g_rows[a]
+            for b in range(a + 1, g_count[g + 1]):
+                s = g_rows[b]
+                if adj[owner[r], owner[s]] and r != s:
+                    deg[r] += 1
+                    deg[s] += 1
+                    x, y = r, s
+                    while parent[x] != x:
+                        x = parent[x]
+                    while parent[y] != y:
+                        y = parent[y]
+                    if x != y:
+                        if x < y:
+                            parent[y] = x
+                        else:
+                            parent[x] = y
+    root = np.empty(o, dtype=np.int64)
+    size = np.zeros(o, dtype=np.int64)
+    for r in range(o):
+        x = r
+        while parent[x] != x:
+            x = parent[x]
+        root[r] = x
+        size[x] += 1
+    count = np.empty(o)
+    for r in range(o):
+        count[r] = float(size[root[r]])
+    # CSR with the diagonal: row r has deg[r] + 1 entries, columns ascending.
+    indptr = np.zeros(o + 1, dtype=np.int64)
+    for r in range(o):
+        indptr[r + 1] = indptr[r] + deg[r] + 1
+    indices = np.empty(indptr[o], dtype=np.int64)
+    data = np.empty(indptr[o])
+    buf = np.empty(max(1, int(deg.max()) if o else 1))
+    for r in range(o):
+        g = group[r]
+        p0 = indptr[r]
+        # off-diagonal weights in column order, summed as numpy's add.reduceat does
+        # (first element, then the pairwise sum of the rest): scipy's CSR row sum.
+        nb = 0
+        for a in range(g_count[g], g_count[g + 1]):
+            s = g_rows[a]
+            if s != r and adj[owner[r], owner[s]]:
+                buf[nb] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
+                nb += 1
+        acc = buf[0] + _pairwise_sum(buf, 1, nb - 1) if nb else 0.0
+        diag = 1.0 - acc
+        q = p0
+        placed = False
+        for a in range(g_count[g], g_count[g + 1]):
+            s = g_rows[a]
+            if not placed and s > r:
+                indices[q] = r
+                data[q] = diag
+                q += 1
+                placed = True
+            if s != r and adj[owner[r], owner[s]]:
+                indices[q] = s
+                data[q] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
+                q += 1
+        if not placed:
+            indices[q] = r
+            data[q] = diag
+    return indptr, indices, data, count
+
+
+def _canonical_adjacency(adjacency: sp.spmatrix) -> sp.csr_matrix:
+    a = adjacency if sp.isspmatrix_csr(adjacency) or isinstance(adjacency, sp.csr_array) else sp.csr_matrix(adjacency)
+    if not a.has_canonical_format:
+        a = sp.csr_matrix(a, copy=True)
+        a.sum_duplicates()
+    return a
+
+
+def row_consensus_weights(
+    owner: np.ndarray, group_index: np.ndarray, n_groups: int, adjacency: sp.spmatrix
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """Metropolis weights of :func:`consensus_graph` as CSR arrays (indptr, indices, data)
+    and the per-row participant count |V_k ∩ C| of :func:`row_components`, in one numba pass.
+
+    ``group_index`` (O,): every row's feature as an index in [0, n_groups) (all rows used).
+    Equals ``metropolis_weights(consensus_graph(owner, group, adjacency))`` and
+    ``row_components(...)[1]`` bit for bit (tests), without scipy.sparse on the small graphs.
+    """
+    a = _canonical_adjacency(adjacency)
+    return _split4(
+        _row_consensus_kernel(
+            np.asarray(owner, dtype=np.int64), np.asarray(group_index, dtype=np.int64), int(n_groups),
+            a.indptr.astype(np.int64), a.indices.astype(np.int64), np.asarray(a.data != 0), int(a.shape[0]),
+        )
+    )
+
+
+def _split4(t):
+    return (t[0], t[1], t[2]), t[3]
 
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
@@ -513,6 +710,33 @@ class BpaResult:
     converged: bool
 
 
+_SYM_I, _SYM_J = np.triu_indices(4)
+_SYM_FULL = np.array([[int(np.flatnonzero((_SYM_I == min(a, b)) & (_SYM_J == max(a, b)))[0]) for b in range(4)] for a in range(4)])
+
+
+def _pack_sym(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
+    """(O, 14): the upper triangle of each (exactly symmetric) Lambda, then eta."""
+    return np.ascontiguousarray(np.concatenate([lam[:, _SYM_I, _SYM_J], eta], axis=1))
+
+
+def _unpack_sym(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return x[:, :10][:, _SYM_FULL], x[:, 10:]
+
+
+@njit(cache=True)
+def _sum_by_owner(owner, lam_flat, eta, n):
+    """Per-vehicle sums of row values, rows added in ascending row order from 0 (eq. (22) product)."""
+    out_l = np.zeros((n, lam_flat.shape[1]))
+    out_e = np.zeros((n, eta.shape[1]))
+    for r in range(owner.size):
+        i = owner[r]
+        for c in range(lam_flat.shape[1]):
+            out_l[i, c] += lam_flat[r, c]
+        for c in range(eta.shape[1]):
+            out_e[i, c] += eta[r, c]
+    return out_l, out_e
+
+
 def _pack(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
     return np.concatenate([lam.reshape(lam.shape[0], 16), eta], axis=1)
 
@@ -570,10 +794,11 @@ def bpa_localization(
         raise ValueError(f"feature priors must be given for the {fids.size} features of the used rows")
     lam_f0_row, eta_f0_row = feature_prior_lam[fidx], feature_prior_eta[fidx]
 
-    graph = consensus_graph(owner_u, feat_u, adjacency)
-    _, count = row_components(graph)
-    weights = metropolis_weights(graph)  # one graph for every BPA-L iteration of this step
-    incidence = sp.csr_matrix((np.ones(o), (owner_u, np.arange(o))), shape=(n, o))
+    # Row graph, Metropolis weights and |V_k ∩ C| in one numba pass (same numbers as
+    # metropolis_weights(consensus_graph(...)) and row_components(...)); one graph for
+    # every BPA-L iteration of this step.
+    (w_indptr, w_indices, w_data), count = row_consensus_weights(owner_u, fidx, fids.size, adjacency)
+    n_iter_cons = int(params.consensus_iterations)
     r_inv = _inv_spd(r_u)
 
     v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
@@ -592,18 +817,22 @@ def bpa_localization(
         cav_lam = own_lam0[owner_u] + in_lam[owner_u] - m_fv_lam
         cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
         m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
-        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        avg_lam, avg_eta = _unpack(
-            average_consensus_with_weights(_pack(m_vf_lam, m_vf_eta), weights, params.consensus_iterations)
-        )
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|
+        # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
+        # an independent consensus, so the symmetric copies need not be run twice).
+        if n_iter_cons:
+            avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
+            avg_lam, avg_eta = _unpack_sym(avg)
+        else:
+            avg_lam, avg_eta = m_vf_lam.copy(), m_vf_eta.copy()
         loc_lam = lam_f0_row + count[:, None, None] * avg_lam
         loc_eta = eta_f0_row + count[:, None] * avg_eta
         # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
         ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
         m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
-        # (22): b_i = b_i^(0) prod_k m_{k->i}.
-        in_lam = (incidence @ m_fv_lam.reshape(o, 16)).reshape(n, 4, 4)
-        in_eta = incidence @ m_fv_eta
+        # (22): b_i = b_i^(0) prod_k m_{k->i} (rows summed in row order, as the sparse incidence product did).
+        in_lam, in_eta = _sum_by_owner(owner_u, m_fv_lam.reshape(o, 16), m_fv_eta, n)
+        in_lam = in_lam.reshape(n, 4, 4)
         v_lam = symmetrize(v_lam0 + in_lam)
         v_eta = v_eta0 + in_eta
         new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
