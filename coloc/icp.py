@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -161,6 +162,15 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     average - own message can be slightly indefinite. The eta component along
     a clipped direction is removed too (no information -> no mean there).
     """
+    if lam.shape[0] == 0:
+        return lam, eta
+    # Most calls clip nothing. Rows that a shifted Cholesky proves safely positive definite
+    # (smallest eigenvalue far above the floor and the eigensolver's rounding) cannot be
+    # clipped; only the others need the eigendecomposition. If none of them is clipped the
+    # inputs are returned as they are, exactly as below.
+    unsure = np.flatnonzero(~_surely_above_floor(np.ascontiguousarray(lam, dtype=np.float64), float(floor)))
+    if unsure.size == 0 or not (np.linalg.eigh(symmetrize(lam[unsure]))[0] < floor).any():
+        return lam, eta
     w, v = np.linalg.eigh(symmetrize(lam))
     bad = w < floor
     if not bad.any():
@@ -172,6 +182,48 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     coef = np.einsum("...ki,...k->...i", v, eta) * keep
     eta_c = np.einsum("...ik,...k->...i", v, coef)
     return symmetrize(lam_c), eta_c
+
+
+@njit(cache=True)
+def _surely_above_floor(lam, floor):
+    """Per (4, 4) matrix: True when symmetrize(lam) - (floor + margin) I has a Cholesky
+    factor with positive pivots, margin = 1e-8 * (largest |diagonal entry|). Cholesky is
+    backward stable (error ~1e-15 of the entries), so such a matrix has every eigenvalue
+    above ``floor`` by far more than a LAPACK eigensolver's rounding: it is never clipped.
+    False means only "not proven" (singular or indefinite matrices, NaN)."""
+    n = lam.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = np.empty((4, 4))
+    for m in range(n):
+        scale = 0.0
+        for i in range(4):
+            d = abs(lam[m, i, i])
+            if d > scale:
+                scale = d
+        shift = floor + 1e-8 * scale
+        for i in range(4):
+            for j in range(4):
+                a[i, j] = 0.5 * (lam[m, i, j] + lam[m, j, i])
+            a[i, i] -= shift
+        ok = scale > 0.0
+        for j in range(4):
+            if not ok:
+                break
+            d = a[j, j]
+            for k in range(j):
+                d -= a[j, k] * a[j, k]
+            if not d > 0.0:  # also catches NaN
+                ok = False
+                break
+            d = np.sqrt(d)
+            a[j, j] = d
+            for i in range(j + 1, 4):
+                acc = a[i, j]
+                for k in range(j):
+                    acc -= a[i, k] * a[j, k]
+                a[i, j] = acc / d
+        out[m] = ok
+    return out
 
 
 def relative_message(
@@ -529,23 +581,34 @@ class FeatureStore:
         pos = np.minimum(np.searchsorted(self.ids, feature_ids), self.ids.size - 1)
         return np.where(self.ids[pos] == feature_ids, pos, -1)
 
+    @cached_property
+    def _message_information(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Lambda, eta) of every stored message, computed once per store (the store is immutable)."""
+        return to_information(self.msg_mean, self.msg_cov)
+
     def information(self, params: IcpParams, exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Lambda, eta) of every track: birth x folded x messages (those not excluded)."""
         lam = self.folded_lam + birth_information(params)
         eta = self.folded_eta.copy()
         use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
         if use.any():
-            ml, me = to_information(self.msg_mean[use], self.msg_cov[use])
+            ml, me = self._message_information
             rows = self.lookup(self.msg_track[use])
-            np.add.at(lam, rows, ml)
-            np.add.at(eta, rows, me)
+            np.add.at(lam, rows, ml[use])
+            np.add.at(eta, rows, me[use])
         return symmetrize(lam), eta
 
     def moments(self, params: IcpParams) -> tuple[np.ndarray, np.ndarray]:
-        """Track means and covariances (every stored track has had at least one message)."""
-        if self.ids.size == 0:
-            return np.empty((0, 4)), np.empty((0, 4, 4))
-        return from_information(*self.information(params))
+        """Track means and covariances (every stored track has had at least one message).
+
+        Cached per store and params (the store is immutable); treat the arrays as read-only."""
+        cache = self.__dict__.setdefault("_moments_cache", {})
+        if params not in cache:
+            if self.ids.size == 0:
+                cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
+            else:
+                cache[params] = from_information(*self.information(params))
+        return cache[params]
 
     def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
         """Eq. (12): every factor of every track predicted by model (2) (no input)."""

@@ -98,8 +98,8 @@ class IcpState:
         return StepEstimate(
             mean=self.mean.copy(),
             cov=self.cov.copy(),
-            feature_mean=f_mean,
-            feature_cov=f_cov,
+            feature_mean=f_mean.copy(),  # moments are cached on the (immutable) store
+            feature_cov=f_cov.copy(),
             feature_track_ids=self.features.ids.copy(),
             v2f_assignment=np.asarray(v2f_assignment, dtype=np.int64).copy(),
         )
