@@ -57,6 +57,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from coloc.consensus import _average_kernel, connected_components
+from coloc.icp_kernels import extrinsic_kernel, feature_to_vehicle_kernel, vehicle_to_feature_kernel
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
 
 __all__ = [
@@ -808,6 +809,105 @@ def _unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return symmetrize(x[:, :16].reshape(-1, 4, 4)), x[:, 16:]
 
 
+#: Run the BPA-L iterations with the numba kernels of :mod:`coloc.icp_kernels` (False: the
+#: numpy reference below; same algorithm, results equal up to rounding, see tests).
+BPA_KERNELS = True
+
+
+def _bpa_iterations_numpy(
+    prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
+    weights, params,
+):
+    """BPA-L iterations (19)-(22) with batched numpy (the reference of the kernels)."""
+    w_indptr, w_indices, w_data = weights
+    n, o = prior_mean.shape[0], owner_u.size
+    n_iter_cons = int(params.consensus_iterations)
+    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
+    mean = prior_mean.copy()
+    # m_{k->i}^(0) = 1 (zero information).
+    m_fv_lam = np.zeros((o, 4, 4))
+    m_fv_eta = np.zeros((o, 4))
+    in_lam = np.zeros((n, 4, 4))
+    in_eta = np.zeros((n, 4))
+    converged = False
+    it = 0
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): cavity (own belief x messages of the other features), integrated over x_V.
+        cav_lam = own_lam0[owner_u] + in_lam[owner_u] - m_fv_lam
+        cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
+        m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|
+        # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
+        # an independent consensus, so the symmetric copies need not be run twice).
+        if n_iter_cons:
+            avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
+            avg_lam, avg_eta = _unpack_sym(avg)
+        else:
+            avg_lam, avg_eta = m_vf_lam.copy(), m_vf_eta.copy()
+        loc_lam = lam_f0_row + count[:, None, None] * avg_lam
+        loc_eta = eta_f0_row + count[:, None] * avg_eta
+        # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
+        ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
+        m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
+        # (22): b_i = b_i^(0) prod_k m_{k->i} (rows summed in row order, as the sparse incidence product did).
+        in_lam, in_eta = _sum_by_owner(owner_u, m_fv_lam.reshape(o, 16), m_fv_eta, n)
+        in_lam = in_lam.reshape(n, 4, 4)
+        v_lam = symmetrize(v_lam0 + in_lam)
+        v_eta = v_eta0 + in_eta
+        new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
+        dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
+        dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
+        mean = new_mean
+        # Stopping rule of Sec. V-A (all vehicles).
+        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
+            converged = True
+            break
+
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+
+
+def _bpa_iterations_kernels(
+    prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
+    weights, params,
+):
+    """BPA-L iterations (19)-(22): each iteration is three numba passes over the rows
+    (:mod:`coloc.icp_kernels`) around the consensus kernel."""
+    w_indptr, w_indices, w_data = weights
+    n, o = prior_mean.shape[0], owner_u.size
+    n_iter_cons = int(params.consensus_iterations)
+    z_u = np.ascontiguousarray(z_u)
+    r_inv = np.ascontiguousarray(r_inv)
+    lam_f0_row = np.ascontiguousarray(lam_f0_row)
+    eta_f0_row = np.ascontiguousarray(eta_f0_row)
+    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
+    mean = np.ascontiguousarray(prior_mean, dtype=np.float64)
+    # m_{k->i}^(0) = 1 (zero information).
+    m_fv_lam = np.zeros((o, 4, 4))
+    m_fv_eta = np.zeros((o, 4))
+    in_lam = np.zeros((n, 4, 4))
+    in_eta = np.zeros((n, 4))
+    converged = False
+    it = 0
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): cavity (own belief x messages of the other features), integrated over x_V.
+        m_vf_lam, m_vf_eta, packed = vehicle_to_feature_kernel(
+            owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
+        )
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
+        avg = _average_kernel(w_indptr, w_indices, w_data, packed, n_iter_cons) if n_iter_cons else packed
+        # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
+        # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
+        ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
+        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
+            owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
+        )
+        # Stopping rule of Sec. V-A (all vehicles).
+        if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
+            converged = True
+            break
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+
+
 def bpa_localization(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
@@ -866,46 +966,11 @@ def bpa_localization(
 
     v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
     own_lam0, own_eta0 = to_information(own_mean, own_cov)
-    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
-    mean = prior_mean.copy()
-    # m_{k->i}^(0) = 1 (zero information).
-    m_fv_lam = np.zeros((o, 4, 4))
-    m_fv_eta = np.zeros((o, 4))
-    in_lam = np.zeros((n, 4, 4))
-    in_eta = np.zeros((n, 4))
-    converged = False
-    it = 0
-    for it in range(1, params.bpa_max_iterations + 1):
-        # (19): cavity (own belief x messages of the other features), integrated over x_V.
-        cav_lam = own_lam0[owner_u] + in_lam[owner_u] - m_fv_lam
-        cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
-        m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
-        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|
-        # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
-        # an independent consensus, so the symmetric copies need not be run twice).
-        if n_iter_cons:
-            avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
-            avg_lam, avg_eta = _unpack_sym(avg)
-        else:
-            avg_lam, avg_eta = m_vf_lam.copy(), m_vf_eta.copy()
-        loc_lam = lam_f0_row + count[:, None, None] * avg_lam
-        loc_eta = eta_f0_row + count[:, None] * avg_eta
-        # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
-        ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
-        m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
-        # (22): b_i = b_i^(0) prod_k m_{k->i} (rows summed in row order, as the sparse incidence product did).
-        in_lam, in_eta = _sum_by_owner(owner_u, m_fv_lam.reshape(o, 16), m_fv_eta, n)
-        in_lam = in_lam.reshape(n, 4, 4)
-        v_lam = symmetrize(v_lam0 + in_lam)
-        v_eta = v_eta0 + in_eta
-        new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
-        dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
-        dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
-        mean = new_mean
-        # Stopping rule of Sec. V-A (all vehicles).
-        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
-            converged = True
-            break
+    loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
+    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
+        prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
+        count, (w_indptr, w_indices, w_data), params,
+    )
 
     mean, cov = from_information(v_lam, v_eta)
     alone = np.bincount(owner_u, minlength=n) == 0
