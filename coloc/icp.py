@@ -57,7 +57,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from coloc.consensus import _average_kernel, connected_components
-from coloc.icp_kernels import extrinsic_kernel, feature_to_vehicle_kernel, vehicle_to_feature_kernel
+from coloc.icp_kernels import complete_component_consensus, extrinsic_kernel, feature_to_vehicle_kernel, vehicle_to_feature_kernel
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
 
 __all__ = [
@@ -411,6 +411,14 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
     count = np.empty(o)
     for r in range(o):
         count[r] = float(size[root[r]])
+    # complete component: every row linked to all the others (sum of degrees = m (m - 1))
+    deg_sum = np.zeros(o, dtype=np.int64)
+    for r in range(o):
+        deg_sum[root[r]] += deg[r]
+    complete = np.empty(o, dtype=np.bool_)
+    for r in range(o):
+        m = size[root[r]]
+        complete[r] = deg_sum[root[r]] == m * (m - 1)
     # CSR with the diagonal: row r has deg[r] + 1 entries, columns ascending.
     indptr = np.zeros(o + 1, dtype=np.int64)
     for r in range(o):
@@ -447,7 +455,7 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
         if not placed:
             indices[q] = r
             data[q] = diag
-    return indptr, indices, data, count
+    return indptr, indices, data, count, complete
 
 
 def _canonical_adjacency(adjacency: sp.spmatrix) -> sp.csr_matrix:
@@ -460,9 +468,10 @@ def _canonical_adjacency(adjacency: sp.spmatrix) -> sp.csr_matrix:
 
 def row_consensus_weights(
     owner: np.ndarray, group_index: np.ndarray, n_groups: int, adjacency: sp.spmatrix
-) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """Metropolis weights of :func:`consensus_graph` as CSR arrays (indptr, indices, data)
-    and the per-row participant count |V_k ∩ C| of :func:`row_components`, in one numba pass.
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+    """Metropolis weights of :func:`consensus_graph` as CSR arrays (indptr, indices, data),
+    the per-row participant count |V_k ∩ C| of :func:`row_components` and whether the row's
+    component is a complete graph, in one numba pass.
 
     ``group_index`` (O,): every row's feature as an index in [0, n_groups) (all rows used).
     Equals ``metropolis_weights(consensus_graph(owner, group, adjacency))`` and
@@ -478,7 +487,7 @@ def row_consensus_weights(
 
 
 def _split4(t):
-    return (t[0], t[1], t[2]), t[3]
+    return (t[0], t[1], t[2]), t[3], t[4]
 
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
@@ -816,7 +825,7 @@ BPA_KERNELS = True
 
 def _bpa_iterations_numpy(
     prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
-    weights, params,
+    complete, weights, params,
 ):
     """BPA-L iterations (19)-(22) with batched numpy (the reference of the kernels)."""
     w_indptr, w_indices, w_data = weights
@@ -868,7 +877,7 @@ def _bpa_iterations_numpy(
 
 def _bpa_iterations_kernels(
     prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
-    weights, params,
+    complete, weights, params,
 ):
     """BPA-L iterations (19)-(22): each iteration is three numba passes over the rows
     (:mod:`coloc.icp_kernels`) around the consensus kernel."""
@@ -894,7 +903,8 @@ def _bpa_iterations_kernels(
             owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
         )
         # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        avg = _average_kernel(w_indptr, w_indices, w_data, packed, n_iter_cons) if n_iter_cons else packed
+        # (one round on complete components, where W = J/m is a projection: see the kernel)
+        avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
         # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
         # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
         ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
@@ -960,7 +970,7 @@ def bpa_localization(
     # Row graph, Metropolis weights and |V_k ∩ C| in one numba pass (same numbers as
     # metropolis_weights(consensus_graph(...)) and row_components(...)); one graph for
     # every BPA-L iteration of this step.
-    (w_indptr, w_indices, w_data), count = row_consensus_weights(owner_u, fidx, fids.size, adjacency)
+    (w_indptr, w_indices, w_data), count, complete = row_consensus_weights(owner_u, fidx, fids.size, adjacency)
     n_iter_cons = int(params.consensus_iterations)
     r_inv = _inv_spd(r_u)
 
@@ -969,7 +979,7 @@ def bpa_localization(
     loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
     v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
         prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
-        count, (w_indptr, w_indices, w_data), params,
+        count, complete, (w_indptr, w_indices, w_data), params,
     )
 
     mean, cov = from_information(v_lam, v_eta)

@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse as sp
 
 import coloc.icp as icp
-from coloc.consensus import metropolis_weights
+from coloc.consensus import _average_kernel, metropolis_weights
 from coloc.icp import (
     IcpParams,
     _pack_sym,
@@ -20,6 +20,7 @@ from coloc.icp import (
     row_consensus_weights,
 )
 from coloc.icp_kernels import (
+    complete_component_consensus,
     extrinsic_kernel,
     feature_to_vehicle_kernel,
     relative_message_kernel,
@@ -52,11 +53,35 @@ def test_row_consensus_weights_equal_scipy_path_bit_for_bit(seed):
     graph = consensus_graph(owner, feat, adj)
     w_ref = metropolis_weights(graph)
     _, count_ref = row_components(graph)
-    (indptr, indices, data), count = row_consensus_weights(owner, fidx, fids.size, adj)
+    (indptr, indices, data), count, complete = row_consensus_weights(owner, fidx, fids.size, adj)
     np.testing.assert_array_equal(indptr, w_ref.indptr)
     np.testing.assert_array_equal(indices, w_ref.indices)
     np.testing.assert_array_equal(data, w_ref.data)  # exact, incl. the pairwise-summed diagonal
     np.testing.assert_array_equal(count, count_ref)
+    labels, _ = row_components(graph)
+    g = graph.toarray()
+    for lab in np.unique(labels):
+        rows = np.flatnonzero(labels == lab)
+        sub = g[np.ix_(rows, rows)] | np.eye(rows.size, dtype=bool)
+        assert complete[rows].all() == sub.all() and complete[rows].any() == sub.all()
+
+
+@pytest.mark.parametrize("p_edge", [0.2, 0.6, 1.0])
+def test_complete_component_consensus_equals_full_rounds(p_edge):
+    rng = np.random.default_rng(11)
+    owner, feat, adj = random_scene(rng, n=20, o=80, n_feat=10, p_edge=p_edge)
+    fids, fidx = np.unique(feat, return_inverse=True)
+    (indptr, indices, data), count, complete = row_consensus_weights(owner, fidx, fids.size, adj)
+    x = rng.standard_normal((owner.size, 14)) * 100
+    ref = _average_kernel(indptr, indices, data, x, 20)
+    out = complete_component_consensus(indptr, indices, data, x, 20, complete)
+    np.testing.assert_array_equal(out[~complete], ref[~complete])  # same rounds, same order
+    np.testing.assert_allclose(out[complete], ref[complete], rtol=1e-12, atol=1e-12)
+    # and the component averages are reached
+    for k in range(fids.size):
+        rows = np.flatnonzero((fidx == k) & complete)
+        if rows.size:
+            np.testing.assert_allclose(out[rows], np.broadcast_to(x[rows].mean(0), out[rows].shape) if count[rows[0]] == rows.size else out[rows], rtol=1e-12, atol=1e-10)
 
 
 def test_pairwise_sum_is_numpy_reduceat_bit_for_bit():
