@@ -57,7 +57,14 @@ import scipy.sparse as sp
 from numba import njit
 
 from coloc.consensus import _average_kernel, connected_components
-from coloc.icp_kernels import complete_component_consensus, extrinsic_kernel, feature_to_vehicle_kernel, vehicle_to_feature_kernel
+from coloc.icp_kernels import (
+    complete_component_consensus,
+    extrinsic_kernel,
+    feature_to_vehicle_kernel,
+    information_kernel,
+    inverse_spd_kernel,
+    vehicle_to_feature_kernel,
+)
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
 
 __all__ = [
@@ -140,20 +147,33 @@ class IcpParams:
 # ----------------------------------------------------------------------------- Gaussian algebra
 
 
-def _inv_spd(m: np.ndarray) -> np.ndarray:
+def _inv_spd_numpy(m: np.ndarray) -> np.ndarray:
     return symmetrize(np.linalg.inv(m))
+
+
+def _inv_spd(m: np.ndarray) -> np.ndarray:
+    """Inverse of symmetric positive definite 4x4 matrices (numba Cholesky; numpy reference above)."""
+    m = np.asarray(m, dtype=np.float64)
+    if m.ndim < 2 or m.shape[-2:] != (4, 4):
+        return _inv_spd_numpy(m)
+    return inverse_spd_kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
 
 
 def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(mean (..,4), cov (..,4,4)) -> (Lambda, eta) = (P^-1, P^-1 m)."""
-    lam = _inv_spd(cov)
-    return lam, np.einsum("...ij,...j->...i", lam, mean)
+    mean = np.asarray(mean, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.shape[-2:] != (4, 4) or mean.shape != cov.shape[:-1]:
+        lam = _inv_spd_numpy(cov)
+        return lam, np.einsum("...ij,...j->...i", lam, mean)
+    lam, eta = information_kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
+    return lam.reshape(cov.shape), eta.reshape(mean.shape)
 
 
 def from_information(lam: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Lambda, eta) -> (mean, cov); Lambda must be positive definite."""
-    cov = _inv_spd(lam)
-    return np.einsum("...ij,...j->...i", cov, eta), cov
+    """(Lambda, eta) -> (mean, cov); Lambda must be positive definite (same kernel as :func:`to_information`)."""
+    cov, mean = to_information(eta, lam)
+    return mean, cov
 
 
 def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -241,9 +261,9 @@ def relative_message(
         eta_y = R^-1 S^-1 eta + Lambda_y offset.
     """
     if r_inv is None:
-        r_inv = _inv_spd(r)
+        r_inv = _inv_spd_numpy(r)
     s = lam + r_inv
-    s_inv = _inv_spd(s)
+    s_inv = _inv_spd_numpy(s)
     lam_y = symmetrize(lam @ s_inv @ r_inv)
     eta_y = np.einsum("nij,nj->ni", r_inv @ s_inv, eta) + np.einsum("nij,nj->ni", lam_y, offset)
     return lam_y, eta_y

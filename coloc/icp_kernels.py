@@ -308,3 +308,31 @@ def complete_component_consensus(indptr, indices, data, x, iterations, complete)
         for c in range(d):
             out[i, c] = cur[i, c]
     return out
+
+
+@njit(cache=True)
+def information_kernel(mean, cov):
+    """(mean (K, 4), cov (K, 4, 4)) -> (Lambda = P^-1, eta = P^-1 m), P symmetric positive definite."""
+    k = mean.shape[0]
+    lam = np.empty((k, 4, 4))
+    eta = np.empty((k, 4))
+    l, li = np.empty((4, 4)), np.empty((4, 4))
+    for r in range(k):
+        _inv4_spd(cov[r], lam[r], l, li)
+        for a in range(4):
+            acc = 0.0
+            for b in range(4):
+                acc += lam[r, a, b] * mean[r, b]
+            eta[r, a] = acc
+    return lam, eta
+
+
+@njit(cache=True)
+def inverse_spd_kernel(m):
+    """Batched inverse (K, 4, 4) of symmetric positive definite matrices (exactly symmetric output)."""
+    k = m.shape[0]
+    out = np.empty((k, 4, 4))
+    l, li = np.empty((4, 4)), np.empty((4, 4))
+    for r in range(k):
+        _inv4_spd(m[r], out[r], l, li)
+    return out

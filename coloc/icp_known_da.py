@@ -39,9 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.frame import Frame, StepEstimate
-from coloc.gnss import gnss_predict_update
+from coloc.kalman_kernels import gnss_step_kernel
 from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association
-from coloc.models import kalman_update
 from coloc.vehicles import carry_states
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
@@ -54,13 +53,14 @@ def vehicle_prior_beliefs(
     mean, cov, fresh = carry_states(
         prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
     )
-    old = ~fresh
-    if old.any():
-        mean[old], cov[old] = gnss_predict_update(
-            mean[old], cov[old], frame.accel[old], frame.gnss_z[old], frame.gnss_R[old], frame.dt, params.motion
-        )
-    if fresh.any():
-        mean[fresh], cov[fresh] = kalman_update(mean[fresh], cov[fresh], frame.gnss_z[fresh], frame.gnss_R[fresh])
+    # Predict (1) + GNSS update (3) in place, fresh vehicles update only: the numba kernel of
+    # :class:`coloc.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
+    m = params.motion
+    gnss_step_kernel(
+        mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
+        np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
+        m.sigma_along, m.sigma_cross, m.heading_min_speed,
+    )
     return mean, cov
 
 

@@ -193,3 +193,57 @@ def test_bpa_with_kernels_equals_numpy_iterations(monkeypatch):
     np.testing.assert_allclose(fast.cov, ref.cov, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(fast.msg_lam, ref.msg_lam, rtol=1e-9, atol=1e-9 * np.abs(ref.msg_lam).max())
     np.testing.assert_allclose(fast.msg_eta, ref.msg_eta, rtol=1e-9, atol=1e-9 * np.abs(ref.msg_eta).max())
+
+
+def test_information_kernels_equal_numpy():
+    from coloc.icp import _inv_spd, _inv_spd_numpy, from_information, to_information
+
+    rng = np.random.default_rng(12)
+    cov = random_spd(rng, 200, 3.0)
+    mean = rng.standard_normal((200, 4)) * 100
+    lam, eta = to_information(mean, cov)
+    lam_ref = _inv_spd_numpy(cov)
+    np.testing.assert_allclose(lam, lam_ref, rtol=1e-10, atol=1e-12 * np.abs(lam_ref).max())
+    np.testing.assert_allclose(eta, np.einsum("nij,nj->ni", lam_ref, mean), rtol=1e-9, atol=1e-9)
+    assert np.array_equal(lam, np.swapaxes(lam, 1, 2))
+    m2, c2 = from_information(lam, eta)
+    np.testing.assert_allclose(c2, cov, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(m2, mean, rtol=1e-9, atol=1e-7)
+    np.testing.assert_allclose(_inv_spd(cov[:3].reshape(3, 1, 4, 4)), lam_ref[:3].reshape(3, 1, 4, 4), rtol=1e-10)
+    # not positive definite: Gauss-Jordan fallback, like LAPACK's inverse
+    indef = np.diag([2.0, -1.0, 0.5, 3.0])[None]
+    np.testing.assert_allclose(_inv_spd(indef), np.linalg.inv(indef), rtol=1e-14)
+
+
+def test_vehicle_prior_kernel_equals_numpy_reference():
+    from coloc.frame import empty_frame
+    from coloc.gnss import gnss_predict_update
+    from coloc.icp_known_da import vehicle_prior_beliefs
+    from coloc.models import MotionParams, kalman_update
+    from dataclasses import replace
+
+    rng = np.random.default_rng(13)
+    n = 50
+    params = IcpParams(motion=MotionParams(sigma_along=0.35, sigma_cross=0.1))
+    ids = np.array([f"v{i}" for i in range(n)], dtype=object)
+    prev_mean = rng.standard_normal((n, 4)) * [100, 100, 8, 8]
+    prev_mean[:5, 2:] = 0.01  # slow: isotropic Q
+    prev_cov = random_spd(rng, n, 1.0)
+    entered = np.zeros(n, bool)
+    entered[[3, 17]] = True
+    prior_z = np.full((n, 4), np.nan)
+    prior_R = np.full((n, 4, 4), np.nan)
+    prior_z[entered] = rng.standard_normal((2, 4))
+    prior_R[entered] = np.eye(4) * 4
+    fr = replace(empty_frame(10.0, 0.75), vehicle_ids=ids, entered=entered, prior_z=prior_z, prior_R=prior_R,
+                 accel=rng.standard_normal((n, 2)), gnss_z=prev_mean + rng.standard_normal((n, 4)),
+                 gnss_R=np.broadcast_to(np.diag([4.0, 4.0, 0.04, 0.04]), (n, 4, 4)).copy())
+    mean, cov = vehicle_prior_beliefs(ids, prev_mean, prev_cov, fr, params)
+    old = ~entered
+    m_ref, p_ref = gnss_predict_update(prev_mean[old], prev_cov[old], fr.accel[old], fr.gnss_z[old], fr.gnss_R[old],
+                                       fr.dt, params.motion)
+    np.testing.assert_allclose(mean[old], m_ref, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(cov[old], p_ref, rtol=1e-10, atol=1e-12)
+    m_f, p_f = kalman_update(prior_z[entered], prior_R[entered], fr.gnss_z[entered], fr.gnss_R[entered])
+    np.testing.assert_allclose(mean[entered], m_f, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(cov[entered], p_f, rtol=1e-10, atol=1e-12)
