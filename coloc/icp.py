@@ -63,6 +63,7 @@ from coloc.icp_kernels import (
     feature_to_vehicle_kernel,
     information_kernel,
     inverse_spd_kernel,
+    scatter_add,
     vehicle_to_feature_kernel,
 )
 from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
@@ -624,8 +625,8 @@ class FeatureStore:
         if use.any():
             ml, me = self._message_information
             rows = self.lookup(self.msg_track[use])
-            np.add.at(lam, rows, ml[use])
-            np.add.at(eta, rows, me[use])
+            scatter_add(lam, rows, ml[use])
+            scatter_add(eta, rows, me[use])
         return symmetrize(lam), eta
 
     def moments(self, params: IcpParams) -> tuple[np.ndarray, np.ndarray]:
@@ -719,8 +720,8 @@ class FeatureStore:
         if old.any():
             ol, oe = to_information(msg_mean[old], msg_cov[old])
             rows = np.searchsorted(ids, msg_track[old])
-            np.add.at(folded_lam, rows, ol)
-            np.add.at(folded_eta, rows, oe)
+            scatter_add(folded_lam, rows, ol)
+            scatter_add(folded_eta, rows, oe)
             msg_track, msg_vehicle, msg_mean, msg_cov, msg_time = (
                 a[~old] for a in (msg_track, msg_vehicle, msg_mean, msg_cov, msg_time)
             )
@@ -755,8 +756,8 @@ class FeatureStore:
         if (ra < 0).any() or (ri < 0).any() or np.isin(into, absorbed).any():
             raise ValueError("merge: unknown track id, or a track both absorbed and absorbing")
         folded_lam, folded_eta, last_seen = self.folded_lam.copy(), self.folded_eta.copy(), self.last_seen.copy()
-        np.add.at(folded_lam, ri, folded_lam[ra])
-        np.add.at(folded_eta, ri, folded_eta[ra])
+        scatter_add(folded_lam, ri, folded_lam[ra])
+        scatter_add(folded_eta, ri, folded_eta[ra])
         np.maximum.at(last_seen, ri, last_seen[ra])
         msg_track = self.msg_track.copy()
         hit = self.lookup(msg_track)

@@ -55,6 +55,7 @@ from scipy.stats import chi2
 from coloc.association import association_marginals_batch
 from coloc.frame import Frame, StepEstimate
 from coloc.icp import FeatureStore, IcpParams, bpa_localization
+from coloc.icp_kernels import log_gauss_kernel
 from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
 
 __all__ = [
@@ -119,7 +120,17 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _log_gauss(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log N(nu; 0, S) and the squared Mahalanobis distance, batched over rows."""
+    """log N(nu; 0, S) and the squared Mahalanobis distance, batched over rows (numba kernel)."""
+    nu = np.asarray(nu, dtype=np.float64)
+    d = nu.shape[-1]
+    lp, d2 = log_gauss_kernel(
+        np.ascontiguousarray(nu.reshape(-1, d)), np.ascontiguousarray(np.asarray(s, dtype=np.float64).reshape(-1, d, d))
+    )
+    return lp.reshape(nu.shape[:-1]), d2.reshape(nu.shape[:-1])
+
+
+def _log_gauss_numpy(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of :func:`_log_gauss`: log N(nu; 0, S) and the squared Mahalanobis distance."""
     chol = np.linalg.cholesky(s)
     w = np.linalg.solve(chol, nu[..., None])[..., 0]
     d2 = np.einsum("...i,...i->...", w, w)

@@ -336,3 +336,68 @@ def inverse_spd_kernel(m):
     for r in range(k):
         _inv4_spd(m[r], out[r], l, li)
     return out
+
+
+@njit(cache=True)
+def _scatter_add_kernel(target, rows, values):
+    for k in range(rows.size):
+        t = rows[k]
+        for c in range(target.shape[1]):
+            target[t, c] = target[t, c] + values[k, c]
+
+
+def scatter_add(target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``np.add.at(target, rows, values)`` for a C-contiguous float64 ``target`` (K, ...): rows
+    added one after the other in index order, as ufunc.at does (same numbers), without its
+    per-element overhead."""
+    k = target.shape[0]
+    if not (target.flags.c_contiguous and target.dtype == np.float64):
+        np.add.at(target, rows, values)
+        return
+    flat = target.reshape(k, -1)
+    vals = np.ascontiguousarray(np.broadcast_to(values, (len(rows),) + target.shape[1:]), dtype=np.float64)
+    _scatter_add_kernel(flat, np.asarray(rows, dtype=np.int64), vals.reshape(len(rows), -1))
+
+
+@njit(cache=True)
+def log_gauss_kernel(nu, s):
+    """log N(nu; 0, S) and the squared Mahalanobis distance per row, S (P, d, d) symmetric positive
+    definite, by an explicit Cholesky factor and forward substitution (the numpy reference is
+    ``coloc.icp_da_lc._log_gauss_numpy``). A non-PD S gives NaN, as LAPACK's Cholesky would fail."""
+    p, d = nu.shape
+    log_pdf = np.empty(p)
+    d2 = np.empty(p)
+    l = np.empty((d, d))
+    w = np.empty(d)
+    log2pi = np.log(2.0 * np.pi)
+    for r in range(p):
+        ok = True
+        for j in range(d):
+            acc = s[r, j, j]
+            for k in range(j):
+                acc -= l[j, k] * l[j, k]
+            if not acc > 0.0:
+                ok = False
+                break
+            l[j, j] = np.sqrt(acc)
+            for i in range(j + 1, d):
+                a = s[r, i, j]
+                for k in range(j):
+                    a -= l[i, k] * l[j, k]
+                l[i, j] = a / l[j, j]
+        if not ok:
+            log_pdf[r] = np.nan
+            d2[r] = np.nan
+            continue
+        q = 0.0
+        logdet = 0.0
+        for i in range(d):
+            a = nu[r, i]
+            for k in range(i):
+                a -= l[i, k] * w[k]
+            w[i] = a / l[i, i]
+            q += w[i] * w[i]
+            logdet += np.log(l[i, i])
+        d2[r] = q
+        log_pdf[r] = -0.5 * (q + 2.0 * logdet + d * log2pi)
+    return log_pdf, d2

@@ -247,3 +247,30 @@ def test_vehicle_prior_kernel_equals_numpy_reference():
     m_f, p_f = kalman_update(prior_z[entered], prior_R[entered], fr.gnss_z[entered], fr.gnss_R[entered])
     np.testing.assert_allclose(mean[entered], m_f, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(cov[entered], p_f, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [2, 4])
+def test_log_gauss_kernel_equals_numpy(d):
+    from coloc.icp_da_lc import _log_gauss, _log_gauss_numpy
+
+    rng = np.random.default_rng(14)
+    a = rng.standard_normal((300, d, d))
+    s = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(d)
+    nu = rng.standard_normal((300, d)) * 3
+    lp, d2 = _log_gauss(nu, s)
+    lp0, d20 = _log_gauss_numpy(nu, s)
+    np.testing.assert_allclose(lp, lp0, rtol=1e-12, atol=1e-10)
+    np.testing.assert_allclose(d2, d20, rtol=1e-10, atol=1e-12)
+
+
+def test_scatter_add_equals_ufunc_at_bit_for_bit():
+    from coloc.icp_kernels import scatter_add
+
+    rng = np.random.default_rng(15)
+    t = rng.standard_normal((20, 4, 4))
+    rows = rng.integers(0, 20, 100)
+    v = rng.standard_normal((100, 4, 4)) * 1e3
+    ref = t.copy()
+    np.add.at(ref, rows, v)
+    scatter_add(t, rows, v)
+    np.testing.assert_array_equal(t, ref)
