@@ -527,8 +527,8 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
         raise ValueError("association ids must be >= 0 (or -1 for an unused row)")
     used = f >= 0
     if used.any():
-        pairs = np.stack([np.asarray(owner)[used], f[used]], axis=1)
-        if np.unique(pairs, axis=0).shape[0] != pairs.shape[0]:
+        key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]
+        if np.unique(key).size != key.size:
             raise ValueError("a vehicle has two V2F rows associated with the same feature")
     return f
 
@@ -553,16 +553,26 @@ def birth_information(params: IcpParams) -> np.ndarray:
     return lam
 
 
-def _pair_keys(tracks_a, vehicles_a, tracks_b, vehicles_b) -> tuple[np.ndarray, np.ndarray]:
-    """Integer keys of (track, vehicle) pairs of two lists, comparable with each other."""
-    vehicles = np.concatenate([np.asarray(vehicles_a, dtype=object), np.asarray(vehicles_b, dtype=object)])
-    if vehicles.size == 0:
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    _, code = np.unique(vehicles.astype(str), return_inverse=True)
-    width = int(code.max()) + 1
-    na = len(tracks_a)
-    ka = np.asarray(tracks_a, dtype=np.int64) * width + code[:na]
-    kb = np.asarray(tracks_b, dtype=np.int64) * width + code[na:]
+#: Process-wide integer code of every vehicle id seen (by its string form, as before): pair keys
+#: become integer arithmetic instead of a sort of Python strings at every call.
+_VEHICLE_CODES: dict[str, int] = {}
+
+
+def _vehicle_codes(vehicles) -> np.ndarray:
+    reg = _VEHICLE_CODES
+    return np.fromiter(
+        (reg.setdefault(v if type(v) is str else str(v), len(reg)) for v in vehicles), dtype=np.int64,
+        count=len(vehicles),
+    )
+
+
+def _pair_keys(tracks_a, vehicles_a, tracks_b, vehicles_b, codes_a=None) -> tuple[np.ndarray, np.ndarray]:
+    """Integer keys of (track, vehicle) pairs of two lists, comparable with each other
+    (equal iff same track id and same vehicle id string)."""
+    ca = _vehicle_codes(vehicles_a) if codes_a is None else codes_a
+    cb = _vehicle_codes(vehicles_b)
+    ka = np.asarray(tracks_a, dtype=np.int64) * (1 << 32) + ca
+    kb = np.asarray(tracks_b, dtype=np.int64) * (1 << 32) + cb
     return ka, kb
 
 
@@ -662,9 +672,13 @@ class FeatureStore:
             self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
         )
 
+    @cached_property
+    def _msg_codes(self) -> np.ndarray:
+        return _vehicle_codes(self.msg_vehicle)
+
     def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray) -> np.ndarray:
         """Mask over stored messages whose (track, vehicle) pair appears in the rows."""
-        km, kr = _pair_keys(self.msg_track, self.msg_vehicle, row_feature, row_vehicle)
+        km, kr = _pair_keys(self.msg_track, self.msg_vehicle, row_feature, row_vehicle, self._msg_codes)
         return np.isin(km, kr)
 
     def prior_information(
@@ -765,7 +779,7 @@ class FeatureStore:
         remap[ra] = ri
         msg_track = self.ids[remap[hit]]
         # One message per (track, vehicle): keep the latest (stable order breaks ties).
-        key, _ = _pair_keys(msg_track, self.msg_vehicle, np.empty(0, np.int64), np.empty(0, dtype=object))
+        key, _ = _pair_keys(msg_track, self.msg_vehicle, np.empty(0, np.int64), np.empty(0, dtype=object), self._msg_codes)
         order = np.lexsort((-self.msg_time, key))
         first = np.ones(order.size, bool)
         first[1:] = key[order][1:] != key[order][:-1]
