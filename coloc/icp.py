@@ -668,17 +668,26 @@ class FeatureStore:
         if self.msg_track.size:
             rows = self.lookup(self.msg_track)
             msg_mean, msg_cov = predict(msg_mean, msg_cov, zero_in.repeat(rows.size, 0), dt, q[rows])
-        return dataclasses.replace(
+        out = dataclasses.replace(
             self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
         )
+        return out._with_codes(self._msg_codes)
+
+    def _with_codes(self, codes: np.ndarray) -> "FeatureStore":
+        """Seed the cached vehicle codes of the messages (same vehicles as ``codes`` describe)."""
+        self.__dict__["_msg_codes"] = codes
+        return self
 
     @cached_property
     def _msg_codes(self) -> np.ndarray:
         return _vehicle_codes(self.msg_vehicle)
 
-    def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray) -> np.ndarray:
+    def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray, row_codes=None) -> np.ndarray:
         """Mask over stored messages whose (track, vehicle) pair appears in the rows."""
-        km, kr = _pair_keys(self.msg_track, self.msg_vehicle, row_feature, row_vehicle, self._msg_codes)
+        if row_codes is None:
+            row_codes = _vehicle_codes(row_vehicle)
+        km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
+        kr = np.asarray(row_feature, dtype=np.int64) * (1 << 32) + row_codes
         return np.isin(km, kr)
 
     def prior_information(
@@ -714,7 +723,8 @@ class FeatureStore:
         pair; new track ids are created; tracks observed now get last_seen = t.
         """
         row_feature = np.asarray(row_feature, dtype=np.int64)
-        keep = ~self._replaced(row_feature, row_vehicle)
+        row_codes = _vehicle_codes(row_vehicle)
+        keep = ~self._replaced(row_feature, row_vehicle, row_codes)
         mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)
         ids = np.concatenate([self.ids, new_ids])
@@ -726,6 +736,7 @@ class FeatureStore:
         folded_eta = np.concatenate([self.folded_eta, np.zeros((new_ids.size, 4))])[order]
         msg_track = np.concatenate([self.msg_track[keep], row_feature])
         msg_vehicle = np.concatenate([self.msg_vehicle[keep], np.asarray(row_vehicle, dtype=object)])
+        msg_codes = np.concatenate([self._msg_codes[keep], row_codes])
         msg_mean = np.concatenate([self.msg_mean[keep], mm])
         msg_cov = np.concatenate([self.msg_cov[keep], mc])
         msg_time = np.concatenate([self.msg_time[keep], np.full(row_feature.size, float(t))])
@@ -736,8 +747,8 @@ class FeatureStore:
             rows = np.searchsorted(ids, msg_track[old])
             scatter_add(folded_lam, rows, ol)
             scatter_add(folded_eta, rows, oe)
-            msg_track, msg_vehicle, msg_mean, msg_cov, msg_time = (
-                a[~old] for a in (msg_track, msg_vehicle, msg_mean, msg_cov, msg_time)
+            msg_track, msg_vehicle, msg_codes, msg_mean, msg_cov, msg_time = (
+                a[~old] for a in (msg_track, msg_vehicle, msg_codes, msg_mean, msg_cov, msg_time)
             )
         # Tracks nobody observed for longer than feature_drop_after_s are dropped
         # (the paper's reset of an unobserved feature to a uniform belief).
@@ -753,7 +764,7 @@ class FeatureStore:
             msg_mean=msg_mean[keep_msg],
             msg_cov=msg_cov[keep_msg],
             msg_time=msg_time[keep_msg],
-        )
+        )._with_codes(msg_codes[keep_msg])
 
     def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
         """Merge track ``absorbed[j]`` into track ``into[j]`` (ids; every absorbed id distinct, not a target).
@@ -796,7 +807,7 @@ class FeatureStore:
             msg_mean=self.msg_mean[keep],
             msg_cov=self.msg_cov[keep],
             msg_time=self.msg_time[keep],
-        )
+        )._with_codes(self._msg_codes[keep])
 
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""
