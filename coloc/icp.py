@@ -63,6 +63,7 @@ from coloc.icp_kernels import (
     feature_to_vehicle_kernel,
     information_kernel,
     inverse_spd_kernel,
+    predict_no_input_kernel,
     scatter_add,
     vehicle_to_feature_kernel,
 )
@@ -657,17 +658,18 @@ class FeatureStore:
             return self
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params)
-        zero_in = np.zeros((1, 2))
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
             fm, fp = from_information(folded_lam[has], folded_eta[has])
-            fm, fp = predict(fm, fp, zero_in.repeat(fm.shape[0], 0), dt, q[has])
+            fm, fp = predict_no_input_kernel(fm, fp, np.ascontiguousarray(q[has]), float(dt))
             folded_lam[has], folded_eta[has] = to_information(fm, fp)
         msg_mean, msg_cov = self.msg_mean, self.msg_cov
         if self.msg_track.size:
             rows = self.lookup(self.msg_track)
-            msg_mean, msg_cov = predict(msg_mean, msg_cov, zero_in.repeat(rows.size, 0), dt, q[rows])
+            msg_mean, msg_cov = predict_no_input_kernel(
+                np.ascontiguousarray(msg_mean), np.ascontiguousarray(msg_cov), np.ascontiguousarray(q[rows]), float(dt)
+            )
         out = dataclasses.replace(
             self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
         )

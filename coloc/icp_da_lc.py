@@ -57,6 +57,7 @@ from coloc.frame import Frame, StepEstimate
 from coloc.icp import FeatureStore, IcpParams, bpa_localization
 from coloc.icp_kernels import log_gauss_kernel
 from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.vehicles import match_ids
 
 __all__ = [
     "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
@@ -393,8 +394,9 @@ def icp_da_lc_step(
     state: IcpState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams
 ) -> tuple[IcpState, int, LcStepInfo]:
     """One ICP-DA-LC step (pure). Returns the new state, the next free track id and the step's bookkeeping."""
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params)
+    match = match_ids(state.ids, frame.vehicle_ids)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size

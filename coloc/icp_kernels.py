@@ -401,3 +401,35 @@ def log_gauss_kernel(nu, s):
         d2[r] = q
         log_pdf[r] = -0.5 * (q + 2.0 * logdet + d * log2pi)
     return log_pdf, d2
+
+
+@njit(cache=True)
+def predict_no_input_kernel(mean, cov, q, dt):
+    """Model (2) prediction (no input) per row: m = A m, P = sym(A P A^T + Q), A = [[I, dt I], [0, I]]
+    (numpy reference: ``coloc.models.predict`` with zero input)."""
+    k = mean.shape[0]
+    m_out = np.empty((k, 4))
+    p_out = np.empty((k, 4, 4))
+    t = np.empty((4, 4))
+    u = np.empty((4, 4))
+    for r in range(k):
+        m_out[r, 0] = mean[r, 0] + dt * mean[r, 2]
+        m_out[r, 1] = mean[r, 1] + dt * mean[r, 3]
+        m_out[r, 2] = mean[r, 2]
+        m_out[r, 3] = mean[r, 3]
+        # t = A P
+        for b in range(4):
+            t[0, b] = cov[r, 0, b] + dt * cov[r, 2, b]
+            t[1, b] = cov[r, 1, b] + dt * cov[r, 3, b]
+            t[2, b] = cov[r, 2, b]
+            t[3, b] = cov[r, 3, b]
+        # u = t A^T + Q
+        for a in range(4):
+            u[a, 0] = t[a, 0] + dt * t[a, 2] + q[r, a, 0]
+            u[a, 1] = t[a, 1] + dt * t[a, 3] + q[r, a, 1]
+            u[a, 2] = t[a, 2] + q[r, a, 2]
+            u[a, 3] = t[a, 3] + q[r, a, 3]
+        for a in range(4):
+            for b in range(4):
+                p_out[r, a, b] = 0.5 * (u[a, b] + u[b, a])
+    return m_out, p_out

@@ -41,17 +41,21 @@ import numpy as np
 from coloc.frame import Frame, StepEstimate
 from coloc.kalman_kernels import gnss_step_kernel
 from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association
-from coloc.vehicles import carry_states
+from coloc.vehicles import carry_states, match_ids
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
 
 
 def vehicle_prior_beliefs(
-    prev_ids: np.ndarray, prev_mean: np.ndarray, prev_cov: np.ndarray, frame: Frame, params: IcpParams
+    prev_ids: np.ndarray, prev_mean: np.ndarray, prev_cov: np.ndarray, frame: Frame, params: IcpParams,
+    match: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. (11): b_i^(0) = GNSS likelihood x predicted belief (fresh vehicles: prior x GNSS)."""
+    """Eq. (11): b_i^(0) = GNSS likelihood x predicted belief (fresh vehicles: prior x GNSS).
+
+    ``match``: ``match_ids(prev_ids, frame.vehicle_ids)`` when the caller has it (b^(0) and the
+    own-sensor track share it)."""
     mean, cov, fresh = carry_states(
-        prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
+        prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, match
     )
     # Predict (1) + GNSS update (3) in place, fresh vehicles update only: the numba kernel of
     # :class:`coloc.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
@@ -67,8 +71,9 @@ def vehicle_prior_beliefs(
 def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams) -> tuple[BpaResult, "IcpState"]:
     """One time step of ICP with known association (pure function of the previous state)."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params)
+    match = match_ids(state.ids, frame.vehicle_ids)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[np.asarray(frame.v2f_owner, dtype=np.int64)[used]]

@@ -274,3 +274,18 @@ def test_scatter_add_equals_ufunc_at_bit_for_bit():
     np.add.at(ref, rows, v)
     scatter_add(t, rows, v)
     np.testing.assert_array_equal(t, ref)
+
+
+def test_predict_no_input_kernel_equals_numpy():
+    from coloc.icp_kernels import predict_no_input_kernel
+    from coloc.models import predict
+
+    rng = np.random.default_rng(16)
+    mean = rng.standard_normal((100, 4)) * 50
+    cov = random_spd(rng, 100)
+    q = random_spd(rng, 100, 0.01)
+    m, p = predict_no_input_kernel(mean, cov, q, 0.75)
+    m0, p0 = predict(mean, cov, np.zeros((100, 2)), 0.75, q)
+    np.testing.assert_allclose(m, m0, rtol=1e-14, atol=1e-12)
+    np.testing.assert_allclose(p, p0, rtol=1e-13, atol=1e-15)
+    assert np.array_equal(p, np.swapaxes(p, 1, 2))
