@@ -559,7 +559,8 @@ def birth_information(params: IcpParams) -> np.ndarray:
 _VEHICLE_CODES: dict[str, int] = {}
 
 
-def _vehicle_codes(vehicles) -> np.ndarray:
+def vehicle_codes(vehicles) -> np.ndarray:
+    """Process-wide integer code of each vehicle id (equal iff the id strings are equal)."""
     reg = _VEHICLE_CODES
     return np.fromiter(
         (reg.setdefault(v if type(v) is str else str(v), len(reg)) for v in vehicles), dtype=np.int64,
@@ -570,8 +571,8 @@ def _vehicle_codes(vehicles) -> np.ndarray:
 def _pair_keys(tracks_a, vehicles_a, tracks_b, vehicles_b, codes_a=None) -> tuple[np.ndarray, np.ndarray]:
     """Integer keys of (track, vehicle) pairs of two lists, comparable with each other
     (equal iff same track id and same vehicle id string)."""
-    ca = _vehicle_codes(vehicles_a) if codes_a is None else codes_a
-    cb = _vehicle_codes(vehicles_b)
+    ca = vehicle_codes(vehicles_a) if codes_a is None else codes_a
+    cb = vehicle_codes(vehicles_b)
     ka = np.asarray(tracks_a, dtype=np.int64) * (1 << 32) + ca
     kb = np.asarray(tracks_b, dtype=np.int64) * (1 << 32) + cb
     return ka, kb
@@ -682,23 +683,25 @@ class FeatureStore:
 
     @cached_property
     def _msg_codes(self) -> np.ndarray:
-        return _vehicle_codes(self.msg_vehicle)
+        return vehicle_codes(self.msg_vehicle)
 
     def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray, row_codes=None) -> np.ndarray:
         """Mask over stored messages whose (track, vehicle) pair appears in the rows."""
         if row_codes is None:
-            row_codes = _vehicle_codes(row_vehicle)
+            row_codes = vehicle_codes(row_vehicle)
         km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
         kr = np.asarray(row_feature, dtype=np.int64) * (1 << 32) + row_codes
         return np.isin(km, kr)
 
     def prior_information(
-        self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams
+        self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams,
+        row_codes: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """b_k^(0) of (12) for ``feature_ids``, without the messages the rows' vehicles will replace.
 
         ``row_feature``/``row_vehicle``: the (track id, vehicle id) of every used
-        V2F row of this step. New ids get the birth prior only.
+        V2F row of this step. New ids get the birth prior only. ``row_codes``:
+        ``vehicle_codes(row_vehicle)`` if the caller has them.
         """
         k = len(feature_ids)
         lam = np.broadcast_to(birth_information(params), (k, 4, 4)).copy()
@@ -706,7 +709,7 @@ class FeatureStore:
         idx = self.lookup(feature_ids)
         have = idx >= 0
         if have.any():
-            tl, te = self.information(params, exclude=self._replaced(row_feature, row_vehicle))
+            tl, te = self.information(params, exclude=self._replaced(row_feature, row_vehicle, row_codes))
             lam[have], eta[have] = tl[idx[have]], te[idx[have]]
         return lam, eta
 
@@ -718,6 +721,7 @@ class FeatureStore:
         msg_eta: np.ndarray,
         t: float,
         params: IcpParams,
+        row_codes: np.ndarray | None = None,
     ) -> "FeatureStore":
         """Store this step's final messages (19), fold old ones, drop stale tracks.
 
@@ -725,7 +729,8 @@ class FeatureStore:
         pair; new track ids are created; tracks observed now get last_seen = t.
         """
         row_feature = np.asarray(row_feature, dtype=np.int64)
-        row_codes = _vehicle_codes(row_vehicle)
+        if row_codes is None:
+            row_codes = vehicle_codes(row_vehicle)
         keep = ~self._replaced(row_feature, row_vehicle, row_codes)
         mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)

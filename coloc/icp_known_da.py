@@ -40,7 +40,7 @@ import numpy as np
 
 from coloc.frame import Frame, StepEstimate
 from coloc.kalman_kernels import gnss_step_kernel
-from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association
+from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association, vehicle_codes
 from coloc.vehicles import carry_states, match_ids
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
@@ -76,14 +76,16 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
-    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[np.asarray(frame.v2f_owner, dtype=np.int64)[used]]
+    owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
+    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]
+    row_codes = vehicle_codes(frame.vehicle_ids)[owner_used]
     fids = np.unique(assoc[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params)
+    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
         f_lam0, f_eta0, params,
     )
-    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params)
+    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store)
 
 
