@@ -689,9 +689,16 @@ class FeatureStore:
         """Mask over stored messages whose (track, vehicle) pair appears in the rows."""
         if row_codes is None:
             row_codes = vehicle_codes(row_vehicle)
+        row_feature = np.asarray(row_feature, dtype=np.int64)
+        # prior_information and record ask the same (predicted) store about the same rows: keep the last answer.
+        last = self.__dict__.get("_replaced_last")
+        if last is not None and np.array_equal(last[0], row_feature) and np.array_equal(last[1], row_codes):
+            return last[2]
         km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
-        kr = np.asarray(row_feature, dtype=np.int64) * (1 << 32) + row_codes
-        return np.isin(km, kr)
+        kr = row_feature * (1 << 32) + row_codes
+        mask = np.isin(km, kr)
+        self.__dict__["_replaced_last"] = (row_feature.copy(), np.array(row_codes, copy=True), mask)
+        return mask
 
     def prior_information(
         self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams,
