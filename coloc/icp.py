@@ -35,15 +35,26 @@ by less than ``stop_pos_m`` and its velocity by less than ``stop_vel_mps``
 (the global "all vehicles" test a max consensus would give), or after
 ``bpa_max_iterations``.
 
-Consensus design: the per-feature groups are run in *one* call of
-:func:`coloc.consensus.average_consensus` on a graph whose nodes are the V2F
-rows: rows (i, k) and (j, k) are linked iff vehicles i and j are V2V
-neighbours. Its Metropolis weights are exactly those of each feature's
-participant-induced subgraph, so one numba kernel runs every feature's
-consensus at once (cost O(iterations * edges * 20)). The participant count
-|V_k ∩ C| is the size of the row's connected component; a vehicle learns it
-exactly by flooding participant ids for diameter-many rounds (a max
-consensus), which we compute directly with ``connected_components``.
+Consensus design: the per-feature groups are run in *one* consensus on a
+graph whose nodes are the V2F rows: rows (i, k) and (j, k) are linked iff
+vehicles i and j are V2V neighbours (:func:`consensus_graph`). Its Metropolis
+weights are exactly those of each feature's participant-induced subgraph, so
+one numba kernel runs every feature's consensus at once (cost
+O(iterations * edges * 14): the 10 distinct entries of a symmetric Lambda and
+the 4 of eta). The participant count |V_k ∩ C| is the size of the row's
+connected component; a vehicle learns it exactly by flooding participant ids
+for diameter-many rounds (a max consensus), which we compute directly.
+Graph, weights and counts are built by one numba pass per time step
+(:func:`row_consensus_weights`, equal bit for bit to
+``metropolis_weights(consensus_graph(...))`` and :func:`row_components`). On a
+component that is a complete graph (always the case when Rc >= 2 Rs) the
+Metropolis matrix is J/m, a projection, so the consensus stops after its first
+round there (:func:`coloc.icp_kernels.complete_component_consensus`).
+
+Performance layout: the BPA-L iterations run as numba passes over the rows
+(:mod:`coloc.icp_kernels`; ``BPA_KERNELS = False`` selects the batched numpy
+reference, equal up to rounding); :class:`FeatureStore` caches what it derives
+from its (immutable) arrays.
 """
 
 from __future__ import annotations
@@ -67,7 +78,7 @@ from coloc.icp_kernels import (
     scatter_add,
     vehicle_to_feature_kernel,
 )
-from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
+from coloc.models import MotionParams, feature_noise_cov, symmetrize
 
 __all__ = [
     "IcpParams",
