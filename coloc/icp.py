@@ -35,27 +35,50 @@ by less than ``stop_pos_m`` and its velocity by less than ``stop_vel_mps``
 (the global "all vehicles" test a max consensus would give), or after
 ``bpa_max_iterations``.
 
-Consensus design: the per-feature groups are run in *one* call of
-:func:`coloc.consensus.average_consensus` on a graph whose nodes are the V2F
-rows: rows (i, k) and (j, k) are linked iff vehicles i and j are V2V
-neighbours. Its Metropolis weights are exactly those of each feature's
-participant-induced subgraph, so one numba kernel runs every feature's
-consensus at once (cost O(iterations * edges * 20)). The participant count
-|V_k ∩ C| is the size of the row's connected component; a vehicle learns it
-exactly by flooding participant ids for diameter-many rounds (a max
-consensus), which we compute directly with ``connected_components``.
+Consensus design: the per-feature groups are run in *one* consensus on a
+graph whose nodes are the V2F rows: rows (i, k) and (j, k) are linked iff
+vehicles i and j are V2V neighbours (:func:`consensus_graph`). Its Metropolis
+weights are exactly those of each feature's participant-induced subgraph, so
+one numba kernel runs every feature's consensus at once (cost
+O(iterations * edges * 14): the 10 distinct entries of a symmetric Lambda and
+the 4 of eta). The participant count |V_k ∩ C| is the size of the row's
+connected component; a vehicle learns it exactly by flooding participant ids
+for diameter-many rounds (a max consensus), which we compute directly.
+Graph, weights and counts are built by one numba pass per time step
+(:func:`row_consensus_weights`, equal bit for bit to
+``metropolis_weights(consensus_graph(...))`` and :func:`row_components`). On a
+component that is a complete graph (always the case when Rc >= 2 Rs) the
+Metropolis matrix is J/m, a projection, so the consensus stops after its first
+round there (:func:`coloc.icp_kernels.complete_component_consensus`).
+
+Performance layout: the BPA-L iterations run as numba passes over the rows
+(:mod:`coloc.icp_kernels`; ``BPA_KERNELS = False`` selects the batched numpy
+reference, equal up to rounding); :class:`FeatureStore` caches what it derives
+from its (immutable) arrays.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
-from coloc.consensus import average_consensus_with_weights, connected_components, metropolis_weights
-from coloc.models import MotionParams, feature_noise_cov, predict, symmetrize
+from coloc.consensus import _average_kernel, connected_components
+from coloc.icp_kernels import (
+    complete_component_consensus,
+    extrinsic_kernel,
+    feature_to_vehicle_kernel,
+    information_kernel,
+    inverse_spd_kernel,
+    predict_no_input_kernel,
+    scatter_add,
+    vehicle_to_feature_kernel,
+)
+from coloc.models import MotionParams, feature_noise_cov, symmetrize
 
 __all__ = [
     "IcpParams",
@@ -69,6 +92,7 @@ __all__ = [
     "psd_clip",
     "consensus_graph",
     "row_components",
+    "row_consensus_weights",
     "bpa_localization",
     "validate_association",
 ]
@@ -136,20 +160,33 @@ class IcpParams:
 # ----------------------------------------------------------------------------- Gaussian algebra
 
 
-def _inv_spd(m: np.ndarray) -> np.ndarray:
+def _inv_spd_numpy(m: np.ndarray) -> np.ndarray:
     return symmetrize(np.linalg.inv(m))
+
+
+def _inv_spd(m: np.ndarray) -> np.ndarray:
+    """Inverse of symmetric positive definite 4x4 matrices (numba Cholesky; numpy reference above)."""
+    m = np.asarray(m, dtype=np.float64)
+    if m.ndim < 2 or m.shape[-2:] != (4, 4):
+        return _inv_spd_numpy(m)
+    return inverse_spd_kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
 
 
 def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(mean (..,4), cov (..,4,4)) -> (Lambda, eta) = (P^-1, P^-1 m)."""
-    lam = _inv_spd(cov)
-    return lam, np.einsum("...ij,...j->...i", lam, mean)
+    mean = np.asarray(mean, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.shape[-2:] != (4, 4) or mean.shape != cov.shape[:-1]:
+        lam = _inv_spd_numpy(cov)
+        return lam, np.einsum("...ij,...j->...i", lam, mean)
+    lam, eta = information_kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
+    return lam.reshape(cov.shape), eta.reshape(mean.shape)
 
 
 def from_information(lam: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Lambda, eta) -> (mean, cov); Lambda must be positive definite."""
-    cov = _inv_spd(lam)
-    return np.einsum("...ij,...j->...i", cov, eta), cov
+    """(Lambda, eta) -> (mean, cov); Lambda must be positive definite (same kernel as :func:`to_information`)."""
+    cov, mean = to_information(eta, lam)
+    return mean, cov
 
 
 def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -159,6 +196,15 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     average - own message can be slightly indefinite. The eta component along
     a clipped direction is removed too (no information -> no mean there).
     """
+    if lam.shape[0] == 0:
+        return lam, eta
+    # Most calls clip nothing. Rows that a shifted Cholesky proves safely positive definite
+    # (smallest eigenvalue far above the floor and the eigensolver's rounding) cannot be
+    # clipped; only the others need the eigendecomposition. If none of them is clipped the
+    # inputs are returned as they are, exactly as below.
+    unsure = np.flatnonzero(~_surely_above_floor(np.ascontiguousarray(lam, dtype=np.float64), float(floor)))
+    if unsure.size == 0 or not (np.linalg.eigh(symmetrize(lam[unsure]))[0] < floor).any():
+        return lam, eta
     w, v = np.linalg.eigh(symmetrize(lam))
     bad = w < floor
     if not bad.any():
@@ -170,6 +216,48 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     coef = np.einsum("...ki,...k->...i", v, eta) * keep
     eta_c = np.einsum("...ik,...k->...i", v, coef)
     return symmetrize(lam_c), eta_c
+
+
+@njit(cache=True)
+def _surely_above_floor(lam, floor):
+    """Per (4, 4) matrix: True when symmetrize(lam) - (floor + margin) I has a Cholesky
+    factor with positive pivots, margin = 1e-8 * (largest |diagonal entry|). Cholesky is
+    backward stable (error ~1e-15 of the entries), so such a matrix has every eigenvalue
+    above ``floor`` by far more than a LAPACK eigensolver's rounding: it is never clipped.
+    False means only "not proven" (singular or indefinite matrices, NaN)."""
+    n = lam.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = np.empty((4, 4))
+    for m in range(n):
+        scale = 0.0
+        for i in range(4):
+            d = abs(lam[m, i, i])
+            if d > scale:
+                scale = d
+        shift = floor + 1e-8 * scale
+        for i in range(4):
+            for j in range(4):
+                a[i, j] = 0.5 * (lam[m, i, j] + lam[m, j, i])
+            a[i, i] -= shift
+        ok = scale > 0.0
+        for j in range(4):
+            if not ok:
+                break
+            d = a[j, j]
+            for k in range(j):
+                d -= a[j, k] * a[j, k]
+            if not d > 0.0:  # also catches NaN
+                ok = False
+                break
+            d = np.sqrt(d)
+            a[j, j] = d
+            for i in range(j + 1, 4):
+                acc = a[i, j]
+                for k in range(j):
+                    acc -= a[i, k] * a[j, k]
+                a[i, j] = acc / d
+        out[m] = ok
+    return out
 
 
 def relative_message(
@@ -186,9 +274,9 @@ def relative_message(
         eta_y = R^-1 S^-1 eta + Lambda_y offset.
     """
     if r_inv is None:
-        r_inv = _inv_spd(r)
+        r_inv = _inv_spd_numpy(r)
     s = lam + r_inv
-    s_inv = _inv_spd(s)
+    s_inv = _inv_spd_numpy(s)
     lam_y = symmetrize(lam @ s_inv @ r_inv)
     eta_y = np.einsum("nij,nj->ni", r_inv @ s_inv, eta) + np.einsum("nij,nj->ni", lam_y, offset)
     return lam_y, eta_y
@@ -231,6 +319,210 @@ def row_components(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     return labels, sizes[labels] if labels.size else np.zeros(0)
 
 
+@njit(cache=True)
+def _pairwise_leaf(a, lo, n):
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum(a, lo, n):
+    """numpy's pairwise summation of a[lo:lo+n] (8 accumulators, halves above 128), bit for bit.
+
+    The recursion is run on an explicit stack (numba's on-disk cache and recursion do not mix)."""
+    if n <= 128:
+        return _pairwise_leaf(a, lo, n)
+    depth = 64
+    w_lo = np.empty(depth * 3, dtype=np.int64)
+    w_n = np.empty(depth * 3, dtype=np.int64)
+    w_op = np.empty(depth * 3, dtype=np.int64)
+    vals = np.empty(depth * 3)
+    top, nv = 0, 0
+    w_lo[0], w_n[0], w_op[0] = lo, n, 0
+    top = 1
+    while top > 0:
+        top -= 1
+        if w_op[top] == 1:  # combine the two last values: left + right
+            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
+            nv -= 1
+            continue
+        cl, cn = w_lo[top], w_n[top]
+        if cn <= 128:
+            vals[nv] = _pairwise_leaf(a, cl, cn)
+            nv += 1
+            continue
+        n2 = cn // 2
+        n2 -= n2 % 8
+        w_op[top] = 1
+        top += 1
+        w_lo[top], w_n[top], w_op[top] = cl + n2, cn - n2, 0
+        top += 1
+        w_lo[top], w_n[top], w_op[top] = cl, n2, 0
+        top += 1
+    return vals[0]
+
+
+@njit(cache=True)
+def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_data, n_vehicles):
+    """Metropolis weights (CSR, diagonal included, columns sorted) of the row graph of
+    :func:`consensus_graph` and each row's component size |V_k ∩ C| (:func:`row_components`).
+
+    Same numbers as ``metropolis_weights(consensus_graph(...))``: off-diagonal
+    w_rs = 1 / (1 + max(d_r, d_s)), w_rr = 1 - (sum of the row's off-diagonal
+    weights in column order, summed as scipy's CSR row sum, i.e. numpy's add.reduceat).
+    ``group`` (O,) in [0, n_groups) (every row used); rows of one group are
+    linked iff their owners are V2V neighbours (a stored nonzero of the adjacency).
+    """
+    o = owner.size
+    # Dense V2V lookup (N is a few hundred vehicles).
+    adj = np.zeros((n_vehicles, n_vehicles), dtype=np.bool_)
+    for i in range(n_vehicles):
+        for p in range(adj_indptr[i], adj_indptr[i + 1]):
+            if adj_data[p] != 0:
+                adj[i, adj_indices[p]] = True
+    # Rows of each group, ascending (counting sort keeps row order).
+    g_count = np.zeros(n_groups + 1, dtype=np.int64)
+    for r in range(o):
+        g_count[group[r] + 1] += 1
+    for g in range(n_groups):
+        g_count[g + 1] += g_count[g]
+    g_rows = np.empty(o, dtype=np.int64)
+    fill = g_count[:n_groups].copy()
+    for r in range(o):
+        g_rows[fill[group[r]]] = r
+        fill[group[r]] += 1
+    # Degrees, and components by union-find (links never cross groups).
+    deg = np.zeros(o, dtype=np.int64)
+    parent = np.arange(o)
+    for g in range(n_groups):
+        for a in range(g_count[g], g_count[g + 1]):
+            r = g_rows[a]
+            for b in range(a + 1, g_count[g + 1]):
+                s = g_rows[b]
+                if adj[owner[r], owner[s]] and r != s:
+                    deg[r] += 1
+                    deg[s] += 1
+                    x, y = r, s
+                    while parent[x] != x:
+                        x = parent[x]
+                    while parent[y] != y:
+                        y = parent[y]
+                    if x != y:
+                        if x < y:
+                            parent[y] = x
+                        else:
+                            parent[x] = y
+    root = np.empty(o, dtype=np.int64)
+    size = np.zeros(o, dtype=np.int64)
+    for r in range(o):
+        x = r
+        while parent[x] != x:
+            x = parent[x]
+        root[r] = x
+        size[x] += 1
+    count = np.empty(o)
+    for r in range(o):
+        count[r] = float(size[root[r]])
+    # complete component: every row linked to all the others (sum of degrees = m (m - 1))
+    deg_sum = np.zeros(o, dtype=np.int64)
+    for r in range(o):
+        deg_sum[root[r]] += deg[r]
+    complete = np.empty(o, dtype=np.bool_)
+    for r in range(o):
+        m = size[root[r]]
+        complete[r] = deg_sum[root[r]] == m * (m - 1)
+    # CSR with the diagonal: row r has deg[r] + 1 entries, columns ascending.
+    indptr = np.zeros(o + 1, dtype=np.int64)
+    for r in range(o):
+        indptr[r + 1] = indptr[r] + deg[r] + 1
+    indices = np.empty(indptr[o], dtype=np.int64)
+    data = np.empty(indptr[o])
+    buf = np.empty(max(1, int(deg.max()) if o else 1))
+    for r in range(o):
+        g = group[r]
+        p0 = indptr[r]
+        # off-diagonal weights in column order, summed as numpy's add.reduceat does
+        # (first element, then the pairwise sum of the rest): scipy's CSR row sum.
+        nb = 0
+        for a in range(g_count[g], g_count[g + 1]):
+            s = g_rows[a]
+            if s != r and adj[owner[r], owner[s]]:
+                buf[nb] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
+                nb += 1
+        acc = buf[0] + _pairwise_sum(buf, 1, nb - 1) if nb else 0.0
+        diag = 1.0 - acc
+        q = p0
+        placed = False
+        for a in range(g_count[g], g_count[g + 1]):
+            s = g_rows[a]
+            if not placed and s > r:
+                indices[q] = r
+                data[q] = diag
+                q += 1
+                placed = True
+            if s != r and adj[owner[r], owner[s]]:
+                indices[q] = s
+                data[q] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
+                q += 1
+        if not placed:
+            indices[q] = r
+            data[q] = diag
+    return indptr, indices, data, count, complete
+
+
+def _canonical_adjacency(adjacency: sp.spmatrix) -> sp.csr_matrix:
+    a = adjacency if sp.isspmatrix_csr(adjacency) or isinstance(adjacency, sp.csr_array) else sp.csr_matrix(adjacency)
+    if not a.has_canonical_format:
+        a = sp.csr_matrix(a, copy=True)
+        a.sum_duplicates()
+    return a
+
+
+def row_consensus_weights(
+    owner: np.ndarray, group_index: np.ndarray, n_groups: int, adjacency: sp.spmatrix
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+    """Metropolis weights of :func:`consensus_graph` as CSR arrays (indptr, indices, data),
+    the per-row participant count |V_k ∩ C| of :func:`row_components` and whether the row's
+    component is a complete graph, in one numba pass.
+
+    ``group_index`` (O,): every row's feature as an index in [0, n_groups) (all rows used).
+    Equals ``metropolis_weights(consensus_graph(owner, group, adjacency))`` and
+    ``row_components(...)[1]`` bit for bit (tests), without scipy.sparse on the small graphs.
+    """
+    a = _canonical_adjacency(adjacency)
+    return _split4(
+        _row_consensus_kernel(
+            np.asarray(owner, dtype=np.int64), np.asarray(group_index, dtype=np.int64), int(n_groups),
+            a.indptr.astype(np.int64), a.indices.astype(np.int64), np.asarray(a.data != 0), int(a.shape[0]),
+        )
+    )
+
+
+def _split4(t):
+    return (t[0], t[1], t[2]), t[3], t[4]
+
+
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
 
@@ -247,8 +539,8 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
         raise ValueError("association ids must be >= 0 (or -1 for an unused row)")
     used = f >= 0
     if used.any():
-        pairs = np.stack([np.asarray(owner)[used], f[used]], axis=1)
-        if np.unique(pairs, axis=0).shape[0] != pairs.shape[0]:
+        key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]
+        if np.unique(key).size != key.size:
             raise ValueError("a vehicle has two V2F rows associated with the same feature")
     return f
 
@@ -273,16 +565,27 @@ def birth_information(params: IcpParams) -> np.ndarray:
     return lam
 
 
-def _pair_keys(tracks_a, vehicles_a, tracks_b, vehicles_b) -> tuple[np.ndarray, np.ndarray]:
-    """Integer keys of (track, vehicle) pairs of two lists, comparable with each other."""
-    vehicles = np.concatenate([np.asarray(vehicles_a, dtype=object), np.asarray(vehicles_b, dtype=object)])
-    if vehicles.size == 0:
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    _, code = np.unique(vehicles.astype(str), return_inverse=True)
-    width = int(code.max()) + 1
-    na = len(tracks_a)
-    ka = np.asarray(tracks_a, dtype=np.int64) * width + code[:na]
-    kb = np.asarray(tracks_b, dtype=np.int64) * width + code[na:]
+#: Process-wide integer code of every vehicle id seen (by its string form, as before): pair keys
+#: become integer arithmetic instead of a sort of Python strings at every call.
+_VEHICLE_CODES: dict[str, int] = {}
+
+
+def vehicle_codes(vehicles) -> np.ndarray:
+    """Process-wide integer code of each vehicle id (equal iff the id strings are equal)."""
+    reg = _VEHICLE_CODES
+    return np.fromiter(
+        (reg.setdefault(v if type(v) is str else str(v), len(reg)) for v in vehicles), dtype=np.int64,
+        count=len(vehicles),
+    )
+
+
+def _pair_keys(tracks_a, vehicles_a, tracks_b, vehicles_b, codes_a=None) -> tuple[np.ndarray, np.ndarray]:
+    """Integer keys of (track, vehicle) pairs of two lists, comparable with each other
+    (equal iff same track id and same vehicle id string)."""
+    ca = vehicle_codes(vehicles_a) if codes_a is None else codes_a
+    cb = vehicle_codes(vehicles_b)
+    ka = np.asarray(tracks_a, dtype=np.int64) * (1 << 32) + ca
+    kb = np.asarray(tracks_b, dtype=np.int64) * (1 << 32) + cb
     return ka, kb
 
 
@@ -332,23 +635,34 @@ class FeatureStore:
         pos = np.minimum(np.searchsorted(self.ids, feature_ids), self.ids.size - 1)
         return np.where(self.ids[pos] == feature_ids, pos, -1)
 
+    @cached_property
+    def _message_information(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Lambda, eta) of every stored message, computed once per store (the store is immutable)."""
+        return to_information(self.msg_mean, self.msg_cov)
+
     def information(self, params: IcpParams, exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Lambda, eta) of every track: birth x folded x messages (those not excluded)."""
         lam = self.folded_lam + birth_information(params)
         eta = self.folded_eta.copy()
         use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
         if use.any():
-            ml, me = to_information(self.msg_mean[use], self.msg_cov[use])
+            ml, me = self._message_information
             rows = self.lookup(self.msg_track[use])
-            np.add.at(lam, rows, ml)
-            np.add.at(eta, rows, me)
+            scatter_add(lam, rows, ml[use])
+            scatter_add(eta, rows, me[use])
         return symmetrize(lam), eta
 
     def moments(self, params: IcpParams) -> tuple[np.ndarray, np.ndarray]:
-        """Track means and covariances (every stored track has had at least one message)."""
-        if self.ids.size == 0:
-            return np.empty((0, 4)), np.empty((0, 4, 4))
-        return from_information(*self.information(params))
+        """Track means and covariances (every stored track has had at least one message).
+
+        Cached per store and params (the store is immutable); treat the arrays as read-only."""
+        cache = self.__dict__.setdefault("_moments_cache", {})
+        if params not in cache:
+            if self.ids.size == 0:
+                cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
+            else:
+                cache[params] = from_information(*self.information(params))
+        return cache[params]
 
     def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
         """Eq. (12): every factor of every track predicted by model (2) (no input)."""
@@ -356,33 +670,56 @@ class FeatureStore:
             return self
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params)
-        zero_in = np.zeros((1, 2))
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
             fm, fp = from_information(folded_lam[has], folded_eta[has])
-            fm, fp = predict(fm, fp, zero_in.repeat(fm.shape[0], 0), dt, q[has])
+            fm, fp = predict_no_input_kernel(fm, fp, np.ascontiguousarray(q[has]), float(dt))
             folded_lam[has], folded_eta[has] = to_information(fm, fp)
         msg_mean, msg_cov = self.msg_mean, self.msg_cov
         if self.msg_track.size:
             rows = self.lookup(self.msg_track)
-            msg_mean, msg_cov = predict(msg_mean, msg_cov, zero_in.repeat(rows.size, 0), dt, q[rows])
-        return dataclasses.replace(
+            msg_mean, msg_cov = predict_no_input_kernel(
+                np.ascontiguousarray(msg_mean), np.ascontiguousarray(msg_cov), np.ascontiguousarray(q[rows]), float(dt)
+            )
+        out = dataclasses.replace(
             self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
         )
+        return out._with_codes(self._msg_codes)
 
-    def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray) -> np.ndarray:
+    def _with_codes(self, codes: np.ndarray) -> "FeatureStore":
+        """Seed the cached vehicle codes of the messages (same vehicles as ``codes`` describe)."""
+        self.__dict__["_msg_codes"] = codes
+        return self
+
+    @cached_property
+    def _msg_codes(self) -> np.ndarray:
+        return vehicle_codes(self.msg_vehicle)
+
+    def _replaced(self, row_feature: np.ndarray, row_vehicle: np.ndarray, row_codes=None) -> np.ndarray:
         """Mask over stored messages whose (track, vehicle) pair appears in the rows."""
-        km, kr = _pair_keys(self.msg_track, self.msg_vehicle, row_feature, row_vehicle)
-        return np.isin(km, kr)
+        if row_codes is None:
+            row_codes = vehicle_codes(row_vehicle)
+        row_feature = np.asarray(row_feature, dtype=np.int64)
+        # prior_information and record ask the same (predicted) store about the same rows: keep the last answer.
+        last = self.__dict__.get("_replaced_last")
+        if last is not None and np.array_equal(last[0], row_feature) and np.array_equal(last[1], row_codes):
+            return last[2]
+        km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
+        kr = row_feature * (1 << 32) + row_codes
+        mask = np.isin(km, kr)
+        self.__dict__["_replaced_last"] = (row_feature.copy(), np.array(row_codes, copy=True), mask)
+        return mask
 
     def prior_information(
-        self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams
+        self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams,
+        row_codes: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """b_k^(0) of (12) for ``feature_ids``, without the messages the rows' vehicles will replace.
 
         ``row_feature``/``row_vehicle``: the (track id, vehicle id) of every used
-        V2F row of this step. New ids get the birth prior only.
+        V2F row of this step. New ids get the birth prior only. ``row_codes``:
+        ``vehicle_codes(row_vehicle)`` if the caller has them.
         """
         k = len(feature_ids)
         lam = np.broadcast_to(birth_information(params), (k, 4, 4)).copy()
@@ -390,7 +727,7 @@ class FeatureStore:
         idx = self.lookup(feature_ids)
         have = idx >= 0
         if have.any():
-            tl, te = self.information(params, exclude=self._replaced(row_feature, row_vehicle))
+            tl, te = self.information(params, exclude=self._replaced(row_feature, row_vehicle, row_codes))
             lam[have], eta[have] = tl[idx[have]], te[idx[have]]
         return lam, eta
 
@@ -402,6 +739,7 @@ class FeatureStore:
         msg_eta: np.ndarray,
         t: float,
         params: IcpParams,
+        row_codes: np.ndarray | None = None,
     ) -> "FeatureStore":
         """Store this step's final messages (19), fold old ones, drop stale tracks.
 
@@ -409,7 +747,9 @@ class FeatureStore:
         pair; new track ids are created; tracks observed now get last_seen = t.
         """
         row_feature = np.asarray(row_feature, dtype=np.int64)
-        keep = ~self._replaced(row_feature, row_vehicle)
+        if row_codes is None:
+            row_codes = vehicle_codes(row_vehicle)
+        keep = ~self._replaced(row_feature, row_vehicle, row_codes)
         mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)
         ids = np.concatenate([self.ids, new_ids])
@@ -421,6 +761,7 @@ class FeatureStore:
         folded_eta = np.concatenate([self.folded_eta, np.zeros((new_ids.size, 4))])[order]
         msg_track = np.concatenate([self.msg_track[keep], row_feature])
         msg_vehicle = np.concatenate([self.msg_vehicle[keep], np.asarray(row_vehicle, dtype=object)])
+        msg_codes = np.concatenate([self._msg_codes[keep], row_codes])
         msg_mean = np.concatenate([self.msg_mean[keep], mm])
         msg_cov = np.concatenate([self.msg_cov[keep], mc])
         msg_time = np.concatenate([self.msg_time[keep], np.full(row_feature.size, float(t))])
@@ -429,10 +770,10 @@ class FeatureStore:
         if old.any():
             ol, oe = to_information(msg_mean[old], msg_cov[old])
             rows = np.searchsorted(ids, msg_track[old])
-            np.add.at(folded_lam, rows, ol)
-            np.add.at(folded_eta, rows, oe)
-            msg_track, msg_vehicle, msg_mean, msg_cov, msg_time = (
-                a[~old] for a in (msg_track, msg_vehicle, msg_mean, msg_cov, msg_time)
+            scatter_add(folded_lam, rows, ol)
+            scatter_add(folded_eta, rows, oe)
+            msg_track, msg_vehicle, msg_codes, msg_mean, msg_cov, msg_time = (
+                a[~old] for a in (msg_track, msg_vehicle, msg_codes, msg_mean, msg_cov, msg_time)
             )
         # Tracks nobody observed for longer than feature_drop_after_s are dropped
         # (the paper's reset of an unobserved feature to a uniform belief).
@@ -448,7 +789,7 @@ class FeatureStore:
             msg_mean=msg_mean[keep_msg],
             msg_cov=msg_cov[keep_msg],
             msg_time=msg_time[keep_msg],
-        )
+        )._with_codes(msg_codes[keep_msg])
 
     def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
         """Merge track ``absorbed[j]`` into track ``into[j]`` (ids; every absorbed id distinct, not a target).
@@ -465,8 +806,8 @@ class FeatureStore:
         if (ra < 0).any() or (ri < 0).any() or np.isin(into, absorbed).any():
             raise ValueError("merge: unknown track id, or a track both absorbed and absorbing")
         folded_lam, folded_eta, last_seen = self.folded_lam.copy(), self.folded_eta.copy(), self.last_seen.copy()
-        np.add.at(folded_lam, ri, folded_lam[ra])
-        np.add.at(folded_eta, ri, folded_eta[ra])
+        scatter_add(folded_lam, ri, folded_lam[ra])
+        scatter_add(folded_eta, ri, folded_eta[ra])
         np.maximum.at(last_seen, ri, last_seen[ra])
         msg_track = self.msg_track.copy()
         hit = self.lookup(msg_track)
@@ -474,7 +815,7 @@ class FeatureStore:
         remap[ra] = ri
         msg_track = self.ids[remap[hit]]
         # One message per (track, vehicle): keep the latest (stable order breaks ties).
-        key, _ = _pair_keys(msg_track, self.msg_vehicle, np.empty(0, np.int64), np.empty(0, dtype=object))
+        key, _ = _pair_keys(msg_track, self.msg_vehicle, np.empty(0, np.int64), np.empty(0, dtype=object), self._msg_codes)
         order = np.lexsort((-self.msg_time, key))
         first = np.ones(order.size, bool)
         first[1:] = key[order][1:] != key[order][:-1]
@@ -491,7 +832,7 @@ class FeatureStore:
             msg_mean=self.msg_mean[keep],
             msg_cov=self.msg_cov[keep],
             msg_time=self.msg_time[keep],
-        )
+        )._with_codes(self._msg_codes[keep])
 
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""
@@ -513,12 +854,139 @@ class BpaResult:
     converged: bool
 
 
+_SYM_I, _SYM_J = np.triu_indices(4)
+_SYM_FULL = np.array([[int(np.flatnonzero((_SYM_I == min(a, b)) & (_SYM_J == max(a, b)))[0]) for b in range(4)] for a in range(4)])
+
+
+def _pack_sym(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
+    """(O, 14): the upper triangle of each (exactly symmetric) Lambda, then eta."""
+    return np.ascontiguousarray(np.concatenate([lam[:, _SYM_I, _SYM_J], eta], axis=1))
+
+
+def _unpack_sym(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return x[:, :10][:, _SYM_FULL], x[:, 10:]
+
+
+@njit(cache=True)
+def _sum_by_owner(owner, lam_flat, eta, n):
+    """Per-vehicle sums of row values, rows added in ascending row order from 0 (eq. (22) product)."""
+    out_l = np.zeros((n, lam_flat.shape[1]))
+    out_e = np.zeros((n, eta.shape[1]))
+    for r in range(owner.size):
+        i = owner[r]
+        for c in range(lam_flat.shape[1]):
+            out_l[i, c] += lam_flat[r, c]
+        for c in range(eta.shape[1]):
+            out_e[i, c] += eta[r, c]
+    return out_l, out_e
+
+
 def _pack(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
     return np.concatenate([lam.reshape(lam.shape[0], 16), eta], axis=1)
 
 
 def _unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return symmetrize(x[:, :16].reshape(-1, 4, 4)), x[:, 16:]
+
+
+#: Run the BPA-L iterations with the numba kernels of :mod:`coloc.icp_kernels` (False: the
+#: numpy reference below; same algorithm, results equal up to rounding, see tests).
+BPA_KERNELS = True
+
+
+def _bpa_iterations_numpy(
+    prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
+    complete, weights, params,
+):
+    """BPA-L iterations (19)-(22) with batched numpy (the reference of the kernels)."""
+    w_indptr, w_indices, w_data = weights
+    n, o = prior_mean.shape[0], owner_u.size
+    n_iter_cons = int(params.consensus_iterations)
+    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
+    mean = prior_mean.copy()
+    # m_{k->i}^(0) = 1 (zero information).
+    m_fv_lam = np.zeros((o, 4, 4))
+    m_fv_eta = np.zeros((o, 4))
+    in_lam = np.zeros((n, 4, 4))
+    in_eta = np.zeros((n, 4))
+    converged = False
+    it = 0
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): cavity (own belief x messages of the other features), integrated over x_V.
+        cav_lam = own_lam0[owner_u] + in_lam[owner_u] - m_fv_lam
+        cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
+        m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|
+        # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
+        # an independent consensus, so the symmetric copies need not be run twice).
+        if n_iter_cons:
+            avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
+            avg_lam, avg_eta = _unpack_sym(avg)
+        else:
+            avg_lam, avg_eta = m_vf_lam.copy(), m_vf_eta.copy()
+        loc_lam = lam_f0_row + count[:, None, None] * avg_lam
+        loc_eta = eta_f0_row + count[:, None] * avg_eta
+        # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
+        ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
+        m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
+        # (22): b_i = b_i^(0) prod_k m_{k->i} (rows summed in row order, as the sparse incidence product did).
+        in_lam, in_eta = _sum_by_owner(owner_u, m_fv_lam.reshape(o, 16), m_fv_eta, n)
+        in_lam = in_lam.reshape(n, 4, 4)
+        v_lam = symmetrize(v_lam0 + in_lam)
+        v_eta = v_eta0 + in_eta
+        new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
+        dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
+        dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
+        mean = new_mean
+        # Stopping rule of Sec. V-A (all vehicles).
+        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
+            converged = True
+            break
+
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+
+
+def _bpa_iterations_kernels(
+    prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
+    complete, weights, params,
+):
+    """BPA-L iterations (19)-(22): each iteration is three numba passes over the rows
+    (:mod:`coloc.icp_kernels`) around the consensus kernel."""
+    w_indptr, w_indices, w_data = weights
+    n, o = prior_mean.shape[0], owner_u.size
+    n_iter_cons = int(params.consensus_iterations)
+    z_u = np.ascontiguousarray(z_u)
+    r_inv = np.ascontiguousarray(r_inv)
+    lam_f0_row = np.ascontiguousarray(lam_f0_row)
+    eta_f0_row = np.ascontiguousarray(eta_f0_row)
+    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
+    mean = np.ascontiguousarray(prior_mean, dtype=np.float64)
+    # m_{k->i}^(0) = 1 (zero information).
+    m_fv_lam = np.zeros((o, 4, 4))
+    m_fv_eta = np.zeros((o, 4))
+    in_lam = np.zeros((n, 4, 4))
+    in_eta = np.zeros((n, 4))
+    converged = False
+    it = 0
+    for it in range(1, params.bpa_max_iterations + 1):
+        # (19): cavity (own belief x messages of the other features), integrated over x_V.
+        m_vf_lam, m_vf_eta, packed = vehicle_to_feature_kernel(
+            owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
+        )
+        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
+        # (one round on complete components, where W = J/m is a projection: see the kernel)
+        avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+        # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
+        # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
+        ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
+        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
+            owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
+        )
+        # Stopping rule of Sec. V-A (all vehicles).
+        if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
+            converged = True
+            break
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
 
 
 def bpa_localization(
@@ -570,50 +1038,20 @@ def bpa_localization(
         raise ValueError(f"feature priors must be given for the {fids.size} features of the used rows")
     lam_f0_row, eta_f0_row = feature_prior_lam[fidx], feature_prior_eta[fidx]
 
-    graph = consensus_graph(owner_u, feat_u, adjacency)
-    _, count = row_components(graph)
-    weights = metropolis_weights(graph)  # one graph for every BPA-L iteration of this step
-    incidence = sp.csr_matrix((np.ones(o), (owner_u, np.arange(o))), shape=(n, o))
+    # Row graph, Metropolis weights and |V_k ∩ C| in one numba pass (same numbers as
+    # metropolis_weights(consensus_graph(...)) and row_components(...)); one graph for
+    # every BPA-L iteration of this step.
+    (w_indptr, w_indices, w_data), count, complete = row_consensus_weights(owner_u, fidx, fids.size, adjacency)
+    n_iter_cons = int(params.consensus_iterations)
     r_inv = _inv_spd(r_u)
 
     v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
     own_lam0, own_eta0 = to_information(own_mean, own_cov)
-    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
-    mean = prior_mean.copy()
-    # m_{k->i}^(0) = 1 (zero information).
-    m_fv_lam = np.zeros((o, 4, 4))
-    m_fv_eta = np.zeros((o, 4))
-    in_lam = np.zeros((n, 4, 4))
-    in_eta = np.zeros((n, 4))
-    converged = False
-    it = 0
-    for it in range(1, params.bpa_max_iterations + 1):
-        # (19): cavity (own belief x messages of the other features), integrated over x_V.
-        cav_lam = own_lam0[owner_u] + in_lam[owner_u] - m_fv_lam
-        cav_eta = own_eta0[owner_u] + in_eta[owner_u] - m_fv_eta
-        m_vf_lam, m_vf_eta = relative_message(cav_lam, cav_eta, z_u, r_u, r_inv)
-        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        avg_lam, avg_eta = _unpack(
-            average_consensus_with_weights(_pack(m_vf_lam, m_vf_eta), weights, params.consensus_iterations)
-        )
-        loc_lam = lam_f0_row + count[:, None, None] * avg_lam
-        loc_eta = eta_f0_row + count[:, None] * avg_eta
-        # (21): extrinsic b_k / m_{i->k} at vehicle i, then integrate over x_F.
-        ext_lam, ext_eta = psd_clip(loc_lam - m_vf_lam, loc_eta - m_vf_eta)
-        m_fv_lam, m_fv_eta = relative_message(ext_lam, ext_eta, -z_u, r_u, r_inv)
-        # (22): b_i = b_i^(0) prod_k m_{k->i}.
-        in_lam = (incidence @ m_fv_lam.reshape(o, 16)).reshape(n, 4, 4)
-        in_eta = incidence @ m_fv_eta
-        v_lam = symmetrize(v_lam0 + in_lam)
-        v_eta = v_eta0 + in_eta
-        new_mean = np.linalg.solve(v_lam, v_eta[..., None])[..., 0]
-        dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
-        dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
-        mean = new_mean
-        # Stopping rule of Sec. V-A (all vehicles).
-        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
-            converged = True
-            break
+    loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
+    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
+        prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
+        count, complete, (w_indptr, w_indices, w_data), params,
+    )
 
     mean, cov = from_information(v_lam, v_eta)
     alone = np.bincount(owner_u, minlength=n) == 0

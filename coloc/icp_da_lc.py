@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -54,8 +55,10 @@ from scipy.stats import chi2
 
 from coloc.association import association_marginals_batch
 from coloc.frame import Frame, StepEstimate
-from coloc.icp import FeatureStore, IcpParams, bpa_localization
+from coloc.icp import FeatureStore, IcpParams, bpa_localization, vehicle_codes
+from coloc.icp_kernels import log_gauss_kernel
 from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.vehicles import match_ids
 
 __all__ = [
     "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
@@ -118,8 +121,24 @@ class LcParams:
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+@lru_cache(maxsize=64)
+def _chi2_ppf(p: float, dof: int) -> float:
+    """chi-square quantile, computed once per (p, dof): scipy's ppf costs ~0.1 ms a call."""
+    return float(chi2.ppf(p, dof))
+
+
 def _log_gauss(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log N(nu; 0, S) and the squared Mahalanobis distance, batched over rows."""
+    """log N(nu; 0, S) and the squared Mahalanobis distance, batched over rows (numba kernel)."""
+    nu = np.asarray(nu, dtype=np.float64)
+    d = nu.shape[-1]
+    lp, d2 = log_gauss_kernel(
+        np.ascontiguousarray(nu.reshape(-1, d)), np.ascontiguousarray(np.asarray(s, dtype=np.float64).reshape(-1, d, d))
+    )
+    return lp.reshape(nu.shape[:-1]), d2.reshape(nu.shape[:-1])
+
+
+def _log_gauss_numpy(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of :func:`_log_gauss`: log N(nu; 0, S) and the squared Mahalanobis distance."""
     chol = np.linalg.cholesky(s)
     w = np.linalg.solve(chol, nu[..., None])[..., 0]
     d2 = np.einsum("...i,...i->...", w, w)
@@ -185,7 +204,7 @@ def association_weights(
     log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     log_w = math.log(lc.detection_probability) + log_lik - log_new
     w = np.exp(np.minimum(log_w, 600.0))
-    w[d2 > chi2.ppf(lc.gate_probability, 4)] = 0.0
+    w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
     return pv, pt, pr, w
 
 
@@ -347,7 +366,7 @@ def merge_candidates(
     d = mean[a, :2] - mean[b, :2]
     s = cov[a, :2, :2] + cov[b, :2, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
-    ok = d2 <= chi2.ppf(0.99, 2)
+    ok = d2 <= _chi2_ppf(0.99, 2)
     if row_owner.size and ok.any():
         n_v = int(row_owner.max()) + 1
         inc = sp.csr_matrix((np.ones(row_owner.size), (store.lookup(row_track), row_owner)), shape=(store.size, n_v))
@@ -382,8 +401,9 @@ def icp_da_lc_step(
     state: IcpState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams
 ) -> tuple[IcpState, int, LcStepInfo]:
     """One ICP-DA-LC step (pure). Returns the new state, the next free track id and the step's bookkeeping."""
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params)
+    match = match_ids(state.ids, frame.vehicle_ids)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
@@ -401,20 +421,21 @@ def icp_da_lc_step(
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
     implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
     implied_cov = own_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
-    labels = birth_clusters(owner[birth], implied, implied_cov, chi2.ppf(0.99, 2))
+    labels = birth_clusters(owner[birth], implied, implied_cov, _chi2_ppf(0.99, 2))
     row_track[birth] = next_id + labels
     born = int(labels.max()) + 1 if labels.size else 0
     next_id += born
     # BPA-L on the paired rows (31).
     used = row_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner[used]]
+    row_codes = vehicle_codes(frame.vehicle_ids)[owner[used]]
     fids = np.unique(row_track[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, row_track[used], row_vehicle, params)
+    f_lam0, f_eta0 = predicted.prior_information(fids, row_track[used], row_vehicle, params, row_codes)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, owner, row_track, frame.v2f_z, frame.v2f_R, frame.neighbors,
         f_lam0, f_eta0, params,
     )
-    store = predicted.record(row_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params)
+    store = predicted.record(row_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     # Merging (step 8).
     absorbed, into = merge_candidates(store, params, lc, owner[used], row_track[used])
     store = store.merge(absorbed, into)

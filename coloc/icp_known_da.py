@@ -39,46 +39,53 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.frame import Frame, StepEstimate
-from coloc.gnss import gnss_predict_update
-from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association
-from coloc.models import kalman_update
-from coloc.vehicles import carry_states
+from coloc.kalman_kernels import gnss_step_kernel
+from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association, vehicle_codes
+from coloc.vehicles import carry_states, match_ids
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
 
 
 def vehicle_prior_beliefs(
-    prev_ids: np.ndarray, prev_mean: np.ndarray, prev_cov: np.ndarray, frame: Frame, params: IcpParams
+    prev_ids: np.ndarray, prev_mean: np.ndarray, prev_cov: np.ndarray, frame: Frame, params: IcpParams,
+    match: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. (11): b_i^(0) = GNSS likelihood x predicted belief (fresh vehicles: prior x GNSS)."""
+    """Eq. (11): b_i^(0) = GNSS likelihood x predicted belief (fresh vehicles: prior x GNSS).
+
+    ``match``: ``match_ids(prev_ids, frame.vehicle_ids)`` when the caller has it (b^(0) and the
+    own-sensor track share it)."""
     mean, cov, fresh = carry_states(
-        prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
+        prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, match
     )
-    old = ~fresh
-    if old.any():
-        mean[old], cov[old] = gnss_predict_update(
-            mean[old], cov[old], frame.accel[old], frame.gnss_z[old], frame.gnss_R[old], frame.dt, params.motion
-        )
-    if fresh.any():
-        mean[fresh], cov[fresh] = kalman_update(mean[fresh], cov[fresh], frame.gnss_z[fresh], frame.gnss_R[fresh])
+    # Predict (1) + GNSS update (3) in place, fresh vehicles update only: the numba kernel of
+    # :class:`coloc.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
+    m = params.motion
+    gnss_step_kernel(
+        mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
+        np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
+        m.sigma_along, m.sigma_cross, m.heading_min_speed,
+    )
     return mean, cov
 
 
 def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams) -> tuple[BpaResult, "IcpState"]:
     """One time step of ICP with known association (pure function of the previous state)."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params)
+    match = match_ids(state.ids, frame.vehicle_ids)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
-    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[np.asarray(frame.v2f_owner, dtype=np.int64)[used]]
+    owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
+    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]
+    row_codes = vehicle_codes(frame.vehicle_ids)[owner_used]
     fids = np.unique(assoc[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params)
+    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
         f_lam0, f_eta0, params,
     )
-    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params)
+    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store)
 
 
@@ -98,8 +105,8 @@ class IcpState:
         return StepEstimate(
             mean=self.mean.copy(),
             cov=self.cov.copy(),
-            feature_mean=f_mean,
-            feature_cov=f_cov,
+            feature_mean=f_mean.copy(),  # moments are cached on the (immutable) store
+            feature_cov=f_cov.copy(),
             feature_track_ids=self.features.ids.copy(),
             v2f_assignment=np.asarray(v2f_assignment, dtype=np.int64).copy(),
         )

@@ -27,13 +27,16 @@ def carry_states(
     entered: np.ndarray,
     prior_z: np.ndarray,
     prior_R: np.ndarray,
+    idx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Posterior of the last step in the current order; new or re-entered vehicles from the prior.
 
     Returns (mean (N,4), cov (N,4,4), fresh (N,) bool). Fresh vehicles start from
     the fast-start prior (Brambilla Sec. VI-A) and are not predicted this step.
+    ``idx``: ``match_ids(previous_ids, current_ids)`` if the caller already has it.
     """
-    idx = match_ids(previous_ids, current_ids)
+    if idx is None:
+        idx = match_ids(previous_ids, current_ids)
     fresh = (idx < 0) | np.asarray(entered, dtype=bool)
     n = len(current_ids)
     mean = np.empty((n, 4))
