@@ -799,6 +799,31 @@ def gridlock_trial(net_path: Path, routes_path: Path, tls_off: bool, seed: int, 
         libsumo.close()
 
 
+def _gridlock_trial_job(args: tuple) -> dict:
+    return gridlock_trial(*args)
+
+
+def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: float, vehicles: int) -> dict:
+    """The VSR and the TLR gridlock trial of one demand, side by side in two processes (libsumo is one
+    simulation per process).
+
+    Recorded as if run one after the other: VSR first; a VSR failure ends the trial (the TLR process is
+    stopped and not recorded), otherwise the TLR result is added. So the record, and the files written
+    from it, do not depend on which process finishes first.
+    """
+    import multiprocessing  # noqa: PLC0415
+
+    jobs = {"vsr": (net_path, routes_path, True, seed, end, vehicles),
+            "tlr": (net_path, routes_path, False, seed, end, vehicles)}
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        pending = {c: pool.apply_async(_gridlock_trial_job, (a,)) for c, a in jobs.items()}
+        out = {"vsr": pending["vsr"].get()}
+        if out["vsr"]["ok"]:
+            out["tlr"] = pending["tlr"].get()
+        pool.terminate()
+    return out
+
+
 def _write_demand(opts: ImportOptions, net, net_path: Path, work: Path, lane_km: float, report: _Report) -> None:
     t0 = time.perf_counter()
     pool = _random_routes(opts, net, net_path, work)
@@ -850,11 +875,7 @@ def _write_demand(opts: ImportOptions, net, net_path: Path, work: Path, lane_km:
         end = min(opts.calibration_s or opts.duration_s, opts.duration_s)
         trial = {"scale": round(scale, 4)}
         due = int(sum(n for b, n in enumerate(counts) if b * BIN_S < end))
-        for control, tls_off in (("vsr", True), ("tlr", False)):
-            res = gridlock_trial(work / "tlr.net.xml", path, tls_off, opts.seed, end, due)
-            trial[control] = res
-            if not res["ok"]:
-                break
+        trial.update(gridlock_trials_vsr_tlr(work / "tlr.net.xml", path, opts.seed, end, due))
         trials.append(trial)
         if all(trial.get(c, {}).get("ok") for c in ("vsr", "tlr")):
             break
