@@ -611,7 +611,8 @@ def rsu_bp_step_open(
     """Steps 2-6 of Sec. IV-A with the open association above, particles already predicted to t.
 
     ``visible`` (S, K) bool: the features each vehicle may have detected (its gate); every vehicle
-    may have any number of V2F rows. Step 1 (prediction) is left to the caller, which uses the
+    may have any number of V2F rows. ``gnss_z = None``: the vehicle particles are equally weighted
+    draws from phi_s chi_s already (the caller did the GNSS update), so chi_s is not applied again. Step 1 (prediction) is left to the caller, which uses the
     motion model of its data (model (1) with the inertial input on SUMO frames).
     """
     xs = np.asarray(vehicle_particles, dtype=float)
@@ -630,7 +631,11 @@ def rsu_bp_step_open(
 
     uniform = np.full(np_, -np.log(np_))
     log_alpha = np.broadcast_to(uniform, (n_feat, np_))
-    log_phi_chi = _safe_normalize(uniform + gnss_log_likelihood(xs, np.asarray(gnss_z, float), np.asarray(gnss_cov, float)))
+    if gnss_z is None:  # the particles already represent phi_s chi_s (drawn from the GNSS-updated prediction)
+        log_phi_chi = np.broadcast_to(uniform, (n_veh, np_)).copy()
+    else:
+        log_phi_chi = _safe_normalize(uniform + gnss_log_likelihood(xs, np.asarray(gnss_z, float),
+                                                                    np.asarray(gnss_cov, float)))
     xpos = np.ascontiguousarray(xs[:, :, :2])
     fpos = np.ascontiguousarray(fs[:, :, :2])
 
