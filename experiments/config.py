@@ -30,7 +30,12 @@ Scenario kinds (``[scenario] kind``):
 ``[lc]`` holds the ICP-DA-LC parameters (the fields of
 :class:`coloc.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
 range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
-``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
+``[infra]`` (optional, SUMO only) switches on the infrastructure mode (issue 5 part 4):
+road-side units at the junctions ``rsu_junctions`` of the net (checked against the net
+file), V2I range = radar range ``rsu_range_m``, radar and odometry noise, and the settings
+of the methods ``rsu_bp``, ``sme`` and ``fg_topology_new``, which need it. It is not one of
+``SECTIONS`` (sweeps cannot vary it) and a config without it resolves and runs exactly as
+before. ``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
 without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
 ``[icp]`` and ``[lc]`` (association, tracks).
 """

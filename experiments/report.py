@@ -1015,6 +1015,26 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
     else:
         parts.append("<p>No per-area statistics.</p>")
 
+    # Infrastructure mode: all methods on the covered vehicle-steps, per run and area, side by side.
+    cov_runs = [r for r in runs if r.summary.get("within_rsu_coverage")]
+    if cov_runs:
+        parts.append("<h2>Within RSU coverage: position RMSE / p95 [m] per area</h2>"
+                     "<p>Vehicle-steps within V2I range of a road-side unit only (the same rows for "
+                     "every method of a run).</p>")
+        ccols = [(r, m) for r in cov_runs for m in r.methods
+                 if m in (r.summary["within_rsu_coverage"].get("methods") or {})]
+        blocks_ = {(id(r), m): r.summary["within_rsu_coverage"]["methods"][m] for r, m in ccols}
+        careas = _sorted_labels(a for b in blocks_.values() for a in (b.get("by_area") or {}))
+        header = ["area"] + [f"{_esc(_run_label(r, runs))}<br>{_esc(method_label(m))}" for r, m in ccols]
+
+        def cell(b):
+            return "–" if not b else f"{_fmt(b.get('rmse_pos_m'))} / {_fmt(b.get('p95_pos_m'))}"
+
+        rows = [["all"] + [cell(blocks_[(id(r), m)]) for r, m in ccols]]
+        rows += [[_esc(a)] + [cell((blocks_[(id(r), m)].get("by_area") or {}).get(a)) for r, m in ccols]
+                 for a in careas]
+        parts.append(_table(header, rows))
+
     traffic_rows = []
     for r in runs:
         t = r.summary.get("traffic") or {}

@@ -146,3 +146,10 @@ def test_shipped_infra_configs_end_to_end(tmp_path, control):
     for m in ("icp_da_lc", "rsu_bp", "sme", "fg_topology_new"):
         assert rmse[m] < rmse["gnss"], rmse
     assert "Within RSU coverage" in (out / "report.html").read_text()
+
+
+def test_comparison_report_has_the_coverage_table(infra_runs, tmp_path):
+    a, b, plain = infra_runs
+    assert main(["report", str(a), str(plain), "--out", str(tmp_path / "cmp")]) == 0
+    html = (tmp_path / "cmp" / "report.html").read_text()
+    assert "Within RSU coverage: position RMSE / p95 [m] per area" in html and "FG topology (new)" in html
