@@ -15,6 +15,14 @@ carries ``v2f_assignment`` is scored with
 giving association.parquet rows and summary["association"][method]. Feature
 errors of such methods compare each track with its label's true feature; for
 the known-association bound the track ids are the true feature indices.
+
+Infrastructure mode (config ``[infra]``): the coupler adds ``frame.infra`` (RSUs, radar,
+odometry; couplers.infra); estimates.parquet gains ``covered`` (the vehicle is within V2I
+range of an RSU, from the frame, the same for every method) and ``rsu`` (the lowest-index
+RSU covering it, "" when none), and summary.json gains ``within_rsu_coverage``: per method
+RMSE / p95 / n on the covered vehicle-steps, overall and per area, the method's counters
+(topology updates / skips, feature births / drops), and ``rsu_vehicle_steps`` per RSU.
+Runs without ``[infra]`` are unchanged, byte for byte.
 """
 
 from __future__ import annotations
