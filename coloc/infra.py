@@ -327,7 +327,7 @@ class FgTopologyInfra(_InfraBase):
                 init = start_m[b, :2]
             else:
                 kp = keys_prev[vid]
-                d = odom[a] if np.all(np.isfinite(odom[a])) else fallback.mean[rows[a], :2] * 0.0
+                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
                 graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
                                                     gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
                 p_prev = self._estimate_point(smoother, kp)
