@@ -27,6 +27,42 @@ class Truth:
     area: np.ndarray  # (N,) str, analysis area of each vehicle
     heading: np.ndarray | None = None  # (N,) true heading, rad from +x (defined when stopped too)
     feature_ids: np.ndarray | None = None  # (K,) str, stable feature names
+    # Infrastructure mode only: row (into the frame's vehicles) of each radar detection.
+    radar_vehicle: np.ndarray | None = None  # (P,) int
+
+
+@dataclass(frozen=True)
+class InfraFrame:
+    """Road-side units of one step (infrastructure mode; ``Frame.infra``).
+
+    * ``rsu_xy`` (R, 2): the RSU positions, known to the estimators (surveyed).
+    * ``v2i`` (R, N) boolean CSR: vehicle i is within ``rsu_range_m`` of RSU r. V2I is a
+      physical link, decided from the true positions exactly as the V2V ``neighbors`` are;
+      vehicle i sends its GNSS and V2F measurements to every RSU it is linked to.
+    * ``radar_z`` (P, 2): detections of an infrastructure radar at each RSU, in the radar's
+      own frame q = R(theta_r)^T (p - s_r) + n, n ~ N(0, radar_var I2). The radar pose
+      (s_r = RSU position + offset, theta_r) is drawn once per run from the seed and is
+      unknown to the estimators. Simplification: radar range = V2I range (one disc per RSU)
+      and detection probability 1, so the detections of RSU r are exactly the vehicles of
+      ``v2i`` row r, without identities (rows shuffled within each RSU).
+    * ``radar_owner`` (P,): RSU index of each detection, rows grouped by RSU.
+    * ``odom`` (N, 2): each vehicle's odometry displacement over the last step in the net
+      frame (Gulati (4)-(5)): true displacement + N(0, odom_var I2); NaN for vehicles that
+      entered (or re-entered) this step.
+    """
+
+    rsu_ids: np.ndarray  # (R,) str
+    rsu_xy: np.ndarray  # (R, 2) surveyed RSU positions (known; the radar pose is not)
+    v2i: sp.csr_matrix  # (R, N) bool
+    radar_z: np.ndarray  # (P, 2)
+    radar_owner: np.ndarray  # (P,) int
+    radar_var: float
+    odom: np.ndarray  # (N, 2)
+    odom_var: float
+
+    @property
+    def n_rsu(self) -> int:
+        return int(self.rsu_ids.shape[0])
 
 
 @dataclass(frozen=True)
@@ -55,6 +91,7 @@ class Frame:
     v2f_R: np.ndarray  # (O, 4, 4)
     neighbors: sp.csr_matrix  # (N, N) symmetric boolean V2V adjacency, empty diagonal
     truth: Truth | None = None
+    infra: InfraFrame | None = None  # road-side units and radars (infrastructure mode only)
 
     @property
     def n_vehicles(self) -> int:
@@ -95,3 +132,6 @@ class StepEstimate:
     # Per V2F row: the feature track the estimator paired it with (-1 = discarded).
     # Scored against truth outside the estimator.
     v2f_assignment: np.ndarray | None = None
+    # Infrastructure methods: True where the row was estimated by an RSU (vehicle within
+    # V2I range of one); other rows carry the method's fallback GNSS tracker estimate.
+    covered: np.ndarray | None = None  # (N,) bool

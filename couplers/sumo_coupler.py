@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from coloc.frame import Frame
 from couplers.errors import InputError
+from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic
@@ -50,10 +51,12 @@ class SumoCoupler:
     afterwards ``c.traffic.stats.rows`` holds the 5-minute traffic statistics.
     """
 
-    def __init__(self, scenario: SumoScenario, sensors: SensorParams):
+    def __init__(self, scenario: SumoScenario, sensors: SensorParams, infra: InfraSetup | None = None):
         self.scenario = scenario
         self.sensors = sensors
         self.noise = SensorNoise(scenario.seed)
+        # Infrastructure mode (RSUs, radars, odometry): its own random stream (couplers.infra).
+        self.infra = InfraSynth(infra, scenario.seed) if infra is not None else None
         self.zones = RegionIndex(scenario.net.zones)
         self.areas = RegionIndex(scenario.net.areas)
         feats = scenario.net.features
@@ -79,7 +82,7 @@ class SumoCoupler:
             zone, sp, sv = gnss_sigma_for_zone(self.zones, states.xy)
             area = self.areas.names_at(states.xy, outside="outside")
             x_true = np.hstack([states.xy, states.velocity])
-            yield synthesize_frame(
+            frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
                 vehicle_ids=states.ids,
@@ -97,3 +100,7 @@ class SumoCoupler:
                 area=area,
                 feature_ids=self.scenario.net.features.ids,
             )
+            if self.infra is not None:
+                infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
+                frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))
+            yield frame

@@ -53,6 +53,12 @@ def cmd_run(args: argparse.Namespace) -> int:
                 f"{block['discarded_pct']:.1f} % discarded of {block['correct'] + block['wrong'] + block['discarded']} "
                 "V2F measurements"
             )
+    cov = summary.get("within_rsu_coverage")
+    if cov:  # infrastructure mode: the same covered vehicle-steps for every method
+        for method, block in cov["methods"].items():
+            if block.get("rmse_pos_m") is not None:
+                print(f"{method:>14}: within RSU coverage RMSE {block['rmse_pos_m']:.2f} m, "
+                      f"p95 {block['p95_pos_m']:.2f} m, n {block['n']}")
     tr = summary["traffic"]
     if tr is not None:  # None for the controlled scenarios (no SUMO traffic)
         print(

@@ -30,7 +30,12 @@ Scenario kinds (``[scenario] kind``):
 ``[lc]`` holds the ICP-DA-LC parameters (the fields of
 :class:`coloc.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
 range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
-``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
+``[infra]`` (optional, SUMO only) switches on the infrastructure mode (issue 5 part 4):
+road-side units at the junctions ``rsu_junctions`` of the net (checked against the net
+file), V2I range = radar range ``rsu_range_m``, radar and odometry noise, and the settings
+of the methods ``rsu_bp``, ``sme`` and ``fg_topology_new``, which need it. It is not one of
+``SECTIONS`` (sweeps cannot vary it) and a config without it resolves and runs exactly as
+before. ``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
 without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
 ``[icp]`` and ``[lc]`` (association, tracks).
 """
@@ -51,7 +56,9 @@ from couplers.errors import InputError, read_toml
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf")
+KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf", "rsu_bp", "sme", "fg_topology_new")
+#: Infrastructure-mode methods (issue 5 part 4): need an [infra] table.
+INFRA_METHODS = ("rsu_bp", "sme", "fg_topology_new")
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
@@ -102,6 +109,24 @@ class PfSection:
 
 
 @dataclass(frozen=True)
+class InfraSection:
+    """Infrastructure mode (optional ``[infra]`` table): RSUs at junctions of the net, their V2I
+    range (= radar range), the radar and odometry noise (couplers.infra) and the settings of the
+    infrastructure methods (coloc.infra.InfraMethodParams). Only for ``scenario.kind = "sumo"``."""
+
+    rsu_junctions: tuple[str, ...] = ()
+    rsu_range_m: float = 70.0
+    radar_sigma_m: float = 0.5
+    radar_pose_offset_sigma_m: float = 5.0
+    odom_sigma_m: float = 0.1
+    rsu_bp_particles: int = 200
+    rsu_bp_detection_prob: float = 0.9
+    rsu_bp_feature_drop_s: float = 5.0
+    sme_max_vehicles: int = 12
+    fg_window_steps: int = 8
+
+
+@dataclass(frozen=True)
 class ReportSection:
     track_area: str = "5"  # analysis area of the along/cross-track figure (paper Fig. 18b)
     figures: bool = True
@@ -120,6 +145,7 @@ class Config:
     single_road: SingleRoadParams = field(default_factory=SingleRoadParams)
     crossroad: CrossroadParams = field(default_factory=CrossroadParams)
     report: ReportSection = field(default_factory=ReportSection)
+    infra: InfraSection | None = None  # [infra], optional; not in SECTIONS (written only when given)
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -272,6 +298,38 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.net_dir", "required for a SUMO scenario")
         if not (Path(cfg.scenario.net_dir) / "scenario.toml").is_file():
             raise InputError(p, "scenario.net_dir", f"no net folder (scenario.toml) at {cfg.scenario.net_dir}")
+    _validate_infra(cfg)
+
+
+def _validate_infra(cfg: Config) -> None:
+    """[infra] values, its junctions in the net, and the infrastructure methods needing it."""
+    p = cfg.path
+    inf = cfg.infra
+    for i, m in enumerate(cfg.run.methods):
+        if m in INFRA_METHODS and inf is None:
+            raise InputError(p, f"run.methods[{i}]", f"method {m!r} needs an [infra] table (road-side units)")
+    if inf is None:
+        return
+    if cfg.scenario.kind != "sumo":
+        raise InputError(p, "infra", "infrastructure mode needs scenario.kind = \"sumo\"")
+    if not inf.rsu_junctions:
+        raise InputError(p, "infra.rsu_junctions", "at least one junction is needed")
+    if len(set(inf.rsu_junctions)) != len(inf.rsu_junctions):
+        raise InputError(p, "infra.rsu_junctions", "a junction is listed twice")
+    for name in ("rsu_range_m", "radar_sigma_m", "odom_sigma_m", "rsu_bp_feature_drop_s"):
+        if not getattr(inf, name) > 0 or math.isinf(getattr(inf, name)):
+            raise InputError(p, f"infra.{name}", "must be positive and finite")
+    if inf.radar_pose_offset_sigma_m < 0:
+        raise InputError(p, "infra.radar_pose_offset_sigma_m", "must be >= 0")
+    if not 0 < inf.rsu_bp_detection_prob <= 1:
+        raise InputError(p, "infra.rsu_bp_detection_prob", "must be in (0, 1]")
+    for name, low in (("rsu_bp_particles", 2), ("sme_max_vehicles", 1), ("fg_window_steps", 2)):
+        if getattr(inf, name) < low:
+            raise InputError(p, f"infra.{name}", f"must be >= {low}")
+    from couplers.infra import junction_positions
+    from couplers.netfolder import load_net_folder
+
+    junction_positions(load_net_folder(cfg.scenario.net_dir).net, inf.rsu_junctions, p, "infra.rsu_junctions")
 
 
 def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[str, str]]:
@@ -329,9 +387,9 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
     # A saved (resolved) config carries its provenance; it is informative, not input.
     data = {k: v for k, v in data.items() if k != "provenance"}
-    unknown = sorted(set(data) - set(SECTIONS))
+    unknown = sorted(set(data) - set(SECTIONS) - {"infra"})
     if unknown:
-        raise InputError(path, unknown[0], f"unknown table (known: {', '.join(SECTIONS)})")
+        raise InputError(path, unknown[0], f"unknown table (known: {', '.join(SECTIONS)}, infra)")
     for name, table in data.items():
         if not isinstance(table, dict):
             raise InputError(path, name, "expected a table")
@@ -359,6 +417,8 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     if "sensing_range_m" not in data.get("lc", {}):
         sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=sections["sensors"].v2f_range_m)
         notes.append(("lc.sensing_range_m", "= sensors.v2f_range_m (the V2F range Rs in force)"))
+    if "infra" in data:
+        sections["infra"] = section_from_table(InfraSection, data["infra"], "infra", path)
     cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg
@@ -408,6 +468,11 @@ def config_to_toml(cfg: Config, provenance: dict[str, str | int | float]) -> str
                 lines.append(f"# {f.name}: not set (the default rule applies)")
                 continue
             lines.append(f"{f.name} = {_toml_value(value)}" + (f"  # {note}" if note else ""))
+        lines.append("")
+    if cfg.infra is not None:
+        lines.append("[infra]")
+        for f in dataclasses.fields(cfg.infra):
+            lines.append(f"{f.name} = {_toml_value(getattr(cfg.infra, f.name))}")
         lines.append("")
     lines.append("[provenance]")
     for key, val in provenance.items():

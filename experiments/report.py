@@ -839,6 +839,31 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
     return blocks
 
 
+def _coverage_html(methods: list[str], cov: dict) -> str:
+    """Infrastructure mode: all methods on the vehicle-steps within V2I range of an RSU (the same rows
+    for every method), overall and per area, and the covered vehicle-steps per RSU."""
+    ms = [m for m in methods if m in (cov.get("methods") or {})]
+    rows = []
+    for m in ms:
+        b = cov["methods"][m]
+        st = b.get("stats") or {}
+        note = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in st.items()) or "–"
+        rows.append([_method_cell(m), _fmt(b.get("rmse_pos_m")), _fmt(b.get("p95_pos_m")), _fmt(b.get("n")),
+                     _esc(note)])
+    html = ["<h2>Within RSU coverage</h2>",
+            "<p>Every method on the vehicle-steps within V2I range of a road-side unit only "
+            "(<code>covered</code> in estimates.parquet; the same rows for every method). Outside "
+            "coverage the infrastructure methods report their internal GNSS tracker.</p>",
+            _table(["method", "RMSE pos [m]", "p95 pos [m]", "n", "method counters"], rows),
+            "<h3>Within RSU coverage, per analysis area</h3>",
+            _by_table(ms, {"methods": cov["methods"]}, "by_area", "area")]
+    per_rsu = cov.get("rsu_vehicle_steps") or {}
+    if per_rsu:
+        html.append("<h3>Covered vehicle-steps per RSU</h3>"
+                    + _table(["RSU", "vehicle-steps"], [[_esc(k), _fmt(v)] for k, v in per_rsu.items()]))
+    return "\n".join(html)
+
+
 def _run_html(run: _Run, blocks: list[str]) -> str:
     s = run.summary
     parts: list[str] = []
@@ -860,6 +885,9 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
                          "time [s]"], _method_stats_rows(methods, s)))
     parts.append("<h3>Per analysis area</h3>" + _by_table(methods, s, "by_area", "area"))
     parts.append("<h3>Per GNSS zone</h3>" + _by_table(methods, s, "by_zone", "zone"))
+    cov = s.get("within_rsu_coverage")
+    if cov:
+        parts.append(_coverage_html(methods, cov))
 
     traffic = s.get("traffic") or {}
     parts.append("<h2>Traffic summary</h2>")
@@ -986,6 +1014,26 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
         parts.append(_table(header, rows))
     else:
         parts.append("<p>No per-area statistics.</p>")
+
+    # Infrastructure mode: all methods on the covered vehicle-steps, per run and area, side by side.
+    cov_runs = [r for r in runs if r.summary.get("within_rsu_coverage")]
+    if cov_runs:
+        parts.append("<h2>Within RSU coverage: position RMSE / p95 [m] per area</h2>"
+                     "<p>Vehicle-steps within V2I range of a road-side unit only (the same rows for "
+                     "every method of a run).</p>")
+        ccols = [(r, m) for r in cov_runs for m in r.methods
+                 if m in (r.summary["within_rsu_coverage"].get("methods") or {})]
+        blocks_ = {(id(r), m): r.summary["within_rsu_coverage"]["methods"][m] for r, m in ccols}
+        careas = _sorted_labels(a for b in blocks_.values() for a in (b.get("by_area") or {}))
+        header = ["area"] + [f"{_esc(_run_label(r, runs))}<br>{_esc(method_label(m))}" for r, m in ccols]
+
+        def cell(b):
+            return "–" if not b else f"{_fmt(b.get('rmse_pos_m'))} / {_fmt(b.get('p95_pos_m'))}"
+
+        rows = [["all"] + [cell(blocks_[(id(r), m)]) for r, m in ccols]]
+        rows += [[_esc(a)] + [cell((blocks_[(id(r), m)].get("by_area") or {}).get(a)) for r, m in ccols]
+                 for a in careas]
+        parts.append(_table(header, rows))
 
     traffic_rows = []
     for r in runs:

@@ -15,6 +15,14 @@ carries ``v2f_assignment`` is scored with
 giving association.parquet rows and summary["association"][method]. Feature
 errors of such methods compare each track with its label's true feature; for
 the known-association bound the track ids are the true feature indices.
+
+Infrastructure mode (config ``[infra]``): the coupler adds ``frame.infra`` (RSUs, radar,
+odometry; couplers.infra); estimates.parquet gains ``covered`` (the vehicle is within V2I
+range of an RSU, from the frame, the same for every method) and ``rsu`` (the lowest-index
+RSU covering it, "" when none), and summary.json gains ``within_rsu_coverage``: per method
+RMSE / p95 / n on the covered vehicle-steps, overall and per area, the method's counters
+(topology updates / skips, feature births / drops), and ``rsu_vehicle_steps`` per RSU.
+Runs without ``[infra]`` are unchanged, byte for byte.
 """
 
 from __future__ import annotations
@@ -42,6 +50,8 @@ from coloc.icp import IcpParams
 from coloc.icp_da_lc import IcpDaLc
 from coloc.icp_da_pf import IcpDaPf, PfParams
 from coloc.icp_known_da import IcpKnownDA
+from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra
+from couplers.infra import InfraSetup, junction_positions
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
@@ -49,6 +59,7 @@ from experiments.config import Config, config_to_toml
 from experiments.scoring import (
     along_cross_errors,
     association_summary,
+    coverage_summary,
     feature_summary,
     method_summary,
     score_association,
@@ -70,11 +81,36 @@ def build_estimators(cfg: Config) -> list:
             out.append(IcpKnownDA(params=icp))
         elif m == "icp_da_lc":
             out.append(IcpDaLc(params=icp, lc=cfg.lc))
+        elif m in ("rsu_bp", "sme", "fg_topology_new"):
+            cls = {"rsu_bp": RsuBpInfra, "sme": SmeInfra, "fg_topology_new": FgTopologyInfra}[m]
+            out.append(cls(infra_method_params(cfg)))
         elif m == "icp_da_pf":
             out.append(IcpDaPf(params=icp, lc=cfg.lc, pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf))))
         else:  # config validation lists the known methods; this is a programming error
             raise ValueError(f"no estimator for method {m!r}")
     return out
+
+
+def infra_method_params(cfg: Config) -> InfraMethodParams:
+    """Settings of the infrastructure methods from ``[infra]``, ``[motion]``, ``[sensors]`` and the seed."""
+    inf = cfg.infra
+    return InfraMethodParams(
+        motion=cfg.motion, seed=cfg.run.seed, rsu_bp_particles=inf.rsu_bp_particles,
+        detection_prob=inf.rsu_bp_detection_prob, v2f_range_m=cfg.sensors.v2f_range_m,
+        feature_drop_s=inf.rsu_bp_feature_drop_s, feature_keep_radius_m=inf.rsu_range_m + cfg.sensors.v2f_range_m + 30.0,
+        sme_max_vehicles=inf.sme_max_vehicles, fg_window_steps=inf.fg_window_steps,
+    )
+
+
+def infra_setup(cfg: Config, net) -> "InfraSetup | None":
+    """RSU positions and sensor parameters of ``[infra]`` (None without it)."""
+    if cfg.infra is None:
+        return None
+    inf = cfg.infra
+    xy = junction_positions(net.net, inf.rsu_junctions, cfg.path, "infra.rsu_junctions")
+    return InfraSetup(rsu_ids=tuple(inf.rsu_junctions), rsu_xy=xy, range_m=inf.rsu_range_m,
+                      radar_sigma_m=inf.radar_sigma_m, pose_offset_sigma_m=inf.radar_pose_offset_sigma_m,
+                      odom_sigma_m=inf.odom_sigma_m)
 
 
 def git_revision() -> str:
@@ -104,12 +140,20 @@ class EstimateLog:
     assoc_parts: dict = field(default_factory=dict)
     # method -> per step (t, track ids (T,), estimated xy (T, 2), true feature xy (K, 2))
     track_parts: dict = field(default_factory=dict)
+    # Infrastructure mode: per step (covered (N,), home RSU id (N,) str, "" when not covered).
+    infra_parts: list = field(default_factory=list)
 
     def add_truth(self, frame: Frame) -> None:
         tr = frame.truth
         self.truth_parts.append(
             (np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone, tr.area)
         )
+        if frame.infra is not None:
+            from coloc.infra import home_rsu
+
+            home = home_rsu(frame.infra.v2i) if frame.n_vehicles else np.empty(0, dtype=np.int64)
+            names = np.append(frame.infra.rsu_ids.astype(str), "")[home]
+            self.infra_parts.append((home >= 0, names))
 
     def add(self, method: str, est: StepEstimate) -> None:
         self.method_parts.setdefault(method, []).append(
@@ -203,6 +247,10 @@ class EstimateLog:
             cols = {"run": [], "method": [], "t": [], "vehicle": []}
             return pd.DataFrame(cols)
         t, vid, x_true, heading, zone, area = (np.concatenate(c) for c in zip(*self.truth_parts))
+        infra_cols = {}
+        if self.infra_parts:
+            covered, rsu = (np.concatenate(c) for c in zip(*self.infra_parts))
+            infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
         frames = []
         for method, parts in self.method_parts.items():
             mean, vx_, vy_ = (np.concatenate(c) for c in zip(*parts))
@@ -223,6 +271,7 @@ class EstimateLog:
                         "err_along": along, "err_cross": cross,
                         "zone": zone.astype(str), "area": area.astype(str),
                         "var_px": vx_, "var_py": vy_,
+                        **infra_cols,
                     }
                 )
             )
@@ -317,10 +366,11 @@ class _SumoSource:
         )
         self.scenario.sumo_options()  # validates the control name before anything is started
         self.sensors = cfg.sensors
+        self.infra = infra_setup(cfg, net)
         self.coupler = None
 
     def __enter__(self) -> "_SumoSource":
-        self.coupler = SumoCoupler(self.scenario, self.sensors).__enter__()
+        self.coupler = SumoCoupler(self.scenario, self.sensors, self.infra).__enter__()
         self.sumo_version = self.coupler.traffic.sumo_version
         self.n_steps = self.coupler.n_steps
         return self
@@ -408,6 +458,12 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             summary["methods"][method] = block
             if method in scores:
                 summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
+        if log.infra_parts:
+            cov_summary = coverage_summary(estimates, methods)
+            for est in estimators:
+                if hasattr(est, "stats") and est.name in cov_summary["methods"]:
+                    cov_summary["methods"][est.name]["stats"] = dict(est.stats)
+            summary["within_rsu_coverage"] = cov_summary
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:
             from experiments.report import write_run_report

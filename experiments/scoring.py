@@ -146,3 +146,23 @@ def association_summary(correct: int, wrong: int, discarded: int) -> dict:
         "correct": int(correct), "wrong": int(wrong), "discarded": int(discarded),
         "correct_pct": pct(correct), "wrong_pct": pct(wrong), "discarded_pct": pct(discarded),
     }
+
+
+def coverage_summary(est: pd.DataFrame, methods: list[str]) -> dict:
+    """Infrastructure mode: every method on the vehicle-steps within RSU coverage only
+    (``covered`` column of estimates.parquet: the vehicle is within V2I range of some RSU; the
+    same rows for every method), overall and per area, plus vehicle-steps per RSU."""
+    cov = est[est["covered"]]
+    out = {"methods": {}, "rsu_vehicle_steps": {}}
+    for m in methods:
+        e = cov[cov["method"] == m]
+        block = {"rmse_pos_m": _rmse(e["err_pos"]), "p95_pos_m": _q(e["err_pos"], 0.95), "n": int(len(e)),
+                 "by_area": {}}
+        for name, g in e.groupby("area", sort=True, observed=True):
+            block["by_area"][str(name)] = {"rmse_pos_m": _rmse(g["err_pos"]), "p95_pos_m": _q(g["err_pos"], 0.95),
+                                           "n": int(len(g))}
+        out["methods"][m] = block
+    first = cov[cov["method"] == methods[0]] if methods else cov.iloc[:0]
+    for name, g in first.groupby("rsu", sort=True, observed=True):
+        out["rsu_vehicle_steps"][str(name)] = int(len(g))
+    return _nan_to_none(out)

@@ -1,0 +1,72 @@
+"""Benchmark: per-step cost of the infrastructure methods (rsu_bp, sme, fg_topology_new) against
+the number of vehicles within RSU range, on SUMO frames of a shipped infra config.
+
+The frames are produced once (SUMO + coupler, not timed), then each method runs over them alone;
+its step times are binned by the number of covered vehicles of the step (all RSUs together).
+
+    python bench/infra_cost.py [--config experiments/arterial_tlr_infra.toml] [--duration 300]
+
+Not a test: it asserts nothing and prints numbers measured in this one run (noisy on a shared machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from coloc.gnss import GnssTracker  # noqa: E402
+from coloc.infra import FgTopologyInfra, RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
+from experiments.config import load_config  # noqa: E402
+from experiments.runner import frame_source, infra_method_params  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=str(ROOT / "experiments" / "arterial_tlr_infra.toml"))
+    ap.add_argument("--duration", type=float, default=300.0)
+    ap.add_argument("--bins", default="0,5,10,15,20,30,60")
+    args = ap.parse_args(argv)
+    cfg = load_config(args.config, {"run.duration_s": args.duration})
+    t0 = time.perf_counter()
+    with frame_source(cfg) as src:
+        frames = [f.without_truth() for f in src.frames()]
+    print(f"{len(frames)} frames of {cfg.run.name} ({args.duration:.0f} s) in {time.perf_counter() - t0:.1f} s")
+    covered = np.array([int((home_rsu(f.infra.v2i) >= 0).sum()) if f.n_vehicles else 0 for f in frames])
+    edges = [int(x) for x in args.bins.split(",")]
+    params = infra_method_params(cfg)
+    methods = {"gnss": lambda: GnssTracker(motion=cfg.motion), "rsu_bp": lambda: RsuBpInfra(params),
+               "sme": lambda: SmeInfra(params), "fg_topology_new": lambda: FgTopologyInfra(params)}
+    times = {}
+    for name, make in methods.items():
+        est = make()
+        dt = np.empty(len(frames))
+        for i, f in enumerate(frames):
+            t = time.perf_counter()
+            est.step(f)
+            dt[i] = time.perf_counter() - t
+        times[name] = dt
+    head = "covered vehicles | steps | " + " | ".join(f"{m} ms/step (ms/veh)" for m in methods)
+    print(head)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (covered >= lo) & (covered < hi)
+        if not sel.any():
+            continue
+        mean_cov = covered[sel].mean()
+        cells = []
+        for m in methods:
+            ms = 1e3 * times[m][sel].mean()
+            cells.append(f"{ms:8.2f} ({ms / mean_cov:6.2f})" if mean_cov > 0 else f"{ms:8.2f} (   -  )")
+        print(f"[{lo:>3}, {hi:>3}) mean {mean_cov:5.1f} | {int(sel.sum()):5d} | " + " | ".join(cells))
+    print("total seconds: " + ", ".join(f"{m} {times[m].sum():.1f}" for m in methods))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
