@@ -815,7 +815,14 @@ def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: f
 
     jobs = {"vsr": (net_path, routes_path, True, seed, end, vehicles),
             "tlr": (net_path, routes_path, False, seed, end, vehicles)}
-    with multiprocessing.get_context("spawn").Pool(2) as pool:
+    # "fork": the children need nothing re-imported (spawn would re-run a caller's unguarded
+    # script); libsumo is only started inside them. Without fork, one after the other.
+    if "fork" not in multiprocessing.get_all_start_methods():
+        out = {"vsr": gridlock_trial(*jobs["vsr"])}
+        if out["vsr"]["ok"]:
+            out["tlr"] = gridlock_trial(*jobs["tlr"])
+        return out
+    with multiprocessing.get_context("fork").Pool(2) as pool:
         pending = {c: pool.apply_async(_gridlock_trial_job, (a,)) for c, a in jobs.items()}
         out = {"vsr": pending["vsr"].get()}
         if out["vsr"]["ok"]:
