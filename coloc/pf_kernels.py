@@ -17,13 +17,15 @@ exp(-|u_s - u_j|^2 / 2) / ((2 pi)^2 |L|). The V2F noise (0.1 m, 0.1 m/s) is far
 narrower than the particle clouds, so most pairs contribute nothing. The
 ``tree`` kernel puts the (whitened) sources in a k-d tree with the weight sum
 and bounding box of every node; each target walks it nearest child first and
-leaves out a node (or a point) whose every pair is so far away that
+leaves out a node whose every pair is so far away that
 exp(-dmin^2 / 2) x (all source weight) <= ``rel_tol`` x (the sum found so far).
 The nodes left out are disjoint, so the mass they hold is at most ``rel_tol``
 times the sum found: **every output entry is within rel_tol (default 1e-6) of
-the brute-force sum, relatively**, tails included (a target far from every
-source, whose terms underflow on a linear scale, gets the exact log-domain sum,
-:func:`_exact_log_sum`). How much it saves depends on the clouds: the pairs it
+the brute-force sum, relatively**, tails included: a target's terms are scaled
+by its distance to the sources' bounding box, so targets far from every source
+do not underflow (where they still would, :func:`_exact_log_sum` sums in log
+domain). Leaf sums use a polynomial exp (:func:`_exp_neg`, relative error below
+2e-10) so that they vectorize. How much it saves depends on the clouds: the pairs it
 must visit lie within about 6 whitened units of the target, a small share of
 8 m GNSS clouds (2 % of the pairs at J = 5000) and a fifth to a third of clouds
 only 1.5 m or 0.7 m wide (``bench/pf_kernels.py``). ``brute`` evaluates every
