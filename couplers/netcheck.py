@@ -2,8 +2,9 @@
 
 Checks: scenario.toml and the files it names load (:func:`load_net_folder`);
 the net parses and has edges open to passenger cars and traffic lights (else
-TLR and VSR are the same); the GNSS zones and the analysis areas cover every
-lane shape point of the net; every feature lies within a given distance of a
+TLR and VSR are the same); the GNSS zones and the analysis areas are in net
+x/y (a folder never holds lon/lat: ``coloc net import`` converts it) and cover
+every lane shape point of the net; every feature lies within a given distance of a
 drivable lane; every vehicle, flow or trip of the demand has a route whose
 edges exist in the net and follow each other.
 """

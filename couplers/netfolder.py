@@ -17,6 +17,9 @@ from shapely.geometry import shape
 from couplers.errors import InputError, read_toml
 
 REQUIRED_FILES = ("net", "routes", "zones", "areas", "features")
+# The GeoJSON of a net folder is in SUMO net x/y metres, marked with this private crs name.
+NET_CRS_NAME = "urn:coloc:sumo-net-xy"
+NET_CRS = {"type": "name", "properties": {"name": NET_CRS_NAME}}
 
 
 @dataclass(frozen=True)
@@ -54,15 +57,31 @@ def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(path, None, "file not found") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"not valid JSON ({exc})") from None
+    if isinstance(data, dict) and data.get("crs") is not None:
+        crs = data["crs"]
+        name = crs.get("properties", {}).get("name") if isinstance(crs, dict) and isinstance(
+            crs.get("properties"), dict) else crs
+        if name != NET_CRS_NAME:
+            # a folder holds net x/y only (no crs member: read as net x/y, as before the marker existed)
+            raise InputError(path, "crs", f"a net folder's GeoJSON is in net x/y metres (crs {NET_CRS_NAME}), got "
+                                          f"{name!r}: give WGS84 polygons to coloc net import --zones/--areas, "
+                                          "which converts them with the net's projection")
+    return regions_from_doc(data, path, key, with_sigmas)
+
+
+def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
+    """The regions of a parsed GeoJSON document (``path`` names it in errors); the crs member is not looked at."""
     feats = data.get("features") if isinstance(data, dict) else None
     if not isinstance(feats, list) or not feats:
         raise InputError(path, "features", "expected a GeoJSON FeatureCollection with at least one polygon")
     regions = []
     for i, feat in enumerate(feats):
+        if not isinstance(feat, dict):
+            raise InputError(path, f"features[{i}]", "not a GeoJSON Feature object")
         props = feat.get("properties") or {}
-        name = props.get(key)
+        name = props.get(key) if isinstance(props, dict) else None
         if not isinstance(name, str) or not name:
             raise InputError(path, f"features[{i}].properties.{key}", "missing or not a string")
         try:

@@ -26,7 +26,10 @@ folder holds (DESIGN "A net folder"), and says what it could not derive:
 * GNSS zones: from building density (polyconvert) when the extract has
   buildings, else a stated default layout (concentric rectangles, worst class
   in the centre), or the user's GeoJSON; analysis areas: a 3 x 2 grid or the
-  user's GeoJSON.
+  user's GeoJSON. The user's GeoJSON is net x/y metres (crs
+  ``urn:coloc:sumo-net-xy``) or WGS84 lon/lat (RFC 7946: no crs member, or
+  CRS84 / EPSG:4326), converted with the net's own projection
+  (:mod:`couplers.georef`); the folder always holds net x/y.
 
 Everything is built in a temporary folder next to the output and renamed into
 place only when complete; bad input raises :class:`InputError` naming the
@@ -58,10 +61,10 @@ import shapely.ops
 from shapely.geometry import LineString, box, mapping
 
 from couplers.errors import InputError
-from couplers.netfolder import lane_shape_points, read_regions
+from couplers.georef import GeoRef, check_lonlat, conversion_note, crs_kind, geojson_to_net_xy, read_georef
+from couplers.netfolder import NET_CRS as CRS
+from couplers.netfolder import NET_CRS_NAME, lane_shape_points, read_regions, regions_from_doc  # noqa: F401
 
-NET_CRS_NAME = "urn:coloc:sumo-net-xy"
-CRS = {"type": "name", "properties": {"name": NET_CRS_NAME}}
 FEATURE_KINDS = ("traffic_light", "bus_stop", "parking", "sign")
 FEATURE_COLORS = {"bus_stop": "0,0,255", "traffic_light": "255,0,0", "sign": "255,165,0", "parking": "0,160,0"}
 # OSM highway values netconvert's osmNetconvert typemap opens to passenger cars.
@@ -568,41 +571,77 @@ def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report) -> None:
     report.lines.append(f"areas: default {ncol} x {nrow} grid (1..{ncol * nrow})")
 
 
-def _read_user_geojson(src: Path, key: str, with_sigmas: bool):
-    """The user's zones/areas GeoJSON: net x/y CRS and valid polygons (checked before any conversion)."""
+@dataclass(frozen=True)
+class _UserGeoJSON:
+    """The user's --zones/--areas file, read and checked before the net exists."""
+
+    src: Path
+    key: str  # "zone" | "area"
+    with_sigmas: bool
+    doc: dict
+    crs: str  # "net" (net x/y metres) | "wgs84" (lon/lat, converted with the net's projection)
+    how: str  # how the file says which (for messages)
+
+
+def _read_user_geojson(src: Path, key: str, with_sigmas: bool) -> _UserGeoJSON:
+    """The user's zones/areas GeoJSON: a known CRS, valid polygons, plausible lon/lat (before any conversion)."""
     try:
         doc = json.loads(src.read_text())
     except FileNotFoundError:
         raise InputError(src, None, "file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(src, None, f"not valid JSON ({exc})") from None
-    crs = (((doc.get("crs") or {}).get("properties") or {}).get("name")) if isinstance(doc, dict) else None
-    if crs != NET_CRS_NAME:
-        raise InputError(src, "crs", f"expected net x/y metres ({{\"type\": \"name\", \"properties\": {{\"name\": "
-                                     f"\"{NET_CRS_NAME}\"}}}}), got {crs!r}: convert lon/lat to the net's x/y first "
-                                     "(sumolib net.convertLonLat2XY)")
-    return read_regions(src, key, with_sigmas)
+    if not isinstance(doc, dict):
+        raise InputError(src, None, "expected a GeoJSON FeatureCollection (a JSON object)")
+    crs, how = crs_kind(doc, src)
+    regions_from_doc(doc, src, key, with_sigmas)
+    if crs == "wgs84":
+        check_lonlat(doc, src, how)
+        try:
+            import pyproj  # noqa: F401, PLC0415
+        except ImportError:  # pragma: no cover - pyproj is a dependency
+            raise InputError(src, "crs", "WGS84 lon/lat needs pyproj to convert to net x/y "
+                                         "(pip install pyproj)") from None
+    return _UserGeoJSON(src, key, with_sigmas, doc, crs, how)
 
 
-def _user_geojson(src: Path, dest: Path, key: str, with_sigmas: bool, lane_xy: np.ndarray,
+def _user_geojson(user: _UserGeoJSON, dest: Path, georef: GeoRef, lane_xy: np.ndarray,
                   net_name: str, report: _Report) -> None:
-    regions = _read_user_geojson(src, key, with_sigmas)
+    """Write the user's zones/areas in net x/y (converted from lon/lat if need be) once they cover the net."""
+    src, key = user.src, user.key
+    doc = geojson_to_net_xy(user.doc, georef, src, user.how) if user.crs == "wgs84" else user.doc
+    regions = regions_from_doc(doc, src, key, user.with_sigmas)
     union = shapely.union_all([r.polygon for r in regions])
     inside = shapely.intersects_xy(union, lane_xy[:, 0], lane_xy[:, 1])
     if not inside.any():
         lo, hi = lane_xy.min(axis=0), lane_xy.max(axis=0)
         ux0, uy0, ux1, uy1 = union.bounds
+        hint = ""
+        if user.crs == "wgs84":
+            hint = (f"; the file was read as WGS84 [lon, lat] ({user.how}) and converted with the net's projection: "
+                    "check the coordinate order, or add the net x/y crs marker if the coordinates are metres")
         raise InputError(src, "features", f"the polygons lie outside the net (polygons x {ux0:.0f}..{ux1:.0f}, "
                                           f"y {uy0:.0f}..{uy1:.0f}; net x {lo[0]:.0f}..{hi[0]:.0f}, "
-                                          f"y {lo[1]:.0f}..{hi[1]:.0f} in {net_name})")
+                                          f"y {lo[1]:.0f}..{hi[1]:.0f} in {net_name}){hint}")
     if not inside.all():
         i = int(np.flatnonzero(~inside)[0])
         raise InputError(src, "features", f"the polygons leave {int((~inside).sum())} of {len(inside)} lane shape "
                                           f"points of the net uncovered (first at x={lane_xy[i, 0]:.1f}, "
-                                          f"y={lane_xy[i, 1]:.1f})")
-    shutil.copyfile(src, dest)
-    report.derived[key + "s"] = f"user's GeoJSON {src.name} ({len(regions)} polygons)"
-    report.lines.append(f"{key}s: from {src.name} ({len(regions)} polygons)")
+                                          f"y={lane_xy[i, 1]:.1f}" + (" in net x/y after conversion from lon/lat"
+                                                                      if user.crs == "wgs84" else "") + ")")
+    if user.crs == "wgs84":
+        dest.write_text(json.dumps(doc, indent=1) + "\n")
+        note = conversion_note(georef, user.how)
+        report.derived[key + "s"] = (f"user's GeoJSON {src.name} ({len(regions)} polygons), converted from WGS84 "
+                                     f"lon/lat ({user.how}) to net x/y with the net's projection")
+        report.derived[key + "s_conversion"] = note
+        report.lines.append(f"{key}s: from {src.name} ({len(regions)} polygons), converted from WGS84 lon/lat to "
+                            f"net x/y with the net's projection {georef.proj} and netOffset "
+                            f"{georef.net_offset[0]:.2f},{georef.net_offset[1]:.2f}")
+    else:
+        shutil.copyfile(src, dest)
+        report.derived[key + "s"] = f"user's GeoJSON {src.name} ({len(regions)} polygons)"
+        report.lines.append(f"{key}s: from {src.name} ({len(regions)} polygons)")
 
 
 # --------------------------------------------------------------------------
@@ -1090,10 +1129,15 @@ def import_net(opts: ImportOptions,
     osm_counts = scan_osm(opts.osm) if opts.osm is not None else None
     if opts.net is not None:
         _check_net_xml(opts.net)
-    if opts.zones is not None:
-        _read_user_geojson(opts.zones, "zone", True)
-    if opts.areas is not None:
-        _read_user_geojson(opts.areas, "area", False)
+    user_geo = {key: _read_user_geojson(path, key, sig)
+                for key, path, sig in (("zone", opts.zones, True), ("area", opts.areas, False)) if path is not None}
+    if opts.net is not None and any(u.crs == "wgs84" for u in user_geo.values()):
+        # lon/lat polygons need a geo-referenced net: say so before the (possibly long) import
+        # (the folder's polygons are converted with the re-written net's <location>, the same one)
+        src_georef = read_georef(opts.net)
+        for user in user_geo.values():
+            if user.crs == "wgs84":
+                geojson_to_net_xy(user.doc, src_georef, user.src, user.how)
     parent = opts.out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{opts.name}-import-", dir=parent))
@@ -1192,14 +1236,15 @@ def import_net(opts: ImportOptions,
                             + ", ".join(f"{v} {k}" for k, v in fcounts.items()) + ")")
 
         # zones and areas
-        if opts.zones is not None:
-            _user_geojson(opts.zones, work / "zones.geojson", "zone", True, lane_xy, opts.source.name, report)
+        georef = dataclasses.replace(read_georef(net_path), net=opts.source)  # messages name the user's file
+        if "zone" in user_geo:
+            _user_geojson(user_geo["zone"], work / "zones.geojson", georef, lane_xy, opts.source.name, report)
         elif buildings:
             _zones_from_buildings(work / "zones.geojson", lane_xy, buildings, opts.zone_cell_m, report)
         else:
             _default_zones(work / "zones.geojson", lane_xy, report)
-        if opts.areas is not None:
-            _user_geojson(opts.areas, work / "areas.geojson", "area", False, lane_xy, opts.source.name, report)
+        if "area" in user_geo:
+            _user_geojson(user_geo["area"], work / "areas.geojson", georef, lane_xy, opts.source.name, report)
         else:
             _default_areas(work / "areas.geojson", lane_xy, report)
         areas = read_regions(work / "areas.geojson", "area", False)

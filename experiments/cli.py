@@ -218,9 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="comma-separated kinds to place (default: all four)")
     ni.add_argument("--guess-signals", action="store_true",
                     help="let netconvert place traffic lights at major junctions (needed when the net has none)")
-    ni.add_argument("--zones", help="GNSS zones GeoJSON in net x/y (crs urn:coloc:sumo-net-xy); "
+    ni.add_argument("--zones", help="GNSS zones GeoJSON, WGS84 lon/lat (RFC 7946; converted with the net's "
+                                    "projection) or net x/y (crs urn:coloc:sumo-net-xy); "
                                     "default: from building density, else a default layout")
-    ni.add_argument("--areas", help="analysis areas GeoJSON in net x/y; default: a 3 x 2 grid")
+    ni.add_argument("--areas", help="analysis areas GeoJSON, WGS84 lon/lat or net x/y (as --zones); "
+                                    "default: a 3 x 2 grid")
     ni.add_argument("--routes", help="your own SUMO route file (instead of the generated demand)")
     ni.add_argument("--additional", help="busStop / parkingArea additionals for a --net input (feature places)")
     ni.add_argument("--demand", type=float, nargs=2, default=(2800.0, 1800.0), metavar=("START", "END"),

@@ -28,7 +28,7 @@ from couplers.netimport import (  # noqa: E402
     import_net,
 )
 from couplers.zones import RegionIndex  # noqa: E402
-from osmfixture import _nid, write_osm_grid  # noqa: E402
+from osmfixture import DLAT, DLON, LAT0, LON0, _nid, write_osm_grid  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ARTERIAL = ROOT / "sumo_nets" / "arterial"
@@ -233,15 +233,122 @@ def _zones_doc(crs: str | None, x0: float, y0: float, x1: float, y1: float, area
 
 
 def test_geojson_in_wrong_crs_or_outside_the_net(tmp_path, osm):
-    wgs = tmp_path / "wgs84.geojson"
-    wgs.write_text(json.dumps(_zones_doc(None, 7.67, 45.06, 7.70, 45.08)))
-    err = _expect_error(tmp_path, "expected net x/y metres", osm=osm, zones=wgs)
+    other = tmp_path / "mercator.geojson"
+    other.write_text(json.dumps(_zones_doc("EPSG:3857", 854000, 5630000, 855000, 5631000)))
+    err = _expect_error(tmp_path, "'EPSG:3857' is not supported", osm=osm, zones=other)
     assert err.field == "crs"
+    assert all(name in err.message for name in ("urn:ogc:def:crs:OGC:1.3:CRS84", "EPSG:4326",
+                                                 "urn:ogc:def:crs:EPSG::4326", "urn:coloc:sumo-net-xy"))
     far = tmp_path / "far.geojson"
     far.write_text(json.dumps(_zones_doc("urn:coloc:sumo-net-xy", 1e6, 1e6, 1e6 + 500, 1e6 + 500)))
     _expect_error(tmp_path, "outside the net", osm=osm, zones=far)
     part = tmp_path / "part.geojson"
     part.write_text(json.dumps(_zones_doc("urn:coloc:sumo-net-xy", 0, 0, 100, 100, area=True)))
+    _expect_error(tmp_path, "uncovered", osm=osm, areas=part)
+
+
+# --------------------------------------------------------------------------
+# WGS84 (RFC 7946) zones and areas: converted with the net's own projection
+# --------------------------------------------------------------------------
+
+def _positions(doc: dict) -> list[list[float]]:
+    out = []
+    for f in doc["features"]:
+        g = f["geometry"]
+        for poly in [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]:
+            for ring in poly:
+                out += ring
+    return out
+
+
+def _to_lonlat(doc: dict, net, crs: str | None) -> dict:
+    """A net x/y FeatureCollection back in lon/lat (sumolib convertXY2LonLat), with ``crs`` (None: RFC 7946)."""
+    doc = json.loads(json.dumps(doc))
+    for p in _positions(doc):
+        p[:] = list(net.convertXY2LonLat(p[0], p[1]))
+    doc.pop("crs", None)
+    if crs is not None:
+        doc["crs"] = {"type": "name", "properties": {"name": crs}}
+    return doc
+
+
+def test_lonlat_to_net_xy_matches_sumolib(imported):
+    """The vectorised conversion is sumolib's convertLonLat2XY (projection, then netOffset added) to < 1 mm."""
+    from couplers.georef import lonlat_to_xy, read_georef
+
+    out, _ = imported
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    georef = read_georef(out / "tlr.net.xml")
+    assert georef.proj == net._location["projParameter"] and georef.proj.startswith("+proj=utm")
+    assert georef.net_offset == tuple(net.getLocationOffset())
+    rng = np.random.default_rng(0)
+    lon, lat = rng.uniform(7.58, 7.79, 2000), rng.uniform(44.97, 45.17, 2000)  # +-10 km about the grid
+    x, y = lonlat_to_xy(georef, lon, lat)
+    ref = np.array([net.convertLonLat2XY(a, b) for a, b in zip(lon, lat)])
+    assert np.abs(x - ref[:, 0]).max() < 1e-3 and np.abs(y - ref[:, 1]).max() < 1e-3
+    # an OSM node of the grid lands where netconvert put its junction
+    x0, y0 = lonlat_to_xy(georef, [LON0 + 2 * DLON], [LAT0 + 2 * DLAT])
+    node = net.getNode(str(_nid(2, 2))).getCoord()
+    assert np.hypot(x0[0] - node[0], y0[0] - node[1]) < 0.02
+
+
+def test_wgs84_zones_and_areas_are_converted_to_net_xy(tmp_path, osm, imported):
+    """Zones with crs CRS84 and RFC 7946 areas (no crs), made from the import's own: written back in net x/y."""
+    out, _ = imported
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    zones = json.loads((out / "zones.geojson").read_text())
+    areas = json.loads((out / "areas.geojson").read_text())
+    zw, aw = tmp_path / "zones_wgs84.geojson", tmp_path / "areas_rfc7946.geojson"
+    zw.write_text(json.dumps(_to_lonlat(zones, net, "urn:ogc:def:crs:OGC:1.3:CRS84")))
+    aw.write_text(json.dumps(_to_lonlat(areas, net, None)))
+    dest = tmp_path / "wgs"
+    res = import_net(ImportOptions(name="wgs", out=dest, osm=osm, zones=zw, areas=aw, routes=out / "demand.rou.xml",
+                                   seed=3, calibrate=False))
+    for name, orig in (("zones", zones), ("areas", areas)):
+        got = json.loads((dest / f"{name}.geojson").read_text())
+        assert got["crs"] == {"type": "name", "properties": {"name": "urn:coloc:sumo-net-xy"}}
+        assert [f["properties"] for f in got["features"]] == [f["properties"] for f in orig["features"]]
+        err = np.abs(np.array(_positions(got)) - np.array(_positions(orig))).max()
+        assert err < 1e-3, (name, err)
+    scen = tomllib.loads((dest / "scenario.toml").read_text())
+    proj = "+proj=utm +zone=32 +ellps=WGS84 +datum=WGS84 +units=m +no_defs"
+    assert "converted from WGS84 lon/lat (crs urn:ogc:def:crs:OGC:1.3:CRS84)" in scen["derived"]["zones"]
+    assert "converted from WGS84 lon/lat (no crs member, RFC 7946)" in scen["derived"]["areas"]
+    for key in ("zones_conversion", "areas_conversion"):
+        assert scen["derived"][key]["projection"] == proj
+        assert scen["derived"][key]["net_offset"] == list(net.getLocationOffset())
+    assert sum(1 for line in res.lines if "converted from WGS84" in line and proj in line) == 2
+    assert check_net_folder(dest)[0] == []
+    assert load_net_folder(dest).zones[0].name == zones["features"][0]["properties"]["zone"]
+    # a geo-referenced .net.xml input (re-written by netconvert, <location> kept): the same net x/y
+    dest2 = tmp_path / "wgs_net"
+    import_net(ImportOptions(name="wgs_net", out=dest2, net=out / "tlr.net.xml", zones=zw, areas=aw,
+                             routes=out / "demand.rou.xml", seed=3, calibrate=False))
+    for name in ("zones.geojson", "areas.geojson"):
+        assert (dest2 / name).read_bytes() == (dest / name).read_bytes()
+
+
+def test_wgs84_geojson_errors(tmp_path, osm, imported):
+    out, _ = imported
+    net = sumolib.net.readNet(str(out / "tlr.net.xml"))
+    # metres without the crs marker are read as lon/lat: implausible, and the marker is shown
+    metres = tmp_path / "metres.geojson"
+    metres.write_text(json.dumps(_zones_doc(None, 0, 0, 800, 700)))
+    err = _expect_error(tmp_path, r"\[800, 0\] is not a lon/lat", osm=osm, zones=metres)
+    assert err.field == "features[0].geometry.coordinates"
+    assert "no crs member, RFC 7946" in err.message and '"name": "urn:coloc:sumo-net-xy"' in err.message
+    # lon/lat for a net without geo-reference (the arterial: plain XML nodes/edges)
+    lonlat = tmp_path / "lonlat.geojson"
+    lonlat.write_text(json.dumps(_to_lonlat(json.loads((out / "zones.geojson").read_text()), net, "EPSG:4326")))
+    err = _expect_error(tmp_path, "has no geo-reference", net=ARTERIAL / "tlr.net.xml", zones=lonlat)
+    assert err.path == str(lonlat) and err.field == "crs" and 'projParameter="!"' in err.message
+    # the checks of net x/y polygons apply after the conversion: elsewhere (Paris), or covering part of the net
+    paris = tmp_path / "paris.geojson"
+    paris.write_text(json.dumps(_zones_doc(None, 2.34, 48.85, 2.36, 48.86)))
+    err = _expect_error(tmp_path, "outside the net", osm=osm, zones=paris)
+    assert "check the coordinate order" in err.message
+    part = tmp_path / "part_lonlat.geojson"
+    part.write_text(json.dumps(_zones_doc(None, 7.6795, 45.0695, 7.6841, 45.0731, area=True)))
     _expect_error(tmp_path, "uncovered", osm=osm, areas=part)
 
 
@@ -280,6 +387,18 @@ def test_check_reports_one_line_per_problem(tmp_path, imported):
     assert any("'lost'" in p and "from the nearest drivable lane" in p for p in problems)
     assert any("zones.geojson" in p and "uncovered" in p for p in problems)
     assert any("'ghost'" in p and "'nowhere' is not in the net" in p for p in problems)
+
+
+def test_check_refuses_a_folder_geojson_in_lonlat(tmp_path, imported):
+    """A folder always holds net x/y: WGS84 belongs to net import, which converts it."""
+    out, _ = imported
+    bad = tmp_path / "lonlat"
+    shutil.copytree(out, bad)
+    doc = json.loads((bad / "areas.geojson").read_text())
+    doc["crs"]["properties"]["name"] = "urn:ogc:def:crs:OGC:1.3:CRS84"
+    (bad / "areas.geojson").write_text(json.dumps(doc))
+    problems, _ = check_net_folder(bad)
+    assert len(problems) == 1 and "areas.geojson: crs:" in problems[0] and "coloc net import" in problems[0]
 
 
 def test_check_of_a_folder_that_does_not_load(tmp_path):

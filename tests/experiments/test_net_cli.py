@@ -49,23 +49,52 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
     assert {p.name: p.read_bytes() for p in exps.iterdir()} == before
 
 
-@pytest.mark.parametrize("case", ["non_xml", "no_roads", "wrong_crs"])
+def _zones(crs: str | None, x0: float, y0: float, x1: float, y1: float) -> str:
+    doc = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"zone": "B", "sigma_p": 8.0, "sigma_v": 0.17},
+         "geometry": {"type": "Polygon", "coordinates": [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]]}}]}
+    if crs is not None:
+        doc["crs"] = {"type": "name", "properties": {"name": crs}}
+    return json.dumps(doc)
+
+
+# zones GeoJSON of the --zones cases: (document, words the message must hold)
+ZONES_CASES = {
+    # a projected CRS: not converted, the accepted ones are listed
+    "unknown_crs": (_zones("EPSG:3857", 854000, 5630000, 855000, 5631000),
+                    ["'EPSG:3857' is not supported", "urn:ogc:def:crs:OGC:1.3:CRS84", "EPSG:4326",
+                     "urn:ogc:def:crs:EPSG::4326", "urn:coloc:sumo-net-xy"]),
+    # net x/y metres without the crs marker are read as lon/lat (RFC 7946): implausible, the marker is shown
+    "not_lonlat": (_zones(None, 0, 0, 800, 700),
+                   ["features[0].geometry.coordinates", "[800, 0] is not a lon/lat",
+                    '"crs": {"type": "name", "properties": {"name": "urn:coloc:sumo-net-xy"}}']),
+    # lon/lat for a net without geo-reference (the arterial is built from plain XML nodes/edges)
+    "no_georef": (_zones("urn:ogc:def:crs:EPSG::4326", 7.67, 45.06, 7.70, 45.08),
+                  ["crs", "has no geo-reference", 'projParameter="!"', "urn:coloc:sumo-net-xy"]),
+}
+
+
+@pytest.mark.parametrize("case", ["non_xml", "no_roads", *ZONES_CASES])
 def test_bad_input_one_message_exit_2_nothing_written(tmp_path, capsys, case):
     osm = write_osm_grid(tmp_path / "grid.osm", roads=case != "no_roads")
-    args = ["net", "import", "--osm", str(osm), "--name", "bad", "--out", str(tmp_path / "nets" / "bad"),
+    source = ["--net", str(PROJECT / "sumo_nets" / "arterial" / "tlr.net.xml")] if case == "no_georef" \
+        else ["--osm", str(osm)]
+    args = ["net", "import", *source, "--name", "bad", "--out", str(tmp_path / "nets" / "bad"),
             "--experiments-dir", str(tmp_path / "exps")]
     if case == "non_xml":
         osm.write_bytes(b"PK\x03\x04 a zip file, not OSM")
-    if case == "wrong_crs":
+    words: list[str] = []
+    if case in ZONES_CASES:
         z = tmp_path / "zones.geojson"
-        z.write_text(json.dumps({"type": "FeatureCollection", "crs": {"type": "name", "properties": {
-            "name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}, "features": []}))
+        text, words = ZONES_CASES[case]
+        z.write_text(text)
         args += ["--zones", str(z)]
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("coloc: error: ")
-    named = {"non_xml": str(osm), "no_roads": str(osm), "wrong_crs": str(tmp_path / "zones.geojson")}[case]
+    named = str(tmp_path / "zones.geojson") if case in ZONES_CASES else str(osm)
     assert named in err[0]
+    assert all(w in err[0] for w in words), err[0]
     assert not (tmp_path / "nets").exists() or list((tmp_path / "nets").iterdir()) == []
     assert not (tmp_path / "exps").exists() or list((tmp_path / "exps").iterdir()) == []
 
