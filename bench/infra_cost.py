@@ -5,6 +5,7 @@ The frames are produced once (SUMO + coupler, not timed), then each method runs 
 its step times are binned by the number of covered vehicles of the step (all RSUs together).
 
     python bench/infra_cost.py [--config experiments/arterial_tlr_infra.toml] [--duration 300]
+                               [--methods gnss,fg_topology_new]
 
 Not a test: it asserts nothing and prints numbers measured in this one run (noisy on a shared machine).
 """
@@ -32,6 +33,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "experiments" / "arterial_tlr_infra.toml"))
     ap.add_argument("--duration", type=float, default=300.0)
     ap.add_argument("--bins", default="0,5,10,15,20,30,60")
+    ap.add_argument("--methods", default="gnss,rsu_bp,sme,fg_topology_new",
+                    help="comma separated subset of the default (rsu_bp dominates the time)")
     args = ap.parse_args(argv)
     cfg = load_config(args.config, {"run.duration_s": args.duration})
     t0 = time.perf_counter()
@@ -41,8 +44,13 @@ def main(argv=None) -> int:
     covered = np.array([int((home_rsu(f.infra.v2i) >= 0).sum()) if f.n_vehicles else 0 for f in frames])
     edges = [int(x) for x in args.bins.split(",")]
     params = infra_method_params(cfg)
-    methods = {"gnss": lambda: GnssTracker(motion=cfg.motion), "rsu_bp": lambda: RsuBpInfra(params),
-               "sme": lambda: SmeInfra(params), "fg_topology_new": lambda: FgTopologyInfra(params)}
+    makers = {"gnss": lambda: GnssTracker(motion=cfg.motion), "rsu_bp": lambda: RsuBpInfra(params),
+              "sme": lambda: SmeInfra(params), "fg_topology_new": lambda: FgTopologyInfra(params)}
+    wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = sorted(set(wanted) - set(makers))
+    if unknown:
+        ap.error(f"unknown method {unknown[0]!r} (known: {', '.join(makers)})")
+    methods = {m: makers[m] for m in wanted}
     times = {}
     for name, make in methods.items():
         est = make()
@@ -52,6 +60,8 @@ def main(argv=None) -> int:
             est.step(f)
             dt[i] = time.perf_counter() - t
         times[name] = dt
+        if getattr(est, "stats", None):
+            print(f"{name}: " + ", ".join(f"{k} {v}" for k, v in est.stats.items()))
     head = "covered vehicles | steps | " + " | ".join(f"{m} ms/step (ms/veh)" for m in methods)
     print(head)
     for lo, hi in zip(edges[:-1], edges[1:]):

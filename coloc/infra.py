@@ -48,14 +48,25 @@ Per-method decisions (the papers describe a fixed set of vehicles):
 * ``fg_topology_new`` (Gulati et al.): per RSU a gtsam ``BatchFixedLagSmoother`` (LM) over the
   last ``fg_window_steps`` steps; states leave the window by the smoother's marginalisation (a
   Gaussian prior on the remaining states, not a plain drop). Factors: GPS unary (the position part
-  of the fix, covariance from the frame), odometry between factors (Gulati (4)-(5)), the new
-  topology factor (11)-(16) on the previous states moved by the odometry
-  (:func:`coloc.fg_topology._new_topology_error`), and, for the first state of a vehicle, its
-  tracker's predicted position belief (above). The topology factor of step t needs every detected
-  vehicle to have a state at t-1 at this RSU and finite odometry; otherwise it is skipped and
-  counted. Velocity is not in the graph: the reported velocity is the tracker's, and so is
-  the reported covariance (the batch fixed-lag smoother does not expose marginals cheaply; the
-  scores use the means only).
+  of the fix, covariance from the frame), odometry between factors (Gulati (4)-(5)), one
+  topology factor per step and RSU from its radar scan (pseudo-measurement and variance
+  (15)-(16), :mod:`coloc.topology`), and, for the first state of a vehicle, its tracker's
+  predicted position belief (above). The topology factor of step t is the new factor (11)-(13)
+  on the previous states moved by the odometry (:func:`coloc.fg_topology._new_topology_error`)
+  when every vehicle in range has a state at t-1 at this RSU and finite odometry
+  (``topology_updates_new``). Otherwise (a vehicle just entered the range) it is Gulati's old
+  factor (8) on the current states of all vehicles in range
+  (:func:`coloc.fg_topology._old_topology_error`; ``topology_updates_old``), which needs no
+  previous state: an entering vehicle's current state has its start belief and its fix. The
+  paper, with a fixed set of vehicles, does not have this case; mixing the two (11 on the
+  vehicles that have a previous state, 8 on the others) is not a factor of the paper either.
+  ``topology_updates`` counts both; a scan whose point count differs from the number of
+  vehicles in range gives neither (``topology_skipped``; never with the coupler's radar, which
+  detects every vehicle in range). On the arterial (seed 1, 600 s, README) a third of the
+  RSU-steps with two or more vehicles have an entering vehicle: 730 of 2257 (TLR), 802 of 2224
+  (VSR), which (11) alone skipped. Velocity is not in the graph: the reported velocity is the
+  tracker's, and so is the reported covariance (the batch fixed-lag smoother does not expose
+  marginals cheaply; the scores use the means only).
 """
 
 from __future__ import annotations
@@ -279,6 +290,9 @@ class FgTopologyInfra(_InfraBase):
         import gtsam  # only this method needs it
 
         self._gtsam = gtsam
+        # topology_updates = _new (factor (11)) + _old (fallback (8)); _skipped: neither could be formed.
+        self.stats = {"topology_updates": 0, "topology_updates_new": 0, "topology_updates_old": 0,
+                      "topology_skipped": 0}
         self._smoother: dict[int, object] = {}
         self._keys: dict[int, dict[str, int]] = {}  # r -> vehicle id -> key of its state at the last step
         self._next_key = 0
@@ -290,7 +304,7 @@ class FgTopologyInfra(_InfraBase):
         return gtsam.BatchFixedLagSmoother(float(self.params.fg_window_steps * dt), lm)
 
     def _rsu_step(self, frame, r, rows, prev, fallback):
-        from coloc.fg_topology import _new_topology_error
+        from coloc.fg_topology import _new_topology_error, _old_topology_error
 
         gtsam = self._gtsam
         infra = frame.infra
@@ -335,21 +349,31 @@ class FgTopologyInfra(_InfraBase):
                 init = p_prev + d
             values.insert(key, np.asarray(init, float))
             stamps[key] = float(frame.t)
-        # New topology factor (11)-(16) at step t on the states of t-1 (all detected vehicles need one).
+        # Topology factor of step t from this RSU's radar scan (pseudo-measurement z_t^2 and its
+        # variance (15)-(16), coloc.topology; the same for both factors below).
         n = rows.size
         if n >= 2:
             pts = infra.radar_z[infra.radar_owner == r]
-            ok = (pts.shape[0] == n and not new_rows and np.all(np.isfinite(odom)))
-            if ok:
+            if pts.shape[0] != n:
+                # The scan's points are not the vehicles in range: neither (8) nor (11) holds.
+                self.stats["topology_skipped"] += 1
+            else:
                 from coloc.topology import topology_pseudo_measurement
 
                 z2, var = topology_pseudo_measurement(pts, infra.radar_var)
                 noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
-                kp = [keys_prev[vid] for vid in ids]
-                graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
+                if not new_rows and np.all(np.isfinite(odom)):
+                    # New factor (11)-(13): sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2
+                    # on the N previous states (every vehicle in range has one here, and odometry d_t).
+                    kp = [keys_prev[vid] for vid in ids]
+                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
+                    self.stats["topology_updates_new"] += 1
+                else:
+                    # Fallback, old factor (8): sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2 on the N current
+                    # states, which every vehicle in range has (an entering one from its start belief).
+                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
+                    self.stats["topology_updates_old"] += 1
                 self.stats["topology_updates"] += 1
-            else:
-                self.stats["topology_skipped"] += 1
         ts = gtsam.FixedLagSmootherKeyTimestampMap()
         for k, t in stamps.items():
             ts.insert((k, t))

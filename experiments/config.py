@@ -34,8 +34,10 @@ range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
 road-side units at the junctions ``rsu_junctions`` of the net (checked against the net
 file), V2I range = radar range ``rsu_range_m``, radar and odometry noise, and the settings
 of the methods ``rsu_bp``, ``sme`` and ``fg_topology_new``, which need it. It is not one of
-``SECTIONS`` (sweeps cannot vary it) and a config without it resolves and runs exactly as
-before. ``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
+``SECTIONS`` (those are always present and written) but one of ``OPTIONAL_SECTIONS``: a config
+without it resolves and runs exactly as before; its keys can be overridden (``infra.KEY``, e.g. by
+a sweep) when the config has the table (an override does not create it).
+``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
 without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
 ``[icp]`` and ``[lc]`` (association, tracks).
 """
@@ -177,6 +179,9 @@ SECTIONS: dict[str, type] = {
     "pf": PfSection,
     "report": ReportSection,
 }
+
+#: Tables a config may leave out (then the Config field is None and nothing is written for them).
+OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection}
 
 
 def _allows_infinity(where: str) -> bool:
@@ -387,15 +392,17 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
     # A saved (resolved) config carries its provenance; it is informative, not input.
     data = {k: v for k, v in data.items() if k != "provenance"}
-    unknown = sorted(set(data) - set(SECTIONS) - {"infra"})
+    unknown = sorted(set(data) - set(SECTIONS) - set(OPTIONAL_SECTIONS))
     if unknown:
-        raise InputError(path, unknown[0], f"unknown table (known: {', '.join(SECTIONS)}, infra)")
+        raise InputError(path, unknown[0], f"unknown table (known: {', '.join([*SECTIONS, *OPTIONAL_SECTIONS])})")
     for name, table in data.items():
         if not isinstance(table, dict):
             raise InputError(path, name, "expected a table")
     data = {k: dict(v) for k, v in data.items()}
     for dotted, value in (overrides or {}).items():
         sec, key = dotted.split(".")
+        if sec in OPTIONAL_SECTIONS and sec not in data:
+            raise InputError(path, dotted, f"the config has no [{sec}] table: add one to it to set its keys")
         data.setdefault(sec, {})[key] = value
     if "run" not in data:
         raise InputError(path, "run", "required table missing")
@@ -417,8 +424,9 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     if "sensing_range_m" not in data.get("lc", {}):
         sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=sections["sensors"].v2f_range_m)
         notes.append(("lc.sensing_range_m", "= sensors.v2f_range_m (the V2F range Rs in force)"))
-    if "infra" in data:
-        sections["infra"] = section_from_table(InfraSection, data["infra"], "infra", path)
+    for name, cls in OPTIONAL_SECTIONS.items():
+        if name in data:
+            sections[name] = section_from_table(cls, data[name], name, path)
     cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg

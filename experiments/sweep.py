@@ -16,6 +16,11 @@ A sweep file names a base run config, the seeds and a grid of parameters::
     "crossroad.n_features" = [3, 10, 20, 60]
     "lc.eta_threshold" = [0.5, 1.0]
 
+Any key of a run config's tables can be swept or set, including the optional ``[infra]``
+(e.g. ``"infra.rsu_range_m" = [40.0, 70.0, 100.0]``; the base config must have the ``[infra]``
+table: a sweep varies infrastructure mode, it does not switch it on). Every run's config is
+validated before anything runs and saved fully resolved in its run folder (``config.toml``).
+
 Every run is an ordinary run (:func:`experiments.runner.run_experiment`, without
 the per-run HTML report) written to ``DIR/runs/<run_id>/`` where run_id is
 built from the swept values and the seed (e.g.
@@ -35,7 +40,9 @@ Outputs, computed from the run files only and byte-identical for the same
 sweep (sorted rows, no timestamps):
 
 * ``DIR/sweep.parquet``: one row per (run, method): run_id, seed, every swept
-  parameter as a column named by its dotted key, the summary numbers.
+  parameter as a column named by its dotted key, the summary numbers; when runs have
+  ``[infra]``, also ``covered_rmse_pos_m``, ``covered_p95_pos_m`` and ``covered_n``: the
+  summary's ``within_rsu_coverage`` (every method on the same covered vehicle-steps of a run).
 * ``DIR/curves.parquet``: per (setting, method) aggregates over the Monte Carlo
   runs, one ``curve`` kind per figure of Brambilla Sec. V:
   ``time`` (RMSE over time, Fig. 7: x = t), ``feature_time`` (feature RMSE
@@ -72,13 +79,14 @@ import numpy as np
 import pandas as pd
 
 from couplers.errors import InputError, read_toml
-from experiments.config import SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
 CURVE_KINDS = ("time", "feature_time", "distance", "association", "overall", "feature_overall")
+COVERED_COLUMNS = ("rmse_pos_m", "p95_pos_m", "n")  # sweep.parquet "covered_*" (summary within_rsu_coverage)
 
 
 # --------------------------------------------------------------------------- #
@@ -125,10 +133,11 @@ def _flatten(table: dict, prefix: str = "") -> dict:
 
 def _check_dotted(dotted: str, path: Path, where: str) -> None:
     parts = dotted.split(".")
-    if len(parts) != 2 or parts[0] not in SECTIONS:
+    tables = {**SECTIONS, **OPTIONAL_SECTIONS}
+    if len(parts) != 2 or parts[0] not in tables:
         raise InputError(path, where, f"unknown parameter {dotted!r}: expected \"table.key\" with a table among "
-                                      f"{', '.join(SECTIONS)}")
-    names = [f.name for f in dataclasses.fields(SECTIONS[parts[0]])]
+                                      f"{', '.join(tables)}")
+    names = [f.name for f in dataclasses.fields(tables[parts[0]])]
     if parts[1] not in names:
         raise InputError(path, where, f"unknown parameter {dotted!r} (keys of [{parts[0]}]: {', '.join(names)})")
     if dotted in FORBIDDEN_KEYS:
@@ -446,18 +455,23 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     import pyarrow.parquet as pq
 
     summary = json.loads((run_dir / "summary.json").read_text())
+    coverage = summary.get("within_rsu_coverage")
     rows = []
     for method, block in summary["methods"].items():
         assoc = (summary.get("association") or {}).get(method) or {}
         feat = block.get("features") or {}
-        rows.append({
+        row = {
             "method": method,
             "rmse_pos_m": block.get("rmse_pos_m"), "rmse_vel_mps": block.get("rmse_vel_mps"),
             "p50_pos_m": block.get("p50_pos_m"), "p95_pos_m": block.get("p95_pos_m"), "n": block.get("n"),
             "correct_pct": assoc.get("correct_pct"), "wrong_pct": assoc.get("wrong_pct"),
             "discarded_pct": assoc.get("discarded_pct"),
             "feature_rmse_pos_m": feat.get("rmse_pos_m"),
-        })
+        }
+        if coverage is not None:  # infrastructure mode: the same covered vehicle-steps for every method
+            cb = coverage["methods"].get(method) or {}
+            row.update({f"covered_{k}": cb.get(k) for k in COVERED_COLUMNS})
+        rows.append(row)
     est = pq.read_table(run_dir / "estimates.parquet",
                         columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true"]).to_pandas()
     est["method"] = est["method"].astype(str)
@@ -520,8 +534,12 @@ def aggregate(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> tu
     front = pd.DataFrame({"run_id": sweep["run_id"].astype("string"), "seed": sweep["seed"].astype("int64"), **params})
     numeric = ["rmse_pos_m", "rmse_vel_mps", "p50_pos_m", "p95_pos_m", "correct_pct", "wrong_pct",
                "discarded_pct", "feature_rmse_pos_m"]
-    table = pd.concat([front, sweep[["method"]].astype("string"),
-                       sweep[numeric].astype("float64"), sweep[["n"]].astype("int64")], axis=1)
+    blocks = [front, sweep[["method"]].astype("string"), sweep[numeric].astype("float64"),
+              sweep[["n"]].astype("int64")]
+    if "covered_n" in sweep.columns:  # some run has [infra]: within-coverage columns (NaN / 0 for runs without)
+        blocks += [sweep[[f"covered_{k}" for k in COVERED_COLUMNS if k != "n"]].astype("float64"),
+                   sweep[["covered_n"]].fillna(0).astype("int64")]
+    table = pd.concat(blocks, axis=1)
 
     # curves.parquet
     n_runs = np.bincount([r.setting for r in runs], minlength=1 + max((r.setting for r in runs), default=0))

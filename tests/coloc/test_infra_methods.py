@@ -56,13 +56,16 @@ def test_finite_estimates_and_covered_flags(method, frames):
     assert n_cov > 100  # the scenario does put vehicles in range
     if method != "rsu_bp":
         assert est.stats["topology_updates"] > 10
+    if method == "fg_topology_new":
+        st = est.stats
+        assert st["topology_updates"] == st["topology_updates_new"] + st["topology_updates_old"]
 
 
 @pytest.mark.parametrize("method", sorted(CLASSES))
 def test_cooperation_beats_gnss_within_coverage(method, frames):
     """GNSS 3 m, radar 0.3 m, features along the road: each method is better than the tracker where covered
-    (measured: tracker 1.18 m, rsu_bp 0.97, sme 1.08, fg_topology_new 1.10; the tracker also has the 0.1 m/s
-    velocity fix, so the radar's single topology scalar per step gains little)."""
+    (measured: tracker 1.18 m, rsu_bp 0.97, sme 1.08, fg_topology_new 1.06, 1.10 without the fallback (8);
+    the tracker also has the 0.1 m/s velocity fix, so the radar's single topology scalar per step gains little)."""
     rmse_gnss, n = _covered_rmse(frames, _run(GnssTracker(motion=MOTION), frames))
     rmse, n2 = _covered_rmse(frames, _run(CLASSES[method](_params()), frames))
     assert n == n2 > 100
@@ -148,3 +151,63 @@ def test_sme_cap_skips_topology_and_falls_back():
     # Rows over the cap carry the tracker estimate and covered = False.
     assert any((home_rsu(f.infra.v2i) >= 0).sum() > r.covered.sum() for f, r in zip(frames, res))
     assert all(r.covered.sum() <= 2 for r in res)
+
+
+def _expected_topology_kinds(frames):
+    """Per (step, RSU) with >= 2 vehicles in range: "new" when each was in range of that RSU at the
+    previous step (factor (11) can be formed), else "old" (fallback (8)); from the frames alone."""
+    kinds = []
+    prev = {}
+    for f in frames:
+        v2i = f.infra.v2i
+        for r in range(f.infra.n_rsu):
+            rows = v2i.indices[v2i.indptr[r]:v2i.indptr[r + 1]]
+            now = {f.vehicle_ids[i] for i in rows}
+            if rows.size >= 2:
+                entering = any(f.vehicle_ids[i] not in prev.get(r, set()) or f.entered[i] for i in rows)
+                kinds.append("old" if entering else "new")
+            prev[r] = now
+    return kinds
+
+
+def test_fg_falls_back_to_the_old_factor_when_a_vehicle_enters(frames):
+    """A vehicle entering an RSU's range has no state at t-1 there, so (11) cannot be formed: that step
+    gets the old factor (8) on the current states instead; every other step gets (11); none is skipped."""
+    kinds = _expected_topology_kinds(frames)
+    assert kinds.count("old") >= 5 and kinds.count("new") >= 10  # the scenario has both
+    est = FgTopologyInfra(_params())
+    _run(est, frames)
+    assert est.stats == {"topology_updates": len(kinds), "topology_updates_new": kinds.count("new"),
+                         "topology_updates_old": kinds.count("old"), "topology_skipped": 0}
+
+
+def test_fg_uses_the_new_factor_when_every_vehicle_stays_in_range():
+    """All vehicles in range throughout: (8) only at the first step (all enter), (11) at every later one."""
+    frames = infra_frames(n_steps=10, n_veh=4, start=-20.0, spacing=10.0)
+    assert all(np.all(np.hypot(*f.truth.x_true[:, :2].T) < 70.0) for f in frames)
+    est = FgTopologyInfra(_params())
+    _run(est, frames)
+    assert est.stats == {"topology_updates": 10, "topology_updates_new": 9, "topology_updates_old": 1,
+                         "topology_skipped": 0}
+
+
+def test_fg_old_factor_pulls_the_current_states_to_the_radar_topology():
+    """First step (every vehicle enters): the fallback (8) is the only topology information. The estimate's
+    sum of squared pairwise distances is closer to the radar's z^2 than without it (radar scan cut by one
+    point, which skips both factors)."""
+    from coloc.topology import sum_sq_pairwise, topology_pseudo_measurement
+
+    f0 = infra_frames(n_steps=1, n_veh=4, start=-20.0, spacing=10.0)[0]
+    cut = replace(f0, infra=replace(f0.infra, radar_z=f0.infra.radar_z[:-1], radar_owner=f0.infra.radar_owner[:-1]))
+    with_old, without = FgTopologyInfra(_params()), FgTopologyInfra(_params())
+    a = with_old.step(f0.without_truth())
+    b = without.step(cut.without_truth())
+    assert with_old.stats["topology_updates_old"] == 1 and without.stats["topology_skipped"] == 1
+    assert without.stats["topology_updates"] == 0
+    z2, var = topology_pseudo_measurement(f0.infra.radar_z, f0.infra.radar_var)
+    res_a = abs(float(sum_sq_pairwise(a.mean[:, :2])) - z2)
+    res_b = abs(float(sum_sq_pairwise(b.mean[:, :2])) - z2)
+    assert res_a < 0.5 * res_b, (res_a, res_b, np.sqrt(var))
+    # The truth's own topology is closer too (the radar is 0.3 m, GNSS 3 m).
+    true2 = float(sum_sq_pairwise(f0.truth.x_true[:, :2]))
+    assert abs(float(sum_sq_pairwise(a.mean[:, :2])) - true2) < abs(float(sum_sq_pairwise(b.mean[:, :2])) - true2)

@@ -144,7 +144,7 @@ def test_shipped_infra_configs_end_to_end(tmp_path, control):
     assert set(cov["rsu_vehicle_steps"]) == {"JP1", "JP2", "JP3"}
     rmse = {m: b["rmse_pos_m"] for m, b in cov["methods"].items()}
     # Measured (seed 1, the whole 600 s), RMSE within coverage [m]: TLR gnss 2.19, icp_da_lc 0.49, rsu_bp 0.95,
-    # sme 2.10, fg_topology_new 1.75; VSR gnss 2.17, icp_da_lc 0.64, rsu_bp 1.01, sme 1.84, fg 1.71.
+    # sme 2.10, fg_topology_new 1.68; VSR gnss 2.17, icp_da_lc 0.64, rsu_bp 1.01, sme 1.84, fg 1.58.
     for m in ("icp_da_lc", "rsu_bp", "sme", "fg_topology_new"):
         assert rmse[m] < rmse["gnss"], rmse
     assert "Within RSU coverage" in (out / "report.html").read_text()

@@ -285,3 +285,84 @@ sigma_cross = 0.1
     assert len(table) == 4 and list(table["scenario.control"]) == ["tlr", "tlr", "vsr", "vsr"]
     assert set(pd.read_parquet(out / "curves.parquet")["curve"]) == {"time", "overall"}
     assert len(pd.read_parquet(out / "runs" / "control=vsr,seed=2" / "traffic.parquet")) > 0
+
+
+# --------------------------------------------------------------------------- [infra] keys
+
+
+INFRA_BASE = """
+[run]
+name = "cross_infra"
+duration_s = {duration}
+methods = {methods}
+[scenario]
+kind = "sumo"
+net_dir = "{net}"
+[motion]
+sigma_cross = 0.1
+{infra}
+"""
+
+INFRA_TABLE = """
+[infra]
+rsu_junctions = ["C"]
+rsu_range_m = 80.0
+"""
+
+
+def write_infra_sweep(tmp: Path, net, grid='"infra.rsu_range_m" = [40.0, 120.0]', more="", infra=INFRA_TABLE,
+                      methods='["gnss", "sme"]', duration=40.0) -> Path:
+    (tmp / "base.toml").write_text(INFRA_BASE.format(duration=duration, net=net, infra=infra, methods=methods))
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1]", more=more, grid=grid))
+    return path
+
+
+@pytest.mark.parametrize("kwargs, field, needle", [
+    (dict(grid='"infra.range" = [40.0]'), "sweep.grid.infra.range", "keys of [infra]"),
+    (dict(grid='"infra.rsu_range_m" = [40.0, -1.0]'), "sweep.grid.infra.rsu_range_m[1]", "positive"),
+    (dict(grid='"infra.rsu_junctions" = [["C"], ["C", "X9"]]'), "sweep.grid.infra.rsu_junctions[1]", "X9"),
+    (dict(grid='"infra.rsu_range_m" = [40.0]', infra="", methods='["gnss"]'), "sweep.grid.infra.rsu_range_m[0]",
+     "no [infra] table"),
+    (dict(grid='"infra.rsu_range_m" = [40.0]', infra="", methods='["gnss"]',
+          more='[sweep.set]\n"infra.rsu_junctions" = ["C"]'), "sweep.set.infra.rsu_junctions", "no [infra] table"),
+    (dict(more='[sweep.set]\n"infra.sme_max_vehicles" = 0'), "sweep.set.infra.sme_max_vehicles", ">= 1"),
+])
+def test_bad_infra_sweep_names_the_field(cross_net, tmp_path, kwargs, field, needle):
+    path = write_infra_sweep(tmp_path, cross_net, **kwargs)
+    with pytest.raises(InputError) as err:
+        expand_runs(load_sweep(path))
+    assert err.value.path == str(path) and err.value.field == field and needle in err.value.message
+
+
+def test_infra_sweep_runs_and_reports_within_coverage(cross_net, tmp_path):
+    """Two short SUMO runs sweeping the RSU range: each run's saved config is the resolved one with its
+    range, and sweep.parquet has the within-coverage columns (more covered vehicle-steps at 120 m)."""
+    import tomllib
+
+    from experiments.sweep import run_sweep
+
+    spec = write_infra_sweep(tmp_path, cross_net)
+    out = tmp_path / "out"
+    assert run_sweep(spec, out, workers=1, progress=False, write_report=False).computed == 2
+    for r in (40.0, 120.0):
+        saved = tomllib.loads((out / "runs" / f"rsu_range_m={r},seed=1" / "config.toml").read_text())
+        assert saved["infra"]["rsu_range_m"] == r and saved["infra"]["rsu_junctions"] == ["C"]
+        assert saved["infra"]["fg_window_steps"] == 8  # fully resolved: defaults spelled out
+    table = pd.read_parquet(out / "sweep.parquet")
+    assert list(table["infra.rsu_range_m"]) == [40.0, 40.0, 120.0, 120.0]
+    assert list(table["method"]) == ["gnss", "sme"] * 2
+    assert {"covered_rmse_pos_m", "covered_p95_pos_m", "covered_n"} <= set(table.columns)
+    n = table.groupby("infra.rsu_range_m")["covered_n"].agg(["min", "max"])
+    assert (n["min"] == n["max"]).all() and 0 < n.loc[40.0, "min"] < n.loc[120.0, "min"]  # same rows per method
+    assert table["covered_rmse_pos_m"].notna().all()
+
+
+def test_shipped_infra_range_sweep_is_valid():
+    spec = load_sweep(PROJECT / "experiments" / "sweeps" / "infra_range.toml")
+    _, runs = expand_runs(spec)
+    assert len(runs) == 9 and runs[0].run_id == "rsu_range_m=40.0,seed=1"
+    assert sorted({r.cfg.infra.rsu_range_m for r in runs}) == [40.0, 70.0, 100.0]
+    assert {r.cfg.run.duration_s for r in runs} == {300.0} and {r.seed for r in runs} == {1, 2, 3}
+    assert {r.cfg.infra.rsu_junctions for r in runs} == {("JP1", "JP2", "JP3")}
+    assert set(runs[0].cfg.run.methods) == {"gnss", "rsu_bp", "sme", "fg_topology_new"}
