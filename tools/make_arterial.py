@@ -35,6 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from couplers.netbuild import CONFIG_NAME, NET_NAME, build_net  # noqa: E402
+from couplers.netfolder import NET_CRS as CRS  # noqa: E402
 
 # --------------------------------------------------------------------------
 # Geometry
@@ -455,7 +456,6 @@ def strips(spec, prop):
     return feats
 
 
-CRS = {"type": "name", "properties": {"name": "urn:coloc:sumo-net-xy"}}
 
 
 def write_geojson(path: Path, features: list[dict]) -> None:
