@@ -1139,9 +1139,10 @@ def import_net(opts: ImportOptions,
             if user.crs == "wgs84":
                 geojson_to_net_xy(user.doc, src_georef, user.src, user.how)
     parent = opts.out.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
+    created = _make_dirs(parent)  # removed again (if still empty) when the import fails
     work = Path(tempfile.mkdtemp(prefix=f".{opts.name}-import-", dir=parent))
     extra_tmp: list[tuple[Path, Path]] = []
+    done = False
     try:
         net_path = _netconvert(opts, work, report)
         t_net = time.perf_counter() - t0
@@ -1267,7 +1268,7 @@ def import_net(opts: ImportOptions,
         if finalize is not None:
             for dest, text in finalize(result).items():
                 dest = Path(dest)
-                dest.parent.mkdir(parents=True, exist_ok=True)
+                created += _make_dirs(dest.parent)
                 if dest.exists() and not opts.force:
                     raise InputError(dest, None, "already exists (pass --force to replace it)")
                 fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}-", dir=dest.parent)
@@ -1289,12 +1290,27 @@ def import_net(opts: ImportOptions,
             os.chmod(tmp, 0o666 & ~umask)
             os.replace(tmp, dest)
         extra_tmp.clear()
+        done = True
         return result
     finally:
         if work.exists():
             shutil.rmtree(work, ignore_errors=True)
         for tmp, _ in extra_tmp:
             tmp.unlink(missing_ok=True)
+        if not done:
+            for d in reversed(created):
+                try:
+                    d.rmdir()
+                except OSError:  # not empty (someone else's files) or already gone
+                    pass
+
+
+def _make_dirs(path: Path) -> list[Path]:
+    """``mkdir -p path``; returns the folders it created, outermost first."""
+    path = Path(path).resolve()
+    missing = [p for p in (path, *path.parents) if not p.exists()][::-1]
+    path.mkdir(parents=True, exist_ok=True)
+    return missing
 
 
 def _busiest_area(areas, lane_lines: list) -> str:

@@ -176,8 +176,8 @@ def _expect_error(tmp_path, match: str, **kw) -> InputError:
     parent.mkdir(exist_ok=True)
     before = _no_leftovers(parent)
     with pytest.raises(InputError, match=match) as exc:
-        import_net(ImportOptions(name="bad", out=parent / "bad", **kw))
-    assert _no_leftovers(parent) == before  # no folder, no temporary folder
+        import_net(ImportOptions(name="bad", out=parent / "new" / "bad", **kw))
+    assert _no_leftovers(parent) == before  # no folder, no temporary folder, no created parent ("new")
     return exc.value
 
 
