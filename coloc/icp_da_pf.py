@@ -416,6 +416,10 @@ def pf_bpa_localization(
     flat_e = np.zeros(e, bool)  # entries whose cavity is the newborn prior alone
     if track_flat is not None:
         flat_e = np.asarray(track_flat, bool)[entry_track] & (n_obs[entry_track] == 1)
+    flat_m = None  # their messages m_{k->i}: fixed, whatever the iteration
+    if flat_e.any():
+        flat_m = _flat_prior_messages(vehicle_particles, flat_e, entry_vehicle, term_entry, t_z, t_r, term_log_c,
+                                      params.feature_velocity_prior_sigma)
     log_m_vf = np.zeros((e, jf))
     v_mean, _ = weighted_moments(vehicle_particles, logb_v)
     f_mean, _ = weighted_moments(track_particles[entry_track], log_b0_e)
@@ -437,9 +441,8 @@ def pf_bpa_localization(
         t_out, p2 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
                                     t_vehicle, t_z, r_from_f, pf.kernel, pf.kernel_rel_tol)
         log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
-        if flat_e.any():
-            log_m_fv[flat_e] = _flat_prior_messages(vehicle_particles, flat_e, entry_vehicle, term_entry, t_z, t_r,
-                                                    term_log_c, params.feature_velocity_prior_sigma)
+        if flat_m is not None:
+            log_m_fv[flat_e] = flat_m
         pairs += int(p1.sum() + p2.sum())
         # (27): b_i = b_i^(0) prod_k m_{k->i}.
         acc = vehicle_log_b0.copy()
@@ -632,7 +635,7 @@ def icp_da_pf_step(
         log_new = np.zeros(0)
         if pr.size:
             r_eta = r[pr]
-            if pf.message_bandwidth != "none":  # both clouds as kernel density estimates
+            if pf.message_bandwidth == "prior":  # both clouds as kernel density estimates
                 r_eta = (r_eta + kernel_bandwidth(t_particles, t_logw)[pt]
                          + kernel_bandwidth(assoc_particles, assoc_logw)[pv])
             g, _ = transform_batch(t_particles, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), assoc_particles,
