@@ -195,17 +195,20 @@ def _vehicle_entity(vehicle_id) -> int:
 
 def normalize_log(logw: np.ndarray) -> np.ndarray:
     """Log-weights normalised along the last axis (log-sum-exp = 0), floored at -700."""
-    out = logw - logsumexp(logw, axis=-1, keepdims=True)
-    return np.maximum(out, _LOG_FLOOR)
+    top = np.max(logw, axis=-1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore"):
+        lse = top + np.log(np.sum(np.exp(logw - top), axis=-1, keepdims=True))
+    return np.maximum(logw - lse, _LOG_FLOOR)
 
 
 def weighted_moments(particles: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J)."""
     w = np.exp(normalize_log(logw))
     w /= w.sum(-1, keepdims=True)
-    mean = np.einsum("...j,...ja->...a", w, particles)
+    mean = (w[..., None, :] @ particles)[..., 0, :]
     d = particles - mean[..., None, :]
-    cov = np.einsum("...j,...ja,...jb->...ab", w, d, d)
+    cov = np.swapaxes(d * w[..., None], -1, -2) @ d
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2)) + 1e-9 * np.eye(4)
     return mean, cov
 
