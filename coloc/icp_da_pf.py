@@ -94,6 +94,7 @@ from scipy.stats import chi2
 from coloc.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
 from coloc.frame import Frame, StepEstimate
 from coloc.icp import IcpParams, consensus_graph, row_components
+from coloc.logspace import logsumexp as plain_logsumexp
 from coloc.icp_da_lc import (
     LcParams,
     _log_gauss,
@@ -195,17 +196,21 @@ def _vehicle_entity(vehicle_id) -> int:
 
 def normalize_log(logw: np.ndarray) -> np.ndarray:
     """Log-weights normalised along the last axis (log-sum-exp = 0), floored at -700."""
-    top = np.max(logw, axis=-1, keepdims=True)
-    top = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        lse = top + np.log(np.sum(np.exp(logw - top), axis=-1, keepdims=True))
-    return np.maximum(logw - lse, _LOG_FLOOR)
+    return np.maximum(logw - plain_logsumexp(logw, axis=-1, keepdims=True), _LOG_FLOOR)
+
+
+def _linear_weights(logw: np.ndarray) -> np.ndarray:
+    """Weights summing to one along the last axis, from log-weights."""
+    w = np.exp(normalize_log(logw))
+    return w / w.sum(-1, keepdims=True)
 
 
 def weighted_moments(particles: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J)."""
-    w = np.exp(normalize_log(logw))
-    w /= w.sum(-1, keepdims=True)
+    return _moments(particles, _linear_weights(logw))
+
+
+def _moments(particles: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean = (w[..., None, :] @ particles)[..., 0, :]
     d = particles - mean[..., None, :]
     cov = np.swapaxes(d * w[..., None], -1, -2) @ d
@@ -231,10 +236,9 @@ def silverman_factor(j, d: int = 4):
 def kernel_bandwidth(particles: np.ndarray, logw: np.ndarray) -> np.ndarray:
     """Kernel covariance h^2 Cov_w of weighted particle sets (..., J, 4): Silverman's rule
     (:func:`silverman_factor`) with the effective sample size 1 / sum w^2 for J."""
-    w = np.exp(normalize_log(logw))
-    w /= w.sum(-1, keepdims=True)
+    w = _linear_weights(logw)
     ess = 1.0 / np.einsum("...j,...j->...", w, w)
-    _, cov = weighted_moments(particles, logw)
+    _, cov = _moments(particles, w)
     return silverman_factor(ess)[..., None, None] * cov
 
 

@@ -48,6 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from coloc.logspace import logsumexp
+
 
 @dataclass(frozen=True)
 class RsuBpParams:
@@ -155,17 +157,6 @@ def _precisions(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("V2F covariances must be positive definite")
     prec = np.stack([cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det], axis=1)
     return np.ascontiguousarray(prec), -np.log(2.0 * np.pi) - 0.5 * np.log(det)
-
-
-def logsumexp(x: np.ndarray, axis: int | None = None, keepdims: bool = False) -> np.ndarray:
-    """log sum exp over ``axis`` (plain numpy: scipy's is ~0.5 ms per call, called ~50 times per step);
-    all -inf gives -inf."""
-    x = np.asarray(x, dtype=float)
-    top = np.max(x, axis=axis, keepdims=True)
-    top = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        out = np.log(np.sum(np.exp(x - top), axis=axis, keepdims=True)) + top
-    return out if keepdims else (np.squeeze(out, axis=axis) if axis is not None else out.reshape(()))
 
 
 def _normalize(logw: np.ndarray, axis: int = -1) -> np.ndarray:
