@@ -57,6 +57,17 @@ def topology_variance(z2_true: float | np.ndarray, n: int, var: float) -> float 
     return 4.0 * n * var * np.maximum(z2_true, 0.0) + 4.0 * (n - 1) * n * n * var * var
 
 
+def topology_variance_eq16_literal(n: int, var: float) -> float:
+    """Gulati (15) with M of (16) read literally: the gradient of z_t^T itself, not of (z_t^T)^2.
+
+    z = sqrt(S) with S = sum_{i<j} |q_i - q_j|^2, grad z = grad S / (2 z) and |grad S|^2 = 4 N S, so
+    M Cov M' = var |grad z|^2 = N var for any configuration (S > 0): the variance of the distance-like
+    z, not of the squared quantity that factor (13) compares. Used only by the opt-in
+    ``topology_noise = "eq16_literal"`` of :mod:`coloc.fg_topology`.
+    """
+    return float(n * var)
+
+
 def topology_pseudo_measurement(sensor_points: np.ndarray, var: float) -> tuple[float, float]:
     """Bias-corrected topology pseudo-measurement of one scan (N, 2) and its variance.
 

@@ -39,10 +39,10 @@ import numpy as np
 import pandas as pd
 
 from couplers.errors import InputError
-from coloc.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
+from coloc.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
 from experiments.runner import write_parquet
 from experiments.studies.study_config import (
-    AtomicOutput, Key, at_least, git_revision, non_negative, positive, resolve, resolved_toml,
+    AtomicOutput, Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )
 
 METHODS = ("fg_topology_new", "fg_topology_old", "kf_gps_odom", "fg_gps_odom")
@@ -94,6 +94,9 @@ SPEC = {
         "max_iterations": Key(100, "int", at_least(1), "Levenberg-Marquardt"),
         "relative_error_tol": Key(1e-5, "float", positive),
         "absolute_error_tol": Key(1e-5, "float", positive),
+        "topology_noise": Key("z2", "str", one_of(*TOPOLOGY_NOISES),
+                              "noise of the topology factors: 'z2' = variance of z^2 ((15) with M the gradient of "
+                              "z^2, + 2nd-order term); 'eq16_literal' = (16) as printed (gradient of z: N radar_var)"),
     },
 }
 

@@ -8,17 +8,19 @@
 * seeded Monte Carlo: both topology graphs beat the Kalman filter.
 """
 
+import gtsam
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from coloc.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
+from coloc.fg_topology import FgTopologyParams, build_graph, fg_localize, kf_gps_odom, run_rmse
 from coloc.topology import (
     sum_sq_pairwise,
     sum_sq_pairwise_grad,
     topology_bias,
     topology_pseudo_measurement,
     topology_variance,
+    topology_variance_eq16_literal,
 )
 from experiments.studies.fg_topology import FgScenario, simulate_run
 
@@ -178,3 +180,39 @@ def test_monte_carlo_topology_beats_kalman_filter():
     assert m["old"] < m["kf"] - 0.5
     assert m["new"] < m["kf"] - 0.5
     assert m["old"] < m["none"]
+
+
+def test_eq16_literal_variance_is_m_cov_m_with_m_the_gradient_of_z():
+    """(15)-(16) as printed: M = d z / d(x_1..x_n, y_1..y_n) of z = sqrt(z^2), so M Cov M' = N var."""
+    rng = np.random.default_rng(6)
+    for n in (2, 3, 4):
+        q = rng.normal(0, 30, (n, 2))
+        z = np.sqrt(sum_sq_pairwise(q))
+        m = (sum_sq_pairwise_grad(q) / (2 * z)).T.reshape(-1)
+        h = 1e-6
+        num = np.empty(2 * n)
+        for a in range(2):
+            for i in range(n):
+                dq = np.zeros_like(q)
+                dq[i, a] = h
+                num[a * n + i] = (np.sqrt(sum_sq_pairwise(q + dq)) - np.sqrt(sum_sq_pairwise(q - dq))) / (2 * h)
+        np.testing.assert_allclose(m, num, rtol=1e-6)
+        assert m @ (0.1 * np.eye(2 * n)) @ m == pytest.approx(topology_variance_eq16_literal(n, 0.1), rel=1e-9)
+
+
+@pytest.mark.parametrize("topology", ["old", "new"])
+def test_topology_noise_option_sets_the_factor_sigma(topology):
+    data, _ = small_run(n_veh=3, n_steps=6, seed=7)
+    for noise in ("z2", "eq16_literal"):
+        params = FgTopologyParams(topology_noise=noise)
+        graph = build_graph(data.gps, data.odom, data.sensor, params, topology)
+        sig = [graph.at(k).noiseModel().sigmas()[0] for k in range(graph.size())
+               if isinstance(graph.at(k), gtsam.CustomFactor)]
+        t0 = 0 if topology == "old" else 1
+        if noise == "z2":
+            want = [np.sqrt(topology_pseudo_measurement(data.sensor[t], params.radar_var)[1]) for t in range(t0, 6)]
+        else:
+            want = [np.sqrt(3 * params.radar_var)] * (6 - t0)
+        np.testing.assert_allclose(sig, want, rtol=1e-12)
+    with pytest.raises(ValueError):
+        build_graph(data.gps, data.odom, data.sensor, FgTopologyParams(topology_noise="z"), topology)

@@ -92,6 +92,7 @@ def test_fg_study_end_to_end_and_independent_of_workers(tmp_path, capsys):
         (SME.format(extra="[filter]\npseudo_noise = \"ukf\""), "filter.pseudo_noise", "must be one of"),
         (FG.format(workers=1, extra="[sensors]\nradar_var = \"small\""), "sensors.radar_var", "expected a number"),
         (FG.format(workers=1, extra="[solver]\nmax_iterations = 0"), "solver.max_iterations", "must be >= 1"),
+        (FG.format(workers=1, extra="[solver]\ntopology_noise = \"z\""), "solver.topology_noise", "must be one of"),
         (FG.format(workers=1, extra="[extras]\nx = 1"), "extras", "unknown table"),
         (FG.format(workers=0, extra=""), "study.workers", "must be >= 1"),
         ("[study]\nkind = \"fg_topology\"\nvehicles = [1]\n", "study.vehicles", ">= 2"),
@@ -117,6 +118,7 @@ def test_shipped_study_configs_resolve():
     f = resolve(tomllib.loads((PROJECT / "experiments/fg_topology.toml").read_text()), Path("x"), fg_topology.SPEC)
     assert f["sensors"] == {"odom_var": 1.0, "gps_var": 9.0, "radar_var": 0.1}
     assert f["study"]["runs"] == 1000 and f["study"]["vehicles"] == [2, 3, 4] and f["scenario"]["n_steps"] == 250
+    assert f["solver"]["topology_noise"] == "z2"
     s = resolve(tomllib.loads((PROJECT / "experiments/sme.toml").read_text()), Path("x"), sme.SPEC)
     assert s["sensors"] == {"gps_var": 50.0, "sensor_var": 10.0}
     assert s["scenario"]["process_sigma"] == 0.5 and s["scenario"]["dt"] == 1.0
