@@ -77,6 +77,10 @@ class FgTopologyParams:
     absolute_error_tol: float = 1e-5
     topology_noise: str = "z2"
 
+    def __post_init__(self):
+        if self.topology_noise not in TOPOLOGY_NOISES:
+            raise ValueError(f"topology_noise must be one of {TOPOLOGY_NOISES}, not {self.topology_noise!r}")
+
 
 def state_key(vehicle: int, t: int, n_steps: int) -> int:
     """gtsam key of p_t^i."""
@@ -136,8 +140,6 @@ def build_graph(
         return graph
     if topology not in ("old", "new"):
         raise ValueError(f"topology must be 'old', 'new' or 'none', not {topology!r}")
-    if params.topology_noise not in TOPOLOGY_NOISES:
-        raise ValueError(f"topology_noise must be one of {TOPOLOGY_NOISES}, not {params.topology_noise!r}")
     for t in range(n_steps):
         if topology == "new" and t == 0:
             continue  # (11) needs a previous state and an odometry reading
