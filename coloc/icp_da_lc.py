@@ -55,7 +55,7 @@ from scipy.stats import chi2
 
 from coloc.association import association_marginals_batch
 from coloc.frame import Frame, StepEstimate
-from coloc.icp import FeatureStore, IcpParams, bpa_localization, vehicle_codes
+from coloc.icp import FeatureStore, IcpParams, bpa_localization, step_feature_beliefs, vehicle_codes
 from coloc.icp_kernels import log_gauss_kernel
 from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
 from coloc.vehicles import match_ids
@@ -446,7 +446,8 @@ def icp_da_lc_step(
         row_track = np.where(hit, into[order][pos], row_track)
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()), born, int((row_track < 0).sum()), int(absorbed.size),
                       res.iterations)
-    return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store), next_id, info
+    beliefs = step_feature_beliefs(store, params, row_track[used], res)
+    return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs), next_id, info
 
 
 @dataclass

@@ -27,9 +27,12 @@ Per step:
    feature seen for the first time starts from the birth prior (uniform by
    default);
 3. BPA-L iterations until the stopping rule of Sec. V-A;
-4. each observing vehicle's final message replaces its previous one in the
-   track (:class:`coloc.icp.FeatureStore`); tracks nobody observed are
-   predicted every step and dropped after ``feature_drop_after_s``.
+4. each observing vehicle's message (its own-sensor one by default,
+   ``IcpParams.feature_message``) replaces its previous one in the track
+   (:class:`coloc.icp.FeatureStore`); tracks nobody observed are predicted
+   every step and dropped after ``feature_drop_after_s``. The step's feature
+   estimates are the beliefs (20) with BPA-L's final messages
+   (:func:`coloc.icp.step_feature_beliefs`).
 """
 
 from __future__ import annotations
@@ -40,7 +43,9 @@ import numpy as np
 
 from coloc.frame import Frame, StepEstimate
 from coloc.kalman_kernels import gnss_step_kernel
-from coloc.icp import BpaResult, FeatureStore, IcpParams, bpa_localization, validate_association, vehicle_codes
+from coloc.icp import (
+    BpaResult, FeatureStore, IcpParams, bpa_localization, step_feature_beliefs, validate_association, vehicle_codes,
+)
 from coloc.vehicles import carry_states, match_ids
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
@@ -86,7 +91,8 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
         f_lam0, f_eta0, params,
     )
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
-    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store)
+    beliefs = step_feature_beliefs(store, params, assoc[used], res)
+    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs)
 
 
 @dataclass(frozen=True)
@@ -99,9 +105,12 @@ class IcpState:
     own_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # own-sensor (GNSS-only) beliefs
     own_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
     features: FeatureStore = field(default_factory=FeatureStore)
+    # (mean, cov) of (20) for ``features.ids`` after the step's BPA-L (coloc.icp.step_feature_beliefs);
+    # None: the store's moments.
+    feature_beliefs: tuple[np.ndarray, np.ndarray] | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
-        f_mean, f_cov = self.features.moments(params)
+        f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs
         return StepEstimate(
             mean=self.mean.copy(),
             cov=self.cov.copy(),

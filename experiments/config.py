@@ -51,6 +51,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coloc.icp import FEATURE_MESSAGES
 from coloc.icp_da_lc import LcParams
 from coloc.icp_da_pf import PfParams
 from coloc.models import MotionParams
@@ -97,6 +98,8 @@ class IcpSection:
     # Velocity prior of a newborn track, N(0, s^2 I) m/s; 0 = uniform (the paper's reset).
     feature_velocity_prior_sigma: float = 0.0
     message_memory_s: float = 10.0  # latest message per vehicle kept apart this long (coloc.icp.FeatureStore)
+    # What a track stores of each vehicle: "own" (own-sensor belief, default) or "bpa" (final (19)).
+    feature_message: str = "own"
 
 
 @dataclass(frozen=True)
@@ -296,6 +299,9 @@ def _validate(cfg: Config) -> None:
     for name in ("feature_velocity_prior_sigma", "message_memory_s"):
         if getattr(cfg.icp, name) < 0:
             raise InputError(p, f"icp.{name}", "must be >= 0")
+    if cfg.icp.feature_message not in FEATURE_MESSAGES:
+        raise InputError(p, "icp.feature_message",
+                         f"unknown value {cfg.icp.feature_message!r} (available: {', '.join(FEATURE_MESSAGES)})")
     for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
         if not getattr(cfg.icp, name) > 0:
             raise InputError(p, f"icp.{name}", "must be positive")

@@ -98,6 +98,7 @@ def _cli(args, cwd):
         (lambda t: t.replace('methods = ["gnss"]', 'methods = ["gnss", "magic"]'), "run.methods[1]"),
         (lambda t: t + "\n[nonsense]\nx = 1\n", "nonsense"),
         (lambda t: t.replace("[run]", "[run\n"), "not valid TOML"),
+        (lambda t: t + '\n[icp]\nfeature_message = "final"\n', "icp.feature_message"),
     ],
 )
 def test_bad_config_one_clear_message(cross_net, tmp_path, mutate, needle):
