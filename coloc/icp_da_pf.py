@@ -137,7 +137,17 @@ class PfParams:
     index and through prediction as the ancestor's value): when the vehicle
     observes the track again its old message is divided out of b_k^(0) and the
     new one replaces it; messages older than ``message_memory_s`` are left
-    folded into the track.
+    folded into the track. With ``IcpParams.feature_message = "own"`` (default)
+    what a track carries to the next step is b_k^(0) times this step's
+    own-sensor messages, i.e. the feature belief (26) of the *first* BPA-L
+    iteration (every m_{k->i} still 1, so each vehicle's cavity is its
+    own-sensor set), and the kept messages are that iteration's; the step's
+    estimate is the final (26). As for the Gaussian ICP (:class:`coloc.icp.IcpParams`),
+    the final messages carry the other features' messages, i.e. other
+    vehicles' evidence, and carrying them counts that evidence again in every
+    track. Measured on the crossroad (Nf = 20, J = 1000, seeds 1-6): PF
+    1.99 -> 1.68 m, feature RMSE 1.84 -> 1.47 m. "bpa" carries the final (26)
+    and messages; the "paper" recursion always does.
     ``regularize``: after resampling, move the particles by the Liu-West
     kernel shrinkage x' = a x + (1 - a) m + h L e, a = sqrt(1 - h^2),
     h = (4 / ((d + 2) J))^(1 / (d + 4)) (Silverman's bandwidth, d = 4), L L^T
@@ -325,6 +335,9 @@ class PfBpaResult:
     iterations: int
     converged: bool
     pair_evaluations: int
+    # (E, Jf) the first iteration's (26) and messages (19): own-sensor cavities (IcpParams.feature_message)
+    first_feature_logw: np.ndarray | None = None
+    first_message_logw: np.ndarray | None = None
 
 
 def _segment_logsumexp(values: np.ndarray, seg: np.ndarray, n_seg: int, init: np.ndarray) -> np.ndarray:
@@ -443,6 +456,8 @@ def pf_bpa_localization(
         loc = log_b0_e + count[:, None] * avg
         loc = loc - loc.max(axis=1, keepdims=True)
         logb_f = normalize_log(max_consensus(loc, graph, max(params.consensus_iterations, 1)))
+        if it == 1:
+            first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
         t_out, p2 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
@@ -481,7 +496,7 @@ def pf_bpa_localization(
     first[1:] = entry_track[order][1:] != entry_track[order][:-1]
     track_entry = np.full(k, -1, np.int64)
     track_entry[entry_track[order][first]] = order[first]
-    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs)
+    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs, first_f, first_m)
 
 
 # ----------------------------------------------------------------------------- state and step
@@ -759,6 +774,13 @@ def icp_da_pf_step(
     seen = res.track_entry >= 0
     if seen.any():
         t_post[seen] = res.entry_feature_logw[res.track_entry[seen]]
+    # What the tracks carry to the next step (PfParams.recursion, IcpParams.feature_message).
+    carry_own = latest and params.feature_message == "own" and res.first_feature_logw is not None
+    t_carry, kept_messages = t_post, res.entry_message_logw
+    if carry_own:
+        t_carry = t_post.copy()
+        t_carry[seen] = res.first_feature_logw[res.track_entry[seen]]
+        kept_messages = res.first_message_logw
     mean, cov = weighted_moments(particles, res.vehicle_logw) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
     f_mean, f_cov = weighted_moments(t_particles, t_post) if t_ids.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
     # Tracks observed this step: a detected option (belief >= 0.5) or a birth.
@@ -771,7 +793,7 @@ def icp_da_pf_step(
         t_folded = t_folded | np.isin(t_ids, msg_track[~replaced & ~keep_m])
         msg_track = np.concatenate([msg_track[keep_m], t_ids[entry_track]])
         msg_vehicle = np.concatenate([msg_vehicle[keep_m], vids[entry_vehicle]])
-        msg_logv = np.concatenate([msg_logv[keep_m].reshape(-1, jf), res.entry_message_logw])
+        msg_logv = np.concatenate([msg_logv[keep_m].reshape(-1, jf), kept_messages])
         msg_time = np.concatenate([msg_time[keep_m], np.full(entry_vehicle.size, frame.t)])
     # Resampling (so that (23)-(24) start from equal weights); own-sensor sets by their GNSS weights.
     new_particles = np.empty_like(particles)
@@ -783,11 +805,11 @@ def icp_da_pf_step(
         if latest:
             g = entity_rng(pf.seed, "own_resample", ents[i], step)
             new_own[i] = regularized_resample(own[i], log_own[i], systematic_resample(log_own[i], g), g, pf.regularize)
-    new_t_particles, new_t_logw = t_particles.copy(), t_post.copy()
+    new_t_particles, new_t_logw = t_particles.copy(), t_carry.copy()
     for kk in np.flatnonzero(seen):
         g = entity_rng(pf.seed, "track_resample", t_ids[kk], step)
-        sel = systematic_resample(t_post[kk], g)
-        new_t_particles[kk] = regularized_resample(t_particles[kk], t_post[kk], sel, g, pf.regularize)
+        sel = systematic_resample(t_carry[kk], g)
+        new_t_particles[kk] = regularized_resample(t_particles[kk], t_carry[kk], sel, g, pf.regularize)
         new_t_logw[kk] = -math.log(jf)
         if latest:
             mine = msg_track == t_ids[kk]

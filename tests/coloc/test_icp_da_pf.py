@@ -70,6 +70,35 @@ def test_particle_bpa_converges_to_the_exact_joint_as_particles_grow():
     assert err[4000] < 0.15
 
 
+def test_first_iteration_beliefs_and_messages_are_the_own_sensor_ones():
+    """What a track carries with feature_message = "own": the first BPA-L iteration's (26) and
+    messages, whose vehicle cavities are the own-sensor sets (every m_{k->i} still 1); equal to a
+    one-iteration run bit for bit. Vehicle 0 sees two features, so later iterations differ."""
+    g = np.random.default_rng(4)
+    j = 400
+    vp = np.stack([g.multivariate_normal(m, np.diag([4.0, 4.0, 0.04, 0.04]), j) for m in
+                   ([0.0, 0.0, 10.0, 0.0], [5.0, 0.0, 10.0, 0.0])])
+    fp = np.stack([g.multivariate_normal(m, np.diag([9.0, 9.0, 0.01, 0.01]), j) for m in
+                   ([20.0, 5.0, 0.0, 0.0], [10.0, -6.0, 0.0, 0.0])])
+    r1 = np.diag([0.04, 0.04, 0.01, 0.01])
+    z = np.array([[20.5, 4.0, -10.0, 0.0], [9.0, -6.5, -10.0, 0.0], [15.2, 5.3, -10.0, 0.0]])
+    adj = sp.csr_matrix(np.array([[0, 1], [1, 0]], dtype=bool))
+
+    def run(iterations):
+        return pf_bpa_localization(
+            vp, np.zeros((2, j)), fp, np.zeros((2, j)), np.array([0, 0, 1]), np.array([0, 1, 0]),
+            np.full(3, -np.inf), np.arange(3), np.arange(3), np.zeros(3), z, np.array([r1] * 3), adj,
+            IcpParams(bpa_max_iterations=iterations, stop_pos_m=1e-6, stop_vel_mps=1e-6), PfParams(),
+        )
+
+    one, many = run(1), run(20)
+    assert many.iterations > 1
+    np.testing.assert_array_equal(many.first_message_logw, one.entry_message_logw)
+    np.testing.assert_array_equal(many.first_feature_logw, one.entry_feature_logw)
+    assert np.abs(many.entry_message_logw[0] - many.first_message_logw[0]).max() > 1e-3
+    np.testing.assert_allclose(logsumexp(many.first_feature_logw, axis=1), 0.0, atol=1e-9)
+
+
 @pytest.mark.parametrize("velocity_prior", [None, 0.1])
 def test_message_of_a_track_with_only_its_prior_is_the_closed_form(velocity_prior):
     """One vehicle, one newborn track (uniform position prior, optionally N(0, s^2 I) velocity):
