@@ -125,6 +125,18 @@ def test_shipped_sweeps_are_valid():
     assert {r.cfg.icp.feature_sigma_par for r in vf} == {0.01, 0.02, 0.05}  # vf / 100
 
 
+def test_every_shipped_sweep_file_loads_and_expands():
+    files = sorted((PROJECT / "experiments" / "sweeps").glob("*.toml"))
+    assert len(files) >= 6
+    for path in files:  # a file that fails here fails for the user at `coloc sweep`
+        _, runs = expand_runs(load_sweep(path))
+        assert runs, path.name
+    pf = expand_runs(load_sweep(PROJECT / "experiments/sweeps/fig7_single_road_pf.toml"))[1]
+    assert {r.cfg.single_road.feature_spacing_m for r in pf} == {0.5, 3.0}
+    assert {(r.cfg.pf.vehicle_particles, r.cfg.pf.feature_particles) for r in pf} == {(5000, 5000)}
+    assert "icp_da_pf" in pf[0].cfg.run.methods
+
+
 def test_bad_sweep_through_the_cli_is_one_line(tmp_path):
     path = write_sweep(tmp_path, grid='"single_road.spacing" = [1.0]')
     res = _cli(["sweep", str(path), "--out", str(tmp_path / "out")])
