@@ -39,7 +39,9 @@ without it resolves and runs exactly as before; its keys can be overridden (``in
 a sweep) when the config has the table (an override does not create it).
 ``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
 without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
-``[icp]`` and ``[lc]`` (association, tracks).
+``[icp]`` and ``[lc]`` (association, tracks). ``icp_known_da_pf`` is the same
+estimator told the true association by the runner (the particle counterpart of
+``icp_known_da``), with the same settings.
 """
 
 from __future__ import annotations
@@ -59,7 +61,8 @@ from couplers.errors import InputError, read_toml
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf", "rsu_bp", "sme", "fg_topology_new")
+KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf", "rsu_bp", "sme",
+                 "fg_topology_new")
 #: Infrastructure-mode methods (issue 5 part 4): need an [infra] table.
 INFRA_METHODS = ("rsu_bp", "sme", "fg_topology_new")
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")

@@ -58,6 +58,7 @@ METHOD_STYLES: dict[str, tuple[str, str]] = {
     "icp_known_da": ("ICP known DA", "black"),
     "icp_da_lc": ("ICP-DA-LC", "tab:red"),
     "icp_da_pf": ("ICP-DA-PF", "tab:orange"),
+    "icp_known_da_pf": ("ICP-PF known DA", "goldenrod"),
     "rsu_bp": ("RSU-BP", "tab:purple"),
     "sme": ("SME", "tab:brown"),
     "fg_topology_old": ("FG topology (old)", "tab:pink"),

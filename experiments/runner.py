@@ -67,7 +67,9 @@ from experiments.scoring import (
 )
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da"})
+# Told the true association by the runner: the Gaussian bound, and its particle counterpart
+# (ICP-DA-PF with BP-DA skipped; it separates PF's Monte Carlo error from its association).
+KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da", "icp_known_da_pf"})
 
 
 def build_estimators(cfg: Config) -> list:
@@ -84,8 +86,9 @@ def build_estimators(cfg: Config) -> list:
         elif m in ("rsu_bp", "sme", "fg_topology_new"):
             cls = {"rsu_bp": RsuBpInfra, "sme": SmeInfra, "fg_topology_new": FgTopologyInfra}[m]
             out.append(cls(infra_method_params(cfg)))
-        elif m == "icp_da_pf":
-            out.append(IcpDaPf(params=icp, lc=cfg.lc, pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf))))
+        elif m in ("icp_da_pf", "icp_known_da_pf"):
+            out.append(IcpDaPf(params=icp, lc=cfg.lc, pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
+                               name=m))
         else:  # config validation lists the known methods; this is a programming error
             raise ValueError(f"no estimator for method {m!r}")
     return out

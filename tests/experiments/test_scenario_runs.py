@@ -172,3 +172,35 @@ def test_icp_da_lc_run_is_scored(tmp_path):
     assert s["correct_pct"] + s["wrong_pct"] + s["discarded_pct"] == pytest.approx(100.0)
     table = pd.read_parquet(out / "association.parquet")
     assert set(table["method"]) == {"icp_da_lc"} and table["correct"].sum() == s["correct"]
+
+
+def test_particle_known_association_method_is_the_pf_told_the_truth(tmp_path):
+    """icp_known_da_pf in a run = IcpDaPf.step_with_association on the same frames, scored like the bound."""
+    import dataclasses
+
+    import numpy as np
+
+    from coloc.icp import IcpParams
+    from coloc.icp_da_pf import IcpDaPf, PfParams
+    from experiments.runner import frame_source
+
+    text = SINGLE.replace("seed = 3", "seed = 3\nduration_s = 12.0") + (
+        "\n[pf]\nvehicle_particles = 200\nfeature_particles = 200\n")
+    path = _cfg(tmp_path, text)
+    out = tmp_path / "o"
+    assert main(["run", str(path), "--out", str(out), "--methods", "icp_known_da_pf", "--quiet"]) == 0
+    est = pd.read_parquet(out / "estimates.parquet")
+    cfg = load_config(path)
+    ref = IcpDaPf(params=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
+                  pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)))
+    rows = []
+    with frame_source(cfg) as source:
+        for frame in source.frames():
+            res = ref.step_with_association(frame.without_truth(), frame.truth.v2f_feature)
+            rows.append(res.mean[:, :2])
+    assert np.array_equal(est[["px", "py"]].to_numpy(), np.concatenate(rows))
+    summary = json.loads((out / "summary.json").read_text())
+    s = summary["association"]["icp_known_da_pf"]
+    assert s["correct"] > 0 and s["correct_pct"] == 100.0
+    feats = pd.read_parquet(out / "features.parquet")
+    assert len(feats) and (feats["track"] == feats["feature"]).all()
