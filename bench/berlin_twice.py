@@ -20,7 +20,6 @@ Not a test; a fixture for ``bench/net_import.py``.
 from __future__ import annotations
 
 import argparse
-import re
 import subprocess
 import sys
 import tempfile
@@ -30,9 +29,12 @@ from pathlib import Path
 import sumo  # the eclipse-sumo wheel
 import sumolib
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from couplers.netimport import normalise_header  # noqa: E402
+
 BERLIN = Path(sumo.SUMO_HOME) / "tools" / "game" / "DRT" / "osm.net.xml"
 SEAM_STEP_M = 300.0
-_HEADER_COMMENT = re.compile(r"\A(<\?xml[^>]*\?>\s*)<!--.*?-->\s*", re.DOTALL)
 
 
 def _plain(net: Path, prefix: Path, extra: list[str]) -> None:
@@ -78,8 +80,8 @@ def build(out: Path, source: Path = BERLIN, gap: float = 100.0) -> None:
                         "-e", f"{west}.edg.xml,{east}.edg.xml,{seam}", "-x", f"{west}.con.xml,{east}.con.xml",
                         "-i", f"{west}.tll.xml,{east}.tll.xml", "-t", f"{west}.typ.xml", "-o", str(out),
                         "--no-warnings"], check=True, capture_output=True)
-    # netconvert's header comment holds the date and the temporary paths: drop it
-    out.write_text(_HEADER_COMMENT.sub(r"\1", out.read_text(), count=1))
+    # netconvert's header comment holds the date and the temporary paths
+    out.write_text(normalise_header(out.read_text(), "built by bench/berlin_twice.py"))
 
 
 def main(argv=None) -> int:

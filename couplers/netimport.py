@@ -227,7 +227,8 @@ def _run(cmd: list[str], cwd: Path, path: Path, what: str) -> None:
         raise InputError(path, None, f"{what} failed: {msg}")
 
 
-def _normalise_header(text: str, note: str) -> str:
+def normalise_header(text: str, note: str) -> str:
+    """Replace a SUMO tool's header comment (date, paths) by ``note``, so that outputs are reproducible."""
     m = _HEADER_COMMENT.match(text)
     fixed = f"<!-- {note} (tool header with date and paths removed for reproducibility) -->\n\n"
     if not m:
@@ -330,7 +331,7 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
     if not out.is_file() or out.stat().st_size == 0:
         raise InputError(opts.source, None, "netconvert wrote no net")
     text = out.read_text(encoding="utf-8")
-    out.write_text(_normalise_header(text, f"built by coloc net import from {opts.source.name}"),
+    out.write_text(normalise_header(text, f"built by coloc net import from {opts.source.name}"),
                    encoding="utf-8", newline="\n")
     home = str(_sumo_home())
     report.derived["netconvert"] = " ".join(

@@ -23,9 +23,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-FIXED_COLUMNS = {"run_id", "seed", "method", "rmse_pos_m", "rmse_vel_mps", "p50_pos_m", "p95_pos_m",
-                 "correct_pct", "wrong_pct", "discarded_pct", "feature_rmse_pos_m", "n"}
-
 
 def parse_windows(text: str) -> list[tuple[float, float]]:
     """``"10:19,20:30"`` -> [(10, 19), (20, 30)] (inclusive bounds, seconds)."""
@@ -43,7 +40,8 @@ def window_mse(folders: list[Path], windows: list[tuple[float, float]]) -> pd.Da
     rows, seen = [], set()
     for folder in folders:
         table = pd.read_parquet(folder / "sweep.parquet")
-        grid = [c for c in table.columns if c not in FIXED_COLUMNS]
+        cols = list(table.columns)  # run_id, seed, the swept parameters, method, the summary columns
+        grid = cols[cols.index("seed") + 1:cols.index("method")]
         runs = table.drop_duplicates("run_id").set_index("run_id")
         for run_id, run in runs.iterrows():
             if run_id in seen:

@@ -24,7 +24,8 @@ def _sweep(folder: Path, seeds, err_a, err_b):
                              for m, e in (("a", err_a), ("b", err_b))])
             (folder / "runs" / run_id).mkdir(parents=True)
             est.to_parquet(folder / "runs" / run_id / "estimates.parquet")
-            rows += [{"run_id": run_id, "seed": s, "df": df, "method": m, "rmse_pos_m": 0.0, "n": 31} for m in "ab"]
+            rows += [{"run_id": run_id, "seed": s, "df": df, "method": m, "rmse_pos_m": 0.0, "n": 31,
+                      "covered_rmse_pos_m": 0.0} for m in "ab"]  # columns after "method" are not swept
     pd.DataFrame(rows).to_parquet(folder / "sweep.parquet")
 
 

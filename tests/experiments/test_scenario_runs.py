@@ -1,17 +1,22 @@
 """Controlled scenarios (Brambilla Sec. V) as run configs: tables, derived model, runs, association scoring."""
 
+import dataclasses
 import json
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
+from coloc.icp import IcpParams
+from coloc.icp_da_pf import IcpDaPf, PfParams
 from couplers.errors import InputError
 from experiments.cli import main
 from experiments.config import config_from_dict, load_config
+from experiments.runner import frame_source
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -176,14 +181,6 @@ def test_icp_da_lc_run_is_scored(tmp_path):
 
 def test_particle_known_association_method_is_the_pf_told_the_truth(tmp_path):
     """icp_known_da_pf in a run = IcpDaPf.step_with_association on the same frames, scored like the bound."""
-    import dataclasses
-
-    import numpy as np
-
-    from coloc.icp import IcpParams
-    from coloc.icp_da_pf import IcpDaPf, PfParams
-    from experiments.runner import frame_source
-
     text = SINGLE.replace("seed = 3", "seed = 3\nduration_s = 12.0") + (
         "\n[pf]\nvehicle_particles = 200\nfeature_particles = 200\n")
     path = _cfg(tmp_path, text)
