@@ -71,3 +71,33 @@ def test_polynomial_exp_of_the_leaf_loop():
     assert rel.max() < 2e-10
     # beyond exp(-690) exactly 0: the squarings would pass through subnormal numbers (10x slower)
     assert _exp_neg(690.0) == 0.0 and _exp_neg(746.0) == 0.0 and _exp_neg(1e6) == 0.0
+
+
+def _bench_module():
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "bench" / "pf_kernels.py"
+    spec = importlib.util.spec_from_file_location("bench_pf_kernels", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_least_exact_share_counts_the_terms_a_1e6_sum_needs():
+    """bench/pf_kernels.py's lower bound on the pairs any 1e-6-exact sum evaluates.
+
+    One target at the origin, identity kernel: sources at whitened distances 0, 1, 3, 6, 8
+    give terms 1, e^-0.5, e^-4.5, e^-18, e^-32. The last two together are 9e-9 of the sum,
+    below 1e-6, but e^-4.5 (6.9e-3 of it) is not: three terms are needed, a share of 3 / 5.
+    """
+    bench = _bench_module()
+    src = np.zeros((5, 4))
+    src[:, 0] = [0.0, 1.0, 3.0, 6.0, 8.0]
+    assert bench.least_exact_share(src, np.zeros((1, 4)), np.eye(4)) == pytest.approx(3 / 5)
+    # A tolerance above e^-4.5 / sum: two terms suffice.
+    assert bench.least_exact_share(src, np.zeros((1, 4)), np.eye(4), rel_tol=1e-2) == pytest.approx(2 / 5)
+    # The tree kernel never evaluates fewer pairs than this bound (it is exact to 1e-6).
+    s, t, r = bench.case_problem(400, 8.0, 0.1, 0.2, 0.1, True)
+    pairs, _ = bench.run_case(s, t, r, "tree")
+    assert pairs / 400 ** 2 >= bench.least_exact_share(s, t, r)

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 from scipy import stats
+from scipy.spatial import cKDTree
 
 from coloc.models import input_matrix, transition_matrix
 from couplers.scenarios import (
@@ -202,9 +203,10 @@ def test_crossroad_four_clusters_of_three_straight_through():
         assert np.array_equal(fr.neighbors.toarray(), expected)
 
 
+@pytest.mark.parametrize("layout", ["sidewalks", "disc"])
 @pytest.mark.parametrize("nf", [3, 10, 20, 60])
-def test_crossroad_features_uniform_in_disc(nf):
-    p = CrossroadParams(n_features=nf)
+def test_crossroad_features_static_in_disc(nf, layout):
+    p = CrossroadParams(n_features=nf, feature_layout=layout)
     fs = frames(p, 4)
     f = fs[0].truth.features_true
     assert f.shape == (nf, 4) and fs[0].truth.feature_ids.shape == (nf,)
@@ -213,11 +215,60 @@ def test_crossroad_features_uniform_in_disc(nf):
     assert all(np.array_equal(fr.truth.features_true, f) for fr in fs)
 
 
-def test_crossroad_feature_disc_is_uniform_in_area():
+def _sidewalk_coordinates(xy, w):
+    """(along, offset) of points on the sidewalks: |offset| = w from one road axis, along >= w from the centre."""
+    on_x_road = np.isclose(np.abs(xy[:, 1]), w, atol=1e-9) & (np.abs(xy[:, 0]) >= w - 1e-9)
+    on_y_road = np.isclose(np.abs(xy[:, 0]), w, atol=1e-9) & (np.abs(xy[:, 1]) >= w - 1e-9)
+    along = np.where(on_x_road, np.abs(xy[:, 0]), np.abs(xy[:, 1]))
+    return on_x_road | on_y_road, along, on_x_road
+
+
+def test_crossroad_features_on_the_sidewalks_uniform_along_them():
+    # The paper (line 2452): features "randomly deployed on the sidewalks", initial location
+    # uniform in the 150 m disc. Every feature on a sidewalk line (4.75 m off a road axis, from
+    # the junction corner outwards); pooled over seeds the distance along the sidewalk is
+    # U(w, sqrt(R^2 - w^2)) and the eight half-lines are equally used (KS / chi-square at 0.1 %).
+    p = CrossroadParams(n_features=60)
+    w, s_max = p.sidewalk_offset_m, math.sqrt(150.0 ** 2 - p.sidewalk_offset_m ** 2)
+    xy = np.concatenate([initial_features(p, s)[:, :2] for s in range(20)])
+    on, along, _ = _sidewalk_coordinates(xy, w)
+    assert on.all()
+    assert stats.kstest((along - w) / (s_max - w), "uniform").pvalue > 1e-3
+    _, _, on_x_road = _sidewalk_coordinates(xy, w)
+    arm = np.where(on_x_road, np.sign(xy[:, 0]), np.sign(xy[:, 1]))
+    side = np.where(on_x_road, np.sign(xy[:, 1]), np.sign(xy[:, 0]))
+    _, counts = np.unique(np.stack([on_x_road, arm, side], axis=1), axis=0, return_counts=True)
+    assert counts.size == 8
+    assert stats.chisquare(counts).pvalue > 1e-3
+
+
+def test_disc_layout_is_uniform_in_area():
     # Pool many seeds: r^2 / R^2 must be U(0, 1) (KS test at 0.1% level; seeded, deterministic).
-    r = np.concatenate([np.hypot(*initial_features(CrossroadParams(n_features=60), s)[:, :2].T)
-                        for s in range(20)])
+    p = CrossroadParams(n_features=60, feature_layout="disc")
+    r = np.concatenate([np.hypot(*initial_features(p, s)[:, :2].T) for s in range(20)])
     assert stats.kstest((r / 150.0) ** 2, "uniform").pvalue > 1e-3
+
+
+def test_sidewalk_features_are_closer_together_than_disc_features():
+    # Why the layout matters for data association: at Nf = 60, many more features have a
+    # neighbour within 3 m on the sidewalks (measured: 27 %) than in the disc (2 %).
+    def share_within_3m(layout):
+        p = CrossroadParams(n_features=60, feature_layout=layout)
+        near = []
+        for s in range(30):
+            d, _ = cKDTree(initial_features(p, s)[:, :2]).query(initial_features(p, s)[:, :2], k=2)
+            near.append(d[:, 1] < 3.0)
+        return np.concatenate(near).mean()
+
+    side, disc = share_within_3m("sidewalks"), share_within_3m("disc")
+    assert side > 0.15 and disc < 0.05
+
+
+@pytest.mark.parametrize("field, value", [("feature_layout", "grid"), ("sidewalk_offset_m", -1.0),
+                                          ("sidewalk_offset_m", 120.0)])
+def test_crossroad_rejects_bad_layout(field, value):
+    with pytest.raises(ValueError, match=field):
+        CrossroadParams(**{field: value})
 
 
 @pytest.mark.parametrize("vf", [1.0, 2.0, 5.0])
@@ -232,9 +283,10 @@ def test_moving_features_move_at_vf(vf):
     assert np.all(np.abs(speed - vf) <= 5 * vf / 100 * math.sqrt(t))
     step = np.linalg.norm(np.diff(f[..., :2], axis=0), axis=2)
     assert np.allclose(step.mean(), vf, rtol=0.05)
-    # Random initial headings: spread over the circle.
-    hd = np.arctan2(f[0, :, 3], f[0, :, 2])
-    assert np.ptp(hd) > np.pi
+    # Initial headings along the sidewalks, both ways: +-x on the x road's sidewalks, +-y on the y road's.
+    _, _, on_x_road = _sidewalk_coordinates(f[0, :, :2], p.sidewalk_offset_m)
+    assert np.all(np.abs(f[0, on_x_road, 3]) == 0.0) and np.all(np.abs(f[0, ~on_x_road, 2]) == 0.0)
+    assert np.unique(f[0, :, 2:] / vf + 0.0, axis=0).tolist() == [[-1, 0], [0, -1], [0, 1], [1, 0]]
     # Model (2): residual x_F,t - A x_F,t-1 = G eta, eta ~ N(0, R diag(sv_par^2, sv_perp^2) R^T).
     res = f[1:] - f[:-1] @ transition_matrix(p.dt).T
     eta = res[..., 2:]
