@@ -216,7 +216,9 @@ def test_crossroad_features_static_in_disc(nf, layout):
 
 
 def _sidewalk_coordinates(xy, w):
-    """(along, offset) of points on the sidewalks: |offset| = w from one road axis, along >= w from the centre."""
+    """(on a sidewalk, distance along it from the centre, on the x road's) of each point.
+
+    A sidewalk point is w from one road axis and at least w from the centre along it."""
     on_x_road = np.isclose(np.abs(xy[:, 1]), w, atol=1e-9) & (np.abs(xy[:, 0]) >= w - 1e-9)
     on_y_road = np.isclose(np.abs(xy[:, 0]), w, atol=1e-9) & (np.abs(xy[:, 1]) >= w - 1e-9)
     along = np.where(on_x_road, np.abs(xy[:, 0]), np.abs(xy[:, 1]))
@@ -256,7 +258,8 @@ def test_sidewalk_features_are_closer_together_than_disc_features():
         p = CrossroadParams(n_features=60, feature_layout=layout)
         near = []
         for s in range(30):
-            d, _ = cKDTree(initial_features(p, s)[:, :2]).query(initial_features(p, s)[:, :2], k=2)
+            xy = initial_features(p, s)[:, :2]
+            d, _ = cKDTree(xy).query(xy, k=2)
             near.append(d[:, 1] < 3.0)
         return np.concatenate(near).mean()
 
