@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from coloc.pf_kernels import transform, transform_batch, transform_brute
+from scriptload import load_script
 
 
 def _problem(rng, scale):
@@ -73,17 +74,6 @@ def test_polynomial_exp_of_the_leaf_loop():
     assert _exp_neg(690.0) == 0.0 and _exp_neg(746.0) == 0.0 and _exp_neg(1e6) == 0.0
 
 
-def _bench_module():
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[2] / "bench" / "pf_kernels.py"
-    spec = importlib.util.spec_from_file_location("bench_pf_kernels", script)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_least_exact_share_counts_the_terms_a_1e6_sum_needs():
     """bench/pf_kernels.py's lower bound on the pairs any 1e-6-exact sum evaluates.
 
@@ -91,7 +81,7 @@ def test_least_exact_share_counts_the_terms_a_1e6_sum_needs():
     give terms 1, e^-0.5, e^-4.5, e^-18, e^-32. The last two together are 9e-9 of the sum,
     below 1e-6, but e^-4.5 (6.9e-3 of it) is not: three terms are needed, a share of 3 / 5.
     """
-    bench = _bench_module()
+    bench = load_script("bench/pf_kernels.py")
     src = np.zeros((5, 4))
     src[:, 0] = [0.0, 1.0, 3.0, 6.0, 8.0]
     assert bench.least_exact_share(src, np.zeros((1, 4)), np.eye(4)) == pytest.approx(3 / 5)

@@ -1,14 +1,9 @@
 """bench/berlin_twice.py: the ~2000-junction stand-in of real OSM topology is built deterministically."""
 
-import importlib.util
-from pathlib import Path
-
 import sumolib
+from scriptload import load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "bench" / "berlin_twice.py"
-spec = importlib.util.spec_from_file_location("berlin_twice", SCRIPT)
-bt = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(bt)
+bt = load_script("bench/berlin_twice.py")
 
 
 def test_two_copies_joined_at_the_seam_byte_identical(tmp_path):

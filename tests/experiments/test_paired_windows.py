@@ -1,16 +1,13 @@
 """tools/paired_windows.py: window MSE per run and the paired difference over seeds, in closed form."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from scriptload import load_script
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "paired_windows.py"
-spec = importlib.util.spec_from_file_location("paired_windows", TOOL)
-pw = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(pw)
+pw = load_script("tools/paired_windows.py")
 
 
 def _sweep(folder: Path, seeds, err_a, err_b):
