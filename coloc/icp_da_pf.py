@@ -114,7 +114,7 @@ __all__ = [
 ]
 
 RECURSIONS = ("latest_message", "paper")
-BANDWIDTHS = ("prior", "none")
+BANDWIDTHS = ("prior", "shrunk", "none")
 _LOG_FLOOR = -700.0  # log-weights are kept finite (consensus averages them)
 _PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
             "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
@@ -159,8 +159,17 @@ class PfParams:
     ``message_bandwidth``: "prior" (default) smooths every particle double
     sum as kernel density estimates of the two sets, kernel R + h^2 Cov with
     Silverman's h on the effective sample size of b^(0) (vehicle and track
-    sets of the step; see the module docstring); "none" is the bare V2F kernel
-    of (25)-(27), exact for the particle sets as they are.
+    sets of the step; see the module docstring); "shrunk" is the same kernel
+    with the source particles pulled towards their mean by Liu and West's
+    a = sqrt(1 - h^2) (:func:`kernel_density`), so the kernel density keeps the
+    set's covariance instead of inflating it by 1 + h^2. Measured against
+    "prior": one-step tree test 0.26 / 0.08 m from the exact joint at
+    J = 500 / 4000 (prior 0.26 / 0.10 m); crossroad (J = 1000, seeds 1-10)
+    vehicles 1.95 / 1.67 m at Nf = 3 / 20 (prior 1.90 / 1.67 m), features
+    1.58 / 1.35 m (1.68 / 1.41 m); single road df = 3 m (J = 5000, seeds
+    1-20) 1.69 / 1.73 m (1.69 / 1.68 m): no gain for the vehicles, so not the
+    default. "none" is the bare V2F kernel of (25)-(27), exact for the
+    particle sets as they are.
     ``kernel``: "tree" (k-d tree pruned, exact to ``kernel_rel_tol`` per
     entry) or "brute" (every particle pair). ``min_association_belief``: options of (18)
     with a smaller BPA-DA belief are left out of the mixture.
@@ -246,10 +255,23 @@ def silverman_factor(j, d: int = 4):
 def kernel_bandwidth(particles: np.ndarray, logw: np.ndarray) -> np.ndarray:
     """Kernel covariance h^2 Cov_w of weighted particle sets (..., J, 4): Silverman's rule
     (:func:`silverman_factor`) with the effective sample size 1 / sum w^2 for J."""
+    return kernel_density(particles, logw, shrink=False)[1]
+
+
+def kernel_density(particles: np.ndarray, logw: np.ndarray, shrink: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel centres and kernel covariance of weighted particle sets (..., J, 4) read as kernel
+    density estimates: covariance h^2 Cov_w (:func:`kernel_bandwidth`); centres the particles
+    themselves, or with ``shrink`` the particles pulled towards the weighted mean m by Liu and
+    West's a = sqrt(1 - h^2), a x + (1 - a) m, so that the density keeps the set's mean and
+    covariance (a^2 Cov + h^2 Cov = Cov) instead of inflating the covariance by 1 + h^2."""
     w = _linear_weights(logw)
     ess = 1.0 / np.einsum("...j,...j->...", w, w)
-    _, cov = _moments(particles, w)
-    return silverman_factor(ess)[..., None, None] * cov
+    mean, cov = _moments(particles, w)
+    h2 = silverman_factor(ess)
+    if not shrink:
+        return particles, h2[..., None, None] * cov
+    a = np.sqrt(1.0 - h2)[..., None, None]
+    return a * particles + (1.0 - a) * mean[..., None, :], h2[..., None, None] * cov
 
 
 def regularized_resample(particles: np.ndarray, logw: np.ndarray, index: np.ndarray, rng: np.random.Generator,
@@ -424,9 +446,12 @@ def pf_bpa_localization(
     t_z, t_r = z[term_row], r[term_row]
     zero_shift = np.zeros((term_row.size, 4))
     r_from_v = r_from_f = t_r  # V2F kernel of the messages from the vehicle / feature particles
-    if pf.message_bandwidth == "prior":
-        r_from_v = t_r + kernel_bandwidth(vehicle_particles, vehicle_log_b0)[t_vehicle]
-        r_from_f = t_r + kernel_bandwidth(track_particles, track_log_b0)[t_track]
+    v_centres, f_centres = vehicle_particles, track_particles  # kernel centres of the sources
+    if pf.message_bandwidth != "none":
+        shrink = pf.message_bandwidth == "shrunk"
+        v_centres, v_bw = kernel_density(vehicle_particles, vehicle_log_b0, shrink)
+        f_centres, f_bw = kernel_density(track_particles, track_log_b0, shrink)
+        r_from_v, r_from_f = t_r + v_bw[t_vehicle], t_r + f_bw[t_track]
     graph = consensus_graph(entry_vehicle, entry_track, adjacency)
     _, count = row_components(graph)
     weights = metropolis_weights(graph)
@@ -448,7 +473,7 @@ def pf_bpa_localization(
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
         cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
-        s_out, p1 = transform_batch(vehicle_particles, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track,
+        s_out, p1 = transform_batch(v_centres, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track,
                                     zero_shift, r_from_v, pf.kernel, pf.kernel_rel_tol)
         log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
@@ -460,7 +485,7 @@ def pf_bpa_localization(
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
-        t_out, p2 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
+        t_out, p2 = transform_batch(f_centres, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
                                     t_vehicle, t_z, r_from_f, pf.kernel, pf.kernel_rel_tol)
         log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
         if flat_m is not None:
@@ -479,7 +504,7 @@ def pf_bpa_localization(
             converged = True
             break
     if output_particles is not None:
-        t_out, p3 = transform_batch(track_particles, cav_f[term_entry], t_track, zero_shift, output_particles,
+        t_out, p3 = transform_batch(f_centres, cav_f[term_entry], t_track, zero_shift, output_particles,
                                     t_vehicle, t_z, r_from_f, pf.kernel, pf.kernel_rel_tol)
         pairs += int(p3.sum())
         out_m = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
@@ -657,10 +682,13 @@ def icp_da_pf_step(
         log_new = np.zeros(0)
         if pr.size:
             r_eta = r[pr]
-            if pf.message_bandwidth == "prior":  # both clouds as kernel density estimates
-                r_eta = (r_eta + kernel_bandwidth(t_particles, t_logw)[pt]
-                         + kernel_bandwidth(assoc_particles, assoc_logw)[pv])
-            g, _ = transform_batch(t_particles, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), assoc_particles,
+            t_centres, v_centres = t_particles, assoc_particles
+            if pf.message_bandwidth != "none":  # both clouds as kernel density estimates
+                shrink = pf.message_bandwidth == "shrunk"
+                t_centres, t_bw = kernel_density(t_particles, t_logw, shrink)
+                v_centres, v_bw = kernel_density(assoc_particles, assoc_logw, shrink)
+                r_eta = r_eta + t_bw[pt] + v_bw[pv]
+            g, _ = transform_batch(t_centres, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), v_centres,
                                    pv, z[pr], r_eta, pf.kernel, pf.kernel_rel_tol)
             log_eta = logsumexp(assoc_logw[pv] + g, axis=1)
             log_new = new_feature_log_density(v_mean[pv], assoc_cov[pv], z[pr], r[pr], lc)

@@ -114,7 +114,8 @@ class PfSection:
     kernel: str = "tree"  # "tree" (k-d tree pruned, exact to kernel_rel_tol per entry) or "brute"
     kernel_rel_tol: float = 1e-6
     min_association_belief: float = 1e-6
-    # Particle double sums as kernel density estimates ("prior", kernel R + h^2 Cov) or bare ("none").
+    # Particle double sums as kernel density estimates ("prior", kernel R + h^2 Cov; "shrunk", the same
+    # with Liu-West shrunk centres that keep the set's covariance) or bare ("none").
     message_bandwidth: str = "prior"
     recursion: str = "latest_message"  # or "paper", the literal recursion (23)-(24)
     regularize: bool = True  # Liu-West jitter after resampling
