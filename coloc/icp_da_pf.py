@@ -255,20 +255,23 @@ def silverman_factor(j, d: int = 4):
 def kernel_bandwidth(particles: np.ndarray, logw: np.ndarray) -> np.ndarray:
     """Kernel covariance h^2 Cov_w of weighted particle sets (..., J, 4): Silverman's rule
     (:func:`silverman_factor`) with the effective sample size 1 / sum w^2 for J."""
-    return kernel_density(particles, logw, shrink=False)[1]
+    return kernel_density(particles, logw, "prior")[1]
 
 
-def kernel_density(particles: np.ndarray, logw: np.ndarray, shrink: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel centres and kernel covariance of weighted particle sets (..., J, 4) read as kernel
-    density estimates: covariance h^2 Cov_w (:func:`kernel_bandwidth`); centres the particles
-    themselves, or with ``shrink`` the particles pulled towards the weighted mean m by Liu and
-    West's a = sqrt(1 - h^2), a x + (1 - a) m, so that the density keeps the set's mean and
-    covariance (a^2 Cov + h^2 Cov = Cov) instead of inflating the covariance by 1 + h^2."""
+def kernel_density(particles: np.ndarray, logw: np.ndarray, bandwidth: str) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel centres and the kernel covariance added to R, for weighted particle sets (..., J, 4),
+    by ``PfParams.message_bandwidth``: "none" the particles and 0 (the bare V2F kernel); "prior"
+    the particles and h^2 Cov_w (Silverman's h on the effective sample size 1 / sum w^2);
+    "shrunk" h^2 Cov_w with the particles pulled towards the weighted mean m by Liu and West's
+    a = sqrt(1 - h^2), a x + (1 - a) m, so that the density keeps the set's mean and covariance
+    (a^2 Cov + h^2 Cov = Cov) instead of inflating the covariance by 1 + h^2."""
+    if bandwidth == "none":
+        return particles, np.zeros(particles.shape[:-2] + (4, 4))
     w = _linear_weights(logw)
     ess = 1.0 / np.einsum("...j,...j->...", w, w)
     mean, cov = _moments(particles, w)
     h2 = silverman_factor(ess)
-    if not shrink:
+    if bandwidth == "prior":
         return particles, h2[..., None, None] * cov
     a = np.sqrt(1.0 - h2)[..., None, None]
     return a * particles + (1.0 - a) * mean[..., None, :], h2[..., None, None] * cov
@@ -445,13 +448,10 @@ def pf_bpa_localization(
     t_vehicle, t_track = entry_vehicle[term_entry], entry_track[term_entry]
     t_z, t_r = z[term_row], r[term_row]
     zero_shift = np.zeros((term_row.size, 4))
-    r_from_v = r_from_f = t_r  # V2F kernel of the messages from the vehicle / feature particles
-    v_centres, f_centres = vehicle_particles, track_particles  # kernel centres of the sources
-    if pf.message_bandwidth != "none":
-        shrink = pf.message_bandwidth == "shrunk"
-        v_centres, v_bw = kernel_density(vehicle_particles, vehicle_log_b0, shrink)
-        f_centres, f_bw = kernel_density(track_particles, track_log_b0, shrink)
-        r_from_v, r_from_f = t_r + v_bw[t_vehicle], t_r + f_bw[t_track]
+    # Kernel centres of the sources and the V2F kernel of the messages from the vehicle / feature particles.
+    v_centres, v_bw = kernel_density(vehicle_particles, vehicle_log_b0, pf.message_bandwidth)
+    f_centres, f_bw = kernel_density(track_particles, track_log_b0, pf.message_bandwidth)
+    r_from_v, r_from_f = t_r + v_bw[t_vehicle], t_r + f_bw[t_track]
     graph = consensus_graph(entry_vehicle, entry_track, adjacency)
     _, count = row_components(graph)
     weights = metropolis_weights(graph)
@@ -681,13 +681,10 @@ def icp_da_pf_step(
         w = np.zeros(pr.size)
         log_new = np.zeros(0)
         if pr.size:
-            r_eta = r[pr]
-            t_centres, v_centres = t_particles, assoc_particles
-            if pf.message_bandwidth != "none":  # both clouds as kernel density estimates
-                shrink = pf.message_bandwidth == "shrunk"
-                t_centres, t_bw = kernel_density(t_particles, t_logw, shrink)
-                v_centres, v_bw = kernel_density(assoc_particles, assoc_logw, shrink)
-                r_eta = r_eta + t_bw[pt] + v_bw[pv]
+            # Both clouds as kernel density estimates (PfParams.message_bandwidth).
+            t_centres, t_bw = kernel_density(t_particles, t_logw, pf.message_bandwidth)
+            v_centres, v_bw = kernel_density(assoc_particles, assoc_logw, pf.message_bandwidth)
+            r_eta = r[pr] + t_bw[pt] + v_bw[pv]
             g, _ = transform_batch(t_centres, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), v_centres,
                                    pv, z[pr], r_eta, pf.kernel, pf.kernel_rel_tol)
             log_eta = logsumexp(assoc_logw[pv] + g, axis=1)

@@ -145,13 +145,15 @@ def test_shrunk_kernel_density_keeps_the_mean_and_covariance_of_the_set():
     x = g.normal(size=(3, 300, 4)) * np.array([2.0, 1.0, 0.5, 0.1]) + g.normal(size=(3, 1, 4))
     logw = g.normal(size=(3, 300))
     mean, cov = weighted_moments(x, logw)
-    centres, kernel = kernel_density(x, logw, shrink=True)
+    centres, kernel = kernel_density(x, logw, "shrunk")
     c_mean, c_cov = weighted_moments(centres, logw)
     np.testing.assert_allclose(c_mean, mean, atol=1e-12)
     np.testing.assert_allclose(c_cov + kernel, cov, rtol=1e-9, atol=1e-8)  # _moments adds 1e-9 I
     np.testing.assert_allclose(kernel, kernel_bandwidth(x, logw), rtol=1e-12)
-    plain, kernel_plain = kernel_density(x, logw, shrink=False)
+    plain, kernel_plain = kernel_density(x, logw, "prior")
     assert plain is x
+    bare, kernel_bare = kernel_density(x, logw, "none")
+    assert bare is x and not kernel_bare.any() and kernel_bare.shape == (3, 4, 4)
     h2 = np.trace(kernel_plain, axis1=1, axis2=2) / np.trace(cov, axis1=1, axis2=2)
     np.testing.assert_allclose(np.trace(weighted_moments(plain, logw)[1] + kernel_plain, axis1=1, axis2=2),
                                (1 + h2) * np.trace(cov, axis1=1, axis2=2), rtol=1e-9)
