@@ -71,7 +71,7 @@ and a product of several such messages keeps one particle. "prior" (default)
 treats each particle set as a kernel density estimate, as nonparametric BP
 does (Sudderth et al.; the RSU BP of :mod:`coloc.rsu_bp` likewise): the
 kernel of every double sum becomes R + h^2 Cov of the source set, Silverman's
-h for the effective sample size of b^(0) (:func:`kernel_bandwidth`). The
+h for the effective sample size of b^(0) (:func:`kernel_density`). The
 smoothing is a bias that vanishes as J grows. Measured in the tests'
 5-vehicle scenario with known association (J = 300 / 1000): 0.63 / 0.74 m
 with it, 2.50 / 1.89 m without; Gaussian bound 0.55 m, GNSS 1.58 m. A
@@ -252,16 +252,11 @@ def silverman_factor(j, d: int = 4):
     return (4.0 / ((d + 2) * np.asarray(j, dtype=float))) ** (2.0 / (d + 4))
 
 
-def kernel_bandwidth(particles: np.ndarray, logw: np.ndarray) -> np.ndarray:
-    """Kernel covariance h^2 Cov_w of weighted particle sets (..., J, 4): Silverman's rule
-    (:func:`silverman_factor`) with the effective sample size 1 / sum w^2 for J."""
-    return kernel_density(particles, logw, "prior")[1]
-
-
 def kernel_density(particles: np.ndarray, logw: np.ndarray, bandwidth: str) -> tuple[np.ndarray, np.ndarray]:
     """Kernel centres and the kernel covariance added to R, for weighted particle sets (..., J, 4),
     by ``PfParams.message_bandwidth``: "none" the particles and 0 (the bare V2F kernel); "prior"
-    the particles and h^2 Cov_w (Silverman's h on the effective sample size 1 / sum w^2);
+    the particles and h^2 Cov_w (Silverman's h, :func:`silverman_factor`, on the effective sample
+    size 1 / sum w^2 for J);
     "shrunk" h^2 Cov_w with the particles pulled towards the weighted mean m by Liu and West's
     a = sqrt(1 - h^2), a x + (1 - a) m, so that the density keeps the set's mean and covariance
     (a^2 Cov + h^2 Cov = Cov) instead of inflating the covariance by 1 + h^2."""

@@ -13,7 +13,7 @@ from coloc.frame import Truth
 from coloc.gnss import GnssTracker
 from coloc.icp import IcpParams
 from coloc.icp_da_pf import (
-    IcpDaPf, PfParams, entity_rng, kernel_bandwidth, kernel_density, normalize_log, pf_bpa_localization,
+    IcpDaPf, PfParams, entity_rng, kernel_density, normalize_log, pf_bpa_localization,
     regularized_resample, silverman_factor, systematic_resample, weighted_moments,
 )
 from tests.coloc.test_icp_known_da import MOTION, scenario
@@ -130,7 +130,7 @@ def test_kernel_bandwidth_is_silverman_on_the_effective_sample():
     x = g.normal(size=(2, 400, 4)) * np.array([2.0, 1.0, 0.5, 0.1])
     logw = np.zeros((2, 400))
     logw[1, :200] = -np.inf  # half the particles carry no weight: ESS 200
-    h = kernel_bandwidth(x, logw)
+    h = kernel_density(x, logw, "prior")[1]
     _, c0 = weighted_moments(x[0], logw[0])
     _, c1 = weighted_moments(x[1, 200:], np.zeros(200))
     np.testing.assert_allclose(h[0], (4.0 / (6 * 400)) ** 0.25 * c0, rtol=1e-9)
@@ -149,7 +149,7 @@ def test_shrunk_kernel_density_keeps_the_mean_and_covariance_of_the_set():
     c_mean, c_cov = weighted_moments(centres, logw)
     np.testing.assert_allclose(c_mean, mean, atol=1e-12)
     np.testing.assert_allclose(c_cov + kernel, cov, rtol=1e-9, atol=1e-8)  # _moments adds 1e-9 I
-    np.testing.assert_allclose(kernel, kernel_bandwidth(x, logw), rtol=1e-12)
+    np.testing.assert_allclose(kernel, kernel_density(x, logw, "prior")[1], rtol=1e-12)
     plain, kernel_plain = kernel_density(x, logw, "prior")
     assert plain is x
     bare, kernel_bare = kernel_density(x, logw, "none")
