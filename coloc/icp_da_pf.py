@@ -53,7 +53,9 @@ a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
 CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
 track k draws the same particles without communicating. The pairwise sums are
 the kernels of :mod:`coloc.pf_kernels` (a k-d tree kernel exact to
-``kernel_rel_tol`` per entry, or the brute force).
+``kernel_rel_tol`` per entry, or the brute force); BPA-L's two message sums keep
+their kernel matrices through the iterations of a step (``pf.kernel_cache_mb``),
+since only the cavity weights change between iterations.
 
 The time recursion (``PfParams.recursion``): "paper" is (23)-(24) as written
 (vehicle sets carry the cooperative belief, tracks their posterior); the
@@ -105,7 +107,14 @@ from coloc.icp_da_lc import (
     new_feature_log_density,
 )
 from coloc.models import input_matrix, rotated_diag, transition_matrix
-from coloc.pf_kernels import KERNELS, transform_batch
+from coloc.pf_kernels import (
+    KERNELS,
+    KernelWorkspace,
+    fixed_transforms,
+    kept_problem_count,
+    transform_batch,
+    transform_fixed,
+)
 from coloc.vehicles import match_ids
 
 __all__ = [
@@ -171,8 +180,15 @@ class PfParams:
     default. "none" is the bare V2F kernel of (25)-(27), exact for the
     particle sets as they are.
     ``kernel``: "tree" (k-d tree pruned, exact to ``kernel_rel_tol`` per
-    entry) or "brute" (every particle pair). ``min_association_belief``: options of (18)
-    with a smaller BPA-DA belief are left out of the mixture.
+    entry) or "brute" (every particle pair). ``kernel_cache_mb``: with "tree", the
+    two message sums of BPA-L (19)/(21) keep their kernel matrices (float32, 4 bytes
+    a pair) through the iterations of a step, as far as they fit in this many MB:
+    the particles and kernels do not change between iterations, only the cavity
+    weights, so each later iteration is a matrix-vector product, exact to
+    ``kernel_rel_tol`` as the tree (:func:`coloc.pf_kernels.fixed_transforms`).
+    The single road at J = 5000 needs 1.6 GB (8 terms, two directions); 0 keeps
+    none. ``min_association_belief``: options of (18) with a smaller BPA-DA belief
+    are left out of the mixture.
     """
 
     vehicle_particles: int = 1000
@@ -180,6 +196,7 @@ class PfParams:
     seed: int = 0
     kernel: str = "tree"
     kernel_rel_tol: float = 1e-6
+    kernel_cache_mb: float = 2048.0
     min_association_belief: float = 1e-6
     recursion: str = "latest_message"
     regularize: bool = True
@@ -192,6 +209,8 @@ class PfParams:
             raise ValueError(f"kernel must be one of {', '.join(KERNELS)}")
         if not self.kernel_rel_tol > 0:
             raise ValueError("kernel_rel_tol must be positive")
+        if not self.kernel_cache_mb >= 0:
+            raise ValueError("kernel_cache_mb must be >= 0")
         if self.message_bandwidth not in BANDWIDTHS:
             raise ValueError(f"message_bandwidth must be one of {', '.join(BANDWIDTHS)}")
         if self.recursion not in RECURSIONS:
@@ -409,6 +428,7 @@ def pf_bpa_localization(
     output_particles: np.ndarray | None = None,
     output_log_b0: np.ndarray | None = None,
     track_flat: np.ndarray | None = None,
+    workspace: KernelWorkspace | None = None,
 ) -> PfBpaResult:
     """Particle BPA-L (19)-(22) with the feature product (26) by consensus (28)-(29).
 
@@ -465,11 +485,22 @@ def pf_bpa_localization(
     f_mean, _ = weighted_moments(track_particles[entry_track], log_b0_e)
     converged, pairs, it = False, 0, 0
     logb_f = log_b0_e
+    # The particles and kernels of the two message sums stay fixed through the iterations, only the
+    # cavity weights change: within pf.kernel_cache_mb their kernel matrices are kept (FixedTransforms).
+    keep_bytes = 0.5e6 * pf.kernel_cache_mb
+    storage = [None, None]
+    if workspace is not None:
+        storage = workspace.arrays(*(kept_problem_count(term_row.size, jv, jf, pf.kernel, pf.kernel_rel_tol,
+                                                        keep_bytes) * jv * jf for _ in range(2)))
+    to_features = fixed_transforms(v_centres, t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
+                                   pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
+    to_vehicles = fixed_transforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
+                                   pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
+    pairs = int(to_features.build_pairs.sum() + to_vehicles.build_pairs.sum())
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
         cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
-        s_out, p1 = transform_batch(v_centres, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track,
-                                    zero_shift, r_from_v, pf.kernel, pf.kernel_rel_tol)
+        s_out, p1 = transform_fixed(to_features, cav_v[term_entry])
         log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
         avg = average_consensus_with_weights(log_m_vf, weights, params.consensus_iterations)
@@ -480,8 +511,7 @@ def pf_bpa_localization(
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
-        t_out, p2 = transform_batch(f_centres, cav_f[term_entry], t_track, zero_shift, vehicle_particles,
-                                    t_vehicle, t_z, r_from_f, pf.kernel, pf.kernel_rel_tol)
+        t_out, p2 = transform_fixed(to_vehicles, cav_f[term_entry])
         log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
         if flat_m is not None:
             log_m_fv[flat_e] = flat_m
@@ -599,7 +629,7 @@ def _birth_particles(v_mean, v_cov, z_rows, r_rows, entities, step, params: IcpP
 
 def icp_da_pf_step(
     state: PfState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams, pf: PfParams,
-    known_association: np.ndarray | None = None,
+    known_association: np.ndarray | None = None, workspace: KernelWorkspace | None = None,
 ) -> tuple[PfState, int, PfStepInfo, StepEstimate]:
     """One ICP-DA-PF step (pure). ``known_association`` (O,) stable feature ids: the known-DA
     variant used by tests (association BP skipped, tracks keyed by the given ids)."""
@@ -788,7 +818,7 @@ def icp_da_pf_step(
     res = pf_bpa_localization(own, log_own, t_particles, t_log_b0, entry_vehicle,
                               entry_track, entry_log_c0, term_entry, term_rows, term_log_c, z, r,
                               frame.neighbors, params, pf, particles if latest else None, log_gnss if latest else None,
-                              t_flat)
+                              t_flat, workspace)
     # Posterior weights of observed tracks; estimates.
     t_post = t_logw.copy()
     seen = res.track_entry >= 0
@@ -874,14 +904,16 @@ class IcpDaPf:
     state: PfState = field(default_factory=PfState)
     next_id: int = 0
     last: PfStepInfo | None = None
+    workspace: KernelWorkspace = field(default_factory=KernelWorkspace, repr=False)  # scratch, never read across steps
 
     def step(self, frame: Frame) -> StepEstimate:
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
-                                                                   self.lc, self.pf)
+                                                                   self.lc, self.pf, workspace=self.workspace)
         return est
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         """Known-DA variant (tests: PF against the Kalman bound)."""
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
-                                                                   self.lc, self.pf, known_association=v2f_feature)
+                                                                   self.lc, self.pf, known_association=v2f_feature,
+                                                                   workspace=self.workspace)
         return est

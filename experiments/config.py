@@ -113,6 +113,8 @@ class PfSection:
     feature_particles: int = 1000
     kernel: str = "tree"  # "tree" (k-d tree pruned, exact to kernel_rel_tol per entry) or "brute"
     kernel_rel_tol: float = 1e-6
+    # Memory for the kernel matrices kept through BPA-L's iterations (tree kernel; 0 = none kept).
+    kernel_cache_mb: float = 2048.0
     min_association_belief: float = 1e-6
     # Particle double sums as kernel density estimates ("prior", kernel R + h^2 Cov; "shrunk", the same
     # with Liu-West shrunk centres that keep the set's covariance) or bare ("none").

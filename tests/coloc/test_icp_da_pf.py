@@ -267,6 +267,6 @@ def test_empty_frames_and_bad_parameters():
     for f in scenario(steps=2, n_feat=0):
         assert est.step(f).mean.shape == (f.n_vehicles, 4)
     for bad in ({"kernel": "fft"}, {"vehicle_particles": 0}, {"recursion": "other"}, {"kernel_rel_tol": 0.0},
-                {"message_bandwidth": "wide"}):
+                {"message_bandwidth": "wide"}, {"kernel_cache_mb": -1.0}):
         with pytest.raises(ValueError):
             PfParams(**bad)

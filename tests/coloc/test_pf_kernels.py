@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from coloc.pf_kernels import transform, transform_batch, transform_brute
+from coloc.pf_kernels import (
+    KernelWorkspace,
+    fixed_transforms,
+    kept_problem_count,
+    transform,
+    transform_batch,
+    transform_brute,
+    transform_fixed,
+)
 from scriptload import load_script
 
 
@@ -65,12 +73,13 @@ def test_zero_weights_and_empty_batches():
 def test_polynomial_exp_of_the_leaf_loop():
     from coloc.pf_kernels import _exp_neg
 
-    y = np.linspace(0.0, 689.99, 200001)
+    y = np.concatenate([np.linspace(0.0, 689.99, 200001), np.random.default_rng(0).uniform(0.0, 40.0, 100000),
+                        np.log(2.0) * (np.arange(995) + 0.5)])  # the range reduction's half-way points
     got = np.array([_exp_neg(v) for v in y])
     rel = np.abs(got / np.exp(-y) - 1.0)
     print(f"largest relative error {rel.max():.1e}")
-    assert rel.max() < 2e-10
-    # beyond exp(-690) exactly 0: the squarings would pass through subnormal numbers (10x slower)
+    assert rel.max() < 1e-12
+    # beyond exp(-690) exactly 0: terms 1e-300 below the leaf's scale
     assert _exp_neg(690.0) == 0.0 and _exp_neg(746.0) == 0.0 and _exp_neg(1e6) == 0.0
 
 
@@ -91,3 +100,72 @@ def test_least_exact_share_counts_the_terms_a_1e6_sum_needs():
     s, t, r = bench.case_problem(400, 8.0, 0.1, 0.2, 0.1, True)
     pairs, _ = bench.run_case(s, t, r, "tree")
     assert pairs / 400 ** 2 >= bench.least_exact_share(s, t, r)
+
+
+def _fixed_one(src, tgt, r, max_bytes=1e9, kernel="tree", rel_tol=1e-6):
+    return fixed_transforms(src[None], np.zeros(1, int), np.zeros((1, 4)), tgt[None], np.zeros(1, int),
+                            np.zeros((1, 4)), r[None], kernel, rel_tol, max_bytes)
+
+
+def test_kept_kernel_matrices_agree_with_scipy_to_1e6_for_any_weights():
+    """The BPA-L path (kernel matrices built once, summed for every iteration's cavity weights): every
+    entry within 1e-6 of the full log-sum-exp, tails included (40 random problems x 3 weight vectors,
+    the tree test's clouds)."""
+    rng = np.random.default_rng(7)
+    worst = 0.0
+    for trial in range(40):
+        src, logw, tgt, r = _problem(rng, [0.05, 0.3, 1.0, 5.0][trial % 4])
+        fixed = _fixed_one(src, tgt, r)
+        assert fixed.kept.all()
+        for spread in (0.0, 5.0, 50.0):  # new weights each "iteration", up to e^+-150 apart
+            lw = logw + rng.normal(0.0, spread, logw.size)
+            got, pairs = transform_fixed(fixed, lw[None])
+            assert pairs.sum() == 0  # no kernel evaluated: the matrix product
+            ref = transform_brute(src, lw, tgt, r)
+            ok = np.isfinite(ref)
+            assert np.array_equal(ok, np.isfinite(got[0]))
+            worst = max(worst, float(np.max(np.abs(np.expm1(got[0][ok] - ref[ok])), initial=0.0)))
+    print(f"kept matrices: largest relative error {worst:.2e}")
+    assert worst < 1e-6
+
+
+def test_kept_matrices_fall_back_to_the_exact_sum_where_float32_cannot_vouch():
+    """Target at the origin; a near source of weight e^-300 and a far one (whitened distance 20) of
+    weight 1. The far term e^-200 dominates, but its kept value is 0 (200 > 87 below the nearest);
+    the product then holds only the near term, below the floor, and the entry is summed exactly."""
+    src = np.zeros((2, 4))
+    src[1, 0] = 20.0
+    logw = np.array([-300.0, 0.0])
+    fixed = _fixed_one(src, np.zeros((1, 4)), np.eye(4))
+    assert fixed.values[0, 0, 1] == 0.0
+    got, _ = transform_fixed(fixed, logw[None])
+    np.testing.assert_allclose(got[0], transform_brute(src, logw, np.zeros((1, 4)), np.eye(4)), rtol=0, atol=1e-12)
+
+
+def test_kept_matrices_within_the_memory_budget_and_in_the_workspace():
+    """Problems beyond the budget are summed by the tree; results do not depend on the split, on the
+    storage or on a tolerance float32 cannot meet (nothing kept then)."""
+    rng = np.random.default_rng(5)
+    spread = np.array([1.0, 1.0, 0.2, 0.2])
+    sets = rng.normal(size=(3, 600, 4)) * spread
+    src_index, tgt_index = np.array([0, 1, 2, 0]), np.array([1, 2, 0, 2])
+    shift = rng.normal(size=(4, 4)) * spread * 0.3
+    r = np.tile(np.diag([0.04, 0.04, 0.01, 0.01]), (4, 1, 1))
+    logw = rng.normal(size=(4, 600))
+    args = (sets, src_index, np.zeros((4, 4)), sets, tgt_index, shift, r)
+    ref, _ = transform_batch(sets, logw, *args[1:], kernel="brute")
+    bytes_per_problem = 4 * 600 * 600
+    for budget, n_kept in ((0, 0), (2.5 * bytes_per_problem, 2), (1e9, 4)):
+        assert kept_problem_count(4, 600, 600, "tree", 1e-6, budget) == n_kept
+        fixed = fixed_transforms(*args, "tree", 1e-6, budget)
+        assert fixed.kept.tolist() == [p < n_kept for p in range(4)]
+        got, pairs = transform_fixed(fixed, logw)
+        assert np.all(pairs[:n_kept] == 0) and np.all(pairs[n_kept:] > 0)
+        assert np.max(np.abs(np.expm1(got - ref))) < 1e-6
+    workspace = KernelWorkspace()
+    a, b = workspace.arrays(4 * 600 * 600, 4 * 600 * 600)
+    assert not np.shares_memory(a, b)
+    in_workspace, _ = transform_fixed(fixed_transforms(*args, "tree", 1e-6, 1e9, a), logw)
+    np.testing.assert_array_equal(in_workspace, got)
+    assert kept_problem_count(4, 600, 600, "tree", 1e-8, 1e9) == 0  # below float32's 2^-24
+    assert kept_problem_count(4, 600, 600, "brute", 1e-6, 1e9) == 0  # the reference stays brute force
