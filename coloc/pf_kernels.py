@@ -57,8 +57,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["KERNELS", "FixedTransforms", "KernelWorkspace", "fixed_transforms", "kept_problem_count", "transform_batch", "transform_brute", "transform",
-           "transform_fixed"]
+__all__ = ["KERNELS", "FixedTransforms", "KernelWorkspace", "fixed_transforms", "fixed_transforms_summed",
+           "kept_problem_count", "transform_batch", "transform_brute", "transform", "transform_fixed"]
 
 KERNELS = ("tree", "brute")
 _LOG_NORM = -2.0 * math.log(2.0 * math.pi)  # (2 pi)^(-d/2), d = 4
@@ -435,24 +435,16 @@ def _dense_row(px, py, pvx, pvy, u0, u1, u2, u3, q, row):
 
 
 @nb.njit(cache=True)
-def _dense_problem(src, src_shift, tgt, tgt_shift, linv, values, low, src_w, tgt_w):
-    """Whiten one problem's particles and fill its kernel values (Jt, Js) and q_min (Jt,)."""
-    js, jt = src.shape[0], tgt.shape[0]
-    for s in range(js):
-        _whiten(src[s], src_shift, linv, src_w[s])
-    for t in range(jt):
-        _whiten(tgt[t], tgt_shift, linv, tgt_w[t])
-    px, py, pvx, pvy = src_w[:, 0].copy(), src_w[:, 1].copy(), src_w[:, 2].copy(), src_w[:, 3].copy()
-    q = np.empty(js)
-    for t in range(jt):
-        low[t] = _dense_row(px, py, pvx, pvy, tgt_w[t, 0], tgt_w[t, 1], tgt_w[t, 2], tgt_w[t, 3], q, values[t])
-
-
-@nb.njit(cache=True, parallel=True)
-def _build_dense(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, linv, values, low, src_w, tgt_w):
-    for p in nb.prange(src_index.shape[0]):
-        _dense_problem(src_sets[src_index[p]], src_shift[p], tgt_sets[tgt_index[p]], tgt_shift[p], linv[p],
-                       values[p], low[p], src_w[p], tgt_w[p])
+def _scaled_weights(src_logw, ws):
+    """ws = exp(logw - max) (every source weight relative to the largest); returns (max, sum of ws)."""
+    wmax = -np.inf
+    for s in range(src_logw.shape[0]):
+        wmax = max(wmax, src_logw[s])
+    total = 0.0
+    for s in range(src_logw.shape[0]):
+        ws[s] = math.exp(src_logw[s] - wmax) if wmax > -np.inf else 0.0
+        total += ws[s]
+    return wmax, total
 
 
 @nb.njit(cache=True, fastmath={"reassoc", "contract"})
@@ -463,30 +455,65 @@ def _dense_row_sum(row, ws):
     return acc
 
 
+@nb.njit(cache=True)
+def _finish_dense(acc, total, wmax, low, log_norm, src_w, src_logw, tgt_w, rel_tol, out):
+    """out[t] = log of the weighted sum of row t from its product ``acc[t]`` with the scaled weights; the
+    exact log-sum where the float32 values cannot vouch for it (the sum below the dropped mass bound)."""
+    if wmax == -np.inf:
+        out[:] = -np.inf
+        return
+    floor = total * math.exp(-_DENSE_CUT) / (rel_tol - _F32_EPS)
+    for t in range(acc.shape[0]):
+        if acc[t] > floor:
+            out[t] = math.log(acc[t]) - 0.5 * low[t] + wmax + log_norm
+        else:  # every term in log domain
+            out[t] = _exact_log_sum(src_w, src_logw, wmax, tgt_w[t]) + log_norm
+
+
+@nb.njit(cache=True)
+def _dense_problem(src, src_shift, tgt, tgt_shift, linv, values, low, src_w, tgt_w, first_logw, log_norm, rel_tol,
+                   first_out):
+    """Whiten one problem's particles and fill its kernel values (Jt, Js) and q_min (Jt,); with
+    ``first_logw`` (Js,) (empty: none) also its sum for those weights into ``first_out``, each row
+    while it is still in cache (the first BPA-L iteration's)."""
+    js, jt = src.shape[0], tgt.shape[0]
+    for s in range(js):
+        _whiten(src[s], src_shift, linv, src_w[s])
+    for t in range(jt):
+        _whiten(tgt[t], tgt_shift, linv, tgt_w[t])
+    px, py, pvx, pvy = src_w[:, 0].copy(), src_w[:, 1].copy(), src_w[:, 2].copy(), src_w[:, 3].copy()
+    q = np.empty(js)
+    summed = first_logw.shape[0] > 0
+    ws = np.empty(js if summed else 0)
+    wmax, total = _scaled_weights(first_logw, ws) if summed else (0.0, 0.0)
+    acc = np.empty(jt)
+    for t in range(jt):
+        low[t] = _dense_row(px, py, pvx, pvy, tgt_w[t, 0], tgt_w[t, 1], tgt_w[t, 2], tgt_w[t, 3], q, values[t])
+        if summed:
+            acc[t] = _dense_row_sum(values[t], ws)
+    if summed:
+        _finish_dense(acc, total, wmax, low, log_norm, src_w, first_logw, tgt_w, rel_tol, first_out)
+
+
+@nb.njit(cache=True, parallel=True)
+def _build_dense(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, linv, values, low, src_w, tgt_w,
+                 first_logw, log_norm, rel_tol, first_out):
+    for p in nb.prange(src_index.shape[0]):
+        _dense_problem(src_sets[src_index[p]], src_shift[p], tgt_sets[tgt_index[p]], tgt_shift[p], linv[p],
+                       values[p], low[p], src_w[p], tgt_w[p], first_logw[p], log_norm[p], rel_tol, first_out[p])
+
+
 @nb.njit(cache=True, parallel=True)
 def _apply_dense(values, low, log_norm, src_w, tgt_w, src_logw, rel_tol, out):
     """out[p, t] = log sum_s exp(logw_s) N(...) from the kept values; exact log-sum where they cannot vouch."""
     for p in nb.prange(values.shape[0]):
-        js = values.shape[2]
-        wmax = -np.inf
-        for s in range(js):
-            wmax = max(wmax, src_logw[p, s])
-        if wmax == -np.inf:
+        ws = np.empty(values.shape[2])
+        wmax, total = _scaled_weights(src_logw[p], ws)
+        acc = np.empty(values.shape[1])
+        if wmax > -np.inf:
             for t in range(values.shape[1]):
-                out[p, t] = -np.inf
-            continue
-        ws = np.empty(js)
-        total = 0.0
-        for s in range(js):
-            ws[s] = math.exp(src_logw[p, s] - wmax)
-            total += ws[s]
-        floor = total * math.exp(-_DENSE_CUT) / (rel_tol - _F32_EPS)
-        for t in range(values.shape[1]):
-            acc = _dense_row_sum(values[p, t], ws)
-            if acc > floor:
-                out[p, t] = math.log(acc) - 0.5 * low[p, t] + wmax + log_norm[p]
-            else:  # the sum is too small for the float32 values to vouch for it: every term in log domain
-                out[p, t] = _exact_log_sum(src_w[p], src_logw[p], wmax, tgt_w[p, t]) + log_norm[p]
+                acc[t] = _dense_row_sum(values[p, t], ws)
+        _finish_dense(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[p], tgt_w[p], rel_tol, out[p])
 
 
 class KernelWorkspace:
@@ -547,6 +574,26 @@ def fixed_transforms(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_sh
     float32 array of at least :func:`kept_problem_count` x Jt x Js values to build them in
     (:class:`KernelWorkspace`); None allocates.
     """
+    return _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel, rel_tol,
+                        max_bytes, storage, None)[0]
+
+
+def fixed_transforms_summed(src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r,
+                            kernel: str = "tree", rel_tol: float = 1e-6, max_bytes: float = 0.0,
+                            storage: np.ndarray | None = None) -> tuple[FixedTransforms, np.ndarray, np.ndarray]:
+    """:func:`fixed_transforms` and, in the same pass, ``transform_fixed(fixed, src_logw)``: each kept
+    row is summed while it is still in cache, so the first sum costs no second read of the matrices
+    (BPA-L's first iteration). Returns ``(fixed, log_out (P, Jt), kernel evaluations (P,))``, the
+    evaluations those of the problems not kept (the build's are in ``fixed.build_pairs``)."""
+    src_logw = np.ascontiguousarray(src_logw, dtype=float)
+    fixed, kept_out = _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel,
+                                   rel_tol, max_bytes, storage, src_logw)
+    out, pairs = _sum_fixed(fixed, src_logw, kept_out)
+    return fixed, out, pairs
+
+
+def _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel, rel_tol, max_bytes,
+                 storage, first_logw) -> tuple[FixedTransforms, np.ndarray]:
     src_index = np.ascontiguousarray(src_index, dtype=np.int64)
     tgt_index = np.ascontiguousarray(tgt_index, dtype=np.int64)
     p = src_index.size
@@ -562,15 +609,18 @@ def fixed_transforms(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_sh
     low, src_w, tgt_w = np.empty((k, jt)), np.empty((k, js, 4)), np.empty((k, jt, 4))
     log_norm = np.empty(k)
     build_pairs = np.zeros(p, np.int64)
+    first_kept = np.empty((k, 0)) if first_logw is None else np.ascontiguousarray(first_logw[kept])
+    kept_out = np.empty((k, jt if first_logw is not None else 0))
     if k:
         linv, log_norm = _chol_inverse(np.asarray(r, dtype=float).reshape(p, 4, 4)[kept])
         _build_dense(np.ascontiguousarray(src_sets, dtype=float), src_index[kept],
                      np.ascontiguousarray(np.asarray(src_shift, dtype=float).reshape(p, 4)[kept]),
                      np.ascontiguousarray(tgt_sets, dtype=float), tgt_index[kept],
                      np.ascontiguousarray(np.asarray(tgt_shift, dtype=float).reshape(p, 4)[kept]),
-                     linv, values, low, src_w, tgt_w)
+                     linv, values, low, src_w, tgt_w, first_kept, log_norm, float(rel_tol), kept_out)
         build_pairs[kept] = js * jt
-    return FixedTransforms(args, kernel, float(rel_tol), kept, values, low, log_norm, src_w, tgt_w, build_pairs)
+    fixed = FixedTransforms(args, kernel, float(rel_tol), kept, values, low, log_norm, src_w, tgt_w, build_pairs)
+    return fixed, kept_out
 
 
 def transform_fixed(fixed: FixedTransforms, src_logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -580,14 +630,20 @@ def transform_fixed(fixed: FixedTransforms, src_logw: np.ndarray) -> tuple[np.nd
     was built by :func:`fixed_transforms`, whose ``build_pairs`` count them)."""
     src_logw = np.ascontiguousarray(src_logw, dtype=float)
     kept = fixed.kept
+    kept_out = np.empty((int(kept.sum()), fixed.low.shape[1]))
+    if kept.any():
+        _apply_dense(fixed.values, fixed.low, fixed.log_norm, fixed.src_w, fixed.tgt_w,
+                     np.ascontiguousarray(src_logw[kept]), fixed.rel_tol, kept_out)
+    return _sum_fixed(fixed, src_logw, kept_out)
+
+
+def _sum_fixed(fixed: FixedTransforms, src_logw: np.ndarray, kept_out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All P sums: the kept problems' ``kept_out``, the others by :func:`transform_batch`."""
+    kept = fixed.kept
     jt = fixed.args[3].shape[1] if np.ndim(fixed.args[3]) == 3 else 0
     out = np.empty((kept.size, jt))
     pairs = np.zeros(kept.size, np.int64)
-    if kept.any():
-        res = np.empty((int(kept.sum()), jt))
-        _apply_dense(fixed.values, fixed.low, fixed.log_norm, fixed.src_w, fixed.tgt_w,
-                     np.ascontiguousarray(src_logw[kept]), fixed.rel_tol, res)
-        out[kept] = res
+    out[kept] = kept_out
     rest = ~kept
     if rest.any():
         src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r = fixed.args

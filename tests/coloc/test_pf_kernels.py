@@ -6,6 +6,7 @@ import pytest
 from coloc.pf_kernels import (
     KernelWorkspace,
     fixed_transforms,
+    fixed_transforms_summed,
     kept_problem_count,
     transform,
     transform_batch,
@@ -169,3 +170,30 @@ def test_kept_matrices_within_the_memory_budget_and_in_the_workspace():
     np.testing.assert_array_equal(in_workspace, got)
     assert kept_problem_count(4, 600, 600, "tree", 1e-8, 1e9) == 0  # below float32's 2^-24
     assert kept_problem_count(4, 600, 600, "brute", 1e-6, 1e9) == 0  # the reference stays brute force
+
+
+def test_building_with_the_first_sum_equals_building_then_summing():
+    """BPA-L's first iteration sums each kept row while building it (fixed_transforms_summed): the same
+    values, the same kept matrices and the same later sums as fixed_transforms then transform_fixed,
+    whatever share of the problems the budget keeps; all-(-inf) weights give -inf."""
+    rng = np.random.default_rng(11)
+    spread = np.array([2.0, 2.0, 0.3, 0.3])
+    sets = rng.normal(size=(3, 500, 4)) * spread
+    src_index, tgt_index = np.array([0, 1, 2, 1]), np.array([1, 2, 0, 0])
+    shift = rng.normal(size=(4, 4)) * spread * 0.3
+    r = np.tile(np.diag([0.09, 0.09, 0.02, 0.02]), (4, 1, 1))
+    first, later = rng.normal(0.0, 3.0, (4, 500)), rng.normal(0.0, 3.0, (4, 500))
+    first[3] = -np.inf
+    args = (sets, src_index, np.zeros((4, 4)), sets, tgt_index, shift, r)
+    for budget in (0, 2.5 * 4 * 500 * 500, 1e9):
+        plain = fixed_transforms(*args, "tree", 1e-6, budget)
+        ref, ref_pairs = transform_fixed(plain, first)
+        summed, got, pairs = fixed_transforms_summed(sets, first, *args[1:], "tree", 1e-6, budget)
+        np.testing.assert_array_equal(summed.kept, plain.kept)
+        np.testing.assert_array_equal(summed.values, plain.values)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+        assert np.all(got[3] == -np.inf)
+        np.testing.assert_array_equal(pairs, ref_pairs)
+        np.testing.assert_array_equal(transform_fixed(summed, later)[0], transform_fixed(plain, later)[0])
+        brute, _ = transform_batch(sets, first, *args[1:], kernel="brute")
+        assert np.max(np.abs(np.expm1(got[:3] - brute[:3]))) < 1e-6
