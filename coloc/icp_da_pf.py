@@ -110,10 +110,9 @@ from coloc.models import input_matrix, rotated_diag, transition_matrix
 from coloc.pf_kernels import (
     KERNELS,
     KernelWorkspace,
-    fixed_transforms_summed,
+    RepeatedTransforms,
     kept_problem_count,
     transform_batch,
-    transform_fixed,
 )
 from coloc.vehicles import match_ids
 
@@ -493,17 +492,14 @@ def pf_bpa_localization(
     if workspace is not None:
         storage = workspace.arrays(*(kept_problem_count(term_row.size, jv, jf, pf.kernel, pf.kernel_rel_tol,
                                                         keep_bytes) * jv * jf for _ in range(2)))
-    to_features = to_vehicles = None
+    to_features = RepeatedTransforms(v_centres, t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
+                                     pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
+    to_vehicles = RepeatedTransforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
+                                     pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
         cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
-        if to_features is None:
-            to_features, s_out, p1 = fixed_transforms_summed(
-                v_centres, cav_v[term_entry], t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
-                pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
-            p1 = p1 + to_features.build_pairs
-        else:
-            s_out, p1 = transform_fixed(to_features, cav_v[term_entry])
+        s_out, p1 = to_features.sum(cav_v[term_entry])
         log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
         avg = average_consensus_with_weights(log_m_vf, weights, params.consensus_iterations)
@@ -514,13 +510,7 @@ def pf_bpa_localization(
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
-        if to_vehicles is None:
-            to_vehicles, t_out, p2 = fixed_transforms_summed(
-                f_centres, cav_f[term_entry], t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
-                pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
-            p2 = p2 + to_vehicles.build_pairs
-        else:
-            t_out, p2 = transform_fixed(to_vehicles, cav_f[term_entry])
+        t_out, p2 = to_vehicles.sum(cav_f[term_entry])
         log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
         if flat_m is not None:
             log_m_fv[flat_e] = flat_m

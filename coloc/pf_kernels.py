@@ -57,8 +57,9 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["KERNELS", "FixedTransforms", "KernelWorkspace", "fixed_transforms", "fixed_transforms_summed",
-           "kept_problem_count", "transform_batch", "transform_brute", "transform", "transform_fixed"]
+__all__ = ["KERNELS", "FixedTransforms", "KernelWorkspace", "RepeatedTransforms", "fixed_transforms",
+           "fixed_transforms_summed", "kept_problem_count", "transform_batch", "transform_brute", "transform",
+           "transform_fixed"]
 
 KERNELS = ("tree", "brute")
 _LOG_NORM = -2.0 * math.log(2.0 * math.pi)  # (2 pi)^(-d/2), d = 4
@@ -590,6 +591,28 @@ def fixed_transforms_summed(src_sets, src_logw, src_index, src_shift, tgt_sets, 
                                    rel_tol, max_bytes, storage, src_logw)
     out, pairs = _sum_fixed(fixed, src_logw, kept_out)
     return fixed, out, pairs
+
+
+class RepeatedTransforms:
+    """:func:`transform_batch`'s problems summed again and again for new source weights (BPA-L's
+    iterations): the first :meth:`sum` builds the kept kernel matrices while it sums
+    (:func:`fixed_transforms_summed`), every later one is their product (:func:`transform_fixed`)."""
+
+    def __init__(self, src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel: str = "tree",
+                 rel_tol: float = 1e-6, max_bytes: float = 0.0, storage: np.ndarray | None = None):
+        self._problems = (src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r)
+        self._src_sets = src_sets
+        self._options = (kernel, rel_tol, max_bytes, storage)
+        self.fixed: FixedTransforms | None = None
+
+    def sum(self, src_logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(log_out (P, Jt), kernel evaluations (P,))`` for source log-weights (P, Js); the first
+        call's evaluations include the build's."""
+        if self.fixed is None:
+            self.fixed, out, pairs = fixed_transforms_summed(self._src_sets, src_logw, *self._problems,
+                                                             *self._options)
+            return out, pairs + self.fixed.build_pairs
+        return transform_fixed(self.fixed, src_logw)
 
 
 def _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel, rel_tol, max_bytes,

@@ -5,6 +5,7 @@ import pytest
 
 from coloc.pf_kernels import (
     KernelWorkspace,
+    RepeatedTransforms,
     fixed_transforms,
     fixed_transforms_summed,
     kept_problem_count,
@@ -103,6 +104,16 @@ def test_least_exact_share_counts_the_terms_a_1e6_sum_needs():
     assert pairs / 400 ** 2 >= bench.least_exact_share(s, t, r)
 
 
+def _four_problems(rng, j, spread, r_diag, src_index, tgt_index):
+    """Four transform_batch problems over three random sets (J particles, per-axis ``spread``),
+    targets shifted at random: (sets, src_index, src_shift, sets, tgt_index, tgt_shift, r)."""
+    spread = np.asarray(spread)
+    sets = rng.normal(size=(3, j, 4)) * spread
+    shift = rng.normal(size=(4, 4)) * spread * 0.3
+    r = np.tile(np.diag(r_diag), (4, 1, 1))
+    return sets, np.array(src_index), np.zeros((4, 4)), sets, np.array(tgt_index), shift, r
+
+
 def _fixed_one(src, tgt, r, max_bytes=1e9, kernel="tree", rel_tol=1e-6):
     return fixed_transforms(src[None], np.zeros(1, int), np.zeros((1, 4)), tgt[None], np.zeros(1, int),
                             np.zeros((1, 4)), r[None], kernel, rel_tol, max_bytes)
@@ -147,13 +158,9 @@ def test_kept_matrices_within_the_memory_budget_and_in_the_workspace():
     """Problems beyond the budget are summed by the tree; results do not depend on the split, on the
     storage or on a tolerance float32 cannot meet (nothing kept then)."""
     rng = np.random.default_rng(5)
-    spread = np.array([1.0, 1.0, 0.2, 0.2])
-    sets = rng.normal(size=(3, 600, 4)) * spread
-    src_index, tgt_index = np.array([0, 1, 2, 0]), np.array([1, 2, 0, 2])
-    shift = rng.normal(size=(4, 4)) * spread * 0.3
-    r = np.tile(np.diag([0.04, 0.04, 0.01, 0.01]), (4, 1, 1))
+    args = _four_problems(rng, 600, [1.0, 1.0, 0.2, 0.2], [0.04, 0.04, 0.01, 0.01], [0, 1, 2, 0], [1, 2, 0, 2])
+    sets = args[0]
     logw = rng.normal(size=(4, 600))
-    args = (sets, src_index, np.zeros((4, 4)), sets, tgt_index, shift, r)
     ref, _ = transform_batch(sets, logw, *args[1:], kernel="brute")
     bytes_per_problem = 4 * 600 * 600
     for budget, n_kept in ((0, 0), (2.5 * bytes_per_problem, 2), (1e9, 4)):
@@ -177,14 +184,10 @@ def test_building_with_the_first_sum_equals_building_then_summing():
     values, the same kept matrices and the same later sums as fixed_transforms then transform_fixed,
     whatever share of the problems the budget keeps; all-(-inf) weights give -inf."""
     rng = np.random.default_rng(11)
-    spread = np.array([2.0, 2.0, 0.3, 0.3])
-    sets = rng.normal(size=(3, 500, 4)) * spread
-    src_index, tgt_index = np.array([0, 1, 2, 1]), np.array([1, 2, 0, 0])
-    shift = rng.normal(size=(4, 4)) * spread * 0.3
-    r = np.tile(np.diag([0.09, 0.09, 0.02, 0.02]), (4, 1, 1))
+    args = _four_problems(rng, 500, [2.0, 2.0, 0.3, 0.3], [0.09, 0.09, 0.02, 0.02], [0, 1, 2, 1], [1, 2, 0, 0])
+    sets = args[0]
     first, later = rng.normal(0.0, 3.0, (4, 500)), rng.normal(0.0, 3.0, (4, 500))
     first[3] = -np.inf
-    args = (sets, src_index, np.zeros((4, 4)), sets, tgt_index, shift, r)
     for budget in (0, 2.5 * 4 * 500 * 500, 1e9):
         plain = fixed_transforms(*args, "tree", 1e-6, budget)
         ref, ref_pairs = transform_fixed(plain, first)
@@ -197,3 +200,11 @@ def test_building_with_the_first_sum_equals_building_then_summing():
         np.testing.assert_array_equal(transform_fixed(summed, later)[0], transform_fixed(plain, later)[0])
         brute, _ = transform_batch(sets, first, *args[1:], kernel="brute")
         assert np.max(np.abs(np.expm1(got[:3] - brute[:3]))) < 1e-6
+        # BPA-L's view: the first sum builds (its evaluations include the build's), later ones are products.
+        repeated = RepeatedTransforms(*args, "tree", 1e-6, budget)
+        once, once_pairs = repeated.sum(first)
+        np.testing.assert_array_equal(once, got)
+        np.testing.assert_array_equal(once_pairs, pairs + summed.build_pairs)
+        again, again_pairs = repeated.sum(later)
+        np.testing.assert_array_equal(again, transform_fixed(plain, later)[0])
+        assert np.all(again_pairs[summed.kept] == 0)
