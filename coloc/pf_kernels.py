@@ -520,10 +520,10 @@ def _apply_dense(values, low, log_norm, src_w, tgt_w, src_logw, rel_tol, out):
 class KernelWorkspace:
     """Reusable float32 storage for kept kernel matrices, owned by one estimator.
 
-    Memory a process touches for the first time costs about as much as building the matrices in it
-    (1.7 s for 800 MB in this sandbox; on plain Linux every allocation above glibc's mmap threshold
-    is fresh memory again), so the storage is kept and grown from step to step; every value is
-    written by :func:`fixed_transforms` before it is read.
+    Memory new to a process is slow to write in the parallel build here (single road, J = 5000:
+    the first step that writes the 1.6 GB built in 1.7 s in a process's first run, 0.4 s in its
+    second, whose estimator had new storage too), so the storage is kept and grown from step to
+    step; every value is written by :func:`fixed_transforms` before it is read.
     """
 
     def __init__(self) -> None:
