@@ -96,6 +96,7 @@ from scipy.stats import chi2
 from coloc.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
 from coloc.frame import Frame, StepEstimate
 from coloc.icp import IcpParams, consensus_graph, row_components
+from coloc.icp_kernels import scatter_add, scatter_max
 from coloc.logspace import logsumexp as plain_logsumexp
 from coloc.icp_da_lc import (
     LcParams,
@@ -383,11 +384,11 @@ def _segment_logsumexp(values: np.ndarray, seg: np.ndarray, n_seg: int, init: np
     j = values.shape[1] if values.ndim == 2 else 1
     top = np.broadcast_to(init[:, None], (n_seg, j)).copy()
     if values.shape[0]:
-        np.maximum.at(top, seg, values)
+        scatter_max(top, seg, values)
     top = np.where(np.isfinite(top), top, 0.0)
     acc = np.exp(init[:, None] - top)
     if values.shape[0]:
-        np.add.at(acc, seg, np.exp(values - top[seg]))
+        scatter_add(acc, seg, np.exp(values - top[seg]))
     with np.errstate(divide="ignore"):
         return top + np.log(acc)
 
@@ -517,7 +518,7 @@ def pf_bpa_localization(
         pairs += int(p1.sum() + p2.sum())
         # (27): b_i = b_i^(0) prod_k m_{k->i}.
         acc = vehicle_log_b0.copy()
-        np.add.at(acc, entry_vehicle, log_m_fv)
+        scatter_add(acc, entry_vehicle, log_m_fv)
         logb_v = normalize_log(acc)
         new_v, _ = weighted_moments(vehicle_particles, logb_v)
         new_f, _ = weighted_moments(track_particles[entry_track], logb_f)
@@ -536,7 +537,7 @@ def pf_bpa_localization(
             out_m[flat_e] = _flat_prior_messages(output_particles, flat_e, entry_vehicle, term_entry, t_z, t_r,
                                                  term_log_c, params.feature_velocity_prior_sigma)
         acc = output_log_b0.copy()
-        np.add.at(acc, entry_vehicle, out_m)
+        scatter_add(acc, entry_vehicle, out_m)
         logb_v = normalize_log(acc)
     # A track's posterior: the copy of its largest consensus component (lowest entry on ties).
     comp_size = count
@@ -806,7 +807,7 @@ def icp_da_pf_step(
         replaced = np.array([(int(a), b) in e_keys for a, b in zip(msg_track, msg_vehicle)], dtype=bool)
         if replaced.any():
             t_log_b0 = t_logw.copy()
-            np.subtract.at(t_log_b0, np.searchsorted(t_ids, msg_track[replaced]), msg_logv[replaced])
+            scatter_add(t_log_b0, np.searchsorted(t_ids, msg_track[replaced]), -msg_logv[replaced])
             t_log_b0 = normalize_log(t_log_b0)
     # b_k^(0) is the newborn prior alone: born this step, or (latest_message) every stored message is
     # this step's observers' and none was folded in.

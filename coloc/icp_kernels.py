@@ -360,6 +360,28 @@ def scatter_add(target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> Non
 
 
 @njit(cache=True)
+def _scatter_max_kernel(target, rows, values):
+    for k in range(rows.size):
+        t = rows[k]
+        for c in range(target.shape[1]):
+            v = values[k, c]
+            if v > target[t, c] or v != v:  # np.maximum: NaN wins
+                target[t, c] = v
+
+
+def scatter_max(target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``np.maximum.at(target, rows, values)`` for a C-contiguous float64 ``target`` (K, ...)
+    (the same numbers: a maximum is exact), without ufunc.at's per-element overhead."""
+    k = target.shape[0]
+    if not (target.flags.c_contiguous and target.dtype == np.float64):
+        np.maximum.at(target, rows, values)
+        return
+    flat = target.reshape(k, -1)
+    vals = np.ascontiguousarray(np.broadcast_to(values, (len(rows),) + target.shape[1:]), dtype=np.float64)
+    _scatter_max_kernel(flat, np.asarray(rows, dtype=np.int64), vals.reshape(len(rows), -1))
+
+
+@njit(cache=True)
 def log_gauss_kernel(nu, s):
     """log N(nu; 0, S) and the squared Mahalanobis distance per row, S (P, d, d) symmetric positive
     definite, by an explicit Cholesky factor and forward substitution (the numpy reference is

@@ -276,6 +276,21 @@ def test_scatter_add_equals_ufunc_at_bit_for_bit():
     np.testing.assert_array_equal(t, ref)
 
 
+def test_scatter_max_equals_ufunc_at_bit_for_bit():
+    from coloc.icp_kernels import scatter_max
+
+    rng = np.random.default_rng(17)
+    t = rng.standard_normal((20, 50))
+    t[3, :5] = -np.inf
+    rows = rng.integers(0, 20, 300)
+    v = rng.standard_normal((300, 50)) * 3.0
+    v[7, 2], v[8, :4] = np.nan, -np.inf  # NaN wins as in np.maximum
+    ref = t.copy()
+    np.maximum.at(ref, rows, v)
+    scatter_max(t, rows, v)
+    np.testing.assert_array_equal(t, ref)
+
+
 def test_predict_no_input_kernel_equals_numpy():
     from coloc.icp_kernels import predict_no_input_kernel
     from coloc.models import predict
