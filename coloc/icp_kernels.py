@@ -350,13 +350,7 @@ def scatter_add(target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> Non
     """``np.add.at(target, rows, values)`` for a C-contiguous float64 ``target`` (K, ...): rows
     added one after the other in index order, as ufunc.at does (same numbers), without its
     per-element overhead."""
-    k = target.shape[0]
-    if not (target.flags.c_contiguous and target.dtype == np.float64):
-        np.add.at(target, rows, values)
-        return
-    flat = target.reshape(k, -1)
-    vals = np.ascontiguousarray(np.broadcast_to(values, (len(rows),) + target.shape[1:]), dtype=np.float64)
-    _scatter_add_kernel(flat, np.asarray(rows, dtype=np.int64), vals.reshape(len(rows), -1))
+    _scatter(_scatter_add_kernel, np.add, target, rows, values)
 
 
 @njit(cache=True)
@@ -372,13 +366,19 @@ def _scatter_max_kernel(target, rows, values):
 def scatter_max(target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
     """``np.maximum.at(target, rows, values)`` for a C-contiguous float64 ``target`` (K, ...)
     (the same numbers: a maximum is exact), without ufunc.at's per-element overhead."""
+    _scatter(_scatter_max_kernel, np.maximum, target, rows, values)
+
+
+def _scatter(kernel, ufunc, target: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``ufunc.at(target, rows, values)`` by the numba ``kernel`` on (K, -1) views; other targets
+    by ufunc.at itself."""
     k = target.shape[0]
     if not (target.flags.c_contiguous and target.dtype == np.float64):
-        np.maximum.at(target, rows, values)
+        ufunc.at(target, rows, values)
         return
     flat = target.reshape(k, -1)
     vals = np.ascontiguousarray(np.broadcast_to(values, (len(rows),) + target.shape[1:]), dtype=np.float64)
-    _scatter_max_kernel(flat, np.asarray(rows, dtype=np.int64), vals.reshape(len(rows), -1))
+    kernel(flat, np.asarray(rows, dtype=np.int64), vals.reshape(len(rows), -1))
 
 
 @njit(cache=True)
