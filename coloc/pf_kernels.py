@@ -114,6 +114,19 @@ def _exact_log_sum(src_w, src_logw, wmax, tgt):
 
 
 @nb.njit(cache=True)
+def _scaled_weights(src_logw, ws):
+    """ws = exp(logw - max) (every source weight relative to the largest); returns (max, sum of ws)."""
+    wmax = -np.inf
+    for s in range(src_logw.shape[0]):
+        wmax = max(wmax, src_logw[s])
+    total = 0.0
+    for s in range(src_logw.shape[0]):
+        ws[s] = math.exp(src_logw[s] - wmax) if wmax > -np.inf else 0.0
+        total += ws[s]
+    return wmax, total
+
+
+@nb.njit(cache=True)
 def _one_problem(src, src_logw, src_shift, tgt, tgt_shift, linv, log_norm, use_tree, rel_tol, out):
     """Fill ``out`` (Jt,) with log sum_s w_s N(...); returns the number of pair evaluations."""
     js = src.shape[0]
@@ -124,10 +137,8 @@ def _one_problem(src, src_logw, src_shift, tgt, tgt_shift, linv, log_norm, use_t
     tgt_w = np.empty((jt, 4))
     for t in range(jt):
         _whiten(tgt[t], tgt_shift, linv, tgt_w[t])
-    wmax = -np.inf
-    for s in range(js):
-        if src_logw[s] > wmax:
-            wmax = src_logw[s]
+    ws = np.empty(js)  # source weights on a linear scale relative to the largest
+    wmax, _ = _scaled_weights(src_logw, ws)
     if wmax == -np.inf:
         for t in range(jt):
             out[t] = -np.inf
@@ -136,9 +147,6 @@ def _one_problem(src, src_logw, src_shift, tgt, tgt_shift, linv, log_norm, use_t
         for t in range(jt):
             out[t] = _exact_log_sum(src_w, src_logw, wmax, tgt_w[t]) + log_norm
         return jt * js
-    ws = np.empty(js)  # source weights on a linear scale relative to the largest
-    for s in range(js):
-        ws[s] = math.exp(src_logw[s] - wmax)
     acc = np.empty(jt)
     low = np.empty(jt)
     pairs = _tree_sums(src_w, ws, tgt_w, rel_tol, acc, low)
@@ -434,19 +442,6 @@ def _dense_row(px, py, pvx, pvy, u0, u1, u2, u3, q, row):
         y = 0.5 * (q[s] - qmin)
         row[s] = np.float32(_exp_neg(y) if y < _DENSE_CUT else 0.0)
     return qmin
-
-
-@nb.njit(cache=True)
-def _scaled_weights(src_logw, ws):
-    """ws = exp(logw - max) (every source weight relative to the largest); returns (max, sum of ws)."""
-    wmax = -np.inf
-    for s in range(src_logw.shape[0]):
-        wmax = max(wmax, src_logw[s])
-    total = 0.0
-    for s in range(src_logw.shape[0]):
-        ws[s] = math.exp(src_logw[s] - wmax) if wmax > -np.inf else 0.0
-        total += ws[s]
-    return wmax, total
 
 
 @nb.njit(cache=True, fastmath={"reassoc", "contract"})
