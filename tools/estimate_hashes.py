@@ -1,0 +1,72 @@
+"""SHA-256 of what each shipped config writes, to show that a change leaves estimates as they were.
+
+    python tools/estimate_hashes.py [--quick] [--studies] [--only NAME ...] [--keep DIR]
+
+Runs every shipped run config (``experiments/*.toml`` that is not a study) with ``coloc run`` into a
+temporary folder and prints one line per config: the hash of ``estimates.parquet`` (and of
+``association.parquet`` / ``features.parquet`` where written). ``--quick`` caps the arterial
+configs at 300 simulated seconds; ``--studies`` also runs the study configs of the other source
+papers (their Parquet files are hashed). A PF case (``single_road.toml`` with ``icp_da_pf`` and
+``icp_known_da_pf``) is always included, since no shipped run config names the particle methods.
+
+Run it before and after a change on the same machine and compare the two listings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import subprocess
+import sys
+import tempfile
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+EXTRA = [("single_road_pf", "single_road.toml", ["--methods", "icp_da_pf,icp_known_da_pf"])]
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def cases(quick: bool, studies: bool) -> list[tuple[str, str, list[str]]]:
+    out = []
+    for cfg in sorted((ROOT / "experiments").glob("*.toml")):
+        data = tomllib.loads(cfg.read_text())
+        if "study" in data and not studies:
+            continue
+        extra = []
+        if quick and "study" not in data and data.get("run", {}).get("duration_s", 0) > 300:
+            extra = ["--duration", "300"]
+        out.append((cfg.stem, cfg.name, extra))
+    return out + EXTRA
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="arterial configs capped at 300 s")
+    ap.add_argument("--studies", action="store_true", help="also the study configs (slow)")
+    ap.add_argument("--only", nargs="*", help="case names to run (config stems, or single_road_pf)")
+    ap.add_argument("--keep", help="write the run folders here instead of a temporary folder")
+    args = ap.parse_args(argv)
+    coloc = Path(sys.executable).parent / "coloc"
+    with tempfile.TemporaryDirectory() as tmpdir:
+        base = Path(args.keep) if args.keep else Path(tmpdir)
+        for name, cfg, extra in cases(args.quick, args.studies):
+            if args.only and name not in args.only:
+                continue
+            out = base / name
+            cmd = [str(coloc), "run", str(ROOT / "experiments" / cfg), "--out", str(out), "--quiet", *extra]
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+            if proc.returncode != 0:
+                print(f"{name:>22}: FAILED ({proc.stderr.strip().splitlines()[-1:]})", flush=True)
+                continue
+            files = sorted(p for p in out.rglob("*.parquet") if p.name != "traffic.parquet")
+            hashes = " ".join(f"{p.relative_to(out)}={_sha(p)}" for p in files)
+            print(f"{name:>22} {' '.join(extra)}: {hashes}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
