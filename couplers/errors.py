@@ -6,6 +6,20 @@ import tomllib
 from pathlib import Path
 
 
+# The seeds SUMO accepts (``--seed`` is a C++ int): every seed a user gives is checked against this
+# range, also where no SUMO runs (controlled scenarios, studies), so one seed works everywhere.
+SEED_MAX = 2**31 - 1
+
+
+def seed_problem(value) -> str | None:
+    """Why ``value`` is not a usable seed (None when it is): an integer in [0, 2^31 - 1]."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        return f"expected an integer, got {value!r}"
+    if not 0 <= value <= SEED_MAX:
+        return f"must be an integer from 0 to {SEED_MAX} (the seeds SUMO accepts), got {value}"
+    return None
+
+
 class InputError(Exception):
     """Bad user input: the command line prints ``file: field: message`` and exits non-zero."""
 

@@ -20,6 +20,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from couplers.publish import write_file_atomic
+
 CONFIG_NAME = "netconvert.netccfg"
 NET_NAME = "tlr.net.xml"
 
@@ -91,13 +93,7 @@ def build_net(folder: Path | str, *, output_name: str = NET_NAME) -> Path:
         if proc.returncode != 0:
             msg = (proc.stderr or proc.stdout).strip()
             raise NetBuildError(f"{cfg}: netconvert failed (exit {proc.returncode}): {msg}")
-        text = tmp.read_text(encoding="utf-8")
-        text = _normalise(text)
-        tmp.write_text(text, encoding="utf-8", newline="\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, target)
+        write_file_atomic(target, _normalise(tmp.read_text(encoding="utf-8")).encode("utf-8"))
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -11,6 +11,7 @@ edges exist in the net and follow each other.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -83,3 +84,21 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
             f"traffic lights, {len(feats.ids)} features, {n} vehicles/flows/trips, {len(folder.zones)} zones, "
             f"{len(folder.areas)} areas")
     return problems, info
+
+
+def require_usable_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> None:
+    """Raise :class:`InputError` with the first problem :func:`check_net_folder` finds (``coloc run`` calls
+    this before SUMO starts, so a run accepts exactly the folders ``coloc net check`` accepts)."""
+    root = Path(root).resolve()
+    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(root.iterdir()) if p.is_file())
+    problems = _problems(root, max_feature_distance_m, stamp)
+    if problems:
+        more = f" (and {len(problems) - 1} more: coloc net check {root})" if len(problems) > 1 else ""
+        raise InputError(None, None, problems[0] + more)
+
+
+@functools.lru_cache(maxsize=8)
+def _problems(root: Path, max_feature_distance_m: float, stamp: tuple) -> tuple[str, ...]:
+    # ``stamp`` (names, times and sizes of the folder's files) keys the cache: a sweep worker checks a
+    # folder once, and again only when a file changed.
+    return tuple(check_net_folder(root, max_feature_distance_m)[0])

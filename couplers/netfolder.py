@@ -186,23 +186,3 @@ def lane_shape_points(net_path: Path) -> tuple[np.ndarray, list[str]]:
     if not pts:
         raise InputError(net_path, "lane", "the net has no lanes")
     return np.array(pts, dtype=float), owners
-
-
-def check_region_coverage(folder: NetFolder) -> None:
-    """Zones and areas must cover every lane of the net (DESIGN "Reliability")."""
-    import shapely as _shp
-
-    xy, owners = lane_shape_points(folder.net)
-    files = folder.scenario["files"]
-    for regions, key in ((folder.zones, "zones"), (folder.areas, "areas")):
-        union = _shp.union_all([r.polygon for r in regions])
-        inside = _shp.intersects_xy(union, xy[:, 0], xy[:, 1])
-        if not inside.all():
-            bad = np.flatnonzero(~inside)
-            i = int(bad[0])
-            raise InputError(
-                folder.root / files[key],
-                "features",
-                f"the polygons leave {bad.size} lane shape points of {folder.net.name} uncovered "
-                f"(first: lane {owners[i]} at x={xy[i, 0]:.1f}, y={xy[i, 1]:.1f})",
-            )

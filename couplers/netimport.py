@@ -48,7 +48,6 @@ import re
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -60,10 +59,11 @@ import shapely
 import shapely.ops
 from shapely.geometry import LineString, box, mapping
 
-from couplers.errors import InputError
+from couplers.errors import InputError, seed_problem
 from couplers.georef import GeoRef, check_lonlat, conversion_note, crs_kind, geojson_to_net_xy, read_georef
 from couplers.netfolder import NET_CRS as CRS
 from couplers.netfolder import NET_CRS_NAME, lane_shape_points, read_regions, regions_from_doc
+from couplers.publish import check_target, make_dirs, remove_created, staged_folder, write_file_atomic
 
 FEATURE_KINDS = ("traffic_light", "bus_stop", "parking", "sign")
 FEATURE_COLORS = {"bus_stop": "0,0,255", "traffic_light": "255,0,0", "sign": "255,165,0", "parking": "0,160,0"}
@@ -118,6 +118,13 @@ CALIB_MAX_TRIALS = 8
 ZONE_MARGIN_M = 60.0
 FEATURE_MIN_SPACING_M = 4.0
 FEATURE_SIDE_M = 2.5  # POI distance from the outer lane edge (sidewalk)
+# A signal program is implausible for urban traffic when its cycle is longer than this or when
+# some of its links are never green. Urban fixed-time cycles are 60-120 s and rarely above 150-180 s
+# (FHWA Signal Timing Manual, 2nd ed., 2015, ch. 6); netconvert's own default is 90 s
+# (--tls.cycle.time). 300 s leaves a wide margin: the programs this catches are games' and test
+# nets' placeholders (the eclipse-sumo wheel's tools/game/bs3d/bs.net.xml: 1000 s phases).
+MAX_PLAUSIBLE_CYCLE_S = 300.0
+SIGNAL_MODES = ("check", "rebuild", "keep")
 
 _HEADER_COMMENT = re.compile(r"\A(<\?xml[^>]*\?>\s*)<!--.*?-->\s*", re.DOTALL)
 
@@ -151,6 +158,9 @@ class ImportOptions:
     # multiple of its ~120 vehicles in the net): a city-wide net at the arterial's density
     # would carry thousands of vehicles, beyond what a coupled run can evaluate in useful time.
     max_density_scale: float = 4.0
+    # Implausible signal programs (implausible_signal_programs): "check" refuses the import and
+    # names them, "rebuild" has netconvert rebuild every program (--tls.rebuild), "keep" imports them.
+    signals: str = "check"
     force: bool = False
 
     @property
@@ -326,6 +336,8 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
         cmd += ["--sumo-net-file", str(src), "--offset.disable-normalization", "true"]
     if opts.guess_signals:
         cmd += ["--tls.guess", "true"]
+    if opts.signals == "rebuild":  # netconvert's static programs: 90 s cycle, every approach served
+        cmd += ["--tls.rebuild", "true", "--tls.default-type", "static"]
     cmd += ["--output-file", out.name, "--no-warnings", "true", "--xml-validation", "never"]
     _run(cmd, work, opts.source, "netconvert")
     if not out.is_file() or out.stat().st_size == 0:
@@ -343,6 +355,36 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
 # --------------------------------------------------------------------------
 # Net geometry helpers
 # --------------------------------------------------------------------------
+
+def implausible_signal_programs(net_path: Path) -> list[str]:
+    """Signal programs (``tlLogic`` of a SUMO net) no urban signal would run: cycle above
+    :data:`MAX_PLAUSIBLE_CYCLE_S`, or links that no phase ever serves (green ``G``/``g``, or ``o``/``O``:
+    signal off, priority rules apply).
+
+    One description per program: ``tlLogic 'ID' program 'P': ...``.
+    """
+    out = []
+    for _event, el in ET.iterparse(net_path, events=("end",)):
+        if el.tag != "tlLogic":
+            if el.tag == "edge":
+                el.clear()
+            continue
+        phases = [(float(p.get("duration", "0")), p.get("state", "")) for p in el.iter("phase")]
+        if not phases:
+            continue
+        cycle = sum(d for d, _ in phases)
+        n_links = max(len(st) for _, st in phases)
+        unserved = sum(not any(i < len(st) and st[i] in "GgOo" for _, st in phases) for i in range(n_links))
+        why = []
+        if cycle > MAX_PLAUSIBLE_CYCLE_S:
+            why.append(f"cycle {cycle:g} s (longest phase {max(d for d, _ in phases):g} s; "
+                       f"more than {MAX_PLAUSIBLE_CYCLE_S:g} s)")
+        if unserved:
+            why.append(f"{unserved} of {n_links} links never green")
+        if why:
+            out.append(f"tlLogic {el.get('id')!r} program {el.get('programID')!r}: " + ", ".join(why))
+    return out
+
 
 def _drivable_edges(net) -> list:
     return [e for e in net.getEdges(withInternal=False) if e.getFunction() == "" and e.allows("passenger")]
@@ -931,8 +973,10 @@ def _write_demand(opts: ImportOptions, net, net_path: Path, work: Path, lane_km:
         if all(trial.get(c, {}).get("ok") for c in ("vsr", "tlr")):
             break
         if len(trials) >= CALIB_MAX_TRIALS:
+            cause = ("the signal programs are implausible (see above): import with --rebuild-signals"
+                     if report.derived.get("implausible_signal_programs") else "lower --demand-scale")
             report.not_derived.append(f"a gridlock-free demand: still gridlocked after {len(trials)} trials "
-                                      f"(last scale {scale:.4f}); lower --demand-scale")
+                                      f"(last scale {scale:.4f}); {cause}")
             break
         scale *= CALIB_FACTOR
     # the comment names the number of trials: rewrite once they are known
@@ -1063,6 +1107,7 @@ def _write_scenario(work: Path, opts: ImportOptions, report: _Report) -> None:
         f"feature_count = {opts.feature_count}",
         f"feature_kinds = {_toml(list(opts.feature_kinds))}",
         f"guess_signals = {_toml(opts.guess_signals)}",
+        f"signals = {_toml(opts.signals)}",
         f"demand_veh_per_h = {_toml([opts.demand_start_vph, opts.demand_end_vph])}",
         f"demand_scale = {_toml(float(opts.demand_scale))}",
         f"fringe_factor = {_toml(float(opts.fringe_factor))}",
@@ -1109,14 +1154,15 @@ def _validate_options(opts: ImportOptions) -> None:
         val = getattr(opts, key)
         if not (val > 0 and math.isfinite(val)):
             raise InputError(None, flag, "must be a positive number")
-    if opts.seed < 0:
-        raise InputError(None, "--seed", "must be >= 0")
+    if (why := seed_problem(opts.seed)) is not None:
+        raise InputError(None, "--seed", why)
     if opts.calibration_s is not None and not opts.calibration_s > 0:
         raise InputError(None, "--calibration-s", "must be a positive number of seconds")
     if opts.route_pool < 1:
         raise InputError(None, "--route-pool", "must be >= 1")
-    if opts.out.exists() and not opts.force:
-        raise InputError(opts.out, None, "already exists (pass --force to replace it)")
+    if opts.signals not in SIGNAL_MODES:
+        raise InputError(None, "signals", f"must be one of {', '.join(SIGNAL_MODES)}")
+    check_target(opts.out, (), force=opts.force, field=None)  # before the (possibly long) import
 
 
 def import_net(opts: ImportOptions,
@@ -1125,8 +1171,6 @@ def import_net(opts: ImportOptions,
 
     Those files and the folder appear only when everything succeeded.
     """
-    import sumolib  # noqa: PLC0415
-
     t0 = time.perf_counter()
     opts = dataclasses.replace(opts, out=Path(opts.out))
     _validate_options(opts)
@@ -1143,179 +1187,167 @@ def import_net(opts: ImportOptions,
         for user in user_geo.values():
             if user.crs == "wgs84":
                 geojson_to_net_xy(user.doc, src_georef, user.src, user.how)
-    parent = opts.out.resolve().parent
-    created = _make_dirs(parent)  # removed again (if still empty) when the import fails
-    work = Path(tempfile.mkdtemp(prefix=f".{opts.name}-import-", dir=parent))
-    extra_tmp: list[tuple[Path, Path]] = []
-    done = False
+    extra: dict[Path, str] = {}
+    created: list[Path] = []
     try:
-        net_path = _netconvert(opts, work, report)
-        t_net = time.perf_counter() - t0
-        try:
-            net = sumolib.net.readNet(str(net_path))
-        except Exception as exc:  # sumolib raises several types on a broken net
-            raise InputError(opts.source, None, f"the converted net does not load ({exc})") from None
-        drivable = _drivable_edges(net)
-        if not drivable:
-            raise InputError(opts.source, "edge", "the net has no edge open to passenger cars "
-                                                  "(no drivable edges: nothing to simulate)")
-        tls_nodes = [n for n in net.getNodes() if n.getType().startswith("traffic_light")]
-        if not net.getTrafficLights():
-            hint = (" even with --guess-signals (netconvert's tls.guess found no major junction)"
-                    if opts.guess_signals else
-                    "; pass --guess-signals to let netconvert place signals at major junctions (tls.guess)")
-            raise InputError(opts.source, "traffic lights",
-                             "the net has no traffic lights, so TLR and VSR would be the same" + hint)
-        lane_km = sum(e.getLength() * e.getLaneNumber() for e in drivable) / 1000.0
-        report.derived["net"] = {
-            "junctions": len(net.getNodes()), "drivable_edges": len(drivable), "lane_km": round(lane_km, 2),
-            "traffic_lights": len(net.getTrafficLights()), "signalised_junctions": len(tls_nodes),
-        }
-        if osm_counts is not None:
-            report.derived["osm"] = osm_counts
-        report.lines.append(f"net: {len(net.getNodes())} junctions, {len(drivable)} drivable edges, "
-                            f"{lane_km:.1f} lane-km, {len(net.getTrafficLights())} traffic lights "
-                            f"({'guessed by netconvert' if opts.guess_signals else 'from the data'}); "
-                            f"netconvert {t_net:.1f} s")
-        if opts.guess_signals:
-            report.derived["signals"] = "guessed by netconvert (tls.guess) at major junctions"
-
-        lane_xy, _ = lane_shape_points(net_path)
-        lane_lines = [LineString(l.getShape()) for e in drivable for l in e.getLanes()]
-        lane_tree = shapely.STRtree(lane_lines)
-
-        # buildings and car parks (OSM only): polyconvert in the net's projection
-        buildings: list = []
-        parking_polys: list = []
-        if opts.osm is not None and (osm_counts["buildings"] or osm_counts["parking"]):
-            poly_path = work / ".poly.xml"
-            typemap = _sumo_home() / "data" / "typemap" / "osmPolyconvert.typ.xml"
-            _run([_binary("polyconvert"), "--osm-files", str(opts.osm.resolve()), "--net-file", net_path.name,
-                  "--type-file", str(typemap), "-o", poly_path.name, "--no-warnings", "true",
-                  "--xml-validation", "never"], work, opts.osm, "polyconvert")
-            for el in ET.parse(poly_path).getroot().iter("poly"):
-                typ = el.get("type", "")
-                try:
-                    pts = [tuple(map(float, p.split(",")[:2])) for p in el.get("shape", "").split()]
-                    poly = shapely.Polygon(pts)
-                except (ValueError, shapely.errors.GEOSException):
-                    continue
-                if len(pts) < 3 or not poly.is_valid or poly.area <= 0:
-                    poly = poly.buffer(0) if len(pts) >= 3 else None
-                    if poly is None or poly.is_empty:
-                        continue
-                if typ.startswith("building"):
-                    buildings.append(poly)
-                elif typ == "parking" or typ.startswith("amenity.parking"):
-                    parking_polys.append((el.get("id", f"p{len(parking_polys)}"), poly))
-            poly_path.unlink()
-
-        # features
-        stops: dict = {"bus_stop": [], "parking": []}
-        if opts.osm is not None:
-            stops = _additional_stops(work / ".stops.add.xml", net, opts.osm)
-        if opts.additional is not None:
-            more = _additional_stops(opts.additional, net, opts.additional)
-            for k in stops:
-                stops[k] += more[k]
-        (work / ".stops.add.xml").unlink(missing_ok=True)
-        cands = _candidate_features(net, stops, parking_polys, lane_tree)
-        rng = np.random.default_rng(opts.seed)
-        feats = _select_features(cands, opts.feature_count, opts.feature_kinds, rng)
-        _write_features(work / "features.add.xml", feats, opts.source.name)
-        fcounts = {k: sum(1 for f in feats if f[1] == k) for k in FEATURE_KINDS if k in opts.feature_kinds}
-        report.derived["features"] = fcounts
-        report.derived["feature_candidates"] = {k: len(v) for k, v in cands.items()}
-        for k in opts.feature_kinds:
-            if not cands[k]:
-                why = {"bus_stop": "no bus stops in the data" + (" (a .net.xml holds none: pass --additional "
-                                                                  "with busStop elements)" if opts.osm is None else ""),
-                       "parking": "no car parks in the data" + (" (pass --additional with parkingArea elements)"
-                                                                if opts.osm is None else ""),
-                       "traffic_light": "no signalised junction approaches",
-                       "sign": "no unsignalised junction with a minor approach"}[k]
-                report.not_derived.append(f"features of kind {k}: {why}")
-        if len(feats) < opts.feature_count:
-            report.not_derived.append(f"{opts.feature_count} features: only {len(feats)} candidate places "
-                                      f"{FEATURE_MIN_SPACING_M:.0f} m apart in the net")
-        report.lines.append(f"features: {len(feats)} of {opts.feature_count} requested ("
-                            + ", ".join(f"{v} {k}" for k, v in fcounts.items()) + ")")
-
-        # zones and areas
-        georef = dataclasses.replace(read_georef(net_path), net=opts.source)  # messages name the user's file
-        if "zone" in user_geo:
-            _user_geojson(user_geo["zone"], work / "zones.geojson", georef, lane_xy, opts.source.name, report)
-        elif buildings:
-            _zones_from_buildings(work / "zones.geojson", lane_xy, buildings, opts.zone_cell_m, report)
-        else:
-            _default_zones(work / "zones.geojson", lane_xy, report)
-        if "area" in user_geo:
-            _user_geojson(user_geo["area"], work / "areas.geojson", georef, lane_xy, opts.source.name, report)
-        else:
-            _default_areas(work / "areas.geojson", lane_xy, report)
-        areas = read_regions(work / "areas.geojson", "area", False)
-        track_area = _busiest_area(areas, lane_lines)
-        report.derived["track_area"] = track_area
-
-        # demand
-        if opts.routes is not None:
-            _user_routes(opts, net, work, report)
-        else:
-            _write_demand(opts, net, net_path, work, lane_km, report)
-
-        _write_scenario(work, opts, report)
-        for leftover in work.glob(".*"):
-            leftover.unlink()
-        seconds = time.perf_counter() - t0
-        result = ImportResult(folder=opts.out, summary={"derived": report.derived, "not_derived": report.not_derived},
-                              lines=tuple(report.lines + [f"not derived: {x}" for x in report.not_derived]),
-                              seconds=seconds, track_area=track_area)
-        if finalize is not None:
-            for dest, text in finalize(result).items():
+        # an existing --out is replaced only with --force (a net folder is the user's, imported or not)
+        with staged_folder(opts.out, "net", force=opts.force, replace=()) as work:
+            track_area = _build_folder(work, opts, report, osm_counts, user_geo, t0)
+            seconds = time.perf_counter() - t0
+            result = ImportResult(folder=opts.out,
+                                  summary={"derived": report.derived, "not_derived": report.not_derived},
+                                  lines=tuple(report.lines + [f"not derived: {x}" for x in report.not_derived]),
+                                  seconds=seconds, track_area=track_area)
+            for dest, text in (finalize(result) if finalize is not None else {}).items():
                 dest = Path(dest)
-                created += _make_dirs(dest.parent)
-                if dest.exists() and not opts.force:
-                    raise InputError(dest, None, "already exists (pass --force to replace it)")
-                fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}-", dir=dest.parent)
-                with os.fdopen(fd, "w") as fh:
-                    fh.write(text)
-                extra_tmp.append((Path(tmp), dest))
-        # into place: the folder, then the extra files
-        if opts.out.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{opts.name}-old-", dir=parent))
-            os.replace(opts.out, trash / "old")
-            os.replace(work, opts.out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(work, opts.out)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(opts.out, 0o777 & ~umask)
-        for tmp, dest in extra_tmp:
-            os.chmod(tmp, 0o666 & ~umask)
-            os.replace(tmp, dest)
-        extra_tmp.clear()
-        done = True
+                check_target(dest, (), force=opts.force, field=None, file=True)
+                created += make_dirs(dest.parent)
+                extra[dest] = text
+        # the folder is in place; then the extra files
+        for dest, text in extra.items():
+            write_file_atomic(dest, text)
         return result
-    finally:
-        if work.exists():
-            shutil.rmtree(work, ignore_errors=True)
-        for tmp, _ in extra_tmp:
-            tmp.unlink(missing_ok=True)
-        if not done:
-            for d in reversed(created):
-                try:
-                    d.rmdir()
-                except OSError:  # not empty (someone else's files) or already gone
-                    pass
+    except BaseException:
+        remove_created(created)
+        raise
 
 
-def _make_dirs(path: Path) -> list[Path]:
-    """``mkdir -p path``; returns the folders it created, outermost first."""
-    path = Path(path).resolve()
-    missing = [p for p in (path, *path.parents) if not p.exists()][::-1]
-    path.mkdir(parents=True, exist_ok=True)
-    return missing
+def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts: dict | None,
+                  user_geo: dict, t0: float) -> str:
+    """Write the net folder's files into ``work``; returns the track area (the report's along/cross-track area)."""
+    import sumolib  # noqa: PLC0415
+
+    net_path = _netconvert(opts, work, report)
+    t_net = time.perf_counter() - t0
+    try:
+        net = sumolib.net.readNet(str(net_path))
+    except Exception as exc:  # sumolib raises several types on a broken net
+        raise InputError(opts.source, None, f"the converted net does not load ({exc})") from None
+    drivable = _drivable_edges(net)
+    if not drivable:
+        raise InputError(opts.source, "edge", "the net has no edge open to passenger cars "
+                                              "(no drivable edges: nothing to simulate)")
+    tls_nodes = [n for n in net.getNodes() if n.getType().startswith("traffic_light")]
+    if not net.getTrafficLights():
+        hint = (" even with --guess-signals (netconvert's tls.guess found no major junction)"
+                if opts.guess_signals else
+                "; pass --guess-signals to let netconvert place signals at major junctions (tls.guess)")
+        raise InputError(opts.source, "traffic lights",
+                         "the net has no traffic lights, so TLR and VSR would be the same" + hint)
+    lane_km = sum(e.getLength() * e.getLaneNumber() for e in drivable) / 1000.0
+    report.derived["net"] = {
+        "junctions": len(net.getNodes()), "drivable_edges": len(drivable), "lane_km": round(lane_km, 2),
+        "traffic_lights": len(net.getTrafficLights()), "signalised_junctions": len(tls_nodes),
+    }
+    if osm_counts is not None:
+        report.derived["osm"] = osm_counts
+    report.lines.append(f"net: {len(net.getNodes())} junctions, {len(drivable)} drivable edges, "
+                        f"{lane_km:.1f} lane-km, {len(net.getTrafficLights())} traffic lights "
+                        f"({'guessed by netconvert' if opts.guess_signals else 'from the data'}); "
+                        f"netconvert {t_net:.1f} s")
+    if opts.guess_signals:
+        report.derived["signals"] = "guessed by netconvert (tls.guess) at major junctions"
+    implausible = implausible_signal_programs(net_path)
+    if implausible and opts.signals == "check":
+        raise InputError(opts.source, "tlLogic",
+                         f"{len(implausible)} implausible signal program(s), first: {implausible[0]}: approaches "
+                         "would stay red for good and read as gridlock; pass --rebuild-signals to let netconvert "
+                         "rebuild every program (--tls.rebuild), or --keep-signals to import them as they are")
+    if opts.signals == "rebuild":
+        report.derived["signals_rebuilt"] = "every program rebuilt by netconvert (--tls.rebuild, static)"
+        report.lines.append("signals: every program rebuilt by netconvert (--tls.rebuild, static)")
+    if implausible:
+        report.derived["implausible_signal_programs"] = implausible
+        report.not_derived.append(f"plausible signal programs: {len(implausible)} kept as they are "
+                                  f"(--keep-signals), first: {implausible[0]}")
+
+    lane_xy, _ = lane_shape_points(net_path)
+    lane_lines = [LineString(l.getShape()) for e in drivable for l in e.getLanes()]
+    lane_tree = shapely.STRtree(lane_lines)
+
+    # buildings and car parks (OSM only): polyconvert in the net's projection
+    buildings: list = []
+    parking_polys: list = []
+    if opts.osm is not None and (osm_counts["buildings"] or osm_counts["parking"]):
+        poly_path = work / ".poly.xml"
+        typemap = _sumo_home() / "data" / "typemap" / "osmPolyconvert.typ.xml"
+        _run([_binary("polyconvert"), "--osm-files", str(opts.osm.resolve()), "--net-file", net_path.name,
+              "--type-file", str(typemap), "-o", poly_path.name, "--no-warnings", "true",
+              "--xml-validation", "never"], work, opts.osm, "polyconvert")
+        for el in ET.parse(poly_path).getroot().iter("poly"):
+            typ = el.get("type", "")
+            try:
+                pts = [tuple(map(float, p.split(",")[:2])) for p in el.get("shape", "").split()]
+                poly = shapely.Polygon(pts)
+            except (ValueError, shapely.errors.GEOSException):
+                continue
+            if len(pts) < 3 or not poly.is_valid or poly.area <= 0:
+                poly = poly.buffer(0) if len(pts) >= 3 else None
+                if poly is None or poly.is_empty:
+                    continue
+            if typ.startswith("building"):
+                buildings.append(poly)
+            elif typ == "parking" or typ.startswith("amenity.parking"):
+                parking_polys.append((el.get("id", f"p{len(parking_polys)}"), poly))
+        poly_path.unlink()
+
+    # features
+    stops: dict = {"bus_stop": [], "parking": []}
+    if opts.osm is not None:
+        stops = _additional_stops(work / ".stops.add.xml", net, opts.osm)
+    if opts.additional is not None:
+        more = _additional_stops(opts.additional, net, opts.additional)
+        for k in stops:
+            stops[k] += more[k]
+    (work / ".stops.add.xml").unlink(missing_ok=True)
+    cands = _candidate_features(net, stops, parking_polys, lane_tree)
+    rng = np.random.default_rng(opts.seed)
+    feats = _select_features(cands, opts.feature_count, opts.feature_kinds, rng)
+    _write_features(work / "features.add.xml", feats, opts.source.name)
+    fcounts = {k: sum(1 for f in feats if f[1] == k) for k in FEATURE_KINDS if k in opts.feature_kinds}
+    report.derived["features"] = fcounts
+    report.derived["feature_candidates"] = {k: len(v) for k, v in cands.items()}
+    for k in opts.feature_kinds:
+        if not cands[k]:
+            why = {"bus_stop": "no bus stops in the data" + (" (a .net.xml holds none: pass --additional "
+                                                              "with busStop elements)" if opts.osm is None else ""),
+                   "parking": "no car parks in the data" + (" (pass --additional with parkingArea elements)"
+                                                            if opts.osm is None else ""),
+                   "traffic_light": "no signalised junction approaches",
+                   "sign": "no unsignalised junction with a minor approach"}[k]
+            report.not_derived.append(f"features of kind {k}: {why}")
+    if len(feats) < opts.feature_count:
+        report.not_derived.append(f"{opts.feature_count} features: only {len(feats)} candidate places "
+                                  f"{FEATURE_MIN_SPACING_M:.0f} m apart in the net")
+    report.lines.append(f"features: {len(feats)} of {opts.feature_count} requested ("
+                        + ", ".join(f"{v} {k}" for k, v in fcounts.items()) + ")")
+
+    # zones and areas
+    georef = dataclasses.replace(read_georef(net_path), net=opts.source)  # messages name the user's file
+    if "zone" in user_geo:
+        _user_geojson(user_geo["zone"], work / "zones.geojson", georef, lane_xy, opts.source.name, report)
+    elif buildings:
+        _zones_from_buildings(work / "zones.geojson", lane_xy, buildings, opts.zone_cell_m, report)
+    else:
+        _default_zones(work / "zones.geojson", lane_xy, report)
+    if "area" in user_geo:
+        _user_geojson(user_geo["area"], work / "areas.geojson", georef, lane_xy, opts.source.name, report)
+    else:
+        _default_areas(work / "areas.geojson", lane_xy, report)
+    areas = read_regions(work / "areas.geojson", "area", False)
+    track_area = _busiest_area(areas, lane_lines)
+    report.derived["track_area"] = track_area
+
+    # demand
+    if opts.routes is not None:
+        _user_routes(opts, net, work, report)
+    else:
+        _write_demand(opts, net, net_path, work, lane_km, report)
+
+    _write_scenario(work, opts, report)
+    for leftover in work.glob(".*"):
+        leftover.unlink()
+    return track_area
 
 
 def _busiest_area(areas, lane_lines: list) -> str:

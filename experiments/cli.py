@@ -7,12 +7,23 @@ no traceback, nothing half-written.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
 from couplers.errors import InputError
 
 EXIT_INPUT = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised where the command is, so the same clean-up as for Ctrl-C runs."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
 
 
 def _methods(text: str) -> list[str]:
@@ -21,13 +32,16 @@ def _methods(text: str) -> list[str]:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from couplers.errors import read_toml
+    from couplers.publish import check_target
     from experiments.config import load_config
     from experiments.runner import run_experiment
     from experiments.studies import is_study, run_study
 
+    check_target(Path(args.out), ("run",), force=args.force)  # before anything is read or simulated
     data = read_toml(args.config, "config file")
     if is_study(data):  # a study of another source paper (experiments/studies)
-        summary = run_study(data, Path(args.config), Path(args.out), args.seed, progress=not args.quiet)
+        summary = run_study(data, Path(args.config), Path(args.out), args.seed, progress=not args.quiet,
+                            force=args.force)
         for line in summary.get("lines", []):
             print(line)
         print(f"wrote {args.out}/report.html")
@@ -40,7 +54,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.methods is not None:
         overrides["run.methods"] = _methods(args.methods)
     cfg = load_config(args.config, overrides)
-    summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False)
+    summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force)
     for method, block in summary["methods"].items():
         print(
             f"{method:>14}: RMSE {block['rmse_pos_m']:.2f} m, p50 {block['p50_pos_m']:.2f} m, "
@@ -77,13 +91,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         raise InputError(None, "--workers", "must be >= 1")
     try:
         res = run_sweep(args.sweep, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                        progress=not args.quiet, dry_run=args.dry_run)
+                        progress=not args.quiet, dry_run=args.dry_run, force=args.force)
     except SweepFailed as exc:
         print(f"coloc: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("coloc: interrupted; completed runs are kept: rerun the same command to resume", file=sys.stderr)
-        return 130
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
+        return _stop_code(exc)
     if res.dry_run:
         print(f"{args.sweep}: valid, {res.n_runs} runs (nothing was run)")
         return 0
@@ -114,7 +128,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         path = write_run_report(dirs[0])
     else:
         out = Path(args.out) if args.out else dirs[0].parent / "compare"
-        path = write_comparison_report(dirs, out)
+        path = write_comparison_report(dirs, out, force=args.force)
     print(f"wrote {path}")
     return 0
 
@@ -137,6 +151,7 @@ def cmd_net_import(args: argparse.Namespace) -> int:
         demand_scale=args.demand_scale, fringe_factor=args.fringe_factor, duration_s=args.duration,
         zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, calibration_s=args.calibration_s,
         max_density_scale=args.max_density_scale,
+        signals="rebuild" if args.rebuild_signals else "keep" if args.keep_signals else "check",
         force=args.force,
     )
     source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
@@ -175,13 +190,38 @@ def cmd_net_check(args: argparse.Namespace) -> int:
     return 0
 
 
+class _VersionAction(argparse.Action):
+    """``coloc --version``: coloc, SUMO (the libsumo in use) and Python; looked up only when asked."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import importlib.metadata
+        import platform
+
+        from couplers.sumo_traffic import sumo_version
+
+        try:
+            coloc = importlib.metadata.version("coloc")
+        except importlib.metadata.PackageNotFoundError:  # run from a source tree that is not installed
+            coloc = "unknown (not installed)"
+        sumo = sumo_version()  # libsumo's own string, e.g. "SUMO 1.28.0"
+        print(f"coloc {coloc}, {sumo if sumo.startswith('SUMO') else 'SUMO ' + sumo}, "
+              f"Python {platform.python_version()}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="coloc", description="Traffic-coupled evaluation of cooperative vehicle localization.")
+    p.add_argument("--version", action=_VersionAction, help="print the coloc, SUMO and Python versions and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="one run of an experiment config")
     r.add_argument("config", help="experiment TOML, e.g. experiments/arterial_tlr.toml")
-    r.add_argument("--out", required=True, help="output folder (replaced atomically when the run finishes)")
+    r.add_argument("--out", required=True, help="output folder: absent, empty or an earlier run's (replaced "
+                                                "atomically when the run finishes)")
+    r.add_argument("--force", action="store_true", help="replace --out even if coloc did not write it (never a file)")
     r.add_argument("--seed", type=int, help="override [run] seed")
     r.add_argument("--duration", type=float, help="override [run] duration_s (simulated seconds)")
     r.add_argument("--methods", help="override [run] methods, comma separated (e.g. gnss)")
@@ -190,7 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sw = sub.add_parser("sweep", help="Monte Carlo / parameter sweep on Dask (resumable)")
     sw.add_argument("sweep", help="sweep TOML, e.g. experiments/sweeps/fig7_single_road.toml")
-    sw.add_argument("--out", required=True, help="sweep folder (runs/, sweep.parquet, curves.parquet, report.html)")
+    sw.add_argument("--out", required=True, help="sweep folder (runs/, sweep.parquet, curves.parquet, report.html): "
+                                                 "absent, empty or this sweep's")
+    sw.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
     sw.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
     sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4))")
     sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
@@ -199,7 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("report", help="rebuild a run's or a sweep's report, or compare several runs")
     rep.add_argument("dirs", nargs="+", help="run output folders (or one sweep folder)")
-    rep.add_argument("--out", help="comparison output folder (default: <first>/../compare)")
+    rep.add_argument("--out", help="comparison output folder (default: <first>/../compare): absent, empty or "
+                                   "an earlier comparison's")
+    rep.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
     rep.set_defaults(func=cmd_report)
 
     net = sub.add_parser("net", help="plug-in nets: import a SUMO net or an OSM extract, check a net folder")
@@ -218,6 +262,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="comma-separated kinds to place (default: all four)")
     ni.add_argument("--guess-signals", action="store_true",
                     help="let netconvert place traffic lights at major junctions (needed when the net has none)")
+    sig = ni.add_mutually_exclusive_group()
+    sig.add_argument("--rebuild-signals", action="store_true",
+                     help="let netconvert rebuild every signal program (--tls.rebuild: static, 90 s cycle), e.g. "
+                          "when the import reports implausible programs (a cycle over 300 s, approaches never green)")
+    sig.add_argument("--keep-signals", action="store_true",
+                     help="import implausible signal programs as they are (default: refuse and name them)")
     ni.add_argument("--zones", help="GNSS zones GeoJSON, WGS84 lon/lat (RFC 7946; converted with the net's "
                                     "projection) or net x/y (crs urn:coloc:sumo-net-xy); "
                                     "default: from building density, else a default layout")
@@ -250,16 +300,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _stopped(exc: BaseException) -> str:
+    return "terminated" if isinstance(exc, Terminated) else "interrupted"
+
+
+def _stop_code(exc: BaseException) -> int:
+    return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (an embedding program): leave SIGTERM as it is
+        previous = None
     try:
         return args.func(args)
     except InputError as exc:
         print(f"coloc: error: {exc.describe()}", file=sys.stderr)
         return EXIT_INPUT
-    except KeyboardInterrupt:
-        print("coloc: interrupted; nothing was written", file=sys.stderr)
-        return 130
+    except OSError as exc:  # the file system refused (read-only folder, disk full, ...): not a bug
+        where = exc.filename if exc.filename is not None else "output"
+        print(f"coloc: error: {where}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"coloc: {_stopped(exc)}; nothing was written", file=sys.stderr)
+        return _stop_code(exc)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ from coloc.icp import FEATURE_MESSAGES
 from coloc.icp_da_lc import LcParams
 from coloc.icp_da_pf import PfParams
 from coloc.models import MotionParams
-from couplers.errors import InputError, read_toml
+from couplers.errors import InputError, read_toml, seed_problem
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
@@ -283,8 +283,8 @@ def _validate(cfg: Config) -> None:
         raise InputError(p, "run.methods", "a method is listed twice")
     if cfg.run.duration_s <= 0:
         raise InputError(p, "run.duration_s", "must be positive")
-    if cfg.run.seed < 0:
-        raise InputError(p, "run.seed", "must be a non-negative integer")
+    if (why := seed_problem(cfg.run.seed)) is not None:
+        raise InputError(p, "run.seed", why)
     try:
         PfParams(**dataclasses.asdict(cfg.pf))
     except ValueError as exc:
@@ -437,6 +437,9 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
         for name in SCENARIO_TABLES:
             if name in data:
                 raise InputError(path, name, f"table given but scenario.kind is {scen.kind!r}")
+    if not sections["sensors"].v2f_range_m > 0:  # before it becomes lc.sensing_range_m below
+        where = f"{scen.kind}.v2f_range_m" if scen.kind in SCENARIO_TABLES else "sensors.v2f_range_m"
+        raise InputError(path, where, "must be positive (the V2F sensing range Rs, m)")
     if "sensing_range_m" not in data.get("lc", {}):
         sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=sections["sensors"].v2f_range_m)
         notes.append(("lc.sensing_range_m", "= sensors.v2f_range_m (the V2F range Rs in force)"))

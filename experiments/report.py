@@ -2,15 +2,14 @@
 
 A run directory holds ``config.toml``, ``estimates.parquet``, ``traffic.parquet``,
 ``summary.json`` and optionally ``features.parquet`` and ``association.parquet``
-(see DESIGN.md).  :func:`write_run_report` turns one such directory into
+(columns in ``docs/outputs.md``).  :func:`write_run_report` turns one such directory into
 ``report.html`` plus ``figures/*.png``; :func:`write_comparison_report` compares
 several runs (e.g. TLR vs VSR, paper Figs. 13-16).
 
 Everything is read back from the files, never from the in-memory state of a
 run, so ``coloc report DIR`` rebuilds the same report a run wrote.  Output is
 deterministic (fixed styles, sorted methods/areas, PNGs without software/date
-metadata) and written atomically (temporary directory next to the target,
-then renamed into place).
+metadata) and written atomically (:func:`couplers.publish.publish_members`).
 """
 
 from __future__ import annotations
@@ -20,8 +19,6 @@ import json
 import math
 import os
 import re
-import shutil
-import tempfile
 import tomllib
 import warnings
 import xml.etree.ElementTree as ET
@@ -39,6 +36,9 @@ import pandas as pd  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Polygon as MplPolygon  # noqa: E402
+
+from couplers.errors import InputError, read_toml  # noqa: E402
+from couplers.publish import check_target, mark, publish_members  # noqa: E402
 
 __all__ = [
     "write_run_report",
@@ -128,14 +128,19 @@ def _read_parquet(path: Path, wanted: list[str]) -> pd.DataFrame | None:
     """Read the wanted columns that exist; None when the file is absent."""
     if not path.exists():
         return None
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    names = set(pq.read_schema(path).names)
-    cols = [c for c in wanted if c in names]
-    cat_cols = [c for c in ("method", "zone", "area", "run") if c in cols]
-    # Label columns are read dictionary-encoded (-> pandas categoricals): millions of rows
-    # would otherwise become millions of Python strings.
-    table = pq.read_table(path, columns=cols, read_dictionary=cat_cols)
+    try:
+        names = set(pq.read_schema(path).names)
+        cols = [c for c in wanted if c in names]
+        cat_cols = [c for c in ("method", "zone", "area", "run") if c in cols]
+        # Label columns are read dictionary-encoded (-> pandas categoricals): millions of rows
+        # would otherwise become millions of Python strings.
+        table = pq.read_table(path, columns=cols, read_dictionary=cat_cols)
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
+                                     "is the run folder complete?") from None
     df = table.to_pandas()
     for c in cat_cols:
         if not isinstance(df[c].dtype, pd.CategoricalDtype) or not all(
@@ -179,13 +184,16 @@ class _Run:
 def _load_run(run_dir: Path, *, need_areas: bool = True) -> _Run:
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.toml"
-    config: dict = {}
-    if cfg_path.exists():
-        with open(cfg_path, "rb") as fh:
-            config = tomllib.load(fh)
+    config: dict = read_toml(cfg_path, "config file") if cfg_path.exists() else {}
     summary: dict = {}
     if (run_dir / "summary.json").exists():
-        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+        try:
+            summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise InputError(run_dir / "summary.json", None, f"not valid JSON ({exc}): is the run folder complete?") \
+                from None
+        if not isinstance(summary, dict):
+            raise InputError(run_dir / "summary.json", None, "not a coloc summary (expected a JSON object)")
     cols = _EST_COLS if need_areas else ["method", "t", "err_pos", "err_vel"]
     run = _Run(run_dir=run_dir, config=config, summary=summary)
     run.estimates = _read_parquet(run_dir / "estimates.parquet", cols)
@@ -512,31 +520,25 @@ def _resolve_net_files(run: _Run) -> dict[str, Path] | None:
     return out
 
 
+MAP_WIDTH_IN = 10.0  # the map's width; its height follows the net's extent (equal aspect, no empty bands)
+
+
 def _fig_map(run: _Run, files: dict[str, Path], path: Path) -> dict[str, int]:
+    """Lanes, GNSS zones (one legend entry per zone class, so labels never overlap the areas'),
+    numbered analysis areas and features, in net x/y metres; the figure takes the net's aspect."""
+    from matplotlib.patches import Patch
+
     counts = {"lanes": 0, "zones": 0, "areas": 0, "features": 0}
-    fig = _new_fig(9.0, 7.0)
-    ax = fig.subplots()
-    if "zones" in files:
-        polys = sorted(_geojson_polys(files["zones"]), key=lambda p: _natural_key(str(p[0].get("zone", ""))))
-        zone_names = _sorted_labels(p[0].get("zone", "?") for p in polys)
-        for props, rings in polys:
-            z = str(props.get("zone", "?"))
-            color = _ZONE_FILLS[zone_names.index(z) % len(_ZONE_FILLS)]
-            for r in rings:
-                ax.add_patch(MplPolygon(r, closed=True, facecolor=color, edgecolor=color,
-                                        alpha=0.35, lw=0.8, zorder=1))
-            sp = props.get("sigma_p", props.get("sp"))
-            lab = f"zone {z}" + (f"\nσp = {float(sp):g} m" if sp is not None else "")
-            x, y = _label_point(rings)
-            ax.text(x, y, lab, ha="center", va="center", fontsize=8, zorder=5,
-                    bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=color, alpha=0.8))
-            counts["zones"] += 1
+    zones = sorted(_geojson_polys(files["zones"]), key=lambda p: _natural_key(str(p[0].get("zone", "")))) \
+        if "zones" in files else []
+    areas = sorted(_geojson_polys(files["areas"]), key=lambda p: _natural_key(str(p[0].get("area", "")))) \
+        if "areas" in files else []
+    segs = []
     if "net" in files:
         import sumolib
 
         net = sumolib.net.readNet(str(files["net"]), withConnections=False, withFoes=False,
                                   withInternal=False)
-        segs = []
         for edge in sorted(net.getEdges(withInternal=False), key=lambda e: e.getID()):
             if edge.getID().startswith(":") or edge.getFunction() == "internal":
                 continue
@@ -544,32 +546,58 @@ def _fig_map(run: _Run, files: dict[str, Path], path: Path) -> dict[str, int]:
                 shp = np.asarray(lane.getShape(), dtype=float)[:, :2]
                 if len(shp) >= 2:
                     segs.append(shp)
+    fxy = np.empty((0, 2))
+    if "features" in files:
+        fxy = np.array([(float(p.get("x")), float(p.get("y"))) for p in ET.parse(files["features"]).getroot().iter("poi")
+                        if p.get("x") is not None and p.get("y") is not None], dtype=float).reshape(-1, 2)
+    pts = [fxy] + segs + [r for _, rings in zones + areas for r in rings]
+    pts = np.concatenate([q for q in pts if len(q)]) if any(len(q) for q in pts) else np.zeros((1, 2))
+    (x0, y0), (x1, y1) = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.03 * max(x1 - x0, y1 - y0, 1.0)
+    x0, x1, y0, y1 = x0 - pad, x1 + pad, y0 - pad, y1 + pad
+    # axes height for the net's aspect at the map's width, within [3, 10] in (a very flat or tall net
+    # keeps equal aspect by shrinking the axes box instead)
+    height = float(np.clip(0.82 * MAP_WIDTH_IN * (y1 - y0) / (x1 - x0), 2.2, 9.0)) + 1.1
+    fig = _new_fig(MAP_WIDTH_IN, height)
+    ax = fig.subplots()
+    handles = []
+    zone_names = _sorted_labels(p[0].get("zone", "?") for p in zones)
+    sigma_of: dict[str, object] = {}
+    for props, rings in zones:
+        z = str(props.get("zone", "?"))
+        color = _ZONE_FILLS[zone_names.index(z) % len(_ZONE_FILLS)]
+        for r in rings:
+            ax.add_patch(MplPolygon(r, closed=True, facecolor=color, edgecolor=color, alpha=0.35, lw=0.8, zorder=1))
+        sigma_of.setdefault(z, props.get("sigma_p", props.get("sp")))
+        counts["zones"] += 1
+    for z in zone_names:
+        color = _ZONE_FILLS[zone_names.index(z) % len(_ZONE_FILLS)]
+        sp = sigma_of.get(z)
+        handles.append(Patch(facecolor=color, edgecolor=color, alpha=0.5,
+                             label=f"GNSS zone {z}" + (f" (σp = {float(sp):g} m)" if sp is not None else "")))
+    if segs:
         ax.add_collection(LineCollection(segs, colors="0.45", linewidths=0.5, zorder=2))
         counts["lanes"] = len(segs)
-    if "areas" in files:
-        for props, rings in sorted(_geojson_polys(files["areas"]),
-                                   key=lambda p: _natural_key(str(p[0].get("area", "")))):
-            a = str(props.get("area", "?"))
-            for r in rings:
-                ax.add_patch(MplPolygon(r, closed=True, fill=False, edgecolor="black", ls="--",
-                                        lw=1.1, zorder=3))
-            x, y = _label_point(rings)
-            ax.text(x, y, a, ha="center", va="center", fontsize=11, fontweight="bold", zorder=6,
-                    color="black", bbox=dict(boxstyle="circle,pad=0.2", fc="white", ec="black"))
-            counts["areas"] += 1
-    if "features" in files:
-        xs, ys = [], []
-        for poi in ET.parse(files["features"]).getroot().iter("poi"):
-            if poi.get("x") is not None and poi.get("y") is not None:
-                xs.append(float(poi.get("x")))
-                ys.append(float(poi.get("y")))
-        if xs:
-            ax.scatter(xs, ys, marker="^", s=22, c="red", edgecolors="darkred", linewidths=0.4,
-                       zorder=7, label=f"features ({len(xs)})")
-            ax.legend(loc="upper right")
-        counts["features"] = len(xs)
-    ax.autoscale_view()
-    ax.set_aspect("equal", adjustable="datalim")
+    for props, rings in areas:
+        a = str(props.get("area", "?"))
+        for r in rings:
+            ax.add_patch(MplPolygon(r, closed=True, fill=False, edgecolor="black", ls="--", lw=1.1, zorder=3))
+        x, y = _label_point(rings)
+        ax.text(x, y, a, ha="center", va="center", fontsize=11, fontweight="bold", zorder=6,
+                color="black", bbox=dict(boxstyle="circle,pad=0.2", fc="white", ec="black"))
+        counts["areas"] += 1
+    if areas:
+        handles.append(Patch(fill=False, edgecolor="black", ls="--", label="analysis area (number)"))
+    if len(fxy):
+        handles.append(ax.scatter(fxy[:, 0], fxy[:, 1], marker="^", s=22, c="red", edgecolors="darkred",
+                                  linewidths=0.4, zorder=7, label=f"features ({len(fxy)})"))
+    counts["features"] = len(fxy)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal", adjustable="box")
+    if handles:
+        fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), fontsize=8,
+                   frameon=False)
     ax.set_xlabel("x [m] (SUMO net coordinates)")
     ax.set_ylabel("y [m]")
     ax.set_title("net lanes, GNSS zones, analysis areas and features")
@@ -637,9 +665,21 @@ def _css_color(c: str) -> str:
     return to_hex(c)
 
 
-def _figure_html(fname: str, title: str, caption: str, prefix: str = "figures/") -> str:
+def _figure_html(fname: str, title: str, caption: str, prefix: str = "figures/", what: str = "") -> str:
+    """A figure with its caption; ``what`` (a run's :func:`_what_was_run`) ends the caption."""
     return (f'<figure id="{_esc(Path(fname).stem)}"><img src="{_esc(prefix + fname)}" alt="{_esc(title)}">'
-            f"<figcaption><b>{_esc(title)}.</b> {caption}</figcaption></figure>")
+            f"<figcaption><b>{_esc(title)}.</b> {caption}{' ' + what if what else ''}</figcaption></figure>")
+
+
+def _what_was_run(run: _Run) -> str:
+    """One sentence for every figure of a run: which config, seed, simulated span and methods."""
+    cfg_run = run.config.get("run") or {}
+    source = (run.config.get("provenance") or {}).get("config_source") or run.summary.get("config") or "?"
+    dur = cfg_run.get("duration_s")
+    span = f"{float(dur):g} s simulated" if dur is not None else "simulated span not recorded"
+    methods = ", ".join(run.methods) or "none"
+    return (f"<i>Run: <code>{_esc(Path(str(source)).name)}</code>, seed {_esc(run.seed)}, {_esc(span)}, "
+            f"methods {_esc(methods)}.</i>")
 
 
 def _page(title: str, body: str) -> str:
@@ -715,27 +755,14 @@ def _run_label(run: _Run, runs: list[_Run]) -> str:
 
 
 def _atomic_publish(target_dir: Path, build: Callable[[Path], None]) -> Path:
-    """Build report.html + figures/ in a temp dir next to the target, then move into place.
+    """Build report.html + figures/ (``build(tmp)`` fills ``tmp/figures`` and writes ``tmp/report.html``)
+    and move them into ``target_dir``: readers see the old or the new complete page, never a half-written one."""
 
-    ``report.html`` is replaced last with :func:`os.replace`, so readers see either the old
-    or the new complete page, never a half-written one.
-    """
-    target_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".report-tmp-", dir=target_dir))
-    old = None
-    try:
+    def staged(tmp: Path) -> None:
         (tmp / "figures").mkdir()
         build(tmp)
-        figs = target_dir / "figures"
-        if figs.exists():
-            old = Path(tempfile.mkdtemp(prefix=".report-old-", dir=target_dir))
-            os.replace(figs, old / "figures")
-        os.replace(tmp / "figures", figs)
-        os.replace(tmp / "report.html", target_dir / "report.html")
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+
+    publish_members(target_dir, staged, ("figures", "report.html"))
     return target_dir / "report.html"
 
 
@@ -762,6 +789,7 @@ def write_run_report(run_dir: Path) -> Path:
 def _run_figures(run: _Run, figdir: Path) -> list[str]:
     """Draw the figures; returns HTML <figure> blocks in display order."""
     blocks: list[str] = []
+    what = _what_was_run(run)
     est = run.estimates
     has_est = est is not None and len(est) > 0
 
@@ -774,7 +802,7 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
             "midpoint: exit flow (vehicles leaving the network per hour), mean number of vehicles "
             "in the network, mean queue (mean number of halting vehicles) and stop time per km "
             "travelled. How to read: higher queue and stop time mean more platooning at junctions "
-            "(denser V2V cooperation) but longer exposure to poor-GNSS zones."))
+            "(denser V2V cooperation) but longer exposure to poor-GNSS zones.", what=what))
 
     files = None
     try:
@@ -787,11 +815,11 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
             blocks.append(_figure_html(
                 "map.png", "Scenario map (paper Figs. 12 and 17a)",
                 "Net lanes (thin grey lines, internal junction lanes omitted), GNSS zones as "
-                "translucent fills labelled with zone name and position accuracy σp, analysis areas "
+                "translucent fills (legend: zone name and position accuracy σp), analysis areas "
                 "as dashed outlines labelled with their number (the CDFs below are per area), and "
                 f"static features as red triangles. {counts['lanes']} lanes, {counts['zones']} "
                 f"zone polygons, {counts['areas']} areas, {counts['features']} features. "
-                "Coordinates are SUMO net metres, equal aspect."))
+                "Coordinates are SUMO net metres, equal aspect.", what=what))
         except Exception as exc:
             run.notes.append(f"map skipped: {exc!r}")
             warnings.warn(f"coloc report: map skipped for {run.run_dir}: {exc!r}", stacklevel=2)
@@ -807,7 +835,7 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
             "method" + (" ; green lines with triangles are the RMSE of the feature position estimates "
                         "of each cooperative method (from <code>features.parquet</code>)" if feat else "")
             + ". How to read: lower is better; the gap between GNSS and a cooperative method is the "
-            "cooperative gain at that time of the traffic evolution."))
+            "cooperative gain at that time of the traffic evolution.", what=what))
 
         if "area" in est.columns:
             areas = _fig_cdf(run, "area", figdir / "cdf_area.png", "area")
@@ -818,7 +846,7 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                     "whose true position lies in the area, one subplot per area and one line per "
                     "method (drawn from 1001 exact quantiles). The dot and dotted line mark the 95th "
                     "percentile, also given in the legend. How to read: a curve further left is "
-                    "better; compare p95 between methods within one area."))
+                    "better; compare p95 between methods within one area.", what=what))
         if "zone" in est.columns:
             zones = _fig_cdf(run, "zone", figdir / "cdf_zone.png", "zone")
             if zones:
@@ -827,7 +855,7 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                     "Same as the per-area CDF, but grouping samples by the GNSS zone of the vehicle's "
                     "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
                     "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
-                    "cooperative method should flatten that difference."))
+                    "cooperative method should flatten that difference.", what=what))
         area = str((run.config.get("report") or {}).get("track_area", "5"))
         if {"err_along", "err_cross", "area"} <= set(est.columns) and area in set(est["area"].astype(str)):
             w = _fig_track(run, area, figdir / "track_errors.png")
@@ -836,7 +864,7 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                 f"RMSE of the signed position error component along the true heading (top) and across "
                 f"it (bottom), over all vehicles in area {_esc(area)} within each {w:g} s bin, one line "
                 "per method. How to read: periodic GNSS error follows the traffic-light cycle (vehicles "
-                "averaging while stopped); cross-track below about 1 m is what lane-level services need."))
+                "averaging while stopped); cross-track below about 1 m is what lane-level services need.", what=what))
     return blocks
 
 
@@ -920,7 +948,7 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
 
 
 def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
-                            build_missing: bool = True) -> Path:
+                            build_missing: bool = True, force: bool = False) -> Path:
     """Compare runs side by side (e.g. TLR vs VSR); writes ``out_dir/report.html`` and figures.
 
     Runs keep the order given (the first is drawn with continuous lines, the second
@@ -931,6 +959,8 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
     out_dir = Path(out_dir)
     if not run_dirs:
         raise ValueError("write_comparison_report needs at least one run directory")
+    # Only an empty folder or an earlier comparison is written into (``force``: any folder).
+    check_target(out_dir, ("report",), force=force, replaces_folder=False)
     if build_missing:
         for d in run_dirs:
             if not (d / "report.html").exists():
@@ -941,6 +971,8 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
             est = _read_parquet(r.run_dir / "estimates.parquet", _EST_COLS)
             if est is not None:
                 r.summary["methods"] = _summary_from_estimates(est)
+
+    what = " ".join(_what_was_run(r) for r in runs)
 
     def build(tmp: Path) -> None:
         figdir = tmp / "figures"
@@ -954,7 +986,7 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
                     "5-minute interval: exit flow, mean vehicles in the network, mean queue (halting "
                     "vehicles) and stop time per km. How to read: with similar exit flow, a run with "
                     "more vehicles and queues inside the network (e.g. traffic lights) offers denser "
-                    "cooperation."))
+                    "cooperation.", what=what))
             if any(r.estimates is not None and len(r.estimates) for r in runs):
                 width = _fig_rmse_time(runs, figdir / "compare_rmse_time.png")
                 styles = ", ".join(f"{_esc(_run_label(r, runs))}: {_ls_name(k)}"
@@ -964,10 +996,12 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
                     f"Position (a) and velocity (b) RMSE over vehicles per {width} s bin; colour is the "
                     f"method, line style the run ({styles}); green lines with triangles are feature "
                     "RMSE of cooperative methods. How to read: compare the same colour across line "
-                    "styles to see how traffic control changes each method's accuracy."))
+                    "styles to see how traffic control changes each method's accuracy.", what=what))
         (tmp / "report.html").write_text(_comparison_html(runs, out_dir, blocks), encoding="utf-8")
 
-    return _atomic_publish(out_dir, build)
+    page = _atomic_publish(out_dir, build)
+    mark(out_dir, "report")
+    return page
 
 
 def _ls_name(k: int) -> str:

@@ -1,7 +1,7 @@
 """One run: frames (SUMO coupler or a controlled scenario) -> estimators -> Parquet files, summary.json, report.
 
-The output folder appears complete or not at all: everything is written into a
-hidden sibling folder that is renamed into place at the end.
+The output folder appears complete or not at all, and replaces only an earlier run's folder
+(:mod:`couplers.publish`: the ``--out`` rule and the atomic rename live there).
 
 Frames come from the SUMO coupler (``scenario.kind = "sumo"``) or from
 :func:`couplers.scenarios.scenario_frames` (``"single_road"``, ``"crossroad"``;
@@ -30,8 +30,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import shutil
 import subprocess
 import sys
 import time
@@ -51,8 +49,11 @@ from coloc.icp_da_lc import IcpDaLc
 from coloc.icp_da_pf import IcpDaPf, PfParams
 from coloc.icp_known_da import IcpKnownDA
 from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra
+from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
-from couplers.netfolder import check_region_coverage, load_net_folder
+from couplers.netcheck import require_usable_net_folder
+from couplers.netfolder import load_net_folder
+from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
@@ -297,31 +298,12 @@ def empty_traffic_table() -> pd.DataFrame:
     return pd.DataFrame(columns=list(columns)).astype(columns)
 
 
-def write_parquet(df: pd.DataFrame, path: Path) -> None:
-    """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd."""
+def write_parquet(df: pd.DataFrame, path) -> None:
+    """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd (``path``: a path or a
+    binary file object)."""
     table = pa.Table.from_pandas(df, preserve_index=False)
     table = table.replace_schema_metadata(None)
     pq.write_table(table, path, compression="zstd", write_statistics=True)
-
-
-def _fresh_partial_dir(out_dir: Path) -> Path:
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    return tmp
-
-
-def _commit_dir(tmp: Path, out_dir: Path) -> None:
-    """Put a finished folder in place; an existing one is replaced only now."""
-    old = None
-    if out_dir.exists():
-        old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-        os.replace(out_dir, old)
-    os.replace(tmp, out_dir)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 class _ScenarioSource:
@@ -357,8 +339,11 @@ class _SumoSource:
     """The SUMO coupler for a net folder."""
 
     def __init__(self, cfg: Config):
+        require_usable_net_folder(cfg.net_dir)  # the checks of `coloc net check`, before SUMO starts
         net = load_net_folder(cfg.net_dir)
-        check_region_coverage(net)
+        if cfg.scenario.control not in net.tls_off:
+            raise InputError(cfg.path, "scenario.control", f"no control named {cfg.scenario.control!r} in "
+                                                           f"{net.root / 'scenario.toml'} (have {sorted(net.tls_off)})")
         self.scenario = SumoScenario(
             net=net,
             control=cfg.scenario.control,
@@ -388,28 +373,55 @@ class _SumoSource:
         return pd.DataFrame(self.coupler.traffic.stats.rows)
 
 
+PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
+
+
+def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
+    """The frames, with progress on stderr: ``progress`` True, or None on a terminal, a tqdm bar with
+    an ETA; None elsewhere (logs of sweeps and CI), one line per :data:`PROGRESS_LINE_S` simulated
+    seconds; False nothing."""
+    tty = sys.stderr.isatty()
+    if progress is False:
+        yield from frames
+        return
+    if progress or tty:
+        yield from tqdm(frames, total=n_steps, desc=name, unit="step", mininterval=1.0)
+        return
+    t0 = time.perf_counter()
+    next_line = PROGRESS_LINE_S
+    for k, frame in enumerate(frames, start=1):
+        yield frame
+        if frame.t + 1e-9 >= next_line:
+            next_line += PROGRESS_LINE_S
+            elapsed = time.perf_counter() - t0
+            left = elapsed * max(n_steps - k, 0) / k
+            print(f"{name}: {frame.t:.0f} s simulated, step {k} of {n_steps} ({100.0 * k / max(n_steps, 1):.0f} %), "
+                  f"{elapsed:.0f} s elapsed, about {left:.0f} s left", file=sys.stderr, flush=True)
+
+
 def frame_source(cfg: Config):
     """The frame source of a config: the SUMO coupler or a controlled scenario (context manager)."""
     return _ScenarioSource(cfg) if cfg.is_controlled_scenario else _SumoSource(cfg)
 
 
-def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True) -> dict:
-    """Run one config; returns the summary dict also written to summary.json."""
+def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
+                   force: bool = False) -> dict:
+    """Run one config; returns the summary dict also written to summary.json.
+
+    ``out_dir`` must be absent, empty or an earlier run's folder (``force``: anything but a file);
+    it is replaced only when the run has finished (:func:`couplers.publish.staged_folder`).
+    """
     out_dir = Path(out_dir)
     source = frame_source(cfg)
     estimators = build_estimators(cfg)
-    tmp = _fresh_partial_dir(out_dir)
-    try:
+    with staged_folder(out_dir, "run", force=force) as tmp:
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
         t_start = time.perf_counter()
         with source:
             version = source.sumo_version
-            bar = tqdm(
-                source.frames(), total=source.n_steps, desc=cfg.run.name, unit="step",
-                disable=(not sys.stderr.isatty()) if progress is None else (not progress), mininterval=1.0,
-            )
-            for frame in bar:
+            frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
+            for frame in frames:
                 log.add_truth(frame)
                 blind = frame.without_truth()
                 for est in estimators:
@@ -426,6 +438,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         wall = time.perf_counter() - t_start
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
+        if estimates.empty:  # nothing to score: say so rather than write an empty run
+            raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
+                                                         "simulated: nothing to estimate; run longer")
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
             provenance = {"sumo_version": version, **provenance}
@@ -472,8 +487,4 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             from experiments.report import write_run_report
 
             write_run_report(tmp)
-        _commit_dir(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return summary

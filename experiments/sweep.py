@@ -60,6 +60,7 @@ import contextlib
 import dataclasses
 import fcntl
 import hashlib
+import io
 import itertools
 import json
 import logging
@@ -78,7 +79,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from couplers.errors import InputError, read_toml
+from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
+from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set")
@@ -154,17 +156,20 @@ def _seeds(value, path: Path) -> tuple[int, ...]:
         for key, v in (("start", start), ("count", count)):
             if isinstance(v, bool) or not isinstance(v, int):
                 raise InputError(path, f"{where}.{key}", f"expected an integer, got {v!r}")
-        if start < 0:
-            raise InputError(path, f"{where}.start", "must be >= 0")
         if count < 1:
             raise InputError(path, f"{where}.count", "must be >= 1")
+        if (why := seed_problem(start)) is not None:
+            raise InputError(path, f"{where}.start", why)
+        if seed_problem(start + count - 1) is not None:
+            raise InputError(path, f"{where}.count", f"the last seed, start + count - 1 = {start + count - 1}, "
+                                                     f"is beyond {SEED_MAX} (the largest seed SUMO accepts)")
         return tuple(range(start, start + count))
     if isinstance(value, list):
         if not value:
             raise InputError(path, where, "at least one seed is needed")
         for i, v in enumerate(value):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise InputError(path, f"{where}[{i}]", f"expected a non-negative integer, got {v!r}")
+            if (why := seed_problem(v)) is not None:
+                raise InputError(path, f"{where}[{i}]", why)
         if len(set(value)) != len(value):
             raise InputError(path, where, "a seed is listed twice")
         return tuple(value)
@@ -376,13 +381,7 @@ def _check_or_write_spec(out: Path, text: str, spec_path: Path) -> None:
         return
     if (out / RUNS_DIR).exists():
         raise InputError(spec_path, None, f"{out / RUNS_DIR} exists without {target}: not a sweep folder of this sweep")
-    _write_atomic(target, text.encode())
-
-
-def _write_atomic(target: Path, data: bytes) -> None:
-    tmp = target.parent / f".{target.name}.tmp-{os.getpid()}"
-    tmp.write_bytes(data)
-    os.replace(tmp, target)
+    write_file_atomic(target, text)
 
 
 def clean_leftovers(out: Path) -> list[Path]:
@@ -636,7 +635,7 @@ class _DaskClient:
         if self.scheduler:
             try:
                 self.client = Client(self.scheduler, timeout=self.connect_timeout)
-            except (OSError, TimeoutError) as exc:
+            except (OSError, TimeoutError, ValueError) as exc:  # ValueError: not an address (no port, ...)
                 raise InputError(None, "--scheduler", f"cannot connect to {self.scheduler} ({exc})") from None
         else:
             self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
@@ -653,12 +652,14 @@ class _DaskClient:
 
 def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = None, workers: int | None = None,
               progress: bool = True, dry_run: bool = False, write_report: bool = True,
-              connect_timeout: str = "20s") -> SweepResult:
+              connect_timeout: str = "20s", force: bool = False) -> SweepResult:
     """Run (or resume) a sweep; returns counts. Raises InputError on bad input, SweepFailed on failed runs."""
     t0 = time.perf_counter()
     spec = load_sweep(spec_path)
     base_cfg, runs = expand_runs(spec)
     out = Path(out)
+    # An empty folder or a sweep folder (``force``: any folder; never a file). Checked for --dry-run too.
+    check_target(out, ("sweep",), force=force, replaces_folder=False)
     workers = workers or default_workers()
     if dry_run:
         return SweepResult(out, len(runs), 0, 0, [], time.perf_counter() - t0, workers, dry_run=True)
@@ -671,7 +672,8 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
     # Nothing to compute (e.g. rebuilding the outputs): the runs are read here, no cluster needed.
     # Otherwise the cluster is started (or the scheduler reached) before anything is written.
     with (_DaskClient(scheduler, workers, connect_timeout) if need else contextlib.nullcontext()) as client:
-        out.mkdir(parents=True, exist_ok=True)
+        make_folder(out)
+        mark(out, "sweep")
         lock = _acquire_lock(out, spec.path)
         try:
             return _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0)
@@ -727,9 +729,9 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
     from experiments.runner import write_parquet
 
     for name, df in (("sweep.parquet", table), ("curves.parquet", curves)):
-        tmp = out / f".{name}.tmp-{os.getpid()}"
-        write_parquet(df, tmp)
-        os.replace(tmp, out / name)
+        buf = io.BytesIO()
+        write_parquet(df, buf)
+        write_file_atomic(out / name, buf.getvalue())
     if write_report:
         from experiments.sweep_report import write_sweep_report
 

@@ -27,7 +27,8 @@ def is_study(data: dict) -> bool:
     return "study" in data
 
 
-def run_study(data: dict, path: Path, out: Path, seed: int | None = None, progress: bool = True) -> dict:
+def run_study(data: dict, path: Path, out: Path, seed: int | None = None, progress: bool = True,
+              force: bool = False) -> dict:
     study = data["study"]
     if not isinstance(study, dict) or "kind" not in study:
         raise InputError(path, "study.kind", "missing (one of: " + ", ".join(STUDY_MODULES) + ")")
@@ -35,4 +36,4 @@ def run_study(data: dict, path: Path, out: Path, seed: int | None = None, progre
     if kind not in STUDY_MODULES:
         raise InputError(path, "study.kind", f"unknown study {kind!r} (available: {', '.join(STUDY_MODULES)})")
     module = importlib.import_module(STUDY_MODULES[kind])
-    return module.run(data, Path(path), Path(out), seed, progress)
+    return module.run(data, Path(path), Path(out), seed, progress, force)

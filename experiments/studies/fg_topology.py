@@ -38,11 +38,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from couplers.errors import InputError
+from couplers.errors import InputError, seed_problem
+from couplers.publish import staged_folder
 from coloc.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
 from experiments.runner import write_parquet
 from experiments.studies.study_config import (
-    AtomicOutput, Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
+    Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )
 
 METHODS = ("fg_topology_new", "fg_topology_old", "kf_gps_odom", "fg_gps_odom")
@@ -69,7 +70,7 @@ SPEC = {
     "study": {
         "kind": Key("fg_topology", "str"),
         "name": Key("fg_topology", "str"),
-        "seed": Key(1, "int", non_negative),
+        "seed": Key(1, "int", seed_problem),
         "runs": Key(1000, "int", at_least(1), "Monte Carlo runs per vehicle count (Tables I-II: 1000)"),
         "vehicles": Key([2, 3, 4], "ints", _vehicles_check),
         "methods": Key(list(METHODS), "list", _methods_check),
@@ -184,10 +185,10 @@ def _chunks(vehicles, runs, seed, methods, scenario, params, example_run, worker
             for n in vehicles for s in range(0, runs, size)]
 
 
-def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> dict:
+def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, force: bool = False) -> dict:
+    if seed is not None:  # --seed: checked like the file's own seed
+        data = {**data, "study": {**data.get("study", {}), "seed": seed}}
     cfg = resolve(data, path, SPEC)
-    if seed is not None:
-        cfg["study"]["seed"] = seed
     st, sc = cfg["study"], cfg["scenario"]
     if sc["speed_max"] < sc["speed_min"]:
         raise InputError(path, "scenario.speed_max", "must be >= scenario.speed_min")
@@ -277,7 +278,7 @@ def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> 
                "runs": runs, "vehicles": vehicles, "methods": methods, "table": table, "wall_seconds": wall,
                "workers": st["workers"]}
     summary["lines"] = _lines(summary)
-    with AtomicOutput(out) as tmp:
+    with staged_folder(out, "run", force=force) as tmp:
         (tmp / "config.toml").write_text(resolved_toml(cfg, SPEC, path, provenance))
         write_parquet(results_df, tmp / "results.parquet")
         write_parquet(timings_df, tmp / "timings.parquet")

@@ -33,7 +33,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from coloc.rsu_bp import RsuBpParams, cv_kalman_filter, rsu_bp_filter
-from couplers.errors import InputError
+from couplers.errors import InputError, seed_problem
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
 from experiments.config import _toml_value, section_from_table
 from experiments.scoring import score_association
@@ -58,8 +58,8 @@ class StudySection:
             raise ValueError("must be >= 1")
         if self.workers < 1:
             raise ValueError("must be >= 1")
-        if self.seed < 0:
-            raise ValueError("must be a non-negative integer")
+        if (why := seed_problem(self.seed)) is not None:
+            raise ValueError(why)
         if not self.init_spread >= 1.0:
             raise ValueError("must be >= 1")
 
@@ -376,13 +376,13 @@ def write_report(out: Path, cfg: RsuBpStudy, results: pd.DataFrame, summary: dic
 # --------------------------------------------------------------------------- entry point
 
 
-def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> dict:
-    from experiments.runner import _commit_dir, _fresh_partial_dir, git_revision, write_parquet
+def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, force: bool = False) -> dict:
+    from couplers.publish import staged_folder
+    from experiments.runner import git_revision, write_parquet
 
     cfg = load_study(data, Path(path), seed)
     todo, alias = jobs_of(cfg)
-    tmp = _fresh_partial_dir(Path(out))
-    try:
+    with staged_folder(Path(out), "run", force=force) as tmp:
         t_start = time.perf_counter()
         bar = tqdm(total=len(todo), desc=cfg.study.name, unit="run", disable=not (progress and sys.stderr.isatty()),
                    mininterval=1.0)
@@ -416,12 +416,6 @@ def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> 
         summary = summarize(cfg, results, [results_of[j][1] for j in todo], git, wall)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         write_report(tmp, cfg, results, summary)
-        _commit_dir(tmp, Path(out))
-    except BaseException:
-        import shutil
-
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return summary
 
 

@@ -35,10 +35,11 @@ import numpy as np
 import pandas as pd
 
 from coloc.sme import SmeFilter, SmeParams, cv_process_cov, cv_transition
-from couplers.errors import InputError
+from couplers.errors import InputError, seed_problem
+from couplers.publish import staged_folder
 from experiments.runner import write_parquet
 from experiments.studies.study_config import (
-    AtomicOutput, Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
+    Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )
 
 METHODS = ("sme", "kf", "sme_no_topology", "sme_linearized")
@@ -69,7 +70,7 @@ SPEC = {
     "study": {
         "kind": Key("sme", "str"),
         "name": Key("sme", "str"),
-        "seed": Key(1, "int", non_negative),
+        "seed": Key(1, "int", seed_problem),
         "runs": Key(200, "int", at_least(1), "Monte Carlo runs (the paper shows one)"),
         "n_steps": Key(100, "int", at_least(2), "not given in the paper"),
         "methods": Key(list(METHODS), "list", _methods_check),
@@ -162,10 +163,10 @@ def step_errors(est: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndar
     return labelled, set_err
 
 
-def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> dict:
+def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, force: bool = False) -> dict:
+    if seed is not None:  # --seed: checked like the file's own seed
+        data = {**data, "study": {**data.get("study", {}), "seed": seed}}
     cfg = resolve(data, path, SPEC)
-    if seed is not None:
-        cfg["study"]["seed"] = seed
     st, sc, se = cfg["study"], cfg["scenario"], cfg["sensors"]
     if st["example_run"] >= st["runs"]:
         raise InputError(path, "study.example_run", f"must be < study.runs ({st['runs']})")
@@ -231,7 +232,7 @@ def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool) -> 
                "runs": st["runs"], "n_steps": T, "methods": methods, "by_pose": by_pose,
                "seconds": {m: seconds[m] for m in methods}, "wall_seconds": wall}
     summary["lines"] = _lines(summary)
-    with AtomicOutput(out) as tmp:
+    with staged_folder(out, "run", force=force) as tmp:
         (tmp / "config.toml").write_text(resolved_toml(cfg, SPEC, path, provenance))
         write_parquet(results, tmp / "results.parquet")
         write_parquet(curves, tmp / "curves.parquet")

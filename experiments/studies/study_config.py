@@ -10,14 +10,13 @@ fills the defaults, rejects unknown tables and keys and wrong types with an
 from __future__ import annotations
 
 import math
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 from couplers.errors import InputError
 from experiments.config import _toml_value
-from experiments.runner import _commit_dir, _fresh_partial_dir, git_revision
+from experiments.runner import git_revision
 
 
 @dataclass(frozen=True)
@@ -122,23 +121,5 @@ def resolved_toml(cfg: dict[str, dict[str, Any]], spec: dict[str, dict[str, Key]
     return "\n".join(lines) + "\n"
 
 
-class AtomicOutput:
-    """``with AtomicOutput(out) as tmp:`` write into ``tmp``; renamed to ``out`` only on success."""
-
-    def __init__(self, out: Path):
-        self.out = Path(out)
-        self.tmp: Path | None = None
-
-    def __enter__(self) -> Path:
-        self.tmp = _fresh_partial_dir(self.out)
-        return self.tmp
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            _commit_dir(self.tmp, self.out)
-        else:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-
-
-__all__ = ["Key", "resolve", "resolved_toml", "AtomicOutput", "git_revision", "positive", "non_negative",
+__all__ = ["Key", "resolve", "resolved_toml", "git_revision", "positive", "non_negative",
            "at_least", "one_of"]

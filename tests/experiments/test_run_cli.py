@@ -166,3 +166,23 @@ def test_known_association_bound_runs_and_reports_features(cross_net, tmp_path):
     assert set(feats["method"]) == {"icp_known_da"} and len(feats) > 0
     assert summary["methods"]["icp_known_da"]["features"]["n"] == len(feats)
     assert "consensus_iterations = 30" in (out / "config.toml").read_text()
+
+
+def test_progress_off_a_terminal_is_one_line_per_five_simulated_minutes(cross_net, tmp_path, capsys):
+    """Logs of sweeps and CI stay readable: no carriage-return bar when stderr is not a terminal."""
+    cfg = write_config(tmp_path, cross_net, duration=600.0)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and "\r" not in "".join(lines)
+    assert lines[0].startswith("cross_test: 300 s simulated, step ") and "s left" in lines[0]
+    assert lines[1].startswith("cross_test: 600 s simulated, step 801 of 801 (100 %)")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_version_names_coloc_sumo_and_python(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("coloc ") and ", SUMO 1." in out and ", Python 3." in out

@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from couplers.errors import InputError
+from couplers.publish import MARKER
 from experiments.cli import main
 from experiments.sweep import expand_runs, load_sweep
 
@@ -271,7 +272,7 @@ def test_killed_sweep_resumes_with_every_run_once(tmp_path):
     assert {n: (runs_dir / n / "summary.json").stat().st_mtime_ns for n in done} == done  # not recomputed
     assert f"{len(done)} already present" in res.stdout
     assert len(pd.read_parquet(out / "sweep.parquet")) == 16
-    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".coloc-sweep.lock"]
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name not in (".coloc-sweep.lock", MARKER)]
 
 
 def test_sumo_sweep_runs_in_worker_processes(cross_net, tmp_path):

@@ -1,0 +1,558 @@
+"""The bad-input corpus: every command, every bad input we know of.
+
+Each case runs the command line (in this process, so any uncaught exception fails the test as a
+traceback would) and checks: the exit status, exactly one line on stderr that starts with
+``coloc: error:`` and names the file and field, and that every file the case had put in its folder
+beforehand is untouched and nothing was added. Add a case here for every new bad input.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from couplers.publish import MARKER
+from experiments.cli import main
+
+PROJECT = Path(__file__).resolve().parents[2]
+SUMO_GAMES = Path(__import__("sumo").__file__).parent / "tools" / "game"
+
+CONFIG = """
+[run]
+name = "cross_test"
+seed = 1
+duration_s = 30.0
+methods = ["gnss"]
+
+[scenario]
+kind = "sumo"
+net_dir = "{net}"
+control = "tlr"
+
+[report]
+track_area = "3"
+{extra}
+"""
+
+SWEEP = """
+[sweep]
+name = "corpus"
+base = "cfg.toml"
+seeds = {seeds}
+methods = ["gnss"]
+"""
+
+
+def _config(tmp: Path, net: Path, extra: str = "", name: str = "cfg.toml") -> Path:
+    path = tmp / name
+    path.write_text(CONFIG.format(net=net, extra=extra))
+    return path
+
+
+def _user_folder(tmp: Path, name: str = "mywork") -> Path:
+    d = tmp / name
+    (d / "sub").mkdir(parents=True)
+    (d / "thesis.tex").write_text("chapter 1\n")
+    (d / "sub" / "data.csv").write_text("1,2\n")
+    return d
+
+
+def _file(tmp: Path, name: str = "notes.txt") -> Path:
+    (tmp / name).write_text("my notes\n")
+    return tmp / name
+
+
+def _net_copy(tmp: Path, net: Path) -> Path:
+    dst = tmp / "net"
+    shutil.copytree(net, dst)
+    return dst
+
+
+def _run_copy(tmp: Path, run_dir: Path) -> Path:
+    dst = tmp / "run"
+    shutil.copytree(run_dir, dst)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def run_dir(cross_net, tmp_path_factory) -> Path:
+    """A finished 30 s GNSS run on the test cross (the report cases damage copies of it)."""
+    tmp = tmp_path_factory.mktemp("corpus_run")
+    cfg = _config(tmp, cross_net)
+    assert main(["run", str(cfg), "--out", str(tmp / "run"), "--quiet"]) == 0
+    return tmp / "run"
+
+
+# name -> (setup(tmp, cross_net, run_dir) -> (argv, cwd or None), words the one line must hold)
+CASES = {}
+
+
+def case(*needles: str):
+    def deco(fn):
+        CASES[fn.__name__] = (fn, needles)
+        return fn
+    return deco
+
+
+# ----------------------------------------------------------------------------- coloc run: --out
+
+
+@case("mywork", "--out", "was not written by coloc", "--force")
+def run_out_user_folder(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
+
+
+@case("notes.txt", "--out", "is a file")
+def run_out_file(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(_file(tmp)), "--quiet"], None
+
+
+@case("notes.txt", "--out", "is a file")
+def run_out_file_force(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(_file(tmp)), "--force", "--quiet"], None
+
+
+@case(".", "--out", "current working folder")
+def run_out_cwd(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", ".", "--quiet"], _run_copy(tmp, run)
+
+
+@case("--out", "current working folder")
+def run_out_holds_cwd(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    return ["run", str(_config(tmp, net)), "--out", str(dst), "--quiet"], dst / "figures"
+
+
+@case("/proc/coloc-corpus", "--out", "cannot be created")
+def run_out_unwritable(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", "/proc/coloc-corpus/run", "--quiet"], None
+
+
+@case("--out", "holds a coloc sweep output")
+def run_out_sweep_folder(tmp, net, run):
+    d = tmp / "sw"
+    d.mkdir()
+    (d / "sweep.toml").write_text("[sweep]\n")
+    (d / "runs").mkdir()
+    return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
+
+
+@case("broken", "--out", "broken symbolic link")
+def run_out_broken_link(tmp, net, run):
+    (tmp / "broken").symlink_to(tmp / "nowhere")
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "broken"), "--quiet"], None
+
+
+# ----------------------------------------------------------------------------- coloc run: config
+
+
+@case("cfg.toml", "run.seed", "2147483647")
+def run_seed_option_too_large(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--seed", str(2**31), "--quiet"], None
+
+
+@case("cfg.toml", "run.seed", "2147483647")
+def run_seed_in_file_too_large(tmp, net, run):
+    cfg = _config(tmp, net)
+    cfg.write_text(cfg.read_text().replace("seed = 1", f"seed = {2**32}"))
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "run.seed")
+def run_seed_negative(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--seed", "-1", "--quiet"], None
+
+
+@case("cfg.toml", "run.seed", "expected an integer")
+def run_seed_not_integer(tmp, net, run):
+    cfg = _config(tmp, net)
+    cfg.write_text(cfg.read_text().replace("seed = 1", 'seed = "one"'))
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "sensors.v2f_range_m", "must be positive")
+def run_v2f_range_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[sensors]\nv2f_range_m = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "sensors.v2f_range_m", "must be positive")
+def run_v2f_range_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[sensors]\nv2f_range_m = -5.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("sr.toml", "single_road.v2f_range_m", "must be positive")
+def run_scenario_v2f_range_zero(tmp, net, run):
+    text = (PROJECT / "experiments" / "single_road.toml").read_text()
+    path = tmp / "sr.toml"
+    path.write_text(text.replace("v2f_range_m = 50.0", "v2f_range_m = 0.0"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "run.duration_s", "no vehicle was in the network")
+def run_duration_too_short(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--duration", "1e-9", "--quiet"], None
+
+
+@case("cfg.toml", "run.duration_s", "must be positive")
+def run_duration_zero(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--duration", "0", "--quiet"], None
+
+
+@case("cfg.toml", "motion.sigma_sideways", "unknown")
+def run_unknown_key(tmp, net, run):
+    return ["run", str(_config(tmp, net, "[motion]\nsigma_sideways = 1.0\n")), "--out", str(tmp / "o")], None
+
+
+@case("cfg.toml", "run.methods[1]", "magic")
+def run_unknown_method(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--methods", "gnss,magic"], None
+
+
+@case("cfg.toml", "nonsense", "unknown table")
+def run_unknown_table(tmp, net, run):
+    return ["run", str(_config(tmp, net, "[nonsense]\nx = 1\n")), "--out", str(tmp / "o")], None
+
+
+@case("cfg.toml", "not valid TOML")
+def run_broken_toml(tmp, net, run):
+    cfg = _config(tmp, net)
+    cfg.write_text(cfg.read_text().replace("[run]", "[run\n"))
+    return ["run", str(cfg), "--out", str(tmp / "o")], None
+
+
+@case("nope.toml", "config file not found")
+def run_missing_config(tmp, net, run):
+    return ["run", str(tmp / "nope.toml"), "--out", str(tmp / "o")], None
+
+
+@case("cfg.toml", "scenario.control")
+def run_unknown_control(tmp, net, run):
+    cfg = _config(tmp, net)
+    cfg.write_text(cfg.read_text().replace('control = "tlr"', 'control = "allgreen"'))
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("scenario.toml", "files.net")
+def run_missing_net_file(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    (copy / "tlr.net.xml").unlink()
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("zones.geojson", "uncovered")
+def run_zones_leave_lanes_uncovered(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    zones = json.loads((copy / "zones.geojson").read_text())
+    zones["features"] = zones["features"][:1]
+    (copy / "zones.geojson").write_text(json.dumps(zones))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("demand.rou.xml", "'nosuchedge' is not in the net")
+def run_route_over_unknown_edge(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    routes = copy / "demand.rou.xml"
+    routes.write_text(routes.read_text().replace('edges="WC CE"', 'edges="nosuchedge WC CE"', 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("features.add.xml", "from the nearest drivable lane")
+def run_feature_far_from_roads(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    feats = copy / "features.add.xml"
+    text = feats.read_text()
+    i = text.index(' y="', text.index("<poi"))
+    j = text.index('"', i + 4)
+    feats.write_text(text[:i] + ' y="4612.0' + text[j:])
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sme.toml", "study.seed", "2147483647")
+def run_study_seed_too_large(tmp, net, run):
+    return ["run", str(PROJECT / "experiments" / "sme.toml"), "--out", str(tmp / "o"), "--seed", str(2**31),
+            "--quiet"], None
+
+
+# ----------------------------------------------------------------------------- coloc report
+
+
+@case("summary.json", "not valid JSON")
+def report_corrupt_summary(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "summary.json").write_text("{bad")
+    return ["report", str(dst)], None
+
+
+@case("summary.json", "expected a JSON object")
+def report_summary_not_an_object(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "summary.json").write_text("[1, 2]")
+    return ["report", str(dst)], None
+
+
+@case("estimates.parquet", "not a readable Parquet file")
+def report_truncated_estimates(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    data = (dst / "estimates.parquet").read_bytes()
+    (dst / "estimates.parquet").write_bytes(data[: len(data) // 2])
+    return ["report", str(dst)], None
+
+
+@case("traffic.parquet", "not a readable Parquet file")
+def report_truncated_traffic(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "traffic.parquet").write_bytes(b"PAR1")
+    return ["report", str(dst)], None
+
+
+@case("config.toml", "not valid TOML")
+def report_corrupt_config(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "config.toml").write_text("x\n")
+    return ["report", str(dst)], None
+
+
+@case("summary.json", "not found")
+def report_not_a_run_folder(tmp, net, run):
+    return ["report", str(_user_folder(tmp))], None
+
+
+@case("mywork", "--out", "was not written by coloc")
+def report_out_user_folder(tmp, net, run):
+    return ["report", str(_run_copy(tmp, run)), "--out", str(_user_folder(tmp))], None
+
+
+@case("notes.txt", "--out", "is a file")
+def report_out_file(tmp, net, run):
+    return ["report", str(_run_copy(tmp, run)), "--out", str(_file(tmp)), "--force"], None
+
+
+@case("/proc/coloc-corpus", "--out", "cannot be created")
+def report_out_unwritable(tmp, net, run):
+    return ["report", str(_run_copy(tmp, run)), "--out", "/proc/coloc-corpus"], None
+
+
+# ----------------------------------------------------------------------------- coloc sweep
+
+
+def _sweep(tmp: Path, net: Path, seeds: str = "[1, 2]") -> Path:
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds=seeds))
+    return path
+
+
+@case("notes.txt", "--out", "is a file")
+def sweep_out_file(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(_file(tmp)), "--quiet"], None
+
+
+@case("mywork", "--out", "was not written by coloc")
+def sweep_out_user_folder(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
+
+
+@case("--out", "holds a coloc run output")
+def sweep_out_run_folder(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(_run_copy(tmp, run)), "--quiet"], None
+
+
+@case("/proc/coloc-corpus", "--out", "cannot be created")
+def sweep_out_unwritable(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", "/proc/coloc-corpus", "--quiet", "--workers", "1"], None
+
+
+@case("--scheduler", "notanaddress")
+def sweep_scheduler_not_an_address(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--scheduler", "notanaddress", "--quiet"], None
+
+
+@case("sweep.toml", "sweep.seeds.count", "2147483647")
+def sweep_seed_range_too_large(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net, "{start = 2147483647, count = 2}")), "--out", str(tmp / "o"),
+            "--dry-run"], None
+
+
+@case("sweep.toml", "sweep.seeds[1]", "2147483647")
+def sweep_seed_list_too_large(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net, f"[1, {2**31}]")), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+@case("--workers", "must be >= 1")
+def sweep_no_workers(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "0"], None
+
+
+# ----------------------------------------------------------------------------- coloc net import
+
+
+@case("notes.txt", "is a file")
+def net_import_out_file_force(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(_file(tmp)),
+            "--experiments-dir", str(tmp / "exps"), "--force"], None
+
+
+@case("mywork", "already exists", "--force")
+def net_import_out_exists(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(_user_folder(tmp)),
+            "--experiments-dir", str(tmp / "exps")], None
+
+
+@case("/proc/coloc-corpus", "--out", "cannot be created")
+def net_import_out_unwritable(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", "/proc/coloc-corpus/x",
+            "--experiments-dir", str(tmp / "exps"), "--no-calibrate"], None
+
+
+@case("--seed", "2147483647")
+def net_import_seed_too_large(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--seed", str(2**31)], None
+
+
+@case("x_tlr.toml", "already exists", "--force")
+def net_import_config_exists(tmp, net, run):
+    (tmp / "exps").mkdir()
+    (tmp / "exps" / "x_tlr.toml").write_text("# mine\n")
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps")], None
+
+
+@case("bs.net.xml", "tlLogic", "cycle 1006 s", "never green", "--rebuild-signals", "--keep-signals")
+def net_import_degenerate_signal_programs(tmp, net, run):
+    return ["net", "import", "--net", str(SUMO_GAMES / "bs3d" / "bs.net.xml"), "--name", "bs",
+            "--out", str(tmp / "bs"), "--experiments-dir", str(tmp / "exps"), "--no-calibrate"], None
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    out = {}
+    for p in sorted(root.rglob("*")):
+        key = str(p.relative_to(root))
+        if p.is_symlink():
+            out[key] = "link:" + os.readlink(p)
+        elif p.is_file():
+            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
+        else:
+            out[key] = "dir"
+    return out
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
+    fn, needles = CASES[name]
+    work = tmp_path / "work"
+    work.mkdir()
+    argv, cwd = fn(work, cross_net, run_dir)
+    monkeypatch.chdir(cwd or work)
+    before = _snapshot(work)
+    capsys.readouterr()
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("coloc: error: "), err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert _snapshot(work) == before  # nothing the case owned was changed, nothing half-written was left
+
+
+def test_corpus_size():
+    """The corpus only grows: a case removed by mistake shows here."""
+    assert len(CASES) >= 50
+
+
+# ----------------------------------------------------------------------------- what --out may replace
+
+
+def test_run_replaces_an_earlier_run_and_a_legacy_run_folder(cross_net, tmp_path, run_dir):
+    cfg = _config(tmp_path, cross_net)
+    legacy = _run_copy(tmp_path, run_dir)
+    (legacy / MARKER).unlink()  # written before the marker existed: recognised by its files
+    assert main(["run", str(cfg), "--out", str(legacy), "--quiet", "--seed", "2"]) == 0
+    assert json.loads((legacy / "summary.json").read_text())["seed"] == 2
+    assert json.loads((legacy / MARKER).read_text()) == {"kind": "run"}
+    assert main(["run", str(cfg), "--out", str(legacy), "--quiet", "--seed", "3"]) == 0
+    assert json.loads((legacy / "summary.json").read_text())["seed"] == 3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_force_replaces_a_user_folder_but_an_empty_folder_needs_no_force(cross_net, tmp_path):
+    cfg = _config(tmp_path, cross_net)
+    mine = _user_folder(tmp_path)
+    assert main(["run", str(cfg), "--out", str(mine), "--quiet", "--force"]) == 0
+    assert not (mine / "thesis.tex").exists() and (mine / "summary.json").is_file()
+    (tmp_path / "empty").mkdir()
+    assert main(["run", str(cfg), "--out", str(tmp_path / "empty"), "--quiet"]) == 0
+
+
+def test_stale_partial_folders_of_dead_processes_are_removed(cross_net, tmp_path):
+    cfg = _config(tmp_path, cross_net)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / f".out.partial-{dead.pid}").mkdir()
+    (tmp_path / f".out.partial-{dead.pid}" / "estimates.parquet").write_text("half")
+    alive = tmp_path / f".out.partial-{os.getppid()}"  # a live process's: left alone
+    alive.mkdir()
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert not (tmp_path / f".out.partial-{dead.pid}").exists() and alive.is_dir()
+
+
+def test_an_output_hidden_by_a_kill_between_the_renames_is_put_back(cross_net, tmp_path, run_dir):
+    """SIGKILL after ``out -> .out.old-PID`` and before ``.partial -> out``: the next run restores the
+    earlier output and then replaces it as usual."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    shutil.copytree(run_dir, tmp_path / f".out.old-{dead.pid}")
+    shutil.copytree(run_dir, tmp_path / f".out.partial-{dead.pid}")
+    from couplers.publish import remove_stale
+
+    assert remove_stale(tmp_path, "out") == [tmp_path / f".out.partial-{dead.pid}"]
+    assert (tmp_path / "out" / "estimates.parquet").read_bytes() == (run_dir / "estimates.parquet").read_bytes()
+    assert main(["run", str(_config(tmp_path, cross_net)), "--out", str(tmp_path / "out"), "--quiet",
+                 "--seed", "5"]) == 0
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["seed"] == 5
+
+
+def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
+    cfg = _config(tmp_path, cross_net)
+    out = _run_copy(tmp_path, run_dir)
+    before = _snapshot(out)
+    proc = subprocess.Popen([sys.executable, "-m", "experiments.cli", "run", str(cfg), "--out", str(out),
+                             "--duration", "3600", "--quiet"], cwd=PROJECT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    partial = tmp_path / f".{out.name}.partial-{proc.pid}"
+    deadline = time.monotonic() + 60
+    while not partial.exists() and time.monotonic() < deadline:
+        assert proc.poll() is None
+        time.sleep(0.05)
+    time.sleep(1.0)  # SUMO is stepping
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert err.strip().splitlines() == ["coloc: terminated; nothing was written"]
+    assert not partial.exists() and _snapshot(out) == before
+
+
+def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):
+    """--rebuild-signals: netconvert's static programs replace the game net's 1000 s phases."""
+    from couplers.netimport import implausible_signal_programs
+
+    net = SUMO_GAMES / "bs3d" / "bs.net.xml"
+    assert len(implausible_signal_programs(net)) == 4
+    rc = main(["net", "import", "--net", str(net), "--name", "bs", "--out", str(tmp_path / "bs"),
+               "--experiments-dir", str(tmp_path / "exps"), "--no-calibrate", "--rebuild-signals"])
+    assert rc == 0, capsys.readouterr().err
+    assert implausible_signal_programs(tmp_path / "bs" / "tlr.net.xml") == []
+    assert 'signals = "rebuild"' in (tmp_path / "bs" / "scenario.toml").read_text()
+    assert implausible_signal_programs(PROJECT / "sumo_nets" / "arterial" / "tlr.net.xml") == []
