@@ -1,4 +1,4 @@
-"""A net folder (DESIGN "A net folder"): scenario.toml, the net, demand, zones, areas, features.
+"""A net folder (docs/architecture.md "A net folder"): scenario.toml, the net, demand, zones, areas, features.
 
 Parsing only; geometry lookups are in ``couplers.zones``.
 """
@@ -189,7 +189,7 @@ def lane_shape_points(net_path: Path) -> tuple[np.ndarray, list[str]]:
 
 
 def check_region_coverage(folder: NetFolder) -> None:
-    """Zones and areas must cover every lane of the net (DESIGN "Reliability")."""
+    """Zones and areas must cover every lane of the net (docs/architecture.md "Reliability")."""
     import shapely as _shp
 
     xy, owners = lane_shape_points(folder.net)
