@@ -63,21 +63,28 @@ TABLE_DOCS: dict[str, str] = {
              "runs exactly as before; a sweep can set its keys only when the base config has the table.",
 }
 
+# On-board sensing: the keys of [sensors], which the controlled scenarios also carry.
+_SENSING: dict[str, tuple[str, str]] = {
+    "accel_sigma": ("m/s^2", "White noise per axis on the reported inertial input a_{t-1}."),
+    "v2f_range_m": ("m", "V2F sensing range Rs (`inf`: always in range)."),
+    "v2f_sigma_p": ("m", "V2F relative position noise, model (4)."),
+    "v2f_sigma_v": ("m/s", "V2F relative velocity noise, model (4)."),
+    "v2v_range_m": ("m", "V2V range Rc (`inf`: always connected)."),
+    "prior_sigma_p": ("m", "Fast-start prior around the true state at a vehicle's first frame, position "
+                           "(Sec. VI-A; Sec. V states no initialisation)."),
+    "prior_sigma_v": ("m/s", "Fast-start prior around the true state, velocity."),
+}
+
 # Keys shared by [single_road] and [crossroad] (couplers.scenarios._Common).
 _SCENARIO_COMMON: dict[str, tuple[str, str]] = {
+    **_SENSING,
+    "accel_sigma": ("m/s^2", _SENSING["accel_sigma"][1] + " The paper: 0."),
     "dt": ("s", "Sampling interval Ts of the scenario (also the estimators' step)."),
     "speed_kmh": ("km/h", "Reference speed of the vehicles."),
     "sigma_along": ("m/s^2", "Along-track driving noise of model (1), truth and estimators."),
     "sigma_cross": ("m/s^2", "Cross-track driving noise of model (1), truth and estimators."),
     "gnss_sigma_p": ("m", "GNSS position noise sp per axis, model (3)."),
     "gnss_sigma_v": ("m/s", "GNSS velocity noise sv per axis, model (3)."),
-    "v2f_sigma_p": ("m", "V2F relative position noise, model (4)."),
-    "v2f_sigma_v": ("m/s", "V2F relative velocity noise, model (4)."),
-    "v2f_range_m": ("m", "V2F sensing range Rs (`inf`: always in range)."),
-    "v2v_range_m": ("m", "V2V range Rc (`inf`: always connected)."),
-    "prior_sigma_p": ("m", "Fast-start prior at a vehicle's first frame, position (Sec. VI-A; Sec. V states none)."),
-    "prior_sigma_v": ("m/s", "Fast-start prior at a vehicle's first frame, velocity."),
-    "accel_sigma": ("m/s^2", "White noise on the reported inertial input a_{t-1} (the paper: 0)."),
     "speed_gain": ("1/s", "Along-track input kv (v_ref - v) of the truth: speed gain kv."),
     "gap_gain": ("1/s^2", "Followers' input: gap gain kg on (gap - headway)."),
     "rel_speed_gain": ("1/s", "Followers' input: relative-speed gain kr on (v_lead - v)."),
@@ -130,15 +137,7 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "max_duration_s": ("s", "Scenario duration cap; not set: twice the nominal crossing time."),
         "centre": ("m", "Junction centre [x, y]."),
     },
-    "sensors": {
-        "accel_sigma": ("m/s^2", "White noise per axis on the inertial input a_{t-1}."),
-        "v2f_range_m": ("m", "V2F sensing range Rs."),
-        "v2f_sigma_p": ("m", "V2F relative position noise, model (4)."),
-        "v2f_sigma_v": ("m/s", "V2F relative velocity noise, model (4)."),
-        "v2v_range_m": ("m", "V2V range Rc (`inf`: always connected)."),
-        "prior_sigma_p": ("m", "Fast-start prior around the true state, position (Sec. VI-A)."),
-        "prior_sigma_v": ("m/s", "Fast-start prior around the true state, velocity."),
-    },
+    "sensors": dict(_SENSING),
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),
         "sigma_cross": ("m/s^2", "Cross-track driving noise s_cross of model (1) (the arterial configs: 0.1 "
