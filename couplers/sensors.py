@@ -19,7 +19,7 @@ from coloc.models import gnss_cov
 
 @dataclass(frozen=True)
 class SensorParams:
-    """On-board sensing (DESIGN table, urban arterial column unless noted)."""
+    """On-board sensing (docs/architecture.md "Models and default parameters", arterial column unless noted)."""
 
     accel_sigma: float = 0.05  # m/s^2, white noise per axis on the inertial input a_{t-1}
     v2f_range_m: float = 50.0  # Rs

@@ -1,6 +1,6 @@
 """SUMO through libsumo: true vehicle states per step and traffic statistics.
 
-libsumo holds one simulation per process (DESIGN "SUMO notes"): parallel runs
+libsumo holds one simulation per process (docs/architecture.md "SUMO notes"): parallel runs
 are processes. Plain per-vehicle getters were measured faster than
 subscriptions on these machines, so they are used here.
 """
@@ -185,7 +185,7 @@ class SumoTraffic:
         ids = [v for v in ids_all if v not in self._teleporting] if self._teleporting else list(ids_all)
         n = len(ids)
         # libsumo has no batch getter: three plain getters per vehicle are the SUMO floor
-        # (measured faster than subscriptions, DESIGN "SUMO notes").
+        # (measured faster than subscriptions, docs/architecture.md "SUMO notes").
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(n, 2)
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         angle = np.array([veh.getAngle(v) for v in ids], dtype=float)

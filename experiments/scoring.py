@@ -33,7 +33,7 @@ def _nan_to_none(d):
 
 
 def method_summary(est: pd.DataFrame) -> dict:
-    """summary.json "methods" block for one method's rows (DESIGN schema)."""
+    """summary.json "methods" block for one method's rows (docs/architecture.md "Output schemas")."""
     out = {
         "rmse_pos_m": _rmse(est["err_pos"]),
         "rmse_vel_mps": _rmse(est["err_vel"]),
@@ -79,7 +79,7 @@ def traffic_summary(traffic: pd.DataFrame) -> dict:
 
 
 # --------------------------------------------------------------------------- #
-# Association scoring (DESIGN "Features without a map": tracks are mapped to true
+# Association scoring (docs/architecture.md "Features without a map": tracks are mapped to true
 # features outside the estimator)
 # --------------------------------------------------------------------------- #
 

@@ -1,0 +1,348 @@
+"""docs/configuration.md, generated from the run-config schema so it cannot drift.
+
+The tables and keys, their types and defaults come from the loader's own schema
+(:data:`experiments.config.SECTIONS` and :data:`~experiments.config.OPTIONAL_SECTIONS`:
+the frozen dataclasses every TOML table is validated against). Only the unit and
+the meaning of each key are written here, in :data:`KEY_DOCS`, because the
+dataclasses (some of them in ``coloc`` and ``couplers``) carry them only as
+scattered comments. A key the loader accepts without an entry here makes
+:func:`render` fail, and with it ``tests/experiments/test_configuration_doc.py``.
+
+    python -m experiments.configdoc            # rewrite docs/configuration.md
+    python -m experiments.configdoc --check    # exit 1 if the committed page is stale
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import types
+import typing
+from pathlib import Path
+
+from experiments.config import (INFRA_METHODS, KNOWN_METHODS, OPTIONAL_SECTIONS, SCENARIO_KINDS,
+                                SCENARIO_TABLES, SECTIONS, _toml_value)
+
+DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
+
+#: Unit of a dimensionless number.
+NO_UNIT = "1"
+
+#: What each table is for (one paragraph under its heading).
+TABLE_DOCS: dict[str, str] = {
+    "run": "What to run: the name, the seed of every random stream, the simulated duration and the "
+           "methods. The only required table.",
+    "scenario": "Where the frames come from: SUMO traffic on a net folder (`kind = \"sumo\"`) or one of "
+                "the controlled scenarios of Brambilla et al. Sec. V (`\"single_road\"`, `\"crossroad\"`), "
+                "each configured by the table of the same name. `net_dir`, `control` and `ballistic` are "
+                "refused for the controlled scenarios.",
+    "single_road": "Brambilla et al. Sec. V-A: two connected vehicles in one lane passing two static "
+                   "features on the sidewalk (Fig. 7). Only with `scenario.kind = \"single_road\"`. The "
+                   "scenario senses with its own parameters: `[sensors]`, `[motion] sigma_along / "
+                   "sigma_cross` and `scenario.step_s` are taken from this table (a different value given "
+                   "there is refused).",
+    "crossroad": "Brambilla et al. Sec. V-B: 12 vehicles in four clusters of three crossing a junction, "
+                 "features on the sidewalks within 150 m (Figs. 8-11). Only with `scenario.kind = "
+                 "\"crossroad\"`. As for `[single_road]`, sensing, driving noise and step come from this "
+                 "table; `icp.feature_sigma_par` defaults to `feature_speed_mps / 100` when the features move.",
+    "sensors": "On-board sensing of a SUMO run (GNSS comes from the net folder's `zones.geojson`, per "
+               "zone). For the controlled scenarios it is derived from their table.",
+    "motion": "Driving noise of the estimators' motion model (1), rotated to the heading.",
+    "icp": "Gaussian ICP (BPA-L with average consensus), shared by `icp_known_da`, `icp_da_lc` and the "
+           "particle methods (feature tracks and their messages).",
+    "lc": "ICP-DA-LC: BP data association (13)-(17), MAP pairing (30)-(31), feature tracks without a map. "
+          "Also used by `icp_da_pf` for association and tracks.",
+    "pf": "ICP-DA-PF (`icp_da_pf`, `icp_known_da_pf`): particle counts, the pair-sum kernel and the "
+          "departures from the paper's literal recursion. Its generators are seeded with `run.seed`.",
+    "report": "The per-run HTML report.",
+    "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
+             "their radar and the settings of the infrastructure methods "
+             f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "
+             "runs exactly as before; a sweep can set its keys only when the base config has the table.",
+}
+
+# On-board sensing: the keys of [sensors], which the controlled scenarios also carry.
+_SENSING: dict[str, tuple[str, str]] = {
+    "accel_sigma": ("m/s^2", "White noise per axis on the reported inertial input a_{t-1}."),
+    "v2f_range_m": ("m", "V2F sensing range Rs (`inf`: always in range)."),
+    "v2f_sigma_p": ("m", "V2F relative position noise, model (4)."),
+    "v2f_sigma_v": ("m/s", "V2F relative velocity noise, model (4)."),
+    "v2v_range_m": ("m", "V2V range Rc (`inf`: always connected)."),
+    "prior_sigma_p": ("m", "Fast-start prior around the true state at a vehicle's first frame, position "
+                           "(Sec. VI-A; Sec. V states no initialisation)."),
+    "prior_sigma_v": ("m/s", "Fast-start prior around the true state, velocity."),
+}
+
+# Keys shared by [single_road] and [crossroad] (couplers.scenarios._Common).
+_SCENARIO_COMMON: dict[str, tuple[str, str]] = {
+    **_SENSING,
+    "accel_sigma": ("m/s^2", _SENSING["accel_sigma"][1] + " The paper: 0."),
+    "dt": ("s", "Sampling interval Ts of the scenario (also the estimators' step)."),
+    "speed_kmh": ("km/h", "Reference speed of the vehicles."),
+    "sigma_along": ("m/s^2", "Along-track driving noise of model (1), truth and estimators."),
+    "sigma_cross": ("m/s^2", "Cross-track driving noise of model (1), truth and estimators."),
+    "gnss_sigma_p": ("m", "GNSS position noise sp per axis, model (3)."),
+    "gnss_sigma_v": ("m/s", "GNSS velocity noise sv per axis, model (3)."),
+    "speed_gain": ("1/s", "Along-track input kv (v_ref - v) of the truth: speed gain kv."),
+    "gap_gain": ("1/s^2", "Followers' input: gap gain kg on (gap - headway)."),
+    "rel_speed_gain": ("1/s", "Followers' input: relative-speed gain kr on (v_lead - v)."),
+}
+
+#: (unit, meaning) of every key the loader accepts, per table. Unit NO_UNIT for a
+#: dimensionless number, "" for strings, booleans and lists of names.
+KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
+    "run": {
+        "name": ("", "Name of the run (progress bar, the `run` column of estimates.parquet)."),
+        "seed": (NO_UNIT, "Seed of every random stream (SUMO, sensors, particle generators); same config and "
+                          "seed give a byte-identical estimates.parquet. `coloc run --seed` overrides it."),
+        "duration_s": ("s", "Simulated duration; a controlled scenario also ends by itself. "
+                            "`coloc run --duration` overrides it."),
+        "methods": ("", "Estimators to run, one or more of: "
+                        + ", ".join(f"`{m}`" for m in KNOWN_METHODS) + ". `coloc run --methods` overrides it."),
+    },
+    "scenario": {
+        "kind": ("", "Frame source, one of: " + ", ".join(f"`{k}`" for k in SCENARIO_KINDS) + "."),
+        "net_dir": ("", "Net folder (relative to the config file); required for `kind = \"sumo\"`."),
+        "control": ("", "Traffic control of a SUMO run: `\"tlr\"` (traffic lights) or `\"vsr\"` (every signal "
+                        "off, gap acceptance), as the net folder's `scenario.toml` defines them."),
+        "step_s": ("s", "Simulation and estimation step Ts (the arterial: 0.75 s). Derived from the scenario "
+                        "table for the controlled scenarios."),
+        "ballistic": ("", "SUMO's ballistic position update (`--step-method.ballistic`), so SUMO's kinematics "
+                          "match model (1) with piecewise-constant acceleration."),
+    },
+    "single_road": {
+        **_SCENARIO_COMMON,
+        "n_vehicles": (NO_UNIT, "Vehicles in the lane."),
+        "headway_m": ("m", "Front-to-front spacing of the vehicles at the start."),
+        "feature_spacing_m": ("m", "df, spacing of the two features (the paper: 0.5, 3 and 6 m)."),
+        "road_length_m": ("m", "Road length (not in the paper; our choice)."),
+        "sidewalk_offset_m": ("m", "Lateral distance of the features from the lane centre (our choice)."),
+        "duration_s": ("s", "Scenario duration; not set: ceil(road_length_m / speed)."),
+    },
+    "crossroad": {
+        **_SCENARIO_COMMON,
+        "vehicles_per_cluster": (NO_UNIT, "Vehicles per cluster; one cluster per arm (four)."),
+        "arm_length_m": ("m", "Distance from the junction centre to the edge of the area on each arm."),
+        "cluster_headway_m": ("m", "Spacing inside a cluster (not in the paper; our choice)."),
+        "lane_offset_m": ("m", "Lane centre from the road axis (half a 3.5 m lane; our choice)."),
+        "n_features": (NO_UNIT, "Nf, number of features (the paper sweeps 3, 10, 20, 60)."),
+        "feature_disc_radius_m": ("m", "Features' initial locations lie within this radius of the centre."),
+        "feature_layout": ("", "`\"sidewalks\"` (uniform on the sidewalks inside the disc, the paper) or "
+                               "`\"disc\"` (uniform over the whole disc)."),
+        "sidewalk_offset_m": ("m", "Sidewalk line from the road axis (our choice: lane centre + 3 m)."),
+        "feature_speed_mps": ("m/s", "vf, initial feature speed along the sidewalk (the paper: 0, 1, 2, 5)."),
+        "area_ring_m": ("m", "Width of the distance rings around the centre used as analysis areas."),
+        "max_duration_s": ("s", "Scenario duration cap; not set: twice the nominal crossing time."),
+        "centre": ("m", "Junction centre [x, y]."),
+    },
+    "sensors": dict(_SENSING),
+    "motion": {
+        "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),
+        "sigma_cross": ("m/s^2", "Cross-track driving noise s_cross of model (1) (the arterial configs: 0.1 "
+                                 "instead of the paper's 0.001, see the Brambilla validation page)."),
+        "heading_min_speed": ("m/s", "Below this estimated speed the heading is not trusted and the driving "
+                                     "noise is isotropic with sigma_along on both axes."),
+    },
+    "icp": {
+        "consensus_iterations": (NO_UNIT, "Average-consensus iterations per feature (BPA-L)."),
+        "bpa_max_iterations": (NO_UNIT, "Upper limit of BPA-L iterations (19)-(22) per step."),
+        "stop_pos_m": ("m", "BPA-L stops when no position changes by more than this (Sec. V-A: 10 cm)."),
+        "stop_vel_mps": ("m/s", "... and no velocity by more than this (Sec. V-A: 0.1 m/s)."),
+        "feature_sigma_par": ("m/s", "Velocity random walk per step of a feature, model (2) (moving "
+                                     "features: vf / 100)."),
+        "feature_drop_after_s": ("s", "A track no vehicle observed for this long is dropped (the paper's "
+                                      "reset to a uniform belief)."),
+        "feature_velocity_prior_sigma": ("m/s", "Velocity prior N(0, s^2 I) of a newborn track; 0 = uniform "
+                                                "(the paper's reset)."),
+        "message_memory_s": ("s", "How long a track keeps the latest message of a vehicle apart."),
+        "feature_message": ("", "What a track stores of each vehicle: `\"own\"` (the own-sensor belief, "
+                                "default) or `\"bpa\"` (BPA-L's final message (19))."),
+    },
+    "lc": {
+        "eta_threshold": (NO_UNIT, "eta_TH of (30): a track is detected by a vehicle iff b(alpha = 0) < eta_TH "
+                                   "(1 = pair every gated measurement, 0.5 = drop ambiguous ones)."),
+        "detection_probability": (NO_UNIT, "P_D of a track inside the sensing range; missed-detection weight "
+                                           "1 - P_D of (13)."),
+        "gate_probability": (NO_UNIT, "Chi-square gate on the 4-D V2F innovation; outside it eta(alpha = l) = 0."),
+        "new_feature_velocity_sigma": ("m/s", "Velocity spread of an untracked feature, in the density of a "
+                                              "measurement from a new feature."),
+        "birth_probability": (NO_UNIT, "A measurement no track took starts a track when its probability of "
+                                       "coming from no track is at least this."),
+        "merge_gate_m": ("m", "Two tracks closer than this (and within each other's 99 % gate) are merged; "
+                              "0 switches merging off."),
+        "sensing_range_m": ("m", "The vehicle's own V2F range Rs for candidate tracks (plus a 3-sigma margin); "
+                                 "not given: `sensors.v2f_range_m` in force."),
+        "new_feature_rate": (NO_UNIT, "mu_new, expected untracked features in a vehicle's view (weight of the "
+                                      "new-feature hypothesis)."),
+        "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
+        "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
+    },
+    "pf": {
+        "vehicle_particles": (NO_UNIT, "Jv, particles per vehicle (the paper's single road: 5000)."),
+        "feature_particles": (NO_UNIT, "Jf, particles per feature track."),
+        "kernel": ("", "Pair sums: `\"tree\"` (k-d tree, exact to kernel_rel_tol per entry) or `\"brute\"`."),
+        "kernel_rel_tol": (NO_UNIT, "Relative error allowed per entry of a tree pair sum."),
+        "kernel_cache_mb": ("MB", "Memory for the kernel matrices kept through BPA-L's iterations (tree "
+                                  "kernel; 0 = none kept)."),
+        "min_association_belief": (NO_UNIT, "Options of (18) with a smaller BPA-DA belief are left out of the mixture."),
+        "message_bandwidth": ("", "Particle double sums as kernel densities: `\"prior\"` (kernel R + h^2 Cov), "
+                                  "`\"shrunk\"` (the same with Liu-West shrunk centres) or `\"none\"` (the bare "
+                                  "V2F kernel of (25)-(27))."),
+        "recursion": ("", "`\"latest_message\"` (a track keeps each vehicle's latest message) or `\"paper\"` "
+                          "(the literal recursion (23)-(24))."),
+        "regularize": ("", "Liu-West regularised resampling (static features otherwise never rejuvenate)."),
+    },
+    "report": {
+        "track_area": ("", "Analysis area of the along/cross-track figure (paper Fig. 18b)."),
+        "figures": ("", "Write report.html and figures/*.png after the run."),
+    },
+    "infra": {
+        "rsu_junctions": ("", "Junction ids of the net where RSUs stand (checked against the net file)."),
+        "rsu_range_m": ("m", "V2I range of an RSU, equal to its radar range."),
+        "radar_sigma_m": ("m", "Radar position noise per axis."),
+        "radar_pose_offset_sigma_m": ("m", "Spread of the radar's unknown pose offset, drawn once per run."),
+        "odom_sigma_m": ("m", "Odometry noise per axis and step (factor graph)."),
+        "rsu_bp_particles": (NO_UNIT, "Particles per vehicle and feature of `rsu_bp`."),
+        "rsu_bp_detection_prob": (NO_UNIT, "`rsu_bp`'s P_D of a visible feature."),
+        "rsu_bp_feature_drop_s": ("s", "`rsu_bp` drops a feature cloud unseen for this long."),
+        "sme_max_vehicles": (NO_UNIT, "`sme` skips the radar update when more vehicles are in range."),
+        "fg_window_steps": (NO_UNIT, "Window of `fg_topology_new`'s fixed-lag smoother."),
+    },
+}
+
+
+def schema() -> dict[str, type]:
+    """Every table the loader accepts and its dataclass (the required ones first)."""
+    return {**SECTIONS, **OPTIONAL_SECTIONS}
+
+
+def accepted_keys() -> list[tuple[str, str]]:
+    """(table, key) for every key the loader accepts: the fields of the schema's dataclasses."""
+    return [(table, f.name) for table, cls in schema().items() for f in dataclasses.fields(cls)]
+
+
+def _numeric(annotation) -> bool:
+    if annotation in (int, float):
+        return True
+    origin = typing.get_origin(annotation)
+    if origin in (tuple, typing.Union, types.UnionType):
+        return any(_numeric(a) for a in typing.get_args(annotation) if a is not Ellipsis)
+    return False
+
+
+def undocumented() -> list[str]:
+    """Accepted keys without a meaning, or numeric keys without a unit; and tables without a text."""
+    missing = [f"[{t}]" for t in schema() if not TABLE_DOCS.get(t)]
+    for table, cls in schema().items():
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            unit, meaning = KEY_DOCS.get(table, {}).get(f.name, ("", ""))
+            if not meaning.strip() or (_numeric(hints[f.name]) and not unit):
+                missing.append(f"{table}.{f.name}")
+    return missing
+
+
+def stale() -> list[str]:
+    """Documented keys the loader does not accept (a field was renamed or removed)."""
+    accepted = set(accepted_keys())
+    return [f"{t}.{k}" for t, keys in KEY_DOCS.items() for k in keys if (t, k) not in accepted] + \
+           [f"[{t}]" for t in TABLE_DOCS if t not in schema()]
+
+
+def _type_name(annotation) -> str:
+    simple = {float: "number", int: "integer", bool: "boolean", str: "string"}
+    if annotation in simple:
+        return simple[annotation]
+    args = typing.get_args(annotation)
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"list of {simple[args[0]]}s"
+        return f"list of {len(args)} {simple[args[0]]}s"
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return f"{_type_name(inner[0])}, optional"
+    raise TypeError(f"no type name for {annotation}")
+
+
+def _default(f: dataclasses.Field) -> str:
+    if f.default is not dataclasses.MISSING:
+        value = f.default
+    elif f.default_factory is not dataclasses.MISSING:
+        value = f.default_factory()
+    else:
+        return "required"
+    if value is None:
+        return "not set"
+    if isinstance(value, float) and math.isinf(value):
+        return "`inf`"
+    return f"`{_toml_value(value)}`"
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def render() -> str:
+    """The whole of docs/configuration.md. Raises ValueError if a key lacks documentation."""
+    missing, extra = undocumented(), stale()
+    if missing or extra:
+        raise ValueError("config keys without documentation in experiments/configdoc.py KEY_DOCS: "
+                         + ", ".join(missing) + ("; documented but not accepted: " + ", ".join(extra) if extra else ""))
+    out = [
+        "# Configuration reference",
+        "",
+        "<!-- Generated by `python -m experiments.configdoc` from the schema in experiments/config.py;",
+        "     do not edit by hand (tests/experiments/test_configuration_doc.py checks it). -->",
+        "",
+        "A run config is a TOML file whose tables map onto frozen dataclasses "
+        "(`experiments/config.py`). It is validated on load: an unknown table or key, a wrong type "
+        "or a value out of range prints one line naming the file and the dotted field and exits "
+        "with status 2. Every key has a default except `run.name`; a run saves its config fully "
+        "resolved (every default spelled out, derived values with a comment saying where they come "
+        "from) as `config.toml` in its output folder.",
+        "",
+        "Any key can be overridden by a sweep (`\"table.key\" = [...]` in `[sweep.grid]` or "
+        "`[sweep.set]`), see [outputs.md](outputs.md) for what a sweep writes. Units: `1` is "
+        "dimensionless; strings, booleans and lists of names have none. Numbers in parentheses such "
+        "as (13) are equations of Brambilla et al. The study configs of the other papers "
+        "(`experiments/rsu_bp.toml`, `sme.toml`, `fg_topology.toml`, with a `[study]` table) have "
+        "their own schemas in `experiments/studies/` and are not covered here.",
+        "",
+        "Tables: " + ", ".join(f"`[{t}]`" for t in schema()) + " ("
+        + " and ".join(f"`[{t}]`" for t in SCENARIO_TABLES) + " only with their `scenario.kind`; "
+        + ", ".join(f"`[{t}]`" for t in OPTIONAL_SECTIONS) + " optional).",
+        "",
+    ]
+    for table, cls in schema().items():
+        hints = typing.get_type_hints(cls)
+        out += [f"## [{table}]", "", TABLE_DOCS[table], "",
+                "| key | type | unit | default | meaning |", "|---|---|---|---|---|"]
+        for f in dataclasses.fields(cls):
+            unit, meaning = KEY_DOCS[table][f.name]
+            out.append(f"| `{f.name}` | {_type_name(hints[f.name])} | {_cell(unit) or '-'} | "
+                       f"{_cell(_default(f))} | {_cell(meaning)} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 if docs/configuration.md differs")
+    ap.add_argument("--out", type=Path, default=DOC_PATH)
+    args = ap.parse_args(argv)
+    text = render()
+    if args.check:
+        same = args.out.is_file() and args.out.read_text() == text
+        print(f"{args.out}: {'up to date' if same else 'stale: run python -m experiments.configdoc'}")
+        return 0 if same else 1
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
