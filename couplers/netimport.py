@@ -1,10 +1,10 @@
 """Import a user's SUMO net or OpenStreetMap extract as a net folder (``coloc net import``).
 
 From one ``.net.xml`` or ``.osm[.gz]`` file this derives everything a net
-folder holds (DESIGN "A net folder"), and says what it could not derive:
+folder holds (docs/architecture.md "A net folder"), and says what it could not derive:
 
 * the net: netconvert with the options SUMO recommends for OSM imports (the
-  DESIGN's "SUMO notes") and osmWebWizard's urban typemaps, cars only, or the
+  docs/architecture.md "SUMO notes") and osmWebWizard's urban typemaps, cars only, or the
   user's net re-written by netconvert; the
   dated netconvert header is replaced by a fixed comment so that the same
   inputs give identical bytes. TLR is the net as built; VSR switches every
@@ -74,7 +74,7 @@ CAR_HIGHWAYS = frozenset({
     "service", "road",
 })
 
-# GNSS classes (DESIGN table, Brambilla Sec. VI): zone -> (sigma_p m, sigma_v m/s).
+# GNSS classes (docs/architecture.md "Models and default parameters", Brambilla Sec. VI): zone -> (sigma_p m, sigma_v m/s).
 ZONE_PARAMS = {"A": (3.0, 0.1), "B": (8.0, 0.17), "C": (15.0, 0.45)}
 # Built-up fraction of a zone cell (building footprint area / cell area) from
 # which the cell gets the worse class: >= 0.30 dense urban canyon (C),
@@ -324,7 +324,7 @@ def _netconvert(opts: ImportOptions, work: Path, report: _Report) -> Path:
             # (primary/secondary/tertiary 50 km/h instead of the rural 100/100/80 km/h)
             "--osm-files", str(src), "--type-files",
             f"{typemaps / 'osmNetconvert.typ.xml'},{typemaps / 'osmNetconvertUrbanDe.typ.xml'}",
-            # SUMO's recommended OSM import (DESIGN "SUMO notes")
+            # SUMO's recommended OSM import (docs/architecture.md "SUMO notes")
             "--geometry.remove", "true", "--ramps.guess", "true", "--junctions.join", "true",
             "--tls.guess-signals", "true", "--tls.discard-simple", "true", "--tls.join", "true",
             "--roundabouts.guess", "true",
@@ -1191,7 +1191,7 @@ def import_net(opts: ImportOptions,
     created: list[Path] = []
     try:
         # an existing --out is replaced only with --force (a net folder is the user's, imported or not)
-        with staged_folder(opts.out, "net", force=opts.force, replace=()) as work:
+        with staged_folder(opts.out, None, force=opts.force) as work:
             track_area = _build_folder(work, opts, report, osm_counts, user_geo, t0)
             seconds = time.perf_counter() - t0
             result = ImportResult(folder=opts.out,

@@ -29,7 +29,7 @@ from typing import Callable, Iterator
 from couplers.errors import InputError
 
 MARKER = ".coloc-output"
-KINDS = ("run", "sweep", "report", "net")  # "run": every `coloc run` output, studies included
+KINDS = ("run", "sweep", "report")  # "run": every `coloc run` output, studies included
 
 # Files by which folders written before the marker are recognised, per kind.
 _LEGACY = {
@@ -167,9 +167,12 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def staged_folder(out: Path, kind: str, force: bool = False, field: str | None = "--out",
+def staged_folder(out: Path, kind: str | None, force: bool = False, field: str | None = "--out",
                   replace: tuple[str, ...] | None = None) -> Iterator[Path]:
     """``with staged_folder(out, "run") as tmp:`` write into ``tmp``; it replaces ``out`` only on success.
+
+    ``kind`` is written into the :data:`MARKER` file of the new folder; None writes no marker (a net
+    folder: users keep it with their data, and it is only ever replaced with ``force``).
 
     ``out`` is checked first (:func:`check_target`: an output of ``replace``, by default ``(kind,)``,
     is replaced without ``force``; ``()``: only an absent or empty folder); the hidden staging folder sits beside it (same
@@ -177,7 +180,7 @@ def staged_folder(out: Path, kind: str, force: bool = False, field: str | None =
     KeyboardInterrupt and the SIGTERM the command line turns into one.
     """
     out = Path(out)
-    replace = (kind,) if replace is None else replace
+    replace = ((kind,) if kind else ()) if replace is None else replace
     check_target(out, replace, force=force, field=field)
     parent = out.parent
     created = make_folder(parent, out, field)
@@ -192,7 +195,8 @@ def staged_folder(out: Path, kind: str, force: bool = False, field: str | None =
         raise InputError(out, field, f"cannot be created ({exc.strerror or exc})") from None
     try:
         yield tmp
-        _write_marker(tmp, kind)
+        if kind is not None:
+            _write_marker(tmp, kind)
         os.chmod(tmp, 0o777 & ~_umask())  # an ordinary folder, as mkdir would make it
         check_target(out, replace, force=force, field=field)  # the place may have changed meanwhile
         old = None

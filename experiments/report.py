@@ -103,7 +103,7 @@ def method_color(method: str) -> str:
 
 
 def order_methods(methods) -> list[str]:
-    """Known methods in DESIGN order first, then unknown ones alphabetically."""
+    """Known methods in the order of docs/architecture.md "Method names" first, then unknown ones alphabetically."""
     ms = {str(m) for m in methods}
     known = [m for m in _METHOD_ORDER if m in ms]
     return known + sorted(ms - set(known))

@@ -175,7 +175,7 @@ def test_progress_off_a_terminal_is_one_line_per_five_simulated_minutes(cross_ne
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2 and "\r" not in "".join(lines)
     assert lines[0].startswith("cross_test: 300 s simulated, step ") and "s left" in lines[0]
-    assert lines[1].startswith("cross_test: 600 s simulated, step 801 of 801 (100 %)")
+    assert lines[1].startswith("cross_test: 600 s simulated, step 800 of 800 (100 %)")  # 0.75 s steps
     assert main(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert capsys.readouterr().err == ""
 
