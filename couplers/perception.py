@@ -54,6 +54,7 @@ from __future__ import annotations
 import math
 import zlib
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import shapely
@@ -151,6 +152,13 @@ class PerceptionParams:
         if len(set(names)) != len(names):
             raise InputError(None, "sensors", f"sensor names must be unique, got {names}")
 
+    @cached_property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per-sensor parameters as arrays (S,), for vectorised use over all sensors."""
+        keys = ("fov_deg", "range_m", "yaw_deg", "mount_x_m", "pd_near", "pd_far", "clutter_per_scan",
+                "sigma_p_m", "sigma_growth", "sigma_v_mps")
+        return {k: np.array([getattr(s, k) for s in self.sensors], dtype=float) for k in keys}
+
     @property
     def max_reach_m(self) -> float:
         """Distance from the vehicle position beyond which no sensor sees anything."""
@@ -197,33 +205,52 @@ def sensor_origins(xy: np.ndarray, heading: np.ndarray, spec: SensorSpec) -> np.
     return np.asarray(xy, dtype=float) + spec.mount_x_m * unit_heading(heading)
 
 
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+@njit(cache=True)
+def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
+    """Rows k with target[k] inside the sector of vehicle owner[k]: (rows, distances)."""
+    m = owner.size
+    rows = np.empty(m, dtype=np.int64)
+    dist = np.empty(m)
+    count = 0
+    for k in range(m):
+        i = owner[k]
+        dx = target[k, 0] - origin[i, 0]
+        dy = target[k, 1] - origin[i, 1]
+        d = math.sqrt(dx * dx + dy * dy)
+        if d > range_m:
+            continue
+        # angle to the boresight <= half the opening  <=>  d . b >= |d| cos(half)
+        if not full and dx * boresight[i, 0] + dy * boresight[i, 1] < d * cos_half:
+            continue
+        rows[count] = k
+        dist[count] = d
+        count += 1
+    return rows[:count], dist[:count]
 
 
-def in_field_of_view(origin: np.ndarray, heading: np.ndarray, target: np.ndarray, spec: SensorSpec):
-    """Row-wise: is ``target`` (M, 2) inside the field of view of ``spec`` mounted at ``origin`` (M, 2)
-    on a vehicle with ``heading`` (M,)? Returns (inside (M,) bool, distance (M,))."""
-    d = np.asarray(target, dtype=float) - origin
-    dist = np.hypot(d[:, 0], d[:, 1])
-    inside = dist <= spec.range_m
-    if spec.fov_deg < 360.0:
-        rel = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - (heading + math.radians(spec.yaw_deg)))
-        inside &= np.abs(rel) <= math.radians(spec.fov_deg) / 2.0
-    return inside, dist
+def fov_candidates(origin: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray, spec: SensorSpec):
+    """Rows k whose ``target[k]`` (M, 2) is inside the field of view of ``spec`` mounted at ``origin``
+    (N, 2) on vehicle ``owner[k]`` with ``heading`` (N,). Returns (rows (C,), distances (C,))."""
+    boresight = unit_heading(np.asarray(heading, dtype=float) + math.radians(spec.yaw_deg))
+    return _fov_select(np.ascontiguousarray(origin, dtype=np.float64), boresight, np.asarray(owner, dtype=np.int64),
+                       np.ascontiguousarray(target, dtype=np.float64), float(spec.range_m),
+                       math.cos(math.radians(spec.fov_deg) / 2.0), spec.fov_deg >= 360.0)
 
 
-def detection_probability(dist: np.ndarray, spec: SensorSpec) -> np.ndarray:
-    """P_D(d) = pd_near + (pd_far - pd_near) d / range (linear in distance, clipped to the range)."""
-    frac = np.clip(np.asarray(dist, dtype=float) / spec.range_m, 0.0, 1.0)
-    return spec.pd_near + (spec.pd_far - spec.pd_near) * frac
+def detection_probability(dist: np.ndarray, spec) -> np.ndarray:
+    """P_D(d) = pd_near + (pd_far - pd_near) d / range (linear in distance, clipped to the range).
+    ``spec``: a SensorSpec, or a mapping of per-row parameter arrays (``PerceptionParams.arrays``
+    indexed by each row's sensor)."""
+    g = spec.__getitem__ if isinstance(spec, dict) else spec.__getattribute__
+    frac = np.clip(np.asarray(dist, dtype=float) / g("range_m"), 0.0, 1.0)
+    return g("pd_near") + (g("pd_far") - g("pd_near")) * frac
 
 
-def range_sigma(dist: np.ndarray, spec: SensorSpec) -> np.ndarray:
-    """Position noise per axis at distance d: sigma_p_m (1 + sigma_growth d / range)."""
-    frac = np.clip(np.asarray(dist, dtype=float) / spec.range_m, 0.0, 1.0)
-    return spec.sigma_p_m * (1.0 + spec.sigma_growth * frac)
+def range_sigma(dist: np.ndarray, spec) -> np.ndarray:
+    """Position noise per axis at distance d: sigma_p_m (1 + sigma_growth d / range) (``spec`` as above)."""
+    g = spec.__getitem__ if isinstance(spec, dict) else spec.__getattribute__
+    frac = np.clip(np.asarray(dist, dtype=float) / g("range_m"), 0.0, 1.0)
+    return g("sigma_p_m") * (1.0 + g("sigma_growth") * frac)
 
 
 def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -317,23 +344,42 @@ def _occluded_by_quads(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymi
     return out
 
 
-def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, corners: np.ndarray,
+@dataclass(frozen=True)
+class OccluderIndex:
+    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step."""
+
+    corners: np.ndarray
+    order: np.ndarray
+    xmin_sorted: np.ndarray
+    xmax: np.ndarray
+    ymin: np.ndarray
+    ymax: np.ndarray
+    max_wx: float
+
+    @classmethod
+    def build(cls, corners: np.ndarray) -> "OccluderIndex":
+        corners = np.ascontiguousarray(corners, dtype=np.float64)
+        xmin = corners[:, :, 0].min(axis=1)
+        xmax = corners[:, :, 0].max(axis=1)
+        order = np.argsort(xmin, kind="stable")
+        return cls(corners=corners, order=order, xmin_sorted=xmin[order], xmax=xmax,
+                   ymin=corners[:, :, 1].min(axis=1), ymax=corners[:, :, 1].max(axis=1),
+                   max_wx=float((xmax - xmin).max()) if corners.shape[0] else 0.0)
+
+
+def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "OccluderIndex | np.ndarray",
                          observer: np.ndarray, target: np.ndarray | None = None) -> np.ndarray:
-    """(M,) bool: the sight line start[i] -> end[i] crosses a footprint of ``corners`` (K, 4, 2)
-    other than ``observer[i]`` and ``target[i]`` (-1 when the target is not a vehicle)."""
+    """(M,) bool: the sight line start[i] -> end[i] crosses a vehicle footprint (``occluders``: an
+    OccluderIndex or corners (K, 4, 2)) other than ``observer[i]`` and ``target[i]`` (-1 when the
+    target is not a vehicle)."""
     m = start.shape[0]
-    if m == 0 or corners.shape[0] == 0:
+    idx = occluders if isinstance(occluders, OccluderIndex) else OccluderIndex.build(occluders)
+    if m == 0 or idx.corners.shape[0] == 0:
         return np.zeros(m, dtype=bool)
-    corners = np.ascontiguousarray(corners, dtype=np.float64)
-    xmin = corners[:, :, 0].min(axis=1)
-    xmax = corners[:, :, 0].max(axis=1)
-    ymin = corners[:, :, 1].min(axis=1)
-    ymax = corners[:, :, 1].max(axis=1)
-    order = np.argsort(xmin, kind="stable")
     seg = np.ascontiguousarray(np.hstack([start, end]), dtype=np.float64)
     skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
-    return _occluded_by_quads(seg, np.asarray(observer, dtype=np.int64), skip_b, corners, order,
-                              xmin[order], xmax, ymin, ymax, float((xmax - xmin).max()))
+    return _occluded_by_quads(seg, np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
+                              idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx)
 
 
 def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
@@ -348,17 +394,20 @@ def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildin
     return out
 
 
-def clutter_points(origin: np.ndarray, heading: np.ndarray, spec: SensorSpec, rng: np.random.Generator):
-    """False detections of one sensor on every vehicle: a Poisson number per vehicle, uniform over
-    the field-of-view sector's area. Returns (vehicle row (C,), point (C, 2), distance (C,))."""
-    n = origin.shape[0]
-    counts = rng.poisson(spec.clutter_per_scan, size=n)
-    owner = np.repeat(np.arange(n, dtype=np.int64), counts)
+def clutter_points(origins: np.ndarray, heading: np.ndarray, params: PerceptionParams, rng: np.random.Generator):
+    """False detections of every sensor on every vehicle: Poisson(clutter_per_scan) per (vehicle,
+    sensor), uniform over the field-of-view sector's area. ``origins`` (S, N, 2): the sensors' mount
+    points. Returns (vehicle row (C,), sensor (C,), point (C, 2), distance to the mount point (C,))."""
+    a = params.arrays
+    n_sensors, n = origins.shape[0], origins.shape[1]
+    counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
+    owner = np.repeat(np.repeat(np.arange(n, dtype=np.int64), n_sensors), counts)
+    sensor = np.repeat(np.tile(np.arange(n_sensors, dtype=np.int64), n), counts)
     c = owner.size
-    r = spec.range_m * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
-    ang = heading[owner] + math.radians(spec.yaw_deg) + math.radians(spec.fov_deg) * (rng.random(c) - 0.5)
-    pts = origin[owner] + r[:, None] * unit_heading(ang)
-    return owner, pts, r
+    r = a["range_m"][sensor] * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
+    ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(c) - 0.5))
+    pts = origins[sensor, owner] + r[:, None] * unit_heading(ang)
+    return owner, sensor, pts, r
 
 
 # --- one step -------------------------------------------------------------------------------------
@@ -383,87 +432,71 @@ def perceive(
 ) -> Detections:
     """The V2F rows of one step.
 
-    ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs, sorted by owner then
-    feature, covering every pair within ``params.max_reach_m`` (couplers.sensors.features_in_range).
-    ``occluder_corners`` (K, 4, 2): footprints of every vehicle on the road; ``observer_occluder``
-    (N,): the footprint row of each measuring vehicle (-1 if it has none).
+    ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
+    ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
+    footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
+    measuring vehicle (-1 if it has none).
     """
     n = x_true.shape[0]
     xy = x_true[:, :2]
-    vel = x_true[:, 2:]
     heading = np.asarray(heading, dtype=float)
-    n_pairs = pair_owner.size
+    a = params.arrays
+    n_sensors = len(params.sensors)
     if observer_occluder is None:
         observer_occluder = np.full(n, -1, dtype=np.int64)
-    use_vehicles = params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners)
-    use_buildings = params.occlusion_buildings and buildings is not None and len(buildings)
+    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * unit_heading(heading)[None, :, :]  # (S, N, 2)
 
-    seen_fov = np.zeros(n_pairs, dtype=bool)
-    visible_any = np.zeros(n_pairs, dtype=bool)
-    det_pair, det_sensor, det_sigma, det_z = [], [], [], []
-    clutter_parts = []
-    for s, spec in enumerate(params.sensors):
-        origin = sensor_origins(xy, heading, spec)
-        # Candidates of this sensor: pairs inside its field of view.
-        inside, dist = in_field_of_view(origin[pair_owner], heading[pair_owner], features_true[pair_feature, :2], spec)
-        idx = np.flatnonzero(inside)
-        dist = dist[idx]
-        u = noise.detect.random(idx.size)
-        w = noise.noise.standard_normal((idx.size, 4))
-        seen_fov[idx] = True
-        visible = np.ones(idx.size, dtype=bool)
-        if idx.size and (use_vehicles or use_buildings):
-            start = origin[pair_owner[idx]]
-            end = features_true[pair_feature[idx], :2]
-            if use_vehicles:
-                visible &= ~occluded_by_vehicles(start, end, occluder_corners, observer_occluder[pair_owner[idx]])
-            if use_buildings:
-                visible[visible] &= ~occluded_by_buildings(start[visible], end[visible], buildings)
-        visible_any[idx[visible]] = True
-        hit = visible & (u < detection_probability(dist, spec))
-        sig_p = range_sigma(dist[hit], spec)
-        k = idx[hit]
-        z = features_true[pair_feature[k]] - x_true[pair_owner[k]]
-        z[:, :2] += w[hit, :2] * sig_p[:, None]
-        z[:, 2:] += w[hit, 2:] * spec.sigma_v_mps
-        det_pair.append(k)
-        det_sensor.append(np.full(k.size, s, dtype=np.int64))
-        det_sigma.append(sig_p)
-        det_z.append(z)
-        # Clutter of this sensor on every vehicle (own stream; never occluded).
-        if spec.clutter_per_scan > 0 and n:
-            c_owner, c_pts, c_dist = clutter_points(origin, heading, spec, noise.clutter)
-            c_sig = range_sigma(c_dist, spec)
-            cw = noise.clutter.standard_normal((c_owner.size, 4))
-            cz = np.empty((c_owner.size, 4))
-            cz[:, :2] = c_pts - xy[c_owner] + cw[:, :2] * c_sig[:, None]
-            cz[:, 2:] = -vel[c_owner] + cw[:, 2:] * spec.sigma_v_mps  # a static object, seen from a moving car
-            clutter_parts.append((c_owner, cz, c_sig, np.full(c_owner.size, s, dtype=np.int64), spec.sigma_v_mps))
+    # Candidates: (sensor, pair) with the feature inside the sensor's field of view.
+    target = features_true[pair_feature, :2]
+    rows, dists = zip(*(fov_candidates(origins[s], heading, pair_owner, target, spec)
+                        for s, spec in enumerate(params.sensors))) if n_sensors else ((), ())
+    pair = np.concatenate(rows)
+    dist = np.concatenate(dists)
+    sensor = np.repeat(np.arange(n_sensors, dtype=np.int64), [r.size for r in rows])
+    per = {k: v[sensor] for k, v in a.items()}
+    # One draw per candidate, before occlusion (common random numbers across P_D / occlusion settings).
+    u = noise.detect.random(pair.size)
+    w = noise.noise.standard_normal((pair.size, 4))
+
+    visible = np.ones(pair.size, dtype=bool)
+    owner_c = pair_owner[pair]
+    start, end = origins[sensor, owner_c], target[pair]
+    if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and pair.size:
+        visible &= ~occluded_by_vehicles(start, end, OccluderIndex.build(occluder_corners), observer_occluder[owner_c])
+    if params.occlusion_buildings and buildings is not None and len(buildings) and visible.any():
+        visible[visible] &= ~occluded_by_buildings(start[visible], end[visible], buildings)
+    sig = range_sigma(dist, per)
+    hit = np.flatnonzero(visible & (u < detection_probability(dist, per)))
 
     # Merge: one row per detected pair, from the detecting sensor with the smallest sigma_p.
-    pair = np.concatenate(det_pair) if det_pair else np.empty(0, dtype=np.int64)
-    sensor = np.concatenate(det_sensor) if det_sensor else np.empty(0, dtype=np.int64)
-    sigma = np.concatenate(det_sigma) if det_sigma else np.empty(0)
-    zz = np.concatenate(det_z) if det_z else np.empty((0, 4))
-    order = np.lexsort((sensor, sigma, pair))
+    order = hit[np.lexsort((sensor[hit], sig[hit], pair[hit]))]
     first = order[np.unique(pair[order], return_index=True)[1]]
-    sig_v_of = np.array([s.sigma_v_mps for s in params.sensors])
     t_owner = pair_owner[pair[first]]
     t_feat = pair_feature[pair[first]]
-    t_sensor = sensor[first]
-    t_z = zz[first]
-    t_R = gnss_cov(sigma[first], sig_v_of[t_sensor])
+    t_z = features_true[t_feat] - x_true[t_owner]
+    t_z[:, :2] += w[first, :2] * sig[first, None]
+    t_z[:, 2:] += w[first, 2:] * per["sigma_v_mps"][first, None]
 
-    parts_owner = [t_owner] + [p[0] for p in clutter_parts]
-    owner = np.concatenate(parts_owner).astype(np.int64)
-    z = np.concatenate([t_z] + [p[1] for p in clutter_parts]) if clutter_parts else t_z
-    R = np.concatenate([t_R] + [gnss_cov(p[2], np.full(p[2].size, p[4])) for p in clutter_parts]) if clutter_parts else t_R
-    feat = np.concatenate([t_feat] + [np.full(p[0].size, -1, dtype=np.int64) for p in clutter_parts]).astype(np.int64)
-    sens = np.concatenate([t_sensor] + [p[3] for p in clutter_parts]).astype(np.int64)
+    # Clutter of every sensor on every vehicle (own stream; never occluded): static objects.
+    c_owner, c_sensor, c_pts, c_dist = clutter_points(origins, heading, params, noise.clutter)
+    c_sig = range_sigma(c_dist, {k: v[c_sensor] for k, v in a.items()})
+    cw = noise.clutter.standard_normal((c_owner.size, 4))
+    c_z = np.empty((c_owner.size, 4))
+    c_z[:, :2] = c_pts - xy[c_owner] + cw[:, :2] * c_sig[:, None]
+    c_z[:, 2:] = -x_true[c_owner, 2:] + cw[:, 2:] * a["sigma_v_mps"][c_sensor, None]
+
+    owner = np.concatenate([t_owner, c_owner])
     perm = _shuffle_within_owner(owner, noise.shuffle)
-    n_fov = int(seen_fov.sum())
-    n_visible = int(visible_any.sum())
-    stats = dict(in_fov=n_fov, occluded=n_fov - n_visible, missed=n_visible - int(first.size),
-                 detected=int(first.size), clutter=int(owner.size - first.size))
-    return Detections(z=z[perm], owner=owner[perm], R=R[perm], feature=feat[perm], sensor=sens[perm],
+    R = gnss_cov(np.concatenate([sig[first], c_sig]),
+                 np.concatenate([per["sigma_v_mps"][first], a["sigma_v_mps"][c_sensor]]))
+    in_fov = np.zeros(pair_owner.size, dtype=bool)
+    in_fov[pair] = True
+    seen = np.zeros(pair_owner.size, dtype=bool)
+    seen[pair[visible]] = True
+    n_fov, n_vis = int(in_fov.sum()), int(seen.sum())
+    stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - int(first.size), detected=int(first.size),
+                 clutter=int(c_owner.size))
+    return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R[perm],
+                      feature=np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm],
+                      sensor=np.concatenate([sensor[first], c_sensor])[perm],
                       klass=np.full(owner.size, CLASS_STATIC, dtype=np.int8), stats=stats)

@@ -23,7 +23,7 @@ from couplers.perception import (
     SensorSpec,
     clutter_points,
     detection_probability,
-    in_field_of_view,
+    fov_candidates,
     occluded_by_buildings,
     occluded_by_vehicles,
     perceive,
@@ -113,8 +113,7 @@ def test_field_of_view_and_occlusion_match_shapely_brute_force(seed):
     fov, vis = set(), set()
     for s, spec in enumerate(SENSORS):
         origin = sensor_origins(x_true[:, :2], heading, spec)
-        inside, _ = in_field_of_view(origin[owner], heading[owner], feats[feat, :2], spec)
-        idx = np.flatnonzero(inside)
+        idx, _ = fov_candidates(origin, heading, owner, feats[feat, :2], spec)
         start, end = origin[owner[idx]], feats[feat[idx], :2]
         occ = occluded_by_vehicles(start, end, corners, owner[idx]) | occluded_by_buildings(start, end, blds)
         fov |= {(s, int(owner[j]), int(feat[j])) for j in idx}
@@ -185,7 +184,8 @@ def test_clutter_is_poisson_and_uniform_over_the_field_of_view():
     heading = rng.uniform(-np.pi, np.pi, n_veh)
     per_scan, local = [], []
     for _ in range(scans):
-        owner, pts, r = clutter_points(origin, heading, spec, rng)
+        owner, sensor, pts, r = clutter_points(origin[None], heading, PerceptionParams(sensors=(spec,)), rng)
+        assert (sensor == 0).all()
         per_scan.append(np.bincount(owner, minlength=n_veh))
         d = pts - origin[owner]
         b = heading[owner] + math.radians(spec.yaw_deg)
