@@ -115,8 +115,11 @@ def episode_start_probability(rate_per_min: np.ndarray, dt: float) -> np.ndarray
 
 def zone_rates(params: GnssErrorParams, zone: np.ndarray) -> np.ndarray:
     """Episode start rate (per minute) of each vehicle from its GNSS zone name (unlisted zones: 0)."""
-    table = dict(zip(params.nlos_zones, params.nlos_rate_per_min))
-    return np.array([table.get(z, 0.0) for z in np.asarray(zone, dtype=object)], dtype=float).reshape(-1)
+    zone = np.asarray(zone, dtype=object).reshape(-1)
+    rates = np.zeros(zone.size)
+    for name, rate in zip(params.nlos_zones, params.nlos_rate_per_min):  # a few zones, all vehicles at once
+        rates[zone == name] = rate
+    return rates
 
 
 @dataclass(frozen=True)
