@@ -17,6 +17,7 @@ from shapely.geometry import shape
 from couplers.errors import InputError, read_toml
 
 REQUIRED_FILES = ("net", "routes", "zones", "areas", "features")
+BUILDINGS_FILE = "buildings.geojson"  # optional
 # The GeoJSON of a net folder is in SUMO net x/y metres, marked with this private crs name.
 NET_CRS_NAME = "urn:coloc:sumo-net-xy"
 NET_CRS = {"type": "name", "properties": {"name": NET_CRS_NAME}}
@@ -50,9 +51,11 @@ class NetFolder:
     features: Features
     tls_off: dict[str, bool]
     scenario: dict
+    buildings: "Buildings | None" = None  # buildings.geojson, optional (occlusion, NLOS GNSS)
 
 
-def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
+def _load_geojson(path: Path):
+    """Parse a net folder's GeoJSON file and check its crs member (net x/y only)."""
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
@@ -68,7 +71,23 @@ def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]
             raise InputError(path, "crs", f"a net folder's GeoJSON is in net x/y metres (crs {NET_CRS_NAME}), got "
                                           f"{name!r}: give WGS84 polygons to coloc net import --zones/--areas, "
                                           "which converts them with the net's projection")
-    return regions_from_doc(data, path, key, with_sigmas)
+    return data
+
+
+def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
+    return regions_from_doc(_load_geojson(path), path, key, with_sigmas)
+
+
+def _polygon_of(feat, path: Path, i: int) -> shapely.Geometry:
+    """The valid, non-empty (Multi)Polygon of GeoJSON feature ``i``, prepared; else an InputError."""
+    try:
+        poly = shape(feat["geometry"])
+    except Exception as exc:  # shapely raises several types on malformed geometry
+        raise InputError(path, f"features[{i}].geometry", f"not a valid geometry ({exc})") from None
+    if poly.geom_type not in ("Polygon", "MultiPolygon") or not poly.is_valid or poly.area <= 0:
+        raise InputError(path, f"features[{i}].geometry", "expected a valid, non-empty Polygon or MultiPolygon")
+    shapely.prepare(poly)
+    return poly
 
 
 def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
@@ -84,12 +103,7 @@ def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Reg
         name = props.get(key) if isinstance(props, dict) else None
         if not isinstance(name, str) or not name:
             raise InputError(path, f"features[{i}].properties.{key}", "missing or not a string")
-        try:
-            poly = shape(feat["geometry"])
-        except Exception as exc:  # shapely raises several types on malformed geometry
-            raise InputError(path, f"features[{i}].geometry", f"not a valid geometry ({exc})") from None
-        if poly.geom_type not in ("Polygon", "MultiPolygon") or not poly.is_valid or poly.area <= 0:
-            raise InputError(path, f"features[{i}].geometry", "expected a valid, non-empty Polygon or MultiPolygon")
+        poly = _polygon_of(feat, path, i)
         sp = sv = float("nan")
         if with_sigmas:
             for fld in ("sigma_p", "sigma_v"):
@@ -97,7 +111,6 @@ def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Reg
                 if not isinstance(val, (int, float)) or isinstance(val, bool) or not val > 0:
                     raise InputError(path, f"features[{i}].properties.{fld}", "missing or not a positive number")
             sp, sv = float(props["sigma_p"]), float(props["sigma_v"])
-        shapely.prepare(poly)
         regions.append(Region(name=name, polygon=poly, sigma_p=sp, sigma_v=sv))
     return tuple(regions)
 
@@ -105,6 +118,48 @@ def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Reg
 def read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
     """GNSS zones (``key="zone"``, with sigma_p/sigma_v) or analysis areas (``key="area"``) of a GeoJSON file."""
     return _read_regions(Path(path), key, with_sigmas)
+
+
+@dataclass(frozen=True)
+class Buildings:
+    """Building footprints of a net folder (net x/y) with their STRtree, for sight-line queries."""
+
+    polygons: np.ndarray  # (B,) shapely Polygons / MultiPolygons
+    heights: np.ndarray  # (B,) m, NaN where the file gives none
+    tree: shapely.STRtree
+
+    @classmethod
+    def from_polygons(cls, polygons, heights=None) -> "Buildings":
+        polys = np.empty(len(polygons), dtype=object)
+        polys[:] = list(polygons)
+        h = np.full(polys.size, np.nan) if heights is None else np.asarray(heights, dtype=float)
+        return cls(polygons=polys, heights=h, tree=shapely.STRtree(polys))
+
+    def __len__(self) -> int:
+        return int(self.polygons.size)
+
+
+def read_buildings(path: str | Path) -> Buildings:
+    """``buildings.geojson``: net x/y (Multi)Polygons, optional ``height`` property (m, positive).
+
+    An empty FeatureCollection is allowed (no buildings); bad JSON, a foreign crs, an invalid
+    geometry or a bad height is an InputError naming the file and the feature's field."""
+    path = Path(path)
+    data = _load_geojson(path)
+    feats = data.get("features") if isinstance(data, dict) else None
+    if not isinstance(feats, list):
+        raise InputError(path, "features", "expected a GeoJSON FeatureCollection of building polygons")
+    polys, heights = [], []
+    for i, feat in enumerate(feats):
+        if not isinstance(feat, dict):
+            raise InputError(path, f"features[{i}]", "not a GeoJSON Feature object")
+        polys.append(_polygon_of(feat, path, i))
+        props = feat.get("properties") or {}
+        h = props.get("height") if isinstance(props, dict) else None
+        if h is not None and (isinstance(h, bool) or not isinstance(h, (int, float)) or not 0 < h < float("inf")):
+            raise InputError(path, f"features[{i}].properties.height", f"not a positive number: {h!r}")
+        heights.append(float("nan") if h is None else float(h))
+    return Buildings.from_polygons(polys, heights)
 
 
 def _read_features(path: Path) -> Features:
@@ -149,6 +204,15 @@ def load_net_folder(root: str | Path) -> NetFolder:
         if not p.is_file():
             raise InputError(scen_path, f"files.{key}", f"file {p} not found")
         paths[key] = p
+    # buildings.geojson is optional: [files] buildings names it (it must then exist), else the
+    # folder's buildings.geojson is read when present.
+    bval = files.get("buildings")
+    if bval is not None and not isinstance(bval, str):
+        raise InputError(scen_path, "files.buildings", "not a string")
+    bpath = root / (bval or BUILDINGS_FILE)
+    if bval is not None and not bpath.is_file():
+        raise InputError(scen_path, "files.buildings", f"file {bpath} not found")
+    buildings = read_buildings(bpath) if bpath.is_file() else None
     controls = scen.get("controls", {"tlr": {"tls_off": False}, "vsr": {"tls_off": True}})
     tls_off = {}
     for name, spec in controls.items():
@@ -165,6 +229,7 @@ def load_net_folder(root: str | Path) -> NetFolder:
         features=_read_features(paths["features"]),
         tls_off=tls_off,
         scenario=scen,
+        buildings=buildings,
     )
 
 

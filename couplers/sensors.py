@@ -15,6 +15,8 @@ from scipy.spatial import cKDTree
 
 from coloc.frame import Frame, Truth
 from coloc.models import gnss_cov
+from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
+from couplers.perception import Detections, PerceptionParams
 
 
 @dataclass(frozen=True)
@@ -28,6 +30,10 @@ class SensorParams:
     v2v_range_m: float = 250.0  # Rc
     prior_sigma_p: float = 2.0  # m, fast-start prior (Sec. VI-A)
     prior_sigma_v: float = 0.1  # m/s
+    # Opt-in realism (issue 21), from the [perception] / [gnss_error] config tables; None (the
+    # default) is the paper's idealisation, synthesised exactly as before. SUMO coupler only.
+    perception: PerceptionParams | None = None
+    gnss_error: GnssErrorParams | None = None
 
 
 class SensorNoise:
@@ -151,8 +157,14 @@ def synthesize_frame(
     zone: np.ndarray,
     area: np.ndarray,
     feature_ids: np.ndarray | None = None,
+    detections: Detections | None = None,
+    gnss_error: GnssErrorProcess | None = None,
 ) -> Frame:
-    """Turn true states into one frame of measurements (models (1), (3), (4))."""
+    """Turn true states into one frame of measurements (models (1), (3), (4)).
+
+    ``detections`` (couplers.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
+    replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
+    standard normal draws (both None: the paper's idealisation, byte for byte as before)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
@@ -170,16 +182,23 @@ def synthesize_frame(
     # GNSS, model (3): z = x + n, zone-dependent R.
     gnss_R = gnss_cov(gnss_sigma_p, gnss_sigma_v)
     gsig = np.stack([gnss_sigma_p, gnss_sigma_p, gnss_sigma_v, gnss_sigma_v], axis=1)
-    gnss_z = x_true + noise.gnss.standard_normal((n, 4)) * gsig
+    gnss_w = noise.gnss.standard_normal((n, 4))
+    gnss_z = x_true + gnss_w * gsig
+    if gnss_error is not None:
+        gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
+                                                        x_true[:, :2])
 
-    # V2F, model (4): z = x_F - x_V + n for every feature within Rs; rows shuffled per vehicle.
-    owner, feat = features_in_range(x_true[:, :2], feature_tree, params.v2f_range_m)
-    perm = shuffle_within_owner(owner, noise.shuffle)
-    owner, feat = owner[perm], feat[perm]
-    o = owner.size
-    vsig = np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2)
-    v2f_z = features_true[feat] - x_true[owner] + noise.v2f.standard_normal((o, 4)) * vsig
-    v2f_R = _diag_cov(o, params.v2f_sigma_p, params.v2f_sigma_v)
+    if detections is not None:
+        v2f_z, owner, v2f_R, feat = detections.z, detections.owner, detections.R, detections.feature
+    else:
+        # V2F, model (4): z = x_F - x_V + n for every feature within Rs; rows shuffled per vehicle.
+        owner, feat = features_in_range(x_true[:, :2], feature_tree, params.v2f_range_m)
+        perm = shuffle_within_owner(owner, noise.shuffle)
+        owner, feat = owner[perm], feat[perm]
+        o = owner.size
+        vsig = np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2)
+        v2f_z = features_true[feat] - x_true[owner] + noise.v2f.standard_normal((o, 4)) * vsig
+        v2f_R = _diag_cov(o, params.v2f_sigma_p, params.v2f_sigma_v)
 
     truth = Truth(
         x_true=x_true,

@@ -9,11 +9,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from coloc.frame import Frame
+from coloc.vehicles import match_ids
+from couplers import sumo_traffic
 from couplers.errors import InputError
+from couplers.gnss_error import GnssErrorProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
-from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
-from couplers.sumo_traffic import SumoOptions, SumoTraffic
+from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
+from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
+from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
 from couplers.zones import RegionIndex, gnss_sigma_for_zone
 
 
@@ -49,6 +53,14 @@ class SumoCoupler:
 
     ``with SumoCoupler(scenario, sensors) as c: for frame in c.frames(): ...``;
     afterwards ``c.traffic.stats.rows`` holds the 5-minute traffic statistics.
+
+    With ``sensors.perception`` (the ``[perception]`` table) the V2F rows come from
+    :func:`couplers.perception.perceive`: ``c.last_detections`` holds the step's
+    :class:`couplers.perception.Detections` (with the sensor and class of every row, which the frame
+    does not carry yet) and ``c.perception_totals`` the counts over the run. With
+    ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
+    :class:`couplers.gnss_error.GnssErrorProcess`'s. Every SUMO vehicle on the road occludes (all of
+    them are connected today; a penetration rate would keep the others as occluders).
     """
 
     def __init__(self, scenario: SumoScenario, sensors: SensorParams, infra: InfraSetup | None = None):
@@ -63,6 +75,15 @@ class SumoCoupler:
         self.features_true = np.hstack([feats.xy, np.zeros_like(feats.xy)])  # static: zero velocity
         self.feature_tree = cKDTree(feats.xy) if len(feats.xy) else None
         self.traffic = SumoTraffic(scenario.sumo_options())
+        buildings = scenario.net.buildings
+        self.perception = sensors.perception
+        self.perception_noise = PerceptionNoise(scenario.seed) if self.perception is not None else None
+        self.last_detections: Detections | None = None
+        self.perception_totals: dict[str, int] = {}
+        self.gnss_error = (GnssErrorProcess(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
+                           if sensors.gnss_error is not None else None)
+        self._dim_ids = np.empty(0, dtype=object)
+        self._dims = np.empty((0, 2))
 
     def __enter__(self) -> "SumoCoupler":
         self.traffic.__enter__()
@@ -82,6 +103,7 @@ class SumoCoupler:
             zone, sp, sv = gnss_sigma_for_zone(self.zones, states.xy)
             area = self.areas.names_at(states.xy, outside="outside")
             x_true = np.hstack([states.xy, states.velocity])
+            detections = self._perceive(states, x_true) if self.perception is not None else None
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -99,8 +121,39 @@ class SumoCoupler:
                 zone=zone,
                 area=area,
                 feature_ids=self.scenario.net.features.ids,
+                detections=detections,
+                gnss_error=self.gnss_error,
             )
             if self.infra is not None:
                 infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
                 frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))
             yield frame
+
+    def _vehicle_dims(self, ids: np.ndarray) -> np.ndarray:
+        """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle."""
+        idx = match_ids(self._dim_ids, ids)
+        dims = np.empty((len(ids), 2))
+        dims[idx >= 0] = self._dims[idx[idx >= 0]]
+        veh = sumo_traffic.libsumo.vehicle
+        for i in np.flatnonzero(idx < 0):  # new vehicles only
+            dims[i] = (veh.getLength(ids[i]), veh.getWidth(ids[i]))
+        self._dim_ids, self._dims = ids, dims
+        return dims
+
+    def _perceive(self, states: VehicleStates, x_true: np.ndarray) -> Detections:
+        p = self.perception
+        owner, feat = features_in_range(states.xy, self.feature_tree, p.max_reach_m)
+        corners = None
+        if p.occlusion_vehicles:
+            dims = self._vehicle_dims(states.ids)
+            corners = vehicle_footprints(states.xy, states.heading, dims[:, 0], dims[:, 1])
+        det = perceive(
+            x_true=x_true, heading=states.heading, features_true=self.features_true,
+            pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
+            occluder_corners=corners, observer_occluder=np.arange(len(states.ids)),
+            buildings=self.scenario.net.buildings,
+        )
+        for key, val in det.stats.items():
+            self.perception_totals[key] = self.perception_totals.get(key, 0) + val
+        self.last_detections = det
+        return det

@@ -58,6 +58,8 @@ from coloc.icp_da_lc import LcParams
 from coloc.icp_da_pf import PfParams
 from coloc.models import MotionParams
 from couplers.errors import InputError, read_toml, seed_problem
+from couplers.gnss_error import GnssErrorParams
+from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
@@ -161,6 +163,10 @@ class Config:
     crossroad: CrossroadParams = field(default_factory=CrossroadParams)
     report: ReportSection = field(default_factory=ReportSection)
     infra: InfraSection | None = None  # [infra], optional; not in SECTIONS (written only when given)
+    # [perception] / [gnss_error] (issue 21), optional, SUMO only; also handed to the coupler as
+    # sensors.perception / sensors.gnss_error (the runner passes [sensors] to the coupler).
+    perception: PerceptionParams | None = None
+    gnss_error: GnssErrorParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -194,7 +200,10 @@ SECTIONS: dict[str, type] = {
 }
 
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
-OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection}
+OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
+                                      "gnss_error": GnssErrorParams}
+#: Optional tables that realise issue 21's realistic sensing, carried to the coupler inside [sensors].
+SENSING_SECTIONS = ("perception", "gnss_error")
 
 
 def _allows_infinity(where: str) -> bool:
@@ -238,6 +247,8 @@ def _check_value(value, annotation, where: str, path: Path):
                 raise InputError(path, where, f"expected a list of {len(args)} values, got {len(value)}")
             inner_types = list(args)
         return tuple(_check_value(v, t, f"{where}[{i}]", path) for i, (v, t) in enumerate(zip(value, inner_types)))
+    if dataclasses.is_dataclass(annotation):  # a sub-table, e.g. [[perception.sensors]]
+        return section_from_table(annotation, value, where, path)
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in typing.get_args(annotation) if a is not type(None)]
         if len(inner) == 1:
@@ -262,6 +273,10 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
             raise InputError(path, f"{name}.{key}", "required key missing")
     try:
         return cls(**kwargs)
+    except InputError as exc:  # a dataclass validating itself names the field it refuses
+        if exc.path is not None:
+            raise
+        raise InputError(path, f"{name}.{exc.field}" if exc.field else name, exc.message) from None
     except (ValueError, TypeError) as exc:
         # The dataclass's own checks (__post_init__): name the key that fails on its own.
         for key in kwargs:
@@ -422,6 +437,9 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
         data.setdefault(sec, {})[key] = value
     if "run" not in data:
         raise InputError(path, "run", "required table missing")
+    for name in SENSING_SECTIONS:
+        if name in data.get("sensors", {}):
+            raise InputError(path, f"sensors.{name}", f"not a [sensors] key: give a [{name}] table")
     sections = {name: section_from_table(cls, data.get(name, {}), name, path) for name, cls in SECTIONS.items()}
     scen = sections["scenario"]
     if scen.kind not in SCENARIO_KINDS:
@@ -446,9 +464,26 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     for name, cls in OPTIONAL_SECTIONS.items():
         if name in data:
             sections[name] = section_from_table(cls, data[name], name, path)
+    notes += _attach_sensing(sections, path)
     cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg
+
+
+def _attach_sensing(sections: dict, path: Path) -> list[tuple[str, str]]:
+    """Hand [perception] / [gnss_error] to the coupler inside [sensors] (SUMO scenarios only)."""
+    given = {name: sections[name] for name in SENSING_SECTIONS if sections.get(name) is not None}
+    if not given:
+        return []
+    if sections["scenario"].kind != "sumo":
+        name = next(iter(given))
+        raise InputError(path, name, f"realistic sensing needs scenario.kind = \"sumo\" "
+                                     f"(this is {sections['scenario'].kind!r})")
+    sections["sensors"] = dataclasses.replace(sections["sensors"], **given)
+    notes = []
+    if "perception" in given:
+        notes.append(("sensors.v2f_range_m", "not used for V2F rows: the [perception] sensors' ranges apply"))
+    return notes
 
 
 def load_config(path: str | Path, overrides: dict | None = None) -> Config:
@@ -471,6 +506,23 @@ def _toml_value(value) -> str:
     raise TypeError(f"cannot write {value!r} as TOML")
 
 
+def _table_lines(name: str, obj) -> list[str]:
+    """``[name]`` with the fields of a dataclass; a tuple of dataclasses becomes ``[[name.field]]`` tables."""
+    lines = [f"[{name}]"]
+    nested = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, tuple) and value and all(dataclasses.is_dataclass(v) for v in value):
+            nested.append((f.name, value))
+        else:
+            lines.append(f"{f.name} = {_toml_value(value)}")
+    lines.append("")
+    for key, items in nested:
+        for item in items:
+            lines += [f"[{line}]" if line.startswith("[") else line for line in _table_lines(f"{name}.{key}", item)]
+    return lines
+
+
 def written_sections(cfg: Config) -> list[str]:
     """Tables a saved config spells out: every section but the unused scenario table(s)."""
     return [n for n in SECTIONS if n not in SCENARIO_TABLES or n == cfg.scenario.kind]
@@ -489,6 +541,8 @@ def config_to_toml(cfg: Config, provenance: dict[str, str | int | float]) -> str
         for f in dataclasses.fields(getattr(cfg, name)):
             if name == "scenario" and cfg.is_controlled_scenario and f.name in SUMO_ONLY_KEYS:
                 continue
+            if name == "sensors" and f.name in SENSING_SECTIONS:
+                continue  # written as their own tables
             value = getattr(getattr(cfg, name), f.name)
             note = notes.get(f"{name}.{f.name}")
             if value is None:
@@ -496,11 +550,9 @@ def config_to_toml(cfg: Config, provenance: dict[str, str | int | float]) -> str
                 continue
             lines.append(f"{f.name} = {_toml_value(value)}" + (f"  # {note}" if note else ""))
         lines.append("")
-    if cfg.infra is not None:
-        lines.append("[infra]")
-        for f in dataclasses.fields(cfg.infra):
-            lines.append(f"{f.name} = {_toml_value(getattr(cfg.infra, f.name))}")
-        lines.append("")
+    for name in OPTIONAL_SECTIONS:
+        if getattr(cfg, name) is not None:
+            lines += _table_lines(name, getattr(cfg, name))
     lines.append("[provenance]")
     for key, val in provenance.items():
         lines.append(f"{key} = {_toml_value(val)}")
