@@ -278,6 +278,37 @@ def run_feature_far_from_roads(tmp, net, run):
     return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "perception.sensors[0].fov_deg")
+def run_perception_fov_out_of_range(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nfov_deg = 361.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[1].pd_near")
+def run_perception_probability_out_of_range(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nname = 'a'\n[[perception.sensors]]\npd_near = 1.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[0].clutter_per_scan")
+def run_perception_negative_clutter(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nclutter_per_scan = -1.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.tau_s")
+def run_gnss_error_negative_tau(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\ntau_s = -5.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("buildings.geojson")
+def run_buildings_file_not_geojson(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    (copy / "buildings.geojson").write_text("{not json")
+    return ["run", str(_config(tmp, copy, "[perception]\n")), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("sme.toml", "study.seed", "2147483647")
 def run_study_seed_too_large(tmp, net, run):
     return ["run", str(PROJECT / "experiments" / "sme.toml"), "--out", str(tmp / "o"), "--seed", str(2**31),
@@ -469,7 +500,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 50
+    assert len(CASES) >= 56
 
 
 # ----------------------------------------------------------------------------- what --out may replace
