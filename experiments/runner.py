@@ -205,7 +205,8 @@ class EstimateLog:
 
     def feature_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
         """Feature errors: known-association tracks are true feature indices; other tracks are
-        compared with their label's true feature (tracks without a label are not scored)."""
+        compared with their label's true feature (tracks without a label, and ghost tracks labelled
+        -1 because clutter formed most of their rows, are not scored)."""
         cols = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
         rows = []
         for m in methods:
@@ -228,7 +229,7 @@ class EstimateLog:
                     if keys.size == 0:
                         continue
                     pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
-                    has = keys[pos] == ids
+                    has = (keys[pos] == ids) & (vals[pos] >= 0)
                     ids, xy, feat = ids[has], xy[has], vals[pos[has]]
                 if ids.size == 0:
                     continue

@@ -109,10 +109,12 @@ def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.nd
 
     ``steps``: per step, (assignment (O,), true feature (O,)), where assignment is
     the feature-track id the estimator paired each V2F row with, -1 = discarded.
-    A row is correct when its true feature equals its track's label
-    (:func:`track_labels` over the whole run), wrong otherwise, discarded when
-    its assignment is -1. Returns the (S, 3) int64 counts [correct, wrong,
-    discarded] and the track labels.
+    A row is correct when it comes from a real feature (true index >= 0) and that
+    feature is its track's label (:func:`track_labels` over the whole run), wrong
+    otherwise, discarded when its assignment is -1. A clutter row (true index -1)
+    kept on any track is wrong, also on a track born from clutter (label -1: a
+    ghost track). Returns the (S, 3) int64 counts [correct, wrong, discarded] and
+    the track labels.
     """
     assign = [np.asarray(a, dtype=np.int64) for a, _ in steps]
     truth = [np.asarray(f, dtype=np.int64) for _, f in steps]
@@ -128,7 +130,7 @@ def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.nd
     vals = np.array([labels[k] for k in keys], dtype=np.int64)
     correct = np.zeros(all_a.size, dtype=bool)
     if keys.size:
-        correct[kept] = vals[np.searchsorted(keys, all_a[kept])] == all_f[kept]
+        correct[kept] = (vals[np.searchsorted(keys, all_a[kept])] == all_f[kept]) & (all_f[kept] >= 0)
     n = len(steps)
     counts = np.stack([
         np.bincount(step[correct], minlength=n),

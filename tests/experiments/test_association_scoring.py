@@ -42,3 +42,36 @@ def test_labels_ignore_discarded_rows_and_shapes_must_match():
     assert track_labels(np.array([], dtype=int), np.array([], dtype=int)) == {}
     with pytest.raises(ValueError):
         score_association([(np.array([1, 2]), np.array([1]))])
+
+
+def test_clutter_rows_kept_on_any_track_are_wrong():
+    """Clutter (true index -1): kept on a real feature's track or on a ghost track born from clutter
+    (label -1), it is wrong; discarded, it is discarded."""
+    steps = [
+        (np.array([3, 3, 4, 4, -1]), np.array([0, -1, -1, -1, -1])),  # track 4: clutter only -> label -1
+        (np.array([3, 4, 4]), np.array([0, -1, 1])),
+    ]
+    counts, labels = score_association(steps)
+    assert labels == {3: 0, 4: -1}
+    assert counts.tolist() == [
+        [1, 3, 1],  # (3,0) ok; clutter on track 3, twice on the ghost track 4: wrong; one discarded
+        [1, 2, 0],  # (3,0) ok; clutter on 4 wrong; feature 1 on the ghost track wrong
+    ]
+
+
+def test_ghost_tracks_have_no_feature_error(tmp_path):
+    """A track labelled -1 (born from clutter) is not scored against any true feature."""
+    from types import SimpleNamespace
+
+    from experiments.runner import EstimateLog
+
+    log = EstimateLog()
+    truth = SimpleNamespace(v2f_feature=np.array([0, -1, -1]), features_true=np.array([[0.0, 0.0, 0, 0], [50.0, 0, 0, 0]]))
+    frame = SimpleNamespace(t=1.0, truth=truth)
+    est = SimpleNamespace(v2f_assignment=np.array([10, 11, 11]), feature_mean=np.array([[0.5, 0, 0, 0], [49.0, 0, 0, 0]]),
+                          feature_track_ids=np.array([10, 11]))
+    log.add_association("icp_da_lc", frame, est)
+    log.add_features("icp_da_lc", frame, est)
+    scores = log.association_scores()
+    table = log.feature_table(["icp_da_lc"], scores)
+    assert table["track"].tolist() == [10] and table["err_pos"].tolist() == [0.5]
