@@ -1,4 +1,4 @@
-"""A net folder (DESIGN "A net folder"): scenario.toml, the net, demand, zones, areas, features.
+"""A net folder (docs/architecture.md "A net folder"): scenario.toml, the net, demand, zones, areas, features.
 
 Parsing only; geometry lookups are in ``couplers.zones``.
 """

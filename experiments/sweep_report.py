@@ -29,21 +29,10 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from experiments.report import (  # noqa: E402
-    _RC,
-    _atomic_publish,
-    _esc,
-    _figure_html,
-    _fmt,
-    _method_cell,
-    _new_fig,
-    _page,
-    _save,
-    _table,
-    method_color,
-    method_label,
-    order_methods,
-)
+from experiments.report.figures import _new_fig, _save  # noqa: E402
+from experiments.report.html import _esc, _figure_html, _fmt, _method_cell, _page, _table  # noqa: E402
+from experiments.report.output import _atomic_publish  # noqa: E402
+from experiments.report.styles import _RC, method_color, method_label, order_methods  # noqa: E402
 
 __all__ = ["write_sweep_report"]
 

@@ -333,7 +333,8 @@ def _lines(summary: dict) -> list[str]:
 
 def write_report(run_dir: Path) -> None:
     """report.html + figures/*.png from the files of ``run_dir`` (never from memory)."""
-    from experiments.report import _esc, _figure_html, _fmt, _new_fig, _page, _save, _table
+    from experiments.report.figures import _new_fig, _save
+    from experiments.report.html import _esc, _figure_html, _fmt, _page, _table
 
     run_dir = Path(run_dir)
     summary = json.loads((run_dir / "summary.json").read_text())

@@ -275,7 +275,7 @@ def summarize(cfg: RsuBpStudy, results: pd.DataFrame, timings: list[dict], git: 
 
 
 def _fig_cdf(results: pd.DataFrame, path: Path) -> None:
-    from experiments.report import _new_fig, _save
+    from experiments.report.figures import _new_fig, _save
 
     base = results[results["point"] == "base"]
     vehicles = sorted(base["vehicle"].unique(), key=int)
@@ -299,7 +299,7 @@ def _fig_sweep(results: pd.DataFrame, point: str, key: str, xlabel: str, path: P
     vehicle (their scales differ by an order of magnitude)."""
     from matplotlib.ticker import NullFormatter, ScalarFormatter
 
-    from experiments.report import _new_fig, _save
+    from experiments.report.figures import _new_fig, _save
 
     sub = results[results["point"] == point]
     vehicles = sorted(sub["vehicle"].unique(), key=int)
@@ -330,7 +330,7 @@ def _fig_sweep(results: pd.DataFrame, point: str, key: str, xlabel: str, path: P
 
 
 def write_report(out: Path, cfg: RsuBpStudy, results: pd.DataFrame, summary: dict) -> None:
-    from experiments.report import _esc, _figure_html, _fmt, _page, _table
+    from experiments.report.html import _esc, _figure_html, _fmt, _page, _table
 
     figs = out / "figures"
     figs.mkdir(exist_ok=True)

@@ -18,15 +18,9 @@ sumolib = pytest.importorskip("sumolib")
 from couplers.errors import InputError  # noqa: E402
 from couplers.netcheck import check_net_folder  # noqa: E402
 from couplers.netfolder import load_net_folder  # noqa: E402
-from couplers.netimport import (  # noqa: E402
-    ARTERIAL_LANE_KM,
-    ARTERIAL_MEAN_ROUTE_M,
-    VTYPE,
-    ImportOptions,
-    _drivable_edges,
-    falling_profile_bins,
-    import_net,
-)
+from couplers.netimport import ImportOptions, import_net  # noqa: E402
+from couplers.netimport.demand import ARTERIAL_LANE_KM, ARTERIAL_MEAN_ROUTE_M, VTYPE, falling_profile_bins  # noqa: E402
+from couplers.netimport.geometry import _drivable_edges  # noqa: E402
 from couplers.zones import RegionIndex  # noqa: E402
 from osmfixture import DLAT, DLON, LAT0, LON0, _nid, write_osm_grid  # noqa: E402
 

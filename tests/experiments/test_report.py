@@ -17,6 +17,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from experiments import report  # noqa: E402
+from experiments.report import styles  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 METHODS = ["gnss", "icp_da_lc"]
@@ -230,8 +231,8 @@ def test_comparison_report(tmp_path, net_dir):
 
 
 def test_method_styles():
-    assert report.method_label("gnss") == "GNSS"
-    assert report.method_color("icp_known_da") == "black"
-    assert report.method_label("my_new_method") == "my_new_method"
-    assert report.method_color("my_new_method") == report.method_color("my_new_method")
-    assert report.order_methods(["zeta", "icp_da_lc", "gnss", "alpha"]) == ["gnss", "icp_da_lc", "alpha", "zeta"]
+    assert styles.method_label("gnss") == "GNSS"
+    assert styles.method_color("icp_known_da") == "black"
+    assert styles.method_label("my_new_method") == "my_new_method"
+    assert styles.method_color("my_new_method") == styles.method_color("my_new_method")
+    assert styles.order_methods(["zeta", "icp_da_lc", "gnss", "alpha"]) == ["gnss", "icp_da_lc", "alpha", "zeta"]
