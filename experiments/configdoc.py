@@ -57,6 +57,17 @@ TABLE_DOCS: dict[str, str] = {
     "pf": "ICP-DA-PF (`icp_da_pf`, `icp_known_da_pf`): particle counts, the pair-sum kernel and the "
           "departures from the paper's literal recursion. Its generators are seeded with `run.seed`.",
     "report": "The per-run HTML report.",
+    "perception": "Realistic perception (optional table, SUMO only; `couplers/perception.py`): sensors with "
+                  "a field of view and range relative to the heading, detection probability falling with "
+                  "distance, range-dependent noise, Poisson clutter over the field of view, occlusion by "
+                  "every SUMO vehicle and by the net folder's buildings. Absent: the paper's idealised V2F "
+                  "sensing (every feature within `sensors.v2f_range_m`), exactly as before. Each effect "
+                  "draws from its own seeded stream.",
+    "perception.sensors": "One sensor of `[perception]` (repeat the table for each sensor). Defaults and "
+                          "their sources (datasheet, peer simulator): `couplers/perception.py`.",
+    "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/gnss_error.py`): first-order "
+                  "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
+                  "bias episodes. The estimators keep the nominal zone covariance a receiver reports.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "
@@ -137,7 +148,48 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "max_duration_s": ("s", "Scenario duration cap; not set: twice the nominal crossing time."),
         "centre": ("m", "Junction centre [x, y]."),
     },
-    "sensors": dict(_SENSING),
+    "sensors": {
+        **_SENSING,
+        "perception": ("", "Not a key of the file (refused there): carries the `[perception]` table to the "
+                           "coupler."),
+        "gnss_error": ("", "Not a key of the file (refused there): carries the `[gnss_error]` table to the "
+                           "coupler."),
+    },
+    "perception": {
+        "sensors": ("", "One `[[perception.sensors]]` table per sensor, keys below (default: a front radar "
+                        "120 deg / 80 m and a 360 deg / 30 m surround sensor; given tables replace both)."),
+        "occlusion_vehicles": ("", "Sight lines blocked by the footprint of any other SUMO vehicle (vType "
+                                   "length and width), connected or not."),
+        "occlusion_buildings": ("", "Sight lines blocked by the net folder's `buildings.geojson` (when it has "
+                                    "one)."),
+    },
+    "perception.sensors": {
+        "name": ("", "Name of the sensor (the row's sensor in the detections)."),
+        "fov_deg": ("deg", "Opening of the field of view, in (0, 360]."),
+        "range_m": ("m", "Range of the sensor."),
+        "yaw_deg": ("deg", "Boresight relative to the heading, counter-clockwise."),
+        "mount_x_m": ("m", "Mount point along the heading from the front bumper centre (negative: rearward)."),
+        "pd_near": (NO_UNIT, "Detection probability at 0 m."),
+        "pd_far": (NO_UNIT, "Detection probability at the range (the fall-off follows Eclipse MOSAIC's "
+                            "distance modifier)."),
+        "clutter_per_scan": (NO_UNIT, "Mean false detections per scan (Poisson), uniform over the field of "
+                                      "view's area."),
+        "sigma_p_m": ("m", "Position noise per axis at 0 m."),
+        "sigma_growth": (NO_UNIT, "Position noise at the range is sigma_p_m (1 + sigma_growth), linear in "
+                                  "between."),
+        "sigma_v_mps": ("m/s", "Velocity noise per axis."),
+    },
+    "gnss_error": {
+        "tau_s": ("s", "Correlation time of the Gauss-Markov position error; 0 = white noise, exactly today's "
+                       "draws."),
+        "nlos_zones": ("", "Zones with NLOS bias episodes when the net folder has no buildings."),
+        "nlos_rate_per_min": ("1/min", "Episode start rate in each of `nlos_zones` (same order)."),
+        "nlos_rate_per_density_per_min": ("1/min", "With buildings: start rate per unit of built-up fraction "
+                                                   "around the vehicle."),
+        "nlos_density_radius_m": ("m", "Radius of the built-up fraction around the vehicle."),
+        "nlos_mean_duration_s": ("s", "Mean episode duration (exponential)."),
+        "nlos_bias_mean_m": ("m", "Mean bias magnitude of an episode (exponential, uniform direction)."),
+    },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),
         "sigma_cross": ("m/s^2", "Cross-track driving noise s_cross of model (1) (the arterial configs: 0.1 "
@@ -214,8 +266,17 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
 
 
 def schema() -> dict[str, type]:
-    """Every table the loader accepts and its dataclass (the required ones first)."""
-    return {**SECTIONS, **OPTIONAL_SECTIONS}
+    """Table name -> dataclass, in file order; a list of tables (``[[perception.sensors]]``) follows its
+    table under its dotted name."""
+    out: dict[str, type] = {}
+    for table, cls in {**SECTIONS, **OPTIONAL_SECTIONS}.items():
+        out[table] = cls
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            args = typing.get_args(hints[f.name])
+            if typing.get_origin(hints[f.name]) is tuple and args and dataclasses.is_dataclass(args[0]):
+                out[f"{table}.{f.name}"] = args[0]
+    return out
 
 
 def accepted_keys() -> list[tuple[str, str]]:
@@ -257,9 +318,12 @@ def _type_name(annotation) -> str:
         return simple[annotation]
     args = typing.get_args(annotation)
     origin = typing.get_origin(annotation)
+    if dataclasses.is_dataclass(annotation):
+        return "table"
     if origin is tuple:
         if len(args) == 2 and args[1] is Ellipsis:
-            return f"list of {simple[args[0]]}s"
+            inner = "table" if dataclasses.is_dataclass(args[0]) else simple[args[0]]
+            return f"list of {inner}s"
         return f"list of {len(args)} {simple[args[0]]}s"
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
@@ -278,6 +342,8 @@ def _default(f: dataclasses.Field) -> str:
         return "not set"
     if isinstance(value, float) and math.isinf(value):
         return "`inf`"
+    if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
+        return f"{len(value)} tables (see meaning)"
     return f"`{_toml_value(value)}`"
 
 
@@ -311,14 +377,15 @@ def render() -> str:
         "(`experiments/rsu_bp.toml`, `sme.toml`, `fg_topology.toml`, with a `[study]` table) have "
         "their own schemas in `experiments/studies/` and are not covered here.",
         "",
-        "Tables: " + ", ".join(f"`[{t}]`" for t in schema()) + " ("
+        "Tables: " + ", ".join(f"`[{t}]`" for t in schema() if "." not in t) + " ("
         + " and ".join(f"`[{t}]`" for t in SCENARIO_TABLES) + " only with their `scenario.kind`; "
         + ", ".join(f"`[{t}]`" for t in OPTIONAL_SECTIONS) + " optional).",
         "",
     ]
     for table, cls in schema().items():
         hints = typing.get_type_hints(cls)
-        out += [f"## [{table}]", "", TABLE_DOCS[table], "",
+        heading = f"[[{table}]]" if "." in table else f"[{table}]"
+        out += [f"## {heading}", "", TABLE_DOCS[table], "",
                 "| key | type | unit | default | meaning |", "|---|---|---|---|---|"]
         for f in dataclasses.fields(cls):
             unit, meaning = KEY_DOCS[table][f.name]
