@@ -235,6 +235,8 @@ def write_sweep_report(out: Path) -> Path:
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
     seeds = spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""
+    what = (f"<i>Sweep: {_esc(spec.get('name', ''))}, base config <code>{_esc(Path(str(spec.get('base', ''))).name)}"
+            f"</code>, {_esc(seed_text or 'no seeds')}, methods {_esc(', '.join(spec.get('methods', [])))}.</i>")
 
     def build(tmp: Path) -> None:
         figdir = tmp / "figures"
@@ -256,7 +258,7 @@ def write_sweep_report(out: Path) -> Path:
                        "true feature they were most often paired with)" if has_feat else "")
                     + f". {split.capitalize()}, {lines}; a method whose curve does not depend on a swept key is "
                     "drawn once. How to read: lower is better; the gap to GNSS is the cooperative gain, the gap "
-                    "to ICP with known association the cost of unknown association."))
+                    "to ICP with known association the cost of unknown association.", what=what))
             if len(curves[curves["curve"] == "distance"]):
                 _fig_panels(curves, [("distance", "rmse_pos_m", "vehicle position RMSE")], keys,
                             "distance to the junction centre [m]", figdir / "rmse_distance.png")
@@ -266,7 +268,7 @@ def write_sweep_report(out: Path) -> Path:
                     f"each {spec.get('distance_bin_m', 20.0):g} m ring around the junction centre (plotted at the "
                     f"ring's middle), over all vehicles, time steps and {runs_text} ({_esc(seed_text)}). "
                     f"{split.capitalize()}, {lines}. How to read: near the centre all clusters are connected and "
-                    "sense more features, so cooperative methods gain most there."))
+                    "sense more features, so cooperative methods gain most there.", what=what))
             asc = curves[curves["curve"] == "association"]
             if len(asc) and asc["correct_pct"].notna().any():
                 _fig_association(curves, keys, figdir / "association.png")
@@ -277,7 +279,7 @@ def write_sweep_report(out: Path) -> Path:
                     f"most often paired with over each run, outside the estimator), versus "
                     f"{_esc(_key_label(keys[0])) if keys else 'the single setting'}; {runs_text} "
                     f"({_esc(seed_text)}). How to read: eta_TH = 0.5 trades discarded measurements for fewer "
-                    "wrong associations."))
+                    "wrong associations.", what=what))
         header, rows = _summary_rows(curves, keys)
         parts = [
             '<dl class="meta">' + "".join(f"<dt>{_esc(k)}</dt><dd>{_esc(v)}</dd>" for k, v in (

@@ -73,7 +73,7 @@ def _css_color(c: str) -> str:
 
 
 def _figure_html(fname: str, title: str, caption: str, prefix: str = "figures/", what: str = "") -> str:
-    """A figure with its caption; ``what`` (a run's :func:`_what_was_run`) ends the caption."""
+    """A figure with its caption; ``what`` (what was run: config, seed or seeds, span, methods) ends the caption."""
     return (f'<figure id="{_esc(Path(fname).stem)}"><img src="{_esc(prefix + fname)}" alt="{_esc(title)}">'
             f"<figcaption><b>{_esc(title)}.</b> {caption}{' ' + what if what else ''}</figcaption></figure>")
 
