@@ -7,6 +7,7 @@ no traceback, nothing half-written.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from pathlib import Path
@@ -22,7 +23,16 @@ class Terminated(BaseException):
     """SIGTERM, raised where the command is, so the same clean-up as for Ctrl-C runs."""
 
 
+_MAIN_PID: int | None = None  # the process whose SIGTERM becomes Terminated
+
+
 def _on_sigterm(signum, frame):
+    if os.getpid() != _MAIN_PID:
+        # A forked worker (the import's gridlock trials, a study's process pool) inherited the handler:
+        # a pool ends its workers with SIGTERM, which must end them quietly, as it would by default.
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
     raise Terminated()
 
 
@@ -310,6 +320,8 @@ def _stop_code(exc: BaseException) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    global _MAIN_PID
+    _MAIN_PID = os.getpid()
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:  # not the main thread (an embedding program): leave SIGTERM as it is

@@ -587,3 +587,21 @@ def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):
     assert implausible_signal_programs(tmp_path / "bs" / "tlr.net.xml") == []
     assert 'signals = "rebuild"' in (tmp_path / "bs" / "scenario.toml").read_text()
     assert implausible_signal_programs(PROJECT / "sumo_nets" / "arterial" / "tlr.net.xml") == []
+
+
+def test_sigterm_in_a_forked_worker_ends_it_quietly():
+    """A pool's workers are forked with the command's SIGTERM handler and ended with SIGTERM: they must die
+    as by default (no Terminated traceback), while the command itself still turns SIGTERM into exit 143."""
+    code = (
+        "import multiprocessing as mp, os, signal, sys, time\n"
+        "import experiments.cli as cli\n"
+        "cli._MAIN_PID = os.getpid()\n"
+        "signal.signal(signal.SIGTERM, cli._on_sigterm)\n"
+        "ctx = mp.get_context('fork')\n"
+        "p = ctx.Process(target=time.sleep, args=(30,))\n"
+        "p.start(); time.sleep(0.5); p.terminate(); p.join(10)\n"
+        "print(p.exitcode)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], cwd=PROJECT, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == str(-signal.SIGTERM) and "Terminated" not in res.stderr
