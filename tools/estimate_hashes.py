@@ -62,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
             if proc.returncode != 0:
                 print(f"{name:>22}: FAILED ({proc.stderr.strip().splitlines()[-1:]})", flush=True)
                 continue
-            files = sorted(p for p in out.rglob("*.parquet") if p.name != "traffic.parquet")
+            # traffic.parquet is SUMO's (not an estimate); timings.parquet holds wall-clock times (differs
+            # from run to run by design)
+            files = sorted(p for p in out.rglob("*.parquet") if p.name not in ("traffic.parquet", "timings.parquet"))
             hashes = " ".join(f"{p.relative_to(out)}={_sha(p)}" for p in files)
             print(f"{name:>22} {' '.join(extra)}: {hashes}", flush=True)
     return 0
