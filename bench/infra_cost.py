@@ -22,8 +22,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.gnss import GnssTracker  # noqa: E402
-from coloc.infra import FgTopologyInfra, RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
+from coloc.methods.fg_topology import FgTopologyInfra  # noqa: E402
+from coloc.methods.gnss import GnssTracker  # noqa: E402
+from coloc.methods.infra import RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from experiments.runner import frame_source, infra_method_params  # noqa: E402
 

@@ -26,11 +26,11 @@ from scipy.spatial import cKDTree
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.gnss import GnssTracker  # noqa: E402
-from coloc.icp import IcpParams  # noqa: E402
-from coloc.icp_da_lc import IcpDaLc, LcParams  # noqa: E402
-from coloc.icp_known_da import IcpKnownDA  # noqa: E402
-from coloc.models import MotionParams, input_matrix, transition_matrix  # noqa: E402
+from coloc.core.models import MotionParams, input_matrix, transition_matrix  # noqa: E402
+from coloc.inference.params import IcpParams  # noqa: E402
+from coloc.methods.gnss import GnssTracker  # noqa: E402
+from coloc.methods.icp_da_lc import IcpDaLc, LcParams  # noqa: E402
+from coloc.methods.icp_known_da import IcpKnownDA  # noqa: E402
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame  # noqa: E402
 
 VEHICLE_SPACING_M = 12.0  # along the road, over 4 lanes: ~3 vehicles per 10 m of road

@@ -21,8 +21,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom  # noqa: E402
-from coloc.sme import SmeFilter, SmeParams  # noqa: E402
+from coloc.methods.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom  # noqa: E402
+from coloc.methods.sme import SmeFilter, SmeParams  # noqa: E402
 from experiments.studies.fg_topology import FgScenario, simulate_run  # noqa: E402
 
 

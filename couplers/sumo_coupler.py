@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from coloc.frame import Frame
+from coloc.core.frame import Frame
 from couplers.errors import InputError
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder

@@ -44,13 +44,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from coloc.frame import Frame, StepEstimate
-from coloc.gnss import GnssTracker
-from coloc.icp import IcpParams
-from coloc.icp_da_lc import IcpDaLc
-from coloc.icp_da_pf import IcpDaPf, PfParams
-from coloc.icp_known_da import IcpKnownDA
-from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra
+from coloc.core.frame import Frame, StepEstimate
+from coloc.inference.params import IcpParams
+from coloc.methods.fg_topology import FgTopologyInfra
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.icp_da_lc import IcpDaLc
+from coloc.methods.icp_da_pf import IcpDaPf, PfParams
+from coloc.methods.icp_known_da import IcpKnownDA
+from coloc.methods.infra import InfraMethodParams, RsuBpInfra, SmeInfra
 from couplers.infra import InfraSetup, junction_positions
 from couplers.netfolder import check_region_coverage, load_net_folder
 from couplers.scenarios import scenario_frames
@@ -152,7 +153,7 @@ class EstimateLog:
             (np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone, tr.area)
         )
         if frame.infra is not None:
-            from coloc.infra import home_rsu
+            from coloc.methods.infra import home_rsu
 
             home = home_rsu(frame.infra.v2i) if frame.n_vehicles else np.empty(0, dtype=np.int64)
             names = np.append(frame.infra.rsu_ids.astype(str), "")[home]

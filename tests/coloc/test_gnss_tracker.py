@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from coloc.frame import Frame, Truth
-from coloc.gnss import GnssTracker, gnss_predict_update
-from coloc.models import (
+from coloc.core.frame import Frame, Truth
+from coloc.core.models import (
     MotionParams,
     driving_noise_cov,
     input_matrix,
@@ -14,6 +13,7 @@ from coloc.models import (
     predict,
     transition_matrix,
 )
+from coloc.methods.gnss import GnssTracker, gnss_predict_update
 
 
 def make_frame(t, ids, z, r, accel=None, entered=None, prior_z=None, prior_R=None, dt=1.0, truth=None):
@@ -195,7 +195,7 @@ def test_tracker_output_does_not_depend_on_truth():
 
 
 def test_numba_kernel_matches_numpy_reference():
-    from coloc.kalman_kernels import gnss_step_kernel
+    from coloc.kernels.kalman import gnss_step_kernel
 
     rng = np.random.default_rng(5)
     n = 50

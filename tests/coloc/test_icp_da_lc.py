@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, multivariate_normal
 
-from coloc.association import association_marginals_both, association_marginals_batch
-from coloc.frame import Truth
-from coloc.icp import FeatureStore, IcpParams, to_information
-from coloc.icp_da_lc import IcpDaLc, LcParams, association_weights, birth_clusters, map_pairing
-from coloc.icp_known_da import IcpKnownDA
+from coloc.core.frame import Truth
+from coloc.inference.association import association_marginals_both, association_marginals_batch
+from coloc.inference.feature_store import FeatureStore
+from coloc.inference.gaussian import to_information
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_da_lc import IcpDaLc, LcParams, association_weights, birth_clusters, map_pairing
+from coloc.methods.icp_known_da import IcpKnownDA
 from tests.coloc.test_icp_known_da import MOTION, scenario
 
 
@@ -188,7 +190,7 @@ def test_output_independent_of_truth_fields():
 
 
 def test_empty_frames_and_no_features():
-    from coloc.frame import empty_frame
+    from coloc.core.frame import empty_frame
 
     est = IcpDaLc()
     e = est.step(empty_frame(0.0, 1.0))

@@ -8,14 +8,19 @@ import pytest
 import scipy.sparse as sp
 from scipy.special import logsumexp
 
-from coloc.centralized import one_step_joint
-from coloc.frame import Truth
-from coloc.gnss import GnssTracker
-from coloc.icp import IcpParams
-from coloc.icp_da_pf import (
-    IcpDaPf, PfParams, entity_rng, kernel_density, normalize_log, pf_bpa_localization,
-    regularized_resample, silverman_factor, systematic_resample, weighted_moments,
+from coloc.core.frame import Truth
+from coloc.inference.params import IcpParams
+from coloc.inference.particles import (
+    kernel_density,
+    normalize_log,
+    regularized_resample,
+    silverman_factor,
+    systematic_resample,
+    weighted_moments,
 )
+from coloc.methods.centralized import one_step_joint
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.icp_da_pf import IcpDaPf, PfParams, entity_rng, pf_bpa_localization
 from tests.coloc.test_icp_known_da import MOTION, scenario
 
 PF_SMALL = PfParams(vehicle_particles=300, feature_particles=300, seed=3)
@@ -260,7 +265,7 @@ def test_separated_features_are_associated_and_tracked():
 
 
 def test_empty_frames_and_bad_parameters():
-    from coloc.frame import empty_frame
+    from coloc.core.frame import empty_frame
 
     est = IcpDaPf(pf=PF_SMALL)
     assert est.step(empty_frame(0.0, 1.0)).mean.shape == (0, 4)

@@ -11,22 +11,17 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from coloc.consensus import connected_components
-from coloc.centralized import CentralizedKF, one_step_joint
-from coloc.frame import Truth
-from coloc.gnss import GnssTracker
-from coloc.icp import (
-    FeatureStore,
-    IcpParams,
-    birth_information,
-    bpa_localization,
-    consensus_graph,
-    relative_message,
-    row_components,
-    validate_association,
-)
-from coloc.icp_known_da import IcpKnownDA, IcpState, vehicle_prior_beliefs
-from coloc.models import MotionParams, input_matrix, transition_matrix
+from coloc.core.frame import Truth
+from coloc.core.models import MotionParams, input_matrix, transition_matrix
+from coloc.inference.bpa import bpa_localization, validate_association
+from coloc.inference.consensus import connected_components
+from coloc.inference.feature_store import FeatureStore, birth_information
+from coloc.inference.gaussian import relative_message
+from coloc.inference.params import IcpParams
+from coloc.inference.row_consensus import consensus_graph, row_components
+from coloc.methods.centralized import CentralizedKF, one_step_joint
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.icp_known_da import IcpKnownDA, IcpState, vehicle_prior_beliefs
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
 
 # The true motion is driven by the measured input plus 0.05 m/s^2 inertial noise.
@@ -401,7 +396,7 @@ def test_unobserved_feature_is_kept_then_dropped():
 
 
 def test_empty_frame_and_all_vehicles_gone():
-    from coloc.frame import empty_frame
+    from coloc.core.frame import empty_frame
 
     icp = IcpKnownDA()
     e = icp.step_with_association(empty_frame(0.0, 1.0), np.empty(0, np.int64))

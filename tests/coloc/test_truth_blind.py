@@ -10,8 +10,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from infra_frames import infra_frames, scrambled  # noqa: E402
 
-from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra  # noqa: E402
-from coloc.models import MotionParams  # noqa: E402
+from coloc.core.models import MotionParams  # noqa: E402
+from coloc.methods.fg_topology import FgTopologyInfra  # noqa: E402
+from coloc.methods.infra import InfraMethodParams, RsuBpInfra, SmeInfra  # noqa: E402
 
 
 @pytest.mark.parametrize("cls", [RsuBpInfra, SmeInfra, FgTopologyInfra])

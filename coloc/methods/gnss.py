@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coloc.frame import Frame, StepEstimate
-from coloc.kalman_kernels import gnss_step_kernel
-from coloc.models import MotionParams, driving_noise_cov, kalman_update, predict
-from coloc.vehicles import carry_states
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.models import MotionParams, driving_noise_cov, kalman_update, predict
+from coloc.core.vehicles import carry_states
+from coloc.kernels.kalman import gnss_step_kernel
 
 
 def gnss_predict_update(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from coloc.frame import Frame, StepEstimate
+from coloc.core.frame import Frame, StepEstimate
 
 
 @runtime_checkable
