@@ -14,6 +14,6 @@ Layers, each importing only the ones below it (``tests/coloc/test_layers.py``):
 """
 
 from coloc.core.frame import Frame, StepEstimate, Truth
-from coloc.core.protocol import Estimator
+from coloc.core.protocol import Estimator, KnownAssociationEstimator
 
-__all__ = ["Frame", "StepEstimate", "Truth", "Estimator"]
+__all__ = ["Frame", "StepEstimate", "Truth", "Estimator", "KnownAssociationEstimator"]

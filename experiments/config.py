@@ -57,14 +57,11 @@ from coloc.core.models import MotionParams
 from coloc.inference.params import FEATURE_MESSAGES
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf", "rsu_bp", "sme",
-                 "fg_topology_new")
-#: Infrastructure-mode methods (issue 5 part 4): need an [infra] table.
-INFRA_METHODS = ("rsu_bp", "sme", "fg_topology_new")
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
@@ -76,7 +73,7 @@ class RunSection:
     name: str
     seed: int = 1
     duration_s: float = 3600.0
-    methods: tuple[str, ...] = ("gnss",)
+    methods: tuple[str, ...] = (GNSS.name,)
 
 
 @dataclass(frozen=True)
@@ -275,8 +272,9 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
 def _validate(cfg: Config) -> None:
     p = cfg.path
     for i, m in enumerate(cfg.run.methods):
-        if m not in KNOWN_METHODS:
-            raise InputError(p, f"run.methods[{i}]", f"unknown method {m!r} (available: {', '.join(KNOWN_METHODS)})")
+        if m not in METHODS or not METHODS[m].runnable:
+            raise InputError(p, f"run.methods[{i}]",
+                             f"unknown method {m!r} (available: {', '.join(runnable_methods())})")
     if not cfg.run.methods:
         raise InputError(p, "run.methods", "at least one method is needed")
     if len(set(cfg.run.methods)) != len(cfg.run.methods):
@@ -327,7 +325,7 @@ def _validate_infra(cfg: Config) -> None:
     p = cfg.path
     inf = cfg.infra
     for i, m in enumerate(cfg.run.methods):
-        if m in INFRA_METHODS and inf is None:
+        if METHODS[m].infrastructure and inf is None:
             raise InputError(p, f"run.methods[{i}]", f"method {m!r} needs an [infra] table (road-side units)")
     if inf is None:
         return

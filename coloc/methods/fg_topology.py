@@ -65,6 +65,7 @@ from coloc.inference.topology import (
     topology_variance_eq16_literal,
 )
 from coloc.methods.infra import InfraMethodParams, _InfraBase
+from coloc.methods.registry import FG_TOPOLOGY_NEW
 
 if TYPE_CHECKING:  # annotations only; imported at run time inside the functions that use it
     import gtsam
@@ -260,7 +261,7 @@ def run_rmse(est: np.ndarray, truth: np.ndarray) -> float:
 class FgTopologyInfra(_InfraBase):
     """``fg_topology_new`` per RSU with a fixed-lag smoother (the doc of :mod:`coloc.methods.infra`)."""
 
-    name = "fg_topology_new"
+    name = FG_TOPOLOGY_NEW.name
 
     def __init__(self, params: InfraMethodParams):
         super().__init__(params)

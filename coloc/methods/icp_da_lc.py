@@ -61,6 +61,7 @@ from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.gaussian import log_gauss
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
     "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
@@ -437,7 +438,7 @@ class IcpDaLc:
 
     params: IcpParams = field(default_factory=IcpParams)
     lc: LcParams = field(default_factory=LcParams)
-    name: str = "icp_da_lc"
+    name: str = ICP_DA_LC.name
     state: IcpState = field(default_factory=IcpState)
     next_id: int = 0
     last: LcStepInfo | None = None

@@ -120,6 +120,7 @@ from coloc.methods.icp_da_lc import (
     merge_candidates,
     new_feature_log_density,
 )
+from coloc.methods.registry import ICP_DA_PF
 
 __all__ = [
     "PfParams", "PfState", "PfStepInfo", "IcpDaPf", "icp_da_pf_step", "pf_bpa_localization", "entity_rng",
@@ -779,7 +780,7 @@ class IcpDaPf:
     params: IcpParams = field(default_factory=IcpParams)
     lc: LcParams = field(default_factory=LcParams)
     pf: PfParams = field(default_factory=PfParams)
-    name: str = "icp_da_pf"
+    name: str = ICP_DA_PF.name  # or icp_known_da_pf: the registry's builder sets it
     state: PfState = field(default_factory=PfState)
     next_id: int = 0
     last: PfStepInfo | None = None
@@ -791,7 +792,7 @@ class IcpDaPf:
         return est
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
-        """Known-DA variant (tests: PF against the Kalman bound)."""
+        """Known-DA variant (``icp_known_da_pf``; tests: PF against the Kalman bound)."""
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
                                                                    self.lc, self.pf, known_association=v2f_feature,
                                                                    workspace=self.workspace)

@@ -47,6 +47,7 @@ from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_belief
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.params import IcpParams
 from coloc.kernels.kalman import gnss_step_kernel
+from coloc.methods.registry import ICP_KNOWN_DA
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
 
@@ -123,20 +124,14 @@ class IcpState:
 
 @dataclass
 class IcpKnownDA:
-    """Stateful ICP with known DA. Use :meth:`step_with_association`."""
+    """Stateful ICP with known DA: a :class:`coloc.core.protocol.KnownAssociationEstimator` (it has no
+    ``step``; the true association of every V2F row comes with each frame)."""
 
     params: IcpParams = field(default_factory=IcpParams)
-    name: str = "icp_known_da"
+    name: str = ICP_KNOWN_DA.name
     last_iterations: int = 0
     last_converged: bool = True
     state: IcpState = field(default_factory=IcpState)
-
-    def step(self, frame: Frame) -> StepEstimate:
-        raise TypeError(
-            "icp_known_da is the known-association bound and needs the true feature of every V2F row; "
-            "call step_with_association(frame, v2f_feature) with stable integer feature ids "
-            "(e.g. frame.truth.v2f_feature, taken by the runner, never by the estimator)"
-        )
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         res, self.state = icp_known_da_step(self.state, frame, v2f_feature, self.params)

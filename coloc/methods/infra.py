@@ -88,10 +88,8 @@ from coloc.core.models import (
 from coloc.core.vehicles import carry_states, match_ids
 from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
 from coloc.methods.gnss import GnssTracker
+from coloc.methods.registry import RSU_BP, SME
 from coloc.methods.rsu_bp import RsuBpParams, init_particles, rsu_bp_step_open
-
-INFRA_METHOD_NAMES = ("rsu_bp", "sme", "fg_topology_new")
-
 
 @dataclass(frozen=True)
 class InfraMethodParams:
@@ -229,7 +227,7 @@ def topology_update(mean, cov, radar_points, radar_var):
 class SmeInfra(_InfraBase):
     """``sme`` per RSU (module doc)."""
 
-    name = "sme"
+    name = SME.name
 
     def __init__(self, params: InfraMethodParams):
         super().__init__(params)
@@ -296,7 +294,7 @@ class _RsuFeatures:
 class RsuBpInfra(_InfraBase):
     """``rsu_bp`` online per RSU (module doc)."""
 
-    name = "rsu_bp"
+    name = RSU_BP.name
 
     def __init__(self, params: InfraMethodParams):
         super().__init__(params)

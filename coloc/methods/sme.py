@@ -72,6 +72,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
+from coloc.methods.registry import SME
 
 
 @dataclass(frozen=True)
@@ -243,19 +244,19 @@ class SmeFilter:
     mean: np.ndarray
     cov: np.ndarray
     params: SmeParams = SmeParams()
-    kind: str = "sme"
+    kind: str = SME.name
 
     def __post_init__(self):
         self.mean = np.array(self.mean, dtype=float)
         self.cov = np.array(self.cov, dtype=float)
-        if self.kind not in ("sme", "kf"):
-            raise ValueError(f"kind must be 'sme' or 'kf', not {self.kind!r}")
+        if self.kind not in (SME.name, "kf"):
+            raise ValueError(f"kind must be {SME.name!r} or 'kf', not {self.kind!r}")
 
     def step(self, gps_fixes: np.ndarray, sensor_points: np.ndarray | None = None, predict: bool = True):
         """Predict (unless ``predict`` is False, for the first step) and update; returns (mean, cov) copies."""
         if predict:
             self.mean, self.cov = sme_predict(self.mean, self.cov, self.params)
-        if self.kind == "sme":
+        if self.kind == SME.name:
             self.mean, self.cov = sme_update(self.mean, self.cov, gps_fixes, sensor_points, self.params)
         else:
             self.mean, self.cov = kf_update_labelled(self.mean, self.cov, gps_fixes, self.params.gps_var)

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from coloc.core.frame import Truth
 from coloc.core.models import MotionParams, input_matrix, transition_matrix
+from coloc.core.protocol import Estimator, KnownAssociationEstimator
 from coloc.inference.bpa import bpa_localization, validate_association
 from coloc.inference.consensus import connected_components
 from coloc.inference.feature_store import FeatureStore, birth_information
@@ -155,10 +156,11 @@ def test_association_validation():
         validate_association(np.array([0]), np.array([1.0]), 1)
 
 
-def test_step_without_association_is_refused():
-    f = scenario(steps=1)[0]
-    with pytest.raises(TypeError, match="step_with_association"):
-        IcpKnownDA().step(f)
+def test_is_a_known_association_estimator_only():
+    """The bound has no ``step``: it is driven through step_with_association (registry flag)."""
+    est = IcpKnownDA()
+    assert isinstance(est, KnownAssociationEstimator) and not isinstance(est, Estimator)
+    assert not hasattr(est, "step")
 
 
 # ----------------------------------------------------------------------------- vs centralized
