@@ -1,21 +1,16 @@
 """Infrastructure-mode estimators (coloc.methods.infra): rsu_bp, sme, fg_topology_new per RSU."""
 
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from infra_frames import infra_frames  # noqa: E402
-
-from coloc.core.models import MotionParams  # noqa: E402
-from coloc.methods.fg_topology import FgTopologyInfra  # noqa: E402
-from coloc.methods.gnss import GnssTracker  # noqa: E402
-from coloc.methods.infra import InfraMethodParams, RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
-from coloc.methods.rsu_bp import association_messages_open  # noqa: E402
+from coloc.core.models import MotionParams
+from coloc.methods.fg_topology import FgTopologyInfra
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.infra import InfraMethodParams, RsuBpInfra, SmeInfra, home_rsu
+from coloc.methods.rsu_bp import association_messages_open
+from scenes import infra_frames
 
 MOTION = MotionParams(sigma_along=0.35, sigma_cross=0.1)
 CLASSES = {"rsu_bp": RsuBpInfra, "sme": SmeInfra, "fg_topology_new": FgTopologyInfra}
