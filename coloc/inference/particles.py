@@ -42,7 +42,9 @@ def linear_weights(logw: np.ndarray) -> np.ndarray:
 
 
 def weighted_moments(particles: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J)."""
+    """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J), any
+    normalisation (ICP-DA-PF; the covariance gets 1e-9 I). :func:`weighted_moments_normalized` is
+    RSU-BP's exact variant for one set with normalised log-weights."""
     return _moments(particles, linear_weights(logw))
 
 
@@ -55,7 +57,10 @@ def _moments(particles: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def systematic_resample(logw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Indices of a systematic resampling of one set (J,) of log-weights."""
+    """Indices of a systematic resampling of one set (J,) of log-weights (ICP-DA-PF): weights from
+    :func:`normalize_log` (floored at -700), the cumulative sum rescaled to end at 1, each draw in the
+    first cell whose edge is at or above it (``side="left"``). :func:`systematic_resample_right` is
+    RSU-BP's variant."""
     j = logw.shape[0]
     w = np.exp(normalize_log(logw))
     c = np.cumsum(w)
