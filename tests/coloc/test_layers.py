@@ -130,3 +130,31 @@ def test_a_kernel_importing_upwards_is_caught(tmp_path, monkeypatch, source, exp
     copy.write_text(text)
     monkeypatch.setattr(sys.modules[__name__], "_module_name", lambda p: "coloc.kernels.icp")
     assert any(expected in v for v in violations([copy]))
+
+
+#: Where a method's name may also be written: the studies name their own methods (study kinds),
+#: and the coupler's seeded noise stream of the GNSS fixes is called "gnss" (not the method).
+NAME_ELSEWHERE = {("couplers/sensors.py", "gnss")}
+
+
+def test_method_names_are_written_only_in_the_registry():
+    """Each method name is a string literal (docstrings aside) in one source file outside tests:
+    coloc/methods/registry.py; every other place reads the registry."""
+    from coloc.methods.registry import METHODS
+
+    root = COLOC.parent
+    found = {}
+    for path in sorted(p for top in ("coloc", "couplers", "experiments", "bench", "tools")
+                       for p in (root / top).rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel.startswith("experiments/studies/"):
+            continue
+        tree = ast.parse(path.read_text(), rel)
+        docs = {id(n.body[0].value) for n in ast.walk(tree)
+                if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Constant) and node.value in METHODS and id(node) not in docs
+                    and (rel, node.value) not in NAME_ELSEWHERE):
+                found.setdefault(node.value, set()).add(rel)
+    assert found == {name: {"coloc/methods/registry.py"} for name in METHODS}
