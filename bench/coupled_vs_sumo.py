@@ -32,7 +32,8 @@ from couplers.sensors import SensorParams  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from couplers.sumo_traffic import SumoTraffic  # noqa: E402
 from experiments.config import load_config  # noqa: E402
-from experiments.runner import KNOWN_ASSOCIATION_METHODS, build_estimators  # noqa: E402
+from coloc.methods.registry import METHODS  # noqa: E402
+from experiments.runner import build_estimators  # noqa: E402
 
 
 def time_sumo_binary(scenario: SumoScenario) -> float:
@@ -62,7 +63,7 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
             blind = frame.without_truth()
             for est in estimators:
                 s = time.perf_counter()
-                if est.name in KNOWN_ASSOCIATION_METHODS:  # the bound is told the association
+                if METHODS[est.name].known_association:  # the bound is told the association
                     est.step_with_association(blind, frame.truth.v2f_feature)
                 else:
                     est.step(blind)

@@ -22,10 +22,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.gnss import GnssTracker  # noqa: E402
-from coloc.infra import FgTopologyInfra, RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
+from coloc.methods.infra import home_rsu  # noqa: E402
+from coloc.methods.registry import GNSS, METHODS, build_method  # noqa: E402
 from experiments.config import load_config  # noqa: E402
-from experiments.runner import frame_source, infra_method_params  # noqa: E402
+from experiments.runner import frame_source, method_params  # noqa: E402
+
+#: The GNSS tracker and the infrastructure methods, in registry order.
+DEFAULT_METHODS = tuple(m.name for m in METHODS.values() if m.runnable and (m is GNSS or m.infrastructure))
 
 
 def main(argv=None) -> int:
@@ -33,7 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "experiments" / "arterial_tlr_infra.toml"))
     ap.add_argument("--duration", type=float, default=300.0)
     ap.add_argument("--bins", default="0,5,10,15,20,30,60")
-    ap.add_argument("--methods", default="gnss,rsu_bp,sme,fg_topology_new",
+    ap.add_argument("--methods", default=",".join(DEFAULT_METHODS),
                     help="comma separated subset of the default (rsu_bp dominates the time)")
     args = ap.parse_args(argv)
     cfg = load_config(args.config, {"run.duration_s": args.duration})
@@ -43,9 +46,8 @@ def main(argv=None) -> int:
     print(f"{len(frames)} frames of {cfg.run.name} ({args.duration:.0f} s) in {time.perf_counter() - t0:.1f} s")
     covered = np.array([int((home_rsu(f.infra.v2i) >= 0).sum()) if f.n_vehicles else 0 for f in frames])
     edges = [int(x) for x in args.bins.split(",")]
-    params = infra_method_params(cfg)
-    makers = {"gnss": lambda: GnssTracker(motion=cfg.motion), "rsu_bp": lambda: RsuBpInfra(params),
-              "sme": lambda: SmeInfra(params), "fg_topology_new": lambda: FgTopologyInfra(params)}
+    params = method_params(cfg)
+    makers = {m: (lambda m=m: build_method(m, params)) for m in DEFAULT_METHODS}
     wanted = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = sorted(set(wanted) - set(makers))
     if unknown:

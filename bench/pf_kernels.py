@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
-from coloc.icp_da_pf import silverman_factor
-from coloc.pf_kernels import KernelWorkspace, fixed_transforms, transform_batch, transform_fixed
+from coloc.inference.particles import silverman_factor
+from coloc.kernels.pf import KernelWorkspace, fixed_transforms, transform_batch, transform_fixed
 
 CASES = {
     # name: (position sigma m, velocity sigma m/s, V2F sigma_p, sigma_v, kernel density smoothing)
@@ -79,7 +79,7 @@ def least_exact_share(src: np.ndarray, tgt: np.ndarray, r: np.ndarray, rel_tol: 
 
 def run_kept(src: np.ndarray, tgt: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     """Seconds to build the kept kernel matrix of one problem and for one sum with it (BPA-L's later
-    iterations, :func:`coloc.pf_kernels.transform_fixed`)."""
+    iterations, :func:`coloc.kernels.pf.transform_fixed`)."""
     j = src.shape[0]
     args = (src[None], np.zeros(1, np.int64), np.zeros((1, 4)), tgt[None], np.zeros(1, np.int64),
             np.zeros((1, 4)), r[None], "tree", REL_TOL, 8.0 * j * j)

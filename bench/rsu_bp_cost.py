@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.rsu_bp import RsuBpParams, initial_beliefs, rsu_bp_step  # noqa: E402
+from coloc.methods.rsu_bp import RsuBpParams, initial_beliefs, rsu_bp_step  # noqa: E402
 from couplers.frohle_scenario import FrohleScenarioParams, simulate  # noqa: E402
 
 

@@ -26,11 +26,12 @@ from scipy.spatial import cKDTree
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.gnss import GnssTracker  # noqa: E402
-from coloc.icp import IcpParams  # noqa: E402
-from coloc.icp_da_lc import IcpDaLc, LcParams  # noqa: E402
-from coloc.icp_known_da import IcpKnownDA  # noqa: E402
-from coloc.models import MotionParams, input_matrix, transition_matrix  # noqa: E402
+from coloc.core.models import MotionParams, input_matrix, transition_matrix  # noqa: E402
+from coloc.inference.params import IcpParams  # noqa: E402
+from coloc.methods.gnss import GnssTracker  # noqa: E402
+from coloc.methods.icp_da_lc import IcpDaLc, LcParams  # noqa: E402
+from coloc.methods.icp_known_da import IcpKnownDA  # noqa: E402
+from coloc.methods.registry import METHODS  # noqa: E402
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame  # noqa: E402
 
 VEHICLE_SPACING_M = 12.0  # along the road, over 4 lanes: ~3 vehicles per 10 m of road
@@ -69,6 +70,11 @@ def road_frames(n: int, feats_per_vehicle: int, steps: int, seed: int = 1):
         )
 
 
+def estimators(motion: MotionParams, icp: IcpParams) -> list:
+    """The GNSS tracker, the known-association bound and ICP-DA-LC, fresh."""
+    return [GnssTracker(motion=motion), IcpKnownDA(icp), IcpDaLc(icp, LcParams(sensing_range_m=RS))]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=30)
@@ -78,20 +84,20 @@ def main() -> None:
     motion = MotionParams(sigma_along=0.35, sigma_cross=0.1)
     icp = IcpParams(motion=motion, feature_velocity_prior_sigma=0.1)
     warm = max(args.steps // 3, 1)
-    print(f"{'F':>3} {'N':>5} {'rows/step':>9}  " + "  ".join(f"{m:>24}" for m in ("gnss", "icp_known_da", "icp_da_lc")))
+    names = [e.name for e in estimators(motion, icp)]
+    print(f"{'F':>3} {'N':>5} {'rows/step':>9}  " + "  ".join(f"{m:>24}" for m in names))
     print(f"{'':>3} {'':>5} {'':>9}  " + "  ".join(f"{'ms/step  ms/vehicle':>24}" for _ in range(3)))
     for f in (int(v) for v in args.features.split(",")):
         for n in (int(v) for v in args.vehicles.split(",")):
             frames = list(road_frames(n, f, args.steps))
             rows = np.mean([fr.v2f_z.shape[0] for fr in frames])
             cells = []
-            for name, est in (("gnss", GnssTracker(motion=motion)), ("icp_known_da", IcpKnownDA(icp)),
-                              ("icp_da_lc", IcpDaLc(icp, LcParams(sensing_range_m=RS)))):
+            for est in estimators(motion, icp):
                 spent = 0.0
                 for k, fr in enumerate(frames):
                     blind = fr.without_truth()
                     t0 = time.perf_counter()
-                    if name == "icp_known_da":
+                    if METHODS[est.name].known_association:
                         est.step_with_association(blind, fr.truth.v2f_feature)
                     else:
                         est.step(blind)

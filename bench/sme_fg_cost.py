@@ -21,8 +21,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from coloc.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom  # noqa: E402
-from coloc.sme import SmeFilter, SmeParams  # noqa: E402
+from coloc.methods.fg_topology import FgTopologyParams, fg_localize, kf_gps_odom  # noqa: E402
+from coloc.methods.registry import FG_TOPOLOGY_NEW, FG_TOPOLOGY_OLD, KF_GPS_ODOM, SME  # noqa: E402
+from coloc.methods.sme import SmeFilter, SmeParams  # noqa: E402
 from experiments.studies.fg_topology import FgScenario, simulate_run  # noqa: E402
 
 
@@ -31,7 +32,7 @@ def sme_cost(n: int, steps: int, rng: np.random.Generator) -> dict[str, float]:
     x0 = np.concatenate([[*rng.uniform(-50, 50, 2), *rng.uniform(-10, 10, 2)] for _ in range(n)])
     cov = np.kron(np.eye(n), np.diag([50.0, 50.0, 25.0, 25.0]))
     out = {}
-    for kind in ("sme", "kf"):
+    for kind in (SME.name, "kf"):
         f = SmeFilter(x0, cov, params, kind)
         t0 = time.perf_counter()
         for t in range(steps):
@@ -45,13 +46,13 @@ def fg_cost(n: int, steps: int, rng: np.random.Generator) -> dict[str, float]:
     params = FgTopologyParams()
     d = simulate_run(n, FgScenario(n_steps=steps), params, rng)
     out = {}
-    for name, topo in (("fg_topology_old", "old"), ("fg_topology_new", "new"), ("fg_gps_odom", "none")):
+    for name, topo in ((FG_TOPOLOGY_OLD.name, "old"), (FG_TOPOLOGY_NEW.name, "new"), ("fg_gps_odom", "none")):
         t0 = time.perf_counter()
         fg_localize(d.gps, d.odom, d.sensor, params, topo)
         out[name] = (time.perf_counter() - t0) / steps
     t0 = time.perf_counter()
     kf_gps_odom(d.gps, d.odom, params)
-    out["kf_gps_odom"] = (time.perf_counter() - t0) / steps
+    out[KF_GPS_ODOM.name] = (time.perf_counter() - t0) / steps
     return out
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coloc.rsu_bp import cv_process_cov, cv_transition
+from coloc.core.models import cv_process_cov, cv_transition
 
 
 @dataclass(frozen=True)

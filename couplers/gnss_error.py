@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coloc.vehicles import match_ids
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng

@@ -1,6 +1,6 @@
 """Infrastructure mode: road-side units (RSUs) with V2I range and a radar of unknown pose.
 
-Builds the :class:`coloc.frame.InfraFrame` of each step from the true states (pure numpy,
+Builds the :class:`coloc.core.frame.InfraFrame` of each step from the true states (pure numpy,
 no SUMO): V2I links (vehicles within ``range_m`` of an RSU, like the V2V links from true
 positions), unlabelled radar detections in each radar's own frame, and per-vehicle odometry.
 
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from coloc.frame import InfraFrame
-from coloc.vehicles import match_ids
+from coloc.core.frame import InfraFrame
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 
 

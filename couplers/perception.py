@@ -60,7 +60,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from coloc.models import gnss_cov
+from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 

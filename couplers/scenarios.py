@@ -1,6 +1,6 @@
 """Controlled scenarios of Brambilla et al. Sec. V: the single road (V-A) and the crossroad (V-B).
 
-They yield the same :class:`coloc.frame.Frame` s as the SUMO coupler, so every
+They yield the same :class:`coloc.core.frame.Frame` s as the SUMO coupler, so every
 estimator and report runs on them unchanged. Only the true motion is generated
 here; every measurement (fast-start prior, inertial input, GNSS, V2F, V2V graph,
 row shuffling) comes from :func:`couplers.sensors.synthesize_frame` with a
@@ -42,8 +42,8 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
-from coloc.frame import Frame
-from coloc.models import input_matrix, transition_matrix
+from coloc.core.frame import Frame
+from coloc.core.models import input_matrix, transition_matrix
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
 
 KMH = 1.0 / 3.6

@@ -13,8 +13,8 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.spatial import cKDTree
 
-from coloc.frame import Frame, Truth
-from coloc.models import gnss_cov
+from coloc.core.frame import Frame, Truth
+from coloc.core.models import gnss_cov
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
 from couplers.perception import Detections, PerceptionParams
 

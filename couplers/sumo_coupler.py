@@ -8,8 +8,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from coloc.frame import Frame
-from coloc.vehicles import match_ids
+from coloc.core.frame import Frame
+from coloc.core.vehicles import match_ids
 from couplers import sumo_traffic
 from couplers.errors import InputError
 from couplers.gnss_error import GnssErrorProcess

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from coloc.vehicles import match_ids
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 
 try:  # imported lazily by callers that only need the pure parts of couplers

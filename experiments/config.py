@@ -28,7 +28,7 @@ Scenario kinds (``[scenario] kind``):
   refused for these kinds.
 
 ``[lc]`` holds the ICP-DA-LC parameters (the fields of
-:class:`coloc.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
+:class:`coloc.methods.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
 range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
 ``[infra]`` (optional, SUMO only) switches on the infrastructure mode (issue 5 part 4):
 road-side units at the junctions ``rsu_junctions`` of the net (checked against the net
@@ -37,7 +37,7 @@ of the methods ``rsu_bp``, ``sme`` and ``fg_topology_new``, which need it. It is
 ``SECTIONS`` (those are always present and written) but one of ``OPTIONAL_SECTIONS``: a config
 without it resolves and runs exactly as before; its keys can be overridden (``infra.KEY``, e.g. by
 a sweep) when the config has the table (an override does not create it).
-``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.icp_da_pf.PfParams`
+``[pf]`` holds the ICP-DA-PF settings (:class:`coloc.methods.icp_da_pf.PfParams`
 without the seed: its generators take ``run.seed``); ICP-DA-PF also uses
 ``[icp]`` and ``[lc]`` (association, tracks). ``icp_known_da_pf`` is the same
 estimator told the true association by the runner (the particle counterpart of
@@ -53,20 +53,17 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from coloc.icp import FEATURE_MESSAGES
-from coloc.icp_da_lc import LcParams
-from coloc.icp_da_pf import PfParams
-from coloc.models import MotionParams
+from coloc.core.models import MotionParams
+from coloc.inference.params import FEATURE_MESSAGES
+from coloc.methods.icp_da_lc import LcParams
+from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml, seed_problem
 from couplers.gnss_error import GnssErrorParams
 from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 
-KNOWN_METHODS = ("gnss", "icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf", "rsu_bp", "sme",
-                 "fg_topology_new")
-#: Infrastructure-mode methods (issue 5 part 4): need an [infra] table.
-INFRA_METHODS = ("rsu_bp", "sme", "fg_topology_new")
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
@@ -78,7 +75,7 @@ class RunSection:
     name: str
     seed: int = 1
     duration_s: float = 3600.0
-    methods: tuple[str, ...] = ("gnss",)
+    methods: tuple[str, ...] = (GNSS.name,)
 
 
 @dataclass(frozen=True)
@@ -92,7 +89,7 @@ class ScenarioSection:
 
 @dataclass(frozen=True)
 class IcpSection:
-    """Gaussian ICP (BPA-L with consensus), coloc.icp.IcpParams; motion comes from [motion]."""
+    """Gaussian ICP (BPA-L with consensus), coloc.inference.params.IcpParams; motion comes from [motion]."""
 
     consensus_iterations: int = 20
     bpa_max_iterations: int = 10
@@ -102,14 +99,14 @@ class IcpSection:
     feature_drop_after_s: float = 10.0
     # Velocity prior of a newborn track, N(0, s^2 I) m/s; 0 = uniform (the paper's reset).
     feature_velocity_prior_sigma: float = 0.0
-    message_memory_s: float = 10.0  # latest message per vehicle kept apart this long (coloc.icp.FeatureStore)
+    message_memory_s: float = 10.0  # latest message per vehicle kept apart this long (coloc.inference.feature_store)
     # What a track stores of each vehicle: "own" (own-sensor belief, default) or "bpa" (final (19)).
     feature_message: str = "own"
 
 
 @dataclass(frozen=True)
 class PfSection:
-    """ICP-DA-PF, coloc.icp_da_pf.PfParams; its generators are seeded with [run] seed."""
+    """ICP-DA-PF, coloc.methods.icp_da_pf.PfParams; its generators are seeded with [run] seed."""
 
     vehicle_particles: int = 1000
     feature_particles: int = 1000
@@ -129,7 +126,7 @@ class PfSection:
 class InfraSection:
     """Infrastructure mode (optional ``[infra]`` table): RSUs at junctions of the net, their V2I
     range (= radar range), the radar and odometry noise (couplers.infra) and the settings of the
-    infrastructure methods (coloc.infra.InfraMethodParams). Only for ``scenario.kind = "sumo"``."""
+    infrastructure methods (coloc.methods.infra.InfraMethodParams). Only for ``scenario.kind = "sumo"``."""
 
     rsu_junctions: tuple[str, ...] = ()
     rsu_range_m: float = 70.0
@@ -290,8 +287,9 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
 def _validate(cfg: Config) -> None:
     p = cfg.path
     for i, m in enumerate(cfg.run.methods):
-        if m not in KNOWN_METHODS:
-            raise InputError(p, f"run.methods[{i}]", f"unknown method {m!r} (available: {', '.join(KNOWN_METHODS)})")
+        if m not in METHODS or not METHODS[m].runnable:
+            raise InputError(p, f"run.methods[{i}]",
+                             f"unknown method {m!r} (available: {', '.join(runnable_methods())})")
     if not cfg.run.methods:
         raise InputError(p, "run.methods", "at least one method is needed")
     if len(set(cfg.run.methods)) != len(cfg.run.methods):
@@ -342,7 +340,7 @@ def _validate_infra(cfg: Config) -> None:
     p = cfg.path
     inf = cfg.infra
     for i, m in enumerate(cfg.run.methods):
-        if m in INFRA_METHODS and inf is None:
+        if METHODS[m].infrastructure and inf is None:
             raise InputError(p, f"run.methods[{i}]", f"method {m!r} needs an [infra] table (road-side units)")
     if inf is None:
         return

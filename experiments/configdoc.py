@@ -22,8 +22,10 @@ import types
 import typing
 from pathlib import Path
 
-from experiments.config import (INFRA_METHODS, KNOWN_METHODS, OPTIONAL_SECTIONS, SCENARIO_KINDS,
-                                SCENARIO_TABLES, SECTIONS, _toml_value)
+from coloc.methods.registry import METHODS, runnable_methods
+from experiments.config import OPTIONAL_SECTIONS, SCENARIO_KINDS, SCENARIO_TABLES, SECTIONS, _toml_value
+
+INFRA_METHODS = tuple(m for m in runnable_methods() if METHODS[m].infrastructure)
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
 
@@ -111,7 +113,7 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "duration_s": ("s", "Simulated duration; a controlled scenario also ends by itself. "
                             "`coloc run --duration` overrides it."),
         "methods": ("", "Estimators to run, one or more of: "
-                        + ", ".join(f"`{m}`" for m in KNOWN_METHODS) + ". `coloc run --methods` overrides it."),
+                        + ", ".join(f"`{m}`" for m in runnable_methods()) + ". `coloc run --methods` overrides it."),
     },
     "scenario": {
         "kind": ("", "Frame source, one of: " + ", ".join(f"`{k}`" for k in SCENARIO_KINDS) + "."),

@@ -42,13 +42,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from coloc.frame import Frame, StepEstimate
-from coloc.gnss import GnssTracker
-from coloc.icp import IcpParams
-from coloc.icp_da_lc import IcpDaLc
-from coloc.icp_da_pf import IcpDaPf, PfParams
-from coloc.icp_known_da import IcpKnownDA
-from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra
+from coloc.core.frame import Frame, StepEstimate
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.infra import InfraMethodParams
+from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
 from couplers.netcheck import require_usable_net_folder
@@ -68,31 +66,25 @@ from experiments.scoring import (
 )
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-# Told the true association by the runner: the Gaussian bound, and its particle counterpart
-# (ICP-DA-PF with BP-DA skipped; it separates PF's Monte Carlo error from its association).
-KNOWN_ASSOCIATION_METHODS = frozenset({"icp_known_da", "icp_known_da_pf"})
+# Told the true association by the runner (the registry's known_association flag): the Gaussian
+# bound, and its particle counterpart (ICP-DA-PF with BP-DA skipped).
+KNOWN_ASSOCIATION_METHODS = frozenset(m.name for m in METHODS.values() if m.known_association)
 
 
 def build_estimators(cfg: Config) -> list:
-    """Estimator objects for ``cfg.run.methods``, in that order."""
-    icp = IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp))
-    out = []
-    for m in cfg.run.methods:
-        if m == "gnss":
-            out.append(GnssTracker(motion=cfg.motion))
-        elif m == "icp_known_da":
-            out.append(IcpKnownDA(params=icp))
-        elif m == "icp_da_lc":
-            out.append(IcpDaLc(params=icp, lc=cfg.lc))
-        elif m in ("rsu_bp", "sme", "fg_topology_new"):
-            cls = {"rsu_bp": RsuBpInfra, "sme": SmeInfra, "fg_topology_new": FgTopologyInfra}[m]
-            out.append(cls(infra_method_params(cfg)))
-        elif m in ("icp_da_pf", "icp_known_da_pf"):
-            out.append(IcpDaPf(params=icp, lc=cfg.lc, pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
-                               name=m))
-        else:  # config validation lists the known methods; this is a programming error
-            raise ValueError(f"no estimator for method {m!r}")
-    return out
+    """Estimator objects for ``cfg.run.methods``, in that order (built by the method registry)."""
+    params = method_params(cfg)
+    return [build_method(m, params) for m in cfg.run.methods]
+
+
+def method_params(cfg: Config) -> MethodParams:
+    """The registry builders' parameters from ``[motion]``, ``[icp]``, ``[lc]``, ``[pf]`` (with the seed)
+    and ``[infra]`` (None without it)."""
+    return MethodParams(
+        motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
+        pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
+        infra=infra_method_params(cfg) if cfg.infra is not None else None,
+    )
 
 
 def infra_method_params(cfg: Config) -> InfraMethodParams:
@@ -153,7 +145,7 @@ class EstimateLog:
             (np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone, tr.area)
         )
         if frame.infra is not None:
-            from coloc.infra import home_rsu
+            from coloc.methods.infra import home_rsu
 
             home = home_rsu(frame.infra.v2i) if frame.n_vehicles else np.empty(0, dtype=np.int64)
             names = np.append(frame.infra.rsu_ids.astype(str), "")[home]
@@ -427,7 +419,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 blind = frame.without_truth()
                 for est in estimators:
                     t0 = time.perf_counter()
-                    if est.name in KNOWN_ASSOCIATION_METHODS:
+                    if METHODS[est.name].known_association:
                         # The bound is told the true association, by the runner, never from the frame.
                         res = est.step_with_association(blind, frame.truth.v2f_feature)
                     else:

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF
+
 
 def parse_windows(text: str) -> list[tuple[float, float]]:
     """``"10:19,20:30"`` -> [(10, 19), (20, 30)] (inclusive bounds, seconds)."""
@@ -75,8 +77,8 @@ def paired(mse: pd.DataFrame, a: str, b: str) -> pd.DataFrame:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="+", type=Path, help="sweep output folders (coloc sweep --out)")
-    ap.add_argument("--a", default="icp_da_pf")
-    ap.add_argument("--b", default="icp_da_lc")
+    ap.add_argument("--a", default=ICP_DA_PF.name)
+    ap.add_argument("--b", default=ICP_DA_LC.name)
     ap.add_argument("--windows", default="10:19,20:30", help="time windows lo:hi, comma separated (s)")
     args = ap.parse_args(argv)
     try:

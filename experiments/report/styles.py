@@ -7,24 +7,15 @@ import zlib
 
 import numpy as np
 
+from coloc.methods.registry import METHODS
+
 
 # --------------------------------------------------------------------------- #
 # Styles
 # --------------------------------------------------------------------------- #
 
-#: method -> (display name, colour).  Green is reserved for feature accuracy.
-METHOD_STYLES: dict[str, tuple[str, str]] = {
-    "gnss": ("GNSS", "tab:blue"),
-    "icp_known_da": ("ICP known DA", "black"),
-    "icp_da_lc": ("ICP-DA-LC", "tab:red"),
-    "icp_da_pf": ("ICP-DA-PF", "tab:orange"),
-    "icp_known_da_pf": ("ICP-PF known DA", "goldenrod"),
-    "rsu_bp": ("RSU-BP", "tab:purple"),
-    "sme": ("SME", "tab:brown"),
-    "fg_topology_old": ("FG topology (old)", "tab:pink"),
-    "fg_topology_new": ("FG topology (new)", "tab:olive"),
-    "kf_gps_odom": ("KF GPS+odometry", "tab:cyan"),
-}
+#: method -> (display name, colour), from the method registry.  Green is reserved for feature accuracy.
+METHOD_STYLES: dict[str, tuple[str, str]] = {m.name: (m.label, m.color) for m in METHODS.values()}
 _METHOD_ORDER = list(METHOD_STYLES)
 _EXTRA_COLORS = ["tab:gray", "#17becf", "#9467bd", "#8c564b", "#bcbd22", "#e377c2",
                  "#393b79", "#843c39", "#7b4173", "#637939"]

@@ -13,7 +13,7 @@ vehicle count in ``study.vehicles``. One run (Sec. IV-A, the paper's
   (s, theta) drawn per run (s uniform in a ``sensor_box_m`` square, theta uniform)
   that no method is told, in shuffled order each step.
 
-Methods: ``fg_topology_new``, ``fg_topology_old``, ``kf_gps_odom`` (coloc.fg_topology)
+Methods: ``fg_topology_new``, ``fg_topology_old``, ``kf_gps_odom`` (coloc.methods.fg_topology)
 and the diagnostic ``fg_gps_odom`` (the same graph without topology factors = the
 RTS smoother of ``kf_gps_odom``), which separates the gain of smoothing from the
 gain of the topology. Score: Gulati (21) per run ("final RMSE", summed over
@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from coloc.methods.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
-from coloc.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
 from experiments.runner import write_parquet
 from experiments.studies.study_config import (
     Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,

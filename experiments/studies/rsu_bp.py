@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from coloc.rsu_bp import RsuBpParams, cv_kalman_filter, rsu_bp_filter
+from coloc.methods.rsu_bp import RsuBpParams, cv_kalman_filter, rsu_bp_filter
 from couplers.errors import InputError, seed_problem
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
 from experiments.config import _toml_value, section_from_table

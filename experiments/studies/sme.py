@@ -12,7 +12,7 @@ the same draw for every method) are ours. The paper shows one run; we run
 ``sensor_poses`` (common random numbers: the same truth, GPS and local-frame noise
 for each pose, so pose effects are not hidden by sampling noise).
 
-Methods: ``sme`` (coloc.sme, the configured pseudo-noise), ``kf`` (the baseline),
+Methods: ``sme`` (coloc.methods.sme, the configured pseudo-noise), ``kf`` (the baseline),
 diagnostics ``sme_no_topology`` (SME without the infrastructure sensor: what the
 association costs) and ``sme_linearized`` (SME with the first-order pseudo-noise
 covariance). Score: the paper's (12)-(13) per run, vehicles labelled by the
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from coloc.sme import SmeFilter, SmeParams, cv_process_cov, cv_transition
+from coloc.methods.sme import SmeFilter, SmeParams, cv_process_cov, cv_transition
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
 from experiments.runner import write_parquet
@@ -91,7 +91,7 @@ SPEC = {
         "sensor_var": Key(10.0, "float", positive, "diag(10, 10)"),
     },
     "filter": {
-        "pseudo_noise": Key("moments", "str", one_of("moments", "linearized"), "coloc.sme module doc"),
+        "pseudo_noise": Key("moments", "str", one_of("moments", "linearized"), "coloc.methods.sme module doc"),
     },
 }
 
@@ -107,7 +107,7 @@ def simulate_run(x0: np.ndarray, n_steps: int, dt: float, process_sigma: float, 
     """Truth (T, N, 4), GPS in vehicle order and shuffled (T, N, 2), sensor scans per pose (P, T, N, 2)."""
     n = x0.shape[0]
     a = cv_transition(n, dt)
-    # white acceleration per vehicle and axis: w = B a, B = [T^2/2; T] (the Q of coloc.sme)
+    # white acceleration per vehicle and axis: w = B a, B = [T^2/2; T] (the Q of coloc.methods.sme)
     acc = process_sigma * rng.standard_normal((n_steps, n, 2))
     truth = np.empty((n_steps, n, 4))
     x = x0.reshape(-1).copy()
@@ -243,7 +243,7 @@ def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, for
 
 
 # A run is "ghost-locked" when its set error (best vehicle permutation) exceeds this multiple of the KF's
-# error in the same run: the filter followed a ghost of (9)-(10), not a label swap (see coloc.sme).
+# error in the same run: the filter followed a ghost of (9)-(10), not a label swap (see coloc.methods.sme).
 GHOST_FACTOR = 5.0
 
 

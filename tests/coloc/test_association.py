@@ -1,4 +1,4 @@
-"""Tests of coloc.association (BPA-DA, Brambilla et al. eqs. (13)-(17), Williams & Lau [44]).
+"""Tests of coloc.inference.association (BPA-DA, Brambilla et al. eqs. (13)-(17), Williams & Lau [44]).
 
 Measured BP-vs-exact accuracy (seeded, 500 random problems each, K, M in 1..6,
 eta = Exp(1) * LogNormal(0, s), a random 0-60 % of the measurement columns
@@ -29,7 +29,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from coloc.association import (
+from coloc.inference.association import (
     EXACT_MAX_ASSIGNMENTS,
     association_marginals,
     association_marginals_both,

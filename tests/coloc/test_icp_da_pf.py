@@ -1,22 +1,25 @@
 """ICP-DA-PF (Brambilla et al. Sec. IV-C, eqs. (23)-(29)): particle BPA-L against the exact joint,
 consensus, synchronized generators, the estimator end to end."""
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.special import logsumexp
 
-from coloc.centralized import one_step_joint
-from coloc.frame import Truth
-from coloc.gnss import GnssTracker
-from coloc.icp import IcpParams
-from coloc.icp_da_pf import (
-    IcpDaPf, PfParams, entity_rng, kernel_density, normalize_log, pf_bpa_localization,
-    regularized_resample, silverman_factor, systematic_resample, weighted_moments,
+from coloc.inference.params import IcpParams
+from coloc.inference.particles import (
+    kernel_density,
+    normalize_log,
+    regularized_resample,
+    silverman_factor,
+    systematic_resample,
+    weighted_moments,
 )
-from tests.coloc.test_icp_known_da import MOTION, scenario
+from coloc.methods.centralized import one_step_joint
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.icp_da_pf import IcpDaPf, PfParams, entity_rng, pf_bpa_localization
+from scenes import road_frames
+from tests.coloc.test_icp_known_da import MOTION
 
 PF_SMALL = PfParams(vehicle_particles=300, feature_particles=300, seed=3)
 
@@ -200,7 +203,7 @@ def test_synchronized_generators_and_resampling():
 
 def test_without_v2f_the_pf_is_the_gnss_kalman_filter_within_monte_carlo_error():
     """No V2F rows: ICP-DA-PF is a bootstrap PF with GNSS; its RMSE is within 10 % of the KF's."""
-    frames = scenario(steps=15, n_feat=0, seed=2)
+    frames = road_frames(steps=15, n_feat=0, seed=2)
     pf = IcpDaPf(params=IcpParams(motion=MOTION), pf=PfParams(vehicle_particles=2000, feature_particles=10, seed=1))
     kf = GnssTracker(motion=MOTION)
     e_pf, e_kf = [], []
@@ -213,32 +216,13 @@ def test_without_v2f_the_pf_is_the_gnss_kalman_filter_within_monte_carlo_error()
     assert abs(r_pf - r_kf) < 0.1 * r_kf
 
 
-def test_output_independent_of_truth_fields_and_deterministic():
-    frames = scenario(steps=5, v2v_range=25.0)
-    rng = np.random.default_rng(5)
-    a, b, c = IcpDaPf(pf=PF_SMALL), IcpDaPf(pf=PF_SMALL), IcpDaPf(pf=PF_SMALL)
-    for f in frames:
-        tr = f.truth
-        scrambled = replace(
-            f,
-            truth=Truth(x_true=rng.normal(size=tr.x_true.shape), v2f_feature=rng.permutation(tr.v2f_feature),
-                        features_true=rng.normal(size=tr.features_true.shape), zone=tr.zone[::-1], area=tr.area[::-1]),
-        )
-        ea, eb, ec = a.step(f), b.step(scrambled), c.step(f.without_truth())
-        for e in (eb, ec):
-            np.testing.assert_array_equal(ea.mean, e.mean)
-            np.testing.assert_array_equal(ea.v2f_assignment, e.v2f_assignment)
-            np.testing.assert_array_equal(ea.feature_mean, e.feature_mean)
-        assert np.all(np.linalg.eigvalsh(ea.cov) > 0) and np.allclose(ea.cov, np.swapaxes(ea.cov, 1, 2))
-
-
 def test_separated_features_are_associated_and_tracked():
     """Features 30 m apart: every V2F row goes to one track per feature, one feature per track.
 
     Accuracy is printed, not asserted (J = 300 is Monte Carlo limited): measured RMSE PF 0.63 m
     with the default kernel density messages, 2.08 m with the bare V2F kernel (a vehicle particle
     meets ~0.1 feature particles within it), against GNSS 1.58 m and ICP-DA-LC 0.55 m."""
-    frames = scenario(steps=10, spacing=10.0)
+    frames = road_frames(steps=10, spacing=10.0)
     pf = IcpDaPf(params=IcpParams(motion=MOTION), pf=PF_SMALL)
     kf = GnssTracker(motion=MOTION)
     pairs, e_pf, e_kf = set(), [], []
@@ -260,11 +244,11 @@ def test_separated_features_are_associated_and_tracked():
 
 
 def test_empty_frames_and_bad_parameters():
-    from coloc.frame import empty_frame
+    from coloc.core.frame import empty_frame
 
     est = IcpDaPf(pf=PF_SMALL)
     assert est.step(empty_frame(0.0, 1.0)).mean.shape == (0, 4)
-    for f in scenario(steps=2, n_feat=0):
+    for f in road_frames(steps=2, n_feat=0):
         assert est.step(f).mean.shape == (f.n_vehicles, 4)
     for bad in ({"kernel": "fft"}, {"vehicle_particles": 0}, {"recursion": "other"}, {"kernel_rel_tol": 0.0},
                 {"message_bandwidth": "wide"}, {"kernel_cache_mb": -1.0}):

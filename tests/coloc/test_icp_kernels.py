@@ -4,29 +4,25 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-import coloc.icp as icp
-from coloc.consensus import _average_kernel, metropolis_weights
-from coloc.icp import (
-    IcpParams,
-    _pack_sym,
+from coloc.core.models import symmetrize
+from coloc.inference.bpa import _pack_sym, _unpack_sym, bpa_localization
+import coloc.inference.bpa as bpa
+from coloc.inference.consensus import _average_kernel, metropolis_weights
+from coloc.inference.gaussian import _surely_above_floor, psd_clip, relative_message
+from coloc.inference.params import IcpParams
+from coloc.inference.row_consensus import (
     _pairwise_sum,
-    _surely_above_floor,
-    _unpack_sym,
-    bpa_localization,
     consensus_graph,
-    psd_clip,
-    relative_message,
     row_components,
     row_consensus_weights,
 )
-from coloc.icp_kernels import (
+from coloc.kernels.icp import (
     complete_component_consensus,
     extrinsic_kernel,
     feature_to_vehicle_kernel,
     relative_message_kernel,
     vehicle_to_feature_kernel,
 )
-from coloc.models import symmetrize
 
 
 def random_spd(rng, n, scale=1.0, rank=4):
@@ -186,7 +182,7 @@ def test_bpa_with_kernels_equals_numpy_iterations(monkeypatch):
     params = IcpParams(consensus_iterations=5, bpa_max_iterations=6)
     args = (prior_mean, prior_cov, prior_mean, prior_cov * 1.5, owner, feat, z, r, adj, f_lam, f_eta, params)
     fast = bpa_localization(*args)
-    monkeypatch.setattr(icp, "BPA_KERNELS", False)
+    monkeypatch.setattr(bpa, "BPA_KERNELS", False)
     ref = bpa_localization(*args)
     assert fast.iterations == ref.iterations and fast.converged == ref.converged
     np.testing.assert_allclose(fast.mean, ref.mean, rtol=0, atol=1e-9)
@@ -196,7 +192,7 @@ def test_bpa_with_kernels_equals_numpy_iterations(monkeypatch):
 
 
 def test_information_kernels_equal_numpy():
-    from coloc.icp import _inv_spd, _inv_spd_numpy, from_information, to_information
+    from coloc.inference.gaussian import _inv_spd, _inv_spd_numpy, from_information, to_information
 
     rng = np.random.default_rng(12)
     cov = random_spd(rng, 200, 3.0)
@@ -216,10 +212,10 @@ def test_information_kernels_equal_numpy():
 
 
 def test_vehicle_prior_kernel_equals_numpy_reference():
-    from coloc.frame import empty_frame
-    from coloc.gnss import gnss_predict_update
-    from coloc.icp_known_da import vehicle_prior_beliefs
-    from coloc.models import MotionParams, kalman_update
+    from coloc.core.frame import empty_frame
+    from coloc.methods.gnss import gnss_predict_update
+    from coloc.methods.icp_known_da import vehicle_prior_beliefs
+    from coloc.core.models import MotionParams, kalman_update
     from dataclasses import replace
 
     rng = np.random.default_rng(13)
@@ -251,20 +247,20 @@ def test_vehicle_prior_kernel_equals_numpy_reference():
 
 @pytest.mark.parametrize("d", [2, 4])
 def test_log_gauss_kernel_equals_numpy(d):
-    from coloc.icp_da_lc import _log_gauss, _log_gauss_numpy
+    from coloc.inference.gaussian import log_gauss, log_gauss_numpy
 
     rng = np.random.default_rng(14)
     a = rng.standard_normal((300, d, d))
     s = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(d)
     nu = rng.standard_normal((300, d)) * 3
-    lp, d2 = _log_gauss(nu, s)
-    lp0, d20 = _log_gauss_numpy(nu, s)
+    lp, d2 = log_gauss(nu, s)
+    lp0, d20 = log_gauss_numpy(nu, s)
     np.testing.assert_allclose(lp, lp0, rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(d2, d20, rtol=1e-10, atol=1e-12)
 
 
 def test_scatter_add_equals_ufunc_at_bit_for_bit():
-    from coloc.icp_kernels import scatter_add
+    from coloc.kernels.icp import scatter_add
 
     rng = np.random.default_rng(15)
     t = rng.standard_normal((20, 4, 4))
@@ -277,7 +273,7 @@ def test_scatter_add_equals_ufunc_at_bit_for_bit():
 
 
 def test_scatter_max_equals_ufunc_at_bit_for_bit():
-    from coloc.icp_kernels import scatter_max
+    from coloc.kernels.icp import scatter_max
 
     rng = np.random.default_rng(17)
     t = rng.standard_normal((20, 50))
@@ -292,8 +288,8 @@ def test_scatter_max_equals_ufunc_at_bit_for_bit():
 
 
 def test_predict_no_input_kernel_equals_numpy():
-    from coloc.icp_kernels import predict_no_input_kernel
-    from coloc.models import predict
+    from coloc.kernels.icp import predict_no_input_kernel
+    from coloc.core.models import predict
 
     rng = np.random.default_rng(16)
     mean = rng.standard_normal((100, 4)) * 50

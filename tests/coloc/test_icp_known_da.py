@@ -1,7 +1,7 @@
 """ICP with known association: Gaussian BPA-L (19)-(22) with consensus vs a centralized joint KF.
 
-Synthetic scenes built here: vehicles driving east on one lane by model (1),
-static features on both sides, measurements by ``couplers.sensors`` (seeded).
+Synthetic scenes: :func:`scenes.road_frames` (vehicles driving east on one lane by model (1),
+static features on both sides, measurements by ``couplers.sensors``, seeded).
 """
 
 from dataclasses import replace
@@ -9,73 +9,21 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
-from coloc.consensus import connected_components
-from coloc.centralized import CentralizedKF, one_step_joint
-from coloc.frame import Truth
-from coloc.gnss import GnssTracker
-from coloc.icp import (
-    FeatureStore,
-    IcpParams,
-    birth_information,
-    bpa_localization,
-    consensus_graph,
-    relative_message,
-    row_components,
-    validate_association,
-)
-from coloc.icp_known_da import IcpKnownDA, IcpState, vehicle_prior_beliefs
-from coloc.models import MotionParams, input_matrix, transition_matrix
-from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
+from coloc.core.models import MotionParams
+from coloc.core.protocol import Estimator, KnownAssociationEstimator
+from coloc.inference.bpa import bpa_localization, validate_association
+from coloc.inference.consensus import connected_components
+from coloc.inference.gaussian import relative_message
+from coloc.inference.params import IcpParams
+from coloc.inference.row_consensus import consensus_graph, row_components
+from coloc.methods.centralized import CentralizedKF, one_step_joint
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.icp_known_da import IcpKnownDA, IcpState, vehicle_prior_beliefs
+from scenes import road_frames
 
 # The true motion is driven by the measured input plus 0.05 m/s^2 inertial noise.
 MOTION = MotionParams(sigma_along=0.08, sigma_cross=0.08)
-
-
-def scenario(seed=1, n=5, steps=15, n_feat=4, v2f_range=30.0, v2v_range=250.0, gnss_sp=8.0, gnss_sv=0.2,
-             leave=None, enter=None, spacing=10.0):
-    """Frames of n vehicles 10 m apart at 10 m/s east; features at x = 20, 50, ... y = +-6 m.
-
-    ``leave=(i, t)``: vehicle i is gone from step t on; ``enter=(i, t)``: vehicle i appears at step t.
-    """
-    rng = np.random.default_rng(seed)
-    dt = 1.0
-    a_mat, b_mat = transition_matrix(dt), input_matrix(dt)
-    x = np.zeros((n, 4))
-    x[:, 0] = np.arange(n) * spacing
-    x[:, 2] = 10.0
-    feats = np.zeros((n_feat, 4))
-    feats[:, 0] = 20 + 30 * np.arange(n_feat)
-    feats[:, 1] = np.where(np.arange(n_feat) % 2, -6.0, 6.0)
-    tree = cKDTree(feats[:, :2])
-    params = SensorParams(v2f_range_m=v2f_range, v2v_range_m=v2v_range)
-    noise = SensorNoise(seed)
-    ids = np.array([f"v{i}" for i in range(n)], dtype=object)
-    frames = []
-    for t in range(steps):
-        acc = np.zeros((n, 2))
-        acc[:, 0] = rng.normal(0, 0.3, n)
-        if t > 0:
-            x = x @ a_mat.T + acc @ b_mat.T
-        entered = np.full(n, t == 0)
-        cur = np.ones(n, bool)
-        if leave is not None and t >= leave[1]:
-            cur[leave[0]] = False
-        if enter is not None:
-            cur[enter[0]] = t >= enter[1]
-            entered[enter[0]] = t == enter[1]
-        sel = np.flatnonzero(cur)
-        m = sel.size
-        frames.append(
-            synthesize_frame(
-                t=float(t), dt=dt, vehicle_ids=ids[sel], entered=entered[sel], x_true=x[sel],
-                accel_true=acc[sel], heading=np.zeros(m), gnss_sigma_p=np.full(m, gnss_sp),
-                gnss_sigma_v=np.full(m, gnss_sv), features_true=feats, feature_tree=tree, params=params,
-                noise=noise, zone=np.full(m, "A", dtype=object), area=np.full(m, "road", dtype=object),
-            )
-        )
-    return frames
 
 
 def exact_params(consensus_iterations=200):
@@ -160,10 +108,11 @@ def test_association_validation():
         validate_association(np.array([0]), np.array([1.0]), 1)
 
 
-def test_step_without_association_is_refused():
-    f = scenario(steps=1)[0]
-    with pytest.raises(TypeError, match="step_with_association"):
-        IcpKnownDA().step(f)
+def test_is_a_known_association_estimator_only():
+    """The bound has no ``step``: it is driven through step_with_association (registry flag)."""
+    est = IcpKnownDA()
+    assert isinstance(est, KnownAssociationEstimator) and not isinstance(est, Estimator)
+    assert not hasattr(est, "step")
 
 
 # ----------------------------------------------------------------------------- vs centralized
@@ -171,7 +120,7 @@ def test_step_without_association_is_refused():
 
 def test_first_step_matches_joint_kf_within_1cm():
     """Step 0 (fast-start priors, new features): converged Gaussian BP = exact joint means."""
-    f = scenario(steps=1, v2v_range=25.0)[0]  # links to 1-2 neighbours each way: consensus is not one-shot
+    f = road_frames(steps=1, v2v_range=25.0)[0]  # links to 1-2 neighbours each way: consensus is not one-shot
     params = exact_params(200)
     icp = IcpKnownDA(params).step_with_association(f, f.truth.v2f_feature)
     kf = CentralizedKF(params).step_with_association(f, f.truth.v2f_feature)
@@ -186,7 +135,7 @@ def test_first_step_matches_joint_kf_within_1cm():
 def test_every_step_matches_exact_one_step_joint_within_1cm():
     """Each step, BPA-L with 200 consensus rounds run to convergence reproduces the exact
     joint posterior means of its own prior (11)-(12) within 1 cm (measured ~1e-9 m)."""
-    frames = scenario(steps=15, v2v_range=25.0)
+    frames = road_frames(steps=15, v2v_range=25.0)
     gaps = per_step_gap(frames, exact_params(200))
     print("per-step mean gap (m):", np.array2string(gaps[:, 0], precision=1))
     print("per-step cov gap:", np.array2string(gaps[:, 1], precision=1))
@@ -194,7 +143,7 @@ def test_every_step_matches_exact_one_step_joint_within_1cm():
 
 
 def test_few_consensus_iterations_leave_a_measurable_gap():
-    frames = scenario(steps=15, v2v_range=25.0)
+    frames = road_frames(steps=15, v2v_range=25.0)
     g200 = per_step_gap(frames, exact_params(200))
     g2 = per_step_gap(frames, replace(exact_params(2), bpa_max_iterations=50))
     print(f"max mean gap: 200 rounds {g200[:, 0].max():.2e} m, 2 rounds {g2[:, 0].max():.2e} m; "
@@ -206,7 +155,7 @@ def test_few_consensus_iterations_leave_a_measurable_gap():
 def test_multi_step_gap_to_full_joint_kf_is_measured():
     """Over time BP carries marginal beliefs only (no vehicle-feature cross-covariance),
     so it differs from the full joint KF by decimetres; measured, not a bug."""
-    frames = scenario(steps=15, v2v_range=25.0)
+    frames = road_frames(steps=15, v2v_range=25.0)
     params = exact_params(200)
     icp, kf = IcpKnownDA(params), CentralizedKF(params)
     gaps = []
@@ -224,7 +173,7 @@ def test_multi_step_gap_to_full_joint_kf_is_measured():
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_beats_gnss_only(seed):
     """Default parameters (20 consensus rounds, Sec. V-A stopping rule) on a chain of 5 vehicles."""
-    frames = scenario(seed=seed, steps=20, v2v_range=25.0)
+    frames = road_frames(seed=seed, steps=20, v2v_range=25.0)
     icp, gnss = IcpKnownDA(IcpParams(motion=MOTION)), GnssTracker(MOTION)
     e_icp, e_gnss = [], []
     for f in frames:
@@ -239,32 +188,9 @@ def test_beats_gnss_only(seed):
     assert r_icp < 0.7 * r_gnss
 
 
-def test_output_independent_of_truth_fields():
-    frames = scenario(steps=8, v2v_range=25.0)
-    rng = np.random.default_rng(5)
-    a, b = IcpKnownDA(), IcpKnownDA()
-    for f in frames:
-        assoc = f.truth.v2f_feature.copy()
-        tr = f.truth
-        scrambled = replace(
-            f,
-            truth=Truth(x_true=rng.normal(size=tr.x_true.shape), v2f_feature=rng.permutation(tr.v2f_feature),
-                        features_true=rng.normal(size=tr.features_true.shape), zone=tr.zone[::-1], area=tr.area[::-1]),
-        )
-        ea = a.step_with_association(f, assoc)
-        eb = b.step_with_association(scrambled, assoc)
-        np.testing.assert_array_equal(ea.mean, eb.mean)
-        np.testing.assert_array_equal(ea.cov, eb.cov)
-        np.testing.assert_array_equal(ea.feature_mean, eb.feature_mean)
-    c = IcpKnownDA()  # and with no truth at all
-    for f in frames:
-        ec = c.step_with_association(f.without_truth(), f.truth.v2f_feature)
-    np.testing.assert_array_equal(ec.mean, ea.mean)
-
-
 def test_isolated_vehicles_equal_gnss_tracker():
     """No features and no neighbours: the ICP is the GNSS tracker, to the bit."""
-    frames = scenario(steps=10, n_feat=0, v2v_range=1.0)
+    frames = road_frames(steps=10, n_feat=0, v2v_range=1.0)
     icp, gnss = IcpKnownDA(IcpParams(motion=MOTION)), GnssTracker(MOTION)
     for f in frames:
         a = icp.step_with_association(f, f.truth.v2f_feature)
@@ -277,7 +203,7 @@ def test_stored_message_is_the_own_sensor_belief_through_the_v2f_likelihood():
     """feature_message = "own": the message a track keeps of each row is N(own mean + z, own cov + R)
     in closed form, whatever the other features said this step; "bpa" keeps (19) with the other
     features in the cavity, which differs for a vehicle observing two features at once."""
-    f = scenario(steps=1, v2f_range=40.0)[0]
+    f = road_frames(steps=1, v2f_range=40.0)[0]
     assoc = f.truth.v2f_feature
     used = assoc >= 0
     assert np.bincount(f.v2f_owner[used]).max() >= 2, "some vehicle must observe two features"
@@ -305,7 +231,7 @@ def test_stored_message_is_the_own_sensor_belief_through_the_v2f_likelihood():
 def test_reported_feature_estimates_are_eq20_with_the_final_messages():
     """The step's feature estimate is b_k = b_k^(0) prod_i m_{i->k} (20) with BPA-L's final messages,
     b_k^(0) the carried track without the messages this step's observers replace (second step)."""
-    frames = scenario(steps=2, v2v_range=25.0)
+    frames = road_frames(steps=2, v2v_range=25.0)
     params = IcpParams(motion=MOTION)
     icp = IcpKnownDA(params)
     icp.step_with_association(frames[0], frames[0].truth.v2f_feature)
@@ -341,7 +267,7 @@ def test_tracks_of_own_sensor_messages_are_consistent_and_final_messages_are_not
     (measured 1.81; per seed 0.73 to 3.17)."""
     nees = {"own": [], "bpa": []}
     for seed in range(1, 7):
-        frames = scenario(seed=seed, n=8, steps=40, n_feat=8, v2f_range=30.0)
+        frames = road_frames(seed=seed, n=8, steps=40, n_feat=8, v2f_range=30.0)
         for fm in nees:
             params = IcpParams(motion=MOTION, feature_sigma_par=1e-4, feature_message=fm, feature_drop_after_s=100.0)
             icp = IcpKnownDA(params)
@@ -359,7 +285,7 @@ def test_tracks_of_own_sensor_messages_are_consistent_and_final_messages_are_not
 
 def test_single_observers_of_new_features_gain_nothing_on_first_sight():
     """No V2V links: each vehicle alone senses each new feature; extrinsic (21) is uniform."""
-    f = scenario(steps=1, v2v_range=1.0)[0]
+    f = road_frames(steps=1, v2v_range=1.0)[0]
     assert f.v2f_z.shape[0] > 0
     a = IcpKnownDA(IcpParams(motion=MOTION)).step_with_association(f, f.truth.v2f_feature)
     g = GnssTracker(MOTION).step(f)
@@ -368,7 +294,7 @@ def test_single_observers_of_new_features_gain_nothing_on_first_sight():
 
 
 def test_vehicles_entering_and_leaving_and_spd_throughout():
-    frames = scenario(steps=15, leave=(1, 5), enter=(3, 7), v2v_range=25.0)
+    frames = road_frames(steps=15, leave=(1, 5), enter=(3, 7), v2v_range=25.0)
     icp = IcpKnownDA(IcpParams(motion=MOTION))
     for f in frames:
         a = icp.step_with_association(f, f.truth.v2f_feature)
@@ -383,7 +309,7 @@ def test_vehicles_entering_and_leaving_and_spd_throughout():
 
 
 def test_unobserved_feature_is_kept_then_dropped():
-    frames = scenario(steps=1, n=1, n_feat=1)
+    frames = road_frames(steps=1, n=1, n_feat=1)
     f0 = frames[0]
     params = IcpParams(motion=MOTION, feature_drop_after_s=3.0)
     icp = IcpKnownDA(params)
@@ -401,19 +327,19 @@ def test_unobserved_feature_is_kept_then_dropped():
 
 
 def test_empty_frame_and_all_vehicles_gone():
-    from coloc.frame import empty_frame
+    from coloc.core.frame import empty_frame
 
     icp = IcpKnownDA()
     e = icp.step_with_association(empty_frame(0.0, 1.0), np.empty(0, np.int64))
     assert e.mean.shape == (0, 4)
-    f = scenario(steps=1)[0]
+    f = road_frames(steps=1)[0]
     icp.step_with_association(f, f.truth.v2f_feature)
     e = icp.step_with_association(empty_frame(1.0, 1.0), np.empty(0, np.int64))
     assert e.mean.shape == (0, 4) and e.feature_track_ids.size > 0
 
 
 def test_centralized_handles_enter_leave():
-    frames = scenario(steps=12, leave=(1, 4), enter=(3, 6))
+    frames = road_frames(steps=12, leave=(1, 4), enter=(3, 6))
     kf = CentralizedKF(IcpParams(motion=MOTION))
     for f in frames:
         e = kf.step_with_association(f, f.truth.v2f_feature)

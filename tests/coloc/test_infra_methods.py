@@ -1,20 +1,16 @@
-"""Infrastructure-mode estimators (coloc.infra): rsu_bp, sme, fg_topology_new per RSU."""
+"""Infrastructure-mode estimators (coloc.methods.infra): rsu_bp, sme, fg_topology_new per RSU."""
 
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from infra_frames import infra_frames  # noqa: E402
-
-from coloc.gnss import GnssTracker  # noqa: E402
-from coloc.infra import FgTopologyInfra, InfraMethodParams, RsuBpInfra, SmeInfra, home_rsu  # noqa: E402
-from coloc.models import MotionParams  # noqa: E402
-from coloc.rsu_bp import association_messages_open  # noqa: E402
+from coloc.core.models import MotionParams
+from coloc.methods.fg_topology import FgTopologyInfra
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.infra import InfraMethodParams, RsuBpInfra, SmeInfra, home_rsu
+from coloc.methods.rsu_bp import association_messages_open
+from scenes import infra_frames
 
 MOTION = MotionParams(sigma_along=0.35, sigma_cross=0.1)
 CLASSES = {"rsu_bp": RsuBpInfra, "sme": SmeInfra, "fg_topology_new": FgTopologyInfra}
@@ -195,7 +191,7 @@ def test_fg_old_factor_pulls_the_current_states_to_the_radar_topology():
     """First step (every vehicle enters): the fallback (8) is the only topology information. The estimate's
     sum of squared pairwise distances is closer to the radar's z^2 than without it (radar scan cut by one
     point, which skips both factors)."""
-    from coloc.topology import sum_sq_pairwise, topology_pseudo_measurement
+    from coloc.inference.topology import sum_sq_pairwise, topology_pseudo_measurement
 
     f0 = infra_frames(n_steps=1, n_veh=4, start=-20.0, spacing=10.0)[0]
     cut = replace(f0, infra=replace(f0.infra, radar_z=f0.infra.radar_z[:-1], radar_owner=f0.infra.radar_owner[:-1]))

@@ -1,9 +1,9 @@
-"""Particle-pair kernels of ICP-DA-PF (coloc.pf_kernels): fast and brute force against scipy."""
+"""Particle-pair kernels of ICP-DA-PF (coloc.kernels.pf): fast and brute force against scipy."""
 
 import numpy as np
 import pytest
 
-from coloc.pf_kernels import (
+from coloc.kernels.pf import (
     KernelWorkspace,
     RepeatedTransforms,
     fixed_transforms,
@@ -73,7 +73,7 @@ def test_zero_weights_and_empty_batches():
 
 
 def test_polynomial_exp_of_the_leaf_loop():
-    from coloc.pf_kernels import _exp_neg
+    from coloc.kernels.pf import _exp_neg
 
     y = np.concatenate([np.linspace(0.0, 689.99, 200001), np.random.default_rng(0).uniform(0.0, 40.0, 100000),
                         np.log(2.0) * (np.arange(995) + 0.5)])  # the range reduction's half-way points

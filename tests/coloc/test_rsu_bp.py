@@ -9,7 +9,8 @@ import pytest
 from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
-from coloc.rsu_bp import (
+from coloc.inference.particles import systematic_resample_right
+from coloc.methods.rsu_bp import (
     RsuBpParams,
     _exp_nonpositive,
     association_messages,
@@ -18,7 +19,6 @@ from coloc.rsu_bp import (
     pair_log_messages,
     rsu_bp_filter,
     rsu_bp_step,
-    systematic_resample,
 )
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
 
@@ -139,7 +139,7 @@ def test_association_close_to_exact_marginals_when_decisive():
 def test_systematic_resample_counts():
     rng = np.random.default_rng(0)
     w = np.array([0.5, 0.25, 0.125, 0.125, 0.0])
-    idx = systematic_resample(np.log(np.where(w > 0, w, 1e-300)), rng)
+    idx = systematic_resample_right(np.log(np.where(w > 0, w, 1e-300)), rng)
     counts = np.bincount(idx, minlength=5)
     # systematic resampling: each count is floor or ceil of n w
     assert np.all(np.abs(counts - 5 * w) < 1.0) and counts[4] == 0
@@ -221,7 +221,7 @@ def test_kalman_filter_steady_state_matches_riccati():
     """The baseline KF's covariance converges to the solution of the discrete algebraic Riccati equation."""
     from scipy.linalg import solve_discrete_are
 
-    from coloc.rsu_bp import cv_process_cov, cv_transition
+    from coloc.core.models import cv_process_cov, cv_transition
 
     dt, r, var = 0.5, 0.1, 15.0
     a, q = cv_transition(dt), cv_process_cov(dt, r)
@@ -284,7 +284,7 @@ def test_trends_of_figs_4_and_5():
 
 
 def test_cv_model_matrices_of_eqs_28_29():
-    from coloc.rsu_bp import cv_process_cov, cv_transition
+    from coloc.core.models import cv_process_cov, cv_transition
 
     a = cv_transition(0.5)
     np.testing.assert_array_equal(a, [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1]])

@@ -13,7 +13,7 @@
 import numpy as np
 import pytest
 
-from coloc.sme import (
+from coloc.methods.sme import (
     SmeFilter,
     SmeParams,
     gaussian_raw_moments,
@@ -188,7 +188,7 @@ def test_paper_pseudo_measurements_have_an_exact_xy_pairing_ghost():
     coordinates among vehicles leaves (9) and (10) unchanged: in Zhang's scenario the ghost
     (80t, 0), (45t, 80t), (0, 45t) of the truth (80t, 0), (45t, 45t), (0, 80t) is indistinguishable,
     which is what the shipped study's one ghost-locked run in 200 follows."""
-    from coloc.topology import sum_sq_pairwise
+    from coloc.inference.topology import sum_sq_pairwise
 
     t = 7.0
     truth = np.array([[80 * t, 0.0], [45 * t, 45 * t], [0.0, 80 * t]])

@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from coloc.models import input_matrix, transition_matrix
+from coloc.core.models import input_matrix, transition_matrix
 from couplers.scenarios import (
     CrossroadParams,
     SingleRoadParams,

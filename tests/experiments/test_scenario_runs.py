@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from coloc.icp import IcpParams
-from coloc.icp_da_pf import IcpDaPf, PfParams
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_da_pf import IcpDaPf, PfParams
 from couplers.errors import InputError
 from experiments.cli import main
 from experiments.config import config_from_dict, load_config

@@ -3,7 +3,7 @@
 Brambilla et al.'s ICP-DA with perfect data association, i.e. Soatti et al.'s
 implicit cooperative positioning [40]: Gaussian BPA-L (19)-(22) with the
 feature beliefs (20) computed by average consensus over V2V links
-(:mod:`coloc.icp` has the math and the equation mapping).
+(:mod:`coloc.inference` has the math and the equation mapping).
 
 Because it is the bound, this method is told which feature produced each V2F
 row. It never reads ``frame.truth``: the caller passes the association
@@ -15,13 +15,13 @@ refuses to guess and raises.
 
 Per step:
 1. vehicles: carried posterior predicted by model (1) with the inertial
-   input and Q from :func:`coloc.models.driving_noise_cov`, then GNSS (3)
+   input and Q from :func:`coloc.core.models.driving_noise_cov`, then GNSS (3)
    update -> b^(0) of (11); vehicles fresh this step start from the frame's
    fast-start prior (updated by GNSS, not predicted), exactly as
-   :class:`coloc.gnss.GnssTracker`;
+   :class:`coloc.methods.gnss.GnssTracker`;
    the vehicle's own-sensor track (GNSS + inertial only) is advanced the
    same way; it is what the vehicle tells features in (19)
-   (:func:`coloc.icp.bpa_localization` explains why);
+   (:func:`coloc.inference.bpa.bpa_localization` explains why);
 2. features: tracks predicted by model (2) with Q_F -> b^(0) of (12),
    without the messages the observing vehicles are about to replace; a
    feature seen for the first time starts from the birth prior (uniform by
@@ -29,10 +29,10 @@ Per step:
 3. BPA-L iterations until the stopping rule of Sec. V-A;
 4. each observing vehicle's message (its own-sensor one by default,
    ``IcpParams.feature_message``) replaces its previous one in the track
-   (:class:`coloc.icp.FeatureStore`); tracks nobody observed are predicted
+   (:class:`coloc.inference.feature_store.FeatureStore`); tracks nobody observed are predicted
    every step and dropped after ``feature_drop_after_s``. The step's feature
    estimates are the beliefs (20) with BPA-L's final messages
-   (:func:`coloc.icp.step_feature_beliefs`).
+   (:func:`coloc.inference.bpa.step_feature_beliefs`).
 """
 
 from __future__ import annotations
@@ -41,12 +41,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coloc.frame import Frame, StepEstimate
-from coloc.kalman_kernels import gnss_step_kernel
-from coloc.icp import (
-    BpaResult, FeatureStore, IcpParams, bpa_localization, step_feature_beliefs, validate_association, vehicle_codes,
-)
-from coloc.vehicles import carry_states, match_ids
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicles import carry_states, match_ids
+from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
+from coloc.inference.feature_store import FeatureStore, vehicle_codes
+from coloc.inference.params import IcpParams
+from coloc.kernels.kalman import gnss_step_kernel
+from coloc.methods.registry import ICP_KNOWN_DA
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
 
@@ -63,7 +64,7 @@ def vehicle_prior_beliefs(
         prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, match
     )
     # Predict (1) + GNSS update (3) in place, fresh vehicles update only: the numba kernel of
-    # :class:`coloc.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
+    # :class:`coloc.methods.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
     m = params.motion
     gnss_step_kernel(
         mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
@@ -105,7 +106,7 @@ class IcpState:
     own_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # own-sensor (GNSS-only) beliefs
     own_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
     features: FeatureStore = field(default_factory=FeatureStore)
-    # (mean, cov) of (20) for ``features.ids`` after the step's BPA-L (coloc.icp.step_feature_beliefs);
+    # (mean, cov) of (20) for ``features.ids`` after the step's BPA-L (coloc.inference.bpa.step_feature_beliefs);
     # None: the store's moments.
     feature_beliefs: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -123,20 +124,14 @@ class IcpState:
 
 @dataclass
 class IcpKnownDA:
-    """Stateful ICP with known DA. Use :meth:`step_with_association`."""
+    """Stateful ICP with known DA: a :class:`coloc.core.protocol.KnownAssociationEstimator` (it has no
+    ``step``; the true association of every V2F row comes with each frame)."""
 
     params: IcpParams = field(default_factory=IcpParams)
-    name: str = "icp_known_da"
+    name: str = ICP_KNOWN_DA.name
     last_iterations: int = 0
     last_converged: bool = True
     state: IcpState = field(default_factory=IcpState)
-
-    def step(self, frame: Frame) -> StepEstimate:
-        raise TypeError(
-            "icp_known_da is the known-association bound and needs the true feature of every V2F row; "
-            "call step_with_association(frame, v2f_feature) with stable integer feature ids "
-            "(e.g. frame.truth.v2f_feature, taken by the runner, never by the estimator)"
-        )
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         res, self.state = icp_known_da_step(self.state, frame, v2f_feature, self.params)

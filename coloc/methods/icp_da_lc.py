@@ -3,7 +3,7 @@
 Per time step, with no knowledge of which feature produced a V2F row:
 
 1. vehicle beliefs b_i^(0) (11) and own-sensor tracks, exactly as
-   :mod:`coloc.icp_known_da`; feature tracks predicted by model (2) (12);
+   :mod:`coloc.methods.icp_known_da`; feature tracks predicted by model (2) (12);
 2. candidate tracks F_i,t of vehicle i: tracks whose predicted position is
    within the sensing range Rs of the vehicle's predicted position plus a
    3-sigma margin of both uncertainties (the vehicle knows its own sensor's
@@ -16,7 +16,7 @@ Per time step, with no knowledge of which feature produced a V2F row:
    = 1 - P_D. The paper leaves eta(0) and the clutter/new-feature weight
    implicit (its features are always in range and known in number). Here a
    measurement that no track explains has weight 1 in the BP of
-   :mod:`coloc.association`, so eta is divided by the density of a
+   :mod:`coloc.inference.association`, so eta is divided by the density of a
    measurement from an untracked feature: position uniform in the sensing
    disc (1 / (pi Rs^2)) and velocity z_v = v_F - v_V with v_F ~ N(0,
    s_new^2 I), times the expected number mu_new of untracked features in
@@ -25,14 +25,14 @@ Per time step, with no knowledge of which feature produced a V2F row:
 5. MAP pairing (30): track k is detected iff b(alpha = 0) < eta_TH and is
    paired with argmax_l b(alpha = l); two tracks claiming the same row: the
    larger belief wins, the other is not detected;
-6. feature tracks without a map (DESIGN "Features without a map"): a row no
+6. feature tracks without a map (docs/architecture.md "Features without a map"): a row no
    track took whose "new" belief is >= ``birth_probability`` starts a track;
    rows of different vehicles whose implied feature positions (m_i + z_l)
    agree within the 99 % chi-square gate (2 dof) start *one* track
    (vehicles share new tracks over V2V; the lowest new id wins); other unpaired rows
    are discarded (counted as such by the scoring);
 7. Gaussian BPA-L (19)-(22) with consensus on the paired rows, i.e. the
-   likelihood (31), and the latest-message track store of :mod:`coloc.icp`;
+   likelihood (31), and the latest-message track store of :mod:`coloc.inference`;
 8. merging: two tracks whose means are within ``merge_gate_m`` and within the
    99 % chi-square gate (2 dof) of their summed position covariances, and
    that no vehicle observed both at this step, are merged into the older id;
@@ -53,12 +53,15 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from coloc.association import association_marginals_batch
-from coloc.frame import Frame, StepEstimate
-from coloc.icp import FeatureStore, IcpParams, bpa_localization, step_feature_beliefs, vehicle_codes
-from coloc.icp_kernels import log_gauss_kernel
-from coloc.icp_known_da import IcpState, vehicle_prior_beliefs
-from coloc.vehicles import match_ids
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicles import match_ids
+from coloc.inference.association import association_marginals_batch
+from coloc.inference.bpa import bpa_localization, step_feature_beliefs
+from coloc.inference.feature_store import FeatureStore, vehicle_codes
+from coloc.inference.gaussian import log_gauss
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
     "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
@@ -118,32 +121,11 @@ class LcParams:
             raise ValueError("bp_iterations must be >= 1 and bp_tol > 0")
 
 
-_LOG_2PI = math.log(2.0 * math.pi)
-
 
 @lru_cache(maxsize=64)
 def _chi2_ppf(p: float, dof: int) -> float:
     """chi-square quantile, computed once per (p, dof): scipy's ppf costs ~0.1 ms a call."""
     return float(chi2.ppf(p, dof))
-
-
-def _log_gauss(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log N(nu; 0, S) and the squared Mahalanobis distance, batched over rows (numba kernel)."""
-    nu = np.asarray(nu, dtype=np.float64)
-    d = nu.shape[-1]
-    lp, d2 = log_gauss_kernel(
-        np.ascontiguousarray(nu.reshape(-1, d)), np.ascontiguousarray(np.asarray(s, dtype=np.float64).reshape(-1, d, d))
-    )
-    return lp.reshape(nu.shape[:-1]), d2.reshape(nu.shape[:-1])
-
-
-def _log_gauss_numpy(nu: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of :func:`_log_gauss`: log N(nu; 0, S) and the squared Mahalanobis distance."""
-    chol = np.linalg.cholesky(s)
-    w = np.linalg.solve(chol, nu[..., None])[..., 0]
-    d2 = np.einsum("...i,...i->...", w, w)
-    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
-    return -0.5 * (d2 + logdet + nu.shape[-1] * _LOG_2PI), d2
 
 
 def candidate_pairs(
@@ -182,7 +164,7 @@ def new_feature_log_density(v_mean: np.ndarray, v_cov: np.ndarray, z: np.ndarray
     is Gaussian around -v_V; ``v_mean``/``v_cov`` are the measuring vehicle's.
     """
     s_v = v_cov[:, 2:, 2:] + r[:, 2:, 2:] + lc.new_feature_velocity_sigma**2 * np.eye(2)
-    log_new_v, _ = _log_gauss(z[:, 2:] + v_mean[:, 2:], s_v)
+    log_new_v, _ = log_gauss(z[:, 2:] + v_mean[:, 2:], s_v)
     return math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2) + log_new_v
 
 
@@ -200,7 +182,7 @@ def association_weights(
     if pr.size == 0:
         return pv, pt, pr, np.empty(0)
     nu = z[pr] - (t_mean[pt] - v_mean[pv])
-    log_lik, d2 = _log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
+    log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
     log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     log_w = math.log(lc.detection_probability) + log_lik - log_new
     w = np.exp(np.minimum(log_w, 600.0))
@@ -456,7 +438,7 @@ class IcpDaLc:
 
     params: IcpParams = field(default_factory=IcpParams)
     lc: LcParams = field(default_factory=LcParams)
-    name: str = "icp_da_lc"
+    name: str = ICP_DA_LC.name
     state: IcpState = field(default_factory=IcpState)
     next_id: int = 0
     last: LcStepInfo | None = None

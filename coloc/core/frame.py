@@ -1,6 +1,6 @@
 """The frame: the only thing that crosses from ``couplers`` to ``coloc``.
 
-One frame per time step, arrays not objects (DESIGN "The frame"). Estimators
+One frame per time step, arrays not objects (docs/architecture.md "The frame contract"). Estimators
 read only the measurement fields; ``truth`` is for scoring and tests, and an
 estimator that reads it is a bug (``tests/coloc/test_truth_blind.py``).
 

@@ -12,12 +12,12 @@ particles. Per time step:
    double sum over vehicle and feature particles,
        eta(alpha = l) = P_D sum_v w_i^(v) (1/Jf) sum_f N(z_l; s_k^(f) - s_i^(v), R_l) / (mu_new f_new(z_l)),
    normalised by the density of a measurement from an untracked feature exactly
-   as ICP-DA-LC (:mod:`coloc.icp_da_lc`, step 3) so that the two
+   as ICP-DA-LC (:mod:`coloc.methods.icp_da_lc`, step 3) so that the two
    implementations take the same decisions on the same beliefs;
    eta(alpha = 0) = 1 - P_D. Candidate triples are pre-gated with the
    particle clouds' moments (chi-square, ``lc.gate_probability``): outside the
    gate the double sum is not evaluated and eta = 0;
-3. BPA-DA (14)-(17), the same numba BP as LC (:func:`coloc.icp_da_lc.association_beliefs`);
+3. BPA-DA (14)-(17), the same numba BP as LC (:func:`coloc.methods.icp_da_lc.association_beliefs`);
 4. the V2F likelihood (18) for localization, a mixture over the association
    beliefs, with p(z | x, alpha = 0) = 1 - P_D and
    p(z | x, alpha = l) = P_D N(z_l; x_F - x_V, R_l) / (mu_new f_new(z_l)),
@@ -36,7 +36,7 @@ particles. Per time step:
    vehicles and observed tracks (equal weights for (23)-(24) next step);
 7. feature tracks without a map as in LC: a row whose "new" belief is at
    least ``lc.birth_probability`` starts a track (rows of several vehicles
-   implying the same position start one, :func:`coloc.icp_da_lc.birth_clusters`).
+   implying the same position start one, :func:`coloc.methods.icp_da_lc.birth_clusters`).
    A newborn track's particles are drawn from the Gaussian the row implies
    (vehicle moments + z, with the velocity prior of ``IcpParams`` if set) and
    carry importance weights prior / proposal, i.e. the paper's uniform belief
@@ -52,7 +52,7 @@ generators): every random draw of a vehicle's or a track's particles comes from
 a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
 CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
 track k draws the same particles without communicating. The pairwise sums are
-the kernels of :mod:`coloc.pf_kernels` (a k-d tree kernel exact to
+the kernels of :mod:`coloc.kernels.pf` (a k-d tree kernel exact to
 ``kernel_rel_tol`` per entry, or the brute force); BPA-L's two message sums keep
 their kernel matrices through the iterations of a step (``pf.kernel_cache_mb``),
 since only the cavity weights change between iterations.
@@ -60,7 +60,7 @@ since only the cavity weights change between iterations.
 The time recursion (``PfParams.recursion``): "paper" is (23)-(24) as written
 (vehicle sets carry the cooperative belief, tracks their posterior); the
 default "latest_message" is the particle counterpart of the own-sensor cavity
-and latest-message store that :mod:`coloc.icp` adds to the Gaussian ICP
+and latest-message store that :mod:`coloc.inference` adds to the Gaussian ICP
 against the feedback of a feature's information through the vehicle belief.
 
 Two departures keep the particle messages from being Monte Carlo noise
@@ -71,7 +71,7 @@ x_F - x_V, R), a message is a comb of J spikes (a vehicle particle meets on
 average well under one feature particle inside the 4-D kernel at J = 1000),
 and a product of several such messages keeps one particle. "prior" (default)
 treats each particle set as a kernel density estimate, as nonparametric BP
-does (Sudderth et al.; the RSU BP of :mod:`coloc.rsu_bp` likewise): the
+does (Sudderth et al.; the RSU BP of :mod:`coloc.methods.rsu_bp` likewise): the
 kernel of every double sum becomes R + h^2 Cov of the source set, Silverman's
 h for the effective sample size of b^(0) (:func:`kernel_density`). The
 smoothing is a bias that vanishes as J grows. Measured in the tests'
@@ -93,29 +93,34 @@ import scipy.sparse as sp
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
-from coloc.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
-from coloc.frame import Frame, StepEstimate
-from coloc.icp import IcpParams, consensus_graph, row_components
-from coloc.icp_kernels import scatter_add, scatter_max
-from coloc.logspace import logsumexp as plain_logsumexp
-from coloc.icp_da_lc import (
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicles import match_ids
+from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
+from coloc.inference.gaussian import log_gauss
+from coloc.inference.params import IcpParams
+from coloc.inference.particles import (
+    gaussian_log_pdf,
+    kernel_density,
+    normalize_log,
+    predict_track_particles,
+    predict_vehicle_particles,
+    regularized_resample,
+    sample_gaussian,
+    systematic_resample,
+    weighted_moments,
+)
+from coloc.inference.row_consensus import consensus_graph, row_components
+from coloc.kernels.icp import scatter_add, scatter_max
+from coloc.kernels.pf import KERNELS, KernelWorkspace, RepeatedTransforms, kept_problem_count, transform_batch
+from coloc.methods.icp_da_lc import (
     LcParams,
-    _log_gauss,
     association_beliefs,
     birth_clusters,
     candidate_rows,
     merge_candidates,
     new_feature_log_density,
 )
-from coloc.models import input_matrix, rotated_diag, transition_matrix
-from coloc.pf_kernels import (
-    KERNELS,
-    KernelWorkspace,
-    RepeatedTransforms,
-    kept_problem_count,
-    transform_batch,
-)
-from coloc.vehicles import match_ids
+from coloc.methods.registry import ICP_DA_PF
 
 __all__ = [
     "PfParams", "PfState", "PfStepInfo", "IcpDaPf", "icp_da_pf_step", "pf_bpa_localization", "entity_rng",
@@ -124,7 +129,6 @@ __all__ = [
 
 RECURSIONS = ("latest_message", "paper")
 BANDWIDTHS = ("prior", "shrunk", "none")
-_LOG_FLOOR = -700.0  # log-weights are kept finite (consensus averages them)
 _PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
             "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
 
@@ -138,7 +142,7 @@ class PfParams:
     belief (27)), and a track's b_k^(0) of (24) is its propagated posterior,
     so each step multiplies in again, through the vehicle and through the
     track, the evidence of earlier steps. "latest_message" (default) is the
-    particle counterpart of what :mod:`coloc.icp` does for the Gaussian ICP:
+    particle counterpart of what :mod:`coloc.inference` does for the Gaussian ICP:
     a vehicle's particle set is its own-sensor belief (GNSS + inertial,
     resampled by its GNSS weights; the cooperative belief (27) is its output),
     and a track keeps, per observing vehicle, the log-value of that vehicle's
@@ -151,7 +155,7 @@ class PfParams:
     own-sensor messages, i.e. the feature belief (26) of the *first* BPA-L
     iteration (every m_{k->i} still 1, so each vehicle's cavity is its
     own-sensor set), and the kept messages are that iteration's; the step's
-    estimate is the final (26). As for the Gaussian ICP (:class:`coloc.icp.IcpParams`),
+    estimate is the final (26). As for the Gaussian ICP (:class:`coloc.inference.params.IcpParams`),
     the final messages carry the other features' messages, i.e. other
     vehicles' evidence, and carrying them counts that evidence again in every
     track. Measured on the crossroad (Nf = 20, J = 1000, seeds 1-6): PF
@@ -185,7 +189,7 @@ class PfParams:
     a pair) through the iterations of a step, as far as they fit in this many MB:
     the particles and kernels do not change between iterations, only the cavity
     weights, so each later iteration is a matrix-vector product, exact to
-    ``kernel_rel_tol`` as the tree (:func:`coloc.pf_kernels.fixed_transforms`).
+    ``kernel_rel_tol`` as the tree (:func:`coloc.kernels.pf.fixed_transforms`).
     The single road at J = 5000 needs 1.6 GB (8 terms, two directions); 0 keeps
     none. ``min_association_belief``: options of (18) with a smaller BPA-DA belief
     are left out of the mixture.
@@ -232,133 +236,9 @@ def _vehicle_entity(vehicle_id) -> int:
     return zlib.crc32(str(vehicle_id).encode())
 
 
-def normalize_log(logw: np.ndarray) -> np.ndarray:
-    """Log-weights normalised along the last axis (log-sum-exp = 0), floored at -700."""
-    return np.maximum(logw - plain_logsumexp(logw, axis=-1, keepdims=True), _LOG_FLOOR)
-
-
-def _linear_weights(logw: np.ndarray) -> np.ndarray:
-    """Weights summing to one along the last axis, from log-weights."""
-    w = np.exp(normalize_log(logw))
-    return w / w.sum(-1, keepdims=True)
-
-
-def weighted_moments(particles: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """MMSE mean and weighted covariance of particle sets (..., J, 4) with log-weights (..., J)."""
-    return _moments(particles, _linear_weights(logw))
-
-
-def _moments(particles: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    mean = (w[..., None, :] @ particles)[..., 0, :]
-    d = particles - mean[..., None, :]
-    cov = np.swapaxes(d * w[..., None], -1, -2) @ d
-    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2)) + 1e-9 * np.eye(4)
-    return mean, cov
-
-
-def systematic_resample(logw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Indices of a systematic resampling of one set (J,) of log-weights."""
-    j = logw.shape[0]
-    w = np.exp(normalize_log(logw))
-    c = np.cumsum(w)
-    c /= c[-1]
-    u = (rng.random() + np.arange(j)) / j
-    return np.minimum(np.searchsorted(c, u), j - 1)
-
-
-def silverman_factor(j, d: int = 4):
-    """h^2 of Silverman's rule of thumb, h = (4 / ((d + 2) J))^(1 / (d + 4)) (J may be an array)."""
-    return (4.0 / ((d + 2) * np.asarray(j, dtype=float))) ** (2.0 / (d + 4))
-
-
-def kernel_density(particles: np.ndarray, logw: np.ndarray, bandwidth: str) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel centres and the kernel covariance added to R, for weighted particle sets (..., J, 4),
-    by ``PfParams.message_bandwidth``: "none" the particles and 0 (the bare V2F kernel); "prior"
-    the particles and h^2 Cov_w (Silverman's h, :func:`silverman_factor`, on the effective sample
-    size 1 / sum w^2 for J);
-    "shrunk" h^2 Cov_w with the particles pulled towards the weighted mean m by Liu and West's
-    a = sqrt(1 - h^2), a x + (1 - a) m, so that the density keeps the set's mean and covariance
-    (a^2 Cov + h^2 Cov = Cov) instead of inflating the covariance by 1 + h^2."""
-    if bandwidth == "none":
-        return particles, np.zeros(particles.shape[:-2] + (4, 4))
-    w = _linear_weights(logw)
-    ess = 1.0 / np.einsum("...j,...j->...", w, w)
-    mean, cov = _moments(particles, w)
-    h2 = silverman_factor(ess)
-    if bandwidth == "prior":
-        return particles, h2[..., None, None] * cov
-    a = np.sqrt(1.0 - h2)[..., None, None]
-    return a * particles + (1.0 - a) * mean[..., None, :], h2[..., None, None] * cov
-
-
-def regularized_resample(particles: np.ndarray, logw: np.ndarray, index: np.ndarray, rng: np.random.Generator,
-                         regularize: bool) -> np.ndarray:
-    """``particles[index]`` (a resampling of the set), then (if ``regularize``) Liu-West shrinkage jitter (PfParams)."""
-    out = particles[index]
-    if not regularize:
-        return out
-    j, d = particles.shape
-    mean, cov = weighted_moments(particles, logw)
-    h2 = silverman_factor(j, d)
-    a = math.sqrt(1.0 - h2)
-    vals, vecs = np.linalg.eigh(cov)
-    root = vecs * np.sqrt(np.maximum(vals, 0.0))
-    return a * out + (1.0 - a) * mean + math.sqrt(h2) * (rng.standard_normal((j, d)) @ root.T)
-
-
-def _sample_gaussian(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
-    root = vecs * np.sqrt(np.maximum(vals, 0.0))
-    return mean + rng.standard_normal((n, mean.size)) @ root.T
-
-
-def _gaussian_log_pdf(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    lp, _ = _log_gauss(x - mean, np.broadcast_to(cov, x.shape + (x.shape[-1],)))
-    return lp
-
-
-def predict_vehicle_particles(particles: np.ndarray, accel: np.ndarray, dt: float, params: IcpParams,
-                              noise: np.ndarray) -> np.ndarray:
-    """Model (1) on (N, J, 4) particles; ``noise`` (N, J, 2) standard normal draws.
-
-    The driving noise is rotated to the heading of each vehicle's mean
-    velocity (isotropic below ``motion.heading_min_speed``), as the Gaussian
-    trackers orient Q.
-    """
-    a, b = transition_matrix(dt), input_matrix(dt)
-    mp = params.motion
-    v = particles[..., 2:].mean(axis=1)
-    heading = np.arctan2(v[:, 1], v[:, 0])
-    c, s = np.cos(heading), np.sin(heading)
-    slow = np.hypot(v[:, 0], v[:, 1]) < mp.heading_min_speed
-    s_cross = np.where(slow, mp.sigma_along, mp.sigma_cross)
-    along = noise[..., 0] * mp.sigma_along
-    cross = noise[..., 1] * s_cross[:, None]
-    acc = np.stack([c[:, None] * along - s[:, None] * cross, s[:, None] * along + c[:, None] * cross], axis=-1)
-    return particles @ a.T + (accel[:, None, :] + acc) @ b.T
-
-
-def predict_track_particles(particles: np.ndarray, logw: np.ndarray, dt: float, params: IcpParams,
-                            noise: np.ndarray) -> np.ndarray:
-    """Model (2) on (K, J, 4) track particles; ``noise`` (K, J, 2) standard normal draws."""
-    a = transition_matrix(dt)
-    g = np.vstack([dt * np.eye(2), np.eye(2)])
-    mean, _ = weighted_moments(particles, logw)
-    v = mean[:, 2:]
-    heading = np.arctan2(v[:, 1], v[:, 0])
-    slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
-    par, perp = params.feature_sigma_par, params.feature_sigma_perp_value
-    c, s = np.cos(heading), np.sin(heading)
-    s_perp = np.where(slow, par, perp)
-    along = noise[..., 0] * par
-    cross = noise[..., 1] * s_perp[:, None]
-    dv = np.stack([c[:, None] * along - s[:, None] * cross, s[:, None] * along + c[:, None] * cross], axis=-1)
-    return particles @ a.T + dv @ g.T
-
-
 def gnss_log_likelihood(particles: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
     """log N(z_i; s_i^(v), R_i) of (23) for (N, J, 4) particles."""
-    lp, _ = _log_gauss(z[:, None, :] - particles, np.broadcast_to(r[:, None], particles.shape + (4,)))
+    lp, _ = log_gauss(z[:, None, :] - particles, np.broadcast_to(r[:, None], particles.shape + (4,)))
     return lp
 
 
@@ -404,7 +284,7 @@ def _flat_prior_messages(vehicle_particles, flat_e, entry_vehicle, term_entry, t
     sel = np.flatnonzero(flat_e[term_entry])
     v = vehicle_particles[entry_vehicle[term_entry[sel]]][..., 2:]  # (T, Jv, 2)
     cov = velocity_prior_sigma**2 * np.eye(2) + t_r[sel, 2:, 2:]
-    lp, _ = _log_gauss(t_z[sel, None, 2:] + v, np.broadcast_to(cov[:, None], v.shape + (2,)))
+    lp, _ = log_gauss(t_z[sel, None, 2:] + v, np.broadcast_to(cov[:, None], v.shape + (2,)))
     seg = np.searchsorted(ents, term_entry[sel])
     return normalize_log(_segment_logsumexp(term_log_c[sel, None] + lp, seg, ents.size, np.full(ents.size, -np.inf)))
 
@@ -584,7 +464,7 @@ class PfStepInfo:
 
 @dataclass(frozen=True)
 class _TrackMoments:
-    """The piece of the track-store interface :func:`coloc.icp_da_lc.merge_candidates` reads."""
+    """The piece of the track-store interface :func:`coloc.methods.icp_da_lc.merge_candidates` reads."""
 
     ids: np.ndarray
     mean: np.ndarray
@@ -619,9 +499,9 @@ def _birth_particles(v_mean, v_cov, z_rows, r_rows, entities, step, params: IcpP
             cov = cov.copy()
             cov[2:, 2:] = post
             cov[:2, 2:] = cov[2:, :2] = 0.0
-        x = _sample_gaussian(mean, cov, jf, entity_rng(pf.seed, "track_birth", ent, step))
-        log_q = _gaussian_log_pdf(x, mean, cov)
-        log_prior = _gaussian_log_pdf(x[:, 2:], np.zeros(2), s * s * np.eye(2)) if s else 0.0
+        x = sample_gaussian(mean, cov, jf, entity_rng(pf.seed, "track_birth", ent, step))
+        log_q = gaussian_log_pdf(x, mean, cov)
+        log_prior = gaussian_log_pdf(x[:, 2:], np.zeros(2), s * s * np.eye(2)) if s else 0.0
         out[c] = x
         logw[c] = normalize_log(log_prior - log_q)
     return out, logw
@@ -656,7 +536,7 @@ def icp_da_pf_step(
             noise = np.stack([entity_rng(pf.seed, predict_purpose, ents[i], step).standard_normal((jv, 2)) for i in old])
             out[old] = predict_vehicle_particles(carried[idx[old]], frame.accel[old], frame.dt, params, noise)
         for i in np.flatnonzero(fresh):
-            out[i] = _sample_gaussian(frame.prior_z[i], frame.prior_R[i], jv, entity_rng(pf.seed, prior_purpose, ents[i], step))
+            out[i] = sample_gaussian(frame.prior_z[i], frame.prior_R[i], jv, entity_rng(pf.seed, prior_purpose, ents[i], step))
         return out
 
     particles = vehicle_sets(state.particles, "vehicle_predict", "vehicle_prior")
@@ -700,7 +580,7 @@ def icp_da_pf_step(
         # 2-3. eta (25) on the pre-gated candidates, BPA-DA (14)-(17).
         pv, pt, pr = candidate_rows(v_mean, assoc_cov, t_mean, t_cov, owner, lc)
         if pr.size:
-            _, d2 = _log_gauss(z[pr] - (t_mean[pt] - v_mean[pv]), t_cov[pt] + assoc_cov[pv] + r[pr])
+            _, d2 = log_gauss(z[pr] - (t_mean[pt] - v_mean[pv]), t_cov[pt] + assoc_cov[pv] + r[pr])
             keep = d2 <= chi2.ppf(lc.gate_probability, 4)
             pv, pt, pr = pv[keep], pt[keep], pr[keep]
         w = np.zeros(pr.size)
@@ -900,7 +780,7 @@ class IcpDaPf:
     params: IcpParams = field(default_factory=IcpParams)
     lc: LcParams = field(default_factory=LcParams)
     pf: PfParams = field(default_factory=PfParams)
-    name: str = "icp_da_pf"
+    name: str = ICP_DA_PF.name  # or icp_known_da_pf: the registry's builder sets it
     state: PfState = field(default_factory=PfState)
     next_id: int = 0
     last: PfStepInfo | None = None
@@ -912,7 +792,7 @@ class IcpDaPf:
         return est
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
-        """Known-DA variant (tests: PF against the Kalman bound)."""
+        """Known-DA variant (``icp_known_da_pf``; tests: PF against the Kalman bound)."""
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
                                                                    self.lc, self.pf, known_association=v2f_feature,
                                                                    workspace=self.workspace)

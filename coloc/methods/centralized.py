@@ -32,10 +32,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coloc.frame import Frame, StepEstimate
-from coloc.icp import IcpParams, feature_track_q, validate_association
-from coloc.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
-from coloc.vehicles import match_ids
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
+from coloc.core.vehicles import match_ids
+from coloc.inference.bpa import validate_association
+from coloc.inference.feature_store import feature_track_q
+from coloc.inference.params import IcpParams
 
 __all__ = ["JointState", "centralized_step", "one_step_joint", "CentralizedKF"]
 

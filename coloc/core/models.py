@@ -8,6 +8,8 @@ Model (2), features: x_F,t = A x_F,t-1 + w_F, Q_F = G diag(sv_par^2, sv_perp^2) 
 G = [Ts I; I] (a random walk on velocity, rotated to the feature heading).
 Model (3), GNSS: z = x + n, R = blockdiag(sp^2 I, sv^2 I).
 Model (4), V2F: z = x_F - x_V + n.
+Constant-velocity model (28)-(29) of Fröhle et al. (the rsu_bp estimator and its scenario):
+:func:`cv_transition`, :func:`cv_process_cov`.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class MotionParams:
-    """Driving noise of model (1), m/s^2 (DESIGN table: crossroad 0.35 / 0.001)."""
+    """Driving noise of model (1), m/s^2 (docs/architecture.md "Models and default parameters":
+    crossroad 0.35 / 0.001)."""
 
     sigma_along: float = 0.35
     sigma_cross: float = 0.001
@@ -112,3 +115,16 @@ def kalman_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, r: np.ndarra
     i_k = np.eye(4) - gain
     p = i_k @ cov @ np.swapaxes(i_k, -1, -2) + gain @ r @ np.swapaxes(gain, -1, -2)
     return m, symmetrize(p)
+
+
+# Constant-velocity model of Fröhle et al. (28)-(29) (their scenario and the rsu_bp estimator).
+
+
+def cv_transition(dt: float) -> np.ndarray:
+    """A of (28): [[1, dT], [0, 1]] ⊗ I_2, state [px, py, vx, vy]."""
+    return np.kron(np.array([[1.0, dt], [0.0, 1.0]]), np.eye(2))
+
+
+def cv_process_cov(dt: float, r: float) -> np.ndarray:
+    """R of (29): r [[dT^3/3, dT^2/2], [dT^2/2, dT]] ⊗ I_2 (continuous white-noise acceleration)."""
+    return r * np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), np.eye(2))

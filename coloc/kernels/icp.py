@@ -1,7 +1,7 @@
 """numba kernels for one Gaussian BPA-L iteration, eqs. (19), (21), (22) (Brambilla et al.
 Sec. IV-B/IV-D), on the V2F rows as arrays (one pass over the rows, no batched numpy
-temporaries). The numpy functions in :mod:`coloc.icp` (:func:`coloc.icp.relative_message`,
-the cavity and extrinsic differences of :func:`coloc.icp.bpa_localization`) are the
+temporaries). The numpy functions in :mod:`coloc.inference` (:func:`coloc.inference.gaussian.relative_message`,
+the cavity and extrinsic differences of :func:`coloc.inference.bpa.bpa_localization`) are the
 reference; tests check the kernels agree with them on random inputs.
 
 Every 4x4 inverse here is of a symmetric positive definite matrix (Lambda + R^-1, or a
@@ -101,7 +101,7 @@ def _relative_message_row(lam, eta, offset, sign, r_inv, out_lam, out_eta, s, s_
     """Eqs. (19)/(21) for one row: y = x + sign*offset + n, x ~ (lam, eta), n ~ N(0, R).
 
     S = Lambda + R^-1, Lambda_y = sym(Lambda S^-1 R^-1), eta_y = R^-1 S^-1 eta + Lambda_y sign*offset
-    (:func:`coloc.icp.relative_message`)."""
+    (:func:`coloc.inference.gaussian.relative_message`)."""
     for i in range(4):
         for j in range(4):
             s[i, j] = lam[i, j] + r_inv[i, j]
@@ -158,7 +158,7 @@ def vehicle_to_feature_kernel(owner, own_lam0, own_eta0, in_lam, in_eta, m_fv_la
     = own0[i] + in[i] - m_{k->i}, integrated over x_V with offset +z.
 
     Returns the messages (O, 4, 4), (O, 4) and the consensus input (O, 14): the upper
-    triangle of each (exactly symmetric) Lambda, then eta (``coloc.icp._pack_sym`` layout)."""
+    triangle of each (exactly symmetric) Lambda, then eta (``coloc.inference.bpa._pack_sym`` layout)."""
     o = owner.size
     out_lam = np.empty((o, 4, 4))
     out_eta = np.empty((o, 4))
@@ -264,8 +264,8 @@ def complete_component_consensus(indptr, indices, data, x, iterations, complete)
     the exact average and further rounds leave it unchanged (up to rounding). With Rc >= 2 Rs
     (arterial: 250 m and 50 m) two vehicles sensing one feature are always V2V neighbours, so
     every component is complete. ``complete`` (O,) flags the rows of complete components
-    (:func:`coloc.icp.row_consensus_weights`). Rows of other components run all rounds exactly as
-    :func:`coloc.consensus._average_kernel` (same operation order)."""
+    (:func:`coloc.inference.row_consensus.row_consensus_weights`). Rows of other components run all rounds exactly as
+    :func:`coloc.inference.consensus._average_kernel` (same operation order)."""
     o, d = x.shape
     out = np.empty_like(x)
     if iterations == 0:
@@ -385,7 +385,7 @@ def _scatter(kernel, ufunc, target: np.ndarray, rows: np.ndarray, values: np.nda
 def log_gauss_kernel(nu, s):
     """log N(nu; 0, S) and the squared Mahalanobis distance per row, S (P, d, d) symmetric positive
     definite, by an explicit Cholesky factor and forward substitution (the numpy reference is
-    ``coloc.icp_da_lc._log_gauss_numpy``). A non-PD S gives NaN, as LAPACK's Cholesky would fail."""
+    ``coloc.inference.gaussian.log_gauss_numpy``). A non-PD S gives NaN, as LAPACK's Cholesky would fail."""
     p, d = nu.shape
     log_pdf = np.empty(p)
     d2 = np.empty(p)
@@ -428,7 +428,7 @@ def log_gauss_kernel(nu, s):
 @njit(cache=True)
 def predict_no_input_kernel(mean, cov, q, dt):
     """Model (2) prediction (no input) per row: m = A m, P = sym(A P A^T + Q), A = [[I, dt I], [0, I]]
-    (numpy reference: ``coloc.models.predict`` with zero input)."""
+    (numpy reference: ``coloc.core.models.predict`` with zero input)."""
     k = mean.shape[0]
     m_out = np.empty((k, 4))
     p_out = np.empty((k, 4, 4))

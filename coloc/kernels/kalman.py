@@ -1,5 +1,5 @@
 """numba kernels for the per-vehicle 4x4 Kalman steps (the numpy versions in
-``coloc.models`` are the reference; tests check they agree)."""
+``coloc.core.models`` are the reference; tests check they agree)."""
 
 from __future__ import annotations
 

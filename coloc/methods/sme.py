@@ -15,7 +15,7 @@ Measurements of one step, both unlabelled:
   y_x = [sum_i g_x^i, sum_i (g_x^i)^2, ..., sum_i (g_x^i)^N] and likewise y_y.
 * Infrastructure detections (N, 2) in the sensor's unknown frame, noise
   sensor_var I2. Pseudo-measurement (10): the sum of squared pairwise distances
-  (pose- and order-free), see :mod:`coloc.topology`.
+  (pose- and order-free), see :mod:`coloc.inference.topology`.
 
 Numerical conditioning. The powers are taken of u = (g - c) / L with c the
 mean of the predicted positions and L a length scale (both known at update time).
@@ -31,7 +31,7 @@ documented choice):
 * Mean: the exact expectation under the Gaussian fix noise, h_k(x) = sum_i
   E[(mu_i + e)^k] with e ~ N(0, s^2), E[(mu + e)^k] = sum_{m even} C(k, m) mu^(k-m)
   s^m (m-1)!!. (For k = 2 this adds N s^2: without it the filter would be pulled
-  outwards.) The topology mean is corrected the same way (coloc.topology).
+  outwards.) The topology mean is corrected the same way (coloc.inference.topology).
 * Covariance, evaluated at the predicted positions mu_i (the EKF linearisation
   point), two options:
   ``pseudo_noise = "linearized"``: first-order (delta-method) linearisation of (9)
@@ -43,7 +43,7 @@ documented choice):
   point, where G has zero rows for k >= 2 while the power sums still carry noise
   of order s^2; the linearised R is then far too small and the filter diverged in
   a few of 50 seeded runs (RMSE in the km), the exact one in none. The topology
-  variance is (15) plus the second-order term (coloc.topology), which is exact,
+  variance is (15) plus the second-order term (coloc.inference.topology), which is exact,
   evaluated at the predicted state.
 * Jacobian of the mean with respect to the state: d/dmu E[(mu + e)^k] = k M_{k-1}(mu).
 
@@ -71,7 +71,8 @@ from math import comb
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from coloc.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
+from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
+from coloc.methods.registry import SME
 
 
 @dataclass(frozen=True)
@@ -243,19 +244,19 @@ class SmeFilter:
     mean: np.ndarray
     cov: np.ndarray
     params: SmeParams = SmeParams()
-    kind: str = "sme"
+    kind: str = SME.name
 
     def __post_init__(self):
         self.mean = np.array(self.mean, dtype=float)
         self.cov = np.array(self.cov, dtype=float)
-        if self.kind not in ("sme", "kf"):
-            raise ValueError(f"kind must be 'sme' or 'kf', not {self.kind!r}")
+        if self.kind not in (SME.name, "kf"):
+            raise ValueError(f"kind must be {SME.name!r} or 'kf', not {self.kind!r}")
 
     def step(self, gps_fixes: np.ndarray, sensor_points: np.ndarray | None = None, predict: bool = True):
         """Predict (unless ``predict`` is False, for the first step) and update; returns (mean, cov) copies."""
         if predict:
             self.mean, self.cov = sme_predict(self.mean, self.cov, self.params)
-        if self.kind == "sme":
+        if self.kind == SME.name:
             self.mean, self.cov = sme_update(self.mean, self.cov, gps_fixes, sensor_points, self.params)
         else:
             self.mean, self.cov = kf_update_labelled(self.mean, self.cov, gps_fixes, self.params.gps_var)

@@ -14,7 +14,7 @@ Model (Sec. IV-A), per vehicle i and step t, positions only (Point2 variables):
   position): a BetweenFactorPoint2 between consecutive states.
 * Infrastructure sensor (radar) with unknown pose: unlabelled detections in its
   own frame, reduced to the topology pseudo-measurement z_t^2 of
-  :mod:`coloc.topology` (bias-corrected; variance (15) plus the second-order
+  :mod:`coloc.inference.topology` (bias-corrected; variance (15) plus the second-order
   term, see there).
 * Old factor (8): residual sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2, on the N current states.
 * New factor (11)-(13): residual sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2.
@@ -26,7 +26,7 @@ Model (Sec. IV-A), per vehicle i and step t, positions only (Point2 variables):
 * Noise of both topology factors (``topology_noise``): "z2" (default) is the
   variance of the squared quantity z_t^2 that (8) and (13) compare, i.e. (15)
   with M of (16) taken as the gradient of z^2, plus the second-order term
-  (:mod:`coloc.topology`). "eq16_literal" reads (16) as printed, M = d z_t^T / d(x, y)
+  (:mod:`coloc.inference.topology`). "eq16_literal" reads (16) as printed, M = d z_t^T / d(x, y)
   (z, not z^2), which gives sigma^2 = N radar_var whatever the geometry, and uses it
   as the noise of the squared residual (13): a topology factor too confident by
   about 4 z^2 (z^2 ~ 1e4..1e6 m^2 here), which LM needs tens to hundreds of
@@ -44,23 +44,32 @@ the model above: position state, odometry as the known input
 first GPS fix. With the topology factors removed the factor graph is the
 Rauch-Tung-Striebel smoother of exactly this filter (its last state equals the
 filter's), which the tests check.
+
+:class:`FgTopologyInfra` is ``fg_topology_new`` run online at road-side units (a fixed-lag
+smoother per RSU; the infrastructure mode of :mod:`coloc.methods.infra`, whose doc describes it).
+gtsam is imported inside the functions that build a graph, so importing this module does not
+load it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
-from coloc.topology import (
+from coloc.inference.topology import (
     sum_sq_pairwise,
     sum_sq_pairwise_grad,
     topology_pseudo_measurement,
     topology_variance_eq16_literal,
 )
+from coloc.methods.infra import InfraMethodParams, _InfraBase
+from coloc.methods.registry import FG_TOPOLOGY_NEW
 
-FG_METHODS = ("fg_topology_old", "fg_topology_new", "fg_gps_odom")
+if TYPE_CHECKING:  # annotations only; imported at run time inside the functions that use it
+    import gtsam
+
 TOPOLOGY_NOISES = ("z2", "eq16_literal")
 
 
@@ -126,6 +135,8 @@ def build_graph(
     t-1 -> t (odom[0] unused); sensor (T, N, 2) unlabelled infrastructure detections in
     the sensor frame; ``topology`` one of "old", "new", "none".
     """
+    import gtsam  # imported when a factor graph is built
+
     n_steps, n_veh, _ = gps.shape
     graph = gtsam.NonlinearFactorGraph()
     gps_noise = gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(params.gps_var)))
@@ -158,6 +169,8 @@ def build_graph(
 
 def initial_values(gps: np.ndarray) -> gtsam.Values:
     """LM starts from the GPS fixes (the paper does not state its initial estimate)."""
+    import gtsam  # imported when a factor graph is built
+
     n_steps, n_veh, _ = gps.shape
     values = gtsam.Values()
     for i in range(n_veh):
@@ -169,6 +182,8 @@ def initial_values(gps: np.ndarray) -> gtsam.Values:
 def solve_graph(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, n_steps: int, n_veh: int,
                 params: FgTopologyParams) -> tuple[np.ndarray, int]:
     """Levenberg-Marquardt over the whole run; returns positions (T, N, 2) and the iteration count."""
+    import gtsam  # imported when a factor graph is built
+
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(params.max_iterations)
     lm.setRelativeErrorTol(params.relative_error_tol)
@@ -238,3 +253,114 @@ def run_rmse(est: np.ndarray, truth: np.ndarray) -> float:
     """Gulati eq. (21): sqrt( sum_t sum_i |p_est - p_true|^2 / n ), summed over vehicles, averaged over steps."""
     err = np.asarray(est) - np.asarray(truth)
     return float(np.sqrt(np.sum(err * err) / err.shape[0]))
+
+
+# --------------------------------------------------------------------------- fg_topology_new online at RSUs
+
+
+class FgTopologyInfra(_InfraBase):
+    """``fg_topology_new`` per RSU with a fixed-lag smoother (the doc of :mod:`coloc.methods.infra`)."""
+
+    name = FG_TOPOLOGY_NEW.name
+
+    def __init__(self, params: InfraMethodParams):
+        super().__init__(params)
+        import gtsam  # only this method needs it
+
+        self._gtsam = gtsam
+        # topology_updates = _new (factor (11)) + _old (fallback (8)); _skipped: neither could be formed.
+        self.stats = {"topology_updates": 0, "topology_updates_new": 0, "topology_updates_old": 0,
+                      "topology_skipped": 0}
+        self._smoother: dict[int, object] = {}
+        self._keys: dict[int, dict[str, int]] = {}  # r -> vehicle id -> key of its state at the last step
+        self._next_key = 0
+
+    def _new_smoother(self, dt):
+        gtsam = self._gtsam
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(self.params.fg_max_iterations)
+        return gtsam.BatchFixedLagSmoother(float(self.params.fg_window_steps * dt), lm)
+
+    def _rsu_step(self, frame, r, rows, prev, fallback):
+        gtsam = self._gtsam
+        infra = frame.infra
+        keys_prev = self._keys.get(r, {})
+        if rows.size == 0:
+            self._keys[r] = {}
+            return None
+        if r not in self._smoother:
+            self._smoother[r] = self._new_smoother(frame.dt)
+        smoother = self._smoother[r]
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        stamps = {}
+        ids = frame.vehicle_ids[rows]
+        entered = np.asarray(frame.entered[rows], bool)
+        odom = infra.odom[rows]
+        keys_now = {}
+        new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
+        start_m, start_c = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
+                            else (np.empty((0, 4)), np.empty((0, 4, 4))))
+        start = {a: b for b, a in enumerate(new_rows)}
+        est_prev = {}
+        for a, vid in enumerate(ids):
+            key = self._next_key
+            self._next_key += 1
+            keys_now[vid] = key
+            z = frame.gnss_z[rows[a], :2]
+            rz = frame.gnss_R[rows[a], :2, :2]
+            graph.add(gtsam.PriorFactorPoint2(key, z, gtsam.noiseModel.Gaussian.Covariance(rz)))
+            if a in start:
+                b = start[a]
+                graph.add(gtsam.PriorFactorPoint2(key, start_m[b, :2],
+                                                  gtsam.noiseModel.Gaussian.Covariance(start_c[b, :2, :2])))
+                init = start_m[b, :2]
+            else:
+                kp = keys_prev[vid]
+                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
+                graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
+                                                    gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
+                p_prev = self._estimate_point(smoother, kp)
+                est_prev[vid] = p_prev
+                init = p_prev + d
+            values.insert(key, np.asarray(init, float))
+            stamps[key] = float(frame.t)
+        # Topology factor of step t from this RSU's radar scan (pseudo-measurement z_t^2 and its
+        # variance (15)-(16), coloc.inference.topology; the same for both factors below).
+        n = rows.size
+        if n >= 2:
+            pts = infra.radar_z[infra.radar_owner == r]
+            if pts.shape[0] != n:
+                # The scan's points are not the vehicles in range: neither (8) nor (11) holds.
+                self.stats["topology_skipped"] += 1
+            else:
+                z2, var = topology_pseudo_measurement(pts, infra.radar_var)
+                noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
+                if not new_rows and np.all(np.isfinite(odom)):
+                    # New factor (11)-(13): sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2
+                    # on the N previous states (every vehicle in range has one here, and odometry d_t).
+                    kp = [keys_prev[vid] for vid in ids]
+                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
+                    self.stats["topology_updates_new"] += 1
+                else:
+                    # Fallback, old factor (8): sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2 on the N current
+                    # states, which every vehicle in range has (an entering one from its start belief).
+                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
+                    self.stats["topology_updates_old"] += 1
+                self.stats["topology_updates"] += 1
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for k, t in stamps.items():
+            ts.insert((k, t))
+        smoother.update(graph, values, ts)
+        self._keys[r] = keys_now
+        result = smoother.calculateEstimate()
+        m = fallback.mean[rows].copy()
+        c = fallback.cov[rows].copy()
+        for a, vid in enumerate(ids):
+            key = keys_now[vid]
+            m[a, :2] = result.atPoint2(key)
+        return rows, m, c
+
+    @staticmethod
+    def _estimate_point(smoother, key):
+        return np.asarray(smoother.calculateEstimatePoint2(key), float)

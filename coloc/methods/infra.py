@@ -1,11 +1,11 @@
 """Infrastructure-mode estimators: ``rsu_bp``, ``sme`` and ``fg_topology_new`` run online at
 road-side units (RSUs) on the vehicles within their range (issue 5 part 4).
 
-Each method reads ``frame.infra`` (:class:`coloc.frame.InfraFrame`): the V2I links, the RSU
+Each method reads ``frame.infra`` (:class:`coloc.core.frame.InfraFrame`): the V2I links, the RSU
 positions and the unlabelled radar detections in the radar's unknown frame, plus the vehicles'
 own GNSS (and V2F, odometry) measurements. Common rules:
 
-* Every method runs an internal GNSS tracker (:class:`coloc.gnss.GnssTracker`) on all vehicles.
+* Every method runs an internal GNSS tracker (:class:`coloc.methods.gnss.GnssTracker`) on all vehicles.
   A vehicle within range of no RSU gets the tracker's estimate and ``covered = False``.
 * A vehicle in range of several RSUs is reported by the one with the lowest index (each RSU
   still uses it, since its radar sees it).
@@ -27,7 +27,7 @@ Per-method decisions (the papers describe a fixed set of vehicles):
   error, see the tests.) Features
   are RSU-held particle clouds of static landmarks (position random walk of
   ``feature_walk_sigma`` per step, zero velocity). Association with missed detections and
-  new/clutter measurements: :func:`coloc.rsu_bp.rsu_bp_step_open`. Feature birth: a V2F row whose
+  new/clutter measurements: :func:`coloc.methods.rsu_bp.rsu_bp_step_open`. Feature birth: a V2F row whose
   probability of "new" exceeds 0.5 starts a track at (vehicle posterior mean + z) unless a track
   or an earlier birth of this step lies within ``feature_birth_gate_m`` or the vehicle's position
   standard deviation exceeds ``feature_birth_max_std_m`` (measured on the arterial, 120 s TLR:
@@ -39,7 +39,7 @@ Per-method decisions (the papers describe a fixed set of vehicles):
   ``sme_max_vehicles``, nearest to the RSU by their estimate). The GNSS fixes are labelled (each
   vehicle sends its own; the joint update is the labelled Kalman update, as Zhang's KF baseline),
   so the power-sum pseudo-measurement (9) is not needed; the radar enters by the pose- and
-  order-free topology pseudo-measurement (10) (:mod:`coloc.topology`, bias-corrected, variance (15)
+  order-free topology pseudo-measurement (10) (:mod:`coloc.inference.topology`, bias-corrected, variance (15)
   plus the second-order term). When the vehicle set changes the joint state is rebuilt from the
   carried per-vehicle marginals (cross-covariances dropped) plus entering vehicles. When the
   number of detections differs from the number of vehicles in the state (the cap) the topology
@@ -50,13 +50,13 @@ Per-method decisions (the papers describe a fixed set of vehicles):
   Gaussian prior on the remaining states, not a plain drop). Factors: GPS unary (the position part
   of the fix, covariance from the frame), odometry between factors (Gulati (4)-(5)), one
   topology factor per step and RSU from its radar scan (pseudo-measurement and variance
-  (15)-(16), :mod:`coloc.topology`), and, for the first state of a vehicle, its tracker's
+  (15)-(16), :mod:`coloc.inference.topology`), and, for the first state of a vehicle, its tracker's
   predicted position belief (above). The topology factor of step t is the new factor (11)-(13)
-  on the previous states moved by the odometry (:func:`coloc.fg_topology._new_topology_error`)
+  on the previous states moved by the odometry (:func:`coloc.methods.fg_topology._new_topology_error`)
   when every vehicle in range has a state at t-1 at this RSU and finite odometry
   (``topology_updates_new``). Otherwise (a vehicle just entered the range) it is Gulati's old
   factor (8) on the current states of all vehicles in range
-  (:func:`coloc.fg_topology._old_topology_error`; ``topology_updates_old``), which needs no
+  (:func:`coloc.methods.fg_topology._old_topology_error`; ``topology_updates_old``), which needs no
   previous state: an entering vehicle's current state has its start belief and its fix. The
   paper, with a fixed set of vehicles, does not have this case; mixing the two (11 on the
   vehicles that have a previous state, 8 on the others) is not a factor of the paper either.
@@ -75,17 +75,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coloc.frame import Frame, StepEstimate
-from coloc.gnss import GnssTracker
-from coloc.models import (
-    MotionParams, driving_noise_cov, input_matrix, kalman_update, predict, symmetrize, transition_matrix,
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.models import (
+    MotionParams,
+    driving_noise_cov,
+    input_matrix,
+    kalman_update,
+    predict,
+    symmetrize,
+    transition_matrix,
 )
-from coloc.rsu_bp import RsuBpParams, init_particles, rsu_bp_step_open
-from coloc.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
-from coloc.vehicles import carry_states, match_ids
-
-INFRA_METHOD_NAMES = ("rsu_bp", "sme", "fg_topology_new")
-
+from coloc.core.vehicles import carry_states, match_ids
+from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
+from coloc.methods.gnss import GnssTracker
+from coloc.methods.registry import RSU_BP, SME
+from coloc.methods.rsu_bp import RsuBpParams, init_particles, rsu_bp_step_open
 
 @dataclass(frozen=True)
 class InfraMethodParams:
@@ -223,7 +227,7 @@ def topology_update(mean, cov, radar_points, radar_var):
 class SmeInfra(_InfraBase):
     """``sme`` per RSU (module doc)."""
 
-    name = "sme"
+    name = SME.name
 
     def __init__(self, params: InfraMethodParams):
         super().__init__(params)
@@ -277,121 +281,6 @@ class SmeInfra(_InfraBase):
         return rows, m.copy(), c
 
 
-# --------------------------------------------------------------------------- fg_topology_new
-
-
-class FgTopologyInfra(_InfraBase):
-    """``fg_topology_new`` per RSU with a fixed-lag smoother (module doc)."""
-
-    name = "fg_topology_new"
-
-    def __init__(self, params: InfraMethodParams):
-        super().__init__(params)
-        import gtsam  # only this method needs it
-
-        self._gtsam = gtsam
-        # topology_updates = _new (factor (11)) + _old (fallback (8)); _skipped: neither could be formed.
-        self.stats = {"topology_updates": 0, "topology_updates_new": 0, "topology_updates_old": 0,
-                      "topology_skipped": 0}
-        self._smoother: dict[int, object] = {}
-        self._keys: dict[int, dict[str, int]] = {}  # r -> vehicle id -> key of its state at the last step
-        self._next_key = 0
-
-    def _new_smoother(self, dt):
-        gtsam = self._gtsam
-        lm = gtsam.LevenbergMarquardtParams()
-        lm.setMaxIterations(self.params.fg_max_iterations)
-        return gtsam.BatchFixedLagSmoother(float(self.params.fg_window_steps * dt), lm)
-
-    def _rsu_step(self, frame, r, rows, prev, fallback):
-        from coloc.fg_topology import _new_topology_error, _old_topology_error
-
-        gtsam = self._gtsam
-        infra = frame.infra
-        keys_prev = self._keys.get(r, {})
-        if rows.size == 0:
-            self._keys[r] = {}
-            return None
-        if r not in self._smoother:
-            self._smoother[r] = self._new_smoother(frame.dt)
-        smoother = self._smoother[r]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        stamps = {}
-        ids = frame.vehicle_ids[rows]
-        entered = np.asarray(frame.entered[rows], bool)
-        odom = infra.odom[rows]
-        keys_now = {}
-        new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
-        start_m, start_c = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
-                            else (np.empty((0, 4)), np.empty((0, 4, 4))))
-        start = {a: b for b, a in enumerate(new_rows)}
-        est_prev = {}
-        for a, vid in enumerate(ids):
-            key = self._next_key
-            self._next_key += 1
-            keys_now[vid] = key
-            z = frame.gnss_z[rows[a], :2]
-            rz = frame.gnss_R[rows[a], :2, :2]
-            graph.add(gtsam.PriorFactorPoint2(key, z, gtsam.noiseModel.Gaussian.Covariance(rz)))
-            if a in start:
-                b = start[a]
-                graph.add(gtsam.PriorFactorPoint2(key, start_m[b, :2],
-                                                  gtsam.noiseModel.Gaussian.Covariance(start_c[b, :2, :2])))
-                init = start_m[b, :2]
-            else:
-                kp = keys_prev[vid]
-                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
-                graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
-                                                    gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
-                p_prev = self._estimate_point(smoother, kp)
-                est_prev[vid] = p_prev
-                init = p_prev + d
-            values.insert(key, np.asarray(init, float))
-            stamps[key] = float(frame.t)
-        # Topology factor of step t from this RSU's radar scan (pseudo-measurement z_t^2 and its
-        # variance (15)-(16), coloc.topology; the same for both factors below).
-        n = rows.size
-        if n >= 2:
-            pts = infra.radar_z[infra.radar_owner == r]
-            if pts.shape[0] != n:
-                # The scan's points are not the vehicles in range: neither (8) nor (11) holds.
-                self.stats["topology_skipped"] += 1
-            else:
-                from coloc.topology import topology_pseudo_measurement
-
-                z2, var = topology_pseudo_measurement(pts, infra.radar_var)
-                noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
-                if not new_rows and np.all(np.isfinite(odom)):
-                    # New factor (11)-(13): sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2
-                    # on the N previous states (every vehicle in range has one here, and odometry d_t).
-                    kp = [keys_prev[vid] for vid in ids]
-                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
-                    self.stats["topology_updates_new"] += 1
-                else:
-                    # Fallback, old factor (8): sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2 on the N current
-                    # states, which every vehicle in range has (an entering one from its start belief).
-                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
-                    self.stats["topology_updates_old"] += 1
-                self.stats["topology_updates"] += 1
-        ts = gtsam.FixedLagSmootherKeyTimestampMap()
-        for k, t in stamps.items():
-            ts.insert((k, t))
-        smoother.update(graph, values, ts)
-        self._keys[r] = keys_now
-        result = smoother.calculateEstimate()
-        m = fallback.mean[rows].copy()
-        c = fallback.cov[rows].copy()
-        for a, vid in enumerate(ids):
-            key = keys_now[vid]
-            m[a, :2] = result.atPoint2(key)
-        return rows, m, c
-
-    @staticmethod
-    def _estimate_point(smoother, key):
-        return np.asarray(smoother.calculateEstimatePoint2(key), float)
-
-
 # --------------------------------------------------------------------------- rsu_bp
 
 
@@ -405,7 +294,7 @@ class _RsuFeatures:
 class RsuBpInfra(_InfraBase):
     """``rsu_bp`` online per RSU (module doc)."""
 
-    name = "rsu_bp"
+    name = RSU_BP.name
 
     def __init__(self, params: InfraMethodParams):
         super().__init__(params)

@@ -63,7 +63,7 @@ def topology_variance_eq16_literal(n: int, var: float) -> float:
     z = sqrt(S) with S = sum_{i<j} |q_i - q_j|^2, grad z = grad S / (2 z) and |grad S|^2 = 4 N S, so
     M Cov M' = var |grad z|^2 = N var for any configuration (S > 0): the variance of the distance-like
     z, not of the squared quantity that factor (13) compares. Used only by the opt-in
-    ``topology_noise = "eq16_literal"`` of :mod:`coloc.fg_topology`.
+    ``topology_noise = "eq16_literal"`` of :mod:`coloc.methods.fg_topology`.
     """
     return float(n * var)
 

@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from coloc.logspace import logsumexp
+from coloc.core.models import cv_process_cov, cv_transition
+from coloc.inference.particles import logsumexp, systematic_resample_right, weighted_moments_normalized
 
 
 @dataclass(frozen=True)
@@ -78,16 +79,6 @@ class RsuBpParams:
         for name in ("dt", "process_intensity", "vehicle_init_velocity_std", "feature_init_velocity_std"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
-
-
-def cv_transition(dt: float) -> np.ndarray:
-    """A of (28): [[1, dT], [0, 1]] ⊗ I_2, state [px, py, vx, vy]."""
-    return np.kron(np.array([[1.0, dt], [0.0, 1.0]]), np.eye(2))
-
-
-def cv_process_cov(dt: float, r: float) -> np.ndarray:
-    """R of (29): r [[dT^3/3, dT^2/2], [dT^2/2, dT]] ⊗ I_2 (continuous white-noise acceleration)."""
-    return r * np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), np.eye(2))
 
 
 # --------------------------------------------------------------------------- pairwise V2F kernel
@@ -207,25 +198,6 @@ def association_probabilities(log_beta: np.ndarray, log_eta: np.ndarray) -> np.n
 
 
 # --------------------------------------------------------------------------- particles
-
-
-def systematic_resample(log_w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Indices of a systematic resampling of normalised log weights (one uniform draw)."""
-    w = np.exp(log_w - logsumexp(log_w))
-    edges = np.cumsum(w)
-    edges[-1] = 1.0
-    n = w.size
-    u = (rng.random() + np.arange(n)) / n
-    return np.searchsorted(edges, u, side="right").clip(0, n - 1)
-
-
-def weighted_moments(particles: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (4,) and covariance (4, 4) of a weighted particle set (normalised log weights)."""
-    w = np.exp(log_w)
-    mean = w @ particles
-    d = particles - mean
-    cov = (d * w[:, None]).T @ d
-    return mean, 0.5 * (cov + cov.T)
 
 
 def init_particles(
@@ -391,10 +363,10 @@ def rsu_bp_step(
     # Step 6 (25)-(26)
     log_bf = _normalize(log_alpha + log_gamma.sum(axis=0)) if n_feat else np.empty((0, np_))
     log_bx = _normalize(log_phi_chi + log_mu.sum(axis=1))
-    vmean, vcov = zip(*(weighted_moments(xs[s], log_bx[s]) for s in range(n_veh))) if n_veh else ((), ())
-    fmean, fcov = zip(*(weighted_moments(fs[k], log_bf[k]) for k in range(n_feat))) if n_feat else ((), ())
-    new_x = np.stack([xs[s][systematic_resample(log_bx[s], rng)] for s in range(n_veh)]) if n_veh else xs
-    new_f = np.stack([fs[k][systematic_resample(log_bf[k], rng)] for k in range(n_feat)]) if n_feat else fs
+    vmean, vcov = zip(*(weighted_moments_normalized(xs[s], log_bx[s]) for s in range(n_veh))) if n_veh else ((), ())
+    fmean, fcov = zip(*(weighted_moments_normalized(fs[k], log_bf[k]) for k in range(n_feat))) if n_feat else ((), ())
+    new_x = np.stack([xs[s][systematic_resample_right(log_bx[s], rng)] for s in range(n_veh)]) if n_veh else xs
+    new_f = np.stack([fs[k][systematic_resample_right(log_bf[k], rng)] for k in range(n_feat)]) if n_feat else fs
     return RsuBpStep(
         vehicle_mean=np.array(vmean).reshape(n_veh, 4),
         vehicle_cov=np.array(vcov).reshape(n_veh, 4, 4),
@@ -692,10 +664,10 @@ def rsu_bp_step_open(
 
     log_bf = _safe_normalize(log_alpha + log_gamma.sum(axis=0)) if n_feat else np.empty((0, np_))  # (25)
     log_bx = _safe_normalize(log_phi_chi + log_mu.sum(axis=1)) if n_veh else np.empty((0, np_))  # (26)
-    vm = [weighted_moments(xs[s], log_bx[s]) for s in range(n_veh)]
-    fm = [weighted_moments(fs[k], log_bf[k]) for k in range(n_feat)]
-    new_x = np.stack([xs[s][systematic_resample(log_bx[s], rng)] for s in range(n_veh)]) if n_veh else xs
-    new_f = np.stack([fs[k][systematic_resample(log_bf[k], rng)] for k in range(n_feat)]) if n_feat else fs
+    vm = [weighted_moments_normalized(xs[s], log_bx[s]) for s in range(n_veh)]
+    fm = [weighted_moments_normalized(fs[k], log_bf[k]) for k in range(n_feat)]
+    new_x = np.stack([xs[s][systematic_resample_right(log_bx[s], rng)] for s in range(n_veh)]) if n_veh else xs
+    new_f = np.stack([fs[k][systematic_resample_right(log_bf[k], rng)] for k in range(n_feat)]) if n_feat else fs
     return RsuBpOpenStep(
         vehicle_mean=np.array([m for m, _ in vm]).reshape(n_veh, 4),
         vehicle_cov=np.array([c for _, c in vm]).reshape(n_veh, 4, 4),

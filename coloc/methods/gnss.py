@@ -11,10 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coloc.frame import Frame, StepEstimate
-from coloc.kalman_kernels import gnss_step_kernel
-from coloc.models import MotionParams, driving_noise_cov, kalman_update, predict
-from coloc.vehicles import carry_states
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.models import MotionParams, driving_noise_cov, kalman_update, predict
+from coloc.core.vehicles import carry_states
+from coloc.kernels.kalman import gnss_step_kernel
+from coloc.methods.registry import GNSS
 
 
 def gnss_predict_update(
@@ -37,7 +38,7 @@ class GnssTracker:
     """Stateful wrapper: keeps each vehicle's posterior between frames."""
 
     motion: MotionParams = field(default_factory=MotionParams)
-    name: str = "gnss"
+    name: str = GNSS.name
     _ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
     _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))

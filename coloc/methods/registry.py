@@ -1,0 +1,149 @@
+"""The registry of methods: the one place where a method is named.
+
+Each :class:`Method` says how ``coloc run`` builds it (``build``, from the plain parameter
+dataclasses of :class:`MethodParams`; ``experiments.runner`` fills them from a config), whether the
+runner tells it the true association (``known_association``: the bounds, which implement
+:class:`coloc.core.protocol.KnownAssociationEstimator`), whether it needs infrastructure frames
+(``infrastructure``: config ``[infra]``), and how reports show it (``label``, ``color``). The order
+of :data:`METHODS` is the order of the reports. Config validation, the runner, the report and the
+estimator classes (their default ``name``) read it; the names are the public identifiers of
+users' configs (``run.methods``) and of the Parquet ``method`` column, so they never change.
+
+``fg_topology_old`` and ``kf_gps_odom`` are made only by the factor-graph study
+(``experiments.studies.fg_topology``, which names its own methods): they have a style and no builder.
+
+The builders import their estimator when called, so reading the registry (config validation,
+reports) loads no numba kernel and no gtsam, and the method modules can take their names from here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    from coloc.core.models import MotionParams
+    from coloc.inference.params import IcpParams
+    from coloc.methods.icp_da_lc import LcParams
+    from coloc.methods.icp_da_pf import PfParams
+    from coloc.methods.infra import InfraMethodParams
+
+
+@dataclass(frozen=True)
+class MethodParams:
+    """Everything a builder may read: ``[motion]``, ``[icp]`` (with the motion), ``[lc]``, ``[pf]``
+    (with the run's seed) and, for the infrastructure methods, the ``[infra]`` settings (None
+    without an ``[infra]`` table)."""
+
+    motion: MotionParams
+    icp: IcpParams
+    lc: LcParams
+    pf: PfParams
+    infra: InfraMethodParams | None = None
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method: its name, how reports show it, how ``coloc run`` builds it and what it needs."""
+
+    name: str
+    label: str  # display name in reports
+    color: str  # matplotlib colour in reports (green is reserved for feature accuracy)
+    build: Callable[[MethodParams], object] | None = None  # None: made by a study, not by ``coloc run``
+    known_association: bool = False  # the runner calls step_with_association(frame, true association)
+    infrastructure: bool = False  # reads frame.infra: the config needs an [infra] table
+
+    @property
+    def runnable(self) -> bool:
+        """``coloc run`` can build it (it may be listed in ``run.methods``)."""
+        return self.build is not None
+
+
+def _gnss(p: MethodParams):
+    from coloc.methods.gnss import GnssTracker
+
+    return GnssTracker(motion=p.motion)
+
+
+def _icp_known_da(p: MethodParams):
+    from coloc.methods.icp_known_da import IcpKnownDA
+
+    return IcpKnownDA(params=p.icp)
+
+
+def _icp_da_lc(p: MethodParams):
+    from coloc.methods.icp_da_lc import IcpDaLc
+
+    return IcpDaLc(params=p.icp, lc=p.lc)
+
+
+def _icp_da_pf(p: MethodParams):
+    from coloc.methods.icp_da_pf import IcpDaPf
+
+    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf)
+
+
+def _icp_known_da_pf(p: MethodParams):
+    from coloc.methods.icp_da_pf import IcpDaPf
+
+    # The same estimator told the true association by the runner: it separates PF's Monte
+    # Carlo error from its association.
+    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, name=ICP_KNOWN_DA_PF.name)
+
+
+def _infra_params(p: MethodParams) -> InfraMethodParams:
+    if p.infra is None:
+        raise ValueError("an infrastructure method needs MethodParams.infra (config [infra])")
+    return p.infra
+
+
+def _rsu_bp(p: MethodParams):
+    from coloc.methods.infra import RsuBpInfra
+
+    return RsuBpInfra(_infra_params(p))
+
+
+def _sme(p: MethodParams):
+    from coloc.methods.infra import SmeInfra
+
+    return SmeInfra(_infra_params(p))
+
+
+def _fg_topology_new(p: MethodParams):
+    from coloc.methods.fg_topology import FgTopologyInfra
+
+    return FgTopologyInfra(_infra_params(p))
+
+
+GNSS = Method("gnss", "GNSS", "tab:blue", _gnss)
+ICP_KNOWN_DA = Method("icp_known_da", "ICP known DA", "black", _icp_known_da, known_association=True)
+ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc)
+ICP_DA_PF = Method("icp_da_pf", "ICP-DA-PF", "tab:orange", _icp_da_pf)
+ICP_KNOWN_DA_PF = Method("icp_known_da_pf", "ICP-PF known DA", "goldenrod", _icp_known_da_pf,
+                         known_association=True)
+RSU_BP = Method("rsu_bp", "RSU-BP", "tab:purple", _rsu_bp, infrastructure=True)
+SME = Method("sme", "SME", "tab:brown", _sme, infrastructure=True)
+FG_TOPOLOGY_OLD = Method("fg_topology_old", "FG topology (old)", "tab:pink")
+FG_TOPOLOGY_NEW = Method("fg_topology_new", "FG topology (new)", "tab:olive", _fg_topology_new,
+                         infrastructure=True)
+KF_GPS_ODOM = Method("kf_gps_odom", "KF GPS+odometry", "tab:cyan")
+
+#: name -> method, in report order.
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (GNSS, ICP_KNOWN_DA, ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA_PF, RSU_BP, SME, FG_TOPOLOGY_OLD,
+              FG_TOPOLOGY_NEW, KF_GPS_ODOM)
+}
+
+
+def runnable_methods() -> tuple[str, ...]:
+    """Names ``coloc run`` can build, in registry order."""
+    return tuple(m.name for m in METHODS.values() if m.runnable)
+
+
+def build_method(name: str, params: MethodParams):
+    """The estimator of method ``name`` (ValueError for a name the registry cannot build)."""
+    method = METHODS.get(name)
+    if method is None or not method.runnable:
+        raise ValueError(f"no estimator for method {name!r} (available: {', '.join(runnable_methods())})")
+    return method.build(params)

@@ -1,0 +1,157 @@
+"""The estimator contract (docs/architecture.md "The frame contract" and "Reliability"), one test each, run over every
+method of the registry that ``coloc run`` can build:
+
+* truth-blind: identical output (to the byte) when the frame's truth fields are scrambled or absent;
+* empty frames (no vehicles) before, between and after vehicles, and vehicles with no feature in range;
+* vehicles entering and leaving between steps (and re-entering);
+* rows in ``frame.vehicle_ids`` order, whatever the order of the vehicles in each frame;
+* covariances symmetric positive definite.
+
+Infrastructure methods run on :func:`scenes.infra_frames`, the others on :func:`scenes.road_frames`.
+Known-association methods are driven through ``step_with_association`` with the truth's association
+(taken here, as the runner does, never by the estimator).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from coloc.core.models import MotionParams
+from coloc.core.protocol import Estimator, KnownAssociationEstimator
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_da_lc import LcParams
+from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.infra import InfraMethodParams
+from coloc.methods.registry import METHODS, MethodParams, build_method
+from scenes import infra_frames, road_frames, scrambled, select_vehicles
+
+RUNNABLE = [m.name for m in METHODS.values() if m.runnable]
+ROAD_MOTION = MotionParams(sigma_along=0.08, sigma_cross=0.08)
+INFRA_MOTION = MotionParams(sigma_cross=0.1)
+
+
+def build(name: str):
+    method = METHODS[name]
+    motion = INFRA_MOTION if method.infrastructure else ROAD_MOTION
+    params = MethodParams(
+        motion=motion, icp=IcpParams(motion=motion), lc=LcParams(),
+        pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
+        infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
+    )
+    est = build_method(name, params)
+    assert est.name == name
+    protocol = KnownAssociationEstimator if method.known_association else Estimator
+    assert isinstance(est, protocol)
+    return est
+
+
+def frames_for(name: str, **kw) -> list:
+    if METHODS[name].infrastructure:
+        return infra_frames(**{"n_steps": 20, "n_veh": 5, **kw})
+    return road_frames(**{"steps": 8, "v2v_range": 25.0, **kw})
+
+
+def step(name: str, est, frame, association=None):
+    """One step as the runner drives it; ``association`` defaults to the frame's true one."""
+    if METHODS[name].known_association:
+        v2f = frame.truth.v2f_feature if association is None else association
+        return est.step_with_association(frame, np.array(v2f, copy=True))
+    return est.step(frame)
+
+
+def assert_valid(est, frame):
+    """Rows in frame order (shapes), finite, covariances symmetric positive definite."""
+    n = frame.n_vehicles
+    assert est.mean.shape == (n, 4) and est.cov.shape == (n, 4, 4)
+    assert np.all(np.isfinite(est.mean)) and np.all(np.isfinite(est.cov))
+    np.testing.assert_allclose(est.cov, np.swapaxes(est.cov, -1, -2), rtol=0, atol=1e-9)
+    if n:
+        assert np.all(np.linalg.eigvalsh(est.cov) > 0)
+    if est.covered is not None:
+        assert est.covered.shape == (n,)
+    if est.v2f_assignment is not None:
+        assert est.v2f_assignment.shape == (frame.v2f_z.shape[0],)
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_truth_blind(name):
+    """Scrambled truth, no truth: the same bytes, the same pairing and feature tracks."""
+    rng = np.random.default_rng(5)
+    a, b, c = build(name), build(name), build(name)
+    for f in frames_for(name):
+        assoc = f.truth.v2f_feature.copy()
+        ea = step(name, a, f, assoc)
+        for e in (step(name, b, scrambled(f, rng), assoc), step(name, c, f.without_truth(), assoc)):
+            assert ea.mean.tobytes() == e.mean.tobytes() and ea.cov.tobytes() == e.cov.tobytes()
+            for field in ("covered", "v2f_assignment", "feature_mean", "feature_track_ids"):
+                x, y = getattr(ea, field), getattr(e, field)
+                assert (x is None) == (y is None), field
+                if x is not None:
+                    np.testing.assert_array_equal(x, y, err_msg=field)
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_empty_frames_and_no_features(name):
+    """No vehicles at the start, in the middle (all left) and at the end; vehicles entering after
+    an empty frame start afresh; a run whose vehicles have no feature in range."""
+    frames = frames_for(name, **({"n_steps": 8} if METHODS[name].infrastructure else {"steps": 6}))
+    none = lambda f: select_vehicles(f, [])  # noqa: E731
+    everyone = lambda f: select_vehicles(f, np.arange(f.n_vehicles), entered=np.ones(f.n_vehicles, bool))  # noqa: E731
+    seq = [none(frames[0]), everyone(frames[1]), frames[2], none(frames[3]), everyone(frames[4]), *frames[5:],
+           none(frames[-1])]
+    est = build(name)
+    for f in seq:
+        assert_valid(step(name, est, f), f)
+    est = build(name)
+    no_features = (infra_frames(n_steps=8, n_veh=4, features=False) if METHODS[name].infrastructure
+                   else road_frames(steps=6, n_feat=0))
+    for f in no_features:
+        assert f.v2f_z.shape[0] == 0
+        assert_valid(step(name, est, f), f)
+
+
+def _nearest_truth(est, frame) -> np.ndarray:
+    d = np.linalg.norm(est.mean[:, None, :] - frame.truth.x_true[None, :, :], axis=2)
+    return np.argmin(d, axis=1)
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_vehicles_enter_and_leave(name):
+    """Vehicle 1 leaves at step 3, vehicle 2 enters at step 2, vehicle 0 leaves at step 4 and
+    comes back (entered) at step 6: every row stays with its vehicle and every output is valid."""
+    kw = {"n_steps": 10, "n_veh": 5} if METHODS[name].infrastructure else {"steps": 9, "spacing": 40.0}
+    est = build(name)
+    for k, f in enumerate(frames_for(name, **kw)):
+        present = [i for i in range(f.n_vehicles)
+                   if not (i == 1 and k >= 3) and not (i == 2 and k < 2) and not (i == 0 and 4 <= k < 6)]
+        entered = np.array([f.entered[i] or (i == 2 and k == 2) or (i == 0 and k == 6) for i in present])
+        g = select_vehicles(f, present, entered=entered)
+        e = step(name, est, g)
+        assert_valid(e, g)
+        np.testing.assert_array_equal(_nearest_truth(e, g), np.arange(g.n_vehicles))
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_rows_in_frame_order(name):
+    """The vehicles come in a different order at every step: row i is always vehicle_ids[i]."""
+    kw = {"n_steps": 10, "n_veh": 5} if METHODS[name].infrastructure else {"steps": 8, "spacing": 40.0}
+    rng = np.random.default_rng(11)
+    est = build(name)
+    for f in frames_for(name, **kw):
+        g = select_vehicles(f, rng.permutation(f.n_vehicles))
+        e = step(name, est, g)
+        assert_valid(e, g)
+        np.testing.assert_array_equal(_nearest_truth(e, g), np.arange(g.n_vehicles))
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_covariances_stay_spd(name):
+    """A longer run with features: every vehicle covariance symmetric positive definite, every step."""
+    kw = {"n_steps": 30, "n_veh": 6} if METHODS[name].infrastructure else {"steps": 15}
+    est = build(name)
+    for f in frames_for(name, **kw):
+        e = step(name, est, f)
+        assert_valid(e, f)
+        if e.feature_cov is not None and e.feature_cov.shape[0]:
+            assert np.all(np.isfinite(e.feature_cov))
