@@ -74,6 +74,11 @@ component that is a complete graph (always the case when Rc >= 2 Rs) the
 Metropolis matrix is J/m, a projection, so the consensus stops after its first
 round there (:func:`coloc.kernels.icp.complete_component_consensus`).
 
+Lossy links: :mod:`coloc.inference.lossy_consensus` keeps the exact average when packets are lost
+asymmetrically (ratio consensus by exchange of running sums, Hadjicostis et al. 2016) and runs max
+consensus over the rounds that got through; not yet wired into the estimators above, which
+assume every consensus message arrives.
+
 Performance layout: the BPA-L iterations run as numba passes over the rows
 (:mod:`coloc.kernels.icp`; ``coloc.inference.bpa.BPA_KERNELS = False`` selects the batched
 numpy reference, equal up to rounding); :class:`~coloc.inference.feature_store.FeatureStore`
