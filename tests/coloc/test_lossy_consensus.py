@@ -51,8 +51,7 @@ def test_weights_give_the_weighted_average():
 
 
 def test_the_round_budget_is_what_was_given():
-    """R rows of deliveries are R rounds: a budget of 3 rounds leaves the nodes apart, and equals three
-    single rounds chained by hand (the state carried is only the running sums)."""
+    """R rows of deliveries are R rounds: a budget of 3 rounds leaves the nodes apart, 10 bring them closer."""
     src, dst, rng = _graph(5)
     x = rng.normal(size=(30, 1))
     three = running_sum_consensus(x, src, dst, np.ones((3, src.size), dtype=bool))
