@@ -31,10 +31,11 @@ from couplers.errors import InputError
 MARKER = ".coloc-output"
 KINDS = ("run", "sweep", "report")  # "run": every `coloc run` output, studies included
 
-# Files by which folders written before the marker are recognised, per kind.
+# Files by which folders written before the marker are recognised, per kind (any one tuple whole).
 _LEGACY = {
-    "run": ("summary.json", "config.toml"),
-    "sweep": ("sweep.toml",),
+    "run": (("summary.json", "config.toml", "estimates.parquet"),  # a run
+            ("summary.json", "config.toml", "results.parquet")),  # a study
+    "sweep": (("sweep.toml",),),
 }
 _REPORT_ENTRIES = {"report.html", "figures", MARKER}
 _STAGING = (".partial-", ".old-")
@@ -50,8 +51,8 @@ def output_kind(path: Path) -> str | None:
         except (OSError, ValueError, AttributeError):
             return None
         return kind if kind in KINDS else None
-    for kind, names in _LEGACY.items():
-        if all((path / n).is_file() for n in names):
+    for kind, alternatives in _LEGACY.items():
+        if any(all((path / n).is_file() for n in names) for names in alternatives):
             return kind
     try:
         entries = {p.name for p in path.iterdir()}
