@@ -345,7 +345,6 @@ class _SumoSource:
             duration_s=cfg.run.duration_s,
             ballistic=cfg.scenario.ballistic,
         )
-        self.scenario.sumo_options()  # validates the control name before anything is started
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)
         self.coupler = None
