@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from coloc.core.models import MotionParams
-from coloc.inference.params import FEATURE_MESSAGES
+from coloc.inference.params import FEATURE_MESSAGES, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
@@ -102,6 +102,8 @@ class IcpSection:
     message_memory_s: float = 10.0  # latest message per vehicle kept apart this long (coloc.inference.feature_store)
     # What a track stores of each vehicle: "own" (own-sensor belief, default) or "bpa" (final (19)).
     feature_message: str = "own"
+    # BPA-L stopping rule: "vehicles" (ours) or "vehicles_and_features" (Sec. V-A as written).
+    stop_on: str = "vehicles"
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,16 @@ class InfraSection:
 @dataclass(frozen=True)
 class ReportSection:
     track_area: str = "5"  # analysis area of the along/cross-track figure (paper Fig. 18b)
+    # Several areas, one along/cross-track figure each (paper Fig. 18a/b in TLR, Fig. 19 in VSR);
+    # empty: (track_area,). Give one of the two keys; the resolved config has both, track_area
+    # the first of track_areas.
+    track_areas: tuple[str, ...] = ()
     figures: bool = True
+
+    @property
+    def track_figure_areas(self) -> tuple[str, ...]:
+        """The areas that get an along/cross-track figure."""
+        return self.track_areas or (self.track_area,)
 
 
 @dataclass(frozen=True)
@@ -321,6 +332,8 @@ def _validate(cfg: Config) -> None:
     if cfg.icp.feature_message not in FEATURE_MESSAGES:
         raise InputError(p, "icp.feature_message",
                          f"unknown value {cfg.icp.feature_message!r} (available: {', '.join(FEATURE_MESSAGES)})")
+    if cfg.icp.stop_on not in STOP_RULES:
+        raise InputError(p, "icp.stop_on", f"unknown value {cfg.icp.stop_on!r} (available: {', '.join(STOP_RULES)})")
     for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
         if not getattr(cfg.icp, name) > 0:
             raise InputError(p, f"icp.{name}", "must be positive")
@@ -382,6 +395,12 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
         if other != kind and other in data:
             raise InputError(path, other, f"table given but scenario.kind is {kind!r}")
 
+    if params.start == "gnss_fix":
+        for key in ("prior_sigma_p", "prior_sigma_v"):
+            if key in data.get(kind, {}):
+                raise InputError(path, f"{kind}.{key}", f"not used with {kind}.start = \"gnss_fix\" (the first fix "
+                                 f"has the GNSS accuracy); leave it out or set start = \"fast_start\"")
+        notes.append((f"{kind}.start", "gnss_fix: sensors.prior_sigma_p/v = the GNSS sigmas"))
     given = data.get("sensors", {})
     sensors = params.sensor_params()
     for f in dataclasses.fields(SensorParams):
@@ -459,6 +478,20 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     if "sensing_range_m" not in data.get("lc", {}):
         sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=sections["sensors"].v2f_range_m)
         notes.append(("lc.sensing_range_m", "= sensors.v2f_range_m (the V2F range Rs in force)"))
+    rep = sections["report"]
+    if len(set(rep.track_areas)) != len(rep.track_areas):
+        raise InputError(path, "report.track_areas", "an area is listed twice")
+    if rep.track_areas and "track_area" in data.get("report", {}) and rep.track_area != rep.track_areas[0]:
+        # (a saved config has both, track_area = the first of track_areas)
+        raise InputError(path, "report.track_areas", "give report.track_area or report.track_areas, not both")
+    # Resolved: both keys, track_area the first of track_areas.
+    sections["report"] = dataclasses.replace(rep, track_area=rep.track_figure_areas[0],
+                                             track_areas=rep.track_figure_areas)
+    lc = sections["lc"]
+    if lc.new_feature_density == 0:
+        derived = lc.new_feature_rate / (math.pi * lc.sensing_range_m**2)
+        notes.append(("lc.new_feature_density", f"0: derived, new_feature_rate / (pi Rs^2) = {derived:.3g} per m^2 "
+                      "times the velocity density of an untracked feature (coloc.methods.icp_da_lc, step 3)"))
     for name, cls in OPTIONAL_SECTIONS.items():
         if name in data:
             sections[name] = section_from_table(cls, data[name], name, path)

@@ -84,7 +84,8 @@ _SENSING: dict[str, tuple[str, str]] = {
     "v2f_sigma_v": ("m/s", "V2F relative velocity noise, model (4)."),
     "v2v_range_m": ("m", "V2V range Rc (`inf`: always connected)."),
     "prior_sigma_p": ("m", "Fast-start prior around the true state at a vehicle's first frame, position "
-                           "(Sec. VI-A; Sec. V states no initialisation)."),
+                           "(Sec. VI-A; Sec. V states no initialisation). Controlled scenarios: only with "
+                           "`start = \"fast_start\"`."),
     "prior_sigma_v": ("m/s", "Fast-start prior around the true state, velocity."),
 }
 
@@ -98,6 +99,9 @@ _SCENARIO_COMMON: dict[str, tuple[str, str]] = {
     "sigma_cross": ("m/s^2", "Cross-track driving noise of model (1), truth and estimators."),
     "gnss_sigma_p": ("m", "GNSS position noise sp per axis, model (3)."),
     "gnss_sigma_v": ("m/s", "GNSS velocity noise sv per axis, model (3)."),
+    "start": ("", "The fix a vehicle starts from: `\"fast_start\"` (ours; the Sec. VI-A prior, prior_sigma_p / "
+                  "prior_sigma_v around the truth) or `\"gnss_fix\"` (the paper presets: a first receiver fix "
+                  "with the scenario's GNSS sigmas, Sec. V stating no initialisation)."),
     "speed_gain": ("1/s", "Along-track input kv (v_ref - v) of the truth: speed gain kv."),
     "gap_gain": ("1/s^2", "Followers' input: gap gain kg on (gap - headway)."),
     "rel_speed_gain": ("1/s", "Followers' input: relative-speed gain kr on (v_lead - v)."),
@@ -213,6 +217,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "message_memory_s": ("s", "How long a track keeps the latest message of a vehicle apart."),
         "feature_message": ("", "What a track stores of each vehicle: `\"own\"` (the own-sensor belief, "
                                 "default) or `\"bpa\"` (BPA-L's final message (19))."),
+        "stop_on": ("", "What the BPA-L stopping rule tests: `\"vehicles\"` (ours) or `\"vehicles_and_features\"` "
+                        "(Sec. V-A as written: also every vehicle's estimate of each feature it observes). The "
+                        "Gaussian ICP only; ICP-DA-PF always tests both."),
     },
     "lc": {
         "eta_threshold": (NO_UNIT, "eta_TH of (30): a track is detected by a vehicle iff b(alpha = 0) < eta_TH "
@@ -230,6 +237,14 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                  "not given: `sensors.v2f_range_m` in force."),
         "new_feature_rate": (NO_UNIT, "mu_new, expected untracked features in a vehicle's view (weight of the "
                                       "new-feature hypothesis)."),
+        "new_feature_density": ("1/(m^2 (m/s)^2)", "mu_new f_new(z), the density every eta(alpha = l) of (13) is "
+                                                   "divided by, as one constant; 0 = derived: mu_new / (pi Rs^2) "
+                                                   "times the velocity density of an untracked feature (about "
+                                                   "8.5e-6 at Rs = 75 m); 1 = eta as (13) reads, unnormalised."),
+        "pairing": ("", "MAP pairing rule (30): `\"gated\"` (ours: chi-square gate, a contested row goes to the "
+                        "larger belief, no threshold test at eta_TH = 1) or `\"paper\"` (literal: ungated, b(alpha "
+                        "= 0) < eta_TH at every eta_TH, a row may be taken by several tracks). ICP-DA-PF: "
+                        "`\"paper\"` drops its pre-gate."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },
@@ -250,6 +265,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
     },
     "report": {
         "track_area": ("", "Analysis area of the along/cross-track figure (paper Fig. 18b)."),
+        "track_areas": ("", "Several areas, one along/cross-track figure each (the arterial: 2 and 5, paper "
+                            "Fig. 18a/b in TLR and Fig. 19 in VSR); give this or track_area."),
         "figures": ("", "Write report.html and figures/*.png after the run."),
     },
     "infra": {

@@ -36,8 +36,8 @@ def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Pat
               f"# `coloc run {Path(experiments_dir).name}/{name}_{control}.toml --out results/{name}_{control}`\n")
     body = _replace_once(body, r'^name = "[^"]*"', f'name = "{name}_{control}"', template)
     body = _replace_once(body, r'^net_dir = "[^"]*"', f'net_dir = "{Path(rel).as_posix()}"', template)
-    body = _replace_once(body, r'^track_area = "[^"]*"[^\n]*',
-                         f'track_area = "{track_area}"      # the area holding the most road length', template)
+    body = _replace_once(body, r'^track_areas = \[[^\]]*\][^\n]*',
+                         f'track_areas = ["{track_area}"]      # the area holding the most road length', template)
     return header + body
 
 

@@ -96,6 +96,29 @@ def _unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return symmetrize(x[:, :16].reshape(-1, 4, 4)), x[:, 16:]
 
 
+def row_feature_means(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
+    """MMSE mean of each row's feature belief b_k in information form (O, 4); NaN where Lambda is
+    not positive definite (a track still at the uniform prior has no mean)."""
+    out = np.full(eta.shape, np.nan)
+    if eta.shape[0] == 0:
+        return out
+    sign, logdet = np.linalg.slogdet(lam)
+    ok = (sign > 0) & np.isfinite(logdet)
+    if ok.any():
+        out[ok] = np.linalg.solve(lam[ok], eta[ok][..., None])[..., 0]
+    return out
+
+
+def _feature_moves(new: np.ndarray, old: np.ndarray) -> tuple[float, float]:
+    """Largest position and velocity change of the rows' feature estimates between two BPA-L
+    iterations; infinite where either estimate is undefined (NaN), 0 without rows."""
+    if new.shape[0] == 0:
+        return 0.0, 0.0
+    dpos = np.nan_to_num(np.hypot(*(new[:, :2] - old[:, :2]).T), nan=np.inf)
+    dvel = np.nan_to_num(np.hypot(*(new[:, 2:] - old[:, 2:]).T), nan=np.inf)
+    return float(dpos.max()), float(dvel.max())
+
+
 #: Run the BPA-L iterations with the numba kernels of :mod:`coloc.kernels.icp` (False: the
 #: numpy reference below; same algorithm, results equal up to rounding, see tests).
 BPA_KERNELS = True
@@ -117,6 +140,8 @@ def _bpa_iterations_numpy(
     in_lam = np.zeros((n, 4, 4))
     in_eta = np.zeros((n, 4))
     converged = False
+    with_features = params.stop_on == "vehicles_and_features"
+    f_mean = row_feature_means(lam_f0_row, eta_f0_row) if with_features else None
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): cavity (own belief x messages of the other features), integrated over x_V.
@@ -145,10 +170,20 @@ def _bpa_iterations_numpy(
         dpos = np.hypot(*(new_mean[:, :2] - mean[:, :2]).T)
         dvel = np.hypot(*(new_mean[:, 2:] - mean[:, 2:]).T)
         mean = new_mean
-        # Stopping rule of Sec. V-A (all vehicles).
+        # Stopping rule of Sec. V-A (all vehicles; with stop_on = "vehicles_and_features" also
+        # every row's estimate of its feature, b_k of (20) at that vehicle).
         if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
-            converged = True
-            break
+            if not with_features:
+                converged = True
+                break
+            new_f = row_feature_means(loc_lam, loc_eta)
+            fpos, fvel = _feature_moves(new_f, f_mean)
+            f_mean = new_f
+            if fpos < params.stop_pos_m and fvel < params.stop_vel_mps:
+                converged = True
+                break
+        elif with_features:
+            f_mean = row_feature_means(loc_lam, loc_eta)
 
     return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
 
@@ -174,6 +209,8 @@ def _bpa_iterations_kernels(
     in_lam = np.zeros((n, 4, 4))
     in_eta = np.zeros((n, 4))
     converged = False
+    with_features = params.stop_on == "vehicles_and_features"
+    f_mean = row_feature_means(lam_f0_row, eta_f0_row) if with_features else None
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): cavity (own belief x messages of the other features), integrated over x_V.
@@ -189,10 +226,16 @@ def _bpa_iterations_kernels(
         m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
         )
-        # Stopping rule of Sec. V-A (all vehicles).
+        # Stopping rule of Sec. V-A (as in the numpy loop).
+        if with_features:
+            avg_lam, avg_eta = _unpack_sym(avg)
+            new_f = row_feature_means(lam_f0_row + count[:, None, None] * avg_lam, eta_f0_row + count[:, None] * avg_eta)
+            fpos, fvel = _feature_moves(new_f, f_mean)
+            f_mean = new_f
         if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
-            converged = True
-            break
+            if not with_features or (fpos < params.stop_pos_m and fvel < params.stop_vel_mps):
+                converged = True
+                break
     return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
 
 

@@ -8,6 +8,8 @@ from coloc.core.models import MotionParams
 
 #: What a vehicle's stored message to a feature track is built on (see :class:`IcpParams`).
 FEATURE_MESSAGES = ("bpa", "own")
+#: What the BPA-L stopping rule tests (see :class:`IcpParams`).
+STOP_RULES = ("vehicles", "vehicles_and_features")
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,14 @@ class IcpParams:
       ~2 m offset (vehicle RMSE 1.13 m, against 0.63 m with "own"); at
       0.0001 "own" gives 0.60 m, while "bpa" needs Q_F = 0.01 to forget fast
       enough (0.69 m). Kept to reproduce earlier results.
+
+    ``stop_on``: the BPA-L stopping rule (Sec. V-A: stop when no MMSE
+    estimate moved by more than ``stop_pos_m`` / ``stop_vel_mps`` since the
+    previous iteration). "vehicles" (default) tests the vehicle estimates
+    only; "vehicles_and_features", the paper's reading, also every vehicle's
+    estimate of each feature it observes (b_k of (20) at that vehicle; a
+    track still at its uniform prior has no estimate before the first
+    iteration, so it never lets the first iteration stop).
     """
 
     motion: MotionParams = field(default_factory=MotionParams)
@@ -68,6 +78,7 @@ class IcpParams:
     feature_velocity_prior_sigma: float | None = None
     message_memory_s: float = 10.0
     feature_message: str = "own"
+    stop_on: str = "vehicles"
 
     def __post_init__(self):
         if self.consensus_iterations < 0:
@@ -86,6 +97,8 @@ class IcpParams:
             raise ValueError("message_memory_s must be >= 0")
         if self.feature_message not in FEATURE_MESSAGES:
             raise ValueError(f"feature_message must be one of {FEATURE_MESSAGES}")
+        if self.stop_on not in STOP_RULES:
+            raise ValueError(f"stop_on must be one of {STOP_RULES}")
 
     @property
     def feature_sigma_perp_value(self) -> float:

@@ -20,11 +20,25 @@ Per time step, with no knowledge of which feature produced a V2F row:
    measurement from an untracked feature: position uniform in the sensing
    disc (1 / (pi Rs^2)) and velocity z_v = v_F - v_V with v_F ~ N(0,
    s_new^2 I), times the expected number mu_new of untracked features in
-   view (``new_feature_rate``);
+   view (``new_feature_rate``). With P_D = 0.95 and Rs = 75 m (crossroad)
+   this density is about 8.5e-6 per m^2 (m/s)^2, so eta(l) is of order
+   1e4-1e5 for a consistent pairing and b(alpha = 0) of order 1e-5: eta_TH
+   = 0.5 then discards only rows that two tracks explain about equally.
+   ``new_feature_density`` > 0 replaces the whole density by that constant
+   (1 = eta of (13) as written, unnormalised);
 4. BPA-DA (14)-(17) per vehicle, all vehicles in one numba call;
-5. MAP pairing (30): track k is detected iff b(alpha = 0) < eta_TH and is
-   paired with argmax_l b(alpha = l); two tracks claiming the same row: the
-   larger belief wins, the other is not detected;
+5. MAP pairing (30), by ``pairing``:
+
+   * ``"gated"`` (default, ours): track k is detected iff b(alpha = 0) <
+     eta_TH (at eta_TH = 1: iff it has a gated row) and is paired with
+     argmax_l b(alpha = l); two tracks claiming the same row: the larger
+     belief wins, the other is not detected;
+   * ``"paper"`` (the literal (30)-(31)): no chi-square gate in step 3 (eta of
+     every candidate pair, however far), track k detected iff b(alpha = 0) <
+     eta_TH at every eta_TH, and nothing stops two tracks from taking the
+     same row: each pairing enters the likelihood (31), so a shared row is
+     used once per track that took it. The row's reported assignment is the
+     track of largest belief (scoring sees one track per row);
 6. feature tracks without a map (docs/architecture.md "Features without a map"): a row no
    track took whose "new" belief is >= ``birth_probability`` starts a track;
    rows of different vehicles whose implied feature positions (m_i + z_l)
@@ -65,8 +79,12 @@ from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
     "LcParams", "IcpDaLc", "LcStepInfo", "AssociationBeliefs", "association_beliefs", "association_weights",
-    "map_pairing", "icp_da_lc_step", "candidate_rows", "new_feature_log_density",
+    "map_pairing", "map_pairs", "icp_da_lc_step", "candidate_rows", "new_feature_log_density", "PAIRING_RULES",
 ]
+
+
+#: MAP pairing rules of (30) (:class:`LcParams`): ours and the paper's literal one.
+PAIRING_RULES = ("gated", "paper")
 
 
 @dataclass(frozen=True)
@@ -90,6 +108,14 @@ class LcParams:
       those predicted within Rs plus a 3-sigma margin).
     * ``new_feature_rate``: mu_new, expected number of untracked features in
       a vehicle's view (weight of the "new feature" hypothesis).
+    * ``new_feature_density``: mu_new f_new(z) as one constant (per m^2 per
+      (m/s)^2) in place of the derived density (module docstring, step 3);
+      0 (default) = derived from ``new_feature_rate``, ``sensing_range_m``
+      and ``new_feature_velocity_sigma``; 1 = no normalisation, eta as (13)
+      reads.
+    * ``pairing``: the MAP rule (30) (module docstring, step 5): "gated"
+      (ours) or "paper" (literal: ungated, threshold at every eta_TH, a row
+      may be taken by several tracks).
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -101,6 +127,8 @@ class LcParams:
     merge_gate_m: float = 2.0
     sensing_range_m: float = 50.0
     new_feature_rate: float = 1.0
+    new_feature_density: float = 0.0
+    pairing: str = "gated"
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -117,6 +145,10 @@ class LcParams:
             raise ValueError("new_feature_velocity_sigma and sensing_range_m must be positive, merge_gate_m >= 0")
         if not self.new_feature_rate > 0:
             raise ValueError("new_feature_rate must be positive")
+        if not (self.new_feature_density >= 0 and math.isfinite(self.new_feature_density)):
+            raise ValueError("new_feature_density must be >= 0 (0: derived from new_feature_rate)")
+        if self.pairing not in PAIRING_RULES:
+            raise ValueError(f"pairing must be one of {PAIRING_RULES}")
         if self.bp_iterations < 1 or self.bp_tol <= 0:
             raise ValueError("bp_iterations must be >= 1 and bp_tol > 0")
 
@@ -163,6 +195,8 @@ def new_feature_log_density(v_mean: np.ndarray, v_cov: np.ndarray, z: np.ndarray
     Position uniform in the sensing disc, v_F ~ N(0, s^2 I), so z_v = v_F - v_V
     is Gaussian around -v_V; ``v_mean``/``v_cov`` are the measuring vehicle's.
     """
+    if lc.new_feature_density > 0:
+        return np.full(z.shape[0], math.log(lc.new_feature_density))
     s_v = v_cov[:, 2:, 2:] + r[:, 2:, 2:] + lc.new_feature_velocity_sigma**2 * np.eye(2)
     log_new_v, _ = log_gauss(z[:, 2:] + v_mean[:, 2:], s_v)
     return math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2) + log_new_v
@@ -176,7 +210,7 @@ def association_weights(
     Returns ``(pair_vehicle, pair_track, pair_row, weight)`` with one entry per
     (vehicle i, candidate track k, row l of i): weight = eta(alpha_ik = l)
     normalised by the new-feature density (module docstring, step 3); 0
-    outside the gate.
+    outside the gate (no gate with ``lc.pairing = "paper"``).
     """
     pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
     if pr.size == 0:
@@ -186,7 +220,8 @@ def association_weights(
     log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     log_w = math.log(lc.detection_probability) + log_lik - log_new
     w = np.exp(np.minimum(log_w, 600.0))
-    w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
+    if lc.pairing == "gated":
+        w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
     return pv, pt, pr, w
 
 
@@ -259,22 +294,14 @@ def association_beliefs(
     return AssociationBeliefs(pf, c_vehicle, c_track, c_start, m_sizes[c_prob], r_first[c_prob], rows_sorted, row_new)
 
 
-def map_pairing(
-    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """BPA-DA per vehicle (14)-(17) (:func:`association_beliefs`) and the MAP decision (30).
+def _map_decisions(ab: AssociationBeliefs, lc: LcParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(30) per (vehicle, track) combo: the detected combos, their MAP rows and beliefs.
 
-    Returns ``(row_track, row_new)``: the track index paired with each row (-1
-    = none) and each row's belief of coming from no track (1 for rows of
-    vehicles without gated pairs).
+    A combo is detected iff its best row has a positive belief and b(alpha = 0) < eta_TH;
+    with ``pairing = "gated"`` the threshold test is skipped at eta_TH = 1 (every combo
+    with a gated row is detected). Ties between rows go to the lowest option.
     """
-    row_track = np.full(n_rows, -1, dtype=np.int64)
-    ab = association_beliefs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
-    if ab is None:
-        return row_track, np.ones(n_rows)
-    pf, c_start, c_track, combo_n = ab.belief, ab.combo_start, ab.combo_track, ab.combo_vehicle.size
-    # (30): a track is detected iff b(alpha = 0) < eta_TH (eta_TH = 1: every track with a gated
-    # row) and is paired with its most probable row; the larger belief wins a contested row.
+    pf, c_start, combo_n = ab.belief, ab.combo_start, ab.combo_vehicle.size
     m_c = ab.combo_rows
     seg = np.repeat(np.arange(combo_n), m_c)
     opt = np.arange(seg.size) - np.repeat(np.cumsum(m_c) - m_c, m_c)
@@ -285,15 +312,53 @@ def map_pairing(
     best_opt = np.full(combo_n, np.iinfo(np.int64).max)
     np.minimum.at(best_opt, seg[is_best], opt[is_best])
     detected = best_val > 0
-    if lc.eta_threshold < 1.0:
+    if lc.pairing == "paper" or lc.eta_threshold < 1.0:
         detected &= pf[c_start] < lc.eta_threshold
     cand = np.flatnonzero(detected)
-    cand_row = ab.row_of_option(cand, best_opt[cand] + 1)
-    order = np.lexsort((cand, -best_val[cand]))
-    _, first = np.unique(cand_row[order], return_index=True)
+    return cand, ab.row_of_option(cand, best_opt[cand] + 1), best_val[cand]
+
+
+def map_pairing(
+    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """BPA-DA per vehicle (14)-(17) (:func:`association_beliefs`) and the MAP decision (30).
+
+    Returns ``(row_track, row_new)``: the track index paired with each row (-1
+    = none) and each row's belief of coming from no track (1 for rows of
+    vehicles without gated pairs). A row claimed by several tracks goes to the
+    largest belief (ties: the lowest combo); with ``lc.pairing = "paper"`` the
+    other claims are the extra pairs of :func:`map_pairs`.
+    """
+    row_track, row_new, _, _ = map_pairs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
+    return row_track, row_new
+
+
+def map_pairs(
+    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`map_pairing` plus every pairing the rule (30) makes beyond one per row.
+
+    Returns ``(row_track, row_new, extra_row, extra_track)``. ``row_track`` is
+    each row's track index of largest belief; with ``lc.pairing = "paper"``
+    the other tracks that took the same row are ``(extra_row, extra_track)``
+    (sorted by row, then belief), to be used in (31) as well; with "gated"
+    they are empty (a contested row goes to the larger belief alone).
+    """
+    row_track = np.full(n_rows, -1, dtype=np.int64)
+    none = np.empty(0, np.int64)
+    ab = association_beliefs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
+    if ab is None:
+        return row_track, np.ones(n_rows), none, none
+    cand, cand_row, cand_val = _map_decisions(ab, lc)
+    order = np.lexsort((cand, -cand_val, cand_row))  # by row, then larger belief, then combo
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = cand_row[order][1:] != cand_row[order][:-1]
     win = order[first]
-    row_track[cand_row[win]] = c_track[cand[win]]
-    return row_track, ab.row_new
+    row_track[cand_row[win]] = ab.combo_track[cand[win]]
+    if lc.pairing != "paper":
+        return row_track, ab.row_new, none, none
+    extra = order[~first]
+    return row_track, ab.row_new, cand_row[extra], ab.combo_track[cand[extra]]
 
 
 def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.ndarray, gate_d2: float) -> np.ndarray:
@@ -372,11 +437,12 @@ class LcStepInfo:
     """Association bookkeeping of one step (not scoring: no truth here)."""
 
     row_track: np.ndarray  # (O,) track id per row, -1 = discarded
-    paired: int
+    paired: int  # (track, row) pairings of (30); with pairing = "paper" a row may count more than once
     born: int
     discarded: int
     merged: int
     iterations: int
+    shared: int = 0  # pairings beyond the first on a row (pairing = "paper": a row taken by several tracks)
 
 
 def icp_da_lc_step(
@@ -397,7 +463,7 @@ def icp_da_lc_step(
     pv, pt, pr, w = association_weights(
         b0_mean, own_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc
     )
-    row_idx, row_new = map_pairing(pv, pt, pr, w, frame.n_vehicles, o, lc)
+    row_idx, row_new, extra_row, extra_idx = map_pairs(pv, pt, pr, w, frame.n_vehicles, o, lc)
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
     # Births (step 6).
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
@@ -407,28 +473,39 @@ def icp_da_lc_step(
     row_track[birth] = next_id + labels
     born = int(labels.max()) + 1 if labels.size else 0
     next_id += born
+    # The rows of (31): every row once, plus a copy of a row for every further track that took it
+    # (pairing = "paper" only; with "gated" the arrays are the frame's own).
+    l_owner, l_z, l_r, l_track = owner, frame.v2f_z, frame.v2f_R, row_track
+    if extra_row.size:
+        l_owner = np.concatenate([owner, owner[extra_row]])
+        l_z = np.concatenate([frame.v2f_z, frame.v2f_z[extra_row]])
+        l_r = np.concatenate([frame.v2f_R, frame.v2f_R[extra_row]])
+        l_track = np.concatenate([row_track, predicted.ids[extra_idx]])
     # BPA-L on the paired rows (31).
-    used = row_track >= 0
-    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner[used]]
-    row_codes = vehicle_codes(frame.vehicle_ids)[owner[used]]
-    fids = np.unique(row_track[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, row_track[used], row_vehicle, params, row_codes)
+    used = l_track >= 0
+    row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
+    row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
+    fids = np.unique(l_track[used])
+    f_lam0, f_eta0 = predicted.prior_information(fids, l_track[used], row_vehicle, params, row_codes)
     res = bpa_localization(
-        b0_mean, b0_cov, own_mean, own_cov, owner, row_track, frame.v2f_z, frame.v2f_R, frame.neighbors,
+        b0_mean, b0_cov, own_mean, own_cov, l_owner, l_track, l_z, l_r, frame.neighbors,
         f_lam0, f_eta0, params,
     )
-    store = predicted.record(row_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
+    store = predicted.record(l_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     # Merging (step 8).
-    absorbed, into = merge_candidates(store, params, lc, owner[used], row_track[used])
+    absorbed, into = merge_candidates(store, params, lc, l_owner[used], l_track[used])
     store = store.merge(absorbed, into)
     if absorbed.size:
         order = np.argsort(absorbed)
         pos = np.minimum(np.searchsorted(absorbed[order], row_track), absorbed.size - 1)
         hit = absorbed[order][pos] == row_track
         row_track = np.where(hit, into[order][pos], row_track)
-    info = LcStepInfo(row_track, int((row_idx >= 0).sum()), born, int((row_track < 0).sum()), int(absorbed.size),
-                      res.iterations)
-    beliefs = step_feature_beliefs(store, params, row_track[used], res)
+        pos = np.minimum(np.searchsorted(absorbed[order], l_track), absorbed.size - 1)
+        hit = absorbed[order][pos] == l_track
+        l_track = np.where(hit, into[order][pos], l_track)
+    info = LcStepInfo(row_track, int((row_idx >= 0).sum()) + int(extra_row.size), born, int((row_track < 0).sum()),
+                      int(absorbed.size), res.iterations, int(extra_row.size))
+    beliefs = step_feature_beliefs(store, params, l_track[used], res)
     return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs), next_id, info
 
 

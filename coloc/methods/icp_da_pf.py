@@ -16,7 +16,9 @@ particles. Per time step:
    implementations take the same decisions on the same beliefs;
    eta(alpha = 0) = 1 - P_D. Candidate triples are pre-gated with the
    particle clouds' moments (chi-square, ``lc.gate_probability``): outside the
-   gate the double sum is not evaluated and eta = 0;
+   gate the double sum is not evaluated and eta = 0 (``lc.pairing = "paper"``:
+   no pre-gate, the double sum for every candidate triple; the rest of LC's
+   pairing rule does not apply, the PF keeps every association in (18));
 3. BPA-DA (14)-(17), the same numba BP as LC (:func:`coloc.methods.icp_da_lc.association_beliefs`);
 4. the V2F likelihood (18) for localization, a mixture over the association
    beliefs, with p(z | x, alpha = 0) = 1 - P_D and
@@ -581,8 +583,9 @@ def icp_da_pf_step(
         pv, pt, pr = candidate_rows(v_mean, assoc_cov, t_mean, t_cov, owner, lc)
         if pr.size:
             _, d2 = log_gauss(z[pr] - (t_mean[pt] - v_mean[pv]), t_cov[pt] + assoc_cov[pv] + r[pr])
-            keep = d2 <= chi2.ppf(lc.gate_probability, 4)
-            pv, pt, pr = pv[keep], pt[keep], pr[keep]
+            if lc.pairing == "gated":  # "paper": (25) for every candidate triple, ungated
+                keep = d2 <= chi2.ppf(lc.gate_probability, 4)
+                pv, pt, pr = pv[keep], pt[keep], pr[keep]
         w = np.zeros(pr.size)
         log_new = np.zeros(0)
         if pr.size:

@@ -122,16 +122,28 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                     "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
                     "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
                     "cooperative method should flatten that difference.", what=what))
-        area = str((run.config.get("report") or {}).get("track_area", "5"))
-        if {"err_along", "err_cross", "area"} <= set(est.columns) and area in set(est["area"].astype(str)):
-            w = _fig_track(run, area, figdir / "track_errors.png")
+        rep = run.config.get("report") or {}
+        areas = [str(a) for a in (rep.get("track_areas") or [rep.get("track_area", "5")])]
+        control = str((run.config.get("scenario") or {}).get("control", "")).upper()
+        paper_fig = "Fig. 19" if control == "VSR" else "Fig. 18"
+        present = set(est["area"].astype(str)) if "area" in est.columns else set()
+        for area in areas:
+            if not ({"err_along", "err_cross"} <= set(est.columns) and area in present):
+                continue
+            name = "track_errors.png" if len(areas) == 1 else f"track_errors_area_{_file_part(area)}.png"
+            w = _fig_track(run, area, figdir / name)
             blocks.append(_figure_html(
-                "track_errors.png", f"Along-track and cross-track accuracy in area {area} (paper Fig. 18)",
+                name, f"Along-track and cross-track accuracy in area {area} (paper {paper_fig})",
                 f"RMSE of the signed position error component along the true heading (top) and across "
                 f"it (bottom), over all vehicles in area {_esc(area)} within each {w:g} s bin, one line "
                 "per method. How to read: periodic GNSS error follows the traffic-light cycle (vehicles "
                 "averaging while stopped); cross-track below about 1 m is what lane-level services need.", what=what))
     return blocks
+
+
+def _file_part(label: str) -> str:
+    """An area label as part of a file name (letters, digits, '-', '_' kept)."""
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in label)
 
 
 def _coverage_html(methods: list[str], cov: dict) -> str:

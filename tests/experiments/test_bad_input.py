@@ -199,6 +199,47 @@ def run_scenario_v2f_range_zero(tmp, net, run):
     return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "lc.pairing", "gated")
+def run_unknown_pairing_rule(tmp, net, run):
+    cfg = _config(tmp, net, '[lc]\npairing = "literal"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "lc.new_feature_density", ">= 0")
+def run_negative_new_feature_density(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nnew_feature_density = -1e-5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "icp.stop_on", "vehicles_and_features")
+def run_unknown_stop_rule(tmp, net, run):
+    cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_known_da", "--quiet"], None
+
+
+@case("cfg.toml", "report.track_areas", "not both")
+def run_track_area_and_areas(tmp, net, run):
+    cfg = _config(tmp, net)
+    cfg.write_text(cfg.read_text().replace('track_area = "3"', 'track_area = "3"\ntrack_areas = ["1", "2"]'))
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sr.toml", "single_road.start", "gnss_fix")
+def run_unknown_start(tmp, net, run):
+    text = (PROJECT / "experiments" / "single_road.toml").read_text()
+    path = tmp / "sr.toml"
+    path.write_text(text.replace("[single_road]\n", '[single_road]\nstart = "cold"\n'))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cr.toml", "crossroad.prior_sigma_p", "gnss_fix")
+def run_prior_sigma_with_gnss_fix(tmp, net, run):
+    text = (PROJECT / "experiments" / "crossroad.toml").read_text()
+    path = tmp / "cr.toml"
+    path.write_text(text.replace("[crossroad]\n", '[crossroad]\nstart = "gnss_fix"\nprior_sigma_p = 3.0\n'))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "run.duration_s", "no vehicle was in the network")
 def run_duration_too_short(tmp, net, run):
     return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--duration", "1e-9", "--quiet"], None
@@ -500,7 +541,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 56
+    assert len(CASES) >= 62
 
 
 # ----------------------------------------------------------------------------- what --out may replace

@@ -35,7 +35,7 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
         assert Path(cfg.scenario.net_dir) == out.resolve()
         scen = tomllib.loads((out / "scenario.toml").read_text())
         assert scen["controls"][control]["tls_off"] is tls_off
-        assert cfg.report.track_area == scen["derived"]["track_area"]
+        assert cfg.report.track_figure_areas == (scen["derived"]["track_area"],)
         # everything else is the arterial's Sec. VI set-up
         art = load_config(PROJECT / "experiments" / f"arterial_{control}.toml")
         assert (cfg.sensors, cfg.motion, cfg.icp, cfg.lc) == (art.sensors, art.motion, art.icp, art.lc)
