@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import shapely
 from scipy.stats import binomtest, norm
 from shapely.affinity import rotate
 from shapely.geometry import LineString, box
@@ -31,6 +30,7 @@ from couplers.v2x import (
     equipped,
     link_nlos,
 )
+from netfixture import arterial_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ALPHA = 1e-3  # two-sided 0.1 % level of every statistical test here
@@ -247,13 +247,6 @@ def test_bad_v2x_parameters_name_the_field(kwargs, field):
     assert err.value.field == field
 
 
-def _config(extra: str) -> dict:
-    base = tomllib.loads((ROOT / "experiments" / "arterial_tlr.toml").read_text())
-    base["scenario"]["net_dir"] = str(ROOT / "sumo_nets" / "arterial")
-    base.update(tomllib.loads(extra))
-    return base
-
-
 @pytest.mark.parametrize("extra, field", [
     ("[v2x]\npenetration_rate = 0.0", "v2x.penetration_rate"),
     ("[v2x]\npdr_distance_m = [0.0, 100.0]\npdr_los = [0.5, 0.6]\npdr_nlos = [0.5, 0.1]", "v2x.pdr_los[1]"),
@@ -268,7 +261,7 @@ def test_bad_v2x_table_names_file_and_field(extra, field):
     from experiments.config import config_from_dict
 
     with pytest.raises(InputError) as err:
-        config_from_dict(_config(extra), Path("/x/cfg.toml"))
+        config_from_dict(arterial_config(extra), Path("/x/cfg.toml"))
     assert err.value.path == "/x/cfg.toml" and err.value.field == field
 
 
@@ -285,12 +278,12 @@ def test_v2x_refused_for_the_controlled_scenarios():
 def test_v2x_table_resolves_and_round_trips():
     from experiments.config import config_from_dict, config_to_toml
 
-    cfg = config_from_dict(_config("[v2x]\npenetration_rate = 0.25\nrounds_per_step = 10\n"), Path("/x/cfg.toml"))
+    cfg = config_from_dict(arterial_config("[v2x]\npenetration_rate = 0.25\nrounds_per_step = 10\n"), Path("/x/cfg.toml"))
     assert cfg.sensors.v2x is cfg.v2x and cfg.v2x.penetration_rate == 0.25 and cfg.v2x.rounds_per_step == 10
     text = config_to_toml(cfg, {"git": "test"})
     again = config_from_dict(tomllib.loads(text), Path("/x/cfg.toml"))
     assert again.sensors == cfg.sensors
-    plain = config_from_dict(_config(""), Path("/x/cfg.toml"))
+    plain = config_from_dict(arterial_config(""), Path("/x/cfg.toml"))
     assert plain.sensors.v2x is None and "[v2x]" not in config_to_toml(plain, {})
 
 
@@ -374,7 +367,7 @@ def test_arterial_quarter_penetration_end_to_end():
     from experiments.runner import frame_source
 
     def ids(extra):
-        cfg = config_from_dict(_config(extra), ROOT / "experiments" / "arterial_tlr.toml",
+        cfg = config_from_dict(arterial_config(extra), ROOT / "experiments" / "arterial_tlr.toml",
                                {"run.duration_s": 60.0, "run.methods": ["gnss"]})
         out = set()
         with frame_source(cfg) as src:
