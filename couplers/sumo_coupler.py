@@ -18,6 +18,7 @@ from couplers.netfolder import NetFolder
 from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
+from couplers.v2x import V2xChannel
 from couplers.zones import RegionIndex, gnss_sigma_for_zone
 
 
@@ -59,8 +60,10 @@ class SumoCoupler:
     :class:`couplers.perception.Detections` (with the sensor and class of every row, which the frame
     does not carry yet) and ``c.perception_totals`` the counts over the run. With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
-    :class:`couplers.gnss_error.GnssErrorProcess`'s. Every SUMO vehicle on the road occludes (all of
-    them are connected today; a penetration rate would keep the others as occluders).
+    :class:`couplers.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
+    equipped vehicles (:class:`couplers.v2x.V2xChannel`) are in the frames, and each frame carries
+    the channel (``frame.v2x``); every SUMO vehicle on the road, equipped or not, still occludes the
+    perception's sight lines and counts in the traffic statistics.
     """
 
     def __init__(self, scenario: SumoScenario, sensors: SensorParams, infra: InfraSetup | None = None):
@@ -82,6 +85,7 @@ class SumoCoupler:
         self.perception_totals: dict[str, int] = {}
         self.gnss_error = (GnssErrorProcess(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
+        self.v2x = V2xChannel(sensors.v2x, scenario.seed, buildings) if sensors.v2x is not None else None
         self._dim_ids = np.empty(0, dtype=object)
         self._dims = np.empty((0, 2))
 
@@ -99,11 +103,12 @@ class SumoCoupler:
     def frames(self) -> Iterator[Frame]:
         dt = self.scenario.step_length
         while not self.traffic.done():
-            states = self.traffic.step()
+            road = self.traffic.step()  # every SUMO vehicle: occluders and traffic statistics
+            states = road if self.v2x is None else _subset(road, self.v2x.equipped(road.ids))
             zone, sp, sv = gnss_sigma_for_zone(self.zones, states.xy)
             area = self.areas.names_at(states.xy, outside="outside")
             x_true = np.hstack([states.xy, states.velocity])
-            detections = self._perceive(states, x_true) if self.perception is not None else None
+            detections = self._perceive(road, states, x_true) if self.perception is not None else None
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -124,6 +129,8 @@ class SumoCoupler:
                 detections=detections,
                 gnss_error=self.gnss_error,
             )
+            if self.v2x is not None:
+                frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.infra is not None:
                 infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
                 frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))
@@ -140,20 +147,30 @@ class SumoCoupler:
         self._dim_ids, self._dims = ids, dims
         return dims
 
-    def _perceive(self, states: VehicleStates, x_true: np.ndarray) -> Detections:
+    def _perceive(self, road: VehicleStates, states: VehicleStates, x_true: np.ndarray) -> Detections:
+        """V2F rows of the frame's vehicles ``states``; every vehicle on the ``road`` occludes."""
         p = self.perception
         owner, feat = features_in_range(states.xy, self.feature_tree, p.max_reach_m)
         corners = None
         if p.occlusion_vehicles:
-            dims = self._vehicle_dims(states.ids)
-            corners = vehicle_footprints(states.xy, states.heading, dims[:, 0], dims[:, 1])
+            dims = self._vehicle_dims(road.ids)
+            corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1])
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=self.features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
-            occluder_corners=corners, observer_occluder=np.arange(len(states.ids)),
+            occluder_corners=corners,
+            observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
             buildings=self.scenario.net.buildings,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
         self.last_detections = det
         return det
+
+
+def _subset(states: VehicleStates, keep: np.ndarray) -> VehicleStates:
+    """The vehicles of ``states`` where ``keep`` (rows in the same order)."""
+    if keep.all():
+        return states
+    return VehicleStates(t=states.t, ids=states.ids[keep], xy=states.xy[keep], velocity=states.velocity[keep],
+                         heading=states.heading[keep], accel=states.accel[keep], entered=states.entered[keep])

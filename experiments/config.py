@@ -63,6 +63,7 @@ from couplers.gnss_error import GnssErrorParams
 from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
+from couplers.v2x import V2xParams
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -175,6 +176,9 @@ class Config:
     # sensors.perception / sensors.gnss_error (the runner passes [sensors] to the coupler).
     perception: PerceptionParams | None = None
     gnss_error: GnssErrorParams | None = None
+    # [v2x] (issue 22), optional, SUMO only: penetration, packet delivery, round budget; handed to the
+    # coupler as sensors.v2x like the sensing tables.
+    v2x: V2xParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -209,9 +213,10 @@ SECTIONS: dict[str, type] = {
 
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
-                                      "gnss_error": GnssErrorParams}
-#: Optional tables that realise issue 21's realistic sensing, carried to the coupler inside [sensors].
-SENSING_SECTIONS = ("perception", "gnss_error")
+                                      "gnss_error": GnssErrorParams, "v2x": V2xParams}
+#: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
+#: [sensors].
+SENSING_SECTIONS = ("perception", "gnss_error", "v2x")
 
 
 def _allows_infinity(where: str) -> bool:
@@ -502,14 +507,19 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
 
 
 def _attach_sensing(sections: dict, path: Path) -> list[tuple[str, str]]:
-    """Hand [perception] / [gnss_error] to the coupler inside [sensors] (SUMO scenarios only)."""
+    """Hand [perception] / [gnss_error] / [v2x] to the coupler inside [sensors] (SUMO scenarios only)."""
     given = {name: sections[name] for name in SENSING_SECTIONS if sections.get(name) is not None}
     if not given:
         return []
     if sections["scenario"].kind != "sumo":
         name = next(iter(given))
-        raise InputError(path, name, f"realistic sensing needs scenario.kind = \"sumo\" "
-                                     f"(this is {sections['scenario'].kind!r})")
+        what = "realistic V2X" if name == "v2x" else "realistic sensing"
+        raise InputError(path, name, f"{what} needs scenario.kind = \"sumo\" "
+                                     f"(this is {sections['scenario'].kind!r}): the controlled scenarios "
+                                     f"keep the paper's idealisation")
+    if "v2x" in given and sections.get("infra") is not None:
+        raise InputError(path, "v2x", "not supported together with [infra] yet (the RSU radars would have to "
+                                      "see the unequipped vehicles too)")
     sections["sensors"] = dataclasses.replace(sections["sensors"], **given)
     notes = []
     if "perception" in given:

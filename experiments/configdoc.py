@@ -70,6 +70,19 @@ TABLE_DOCS: dict[str, str] = {
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
                   "bias episodes. The estimators keep the nominal zone covariance a receiver reports.",
+    "v2x": "Realistic V2X (optional table, SUMO only; `couplers/v2x.py`): a share of equipped vehicles "
+           "(the others are not estimated, send nothing and are not in the V2V graph, but stay in the traffic "
+           "statistics and still occlude sight lines), a packet delivery ratio by link distance with a separate "
+           "curve for links through a building of the net folder's `buildings.geojson` (no buildings: every "
+           "link is line of sight), independent losses per message and round in each direction, and a budget "
+           "of broadcast rounds per step. The V2V graph `neighbors` keeps its meaning (within "
+           "`sensors.v2v_range_m`); the channel is a layer on top, carried to the estimators in the frame "
+           "(`Frame.v2x`, docs/architecture.md). Default delivery curves derived from 3GPP TR 37.885 V15.3.0 "
+           "(2019) Table 6.2.1-1 (V2V urban pathloss, LOS and NLOS, with their 3 / 4 dB shadowing) with a "
+           "23 dBm transmitter, 3 dBi antennas, the -82 dBm sensitivity of IEEE 802.11-2016 Table 17-18 (10 "
+           "MHz, 6 Mb/s) and Rayleigh fading per packet; no interference or congestion (derivation: "
+           "`couplers/v2x.py`). Absent: every vehicle connected over perfect links, exactly as before. Not "
+           "for the controlled scenarios, nor together with `[infra]`.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "
@@ -160,6 +173,21 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                            "coupler."),
         "gnss_error": ("", "Not a key of the file (refused there): carries the `[gnss_error]` table to the "
                            "coupler."),
+        "v2x": ("", "Not a key of the file (refused there): carries the `[v2x]` table to the coupler."),
+    },
+    "v2x": {
+        "penetration_rate": (NO_UNIT, "Share of SUMO vehicles with a V2X unit, in (0, 1]: a vehicle is "
+                                      "equipped iff a keyed hash of its id and `run.seed` falls below it, so "
+                                      "for one seed the equipped set of a lower rate is part of that of a "
+                                      "higher rate."),
+        "pdr_distance_m": ("m", "Link distances of the delivery table, strictly increasing from >= 0; "
+                                "delivery is interpolated linearly in between and is 0 beyond the last."),
+        "pdr_los": (NO_UNIT, "Packet delivery ratio at each distance of a line-of-sight link, in [0, 1], "
+                             "non-increasing."),
+        "pdr_nlos": (NO_UNIT, "Packet delivery ratio at each distance of a link whose segment crosses a "
+                              "building, in [0, 1], non-increasing."),
+        "rounds_per_step": (NO_UNIT, "Broadcast rounds that fit in one step, shared by every iterative "
+                                     "exchange of a method; 0 = unlimited."),
     },
     "perception": {
         "sensors": ("", "One `[[perception.sensors]]` table per sensor, keys below (default: a front radar "

@@ -87,3 +87,15 @@ def build_cross_net(folder: Path, end: float = 600.0) -> Path:
         "[controls]\ntlr = { tls_off = false }\nvsr = { tls_off = true }\n"
     )
     return folder
+
+
+def arterial_config(extra: str = "") -> dict:
+    """experiments/arterial_tlr.toml as a dict, its net folder made absolute, with the TOML tables of
+    ``extra`` added (replacing tables of the same name)."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    base = tomllib.loads((root / "experiments" / "arterial_tlr.toml").read_text())
+    base["scenario"]["net_dir"] = str(root / "sumo_nets" / "arterial")
+    base.update(tomllib.loads(extra))
+    return base

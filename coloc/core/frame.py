@@ -15,6 +15,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from coloc.core.v2x import V2xFrame
+
 
 @dataclass(frozen=True)
 class Truth:
@@ -92,6 +94,9 @@ class Frame:
     neighbors: sp.csr_matrix  # (N, N) symmetric boolean V2V adjacency, empty diagonal
     truth: Truth | None = None
     infra: InfraFrame | None = None  # road-side units and radars (infrastructure mode only)
+    # Realistic V2X ([v2x] table): per-link delivery probabilities aligned with ``neighbors``, the
+    # round budget and the step's channel seed (coloc.core.v2x). None: every link delivers every round.
+    v2x: V2xFrame | None = None
 
     @property
     def n_vehicles(self) -> int:

@@ -32,6 +32,7 @@ from couplers.perception import (
     vehicle_footprints,
 )
 from couplers.sensors import SensorParams, features_in_range
+from netfixture import arterial_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ALPHA = 1e-3  # two-sided 0.1 % level of every statistical test here
@@ -233,13 +234,6 @@ def test_bad_sensor_parameters_name_the_field(kwargs, field):
     assert err.value.field == field
 
 
-def _config(extra: str) -> dict:
-    base = tomllib.loads((ROOT / "experiments" / "arterial_tlr.toml").read_text())
-    base["scenario"]["net_dir"] = str(ROOT / "sumo_nets" / "arterial")
-    base.update(tomllib.loads(extra))
-    return base
-
-
 @pytest.mark.parametrize("extra, field", [
     ("[perception]\n[[perception.sensors]]\nfov_deg = 361.0", "perception.sensors[0].fov_deg"),
     ("[perception]\n[[perception.sensors]]\nname = 'a'\n[[perception.sensors]]\npd_near = 2.0", "perception.sensors[1].pd_near"),
@@ -252,7 +246,7 @@ def test_bad_perception_table_names_file_and_field(extra, field):
     from experiments.config import config_from_dict
 
     with pytest.raises(InputError) as err:
-        config_from_dict(_config(extra), Path("/x/cfg.toml"))
+        config_from_dict(arterial_config(extra), Path("/x/cfg.toml"))
     assert err.value.path == "/x/cfg.toml" and err.value.field == field
 
 
@@ -262,13 +256,13 @@ def test_perception_table_resolves_and_round_trips():
     extra = ("[perception]\nocclusion_buildings = false\n[[perception.sensors]]\nname = 'front'\nfov_deg = 120.0\n"
              "[[perception.sensors]]\nname = 'around'\nfov_deg = 360.0\nrange_m = 30.0\nclutter_per_scan = 0.5\n"
              "[gnss_error]\ntau_s = 20.0\n")
-    cfg = config_from_dict(_config(extra), Path("/x/cfg.toml"))
+    cfg = config_from_dict(arterial_config(extra), Path("/x/cfg.toml"))
     assert cfg.sensors.perception is cfg.perception and cfg.sensors.gnss_error is cfg.gnss_error
     assert [s.name for s in cfg.perception.sensors] == ["front", "around"]
     text = config_to_toml(cfg, {"git": "test"})
     again = config_from_dict(tomllib.loads(text), Path("/x/cfg.toml"))
     assert again.sensors == cfg.sensors
-    plain = config_from_dict(_config(""), Path("/x/cfg.toml"))
+    plain = config_from_dict(arterial_config(""), Path("/x/cfg.toml"))
     assert plain.sensors == SensorParams() and "[perception]" not in config_to_toml(plain, {})
 
 
@@ -358,7 +352,7 @@ def test_arterial_with_perception_has_clutter_and_fewer_true_detections():
     from experiments.runner import frame_source
 
     def tally(extra):
-        cfg = config_from_dict(_config(extra), ROOT / "experiments" / "arterial_tlr.toml",
+        cfg = config_from_dict(arterial_config(extra), ROOT / "experiments" / "arterial_tlr.toml",
                                {"run.duration_s": 90.0, "run.methods": ["gnss"]})
         true_rows = clutter = steps = 0
         with frame_source(cfg) as src:

@@ -343,6 +343,62 @@ def run_gnss_error_negative_tau(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "v2x.penetration_rate", "(0, 1]")
+def run_v2x_penetration_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npenetration_rate = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.penetration_rate", "(0, 1]")
+def run_v2x_penetration_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npenetration_rate = 1.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.pdr_los[2]", "must not increase")
+def run_v2x_delivery_increasing_with_distance(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npdr_distance_m = [0.0, 100.0, 200.0]\npdr_los = [1.0, 0.5, 0.6]\n"
+                            "pdr_nlos = [0.5, 0.2, 0.0]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.pdr_nlos[0]", "[0, 1]")
+def run_v2x_delivery_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npdr_distance_m = [0.0, 100.0]\npdr_los = [1.0, 0.5]\npdr_nlos = [1.2, 0.2]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.pdr_distance_m[1]", "increase")
+def run_v2x_distances_not_increasing(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npdr_distance_m = [100.0, 50.0]\npdr_los = [1.0, 0.5]\npdr_nlos = [1.0, 0.2]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.pdr_nlos", "one value per distance")
+def run_v2x_lists_of_different_length(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\npdr_distance_m = [0.0, 100.0]\npdr_los = [1.0, 0.5]\npdr_nlos = [1.0]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.rounds_per_step", ">= 0")
+def run_v2x_negative_rounds(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\nrounds_per_step = -1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.rounds_per_step", "integer")
+def run_v2x_fractional_rounds(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\nrounds_per_step = 2.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("single_road.toml", "v2x", "sumo")
+def run_v2x_controlled_scenario(tmp, net, run):
+    cfg = tmp / "single_road.toml"
+    cfg.write_text((PROJECT / "experiments" / "single_road.toml").read_text() + "\n[v2x]\npenetration_rate = 0.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("buildings.geojson")
 def run_buildings_file_not_geojson(tmp, net, run):
     copy = _net_copy(tmp, net)
@@ -541,7 +597,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 62
+    assert len(CASES) >= 71
 
 
 # ----------------------------------------------------------------------------- what --out may replace
