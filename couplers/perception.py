@@ -60,6 +60,7 @@ import numpy as np
 import shapely
 from numba import njit
 
+from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
@@ -163,6 +164,15 @@ class PerceptionParams:
     def max_reach_m(self) -> float:
         """Distance from the vehicle position beyond which no sensor sees anything."""
         return max(s.range_m + abs(s.mount_x_m) for s in self.sensors)
+
+
+def detection_model(params: PerceptionParams, heading_min_speed: float) -> DetectionModel:
+    """The sensors as the estimators' :class:`coloc.core.detection.DetectionModel` (datasheet
+    values only: field of view, range, mounting, detection profile)."""
+    a = params.arrays
+    return DetectionModel(*(tuple(float(v) for v in a[k]) for k in
+                            ("fov_deg", "range_m", "yaw_deg", "mount_x_m", "pd_near", "pd_far")),
+                          heading_min_speed=heading_min_speed)
 
 
 class PerceptionNoise:

@@ -492,22 +492,26 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     # Resolved: both keys, track_area the first of track_areas.
     sections["report"] = dataclasses.replace(rep, track_area=rep.track_figure_areas[0],
                                              track_areas=rep.track_figure_areas)
+    for name, cls in OPTIONAL_SECTIONS.items():
+        if name in data:
+            sections[name] = section_from_table(cls, data[name], name, path)
+    notes += _attach_sensing(sections, path, data.get("lc", {}))
     lc = sections["lc"]
     if lc.new_feature_density == 0:
         derived = lc.new_feature_rate / (math.pi * lc.sensing_range_m**2)
         notes.append(("lc.new_feature_density", f"0: derived, new_feature_rate / (pi Rs^2) = {derived:.3g} per m^2 "
                       "times the velocity density of an untracked feature (coloc.methods.icp_da_lc, step 3)"))
-    for name, cls in OPTIONAL_SECTIONS.items():
-        if name in data:
-            sections[name] = section_from_table(cls, data[name], name, path)
-    notes += _attach_sensing(sections, path)
     cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg
 
 
-def _attach_sensing(sections: dict, path: Path) -> list[tuple[str, str]]:
-    """Hand [perception] / [gnss_error] / [v2x] to the coupler inside [sensors] (SUMO scenarios only)."""
+def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[str, str]]:
+    """Hand [perception] / [gnss_error] / [v2x] to the coupler inside [sensors] (SUMO scenarios only).
+    With [perception], ``lc.sensing_range_m`` (not given in ``lc_given``) becomes the sensors' reach."""
+    if sections["lc"].sensor_fov and sections.get("perception") is None:
+        raise InputError(path, "lc.sensor_fov", "needs a [perception] table (the sensors whose field of view "
+                                                "the estimator expects)")
     given = {name: sections[name] for name in SENSING_SECTIONS if sections.get(name) is not None}
     if not given:
         return []
@@ -524,6 +528,10 @@ def _attach_sensing(sections: dict, path: Path) -> list[tuple[str, str]]:
     notes = []
     if "perception" in given:
         notes.append(("sensors.v2f_range_m", "not used for V2F rows: the [perception] sensors' ranges apply"))
+        if "sensing_range_m" not in lc_given:
+            reach = given["perception"].max_reach_m
+            sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=reach)
+            notes.append(("lc.sensing_range_m", "= the [perception] sensors' largest reach (range + mount offset)"))
     return notes
 
 

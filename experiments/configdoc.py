@@ -273,6 +273,18 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                         "larger belief, no threshold test at eta_TH = 1) or `\"paper\"` (literal: ungated, b(alpha "
                         "= 0) < eta_TH at every eta_TH, a row may be taken by several tracks). ICP-DA-PF: "
                         "`\"paper\"` drops its pre-gate."),
+        "clutter_intensity": ("1/m^2", "lambda_c, false detections per m^2 per scan the estimator expects (they "
+                                       "look like static objects); joins the new-feature density in the "
+                                       "normaliser of eta (13). 0 = no clutter (the paper)."),
+        "sensor_fov": ("", "P_D per (vehicle, track) from the `[perception]` sensors (field of view around the "
+                           "estimated heading, range, detection profile); needs `[perception]`. Off: "
+                           "`detection_probability` within the range."),
+        "track_existence": ("", "Carry an existence probability with each track (Meyer et al. 2018): a track "
+                                "localizes vehicles only while it is at least `confirm_existence`, and is "
+                                "dropped below `drop_existence`. Off: every track exists (the paper)."),
+        "survival_probability": (NO_UNIT, "A track's existence is multiplied by this every step."),
+        "confirm_existence": (NO_UNIT, "Existence from which a track localizes vehicles."),
+        "drop_existence": (NO_UNIT, "Existence below which a track is dropped."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

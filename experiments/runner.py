@@ -51,6 +51,7 @@ from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
 from couplers.netcheck import require_usable_net_folder
 from couplers.netfolder import load_net_folder
+from couplers.perception import detection_model
 from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
@@ -84,6 +85,8 @@ def method_params(cfg: Config) -> MethodParams:
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
+        detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed)
+                   if cfg.perception is not None and cfg.lc.sensor_fov else None),
     )
 
 

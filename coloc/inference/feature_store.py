@@ -304,6 +304,24 @@ class FeatureStore:
             msg_time=self.msg_time[keep],
         )._with_codes(self._msg_codes[keep])
 
+    def drop(self, track_ids: np.ndarray) -> "FeatureStore":
+        """The store without the tracks ``track_ids`` (ids not in the store are ignored)."""
+        gone = np.isin(self.ids, np.asarray(track_ids, dtype=np.int64))
+        if not gone.any():
+            return self
+        keep_msg = ~np.isin(self.msg_track, self.ids[gone])
+        return FeatureStore(
+            ids=self.ids[~gone],
+            last_seen=self.last_seen[~gone],
+            folded_lam=self.folded_lam[~gone],
+            folded_eta=self.folded_eta[~gone],
+            msg_track=self.msg_track[keep_msg],
+            msg_vehicle=self.msg_vehicle[keep_msg],
+            msg_mean=self.msg_mean[keep_msg],
+            msg_cov=self.msg_cov[keep_msg],
+            msg_time=self.msg_time[keep_msg],
+        )._with_codes(self._msg_codes[keep_msg])
+
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""
         empty = np.empty(0, dtype=np.int64)

@@ -50,7 +50,28 @@ Per time step, with no knowledge of which feature produced a V2F row:
 8. merging: two tracks whose means are within ``merge_gate_m`` and within the
    99 % chi-square gate (2 dof) of their summed position covariances, and
    that no vehicle observed both at this step, are merged into the older id;
-   tracks nobody observed for ``feature_drop_after_s`` are dropped.
+   tracks nobody observed for ``feature_drop_after_s`` are dropped;
+9. track existence (issue 21; ``track_existence``, off by default): every
+   track carries the probability r that it is a real object, as in
+   belief-propagation multitarget tracking (Meyer et al., "Message passing
+   algorithms for scalable multitarget tracking", Proc. IEEE 106(2), 2018):
+   predicted r <- p_s r (``survival_probability``); eta of (13) becomes
+   eta(alpha = 0) = 1 - r P_D and eta(alpha = l) = r x (the weight of step
+   3); after BPA-DA each vehicle's problem gives P(exists | z_i) = 1 -
+   b(alpha = 0) (1 - q), q = r (1 - P_D) / (1 - r P_D), and the vehicles'
+   evidence adds in log-odds (:func:`existence_update`); a candidate in a
+   vehicle's range with no gated row counts as missed (odds x (1 - P_D)). A
+   row that starts a track gives it r = mu_new f_new / (mu_new f_new +
+   lambda_c f_c) (several rows: their log-odds add). A track localizes
+   vehicles only while r >= ``confirm_existence``; below that it is
+   tentative: it takes part in the association (so clutter keeps hitting it
+   rather than starting more tracks) and is updated with the observing
+   vehicles' own-sensor messages, but BPA-L leaves its rows out and they are
+   reported as discarded. Tracks with r < ``drop_existence`` are dropped. A
+   landmark re-detected in a tight gate gains odds of order P_D N / lambda_c
+   per detection; clutter, drawn anew every scan, loses (1 - P_D) per miss.
+   Without clutter in the model every birth has r = 1 (up to 1e-12) and
+   nothing changes but the missed-detection decay.
 
 ``StepEstimate.v2f_assignment`` is the track id of each V2F row (-1 =
 discarded); scoring maps tracks to true features outside the estimator.
@@ -59,7 +80,7 @@ discarded); scoring maps tracks to true features outside the estimator.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -67,12 +88,13 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
+from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
-from coloc.inference.gaussian import log_gauss
+from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
 from coloc.methods.registry import ICP_DA_LC
@@ -116,6 +138,22 @@ class LcParams:
     * ``pairing``: the MAP rule (30) (module docstring, step 5): "gated"
       (ours) or "paper" (literal: ungated, threshold at every eta_TH, a row
       may be taken by several tracks).
+    * ``clutter_intensity``: lambda_c, false detections per m^2 per scan that
+      the estimator expects (a sensor's false alarms, looking like static
+      objects); 0 (default) = no clutter, the paper's model. It joins the
+      new-feature density in the normaliser of eta (step 3); telling a
+      clutter-born track from a feature is left to the confirmation (step 9).
+    * ``sensor_fov``: P_D per (vehicle, track) from the vehicles' sensors
+      (field of view around the estimated heading, range, detection profile:
+      :mod:`coloc.core.detection`), given to :class:`IcpDaLc` as
+      ``detection`` by whoever builds it (``coloc run``: from
+      ``[perception]``); a track outside every field of view is not expected
+      to be detected. Off: ``detection_probability`` within the range.
+    * ``track_existence``: carry an existence probability r with every track
+      (step 9); off (default): every track exists (r = 1, the paper's tracks).
+      ``survival_probability``: r is multiplied by it every step;
+      ``confirm_existence``: a track localizes vehicles only while r is at
+      least this; ``drop_existence``: a track is dropped when r falls below.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -129,6 +167,12 @@ class LcParams:
     new_feature_rate: float = 1.0
     new_feature_density: float = 0.0
     pairing: str = "gated"
+    clutter_intensity: float = 0.0
+    sensor_fov: bool = False
+    track_existence: bool = False
+    survival_probability: float = 0.999
+    confirm_existence: float = 0.9
+    drop_existence: float = 0.01
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -149,6 +193,12 @@ class LcParams:
             raise ValueError("new_feature_density must be >= 0 (0: derived from new_feature_rate)")
         if self.pairing not in PAIRING_RULES:
             raise ValueError(f"pairing must be one of {PAIRING_RULES}")
+        if not (self.clutter_intensity >= 0 and math.isfinite(self.clutter_intensity)):
+            raise ValueError("clutter_intensity must be >= 0 (false detections per m^2 per scan)")
+        if not 0.0 < self.survival_probability <= 1.0:
+            raise ValueError("survival_probability must be in (0, 1]")
+        if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
+            raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
         if self.bp_iterations < 1 or self.bp_tol <= 0:
             raise ValueError("bp_iterations must be >= 1 and bp_tol > 0")
 
@@ -190,11 +240,20 @@ def candidate_rows(
 
 
 def new_feature_log_density(v_mean: np.ndarray, v_cov: np.ndarray, z: np.ndarray, r: np.ndarray, lc: LcParams) -> np.ndarray:
-    """log of mu_new f_new(z): a row from an untracked feature (module docstring, step 3), per row.
+    """log of mu_new f_new(z) [+ lambda_c f_c(z)]: a row from an untracked feature (module
+    docstring, step 3), plus clutter when ``lc.clutter_intensity`` > 0, per row.
 
     Position uniform in the sensing disc, v_F ~ N(0, s^2 I), so z_v = v_F - v_V
     is Gaussian around -v_V; ``v_mean``/``v_cov`` are the measuring vehicle's.
     """
+    log_new = _untracked_feature_log_density(v_mean, v_cov, z, r, lc)
+    if lc.clutter_intensity > 0:
+        log_new = np.logaddexp(log_new, clutter_log_density(v_mean, v_cov, z, r, lc))
+    return log_new
+
+
+def _untracked_feature_log_density(v_mean, v_cov, z, r, lc: LcParams) -> np.ndarray:
+    """log mu_new f_new(z) alone (module docstring, step 3)."""
     if lc.new_feature_density > 0:
         return np.full(z.shape[0], math.log(lc.new_feature_density))
     s_v = v_cov[:, 2:, 2:] + r[:, 2:, 2:] + lc.new_feature_velocity_sigma**2 * np.eye(2)
@@ -202,15 +261,34 @@ def new_feature_log_density(v_mean: np.ndarray, v_cov: np.ndarray, z: np.ndarray
     return math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2) + log_new_v
 
 
+def clutter_log_density(v_mean, v_cov, z, r, lc: LcParams) -> np.ndarray:
+    """log lambda_c f_c(z) per row: clutter uniform in position with intensity lambda_c per m^2,
+    reported like a static object, z_v = -v_V + noise (as the perception model draws it)."""
+    log_v, _ = log_gauss(z[:, 2:] + v_mean[:, 2:], v_cov[:, 2:, 2:] + r[:, 2:, 2:])
+    return math.log(lc.clutter_intensity) + log_v
+
+
+def new_feature_share(v_mean, v_cov, z, r, lc: LcParams) -> np.ndarray:
+    """P(new feature | the row comes from no track) = mu_new f_new / (mu_new f_new + lambda_c f_c), per
+    row (1 without clutter): the existence of a track the row starts (step 9)."""
+    if lc.clutter_intensity <= 0:
+        return np.ones(z.shape[0])
+    log_f = _untracked_feature_log_density(v_mean, v_cov, z, r, lc)
+    return np.exp(log_f - np.logaddexp(log_f, clutter_log_density(v_mean, v_cov, z, r, lc)))
+
+
 def association_weights(
-    v_mean, v_cov, t_mean, t_cov, owner, z, r, lc: LcParams
+    v_mean, v_cov, t_mean, t_cov, owner, z, r, lc: LcParams, detection: DetectionModel | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """eta of (13) for every vehicle's (candidate track, row) pair, as BP problems.
 
     Returns ``(pair_vehicle, pair_track, pair_row, weight)`` with one entry per
     (vehicle i, candidate track k, row l of i): weight = eta(alpha_ik = l)
     normalised by the new-feature density (module docstring, step 3); 0
-    outside the gate (no gate with ``lc.pairing = "paper"``).
+    outside the gate (no gate with ``lc.pairing = "paper"``). With a
+    ``detection`` model P_D is the pair's expected detection probability
+    (:func:`coloc.core.detection.expected_detection_probability`), not
+    ``lc.detection_probability``.
     """
     pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
     if pr.size == 0:
@@ -218,7 +296,11 @@ def association_weights(
     nu = z[pr] - (t_mean[pt] - v_mean[pv])
     log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
     log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
-    log_w = math.log(lc.detection_probability) + log_lik - log_new
+    if detection is None:
+        log_w = math.log(lc.detection_probability) + log_lik - log_new
+    else:
+        with np.errstate(divide="ignore"):
+            log_w = np.log(expected_detection_probability(v_mean[pv], t_mean[pt, :2], detection)) + log_lik - log_new
     w = np.exp(np.minimum(log_w, 600.0))
     if lc.pairing == "gated":
         w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
@@ -251,11 +333,14 @@ class AssociationBeliefs:
 
 
 def association_beliefs(
-    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams
+    pair_vehicle, pair_track, pair_row, weight, n_vehicles: int, n_rows: int, lc: LcParams,
+    missed_weight: np.ndarray | None = None,
 ) -> AssociationBeliefs | None:
     """BPA-DA per vehicle (14)-(17): one BP problem per vehicle, K_i tracks x
     (M_i + 1) options, assembled with array operations and solved in one
-    numba call. None when no pair is gated."""
+    numba call. None when no pair is gated. ``missed_weight`` (per pair,
+    equal over the rows of one (vehicle, track) combo): eta(alpha = 0) of the
+    combo (1 - r P_D, step 9, with a per-pair P_D); None: 1 - P_D."""
     row_new = np.ones(n_rows)
     keep = weight > 0
     pv, pt, pr, w = pair_vehicle[keep], pair_track[keep], pair_row[keep], weight[keep]
@@ -285,7 +370,10 @@ def association_beliefs(
     c_local = np.arange(combo.size) - c_first[c_prob]
     c_start = block_off[c_prob] + c_local * (m_sizes[c_prob] + 1)  # flat index of (track, option 0)
     eta = np.zeros(int(block.sum()))
-    eta[c_start] = 1.0 - lc.detection_probability
+    if missed_weight is None:
+        eta[c_start] = 1.0 - lc.detection_probability
+    else:
+        eta[c_start[c_inv]] = missed_weight[keep]
     r_local = rank_r[r_inv] - r_first[prob_of_vehicle[pv]]
     eta[c_start[c_inv] + 1 + r_local] = w
     pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
@@ -344,9 +432,16 @@ def map_pairs(
     (sorted by row, then belief), to be used in (31) as well; with "gated"
     they are empty (a contested row goes to the larger belief alone).
     """
+    ab = association_beliefs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
+    return pairs_from_beliefs(ab, n_rows, lc)
+
+
+def pairs_from_beliefs(
+    ab: AssociationBeliefs | None, n_rows: int, lc: LcParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The MAP decision (30) on BPA-DA beliefs; returns what :func:`map_pairs` returns."""
     row_track = np.full(n_rows, -1, dtype=np.int64)
     none = np.empty(0, np.int64)
-    ab = association_beliefs(pair_vehicle, pair_track, pair_row, weight, n_vehicles, n_rows, lc)
     if ab is None:
         return row_track, np.ones(n_rows), none, none
     cand, cand_row, cand_val = _map_decisions(ab, lc)
@@ -432,6 +527,97 @@ def merge_candidates(
     return np.array(absorbed, dtype=np.int64), np.array(into, dtype=np.int64)
 
 
+_R_CLIP = 1e-12  # existence probabilities are kept in [1e-12, 1 - 1e-12] (finite log-odds)
+
+
+def _logit(r: np.ndarray) -> np.ndarray:
+    r = np.clip(r, _R_CLIP, 1.0 - _R_CLIP)
+    return np.log(r) - np.log1p(-r)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return np.clip(1.0 / (1.0 + np.exp(-x)), _R_CLIP, 1.0 - _R_CLIP)
+
+
+@dataclass(frozen=True)
+class TrackExistence:
+    """Existence probability r of every feature track (module docstring, step 9), over ``ids`` (sorted)."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    r: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+    def of(self, track_ids: np.ndarray) -> np.ndarray:
+        """r of each id (0 for ids without a record)."""
+        track_ids = np.asarray(track_ids, dtype=np.int64)
+        if self.ids.size == 0:
+            return np.zeros(track_ids.shape)
+        pos = np.minimum(np.searchsorted(self.ids, track_ids), self.ids.size - 1)
+        return np.where(self.ids[pos] == track_ids, self.r[pos], 0.0)
+
+    def confirmed(self, track_ids: np.ndarray, lc: LcParams) -> np.ndarray:
+        """Tracks that localize vehicles: r >= ``confirm_existence`` (False for -1 and unknown ids)."""
+        return self.of(track_ids) >= lc.confirm_existence
+
+    def with_tracks(self, ids: np.ndarray, r: np.ndarray) -> "TrackExistence":
+        """These tracks set to r (added or replaced); the result sorted by id."""
+        ids = np.asarray(ids, dtype=np.int64)
+        keep = ~np.isin(self.ids, ids)
+        all_ids = np.concatenate([self.ids[keep], ids])
+        order = np.argsort(all_ids, kind="stable")
+        return TrackExistence(all_ids[order], np.concatenate([self.r[keep], np.asarray(r, float)])[order])
+
+    def merged(self, absorbed: np.ndarray, into: np.ndarray) -> "TrackExistence":
+        """After :meth:`FeatureStore.merge`: the target keeps the larger r."""
+        absorbed = np.asarray(absorbed, dtype=np.int64)
+        if absorbed.size == 0:
+            return self
+        r_into = np.maximum(self.of(into), self.of(absorbed))
+        keep = ~np.isin(self.ids, absorbed)
+        return TrackExistence(self.ids[keep], self.r[keep]).with_tracks(into, r_into)
+
+    def restricted(self, ids: np.ndarray) -> "TrackExistence":
+        """Only the tracks ``ids`` (those the store holds)."""
+        keep = np.isin(self.ids, ids)
+        return TrackExistence(self.ids[keep], self.r[keep])
+
+
+def existence_update(
+    r_prior: np.ndarray, ab: "AssociationBeliefs | None", pd_combo: np.ndarray, missed_track: np.ndarray,
+    pd_missed: np.ndarray,
+) -> np.ndarray:
+    """Existence after this step's association (module docstring, step 9), per predicted track.
+
+    ``r_prior`` (K,): predicted r of the tracks. ``ab``: BPA-DA beliefs of the combos (vehicle,
+    track) with gated rows, solved with eta(alpha = 0) = 1 - r P_D and eta(alpha = l) scaled by r;
+    ``pd_combo`` (C,): each combo's P_D. Vehicle i's problem gives P(k exists | z_i) = 1 - b_ik(0)
+    (1 - q), with q = r (1 - P_D) / (1 - r P_D) the existence of a track that was not detected; a
+    candidate track expected in i's view (``missed_track``, P_D ``pd_missed``) with no gated row
+    at all has b_ik(0) = 1. The vehicles' problems are independent given existence, so their
+    evidence adds in log-odds: logit r_post = logit r + sum_i [logit P(k exists | z_i) - logit r].
+    """
+    logit_r = _logit(r_prior)
+    gain = np.zeros(r_prior.size)
+    if ab is not None and ab.combo_track.size:
+        k = ab.combo_track
+        q = r_prior[k] * (1.0 - pd_combo) / (1.0 - r_prior[k] * pd_combo)
+        b0 = ab.belief[ab.combo_start]
+        np.add.at(gain, k, _logit(1.0 - b0 * (1.0 - q)) - logit_r[k])
+    if missed_track.size:
+        rk = r_prior[missed_track]
+        q = rk * (1.0 - pd_missed) / (1.0 - rk * pd_missed)
+        np.add.at(gain, missed_track, _logit(q) - logit_r[missed_track])
+    return _sigmoid(logit_r + gain)
+
+
+def birth_existence(share: np.ndarray, labels: np.ndarray, n_born: int) -> np.ndarray:
+    """r of each new track: each of its rows is independent evidence that it is a feature, with
+    probability ``share`` = mu_new f_new / (mu_new f_new + lambda_c f_c) (Meyer et al.'s birth), so
+    the log-odds of the rows that started it add."""
+    log_odds = np.zeros(n_born)
+    np.add.at(log_odds, labels, _logit(share))
+    return _sigmoid(log_odds)
+
+
 @dataclass(frozen=True)
 class LcStepInfo:
     """Association bookkeeping of one step (not scoring: no truth here)."""
@@ -443,12 +629,18 @@ class LcStepInfo:
     merged: int
     iterations: int
     shared: int = 0  # pairings beyond the first on a row (pairing = "paper": a row taken by several tracks)
+    tentative: int = 0  # rows paired with (or starting) a track not yet confirmed: not used for the vehicles
+    existence: TrackExistence | None = None  # existence of the tracks after the step (lc.track_existence)
 
 
 def icp_da_lc_step(
-    state: IcpState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams
+    state: IcpState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams,
+    existence: TrackExistence | None = None, detection: DetectionModel | None = None,
 ) -> tuple[IcpState, int, LcStepInfo]:
-    """One ICP-DA-LC step (pure). Returns the new state, the next free track id and the step's bookkeeping."""
+    """One ICP-DA-LC step (pure). Returns the new state, the next free track id and the step's
+    bookkeeping; ``existence``: the tracks' existence after the previous step (``lc.track_existence``;
+    the new one is ``info.existence``); ``detection``: the vehicles' sensors, for a P_D per
+    (vehicle, track) (:mod:`coloc.core.detection`; None: ``lc.detection_probability``)."""
     match = match_ids(state.ids, frame.vehicle_ids)
     b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
     own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
@@ -461,11 +653,42 @@ def icp_da_lc_step(
     # arterial), which gates out correct pairings (arterial TLR, 300 s: 1494 births and 1208
     # merges with the b^(0) covariance, 171 births and no merge with the own-sensor one).
     pv, pt, pr, w = association_weights(
-        b0_mean, own_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc
+        b0_mean, own_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection
     )
-    row_idx, row_new, extra_row, extra_idx = map_pairs(pv, pt, pr, w, frame.n_vehicles, o, lc)
+
+    def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
+        """P_D of (vehicle, predicted track) pairs."""
+        if detection is None:
+            return np.full(vi.size, lc.detection_probability)
+        return expected_detection_probability(b0_mean[vi], t_mean[ti, :2], detection)
+
+    if not lc.track_existence and detection is None:
+        row_idx, row_new, extra_row, extra_idx = map_pairs(pv, pt, pr, w, frame.n_vehicles, o, lc)
+    else:
+        # Step 9: eta of (13) with the tracks' predicted existence r (1 without existence) and the
+        # pairs' P_D, then r updated by the step.
+        if lc.track_existence:
+            r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability
+        else:
+            r_pred = np.ones(predicted.size)
+        ab = association_beliefs(pv, pt, pr, w * r_pred[pt], frame.n_vehicles, o, lc,
+                                 1.0 - r_pred[pt] * pd_of(pv, pt))
+        row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
+        if lc.track_existence:
+            cv, ct = candidate_pairs(b0_mean, own_cov, t_mean, t_cov, lc)
+            pd_c = pd_of(cv, ct)
+            if detection is None:  # expected in view: within Rs of the vehicle's estimate
+                pd_c = np.where(np.hypot(*(b0_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
+            n_t = max(predicted.size, 1)
+            missed = pd_c > 0
+            if ab is not None:  # candidates with a gated row are in ab already
+                missed &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
+            pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
+            existence = TrackExistence(predicted.ids, existence_update(r_pred, ab, pd_combo, ct[missed], pd_c[missed]))
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
-    # Births (step 6).
+    # Births (step 6). A row no track explains may be a new feature or clutter: it starts a track
+    # either way, and with clutter in the model the confirmation of step 9 tells them apart (a
+    # static landmark and a false detection look alike in one scan).
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
     implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
     implied_cov = own_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
@@ -481,31 +704,60 @@ def icp_da_lc_step(
         l_z = np.concatenate([frame.v2f_z, frame.v2f_z[extra_row]])
         l_r = np.concatenate([frame.v2f_R, frame.v2f_R[extra_row]])
         l_track = np.concatenate([row_track, predicted.ids[extra_idx]])
-    # BPA-L on the paired rows (31).
-    used = l_track >= 0
+    # Confirmation (step 9): rows of tentative tracks update their track but not the vehicles.
+    bpa_track = l_track
+    if lc.track_existence:
+        share = new_feature_share(b0_mean[owner[birth]], own_cov[owner[birth]], frame.v2f_z[birth],
+                                  frame.v2f_R[birth], lc)
+        existence = existence.with_tracks(next_id - born + np.arange(born), birth_existence(share, labels, born))
+        bpa_track = np.where(existence.confirmed(l_track, lc), l_track, -1)
+    # BPA-L on the paired rows of confirmed tracks (31).
+    used = bpa_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
     row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
-    fids = np.unique(l_track[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, l_track[used], row_vehicle, params, row_codes)
+    fids = np.unique(bpa_track[used])
+    f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes)
     res = bpa_localization(
-        b0_mean, b0_cov, own_mean, own_cov, l_owner, l_track, l_z, l_r, frame.neighbors,
+        b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame.neighbors,
         f_lam0, f_eta0, params,
     )
-    store = predicted.record(l_track[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
+    rec_track, rec_owner, rec_lam, rec_eta = bpa_track[used], l_owner[used], res.msg_lam, res.msg_eta
+    tentative = (l_track >= 0) & ~used
+    if tentative.any():
+        # A tentative track gets each observing vehicle's own-sensor message (19) (no other feature
+        # in the cavity: the message IcpParams.feature_message = "own" keeps).
+        own_lam, own_eta = to_information(own_mean, own_cov)
+        t_own = l_owner[tentative]
+        t_lam, t_eta = relative_message(own_lam[t_own], own_eta[t_own], l_z[tentative], l_r[tentative])
+        rec_track = np.concatenate([rec_track, l_track[tentative]])
+        rec_owner = np.concatenate([rec_owner, t_own])
+        rec_lam, rec_eta = np.concatenate([rec_lam, t_lam]), np.concatenate([rec_eta, t_eta])
+        row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[rec_owner]
+        row_codes = vehicle_codes(frame.vehicle_ids)[rec_owner]
+    store = predicted.record(rec_track, row_vehicle, rec_lam, rec_eta, frame.t, params, row_codes)
     # Merging (step 8).
-    absorbed, into = merge_candidates(store, params, lc, l_owner[used], l_track[used])
+    absorbed, into = merge_candidates(store, params, lc, rec_owner, rec_track)
     store = store.merge(absorbed, into)
     if absorbed.size:
         order = np.argsort(absorbed)
         pos = np.minimum(np.searchsorted(absorbed[order], row_track), absorbed.size - 1)
         hit = absorbed[order][pos] == row_track
         row_track = np.where(hit, into[order][pos], row_track)
-        pos = np.minimum(np.searchsorted(absorbed[order], l_track), absorbed.size - 1)
-        hit = absorbed[order][pos] == l_track
-        l_track = np.where(hit, into[order][pos], l_track)
+        pos = np.minimum(np.searchsorted(absorbed[order], bpa_track), absorbed.size - 1)
+        hit = absorbed[order][pos] == bpa_track
+        bpa_track = np.where(hit, into[order][pos], bpa_track)
+    n_tentative = 0
+    if lc.track_existence:
+        existence = existence.merged(absorbed, into)
+        store = store.drop(existence.ids[existence.r < lc.drop_existence])
+        existence = existence.restricted(store.ids)
+        n_tentative = int(tentative[:o].sum())
+        # Rows not used for the vehicles are reported as discarded.
+        row_track = np.where(existence.confirmed(row_track, lc), row_track, -1)
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()) + int(extra_row.size), born, int((row_track < 0).sum()),
-                      int(absorbed.size), res.iterations, int(extra_row.size))
-    beliefs = step_feature_beliefs(store, params, l_track[used], res)
+                      int(absorbed.size), res.iterations, int(extra_row.size), n_tentative,
+                      existence if lc.track_existence else None)
+    beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs), next_id, info
 
 
@@ -519,7 +771,19 @@ class IcpDaLc:
     state: IcpState = field(default_factory=IcpState)
     next_id: int = 0
     last: LcStepInfo | None = None
+    # The vehicles' sensors (field of view, range, detection profile), for a P_D per (vehicle,
+    # track); None: lc.detection_probability everywhere in range.
+    detection: DetectionModel | None = None
 
     def step(self, frame: Frame) -> StepEstimate:
-        self.state, self.next_id, self.last = icp_da_lc_step(self.state, self.next_id, frame, self.params, self.lc)
-        return self.state.estimate(self.last.row_track, self.params)
+        existence = self.last.existence if self.last is not None else None
+        self.state, self.next_id, self.last = icp_da_lc_step(
+            self.state, self.next_id, frame, self.params, self.lc, existence, self.detection
+        )
+        est = self.state.estimate(self.last.row_track, self.params)
+        if self.last.existence is None:
+            return est
+        # Only confirmed tracks are features of the estimate (step 9).
+        keep = self.last.existence.confirmed(est.feature_track_ids, self.lc)
+        return replace(est, feature_mean=est.feature_mean[keep], feature_cov=est.feature_cov[keep],
+                       feature_track_ids=est.feature_track_ids[keep])

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
+    from coloc.core.detection import DetectionModel
     from coloc.core.models import MotionParams
     from coloc.inference.params import IcpParams
     from coloc.methods.icp_da_lc import LcParams
@@ -40,6 +41,7 @@ class MethodParams:
     lc: LcParams
     pf: PfParams
     infra: InfraMethodParams | None = None
+    detection: DetectionModel | None = None  # the vehicles' sensors, with lc.sensor_fov (from [perception])
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,7 @@ def _icp_known_da(p: MethodParams):
 def _icp_da_lc(p: MethodParams):
     from coloc.methods.icp_da_lc import IcpDaLc
 
-    return IcpDaLc(params=p.icp, lc=p.lc)
+    return IcpDaLc(params=p.icp, lc=p.lc, detection=p.detection if p.lc.sensor_fov else None)
 
 
 def _icp_da_pf(p: MethodParams):

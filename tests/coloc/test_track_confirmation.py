@@ -1,6 +1,6 @@
 """ICP-DA-LC under clutter (issue 21, estimator side): the clutter intensity in the normaliser of
-eta (13), births weighed against clutter, and M-of-N track confirmation (module docstring of
-coloc.methods.icp_da_lc, step 9)."""
+eta (13) and the tracks' existence probability (module docstring of coloc.methods.icp_da_lc,
+step 9)."""
 
 from dataclasses import replace
 
@@ -9,17 +9,23 @@ import pytest
 
 from coloc.inference.params import IcpParams
 from coloc.methods.gnss import GnssTracker
+from coloc.inference.association import association_marginals_exact
 from coloc.methods.icp_da_lc import (
     IcpDaLc,
     LcParams,
-    TrackStatus,
+    TrackExistence,
+    association_beliefs,
+    birth_existence,
     clutter_log_density,
+    existence_update,
     new_feature_log_density,
+    new_feature_share,
 )
 from scenes import road_frames
 from tests.coloc.test_icp_known_da import MOTION
 
 CLUTTER_RANGE_M = 30.0
+GNSS_SP = 3.0  # m: an urban receiver (the arterial's zones: 1-5 m)
 
 
 def with_clutter(frames, per_scan: float, seed: int, keep_features: bool = True):
@@ -53,10 +59,9 @@ def with_clutter(frames, per_scan: float, seed: int, keep_features: bool = True)
     return out
 
 
-def _lc(per_scan, confirm=(3, 4)):
+def _lc(per_scan, existence=True):
     return LcParams(sensing_range_m=CLUTTER_RANGE_M, eta_threshold=0.5,
-                    clutter_intensity=per_scan / (np.pi * CLUTTER_RANGE_M**2),
-                    confirm_hits=confirm[0], confirm_window_steps=confirm[1])
+                    clutter_intensity=per_scan / (np.pi * CLUTTER_RANGE_M**2), track_existence=existence)
 
 
 def test_clutter_density_joins_the_new_feature_density():
@@ -73,48 +78,90 @@ def test_clutter_density_joins_the_new_feature_density():
     np.testing.assert_allclose(new_feature_log_density(v_mean, v_cov, z, r, lc), np.logaddexp(base, ref), rtol=1e-12)
 
 
-@pytest.mark.parametrize("bad", [dict(clutter_intensity=-1.0), dict(confirm_hits=0),
-                                 dict(confirm_hits=4, confirm_window_steps=3)])
-def test_bad_confirmation_parameters(bad):
+@pytest.mark.parametrize("bad", [dict(clutter_intensity=-1.0), dict(survival_probability=0.0),
+                                 dict(drop_existence=0.5, confirm_existence=0.4), dict(confirm_existence=1.0)])
+def test_bad_existence_parameters(bad):
     with pytest.raises(ValueError):
         LcParams(**bad)
 
 
-def test_track_status_m_of_n():
-    lc = LcParams(confirm_hits=2, confirm_window_steps=3)
-    st = TrackStatus().advance(np.empty(0, np.int64), np.array([5]), lc)  # born, hit 1
-    assert st.ids.tolist() == [5] and st.hits.tolist() == [1] and not st.confirmed.any()
-    st = st.advance(np.array([5]), np.empty(0, np.int64), lc)  # missed
-    assert st.age.tolist() == [2] and st.expired(lc).size == 0
-    st2 = st.advance(np.array([5]), np.array([5]), lc)  # hit 2 in step 3: confirmed
-    assert st2.confirmed.tolist() == [True] and st2.expired(lc).size == 0
-    st3 = st.advance(np.array([5]), np.empty(0, np.int64), lc)  # missed again: expired at age 3
-    assert st3.expired(lc).tolist() == [5]
-    merged = st2.advance(np.array([5]), np.array([9]), lc).merged(np.array([9]), np.array([5]))
-    assert merged.ids.tolist() == [5] and merged.confirmed.tolist() == [True]
-    assert st2.is_confirmed(np.array([-1, 5, 7])).tolist() == [False, True, False]
+def test_existence_update_against_enumeration():
+    """One vehicle, two tracks with existence r1, r2 and two rows: P(k exists | z) = 1 - b(0)(1 - q)
+    with the exact association marginals equals the posterior enumerated over existence x
+    one-to-one association (to 1e-12); with the loopy BP's marginals (this 2 x 2 problem has a
+    loop) it is within 2 %."""
+    lc = LcParams(detection_probability=0.8)
+    r = np.array([0.3, 0.9])
+    w = np.array([[5.0, 0.2], [0.1, 3.0]])  # normalised likelihoods eta(l) / r
+    pv, pt, pr = np.zeros(4, np.int64), np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1])
+    ww = w[pt, pr]
+    # association_weights' w already holds P_D (eta(l) = P_D N / (mu_new f_new)); step 9 scales it by r.
+    ab = association_beliefs(pv, pt, pr, ww * lc.detection_probability * r[pt], 1, 2,
+                             replace(lc, bp_iterations=500, bp_tol=1e-14),
+                             (1.0 - r * lc.detection_probability)[pt])
+    got = existence_update(r, ab, np.full(2, lc.detection_probability), np.empty(0, np.int64), np.empty(0))
+    # Enumeration: states (e1, e2) x assignments a (0 = none), weight prod_k f(e_k, a_k).
+    post = np.zeros(2)
+    total = 0.0
+    for e in [(0, 0), (0, 1), (1, 0), (1, 1)]:
+        for a in [(0, 0), (1, 0), (2, 0), (0, 1), (0, 2), (1, 2), (2, 1)]:
+            wt = 1.0
+            for k in range(2):
+                prior = r[k] if e[k] else 1 - r[k]
+                if a[k] == 0:
+                    wt *= prior * ((1 - lc.detection_probability) if e[k] else 1.0)
+                else:
+                    wt *= prior * lc.detection_probability * w[k, a[k] - 1] if e[k] else 0.0
+            total += wt
+            post += wt * np.array(e)
+    exact = post / total
+    eta = np.column_stack([1 - r * lc.detection_probability, (w * r[:, None]) * lc.detection_probability])
+    p_exact = association_marginals_exact(eta)
+    q = r * (1 - lc.detection_probability) / (1 - r * lc.detection_probability)
+    np.testing.assert_allclose(1 - p_exact[:, 0] * (1 - q), exact, rtol=1e-12)
+    np.testing.assert_allclose(got, exact, rtol=2e-2)
+
+
+def test_missed_candidates_lose_odds_by_one_minus_pd_and_births_add_log_odds():
+    lc = LcParams(detection_probability=0.9)
+    r = np.array([0.5, 0.5])
+    got = existence_update(r, None, np.empty(0), np.array([0, 0, 0]), np.full(3, lc.detection_probability))
+    np.testing.assert_allclose(got[0] / (1 - got[0]), 0.1**3, rtol=1e-12)
+    assert got[1] == 0.5
+    share = np.array([0.2, 0.5, 0.9])
+    np.testing.assert_allclose(birth_existence(share, np.array([0, 0, 1]), 2), [0.2, 0.9])
+    te = TrackExistence(np.array([3, 7]), np.array([0.95, 0.2]))
+    assert te.confirmed(np.array([-1, 3, 7, 9]), LcParams()).tolist() == [False, True, False, False]
+    m = te.merged(np.array([7]), np.array([3]))
+    assert m.ids.tolist() == [3] and m.r.tolist() == [0.95]
+
+
+def test_new_feature_share_is_one_without_clutter():
+    rng = np.random.default_rng(2)
+    v_mean, z = rng.normal(size=(3, 4)), rng.normal(size=(3, 4))
+    v_cov = np.repeat(np.eye(4)[None], 3, 0)
+    r = np.repeat(np.eye(4)[None] * 0.1, 3, 0)
+    np.testing.assert_array_equal(new_feature_share(v_mean, v_cov, z, r, LcParams()), np.ones(3))
+    share = new_feature_share(v_mean, v_cov, z, r, LcParams(clutter_intensity=1e-4))
+    assert np.all((share > 0) & (share < 1))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
 def test_clutter_alone_confirms_no_track_and_vehicles_equal_gnss(seed):
     """No real feature, one false detection per vehicle and scan (five vehicles 10 m apart, each
-    with clutter over a 30 m disc) and 3-of-4 confirmation: no track is ever confirmed, every row
-    is reported discarded, and the vehicles are exactly the GNSS tracker's. Without confirmation
-    (M = 1) the same clutter starts tracks that pull the vehicles off GNSS.
-
-    Measured limit (not asserted): at three per vehicle and scan, 8 seeds x 15 steps, a clutter
-    track is confirmed in 25 of 120 steps with 3-of-4 and 15 of 120 with 4-of-5 (GNSS 8 m); the
-    five overlapping discs put about one false detection per step into a track's gate."""
-    frames = with_clutter(road_frames(seed=seed, steps=15, n_feat=0), 1.0, seed)
+    with clutter over a 30 m disc), track existence on: no track is ever confirmed, every row is
+    reported discarded, and the vehicles are exactly the GNSS tracker's. Without existence the
+    same clutter starts tracks that pull the vehicles off GNSS."""
+    frames = with_clutter(road_frames(seed=seed, steps=15, n_feat=0, gnss_sp=GNSS_SP), 1.0, seed)
     params = IcpParams(motion=MOTION)
     confirmed = IcpDaLc(params, _lc(1.0))
-    unconfirmed = IcpDaLc(params, _lc(1.0, confirm=(1, 1)))
+    unconfirmed = IcpDaLc(params, _lc(1.0, existence=False))
     gnss = GnssTracker(MOTION)
     moved = 0.0
     for f in frames:
         blind = f.without_truth()
         e_c, e_u, e_g = confirmed.step(blind), unconfirmed.step(blind), gnss.step(blind)
-        assert not confirmed.last.status.confirmed.any()
+        assert not confirmed.last.existence.confirmed(confirmed.last.existence.ids, confirmed.lc).any()
         assert np.all(e_c.v2f_assignment == -1) and e_c.feature_track_ids.size == 0
         np.testing.assert_array_equal(e_c.mean, e_g.mean)
         np.testing.assert_array_equal(e_c.cov, e_g.cov)
@@ -131,7 +178,7 @@ def test_real_features_are_confirmed_under_clutter_and_help_the_vehicles():
     """Landmarks 30 m apart plus one false detection per vehicle and scan: the landmarks' tracks
     are confirmed within the window, clutter's are not, and the vehicles beat GNSS."""
     seed = 4
-    frames = with_clutter(road_frames(seed=seed, steps=20, n_feat=4, v2v_range=25.0), 1.0, seed)
+    frames = with_clutter(road_frames(seed=seed, steps=20, n_feat=4, v2v_range=25.0, gnss_sp=GNSS_SP), 1.0, seed)
     params = IcpParams(motion=MOTION)
     lc_est, gnss = IcpDaLc(params, _lc(1.0)), GnssTracker(MOTION)
     out_lc, out_g = [], []
