@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -365,6 +366,25 @@ class _SumoSource:
         return pd.DataFrame(self.coupler.traffic.stats.rows)
 
 
+def seconds_since_process_start() -> float | None:
+    """Wall seconds since this process started (Linux ``/proc``; None elsewhere)."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+
+
+def _timing_line(what: str) -> None:
+    """``COLOC_TIMING=1``: one line on stderr with the seconds since process start (bench/startup.py)."""
+    since = seconds_since_process_start()
+    print(f"coloc timing: {what} at {since if since is not None else float('nan'):.2f} s after process start "
+          f"(wall clock {time.time():.3f})", file=sys.stderr, flush=True)
+
+
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
 
 
@@ -410,10 +430,13 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
         t_start = time.perf_counter()
+        timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         with source:
             version = source.sumo_version
             frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
-            for frame in frames:
+            for k, frame in enumerate(frames):
+                if timing and k == 0:
+                    _timing_line("first frame")
                 log.add_truth(frame)
                 blind = frame.without_truth()
                 for est in estimators:
@@ -427,6 +450,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                     log.add(est.name, res)
                     log.add_association(est.name, frame, res)
                     log.add_features(est.name, frame, res)
+                if timing and k == 0:
+                    _timing_line("first step of the estimators done")
         wall = time.perf_counter() - t_start
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
