@@ -36,17 +36,13 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
-from tqdm import tqdm
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_da_pf import PfParams
-from coloc.methods.infra import InfraMethodParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
@@ -65,6 +61,15 @@ from experiments.scoring import (
     score_association,
     traffic_summary,
 )
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from coloc.methods.infra import InfraMethodParams
+
+# pandas, pyarrow and tqdm are imported where they are used (the tables and Parquet files at the end
+# of a run, the progress bar), and the infrastructure methods' module only for an [infra] config, so
+# that `coloc run` reaches its first simulation step without them (docs/performance.md, start-up).
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 # Told the true association by the runner (the registry's known_association flag): the Gaussian
@@ -90,6 +95,8 @@ def method_params(cfg: Config) -> MethodParams:
 
 def infra_method_params(cfg: Config) -> InfraMethodParams:
     """Settings of the infrastructure methods from ``[infra]``, ``[motion]``, ``[sensors]`` and the seed."""
+    from coloc.methods.infra import InfraMethodParams
+
     inf = cfg.infra
     return InfraMethodParams(
         motion=cfg.motion, seed=cfg.run.seed, rsu_bp_particles=inf.rsu_bp_particles,
@@ -185,6 +192,8 @@ class EstimateLog:
         return out
 
     def association_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
+        import pandas as pd
+
         table = empty_association_table()
         parts = []
         for m in methods:
@@ -200,6 +209,8 @@ class EstimateLog:
         """Feature errors: known-association tracks are true feature indices; other tracks are
         compared with their label's true feature (tracks without a label, and ghost tracks labelled
         -1 because clutter formed most of their rows, are not scored)."""
+        import pandas as pd
+
         cols = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
         rows = []
         for m in methods:
@@ -241,6 +252,8 @@ class EstimateLog:
         ).astype(cols)
 
     def table(self, run_name: str) -> pd.DataFrame:
+        import pandas as pd
+
         if not self.truth_parts:
             cols = {"run": [], "method": [], "t": [], "vehicle": []}
             return pd.DataFrame(cols)
@@ -278,12 +291,16 @@ class EstimateLog:
 
 def empty_association_table() -> pd.DataFrame:
     """The association.parquet schema (correct / wrong / discarded V2F rows per method and step)."""
+    import pandas as pd
+
     columns = {"method": "string", "t": "float64", "correct": "int64", "wrong": "int64", "discarded": "int64"}
     return pd.DataFrame(columns=list(columns)).astype(columns)
 
 
 def empty_traffic_table() -> pd.DataFrame:
     """The traffic.parquet schema (5-minute SUMO statistics) with no rows: controlled scenarios."""
+    import pandas as pd
+
     columns = {
         "interval_start_s": "float64", "interval_end_s": "float64", "mean_vehicles": "float64",
         "exit_flow_vph": "float64", "mean_queue": "float64", "stop_time_s_per_km": "float64",
@@ -295,6 +312,9 @@ def empty_traffic_table() -> pd.DataFrame:
 def write_parquet(df: pd.DataFrame, path) -> None:
     """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd (``path``: a path or a
     binary file object)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     table = pa.Table.from_pandas(df, preserve_index=False)
     table = table.replace_schema_metadata(None)
     pq.write_table(table, path, compression="zstd", write_statistics=True)
@@ -363,6 +383,8 @@ class _SumoSource:
         return self.coupler.frames()
 
     def traffic_table(self) -> pd.DataFrame:
+        import pandas as pd
+
         return pd.DataFrame(self.coupler.traffic.stats.rows)
 
 
@@ -397,6 +419,8 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
         yield from frames
         return
     if progress or tty:
+        from tqdm import tqdm
+
         yield from tqdm(frames, total=n_steps, desc=name, unit="step", mininterval=1.0)
         return
     t0 = time.perf_counter()
