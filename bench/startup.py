@@ -1,6 +1,7 @@
 """Benchmark: how long `coloc run` takes to reach its first simulation step, and `coloc report` to write.
 
-Prints, each the best (minimum) and median of ``--repeat`` fresh processes:
+Prints, each the best (minimum) and median wall time of ``--repeat`` fresh processes and their median
+CPU time (user + system; on a busy machine wall times stretch, CPU times much less):
   1. ``import experiments.cli`` (what every ``coloc`` command pays before it parses its arguments);
   2. the imports of ``coloc run`` (``experiments.config``, ``experiments.runner``, ``experiments.studies``);
   3. ``coloc run CONFIG --duration 60`` from process start to its first frame and to the end of the
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import shutil
 import statistics
 import subprocess
@@ -34,19 +36,29 @@ COLOC = str(Path(sys.executable).parent / "coloc")
 RUN_IMPORTS = ("import experiments.config, experiments.runner, experiments.studies")
 HEAVY = ("gtsam", "dask", "distributed", "matplotlib", "pandas", "pyarrow", "scipy.stats", "scipy.optimize",
          "numba", "libsumo", "sumolib", "shapely", "pyproj", "tqdm")
-TIMING = re.compile(r"coloc timing: (.+?) at ([0-9.]+) s after process start")
+TIMING = re.compile(r"coloc timing: (.+?) at ([0-9.]+) s after process start, ([0-9.]+) s of CPU")
 
 
-def _wall(cmd: list[str], **kw) -> tuple[float, subprocess.CompletedProcess]:
-    t0 = time.perf_counter()
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _wall(cmd: list[str], cpu: list[float] | None = None, **kw) -> tuple[float, subprocess.CompletedProcess]:
+    """Wall seconds of ``cmd``; its CPU seconds (user + system) appended to ``cpu``."""
+    c0, t0 = _children_cpu(), time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, **kw)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr}")
+    if cpu is not None:
+        cpu.append(_children_cpu() - c0)
     return time.perf_counter() - t0, proc
 
 
-def _line(what: str, values: list[float]) -> None:
-    print(f"  {what:<48} best {min(values):6.2f} s   median {statistics.median(values):6.2f} s")
+def _line(what: str, values: list[float], cpu: list[float] | None = None) -> None:
+    """Best and median wall seconds, and the median CPU seconds (less sensitive to a busy machine)."""
+    tail = f"   CPU median {statistics.median(cpu):6.2f} s" if cpu else ""
+    print(f"  {what:<48} best {min(values):6.2f} s   median {statistics.median(values):6.2f} s{tail}")
 
 
 def main() -> None:
@@ -58,35 +70,41 @@ def main() -> None:
     args = ap.parse_args()
 
     print(f"start-up of `coloc run {Path(args.config).name} --duration {args.duration:g}`, {args.repeat} processes each")
-    cli = [_wall([PY, "-c", "import experiments.cli"])[0] for _ in range(args.repeat)]
-    _line("python -c 'import experiments.cli'", cli)
-    imp = [_wall([PY, "-c", RUN_IMPORTS])[0] for _ in range(args.repeat)]
-    _line("python -c 'import <coloc run's modules>'", imp)
+    cpu: list[float] = []
+    cli = [_wall([PY, "-c", "import experiments.cli"], cpu)[0] for _ in range(args.repeat)]
+    _line("python -c 'import experiments.cli'", cli, cpu)
+    cpu = []
+    imp = [_wall([PY, "-c", RUN_IMPORTS], cpu)[0] for _ in range(args.repeat)]
+    _line("python -c 'import <coloc run's modules>'", imp, cpu)
     _, proc = _wall([PY, "-c", RUN_IMPORTS + "; import sys; print(' '.join(m for m in "
                      f"{HEAVY!r} if m in sys.modules))"])
     print(f"  loaded by coloc run's imports: {proc.stdout.strip() or 'none of ' + ', '.join(HEAVY)}")
 
     first: dict[str, list[float]] = {}
-    whole = []
+    first_cpu: dict[str, list[float]] = {}
+    whole: list[float] = []
+    cpu = []
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, COLOC_TIMING="1")
         for _ in range(args.repeat):
             sec, proc = _wall([COLOC, "run", args.config, "--duration", f"{args.duration:g}", "--out",
-                               str(Path(tmp) / "run"), "--force", "--quiet"], env=env)
+                               str(Path(tmp) / "run"), "--force", "--quiet"], cpu, env=env)
             whole.append(sec)
-            for what, s in TIMING.findall(proc.stderr):
+            for what, s, c in TIMING.findall(proc.stderr):
                 first.setdefault(what, []).append(float(s))
+                first_cpu.setdefault(what, []).append(float(c))
     for what, values in first.items():
-        _line(f"run: {what}", values)
-    _line(f"coloc run --duration {args.duration:g}, whole", whole)
+        _line(f"run: {what}", values, first_cpu[what])
+    _line(f"coloc run --duration {args.duration:g}, whole", whole, cpu)
 
     if args.report:
         src = Path(args.report)
         with tempfile.TemporaryDirectory() as tmp:
             copy = Path(tmp) / src.name
             shutil.copytree(src, copy, ignore=shutil.ignore_patterns("figures", "report.html"))
-            rep = [_wall([COLOC, "report", str(copy)])[0] for _ in range(args.repeat)]
-        _line(f"coloc report {src}", rep)
+            cpu = []
+            rep = [_wall([COLOC, "report", str(copy)], cpu)[0] for _ in range(args.repeat)]
+        _line(f"coloc report {src}", rep, cpu)
 
 
 if __name__ == "__main__":

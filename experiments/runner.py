@@ -403,8 +403,8 @@ def seconds_since_process_start() -> float | None:
 def _timing_line(what: str) -> None:
     """``COLOC_TIMING=1``: one line on stderr with the seconds since process start (bench/startup.py)."""
     since = seconds_since_process_start()
-    print(f"coloc timing: {what} at {since if since is not None else float('nan'):.2f} s after process start "
-          f"(wall clock {time.time():.3f})", file=sys.stderr, flush=True)
+    print(f"coloc timing: {what} at {since if since is not None else float('nan'):.2f} s after process start, "
+          f"{time.process_time():.2f} s of CPU (wall clock {time.time():.3f})", file=sys.stderr, flush=True)
 
 
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
