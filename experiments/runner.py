@@ -30,22 +30,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
-from tqdm import tqdm
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_da_pf import PfParams
-from coloc.methods.infra import InfraMethodParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
@@ -65,6 +62,15 @@ from experiments.scoring import (
     score_association,
     traffic_summary,
 )
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from coloc.methods.infra import InfraMethodParams
+
+# pandas, pyarrow and tqdm are imported where they are used (the tables and Parquet files at the end
+# of a run, the progress bar), and the infrastructure methods' module only for an [infra] config, so
+# that `coloc run` reaches its first simulation step without them (docs/performance.md, start-up).
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 # Told the true association by the runner (the registry's known_association flag): the Gaussian
@@ -92,6 +98,8 @@ def method_params(cfg: Config) -> MethodParams:
 
 def infra_method_params(cfg: Config) -> InfraMethodParams:
     """Settings of the infrastructure methods from ``[infra]``, ``[motion]``, ``[sensors]`` and the seed."""
+    from coloc.methods.infra import InfraMethodParams
+
     inf = cfg.infra
     return InfraMethodParams(
         motion=cfg.motion, seed=cfg.run.seed, rsu_bp_particles=inf.rsu_bp_particles,
@@ -187,6 +195,8 @@ class EstimateLog:
         return out
 
     def association_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
+        import pandas as pd
+
         table = empty_association_table()
         parts = []
         for m in methods:
@@ -202,6 +212,8 @@ class EstimateLog:
         """Feature errors: known-association tracks are true feature indices; other tracks are
         compared with their label's true feature (tracks without a label, and ghost tracks labelled
         -1 because clutter formed most of their rows, are not scored)."""
+        import pandas as pd
+
         cols = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
         rows = []
         for m in methods:
@@ -243,6 +255,8 @@ class EstimateLog:
         ).astype(cols)
 
     def table(self, run_name: str) -> pd.DataFrame:
+        import pandas as pd
+
         if not self.truth_parts:
             cols = {"run": [], "method": [], "t": [], "vehicle": []}
             return pd.DataFrame(cols)
@@ -280,12 +294,16 @@ class EstimateLog:
 
 def empty_association_table() -> pd.DataFrame:
     """The association.parquet schema (correct / wrong / discarded V2F rows per method and step)."""
+    import pandas as pd
+
     columns = {"method": "string", "t": "float64", "correct": "int64", "wrong": "int64", "discarded": "int64"}
     return pd.DataFrame(columns=list(columns)).astype(columns)
 
 
 def empty_traffic_table() -> pd.DataFrame:
     """The traffic.parquet schema (5-minute SUMO statistics) with no rows: controlled scenarios."""
+    import pandas as pd
+
     columns = {
         "interval_start_s": "float64", "interval_end_s": "float64", "mean_vehicles": "float64",
         "exit_flow_vph": "float64", "mean_queue": "float64", "stop_time_s_per_km": "float64",
@@ -297,6 +315,9 @@ def empty_traffic_table() -> pd.DataFrame:
 def write_parquet(df: pd.DataFrame, path) -> None:
     """Deterministic Parquet: fixed schema from the frame, no pandas index, zstd (``path``: a path or a
     binary file object)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     table = pa.Table.from_pandas(df, preserve_index=False)
     table = table.replace_schema_metadata(None)
     pq.write_table(table, path, compression="zstd", write_statistics=True)
@@ -365,7 +386,28 @@ class _SumoSource:
         return self.coupler.frames()
 
     def traffic_table(self) -> pd.DataFrame:
+        import pandas as pd
+
         return pd.DataFrame(self.coupler.traffic.stats.rows)
+
+
+def seconds_since_process_start() -> float | None:
+    """Wall seconds since this process started (Linux ``/proc``; None elsewhere)."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+
+
+def _timing_line(what: str) -> None:
+    """``COLOC_TIMING=1``: one line on stderr with the seconds since process start (bench/startup.py)."""
+    since = seconds_since_process_start()
+    print(f"coloc timing: {what} at {since if since is not None else float('nan'):.2f} s after process start, "
+          f"{time.process_time():.2f} s of CPU (wall clock {time.time():.3f})", file=sys.stderr, flush=True)
 
 
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
@@ -380,6 +422,8 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
         yield from frames
         return
     if progress or tty:
+        from tqdm import tqdm
+
         yield from tqdm(frames, total=n_steps, desc=name, unit="step", mininterval=1.0)
         return
     t0 = time.perf_counter()
@@ -413,10 +457,13 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
         t_start = time.perf_counter()
+        timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         with source:
             version = source.sumo_version
             frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
-            for frame in frames:
+            for k, frame in enumerate(frames):
+                if timing and k == 0:
+                    _timing_line("first frame")
                 log.add_truth(frame)
                 blind = frame.without_truth()
                 for est in estimators:
@@ -430,6 +477,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                     log.add(est.name, res)
                     log.add_association(est.name, frame, res)
                     log.add_features(est.name, frame, res)
+                if timing and k == 0:
+                    _timing_line("first step of the estimators done")
         wall = time.perf_counter() - t_start
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)

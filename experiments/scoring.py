@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # the functions take pandas objects; importing pandas is left to their callers
+    import pandas as pd
 
 
 def along_cross_errors(err_xy: np.ndarray, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

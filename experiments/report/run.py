@@ -126,7 +126,8 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
         areas = [str(a) for a in (rep.get("track_areas") or [rep.get("track_area", "5")])]
         control = str((run.config.get("scenario") or {}).get("control", "")).upper()
         paper_fig = "Fig. 19" if control == "VSR" else "Fig. 18"
-        present = set(est["area"].astype(str)) if "area" in est.columns else set()
+        # The labels present, from the column's distinct values (not a Python string per row: 1.77M on an hour).
+        present = {str(v) for v in est["area"].unique()} if "area" in est.columns else set()
         for area in areas:
             if not ({"err_along", "err_cross"} <= set(est.columns) and area in present):
                 continue
