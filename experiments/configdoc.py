@@ -285,6 +285,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "survival_probability": (NO_UNIT, "A track's existence is multiplied by this every step."),
         "confirm_existence": (NO_UNIT, "Existence from which a track localizes vehicles."),
         "drop_existence": (NO_UNIT, "Existence below which a track is dropped."),
+        "own_consistency_gate": (NO_UNIT, "Chi-square probability (2 dof): a vehicle whose cooperative position "
+                                          "leaves this gate of its own-sensor (GNSS + inertial) track is reset to "
+                                          "that track. 0 = never (the paper)."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

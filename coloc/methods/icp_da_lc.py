@@ -71,7 +71,12 @@ Per time step, with no knowledge of which feature produced a V2F row:
    landmark re-detected in a tight gate gains odds of order P_D N / lambda_c
    per detection; clutter, drawn anew every scan, loses (1 - P_D) per miss.
    Without clutter in the model every birth has r = 1 (up to 1e-12) and
-   nothing changes but the missed-detection decay.
+   nothing changes but the missed-detection decay;
+10. own-sensor consistency (issue 21; ``own_consistency_gate``, off by
+   default): a vehicle whose cooperative position leaves the chi-square gate
+   of its own-sensor track is reset to that track (:func:`own_consistency_reset`),
+   an innovation-based fault check in the spirit of receiver autonomous
+   integrity monitoring. It bounds what a wrong pairing can do to a vehicle.
 
 ``StepEstimate.v2f_assignment`` is the track id of each V2F row (-1 =
 discarded); scoring maps tracks to true features outside the estimator.
@@ -154,6 +159,10 @@ class LcParams:
       ``survival_probability``: r is multiplied by it every step;
       ``confirm_existence``: a track localizes vehicles only while r is at
       least this; ``drop_existence``: a track is dropped when r falls below.
+    * ``own_consistency_gate``: step 10, a chi-square probability (2 dof):
+      a vehicle whose cooperative position estimate lies outside this gate
+      of its own-sensor (GNSS + inertial) track is reset to that track; 0
+      (default) = never (the paper).
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -173,6 +182,7 @@ class LcParams:
     survival_probability: float = 0.999
     confirm_existence: float = 0.9
     drop_existence: float = 0.01
+    own_consistency_gate: float = 0.0
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -197,6 +207,8 @@ class LcParams:
             raise ValueError("clutter_intensity must be >= 0 (false detections per m^2 per scan)")
         if not 0.0 < self.survival_probability <= 1.0:
             raise ValueError("survival_probability must be in (0, 1]")
+        if not 0.0 <= self.own_consistency_gate < 1.0:
+            raise ValueError("own_consistency_gate must be in [0, 1) (0: off)")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
             raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
         if self.bp_iterations < 1 or self.bp_tol <= 0:
@@ -631,6 +643,7 @@ class LcStepInfo:
     shared: int = 0  # pairings beyond the first on a row (pairing = "paper": a row taken by several tracks)
     tentative: int = 0  # rows paired with (or starting) a track not yet confirmed: not used for the vehicles
     existence: TrackExistence | None = None  # existence of the tracks after the step (lc.track_existence)
+    resets: int = 0  # vehicles reset to their own-sensor track (step 10)
 
 
 def icp_da_lc_step(
@@ -754,11 +767,33 @@ def icp_da_lc_step(
         n_tentative = int(tentative[:o].sum())
         # Rows not used for the vehicles are reported as discarded.
         row_track = np.where(existence.confirmed(row_track, lc), row_track, -1)
+    v_mean, v_cov, resets = res.mean, res.cov, 0
+    if lc.own_consistency_gate > 0:
+        v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate)
+        resets = int(reset.sum())
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()) + int(extra_row.size), born, int((row_track < 0).sum()),
                       int(absorbed.size), res.iterations, int(extra_row.size), n_tentative,
-                      existence if lc.track_existence else None)
+                      existence if lc.track_existence else None, resets)
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
-    return IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs), next_id, info
+    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs), next_id, info
+
+
+def own_consistency_reset(
+    mean: np.ndarray, cov: np.ndarray, own_mean: np.ndarray, own_cov: np.ndarray, gate_probability: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 10: vehicles whose cooperative position is outside the ``gate_probability`` chi-square
+    gate (2 dof) of their own-sensor track, d^T P_own^-1 d with d = m - m_own (positions), take the
+    own-sensor belief. The own-sensor track (GNSS + inertial) carries no feature evidence, so a
+    vehicle pulled away by a wrong pairing (a false detection next to a landmark) and made
+    overconfident by it returns to what its own sensors support. Returns (mean, cov, reset mask)."""
+    d = mean[:, :2] - own_mean[:, :2]
+    d2 = np.einsum("ni,ni->n", d, np.linalg.solve(own_cov[:, :2, :2], d[..., None])[..., 0])
+    reset = d2 > _chi2_ppf(gate_probability, 2)
+    if not reset.any():
+        return mean, cov, reset
+    mean, cov = mean.copy(), cov.copy()
+    mean[reset], cov[reset] = own_mean[reset], own_cov[reset]
+    return mean, cov, reset
 
 
 @dataclass

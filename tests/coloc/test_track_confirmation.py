@@ -194,3 +194,21 @@ def test_real_features_are_confirmed_under_clutter_and_help_the_vehicles():
             assert np.linalg.eigvalsh(c).min() > 0
     assert used_real > 10 * max(used_clutter, 1)
     assert _rmse(frames, out_lc) < _rmse(frames, out_g)
+
+
+def test_own_consistency_reset_returns_far_vehicles_to_their_own_track():
+    """A vehicle whose cooperative position is outside the 2-dof gate of its own-sensor track takes
+    the own-sensor belief; one inside keeps its belief. Gate 0.9999: d^2 > 18.42."""
+    from coloc.methods.icp_da_lc import own_consistency_reset
+
+    own_mean = np.zeros((3, 4))
+    own_cov = np.repeat(np.diag([4.0, 4.0, 0.1, 0.1])[None], 3, 0)  # 2 m per axis
+    mean = np.array([[8.0, 0.0, 0, 0], [8.7, 0.0, 0, 0], [3.0, 3.0, 0, 0]])  # d^2 = 16, 18.9, 4.5
+    cov = np.repeat(np.eye(4)[None] * 0.01, 3, 0)
+    m, c, reset = own_consistency_reset(mean, cov, own_mean, own_cov, 0.9999)
+    assert reset.tolist() == [False, True, False]
+    np.testing.assert_array_equal(m[1], own_mean[1])
+    np.testing.assert_array_equal(c[1], own_cov[1])
+    np.testing.assert_array_equal(m[[0, 2]], mean[[0, 2]])
+    with pytest.raises(ValueError):
+        LcParams(own_consistency_gate=1.0)
