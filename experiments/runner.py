@@ -55,10 +55,12 @@ from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
 from experiments.scoring import (
     along_cross_errors,
+    association_by_group,
     association_summary,
     coverage_summary,
     feature_summary,
     method_summary,
+    nees_summary,
     score_association,
     traffic_summary,
 )
@@ -145,6 +147,8 @@ class EstimateLog:
     feature_parts: list = field(default_factory=list)
     # method -> per step (t, assignment (O,), true feature (O,))
     assoc_parts: dict = field(default_factory=dict)
+    # method -> per step, the GNSS zone of each V2F row's vehicle
+    assoc_zone_parts: dict = field(default_factory=dict)
     # method -> per step (t, track ids (T,), estimated xy (T, 2), true feature xy (K, 2))
     track_parts: dict = field(default_factory=dict)
     # Infrastructure mode: per step (covered (N,), home RSU id (N,) str, "" when not covered).
@@ -164,8 +168,18 @@ class EstimateLog:
 
     def add(self, method: str, est: StepEstimate) -> None:
         self.method_parts.setdefault(method, []).append(
-            (est.mean, est.cov[:, 0, 0], est.cov[:, 1, 1])
+            (est.mean, est.cov[:, 0, 0], est.cov[:, 1, 1], est.cov[:, 0, 1])
         )
+
+    def position_nees(self, method: str) -> np.ndarray:
+        """2-D position NEES e^T P^-1 e of every (vehicle, step) sample of ``method``, in the row order
+        of :meth:`table` (2 on average for a consistent estimator)."""
+        x_true = np.concatenate([p[2] for p in self.truth_parts])
+        mean, vx_, vy_, cxy = (np.concatenate(c) for c in zip(*self.method_parts[method]))
+        ex, ey = mean[:, 0] - x_true[:, 0], mean[:, 1] - x_true[:, 1]
+        det = vx_ * vy_ - cxy * cxy
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return (vy_ * ex * ex - 2.0 * cxy * ex * ey + vx_ * ey * ey) / det
 
     def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
@@ -176,6 +190,7 @@ class EstimateLog:
         if assign.shape != truth.shape:
             raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
         self.assoc_parts.setdefault(method, []).append((frame.t, assign, truth))
+        self.assoc_zone_parts.setdefault(method, []).append(np.asarray(frame.truth.zone)[np.asarray(frame.v2f_owner)])
 
     def add_features(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Feature-track estimates; scored against the truth once the track labels are known."""
@@ -267,7 +282,7 @@ class EstimateLog:
             infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
         frames = []
         for method, parts in self.method_parts.items():
-            mean, vx_, vy_ = (np.concatenate(c) for c in zip(*parts))
+            mean, vx_, vy_, _ = (np.concatenate(c) for c in zip(*parts))
             err = mean - x_true
             along, cross = along_cross_errors(err[:, :2], heading)
             frames.append(
@@ -512,7 +527,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "wall_seconds": wall,
         }
         for method in methods:
-            block = method_summary(estimates[estimates["method"] == method])
+            rows = estimates[estimates["method"] == method]
+            block = method_summary(rows)
+            block["nees_pos"] = nees_summary(log.position_nees(method), rows["zone"].to_numpy())
             block["seconds"] = seconds[method]
             feat = features[features["method"] == method]["err_pos"].to_numpy()
             if feat.size:
@@ -520,6 +537,14 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             summary["methods"][method] = block
             if method in scores:
                 summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
+                summary["association"][method]["by_zone"] = association_by_group(
+                    [(a, f) for _, a, f in log.assoc_parts[method]], log.assoc_zone_parts[method], scores[method][2])
+        totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
+        if totals:
+            # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).
+            vehicle_steps = sum(len(p[1]) for p in log.truth_parts)
+            summary["perception"] = {"totals": dict(totals),
+                                     "per_vehicle_step": {k: v / vehicle_steps for k, v in totals.items()}}
         if log.infra_parts:
             cov_summary = coverage_summary(estimates, methods)
             for est in estimators:

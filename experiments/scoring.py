@@ -60,6 +60,18 @@ def method_summary(est: pd.DataFrame) -> dict:
     return _nan_to_none(out)
 
 
+def nees_summary(nees: np.ndarray, zone: np.ndarray) -> dict:
+    """summary.json "nees_pos" block: mean 2-D position NEES overall and per GNSS zone (2 = consistent;
+    larger = the covariance claims more than the estimate delivers). Samples with a singular covariance
+    (non-finite NEES) are left out."""
+    ok = np.isfinite(nees)
+    out = {"mean": float(nees[ok].mean()) if ok.any() else None, "by_zone": {}}
+    for z in sorted(set(zone[ok].tolist())):
+        sel = ok & (zone == z)
+        out["by_zone"][str(z)] = float(nees[sel].mean())
+    return out
+
+
 def feature_summary(err_pos: np.ndarray) -> dict:
     """summary.json "features" block of a method: accuracy of its feature estimates."""
     return {"rmse_pos_m": _rmse(err_pos), "p95_pos_m": _q(err_pos, 0.95), "n": int(np.asarray(err_pos).size)}
@@ -130,11 +142,7 @@ def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.nd
     step = np.repeat(np.arange(len(steps)), [a.size for a in assign]).astype(np.int64)
     kept = all_a >= 0
     labels = track_labels(all_a[kept], all_f[kept])
-    keys = np.array(sorted(labels), dtype=np.int64)
-    vals = np.array([labels[k] for k in keys], dtype=np.int64)
-    correct = np.zeros(all_a.size, dtype=bool)
-    if keys.size:
-        correct[kept] = (vals[np.searchsorted(keys, all_a[kept])] == all_f[kept]) & (all_f[kept] >= 0)
+    correct = _correct_rows(all_a, all_f, labels)
     n = len(steps)
     counts = np.stack([
         np.bincount(step[correct], minlength=n),
@@ -142,6 +150,37 @@ def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.nd
         np.bincount(step[~kept], minlength=n),
     ], axis=1).astype(np.int64)
     return counts, labels
+
+
+def _correct_rows(assign: np.ndarray, truth: np.ndarray, labels: dict[int, int]) -> np.ndarray:
+    """Rows kept on a track whose label is the row's true feature (module rules of :func:`score_association`)."""
+    kept = assign >= 0
+    keys = np.array(sorted(labels), dtype=np.int64)
+    vals = np.array([labels[k] for k in keys], dtype=np.int64)
+    correct = np.zeros(assign.size, dtype=bool)
+    if keys.size:
+        pos = np.minimum(np.searchsorted(keys, assign[kept]), keys.size - 1)
+        correct[kept] = (keys[pos] == assign[kept]) & (vals[pos] == truth[kept]) & (truth[kept] >= 0)
+    return correct
+
+
+def association_by_group(steps: list[tuple[np.ndarray, np.ndarray]], groups: list[np.ndarray],
+                         labels: dict[int, int]) -> dict:
+    """:func:`association_summary` per group of rows (e.g. the GNSS zone of the measuring vehicle), with
+    the run's track ``labels`` of :func:`score_association`."""
+    if not steps:
+        return {}
+    a = np.concatenate([np.asarray(x, dtype=np.int64) for x, _ in steps])
+    f = np.concatenate([np.asarray(y, dtype=np.int64) for _, y in steps])
+    g = np.concatenate([np.asarray(z).astype(str) for z in groups])
+    correct = _correct_rows(a, f, labels)
+    kept = a >= 0
+    out = {}
+    for name in sorted(set(g.tolist())):
+        sel = g == name
+        out[name] = association_summary(int((correct & sel).sum()), int((kept & ~correct & sel).sum()),
+                                        int((~kept & sel).sum()))
+    return out
 
 
 def association_summary(correct: int, wrong: int, discarded: int) -> dict:

@@ -117,7 +117,7 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
         for row in _method_stats_rows(r.methods, r.summary):
             rows.append([_esc(_run_label(r, runs))] + row)
     parts.append(_table(["run", "method", "RMSE pos [m]", "RMSE vel [m/s]", "p50 pos [m]", "p95 pos [m]",
-                         "time [s]"], rows, left_cols=2))
+                         "NEES pos", "time [s]"], rows, left_cols=2))
 
     # Per-area p95: one column per (run, method).
     cols = [(r, m) for r in runs for m in r.methods]

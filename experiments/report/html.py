@@ -101,8 +101,9 @@ def _method_stats_rows(methods: list[str], summary: dict) -> list[list[str]]:
     rows = []
     for m in methods:
         s = (summary.get("methods") or {}).get(m, {}) or {}
+        nees = (s.get("nees_pos") or {}).get("mean")
         rows.append([_method_cell(m), _fmt(s.get("rmse_pos_m")), _fmt(s.get("rmse_vel_mps")),
-                     _fmt(s.get("p50_pos_m")), _fmt(s.get("p95_pos_m")), _fmt(s.get("seconds"), 2)])
+                     _fmt(s.get("p50_pos_m")), _fmt(s.get("p95_pos_m")), _fmt(nees), _fmt(s.get("seconds"), 2)])
     return rows
 
 

@@ -187,10 +187,21 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
     methods = run.methods
     parts.append("<h2>Accuracy summary</h2>")
     parts.append("<p>From <code>summary.json</code>: position RMSE, velocity RMSE, median (p50) and "
-                 "95th percentile (p95) of the position error over all vehicles and time steps, and "
-                 "the estimator's wall-clock time.</p>")
+                 "95th percentile (p95) of the position error over all vehicles and time steps, the mean "
+                 "2-D position NEES (2 for an estimator whose covariance matches its errors; larger: "
+                 "overconfident) and the estimator's wall-clock time.</p>")
     parts.append(_table(["method", "RMSE pos [m]", "RMSE vel [m/s]", "p50 pos [m]", "p95 pos [m]",
-                         "time [s]"], _method_stats_rows(methods, s)))
+                         "NEES pos", "time [s]"], _method_stats_rows(methods, s)))
+    perc = s.get("perception")
+    if perc:
+        per = perc.get("per_vehicle_step") or {}
+        parts.append("<h3>Detections per vehicle-step</h3><p>From <code>[perception]</code>: (sensor, feature) "
+                     "pairs inside a field of view, of which occluded and missed (not detected although "
+                     "visible); detected features (one row per feature and vehicle) and false detections "
+                     "(clutter).</p>")
+        parts.append(_table(["in field of view", "occluded", "missed", "detected", "clutter"],
+                            [[_fmt(per.get(k)) for k in ("in_fov", "occluded", "missed", "detected", "clutter")]],
+                            left_cols=0))
     parts.append("<h3>Per analysis area</h3>" + _by_table(methods, s, "by_area", "area"))
     parts.append("<h3>Per GNSS zone</h3>" + _by_table(methods, s, "by_zone", "zone"))
     cov = s.get("within_rsu_coverage")
