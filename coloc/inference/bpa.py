@@ -11,9 +11,10 @@ rounds, and BPA-L stops after the iteration that used the last round of ``rounds
 unlimited), with ``converged`` False unless the stopping rule of Sec. V-A held in that iteration.
 The participant count |V_k ∩ C| is the size of the row's component in the *intended* row graph
 (V2V neighbours within Rc observing the same feature), which the vehicles know from their beacons;
-a lossy channel does not change it (a component that a whole step of losses splits still counts
-every member: the ratio consensus gives each part its own average, so (20) then weighs that part's
-messages as if every member had sent them).
+a lossy channel does not change it. Each row's ratio y/z is always a convex combination of its
+component's messages, reaching their plain average as packets get through; when too few do within
+the budget, count x (y/z) is the vehicles' estimate of the product in (20), weighted towards the
+messages that arrived.
 """
 
 from __future__ import annotations
