@@ -32,7 +32,8 @@ A feature row takes part in a consensus only when another vehicle observing the 
 V2V neighbour (intended graph): a vehicle with no such row has nobody to talk to and sends nothing.
 
 Not counted (the paper's idealisations, shared by all methods alike): the vehicles' beacons (CAMs)
-that tell who is a neighbour and which features a neighbour observes; the feature tracks each
+that tell who is a neighbour and which features a neighbour observes, and the flooding that tells a
+vehicle the participant count |V_k ∩ C| of (20) (computed directly, :mod:`coloc.inference`); the feature tracks each
 vehicle holds between steps (the track store of :mod:`coloc.inference.feature_store` and the track
 merges are computed as if every vehicle held the same copy); the GNSS-only benchmark sends nothing.
 """

@@ -258,3 +258,23 @@ def test_lc_counts_new_tracks_once():
     np.testing.assert_array_equal(consensus_bytes % (GAUSSIAN_CONSENSUS_WORDS * WORD_BYTES * comm.rounds), 0)
     np.testing.assert_array_equal(comm.messages, (births > 0) + comm.rounds * (consensus_bytes > 0))
     assert rows.sum() == f.v2f_owner.size
+
+
+def test_pf_count_by_hand():
+    """Particle ICP: per BPA-L iteration C rounds of average consensus (id, degree, Jf log-weights) and
+    max(C, 1) rounds of max consensus (id, Jf values); one announcement of the rows starting tracks."""
+    from coloc.methods.icp_da_pf import PfParams, pf_step_comm
+
+    f, *_ = tiny_scene()
+    entry_vehicle = np.array([0, 0, 1, 1, 2, 2])
+    entry_track = np.array([0, 1, 0, 1, 1, 2])  # track 2: v2 alone
+    params = IcpParams(motion=MOTION, consensus_iterations=4)
+    pf = PfParams(vehicle_particles=50, feature_particles=200)
+    comm = pf_step_comm(entry_vehicle, entry_track, f.neighbors, np.array([2]), 3, 3, params, pf)
+    per_entry = 3 * 4 * (2 + 200) + 3 * 4 * (1 + 200)
+    np.testing.assert_array_equal(comm.messages, [24, 24, 25])
+    np.testing.assert_array_equal(comm.bytes, np.array([2 * per_entry, 2 * per_entry, per_entry + 15]) * 8)
+    assert comm.rounds == 24
+    none = pf_step_comm(entry_vehicle, entry_track, f.neighbors, np.array([], np.int64), 3, 3,
+                        IcpParams(motion=MOTION, consensus_iterations=0), pf)
+    np.testing.assert_array_equal(none.messages, [3, 3, 3])  # max consensus still runs one round
