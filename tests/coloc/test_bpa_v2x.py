@@ -278,3 +278,18 @@ def test_pf_count_by_hand():
     none = pf_step_comm(entry_vehicle, entry_track, f.neighbors, np.array([], np.int64), 3, 3,
                         IcpParams(motion=MOTION, consensus_iterations=0), pf)
     np.testing.assert_array_equal(none.messages, [3, 3, 3])  # max consensus still runs one round
+
+
+def test_numpy_reference_loop_takes_the_same_channel_path(monkeypatch):
+    """BPA_KERNELS = False (the batched numpy BPA-L) over the same lossy channel and budget: same
+    iterations and rounds, results equal up to rounding."""
+    import coloc.inference.bpa as bpa_module
+
+    f = with_channel(road_frames(steps=1, v2v_range=25.0)[0], 0.7, 17, seed=5)
+    params = IcpParams(motion=MOTION, consensus_iterations=6)
+    kern = run_bpa(f, params)
+    monkeypatch.setattr(bpa_module, "BPA_KERNELS", False)
+    ref = run_bpa(f, params)
+    assert (kern.iterations, kern.comm.rounds) == (ref.iterations, ref.comm.rounds) == (3, 17)
+    np.testing.assert_allclose(kern.mean, ref.mean, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(kern.cov, ref.cov, rtol=0, atol=1e-8)
