@@ -80,6 +80,42 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 KNOWN_ASSOCIATION_METHODS = frozenset(m.name for m in METHODS.values() if m.known_association)
 
 
+@dataclass
+class CommTally:
+    """Communication of one method over a run (:mod:`coloc.inference.comm`): sums over steps of what
+    each vehicle sent, for summary.json's ``comm`` block."""
+
+    vehicle_steps: int = 0
+    steps: int = 0
+    messages: int = 0
+    bytes: int = 0
+    max_bytes: int = 0
+    rounds: int = 0
+
+    def add(self, comm) -> None:
+        self.vehicle_steps += int(comm.messages.size)
+        self.steps += 1
+        self.messages += int(comm.messages.sum())
+        self.bytes += int(comm.bytes.sum())
+        self.max_bytes = max(self.max_bytes, int(comm.bytes.max()) if comm.bytes.size else 0)
+        self.rounds += int(comm.rounds)
+
+    def summary(self) -> dict:
+        per = max(self.vehicle_steps, 1)
+        return {"messages_per_vehicle_step": self.messages / per, "bytes_per_vehicle_step": self.bytes / per,
+                "max_bytes_vehicle_step": self.max_bytes, "rounds_per_step": self.rounds / max(self.steps, 1),
+                "vehicle_steps": self.vehicle_steps}
+
+
+def step_comm(est):
+    """What the estimator's vehicles sent in its last step (a :class:`coloc.inference.comm.CommCount`,
+    the estimator's ``last_comm`` or its step info's ``comm``); None: the method does not count it."""
+    comm = getattr(est, "last_comm", None)
+    if comm is None:
+        comm = getattr(getattr(est, "last", None), "comm", None)
+    return comm
+
+
 def build_estimators(cfg: Config) -> list:
     """Estimator objects for ``cfg.run.methods``, in that order (built by the method registry)."""
     params = method_params(cfg)
@@ -471,6 +507,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
     with staged_folder(out_dir, "run", force=force) as tmp:
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
+        comm = {e.name: CommTally() for e in estimators}
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         with source:
@@ -489,6 +526,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                     else:
                         res = est.step(blind)
                     seconds[est.name] += time.perf_counter() - t0
+                    sent = step_comm(est)
+                    if sent is not None:
+                        comm[est.name].add(sent)
                     log.add(est.name, res)
                     log.add_association(est.name, frame, res)
                     log.add_features(est.name, frame, res)
@@ -531,6 +571,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             block = method_summary(rows)
             block["nees_pos"] = nees_summary(log.position_nees(method), rows["zone"].to_numpy())
             block["seconds"] = seconds[method]
+            if comm[method].steps:
+                block["comm"] = comm[method].summary()
             feat = features[features["method"] == method]["err_pos"].to_numpy()
             if feat.size:
                 block["features"] = feature_summary(feat)

@@ -76,8 +76,12 @@ round there (:func:`coloc.kernels.icp.complete_component_consensus`).
 
 Lossy links: :mod:`coloc.inference.lossy_consensus` keeps the exact average when packets are lost
 asymmetrically (ratio consensus by exchange of running sums, Hadjicostis et al. 2016) and runs max
-consensus over the rounds that got through; not yet wired into the estimators above, which
-assume every consensus message arrives.
+consensus over the rounds that got through. With a V2X channel in the frame (``frame.v2x``) the
+Gaussian BPA-L runs the consensus of (20) that way on the row graph, over the links each round
+delivered and within the step's round budget
+(:class:`coloc.inference.row_consensus.ChannelRowConsensus`, :mod:`coloc.inference.bpa`); the
+particle ICP still assumes every consensus message arrives. What each method sends per step is
+counted by :mod:`coloc.inference.comm`.
 
 Performance layout: the BPA-L iterations run as numba passes over the rows
 (:mod:`coloc.kernels.icp`; ``coloc.inference.bpa.BPA_KERNELS = False`` selects the batched

@@ -1,4 +1,21 @@
-"""Gaussian BPA-L, eqs. (19)-(22), with the feature product (20) by consensus."""
+"""Gaussian BPA-L, eqs. (19)-(22), with the feature product (20) by consensus.
+
+Without a V2X channel (``v2x`` None, the paper's assumption) the consensus of (20) is Metropolis
+average consensus on the row graph, every message delivered, ``consensus_iterations`` rounds in
+every BPA-L iteration. With one (``frame.v2x``, docs/architecture.md "The V2X channel") it runs over
+the channel (:class:`coloc.inference.row_consensus.ChannelRowConsensus`): running-sum ratio
+consensus, a row of vehicle i hearing the row of vehicle j for the same feature in round r only
+when the V2V link j -> i delivered in round r; rounds are counted over the whole step, across the
+BPA-L iterations. **Budget rule**: an iteration gets min(``consensus_iterations``, rounds left)
+rounds, and BPA-L stops after the iteration that used the last round of ``rounds_per_step`` (0 =
+unlimited), with ``converged`` False unless the stopping rule of Sec. V-A held in that iteration.
+The participant count |V_k ∩ C| is the size of the row's component in the *intended* row graph
+(V2V neighbours within Rc observing the same feature), which the vehicles know from their beacons;
+a lossy channel does not change it. Each row's ratio y/z is always a convex combination of its
+component's messages, reaching their plain average as packets get through; when too few do within
+the budget, count x (y/z) is the vehicles' estimate of the product in (20), weighted towards the
+messages that arrived.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +26,13 @@ import scipy.sparse as sp
 from numba import njit
 
 from coloc.core.models import symmetrize
+from coloc.core.v2x import V2xFrame
+from coloc.inference.comm import GAUSSIAN_CONSENSUS_WORDS, CommCount, broadcast_rounds
 from coloc.inference.consensus import _average_kernel
 from coloc.inference.feature_store import FeatureStore
 from coloc.inference.gaussian import _inv_spd, from_information, psd_clip, relative_message, to_information
 from coloc.inference.params import IcpParams
-from coloc.inference.row_consensus import row_consensus_weights
+from coloc.inference.row_consensus import ChannelRowConsensus, row_consensus_weights
 from coloc.kernels.icp import (
     complete_component_consensus,
     extrinsic_kernel,
@@ -59,6 +78,8 @@ class BpaResult:
     converged: bool
     final_lam: np.ndarray | None = None  # (O_used, 4, 4) the final messages (19) of BPA-L; None: = msg_lam
     final_eta: np.ndarray | None = None
+    # What the step sent (coloc.inference.comm; rounds = consensus rounds of the step); None: not counted.
+    comm: CommCount | None = None
 
 
 _SYM_I, _SYM_J = np.triu_indices(4)
@@ -126,9 +147,10 @@ BPA_KERNELS = True
 
 def _bpa_iterations_numpy(
     prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
-    complete, weights, params,
+    complete, weights, params, channel=None,
 ):
-    """BPA-L iterations (19)-(22) with batched numpy (the reference of the kernels)."""
+    """BPA-L iterations (19)-(22) with batched numpy (the reference of the kernels); ``channel``: a
+    :class:`ChannelRowConsensus` for (20) over the V2X channel (None: lossless Metropolis)."""
     w_indptr, w_indices, w_data = weights
     n, o = prior_mean.shape[0], owner_u.size
     n_iter_cons = int(params.consensus_iterations)
@@ -151,7 +173,9 @@ def _bpa_iterations_numpy(
         # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|
         # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
         # an independent consensus, so the symmetric copies need not be run twice).
-        if n_iter_cons:
+        if channel is not None:
+            avg_lam, avg_eta = _unpack_sym(channel.average(_pack_sym(m_vf_lam, m_vf_eta), channel.grant(n_iter_cons)))
+        elif n_iter_cons:
             avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
             avg_lam, avg_eta = _unpack_sym(avg)
         else:
@@ -184,13 +208,15 @@ def _bpa_iterations_numpy(
                 break
         elif with_features:
             f_mean = row_feature_means(loc_lam, loc_eta)
+        if channel is not None and channel.exhausted:
+            break  # the step's round budget is used up (module docstring)
 
     return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
 
 
 def _bpa_iterations_kernels(
     prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row, count,
-    complete, weights, params,
+    complete, weights, params, channel=None,
 ):
     """BPA-L iterations (19)-(22): each iteration is three numba passes over the rows
     (:mod:`coloc.kernels.icp`) around the consensus kernel."""
@@ -219,7 +245,10 @@ def _bpa_iterations_kernels(
         )
         # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
         # (one round on complete components, where W = J/m is a projection: see the kernel)
-        avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+        if channel is None:
+            avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+        else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
+            avg = channel.average(packed, channel.grant(n_iter_cons))
         # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
         # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
         ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
@@ -236,6 +265,8 @@ def _bpa_iterations_kernels(
             if not with_features or (fpos < params.stop_pos_m and fvel < params.stop_vel_mps):
                 converged = True
                 break
+        if channel is not None and channel.exhausted:
+            break  # the step's round budget is used up (module docstring)
     return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
 
 
@@ -252,6 +283,7 @@ def bpa_localization(
     feature_prior_lam: np.ndarray,
     feature_prior_eta: np.ndarray,
     params: IcpParams,
+    v2x: V2xFrame | None = None,
 ) -> BpaResult:
     """Gaussian BPA-L, eqs. (19)-(22), with the feature product (20) by consensus.
 
@@ -272,6 +304,11 @@ def bpa_localization(
     ids in sorted order (zeros = uniform).
     Vehicles without used rows keep b^(0) exactly. The returned messages are the
     ones the feature tracks will store (``params.feature_message``).
+    ``v2x``: the frame's V2X channel (``frame.v2x``, aligned with ``adjacency`` = ``frame.neighbors``):
+    (20) over lossy links within the step's round budget (module docstring); None: lossless, as
+    many rounds as ``params`` asks. ``comm`` of the result counts what the consensus sent
+    (:mod:`coloc.inference.comm`: every vehicle with a row that has a consensus partner broadcasts
+    once per round, :data:`coloc.inference.comm.GAUSSIAN_CONSENSUS_WORDS` words per such row).
     """
     n = prior_mean.shape[0]
     feature = np.asarray(feature, dtype=np.int64)
@@ -282,7 +319,8 @@ def bpa_localization(
     r_u = np.asarray(r, dtype=float)[used]
     o = owner_u.size
     if o == 0 or n == 0:
-        return BpaResult(prior_mean.copy(), prior_cov.copy(), used, np.empty((0, 4, 4)), np.empty((0, 4)), 0, True)
+        return BpaResult(prior_mean.copy(), prior_cov.copy(), used, np.empty((0, 4, 4)), np.empty((0, 4)), 0, True,
+                         comm=CommCount.zeros(n))
 
     fids, fidx = np.unique(feat_u, return_inverse=True)
     if feature_prior_lam.shape != (fids.size, 4, 4) or feature_prior_eta.shape != (fids.size, 4):
@@ -298,11 +336,14 @@ def bpa_localization(
 
     v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
     own_lam0, own_eta0 = to_information(own_mean, own_cov)
+    channel = None if v2x is None else ChannelRowConsensus(owner_u, fidx, fids.size, adjacency, v2x)
     loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
     v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
         prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
-        count, complete, (w_indptr, w_indices, w_data), params,
+        count, complete, (w_indptr, w_indices, w_data), params, channel,
     )
+    rounds = it * n_iter_cons if channel is None else channel.rounds_used
+    comm = broadcast_rounds(owner_u, count >= 2, n, rounds, GAUSSIAN_CONSENSUS_WORDS)
 
     keep_lam, keep_eta = m_vf_lam, m_vf_eta
     if params.feature_message == "own":
@@ -312,7 +353,7 @@ def bpa_localization(
     mean, cov = from_information(v_lam, v_eta)
     alone = np.bincount(owner_u, minlength=n) == 0
     mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]
-    return BpaResult(mean, cov, used, keep_lam, keep_eta, it, converged, m_vf_lam, m_vf_eta)
+    return BpaResult(mean, cov, used, keep_lam, keep_eta, it, converged, m_vf_lam, m_vf_eta, comm)
 
 
 def step_feature_beliefs(

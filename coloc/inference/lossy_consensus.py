@@ -1,8 +1,10 @@
 """Consensus over lossy, asymmetric V2V links: the average by exchange of running sums, and the maximum.
 
 The building block for realistic V2X (a channel that drops packets per message and round, and a
-budget of rounds per step); the ICP estimators do not use it yet (they run the lossless
-:mod:`coloc.inference.consensus`).
+budget of rounds per step). The Gaussian BPA-L runs the same algorithm on its row graph with the
+numba kernel :func:`coloc.kernels.lossy.running_sum_kernel` (checked against
+:func:`running_sum_consensus`; :class:`coloc.inference.row_consensus.ChannelRowConsensus`); the
+particle ICP does not use this module yet.
 
 Plain average consensus (Metropolis weights, :mod:`coloc.inference.consensus`) keeps the network sum only
 when every message arrives: a packet that i receives from j but j's partner never receives from

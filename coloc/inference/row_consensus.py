@@ -6,7 +6,9 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
+from coloc.core.v2x import V2xFrame, round_deliveries
 from coloc.inference.consensus import connected_components
+from coloc.kernels.lossy import running_sum_kernel
 
 # ----------------------------------------------------------------------------- consensus groups
 
@@ -248,3 +250,90 @@ def row_consensus_weights(
 def _split4(t):
     return (t[0], t[1], t[2]), t[3], t[4]
 
+
+
+# ----------------------------------------------------------------------------- over the V2X channel
+
+
+def row_links(owner: np.ndarray, group_index: np.ndarray, n_groups: int, adjacency: sp.spmatrix
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Directed links of the row graph of :func:`consensus_graph` and the V2V link each rides on.
+
+    Returns (src (L,), dst (L,), link (L,)): row ``src`` (vehicle j, feature k) -> row ``dst``
+    (vehicle i, feature k) for every stored entry ``link`` of ``adjacency`` in row i, column j (the
+    directed V2V link j -> i of :func:`coloc.core.v2x.directed_links`) where both vehicles have a row
+    of feature k. Rows must be unique per (vehicle, feature). Vectorised: one ``searchsorted`` over
+    the rows' (vehicle, feature) keys, no loop over vehicles."""
+    owner = np.asarray(owner, dtype=np.int64)
+    group = np.asarray(group_index, dtype=np.int64)
+    a = _canonical_adjacency(adjacency)
+    indptr = a.indptr.astype(np.int64)
+    indices = a.indices.astype(np.int64)
+    width = max(int(n_groups), 1)
+    keys = owner * width + group
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    deg = (indptr[1:] - indptr[:-1])[owner]  # incoming V2V links of each row's vehicle
+    dst = np.repeat(np.arange(owner.size, dtype=np.int64), deg)
+    first = np.repeat(indptr[owner] - (np.cumsum(deg) - deg), deg)
+    link = first + np.arange(dst.size, dtype=np.int64)
+    want = indices[link] * width + group[dst]
+    pos = np.minimum(np.searchsorted(sorted_keys, want), max(owner.size - 1, 0))
+    hit = sorted_keys[pos] == want if owner.size else np.zeros(0, dtype=bool)
+    return order[pos[hit]], dst[hit], link[hit]
+
+
+class ChannelRowConsensus:
+    """The average consensus of eq. (20) on the V2F rows over the lossy V2X channel of a frame.
+
+    Rows (vehicle i, feature k) exchange messages with the rows of the same feature at V2V
+    neighbours, as on the lossless row graph (:func:`consensus_graph`), but a row of vehicle i hears
+    the row of vehicle j in round r only when ``round_deliveries(v2x, r)`` delivered the V2V link
+    j -> i: a vehicle's broadcast of round r carries its values for all its features at once, so
+    the link mask of round r applies to every feature's consensus of that round. The average is the
+    running-sum ratio consensus (Hadjicostis et al. 2016, :mod:`coloc.inference.lossy_consensus`,
+    kernel :func:`coloc.kernels.lossy.running_sum_kernel`), which converges to the right average
+    under asymmetric losses; each call (one BPA-L iteration) starts it afresh from the call's values
+    (weights z = 1), with the out-degrees of the intended row graph.
+
+    Rounds are counted over the whole step: ``rounds_used`` keeps increasing across calls, round
+    ``rounds_used`` of the step is realised from the channel's seed, and :meth:`grant` hands out
+    what is left of ``v2x.rounds_per_step`` (0 = unlimited).
+    """
+
+    def __init__(self, owner: np.ndarray, group_index: np.ndarray, n_groups: int, adjacency: sp.spmatrix,
+                 v2x: V2xFrame):
+        a = _canonical_adjacency(adjacency)
+        if a.nnz != v2x.n_links:
+            raise ValueError(f"frame.v2x has {v2x.n_links} link probabilities for {a.nnz} stored neighbors entries: "
+                             "the channel must be aligned with the frame's neighbors")
+        self.v2x = v2x
+        self.src, self.dst, self.link = row_links(owner, group_index, n_groups, a)
+        o = np.asarray(owner).size
+        self.share = 1.0 / (1.0 + np.bincount(self.src, minlength=o).astype(np.float64))
+        self.rounds_used = 0
+
+    @property
+    def exhausted(self) -> bool:
+        """The step's round budget is used up (never with an unlimited budget)."""
+        return not self.v2x.unlimited and self.rounds_used >= self.v2x.rounds_per_step
+
+    def grant(self, wanted: int) -> int:
+        """Rounds the next exchange may use: ``wanted``, or what is left of the step's budget."""
+        if self.v2x.unlimited:
+            return int(wanted)
+        return max(0, min(int(wanted), int(self.v2x.rounds_per_step) - self.rounds_used))
+
+    def average(self, x: np.ndarray, rounds: int) -> np.ndarray:
+        """``rounds`` rounds of ratio consensus of the rows' values x (O, D) (the next rounds of the
+        step); returns every row's estimate of its feature's average (O, D)."""
+        rounds = int(rounds)
+        first = self.rounds_used
+        self.rounds_used += rounds
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if rounds == 0 or self.src.size == 0:
+            return x.copy()
+        got = np.empty((rounds, self.link.size), dtype=np.bool_)
+        for k in range(rounds):
+            got[k] = round_deliveries(self.v2x, first + k)[self.link]
+        return running_sum_kernel(x, self.share, self.src, self.dst, got)

@@ -14,6 +14,7 @@ import numpy as np
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.models import MotionParams, driving_noise_cov, kalman_update, predict
 from coloc.core.vehicles import carry_states
+from coloc.inference.comm import CommCount
 from coloc.kernels.kalman import gnss_step_kernel
 from coloc.methods.registry import GNSS
 
@@ -42,6 +43,7 @@ class GnssTracker:
     _ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
     _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
+    last_comm: CommCount | None = None  # non-cooperative: sends nothing (coloc.inference.comm)
 
     def step(self, frame: Frame) -> StepEstimate:
         mean, cov, fresh = carry_states(
@@ -55,4 +57,5 @@ class GnssTracker:
             m.sigma_along, m.sigma_cross, m.heading_min_speed,
         )
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
+        self.last_comm = CommCount.zeros(frame.n_vehicles)
         return StepEstimate(mean=mean.copy(), cov=cov.copy())

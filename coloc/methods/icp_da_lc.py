@@ -98,6 +98,7 @@ from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
+from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
@@ -644,6 +645,7 @@ class LcStepInfo:
     tentative: int = 0  # rows paired with (or starting) a track not yet confirmed: not used for the vehicles
     existence: TrackExistence | None = None  # existence of the tracks after the step (lc.track_existence)
     resets: int = 0  # vehicles reset to their own-sensor track (step 10)
+    comm: CommCount | None = None  # what the vehicles sent: BPA-L consensus and new tracks (coloc.inference.comm)
 
 
 def icp_da_lc_step(
@@ -732,7 +734,7 @@ def icp_da_lc_step(
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame.neighbors,
-        f_lam0, f_eta0, params,
+        f_lam0, f_eta0, params, v2x=frame.v2x,
     )
     rec_track, rec_owner, rec_lam, rec_eta = bpa_track[used], l_owner[used], res.msg_lam, res.msg_eta
     tentative = (l_track >= 0) & ~used
@@ -773,7 +775,8 @@ def icp_da_lc_step(
         resets = int(reset.sum())
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()) + int(extra_row.size), born, int((row_track < 0).sum()),
                       int(absorbed.size), res.iterations, int(extra_row.size), n_tentative,
-                      existence if lc.track_existence else None, resets)
+                      existence if lc.track_existence else None, resets,
+                      res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs), next_id, info
 

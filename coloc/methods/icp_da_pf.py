@@ -97,6 +97,7 @@ from scipy.stats import chi2
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicles import match_ids
+from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
 from coloc.inference.gaussian import log_gauss
 from coloc.inference.params import IcpParams
@@ -462,6 +463,24 @@ class PfStepInfo:
     merged: int
     iterations: int
     pair_evaluations: int
+    comm: CommCount | None = None  # what the vehicles sent (pf_step_comm)
+
+
+def pf_step_comm(entry_vehicle: np.ndarray, entry_track: np.ndarray, adjacency: sp.spmatrix, birth_owner: np.ndarray,
+                 iterations: int, n_vehicles: int, params: IcpParams, pf: PfParams) -> CommCount:
+    """What the vehicles sent in one step (:mod:`coloc.inference.comm`): every BPA-L iteration,
+    ``consensus_iterations`` rounds of average consensus of the Jf log-weights (28) and
+    max(``consensus_iterations``, 1) rounds of max consensus (29), one broadcast per round from every
+    vehicle with an entry (vehicle, track) that has a consensus partner (another observer of the
+    track among its V2V neighbours); plus one announcement of the rows that start tracks."""
+    graph = consensus_graph(entry_vehicle, entry_track, adjacency)
+    active = np.diff(graph.indptr) > 0 if entry_vehicle.size else np.zeros(0, bool)
+    avg_words, max_words = pf_words(pf.feature_particles)
+    c = int(params.consensus_iterations)
+    it = int(iterations)
+    return (broadcast_rounds(entry_vehicle, active, n_vehicles, it * c, avg_words)
+            + broadcast_rounds(entry_vehicle, active, n_vehicles, it * max(c, 1), max_words)
+            + announcements(birth_owner, n_vehicles, PF_BIRTH_WORDS))
 
 
 @dataclass(frozen=True)
@@ -573,6 +592,7 @@ def icp_da_pf_step(
         new_ids = np.setdiff1d(np.unique(assoc[assoc >= 0]), t_ids)
         birth_rows = np.array([np.flatnonzero(assoc == f)[0] for f in new_ids], dtype=np.int64)
         birth_ids = new_ids
+        announced = birth_rows
         term_rows = np.flatnonzero(assoc >= 0)
         term_track_id = assoc[term_rows]
         term_log_c = np.zeros(term_rows.size)
@@ -638,6 +658,7 @@ def icp_da_pf_step(
         n_born = int(labels.max()) + 1 if labels.size else 0
         birth_ids = next_id + np.arange(n_born, dtype=np.int64)
         birth_rows = np.array([birth_rows_all[np.flatnonzero(labels == c)[0]] for c in range(n_born)], dtype=np.int64)
+        announced = birth_rows_all
         row_track[birth_rows_all] = next_id + labels
         next_id += n_born
         term_rows = np.concatenate([term_rows, birth_rows_all])
@@ -772,7 +793,9 @@ def icp_da_pf_step(
     new_state = PfState(vids.copy(), new_particles, new_own, t_ids[keep_t], new_t_particles[keep_t], new_t_logw[keep_t],
                         t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t])
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
-                      res.pair_evaluations)
+                      res.pair_evaluations,
+                      pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced], res.iterations, n,
+                                   params, pf))
     return new_state, next_id, info, estimate
 
 

@@ -33,6 +33,11 @@ Per step:
    every step and dropped after ``feature_drop_after_s``. The step's feature
    estimates are the beliefs (20) with BPA-L's final messages
    (:func:`coloc.inference.bpa.step_feature_beliefs`).
+
+With ``frame.v2x`` set, the consensus of (20) runs over the lossy V2X channel within the step's
+round budget (:mod:`coloc.inference.bpa`). ``last_comm`` is what the vehicles sent in the last step
+(:mod:`coloc.inference.comm`: per BPA-L consensus round, one broadcast per vehicle with 16 words per
+feature it shares with a neighbour).
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ import numpy as np
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicles import carry_states, match_ids
 from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
+from coloc.inference.comm import CommCount
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.params import IcpParams
 from coloc.kernels.kalman import gnss_step_kernel
@@ -89,7 +95,7 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
-        f_lam0, f_eta0, params,
+        f_lam0, f_eta0, params, v2x=frame.v2x,
     )
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
@@ -132,8 +138,9 @@ class IcpKnownDA:
     last_iterations: int = 0
     last_converged: bool = True
     state: IcpState = field(default_factory=IcpState)
+    last_comm: CommCount | None = None  # what the vehicles sent in the last step
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         res, self.state = icp_known_da_step(self.state, frame, v2f_feature, self.params)
-        self.last_iterations, self.last_converged = res.iterations, res.converged
+        self.last_iterations, self.last_converged, self.last_comm = res.iterations, res.converged, res.comm
         return self.state.estimate(v2f_feature, self.params)

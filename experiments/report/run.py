@@ -202,6 +202,18 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
         parts.append(_table(["in field of view", "occluded", "missed", "detected", "clutter"],
                             [[_fmt(per.get(k)) for k in ("in_fov", "occluded", "missed", "detected", "clutter")]],
                             left_cols=0))
+    comm = [(m, (s.get("methods") or {}).get(m, {}).get("comm")) for m in methods]
+    comm = [(m, c) for m, c in comm if c]
+    if comm:
+        parts.append("<h3>Communication</h3><p>V2V traffic the method's vehicles sent (<code>comm</code> in "
+                     "summary.json; message formats in docs/architecture.md, every number 8 bytes, radio "
+                     "headers not counted), averaged over vehicle-steps, and the consensus rounds used per "
+                     "step.</p>")
+        parts.append(_table(["method", "messages / vehicle-step", "bytes / vehicle-step", "max bytes / vehicle-step",
+                             "consensus rounds / step"],
+                            [[_method_cell(m), _fmt(c.get("messages_per_vehicle_step"), 1),
+                              _fmt(c.get("bytes_per_vehicle_step"), 0), _fmt(c.get("max_bytes_vehicle_step")),
+                              _fmt(c.get("rounds_per_step"), 1)] for m, c in comm]))
     parts.append("<h3>Per analysis area</h3>" + _by_table(methods, s, "by_area", "area"))
     parts.append("<h3>Per GNSS zone</h3>" + _by_table(methods, s, "by_zone", "zone"))
     cov = s.get("within_rsu_coverage")

@@ -131,6 +131,11 @@ def test_single_road_run_writes_everything_and_is_byte_identical(single_runs):
     assert summary["traffic"] is None and summary["sumo_version"] is None
     g, k = summary["methods"]["gnss"], summary["methods"]["icp_known_da"]
     assert k["rmse_pos_m"] < g["rmse_pos_m"]
+    # Communication (coloc.inference.comm): GNSS sends nothing; two neighbours sharing features broadcast.
+    assert g["comm"]["messages_per_vehicle_step"] == 0 and g["comm"]["bytes_per_vehicle_step"] == 0
+    assert k["comm"]["messages_per_vehicle_step"] > 0 and k["comm"]["rounds_per_step"] > 0
+    assert k["comm"]["vehicle_steps"] == k["n"]
+    assert "<h3>Communication</h3>" in (a / "report.html").read_text()
     saved = tomllib.loads((a / "config.toml").read_text())
     assert "net_dir" not in saved["scenario"] and saved["motion"]["sigma_along"] == 0.2
     assert "= single_road.sigma_along" in (a / "config.toml").read_text()
