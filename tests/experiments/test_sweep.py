@@ -127,8 +127,8 @@ def test_shipped_sweeps_are_valid():
 
 
 def test_every_shipped_sweep_file_loads_and_expands():
-    files = sorted((PROJECT / "experiments" / "sweeps").glob("*.toml"))
-    assert len(files) >= 6
+    files = sorted((PROJECT / "experiments" / "sweeps").rglob("*.toml"))
+    assert len(files) >= 10
     for path in files:  # a file that fails here fails for the user at `coloc sweep`
         _, runs = expand_runs(load_sweep(path))
         assert runs, path.name
@@ -136,6 +136,23 @@ def test_every_shipped_sweep_file_loads_and_expands():
     assert {r.cfg.single_road.feature_spacing_m for r in pf} == {0.5, 3.0}
     assert {(r.cfg.pf.vehicle_particles, r.cfg.pf.feature_particles) for r in pf} == {(5000, 5000)}
     assert "icp_da_pf" in pf[0].cfg.run.methods
+
+
+def test_paper_presets_switch_every_literal_reading_on():
+    """experiments/sweeps/paper/: each Sec. V study with the paper's rules (README, departures), and
+    otherwise the same grid and seeds as the project's sweep of the same name."""
+    for path in sorted((PROJECT / "experiments" / "sweeps" / "paper").glob("*.toml")):
+        spec, runs = expand_runs(load_sweep(path))
+        ours_spec, ours = expand_runs(load_sweep(PROJECT / "experiments" / "sweeps" / path.name))
+        assert len(runs) == len(ours), path.name
+        for r in runs:
+            kind = r.cfg.scenario.kind
+            assert r.cfg.lc.pairing == "paper" and r.cfg.lc.new_feature_density == 1.0
+            assert r.cfg.icp.stop_on == "vehicles_and_features"
+            assert getattr(r.cfg, kind).start == "gnss_fix"
+        for r in ours:
+            assert r.cfg.lc.pairing == "gated" and r.cfg.icp.stop_on == "vehicles"
+            assert getattr(r.cfg, r.cfg.scenario.kind).start == "fast_start"
 
 
 def test_bad_sweep_through_the_cli_is_one_line(tmp_path):
