@@ -91,6 +91,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
+from scipy.special import expit, logit
 from scipy.stats import chi2
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
@@ -544,12 +545,11 @@ _R_CLIP = 1e-12  # existence probabilities are kept in [1e-12, 1 - 1e-12] (finit
 
 
 def _logit(r: np.ndarray) -> np.ndarray:
-    r = np.clip(r, _R_CLIP, 1.0 - _R_CLIP)
-    return np.log(r) - np.log1p(-r)
+    return logit(np.clip(r, _R_CLIP, 1.0 - _R_CLIP))
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return np.clip(1.0 / (1.0 + np.exp(-x)), _R_CLIP, 1.0 - _R_CLIP)
+    return np.clip(expit(x), _R_CLIP, 1.0 - _R_CLIP)
 
 
 @dataclass(frozen=True)
