@@ -83,6 +83,10 @@ delivered and within the step's round budget
 particle ICP still assumes every consensus message arrives. What each method sends per step is
 counted by :mod:`coloc.inference.comm`.
 
+Clutter: :mod:`coloc.inference.existence` carries an existence probability per feature track (BP
+multitarget tracking, Meyer et al. 2018) and updates it from the BPA-DA beliefs (13)-(17) in
+log-odds over vehicles; ICP-DA-LC uses it when ``[lc] track_existence`` is set (its step 9).
+
 Performance layout: the BPA-L iterations run as numba passes over the rows
 (:mod:`coloc.kernels.icp`; ``coloc.inference.bpa.BPA_KERNELS = False`` selects the batched
 numpy reference, equal up to rounding); :class:`~coloc.inference.feature_store.FeatureStore`

@@ -91,7 +91,6 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
-from scipy.special import expit, logit
 from scipy.stats import chi2
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
@@ -101,6 +100,7 @@ from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
+from coloc.inference.existence import TrackExistence, birth_existence, existence_update
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
@@ -541,96 +541,6 @@ def merge_candidates(
     return np.array(absorbed, dtype=np.int64), np.array(into, dtype=np.int64)
 
 
-_R_CLIP = 1e-12  # existence probabilities are kept in [1e-12, 1 - 1e-12] (finite log-odds)
-
-
-def _logit(r: np.ndarray) -> np.ndarray:
-    return logit(np.clip(r, _R_CLIP, 1.0 - _R_CLIP))
-
-
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return np.clip(expit(x), _R_CLIP, 1.0 - _R_CLIP)
-
-
-@dataclass(frozen=True)
-class TrackExistence:
-    """Existence probability r of every feature track (module docstring, step 9), over ``ids`` (sorted)."""
-
-    ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
-    r: np.ndarray = field(default_factory=lambda: np.empty(0))
-
-    def of(self, track_ids: np.ndarray) -> np.ndarray:
-        """r of each id (0 for ids without a record)."""
-        track_ids = np.asarray(track_ids, dtype=np.int64)
-        if self.ids.size == 0:
-            return np.zeros(track_ids.shape)
-        pos = np.minimum(np.searchsorted(self.ids, track_ids), self.ids.size - 1)
-        return np.where(self.ids[pos] == track_ids, self.r[pos], 0.0)
-
-    def confirmed(self, track_ids: np.ndarray, lc: LcParams) -> np.ndarray:
-        """Tracks that localize vehicles: r >= ``confirm_existence`` (False for -1 and unknown ids)."""
-        return self.of(track_ids) >= lc.confirm_existence
-
-    def with_tracks(self, ids: np.ndarray, r: np.ndarray) -> "TrackExistence":
-        """These tracks set to r (added or replaced); the result sorted by id."""
-        ids = np.asarray(ids, dtype=np.int64)
-        keep = ~np.isin(self.ids, ids)
-        all_ids = np.concatenate([self.ids[keep], ids])
-        order = np.argsort(all_ids, kind="stable")
-        return TrackExistence(all_ids[order], np.concatenate([self.r[keep], np.asarray(r, float)])[order])
-
-    def merged(self, absorbed: np.ndarray, into: np.ndarray) -> "TrackExistence":
-        """After :meth:`FeatureStore.merge`: the target keeps the larger r."""
-        absorbed = np.asarray(absorbed, dtype=np.int64)
-        if absorbed.size == 0:
-            return self
-        r_into = np.maximum(self.of(into), self.of(absorbed))
-        keep = ~np.isin(self.ids, absorbed)
-        return TrackExistence(self.ids[keep], self.r[keep]).with_tracks(into, r_into)
-
-    def restricted(self, ids: np.ndarray) -> "TrackExistence":
-        """Only the tracks ``ids`` (those the store holds)."""
-        keep = np.isin(self.ids, ids)
-        return TrackExistence(self.ids[keep], self.r[keep])
-
-
-def existence_update(
-    r_prior: np.ndarray, ab: "AssociationBeliefs | None", pd_combo: np.ndarray, missed_track: np.ndarray,
-    pd_missed: np.ndarray,
-) -> np.ndarray:
-    """Existence after this step's association (module docstring, step 9), per predicted track.
-
-    ``r_prior`` (K,): predicted r of the tracks. ``ab``: BPA-DA beliefs of the combos (vehicle,
-    track) with gated rows, solved with eta(alpha = 0) = 1 - r P_D and eta(alpha = l) scaled by r;
-    ``pd_combo`` (C,): each combo's P_D. Vehicle i's problem gives P(k exists | z_i) = 1 - b_ik(0)
-    (1 - q), with q = r (1 - P_D) / (1 - r P_D) the existence of a track that was not detected; a
-    candidate track expected in i's view (``missed_track``, P_D ``pd_missed``) with no gated row
-    at all has b_ik(0) = 1. The vehicles' problems are independent given existence, so their
-    evidence adds in log-odds: logit r_post = logit r + sum_i [logit P(k exists | z_i) - logit r].
-    """
-    logit_r = _logit(r_prior)
-    gain = np.zeros(r_prior.size)
-    if ab is not None and ab.combo_track.size:
-        k = ab.combo_track
-        q = r_prior[k] * (1.0 - pd_combo) / (1.0 - r_prior[k] * pd_combo)
-        b0 = ab.belief[ab.combo_start]
-        np.add.at(gain, k, _logit(1.0 - b0 * (1.0 - q)) - logit_r[k])
-    if missed_track.size:
-        rk = r_prior[missed_track]
-        q = rk * (1.0 - pd_missed) / (1.0 - rk * pd_missed)
-        np.add.at(gain, missed_track, _logit(q) - logit_r[missed_track])
-    return _sigmoid(logit_r + gain)
-
-
-def birth_existence(share: np.ndarray, labels: np.ndarray, n_born: int) -> np.ndarray:
-    """r of each new track: each of its rows is independent evidence that it is a feature, with
-    probability ``share`` = mu_new f_new / (mu_new f_new + lambda_c f_c) (Meyer et al.'s birth), so
-    the log-odds of the rows that started it add."""
-    log_odds = np.zeros(n_born)
-    np.add.at(log_odds, labels, _logit(share))
-    return _sigmoid(log_odds)
-
-
 @dataclass(frozen=True)
 class LcStepInfo:
     """Association bookkeeping of one step (not scoring: no truth here)."""
@@ -725,7 +635,7 @@ def icp_da_lc_step(
         share = new_feature_share(b0_mean[owner[birth]], own_cov[owner[birth]], frame.v2f_z[birth],
                                   frame.v2f_R[birth], lc)
         existence = existence.with_tracks(next_id - born + np.arange(born), birth_existence(share, labels, born))
-        bpa_track = np.where(existence.confirmed(l_track, lc), l_track, -1)
+        bpa_track = np.where(existence.confirmed(l_track, lc.confirm_existence), l_track, -1)
     # BPA-L on the paired rows of confirmed tracks (31).
     used = bpa_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
@@ -768,7 +678,7 @@ def icp_da_lc_step(
         existence = existence.restricted(store.ids)
         n_tentative = int(tentative[:o].sum())
         # Rows not used for the vehicles are reported as discarded.
-        row_track = np.where(existence.confirmed(row_track, lc), row_track, -1)
+        row_track = np.where(existence.confirmed(row_track, lc.confirm_existence), row_track, -1)
     v_mean, v_cov, resets = res.mean, res.cov, 0
     if lc.own_consistency_gate > 0:
         v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate)
@@ -822,6 +732,6 @@ class IcpDaLc:
         if self.last.existence is None:
             return est
         # Only confirmed tracks are features of the estimate (step 9).
-        keep = self.last.existence.confirmed(est.feature_track_ids, self.lc)
+        keep = self.last.existence.confirmed(est.feature_track_ids, self.lc.confirm_existence)
         return replace(est, feature_mean=est.feature_mean[keep], feature_cov=est.feature_cov[keep],
                        feature_track_ids=est.feature_track_ids[keep])

@@ -10,14 +10,12 @@ import pytest
 from coloc.inference.params import IcpParams
 from coloc.methods.gnss import GnssTracker
 from coloc.inference.association import association_marginals_exact
+from coloc.inference.existence import TrackExistence, birth_existence, existence_update
 from coloc.methods.icp_da_lc import (
     IcpDaLc,
     LcParams,
-    TrackExistence,
     association_beliefs,
-    birth_existence,
     clutter_log_density,
-    existence_update,
     new_feature_log_density,
     new_feature_share,
 )
@@ -131,7 +129,7 @@ def test_missed_candidates_lose_odds_by_one_minus_pd_and_births_add_log_odds():
     share = np.array([0.2, 0.5, 0.9])
     np.testing.assert_allclose(birth_existence(share, np.array([0, 0, 1]), 2), [0.2, 0.9])
     te = TrackExistence(np.array([3, 7]), np.array([0.95, 0.2]))
-    assert te.confirmed(np.array([-1, 3, 7, 9]), LcParams()).tolist() == [False, True, False, False]
+    assert te.confirmed(np.array([-1, 3, 7, 9]), LcParams().confirm_existence).tolist() == [False, True, False, False]
     m = te.merged(np.array([7]), np.array([3]))
     assert m.ids.tolist() == [3] and m.r.tolist() == [0.95]
 
@@ -161,7 +159,7 @@ def test_clutter_alone_confirms_no_track_and_vehicles_equal_gnss(seed):
     for f in frames:
         blind = f.without_truth()
         e_c, e_u, e_g = confirmed.step(blind), unconfirmed.step(blind), gnss.step(blind)
-        assert not confirmed.last.existence.confirmed(confirmed.last.existence.ids, confirmed.lc).any()
+        assert not confirmed.last.existence.confirmed(confirmed.last.existence.ids, confirmed.lc.confirm_existence).any()
         assert np.all(e_c.v2f_assignment == -1) and e_c.feature_track_ids.size == 0
         np.testing.assert_array_equal(e_c.mean, e_g.mean)
         np.testing.assert_array_equal(e_c.cov, e_g.cov)
