@@ -66,8 +66,9 @@ def test_ghost_tracks_have_no_feature_error(tmp_path):
     from experiments.runner import EstimateLog
 
     log = EstimateLog()
-    truth = SimpleNamespace(v2f_feature=np.array([0, -1, -1]), features_true=np.array([[0.0, 0.0, 0, 0], [50.0, 0, 0, 0]]))
-    frame = SimpleNamespace(t=1.0, truth=truth)
+    truth = SimpleNamespace(v2f_feature=np.array([0, -1, -1]), features_true=np.array([[0.0, 0.0, 0, 0], [50.0, 0, 0, 0]]),
+                            zone=np.array(["A"]))
+    frame = SimpleNamespace(t=1.0, truth=truth, v2f_owner=np.array([0, 0, 0]))
     est = SimpleNamespace(v2f_assignment=np.array([10, 11, 11]), feature_mean=np.array([[0.5, 0, 0, 0], [49.0, 0, 0, 0]]),
                           feature_track_ids=np.array([10, 11]))
     log.add_association("icp_da_lc", frame, est)
