@@ -21,7 +21,8 @@ prune (``docs/validation/pf.md``); what is left to gain is the cost of a pair. T
   (else float64 distances for that row or problem); with the float32 exponential and float32 partial
   sums over 256 terms at most 4e-4 relative (:data:`ROUNDING_REL_ERROR`; measured 3e-4 at worst);
 * terms more than 43.5 below the target's nearest source (e^-43.5 = 1.3e-19) count as 2^-63 x
-  weight (the smallest code): the mass so misstated is at most W 2^-62 per entry for source weight W
+  weight (the smallest code): the mass so misstated is at most W 2^-61 per entry for source weight W (with the float32
+  weights that underflow)
   (scaled to the largest); an entry whose sum is not at least that over the remaining error budget
   is summed again exactly in log domain (:func:`coloc.kernels.pf._exact_log_sum`).
 
@@ -65,7 +66,10 @@ FAST_BYTES_PER_PAIR = 2
 
 _CUT = 43.5  # y = (q - q_min) / 2 from here on is coded as the smallest value, 2^-63 (e^-43.67)
 _CODE_BASE = 64 << 10  # float32 bits >> 13 of 2^-63: code 0
-_TAIL = 2.0 ** -62  # bound of the misstated mass per unit of source weight
+# Bound of the misstated mass per unit of source weight (scaled to the largest): terms beyond _CUT
+# (2^-62) and float32 source weights that underflow (below 2^-126 each, at most 2^-110 for 2^16 sources).
+_TAIL = 2.0 ** -61
+_CHUNK = 256  # float32 partial sums over at most this many terms (rounding <= 256 x 2^-24 = 1.5e-5)
 _LOG2E32 = np.float32(1.4426950408889634)
 _LN2_HI32 = np.float32(0.693145751953125)  # 0x3f317200: k * _LN2_HI32 exact for k < 2^11
 _LN2_LO32 = np.float32(1.428606765330187e-06)
@@ -171,14 +175,23 @@ def _code_row64(q, qmin, row):
 
 
 @nb.njit(cache=True, fastmath={"reassoc", "contract"})
-def _coded_row_sum(row, ws):
-    acc = 0.0
+def _coded_chunk_sum(row, ws32):
+    acc = np.float32(0.0)
     for s in range(row.shape[0]):
-        acc += np.float64(_decode(row[s])) * ws[s]
+        acc += _decode(row[s]) * ws32[s]
     return acc
 
 
-_CHUNK = 256  # float32 partial sums over at most this many terms (rounding <= 256 x 2^-24 = 1.5e-5)
+@nb.njit(cache=True)
+def _coded_row_sum(row, ws32):
+    """sum_s value_s ws_s of a coded row: float32 products and partial sums over _CHUNK terms, float64 total."""
+    acc = 0.0
+    for s0 in range(0, row.shape[0], _CHUNK):
+        s1 = min(s0 + _CHUNK, row.shape[0])
+        acc += np.float64(_coded_chunk_sum(row[s0:s1], ws32[s0:s1]))
+    return acc
+
+
 _FAR = 400.0  # targets beyond 20 whitened units of the sources' box: the float64 path
 _EXTENT = 32.0  # sources beyond 32 whitened units of their mean: the float64 path for the problem
 
@@ -186,7 +199,7 @@ _EXTENT = 32.0  # sources beyond 32 whitened units of their mean: the float64 pa
 @nb.njit(cache=True)
 def _finish(acc, total, wmax, low, log_norm, src_w, src_logw, tgt_w, quantized, out):
     """out[t] = log of the sum from ``acc[t]`` (scaled by exp(-low[t] / 2) and exp(wmax)); summed exactly
-    where the misstated tail mass (at most total 2^-62) could exceed what is left of the budget."""
+    where the misstated tail mass (at most total 2^-61) could exceed what is left of the budget."""
     if wmax == -np.inf:
         out[:] = -np.inf
         return
@@ -309,6 +322,7 @@ def _coded_problem(src, src_shift, tgt, tgt_shift, linv, codes, low, src_w, tgt_
     cols, t32, ok = _prepare(src, src_shift, tgt, tgt_shift, linv, src_w, tgt_w, low)
     ws = np.empty(js)
     wmax, total = _scaled_weights(first_logw, ws)
+    ws32 = ws.astype(np.float32)
     acc = np.zeros(jt)
     q = np.empty(js)
     for t in range(jt):
@@ -320,7 +334,7 @@ def _coded_problem(src, src_shift, tgt, tgt_shift, linv, codes, low, src_w, tgt_
                             tgt_w[t, 0], tgt_w[t, 1], tgt_w[t, 2], tgt_w[t, 3], q)
             _code_row64(q, low[t], codes[t])
         if wmax > -np.inf:
-            acc[t] = _coded_row_sum(codes[t], ws)
+            acc[t] = _coded_row_sum(codes[t], ws32)
     _finish(acc, total, wmax, low, log_norm, src_w, first_logw, tgt_w, True, first_out)
 
 
@@ -337,10 +351,11 @@ def _apply_coded(codes, low, log_norm, src_w, tgt_w, src_logw, out):
     for p in nb.prange(codes.shape[0]):
         ws = np.empty(codes.shape[2])
         wmax, total = _scaled_weights(src_logw[p], ws)
+        ws32 = ws.astype(np.float32)
         acc = np.zeros(codes.shape[1])
         if wmax > -np.inf:
             for t in range(codes.shape[1]):
-                acc[t] = _coded_row_sum(codes[p, t], ws)
+                acc[t] = _coded_row_sum(codes[p, t], ws32)
         _finish(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[p], tgt_w[p], True, out[p])
 
 
