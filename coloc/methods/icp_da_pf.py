@@ -55,7 +55,9 @@ a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
 CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
 track k draws the same particles without communicating. The pairwise sums are
 the kernels of :mod:`coloc.kernels.pf` (a k-d tree kernel exact to
-``kernel_rel_tol`` per entry, or the brute force); BPA-L's two message sums keep
+``kernel_rel_tol`` per entry, or the brute force) or of :mod:`coloc.kernels.pf_fast`
+(``kernel = "fast"``: float32 and 16-bit kept matrices, every entry within 1e-3,
+checked on the estimates by ``tools/pf_equivalence.py``); BPA-L's two message sums keep
 their kernel matrices through the iterations of a step (``pf.kernel_cache_mb``),
 since only the cavity weights change between iterations.
 
@@ -188,13 +190,18 @@ class PfParams:
     default. "none" is the bare V2F kernel of (25)-(27), exact for the
     particle sets as they are.
     ``kernel``: "tree" (k-d tree pruned, exact to ``kernel_rel_tol`` per
-    entry) or "brute" (every particle pair). ``kernel_cache_mb``: with "tree", the
+    entry; the reference), "brute" (every particle pair) or "fast" (every pair, float32
+    distances and exponential, kept matrices in 16 bits a pair: every entry within 1e-3
+    relative, :mod:`coloc.kernels.pf_fast`; ``kernel_rel_tol`` does not apply; arterial,
+    first 60 s of TLR at J = 1000: 2.5x faster per step). ``kernel_cache_mb``: with "tree"
+    or "fast", the
     two message sums of BPA-L (19)/(21) keep their kernel matrices (float32, 4 bytes
     a pair) through the iterations of a step, as far as they fit in this many MB:
     the particles and kernels do not change between iterations, only the cavity
     weights, so each later iteration is a matrix-vector product, exact to
-    ``kernel_rel_tol`` as the tree (:func:`coloc.kernels.pf.fixed_transforms`).
-    The single road at J = 5000 needs 1.6 GB (8 terms, two directions); 0 keeps
+    ``kernel_rel_tol`` as the tree (:func:`coloc.kernels.pf.fixed_transforms`; "fast":
+    2 bytes a pair, within its 1e-3).
+    The single road at J = 5000 needs 1.6 GB (8 terms, two directions; "fast" 0.8 GB); 0 keeps
     none. ``min_association_belief``: options of (18) with a smaller BPA-DA belief
     are left out of the mixture.
     """
