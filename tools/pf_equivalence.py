@@ -23,6 +23,12 @@ where it stopped: rerun with more ``--seeds``); the table is printed from that f
     python tools/pf_equivalence.py --seeds 50                   # the issue's study (about 2 x 100 runs)
     python tools/pf_equivalence.py --seeds 10 --arterial-seeds 1
     python tools/pf_equivalence.py --table-only                 # print the table of what is recorded
+    python tools/pf_equivalence.py --seeds 10 --null-seeds 10   # and the Monte Carlo floor of the pairing
+
+Two PF runs on the same frames part ways at the first resampling draw that a weight differing in its
+last bits moves, and from there on differ by the filter's own Monte Carlo error; ``--null-seeds``
+measures that floor directly (the exact tree against itself with other particle generators), so the
+fast kernel's paired differences can be read against it.
 
 Run it alone on the machine: the PF kernels use every core, and the per-step times are measured.
 """
@@ -43,6 +49,8 @@ sys.path.insert(0, str(ROOT))
 WINDOWS = ((10.0, 19.0), (20.0, 30.0))
 SPACINGS = (0.5, 3.0)
 KERNELS = ("tree", "fast")
+NULL = "tree_reseeded"  # the exact tree with other particle generators: the Monte Carlo floor of the pairing
+NULL_OFFSET = 1000
 SINGLE_ROAD = {"lc.eta_threshold": 1.0, "pf.vehicle_particles": 5000, "pf.feature_particles": 5000,
                "pf.message_bandwidth": "prior"}
 MSE_LIMIT = 0.05  # m^2
@@ -50,14 +58,19 @@ REL_LIMIT = 0.02  # arterial RMSE and p95
 SHARE_LIMIT = 0.5  # percentage points
 
 
-def run_one(config: Path, overrides: dict) -> dict:
-    """One icp_da_pf run in this process: per-step position errors, association counts, step times."""
+def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
+    """One icp_da_pf run in this process: per-step position errors, association counts, step times.
+    ``pf_seed_offset``: the particle generators seeded apart from the scenario (the null comparison)."""
+    import dataclasses
+
     from experiments.config import load_config
     from experiments.runner import build_estimators, frame_source
     from experiments.scoring import score_association
 
     cfg = load_config(config, {**overrides, "run.methods": ["icp_da_pf"]})
     (est,) = build_estimators(cfg)
+    if pf_seed_offset:
+        est.pf = dataclasses.replace(est.pf, seed=est.pf.seed + pf_seed_offset)
     t, err, step_s, assoc = [], [], [], []
     with frame_source(cfg) as source:
         for frame in source.frames():
@@ -94,7 +107,7 @@ def load_records(path: Path) -> dict:
 
 
 def paired_table(recs: dict) -> tuple[list[str], bool]:
-    lines, ok_all = [], True
+    lines, ok_all, nulls = [], True, []
     lines.append("single road, Fig. 7 settings, J = 5000: window MSE, fast - exact, paired by seed")
     lines.append(f"{'df':>5} {'window':>8} {'seeds':>5} {'MSE exact':>10} {'MSE fast':>9} {'diff':>9} "
                  f"{'SE':>7} {'|d|/SE':>6} {'pass':>5}")
@@ -102,6 +115,12 @@ def paired_table(recs: dict) -> tuple[list[str], bool]:
         case = f"single_road_df{df}"
         seeds = sorted(s for (c, s, k) in recs if c == case and k == "tree" and (c, s, "fast") in recs)
         for w, (lo, hi) in enumerate(WINDOWS):
+            null = sorted(s for (c, s, k) in recs if c == case and k == NULL and (c, s, "tree") in recs)
+            if len(null) > 1:
+                d = np.array([recs[(case, s, NULL)]["window_mse"][w] - recs[(case, s, "tree")]["window_mse"][w]
+                              for s in null])
+                nulls.append(f"{df:5.1f} {f'{lo:.0f}-{hi:.0f} s':>8} {d.size:5d} {d.mean():+9.4f} "
+                             f"{d.std(ddof=1) / np.sqrt(d.size):7.4f} {np.sqrt(np.mean(d**2)):9.4f}")
             if not seeds:
                 continue
             a = np.array([recs[(case, s, "fast")]["window_mse"][w] for s in seeds])
@@ -113,6 +132,21 @@ def paired_table(recs: dict) -> tuple[list[str], bool]:
             lines.append(f"{df:5.1f} {f'{lo:.0f}-{hi:.0f} s':>8} {d.size:5d} {b.mean():10.3f} {a.mean():9.3f} "
                          f"{d.mean():+9.4f} {se:7.4f} {abs(d.mean()) / se if se > 0 else float('nan'):6.2f} "
                          f"{'yes' if ok else 'NO':>5}")
+    if nulls:
+        lines.append("")
+        lines.append("Monte Carlo floor: exact tree with other particle generators - exact tree, same scenario seeds")
+        lines.append(f"{'df':>5} {'window':>8} {'seeds':>5} {'diff':>9} {'SE':>7} {'rms diff':>9}")
+        lines.extend(nulls)
+    fast_rms = []
+    for df in SPACINGS:
+        case = f"single_road_df{df}"
+        for w in range(len(WINDOWS)):
+            d = [recs[(case, s, "fast")]["window_mse"][w] - recs[(case, s, "tree")]["window_mse"][w]
+                 for (c, s, k) in recs if c == case and k == "tree" and (c, s, "fast") in recs]
+            if d:
+                fast_rms.append(f"df {df} w{w}: {np.sqrt(np.mean(np.square(d))):.4f}")
+    if fast_rms:
+        lines.append("rms of the paired difference fast - exact (compare with the floor): " + ", ".join(fast_rms))
     lines.append("")
     lines.append("seconds per step with V2F rows (mean over runs of the run's mean; worst single step)")
     for df in SPACINGS:
@@ -147,6 +181,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=50, help="single-road seeds per df (1..N)")
     ap.add_argument("--arterial-seeds", type=int, default=0, help="arterial TLR seeds (1..N); the issue asks for 3")
     ap.add_argument("--arterial-duration", type=float, default=300.0)
+    ap.add_argument("--null-seeds", type=int, default=0,
+                    help="single-road seeds (1..N) also run by the exact tree with other particle generators "
+                         "(pf seed + 1000): how far two exact runs differ by Monte Carlo alone")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "pf_equivalence")
     ap.add_argument("--table-only", action="store_true", help="print the table of the recorded runs")
     args = ap.parse_args(argv)
@@ -161,6 +198,10 @@ def main(argv=None) -> int:
                     todo.append((f"single_road_df{df}", seed, k, ROOT / "experiments" / "single_road.toml",
                                  {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed,
                                   "pf.kernel": k}))
+        for seed in range(1, args.null_seeds + 1):
+            for df in SPACINGS:
+                todo.append((f"single_road_df{df}", seed, NULL, ROOT / "experiments" / "single_road.toml",
+                             {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed, "pf.kernel": "tree"}))
         for seed in range(1, args.arterial_seeds + 1):
             for k in KERNELS:
                 todo.append(("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",
@@ -169,7 +210,8 @@ def main(argv=None) -> int:
         if (case, seed, kernel) in recs:
             continue
         t0 = time.perf_counter()
-        rec = {"case": case, "seed": seed, "kernel": kernel, **run_one(config, over)}
+        rec = {"case": case, "seed": seed, "kernel": kernel,
+               **run_one(config, over, NULL_OFFSET if kernel == NULL else 0)}
         rec["run_s"] = time.perf_counter() - t0
         recs[(case, seed, kernel)] = rec
         with path.open("a") as fh:
