@@ -36,7 +36,7 @@ from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from couplers.sumo_traffic import SumoTraffic  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
-from coloc.methods.registry import METHODS  # noqa: E402
+from coloc.methods.registry import ICP_DA_PF, METHODS  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
 
 
@@ -80,7 +80,8 @@ def main() -> None:
     ap.add_argument("--control", default="tlr", choices=["tlr", "vsr"])
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
-    ap.add_argument("--pf-kernels", default="", help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
+    ap.add_argument("--pf-kernels", default="",
+                    help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
     args = ap.parse_args()
 
     cfg = load_config(
@@ -97,12 +98,12 @@ def main() -> None:
     coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [])
     estimators = build_estimators(cfg)
     if args.pf_kernels:
-        pfs = [e for e in estimators if e.name == "icp_da_pf"]
-        estimators = [e for e in estimators if e.name != "icp_da_pf"]
+        pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
+        estimators = [e for e in estimators if e.name != ICP_DA_PF.name]
         for base in pfs:
             for kernel in args.pf_kernels.split(","):
                 estimators.append(dataclasses.replace(base, pf=dataclasses.replace(base.pf, kernel=kernel),
-                                                      name=f"icp_da_pf[{kernel}]", workspace=KernelWorkspace()))
+                                                      name=f"{ICP_DA_PF.name}[{kernel}]", workspace=KernelWorkspace()))
     coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
 
     print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")

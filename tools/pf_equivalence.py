@@ -63,11 +63,12 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
     ``pf_seed_offset``: the particle generators seeded apart from the scenario (the null comparison)."""
     import dataclasses
 
+    from coloc.methods.registry import ICP_DA_PF
     from experiments.config import load_config
     from experiments.runner import build_estimators, frame_source
     from experiments.scoring import score_association
 
-    cfg = load_config(config, {**overrides, "run.methods": ["icp_da_pf"]})
+    cfg = load_config(config, {**overrides, "run.methods": [ICP_DA_PF.name]})
     (est,) = build_estimators(cfg)
     if pf_seed_offset:
         est.pf = dataclasses.replace(est.pf, seed=est.pf.seed + pf_seed_offset)
@@ -201,7 +202,8 @@ def main(argv=None) -> int:
         for seed in range(1, args.null_seeds + 1):
             for df in SPACINGS:
                 todo.append((f"single_road_df{df}", seed, NULL, ROOT / "experiments" / "single_road.toml",
-                             {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed, "pf.kernel": "tree"}))
+                             {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed,
+                              "pf.kernel": "tree"}))
         for seed in range(1, args.arterial_seeds + 1):
             for k in KERNELS:
                 todo.append(("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",

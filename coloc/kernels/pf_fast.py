@@ -8,30 +8,32 @@ with a stated per-entry bound instead of the exact tree's 1e-6. With the kernel 
 (``message_bandwidth = "prior"``, the default) almost every pair counts, so the exact tree cannot
 prune (``docs/validation/pf.md``); what is left to gain is the cost of a pair. This kernel:
 
-* evaluates every pair, the squared whitened distance q in float64 and exp(-(q - q_min) / 2) in
-  **float32** by a degree-5 polynomial after Cody-Waite range reduction (:func:`_exp32`, relative
-  error below 1e-5 including the rounding of its float32 argument: :data:`EXP_REL_ERROR`), 16 lanes
-  a vector where the float64 exponential of the exact kernels has 8 and a degree-10 polynomial;
+* evaluates every pair (no pruning), in **float32**: the whitened coordinates about the source set's
+  mean, the squared distance q, exp(-(q - low) / 2) by a degree-5 polynomial after Cody-Waite range
+  reduction (:func:`_exp32`, relative error 3.3e-6 measured: :data:`EXP_REL_ERROR`) and partial sums
+  over at most 256 terms (totals in float64), 16 lanes a vector where the exact kernels' float64 has
+  8; ``low`` is the target's squared distance to the sources' bounding box, so no term exceeds 1.
+  Where float32 distances are not precise enough, i.e. sources more than 32 whitened units from their
+  mean (the problem) or a target more than 20 from the sources' box (the row), the distances are
+  float64 and the row is scaled by its nearest source. Together at most 4e-4 relative
+  (:data:`ROUNDING_REL_ERROR`; 1.6e-4 measured at worst);
 * keeps BPA-L's kernel matrices (:class:`FastRepeatedTransforms`) in **16 bits a pair** instead of
   32: the float32 value's exponent (2^-63 to 1) and the top 10 bits of its mantissa, rounded to
   nearest (relative error at most 2^-11 = 4.9e-4: :data:`CODE_REL_ERROR`), so every later BPA-L
   iteration reads half the memory of the exact path's float32 matrices;
-* computes the whitened distances in float32 too, about the source set's mean, where that is safe:
-  sources within 32 whitened units of their mean and targets within 20 of the sources' bounding box
-  (else float64 distances for that row or problem); with the float32 exponential and float32 partial
-  sums over 256 terms at most 4e-4 relative (:data:`ROUNDING_REL_ERROR`; measured 3e-4 at worst);
-* terms more than 43.5 below the target's nearest source (e^-43.5 = 1.3e-19) count as 2^-63 x
-  weight (the smallest code): the mass so misstated is at most W 2^-61 per entry for source weight W (with the float32
-  weights that underflow)
-  (scaled to the largest); an entry whose sum is not at least that over the remaining error budget
-  is summed again exactly in log domain (:func:`coloc.kernels.pf._exact_log_sum`).
+* terms more than 43.5 below the row's scale (e^-43.5 = 1.3e-19) count as e^-43.5 (one-off sums) or
+  2^-63 (the smallest code) times their weight: with the float32 weights that underflow, the mass so
+  misstated is at most W 2^-61 per entry for source weight W (scaled to the largest); an entry whose
+  sum is not that far above it for the rest of the budget is summed again exactly in log domain
+  (:func:`coloc.kernels.pf._exact_log_sum`).
 
 **Bound**: every entry is within :data:`FAST_REL_TOL` = 1e-3 of the brute-force sum, relatively,
 tails included: 4.9e-4 (16-bit values; one-off sums, which keep no matrix, have none of it) + 4e-4
-(float32 distances, exponential and partial sums) + the misstated tail mass, at most the rest of the budget by the fallback.
-Sums are accumulated in float64 (every term positive). Tested against scipy on random problems
-(``tests/coloc/test_pf_fast.py``). A particle filter at J = 5000 carries a Monte Carlo error of order
-1/sqrt(J) = 1.4 %; what this bound does to the estimates is measured by ``tools/pf_equivalence.py``.
+(float32 distances, exponential and partial sums) + the misstated tail mass, at most the rest of
+the budget by the fallback (every term is positive, so relative errors of terms bound the sum's).
+Tested against scipy on random problems (``tests/coloc/test_pf_fast.py``). A particle filter at
+J = 5000 carries a Monte Carlo error of order 1/sqrt(J) = 1.4 %; what this bound does to the
+estimates is measured by ``tools/pf_equivalence.py``.
 
 Deterministic: every entry is one problem's sum in a fixed order (``prange`` over problems only),
 so the result is the same bytes for any numba thread count.
@@ -300,8 +302,9 @@ def fast_transform_batch(src_sets, src_logw, src_index, src_shift, tgt_sets, tgt
         return out, np.zeros(0, np.int64)
     linv, log_norm = _chol_inverse(np.asarray(r, dtype=float).reshape(p, 4, 4))
     _direct_batch(np.ascontiguousarray(src_sets, dtype=float), np.ascontiguousarray(src_logw, dtype=float), src_index,
-                  np.ascontiguousarray(src_shift, dtype=float).reshape(p, 4), np.ascontiguousarray(tgt_sets, dtype=float),
-                  tgt_index, np.ascontiguousarray(tgt_shift, dtype=float).reshape(p, 4), linv, log_norm, out)
+                  np.ascontiguousarray(src_shift, dtype=float).reshape(p, 4),
+                  np.ascontiguousarray(tgt_sets, dtype=float), tgt_index,
+                  np.ascontiguousarray(tgt_shift, dtype=float).reshape(p, 4), linv, log_norm, out)
     return out, np.full(p, js * jt, np.int64)
 
 
