@@ -9,7 +9,9 @@ and their ratios to 1. Targets: coupled GNSS run within 2x of SUMO alone (issue 
 coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
 
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
-    (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config)
+    (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
+     --pf-kernels tree,fast runs one icp_da_pf per [pf] kernel on the same frames, the exact tree and the
+     1e-3 fast path side by side, each printed as icp_da_pf[kernel])
 
 Not a test: it asserts nothing and prints numbers.
 """
@@ -17,6 +19,7 @@ Not a test: it asserts nothing and prints numbers.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import subprocess
 import sys
 import time
@@ -32,7 +35,8 @@ from couplers.sensors import SensorParams  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from couplers.sumo_traffic import SumoTraffic  # noqa: E402
 from experiments.config import load_config  # noqa: E402
-from coloc.methods.registry import METHODS  # noqa: E402
+from coloc.kernels.pf import KernelWorkspace  # noqa: E402
+from coloc.methods.registry import ICP_DA_PF, METHODS  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
 
 
@@ -63,7 +67,7 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
             blind = frame.without_truth()
             for est in estimators:
                 s = time.perf_counter()
-                if METHODS[est.name].known_association:  # the bound is told the association
+                if METHODS[est.name.split("[")[0]].known_association:  # the bound is told the association
                     est.step_with_association(blind, frame.truth.v2f_feature)
                 else:
                     est.step(blind)
@@ -76,6 +80,8 @@ def main() -> None:
     ap.add_argument("--control", default="tlr", choices=["tlr", "vsr"])
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
+    ap.add_argument("--pf-kernels", default="",
+                    help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
     args = ap.parse_args()
 
     cfg = load_config(
@@ -90,7 +96,15 @@ def main() -> None:
     sumo_alone = time_sumo_binary(scenario)
     floor = time_libsumo_floor(scenario)
     coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [])
-    coupled, _, per_method = time_coupled(scenario, cfg.sensors, build_estimators(cfg))
+    estimators = build_estimators(cfg)
+    if args.pf_kernels:
+        pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
+        estimators = [e for e in estimators if e.name != ICP_DA_PF.name]
+        for base in pfs:
+            for kernel in args.pf_kernels.split(","):
+                estimators.append(dataclasses.replace(base, pf=dataclasses.replace(base.pf, kernel=kernel),
+                                                      name=f"{ICP_DA_PF.name}[{kernel}]", workspace=KernelWorkspace()))
+    coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
 
     print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")
     print(f"  sumo binary alone        {sumo_alone:8.2f} s")

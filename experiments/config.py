@@ -113,7 +113,9 @@ class PfSection:
 
     vehicle_particles: int = 1000
     feature_particles: int = 1000
-    kernel: str = "tree"  # "tree" (k-d tree pruned, exact to kernel_rel_tol per entry) or "brute"
+    # "tree" (k-d tree pruned, exact to kernel_rel_tol per entry), "brute" or "fast" (float32 and 16-bit kept
+    # kernel matrices, every sum within 1e-3 relative, coloc.kernels.pf_fast)
+    kernel: str = "tree"
     kernel_rel_tol: float = 1e-6
     # Memory for the kernel matrices kept through BPA-L's iterations (tree kernel; 0 = none kept).
     kernel_cache_mb: float = 2048.0

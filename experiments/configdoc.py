@@ -294,10 +294,12 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
     "pf": {
         "vehicle_particles": (NO_UNIT, "Jv, particles per vehicle (the paper's single road: 5000)."),
         "feature_particles": (NO_UNIT, "Jf, particles per feature track."),
-        "kernel": ("", "Pair sums: `\"tree\"` (k-d tree, exact to kernel_rel_tol per entry) or `\"brute\"`."),
+        "kernel": ("", "Pair sums: `\"tree\"` (k-d tree, exact to kernel_rel_tol per entry, the reference), "
+                       "`\"brute\"` or `\"fast\"` (float32 and 16-bit kept matrices, every entry within 1e-3; "
+                       "checked against the tree by tools/pf_equivalence.py)."),
         "kernel_rel_tol": (NO_UNIT, "Relative error allowed per entry of a tree pair sum."),
-        "kernel_cache_mb": ("MB", "Memory for the kernel matrices kept through BPA-L's iterations (tree "
-                                  "kernel; 0 = none kept)."),
+        "kernel_cache_mb": ("MB", "Memory for the kernel matrices kept through BPA-L's iterations (tree: 4 "
+                                  "bytes a pair, fast: 2; 0 = none kept)."),
         "min_association_belief": (NO_UNIT, "Options of (18) with a smaller BPA-DA belief are left out of the mixture."),
         "message_bandwidth": ("", "Particle double sums as kernel densities: `\"prior\"` (kernel R + h^2 Cov), "
                                   "`\"shrunk\"` (the same with Liu-West shrunk centres) or `\"none\"` (the bare "

@@ -55,7 +55,9 @@ a generator seeded by (``pf.seed``, purpose, entity, step), entity being a
 CRC32 of the vehicle id or the track id, so any vehicle holding a copy of
 track k draws the same particles without communicating. The pairwise sums are
 the kernels of :mod:`coloc.kernels.pf` (a k-d tree kernel exact to
-``kernel_rel_tol`` per entry, or the brute force); BPA-L's two message sums keep
+``kernel_rel_tol`` per entry, or the brute force) or of :mod:`coloc.kernels.pf_fast`
+(``kernel = "fast"``: float32 and 16-bit kept matrices, every entry within 1e-3,
+checked on the estimates by ``tools/pf_equivalence.py``); BPA-L's two message sums keep
 their kernel matrices through the iterations of a step (``pf.kernel_cache_mb``),
 since only the cavity weights change between iterations.
 
@@ -115,6 +117,7 @@ from coloc.inference.particles import (
 from coloc.inference.row_consensus import consensus_graph, row_components
 from coloc.kernels.icp import scatter_add, scatter_max
 from coloc.kernels.pf import KERNELS, KernelWorkspace, RepeatedTransforms, kept_problem_count, transform_batch
+from coloc.kernels.pf_fast import FAST, FastRepeatedTransforms, fast_kept_problem_count, fast_transform_batch
 from coloc.methods.icp_da_lc import (
     LcParams,
     association_beliefs,
@@ -131,6 +134,7 @@ __all__ = [
 ]
 
 RECURSIONS = ("latest_message", "paper")
+PF_KERNELS = KERNELS + (FAST,)  # the exact tree (reference), brute force, the 1e-3 approximation
 BANDWIDTHS = ("prior", "shrunk", "none")
 _PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
             "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
@@ -187,13 +191,18 @@ class PfParams:
     default. "none" is the bare V2F kernel of (25)-(27), exact for the
     particle sets as they are.
     ``kernel``: "tree" (k-d tree pruned, exact to ``kernel_rel_tol`` per
-    entry) or "brute" (every particle pair). ``kernel_cache_mb``: with "tree", the
+    entry; the reference), "brute" (every particle pair) or "fast" (every pair, float32
+    distances and exponential, kept matrices in 16 bits a pair: every entry within 1e-3
+    relative, :mod:`coloc.kernels.pf_fast`; ``kernel_rel_tol`` does not apply; arterial,
+    first 60 s of TLR at J = 1000: 2.5x faster per step). ``kernel_cache_mb``: with "tree"
+    or "fast", the
     two message sums of BPA-L (19)/(21) keep their kernel matrices (float32, 4 bytes
     a pair) through the iterations of a step, as far as they fit in this many MB:
     the particles and kernels do not change between iterations, only the cavity
     weights, so each later iteration is a matrix-vector product, exact to
-    ``kernel_rel_tol`` as the tree (:func:`coloc.kernels.pf.fixed_transforms`).
-    The single road at J = 5000 needs 1.6 GB (8 terms, two directions); 0 keeps
+    ``kernel_rel_tol`` as the tree (:func:`coloc.kernels.pf.fixed_transforms`; "fast":
+    2 bytes a pair, within its 1e-3).
+    The single road at J = 5000 needs 1.6 GB (8 terms, two directions; "fast" 0.8 GB); 0 keeps
     none. ``min_association_belief``: options of (18) with a smaller BPA-DA belief
     are left out of the mixture.
     """
@@ -212,8 +221,8 @@ class PfParams:
     def __post_init__(self):
         if self.vehicle_particles < 1 or self.feature_particles < 1:
             raise ValueError("vehicle_particles and feature_particles must be >= 1")
-        if self.kernel not in KERNELS:
-            raise ValueError(f"kernel must be one of {', '.join(KERNELS)}")
+        if self.kernel not in PF_KERNELS:
+            raise ValueError(f"kernel must be one of {', '.join(PF_KERNELS)}")
         if not self.kernel_rel_tol > 0:
             raise ValueError("kernel_rel_tol must be positive")
         if not self.kernel_cache_mb >= 0:
@@ -260,6 +269,15 @@ class PfBpaResult:
     # (E, Jf) the first iteration's (26) and messages (19): own-sensor cavities (IcpParams.feature_message)
     first_feature_logw: np.ndarray | None = None
     first_message_logw: np.ndarray | None = None
+
+
+def gauss_transforms(pf: PfParams, src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r):
+    """One batch of the pair sums (25)-(27) by ``pf.kernel``: :func:`coloc.kernels.pf.transform_batch`
+    (exact tree, brute force) or :func:`coloc.kernels.pf_fast.fast_transform_batch` (within 1e-3)."""
+    if pf.kernel == FAST:
+        return fast_transform_batch(src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r)
+    return transform_batch(src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, pf.kernel,
+                           pf.kernel_rel_tol)
 
 
 def _segment_logsumexp(values: np.ndarray, seg: np.ndarray, n_seg: int, init: np.ndarray) -> np.ndarray:
@@ -373,13 +391,22 @@ def pf_bpa_localization(
     # each built in the first iteration together with that iteration's sum.
     keep_bytes = 0.5e6 * pf.kernel_cache_mb
     storage = [None, None]
-    if workspace is not None:
-        storage = workspace.arrays(*(kept_problem_count(term_row.size, jv, jf, pf.kernel, pf.kernel_rel_tol,
-                                                        keep_bytes) * jv * jf for _ in range(2)))
-    to_features = RepeatedTransforms(v_centres, t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
-                                     pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
-    to_vehicles = RepeatedTransforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
-                                     pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
+    if pf.kernel == FAST:  # 16-bit kept values (coloc.kernels.pf_fast), two to a float32 of the workspace
+        if workspace is not None:
+            n_keep = fast_kept_problem_count(term_row.size, jv, jf, keep_bytes)
+            storage = [a.view(np.uint16) for a in workspace.arrays(*((n_keep * jv * jf + 1) // 2 for _ in range(2)))]
+        to_features = FastRepeatedTransforms(v_centres, t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
+                                             keep_bytes, storage[0])
+        to_vehicles = FastRepeatedTransforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z,
+                                             r_from_f, keep_bytes, storage[1])
+    else:
+        if workspace is not None:
+            storage = workspace.arrays(*(kept_problem_count(term_row.size, jv, jf, pf.kernel, pf.kernel_rel_tol,
+                                                            keep_bytes) * jv * jf for _ in range(2)))
+        to_features = RepeatedTransforms(v_centres, t_vehicle, t_z, track_particles, t_track, zero_shift, r_from_v,
+                                         pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
+        to_vehicles = RepeatedTransforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
+                                         pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
         cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
@@ -412,8 +439,8 @@ def pf_bpa_localization(
             converged = True
             break
     if output_particles is not None:
-        t_out, p3 = transform_batch(f_centres, cav_f[term_entry], t_track, zero_shift, output_particles,
-                                    t_vehicle, t_z, r_from_f, pf.kernel, pf.kernel_rel_tol)
+        t_out, p3 = gauss_transforms(pf, f_centres, cav_f[term_entry], t_track, zero_shift, output_particles,
+                                     t_vehicle, t_z, r_from_f)
         pairs += int(p3.sum())
         out_m = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
         if flat_e.any():
@@ -613,8 +640,8 @@ def icp_da_pf_step(
             t_centres, t_bw = kernel_density(t_particles, t_logw, pf.message_bandwidth)
             v_centres, v_bw = kernel_density(assoc_particles, assoc_logw, pf.message_bandwidth)
             r_eta = r[pr] + t_bw[pt] + v_bw[pv]
-            g, _ = transform_batch(t_centres, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), v_centres,
-                                   pv, z[pr], r_eta, pf.kernel, pf.kernel_rel_tol)
+            g, _ = gauss_transforms(pf, t_centres, normalize_log(t_logw)[pt], pt, np.zeros((pr.size, 4)), v_centres,
+                                    pv, z[pr], r_eta)
             log_eta = logsumexp(assoc_logw[pv] + g, axis=1)
             log_new = new_feature_log_density(v_mean[pv], assoc_cov[pv], z[pr], r[pr], lc)
             w = np.exp(np.minimum(log_pd + log_eta - log_new, 600.0))
