@@ -211,6 +211,18 @@ def run_negative_new_feature_density(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+@case("cfg.toml", "lc.sensor_fov", "[perception]")
+def run_sensor_fov_without_perception(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nsensor_fov = true\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "lc.confirm_existence", "drop_existence")
+def run_existence_thresholds_crossed(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\ntrack_existence = true\nconfirm_existence = 0.005\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
 def run_unknown_stop_rule(tmp, net, run):
     cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
@@ -597,7 +609,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 71
+    assert len(CASES) >= 73
 
 
 # ----------------------------------------------------------------------------- what --out may replace
