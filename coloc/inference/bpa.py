@@ -130,14 +130,23 @@ def row_feature_means(lam: np.ndarray, eta: np.ndarray) -> np.ndarray:
     return out
 
 
-def _feature_moves(new: np.ndarray, old: np.ndarray) -> tuple[float, float]:
-    """Largest position and velocity change of the rows' feature estimates between two BPA-L
-    iterations; infinite where either estimate is undefined (NaN), 0 without rows."""
-    if new.shape[0] == 0:
-        return 0.0, 0.0
-    dpos = np.nan_to_num(np.hypot(*(new[:, :2] - old[:, :2]).T), nan=np.inf)
-    dvel = np.nan_to_num(np.hypot(*(new[:, 2:] - old[:, 2:]).T), nan=np.inf)
-    return float(dpos.max()), float(dvel.max())
+class _FeatureEstimates:
+    """The feature part of the Sec. V-A stopping rule (``IcpParams.stop_on = "vehicles_and_features"``):
+    every row's estimate of its feature (b_k of (20) at that vehicle), kept between BPA-L iterations."""
+
+    def __init__(self, lam0: np.ndarray, eta0: np.ndarray):
+        self.mean = row_feature_means(lam0, eta0)
+
+    def settled(self, lam: np.ndarray, eta: np.ndarray, params: IcpParams) -> bool:
+        """Take this iteration's estimates; True when none moved by stop_pos_m / stop_vel_mps or more.
+        An estimate undefined now or before (NaN: a track at its uniform prior) has not settled."""
+        new = row_feature_means(lam, eta)
+        old, self.mean = self.mean, new
+        if new.shape[0] == 0:
+            return True
+        dpos = np.nan_to_num(np.hypot(*(new[:, :2] - old[:, :2]).T), nan=np.inf)
+        dvel = np.nan_to_num(np.hypot(*(new[:, 2:] - old[:, 2:]).T), nan=np.inf)
+        return bool(dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps)
 
 
 #: Run the BPA-L iterations with the numba kernels of :mod:`coloc.kernels.icp` (False: the
@@ -162,8 +171,7 @@ def _bpa_iterations_numpy(
     in_lam = np.zeros((n, 4, 4))
     in_eta = np.zeros((n, 4))
     converged = False
-    with_features = params.stop_on == "vehicles_and_features"
-    f_mean = row_feature_means(lam_f0_row, eta_f0_row) if with_features else None
+    features = _FeatureEstimates(lam_f0_row, eta_f0_row) if params.stop_on == "vehicles_and_features" else None
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): cavity (own belief x messages of the other features), integrated over x_V.
@@ -196,18 +204,10 @@ def _bpa_iterations_numpy(
         mean = new_mean
         # Stopping rule of Sec. V-A (all vehicles; with stop_on = "vehicles_and_features" also
         # every row's estimate of its feature, b_k of (20) at that vehicle).
-        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps:
-            if not with_features:
-                converged = True
-                break
-            new_f = row_feature_means(loc_lam, loc_eta)
-            fpos, fvel = _feature_moves(new_f, f_mean)
-            f_mean = new_f
-            if fpos < params.stop_pos_m and fvel < params.stop_vel_mps:
-                converged = True
-                break
-        elif with_features:
-            f_mean = row_feature_means(loc_lam, loc_eta)
+        settled = features is None or features.settled(loc_lam, loc_eta, params)
+        if dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps and settled:
+            converged = True
+            break
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
 
@@ -235,8 +235,7 @@ def _bpa_iterations_kernels(
     in_lam = np.zeros((n, 4, 4))
     in_eta = np.zeros((n, 4))
     converged = False
-    with_features = params.stop_on == "vehicles_and_features"
-    f_mean = row_feature_means(lam_f0_row, eta_f0_row) if with_features else None
+    features = _FeatureEstimates(lam_f0_row, eta_f0_row) if params.stop_on == "vehicles_and_features" else None
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): cavity (own belief x messages of the other features), integrated over x_V.
@@ -255,16 +254,15 @@ def _bpa_iterations_kernels(
         m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
         )
-        # Stopping rule of Sec. V-A (as in the numpy loop).
-        if with_features:
+        # Stopping rule of Sec. V-A (as in the numpy loop; b_k = b_k^(0) + |V_k ∩ C| x average).
+        settled = True
+        if features is not None:
             avg_lam, avg_eta = _unpack_sym(avg)
-            new_f = row_feature_means(lam_f0_row + count[:, None, None] * avg_lam, eta_f0_row + count[:, None] * avg_eta)
-            fpos, fvel = _feature_moves(new_f, f_mean)
-            f_mean = new_f
-        if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
-            if not with_features or (fpos < params.stop_pos_m and fvel < params.stop_vel_mps):
-                converged = True
-                break
+            settled = features.settled(lam_f0_row + count[:, None, None] * avg_lam,
+                                       eta_f0_row + count[:, None] * avg_eta, params)
+        if dpos < params.stop_pos_m and dvel < params.stop_vel_mps and settled:
+            converged = True
+            break
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
     return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged

@@ -587,29 +587,27 @@ def icp_da_lc_step(
             return np.full(vi.size, lc.detection_probability)
         return expected_detection_probability(b0_mean[vi], t_mean[ti, :2], detection)
 
-    if not lc.track_existence and detection is None:
-        row_idx, row_new, extra_row, extra_idx = map_pairs(pv, pt, pr, w, frame.n_vehicles, o, lc)
-    else:
-        # Step 9: eta of (13) with the tracks' predicted existence r (1 without existence) and the
-        # pairs' P_D, then r updated by the step.
-        if lc.track_existence:
-            r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability
-        else:
-            r_pred = np.ones(predicted.size)
-        ab = association_beliefs(pv, pt, pr, w * r_pred[pt], frame.n_vehicles, o, lc,
-                                 1.0 - r_pred[pt] * pd_of(pv, pt))
-        row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
-        if lc.track_existence:
-            cv, ct = candidate_pairs(b0_mean, own_cov, t_mean, t_cov, lc)
-            pd_c = pd_of(cv, ct)
-            if detection is None:  # expected in view: within Rs of the vehicle's estimate
-                pd_c = np.where(np.hypot(*(b0_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
-            n_t = max(predicted.size, 1)
-            missed = pd_c > 0
-            if ab is not None:  # candidates with a gated row are in ab already
-                missed &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
-            pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
-            existence = TrackExistence(predicted.ids, existence_update(r_pred, ab, pd_combo, ct[missed], pd_c[missed]))
+    # (13)-(17); step 9: eta with the tracks' predicted existence r and the pairs' P_D.
+    missed, r_pred = None, None
+    if lc.track_existence:
+        r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability
+        w = w * r_pred[pt]
+        missed = 1.0 - r_pred[pt] * pd_of(pv, pt)
+    elif detection is not None:
+        missed = 1.0 - pd_of(pv, pt)
+    ab = association_beliefs(pv, pt, pr, w, frame.n_vehicles, o, lc, missed)
+    row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
+    if lc.track_existence:  # r updated by the step
+        cv, ct = candidate_pairs(b0_mean, own_cov, t_mean, t_cov, lc)
+        pd_c = pd_of(cv, ct)
+        if detection is None:  # expected in view: within Rs of the vehicle's estimate
+            pd_c = np.where(np.hypot(*(b0_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
+        n_t = max(predicted.size, 1)
+        missed_c = pd_c > 0
+        if ab is not None:  # candidates with a gated row are in ab already
+            missed_c &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
+        pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
+        existence = TrackExistence(predicted.ids, existence_update(r_pred, ab, pd_combo, ct[missed_c], pd_c[missed_c]))
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
     # Births (step 6). A row no track explains may be a new feature or clutter: it starts a track
     # either way, and with clutter in the model the confirmation of step 9 tells them apart (a
