@@ -5,8 +5,10 @@ the net parses and has edges open to passenger cars and traffic lights (else
 TLR and VSR are the same); the GNSS zones and the analysis areas are in net
 x/y (a folder never holds lon/lat: ``coloc net import`` converts it) and cover
 every lane shape point of the net; every feature lies within a given distance of a
-drivable lane; every vehicle, flow or trip of the demand has a route whose
-edges exist in the net and follow each other.
+drivable lane; the optional ``buildings.geojson`` covers no lane shape point of a drivable
+lane and holds no feature (a feature inside a building could never be seen); every
+vehicle, flow or trip of the demand has a route whose edges exist in the net and follow
+each other.
 """
 
 from __future__ import annotations
@@ -78,12 +80,41 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
         if far.size > 10:
             problems.append(f"{root / files['features']}: ... and {far.size - 10} more features far from roads")
 
+    problems += _building_problems(folder, root, xy, owners, drivable)
+
     rproblems, n = route_problems(net, folder.routes)
     problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes)) else p for p in rproblems]
     info = (f"{len(net.getNodes())} junctions, {len(drivable)} drivable edges, {len(net.getTrafficLights())} "
             f"traffic lights, {len(feats.ids)} features, {n} vehicles/flows/trips, {len(folder.zones)} zones, "
             f"{len(folder.areas)} areas")
+    if folder.buildings is not None:
+        info += f", {len(folder.buildings)} buildings"
     return problems, info
+
+
+def _building_problems(folder, root: Path, xy: np.ndarray, owners: list[str], drivable) -> list[str]:
+    """Lane shape points of drivable lanes and features that lie inside a building footprint."""
+    if folder.buildings is None or len(folder.buildings) == 0:
+        return []
+    path = root / folder.scenario["files"].get("buildings", "buildings.geojson")
+    out = []
+    lane_ids = {l.getID() for e in drivable for l in e.getLanes()}
+    on_lane = np.fromiter((o in lane_ids for o in owners), dtype=bool, count=len(owners))
+    pts = xy[on_lane]
+    if len(pts):
+        hit_pt, hit_b = folder.buildings.tree.query(shapely.points(pts), predicate="within")
+        if hit_pt.size:
+            i, b = int(hit_pt[0]), int(hit_b[0])
+            lane = np.asarray(owners, dtype=object)[on_lane][i]
+            out.append(f"{path}: {np.unique(hit_pt).size} lane shape points of drivable lanes lie inside buildings "
+                       f"(first: lane {lane} at x={pts[i, 0]:.1f}, y={pts[i, 1]:.1f}, building features[{b}])")
+    feats = folder.features
+    if len(feats.ids):
+        hit_f, hit_b = folder.buildings.tree.query(shapely.points(feats.xy), predicate="within")
+        for i, b in list(zip(hit_f, hit_b))[:10]:
+            out.append(f"{path}: poi {feats.ids[i]!r} ({feats.kinds[i]}) lies inside building features[{b}]: "
+                       "its sight lines are always blocked")
+    return out
 
 
 def require_usable_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> None:

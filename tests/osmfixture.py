@@ -85,12 +85,14 @@ def osm_grid(*, roads: bool = True, buildings: bool = True, signals: bool = True
                 for m in range(3):
                     la0 = LAT0 + PRIMARY_ROW * DLAT + (0.08 + 0.3 * k) * DLAT
                     lo0 = LON0 + bc * DLON + (0.08 + 0.3 * m) * DLON
-                    closed_way(la0, lo0, la0 + 0.24 * DLAT, lo0 + 0.24 * DLON, '<tag k="building" v="yes"/>')
+                    closed_way(la0, lo0, la0 + 0.24 * DLAT, lo0 + 0.24 * DLON,
+                              '<tag k="building" v="yes"/><tag k="building:levels" v="6"/>')
         # sparse: one small house in two outer blocks
         for bc, br in ((0, 0), (3, 2)):
             la0 = LAT0 + br * DLAT + 0.4 * DLAT
             lo0 = LON0 + bc * DLON + 0.4 * DLON
-            closed_way(la0, lo0, la0 + 0.1 * DLAT, lo0 + 0.1 * DLON, '<tag k="building" v="house"/>')
+            closed_way(la0, lo0, la0 + 0.1 * DLAT, lo0 + 0.1 * DLON,
+                      '<tag k="building" v="house"/>' + ('<tag k="height" v="7.5 m"/>' if bc == 0 else ''))
         # a car park south of the primary, between columns 3 and 4
         la0 = LAT0 + 0.55 * DLAT
         lo0 = LON0 + 3.2 * DLON

@@ -458,9 +458,14 @@ def strips(spec, prop):
 
 
 
-def write_geojson(path: Path, features: list[dict]) -> None:
+def write_geojson(path: Path, features: list[dict], one_line_per_feature: bool = False) -> None:
     doc = {"type": "FeatureCollection", "crs": CRS, "features": features}
-    path.write_text(json.dumps(doc, indent=1) + "\n")
+    if not one_line_per_feature:
+        path.write_text(json.dumps(doc, indent=1) + "\n")
+        return
+    head = json.dumps({"type": "FeatureCollection", "crs": CRS})[:-1]
+    body = ",\n".join(json.dumps(f, separators=(",", ":")) for f in features)
+    path.write_text(f'{head}, "features": [\n{body}\n]}}\n')
 
 
 def write_zones(out: Path) -> None:
@@ -549,10 +554,130 @@ def write_features(out: Path) -> dict:
 
 
 # --------------------------------------------------------------------------
+# Buildings (issue 21 item 2): street-fronting blocks, denser and taller where GNSS is class C
+# --------------------------------------------------------------------------
+# Urban blocks fill the land between the roads up to BUILDING_BAND_M from the arterial. Facades stand
+# ARTERIAL_FACADE_M from the arterial's axis (a 40 m street: 2 x 6.4 m of lanes plus sidewalks, the
+# bus stops and signs, as on a Turin corso) and SIDE_FACADE_M from a side road's axis. The style of a
+# plot follows the GNSS zone class at its x (our choice, consistent with the zones: class C is the
+# built-up centre whose urban canyon degrades GNSS):
+#   C: closed perimeter blocks (Turin's "isolato"): a continuous street front 20 m deep on every
+#      street, a courtyard inside, 6-8 storeys (21-27 m);
+#   B: terraced rows 18 m wide with 10 m gaps, 14 m deep, on the streets only, 4-5 storeys (12-17 m);
+#   A: detached houses 12 x 10 m every 40 m, set back 10 m, 2 storeys (6-8 m).
+# Plots are trimmed off every lane (1.5 m clearance beyond the lane edge), off every feature (3 m) and
+# off an open lot of 15 m radius around each car park. Heights are informational (occlusion is 2-D).
+BUILDING_BAND_M = 180.0
+ARTERIAL_FACADE_M = 20.0
+SIDE_FACADE_M = {"primary": 16.0, "secondary": 12.0}
+BUILDING_STYLE = {  # zone class: (plot width, gap, depth, setback, storeys lo, storeys hi, perimeter block)
+    "C": (22.0, 0.0, 20.0, 0.0, 7, 9, True),
+    "B": (18.0, 10.0, 14.0, 0.0, 4, 5, False),
+    "A": (12.0, 28.0, 10.0, 10.0, 2, 2, False),
+}
+STOREY_M = 3.0  # storey height (a common convention for buildings without a height, e.g. OSM building:levels)
+LANE_CLEARANCE_M = 1.5
+FEATURE_CLEARANCE_M = 3.0
+CAR_PARK_LOT_M = 15.0
+
+
+def zone_class_at(x: float) -> str:
+    for name, hi in ZONE_STRIPS:
+        if x < hi:
+            return name
+    return ZONE_STRIPS[-1][0]
+
+
+def _frontage_plots(lo: float, hi: float, width: float, gap: float) -> list[tuple[float, float]]:
+    """Plots of ``width`` separated by ``gap`` along [lo, hi], centred so both ends get the same margin."""
+    n = int((hi - lo + gap) // (width + gap))
+    if n <= 0:
+        return []
+    used = n * width + (n - 1) * gap
+    a = lo + (hi - lo - used) / 2
+    return [(a + k * (width + gap), a + k * (width + gap) + width) for k in range(n)]
+
+
+def building_plots() -> list[tuple[list[tuple[float, float]], str]]:
+    """Rectangles (corner lists) and zone class of every plot before trimming, west to east."""
+    x0, _, x1, _ = net_bbox()
+    # street corridors across the arterial: (x of the side road's facade west, east)
+    cuts = [(c[1] - SIDE_FACADE_M[c[2]], c[1] + SIDE_FACADE_M[c[2]]) for c in CROSSINGS]
+    blocks = [(x0, cuts[0][0])] + [(cuts[k][1], cuts[k + 1][0]) for k in range(len(cuts) - 1)] + [(cuts[-1][1], x1)]
+    plots = []
+    for bx0, bx1 in blocks:
+        for sign in (1.0, -1.0):
+            front = ARTERIAL_FACADE_M
+            back = BUILDING_BAND_M
+            def rect(xa, xb, ya, yb):
+                y0, y1 = sorted((sign * ya, sign * yb))
+                return [(xa, y0), (xb, y0), (xb, y1), (xa, y1)]
+            # the arterial front, plot by plot (the class may change along a block)
+            for zone in ("A", "B", "C"):
+                w, gap, depth, setback, *_ , perimeter = BUILDING_STYLE[zone]
+                for a, b in _frontage_plots(bx0, bx1, w, gap):
+                    if zone_class_at((a + b) / 2) == zone:
+                        plots.append((rect(a, b, front + setback, front + setback + depth), zone))
+            # the side-road fronts and, in a perimeter block, the back row closing the courtyard
+            for xs, inward in ((bx0, 1.0), (bx1, -1.0)):
+                if xs in (x0, x1):
+                    continue  # the net's ends: no street there
+                zone = zone_class_at(xs + inward * 10.0)
+                w, gap, depth, setback, *_, perimeter = BUILDING_STYLE[zone]
+                ya = front + (setback + depth if perimeter else setback + depth + gap)  # behind the front row
+                for a, b in _frontage_plots(ya, back, w, gap):
+                    xa, xb = sorted((xs + inward * setback, xs + inward * (setback + depth)))
+                    plots.append((rect(xa, xb, a, b), zone))
+            zone = zone_class_at((bx0 + bx1) / 2)
+            w, gap, depth, setback, *_, perimeter = BUILDING_STYLE[zone]
+            if perimeter and bx1 - bx0 > 2 * depth:
+                plots.append((rect(bx0 + depth, bx1 - depth, back - depth, back), zone))
+    return plots
+
+
+def write_buildings(out: Path) -> dict:
+    """``buildings.geojson`` (net x/y) from :func:`building_plots`, trimmed off the built net's lanes
+    and the features; returns counts and plan areas per zone class for scenario.toml / README."""
+    import numpy as np
+    import shapely
+    import sumolib
+
+    net = sumolib.net.readNet(str(out / NET_NAME), withInternal=True)
+    lanes = [shapely.LineString(l.getShape()).buffer(l.getWidth() / 2 + LANE_CLEARANCE_M, cap_style="flat")
+             for e in net.getEdges(withInternal=True) for l in e.getLanes() if len(l.getShape()) >= 2]
+    feats = feature_list()
+    keep_out = [shapely.Point(x, y).buffer(FEATURE_CLEARANCE_M) for _, _, x, y in feats]
+    keep_out += [shapely.Point(x, y).buffer(CAR_PARK_LOT_M) for _, typ, x, y in feats if typ == "parking"]
+    obstacles = shapely.union_all(lanes + keep_out)
+    placed = shapely.Polygon()  # plots already built: a later plot never overlaps an earlier one
+    rng = np.random.default_rng(20261126)  # fixed: the storeys of each plot, reproducible
+    out_feats, stats = [], {z: {"count": 0, "area_m2": 0.0} for z in ("A", "B", "C")}
+    for k, (corners, zone) in enumerate(building_plots()):
+        poly = shapely.make_valid(shapely.Polygon(corners).difference(obstacles).difference(placed))
+        parts = [g for g in getattr(poly, "geoms", [poly]) if g.geom_type == "Polygon" and g.area >= 20.0]
+        lo, hi = BUILDING_STYLE[zone][4], BUILDING_STYLE[zone][5]
+        storeys = int(rng.integers(lo, hi + 1))
+        if not parts:
+            continue
+        geom = parts[0] if len(parts) == 1 else shapely.MultiPolygon(parts)
+        placed = shapely.union_all([placed, geom])
+        coords = shapely.geometry.mapping(shapely.set_precision(geom, 0.01))
+        coords = json.loads(json.dumps(coords), parse_float=lambda v: round(float(v), 2))
+        out_feats.append({"type": "Feature",
+                          "properties": {"id": f"b{k:04d}", "zone_class": zone, "storeys": storeys,
+                                         "height": storeys * STOREY_M},
+                          "geometry": coords})
+        stats[zone]["count"] += 1
+        stats[zone]["area_m2"] += float(geom.area)
+    write_geojson(out / "buildings.geojson", out_feats, one_line_per_feature=True)
+    return stats
+
+
+# --------------------------------------------------------------------------
 # scenario.toml and README
 # --------------------------------------------------------------------------
 
-def write_scenario(out: Path, demand: dict, fcounts: dict) -> None:
+def write_scenario(out: Path, demand: dict, fcounts: dict, bstats: dict) -> None:
     tls = [f"J{c[0]}" for c in CROSSINGS if c[3]]
     prio = [f"J{c[0]}" for c in CROSSINGS if not c[3]]
     zb = [fmt(hi) for _, hi in ZONE_STRIPS[:-1]]
@@ -574,6 +699,7 @@ routes = "demand.rou.xml"
 zones = "zones.geojson"
 areas = "areas.geojson"
 features = "features.add.xml"
+buildings = "buildings.geojson"
 
 [controls]
 tlr = {{ tls_off = false }}
@@ -606,6 +732,10 @@ flows = {demand['flows']}
 zone_x_boundaries_m = {nlist(zb)}  # west to east: A | B | C | B | A
 area_x_boundaries_m = {nlist(ab)}  # west to east: 1 .. 6
 features = {{ {", ".join(f"{k} = {v}" for k, v in sorted(fcounts.items()))} }}
+buildings = {{ {", ".join(f"{z} = {bstats[z]['count']}" for z in sorted(bstats))} }}  # footprints per zone class
+building_plan_area_m2 = {{ {", ".join(f"{z} = {round(bstats[z]['area_m2'])}" for z in sorted(bstats))} }}
+building_band_m = {fmt(BUILDING_BAND_M)}  # blocks reach this far from the arterial
+arterial_facade_m = {fmt(ARTERIAL_FACADE_M)}  # facades this far from the arterial's axis
 """
     (out / "scenario.toml").write_text(text)
 
@@ -660,12 +790,20 @@ The net starts empty: the first bin's exit flow lags the demand.
 - `areas.geojson`: analysis areas 1..6 as strips, boundaries x = {ab} m
   (1 and 6 in zone A, 4 and 5 in the built-up centre).
 - `features.add.xml`: 64 POIs: {fc}.
-- Both GeoJSON files use net x/y metres (`crs` name `urn:coloc:sumo-net-xy`)
-  and cover the net bounding box plus {margin} m.
+- `buildings.geojson`: {nb} building footprints (zone class C {bz}), street-fronting
+  blocks up to {band} m from the arterial, facades {facade} m from its axis ({sfp} / {sfs} m from a
+  primary / secondary side road's). Denser and taller where GNSS is class C: closed perimeter
+  blocks around courtyards, 7-9 storeys; B: terraced rows with gaps, 4-5 storeys; A: detached
+  houses, 2 storeys (3 m a storey, `height` in metres). Plots keep 1.5 m off every lane, 3 m off
+  every feature and an open lot of 15 m around each car park. Only the opt-in effects read them:
+  occlusion (`[perception]`), NLOS GNSS episodes (`[gnss_error]`, rate from the plan-area
+  fraction within 50 m) and the NLOS delivery curve (`[v2x]`); the paper configs do not.
+- The zone, area and building GeoJSON files use net x/y metres (`crs` name
+  `urn:coloc:sumo-net-xy`); zones and areas cover the net bounding box plus {margin} m.
 """
 
 
-def write_readme(out: Path, demand: dict, fcounts: dict) -> None:
+def write_readme(out: Path, demand: dict, fcounts: dict, bstats: dict) -> None:
     green_total = TLS_CYCLE - 2 * (TLS_YELLOW + TLS_ALLRED)
     art = round(green_total * TLS_ARTERIAL_SHARE)
     text = README.format(
@@ -677,7 +815,11 @@ def write_readme(out: Path, demand: dict, fcounts: dict) -> None:
         tg=VTYPE["jmTimegapMinor"], imp=VTYPE["impatience"],
         zb=", ".join(fmt(hi) for _, hi in ZONE_STRIPS[:-1]),
         ab=", ".join(fmt(hi) for _, hi in AREA_STRIPS[:-1]),
-        fc=", ".join(f"{v} {k}" for k, v in sorted(fcounts.items())), margin=fmt(MARGIN))
+        fc=", ".join(f"{v} {k}" for k, v in sorted(fcounts.items())), margin=fmt(MARGIN),
+        nb=sum(v["count"] for v in bstats.values()),
+        bz=", ".join(f"{z} {bstats[z]['count']} ({bstats[z]['area_m2'] / 1e4:.1f} ha)" for z in ("C", "B", "A")),
+        band=fmt(BUILDING_BAND_M), facade=fmt(ARTERIAL_FACADE_M),
+        sfp=fmt(SIDE_FACADE_M["primary"]), sfs=fmt(SIDE_FACADE_M["secondary"]))
     (out / "README.md").write_text(text)
 
 
@@ -702,10 +844,11 @@ def main(argv=None) -> int:
     write_zones(out)
     write_areas(out)
     fcounts = write_features(out)
-    write_scenario(out, demand, fcounts)
-    write_readme(out, demand, fcounts)
     if not args.no_build:
         build_net(out)  # pass 2: with the re-timed programs
+    bstats = write_buildings(out)  # trimmed off the built net's lanes (--no-build: the existing net's)
+    write_scenario(out, demand, fcounts, bstats)
+    write_readme(out, demand, fcounts, bstats)
     print(f"wrote {out} ({demand['vehicles']} vehicles, {demand['flows']} flows)")
     return 0
 

@@ -23,6 +23,10 @@ folder holds (docs/architecture.md "A net folder"), and says what it could not d
   bus stops (OSM stop positions / ``busStop`` additionals), car parks (OSM
   ``amenity=parking`` / ``parkingArea`` additionals) and signs at the minor
   approaches of unsignalised junctions, as SUMO POIs beside the road;
+* buildings: the extract's building footprints (polyconvert, OSM tags kept for the
+  height: ``height``, else ``building:levels`` x 3 m) written to ``buildings.geojson`` in net
+  x/y, for occlusion, NLOS GNSS episodes and the NLOS V2V curve; a footprint over a drivable
+  lane (an OSM building passage) is left out and counted; an input without buildings says so;
 * GNSS zones: from building density (polyconvert) when the extract has
   buildings, else a stated default layout (concentric rectangles, worst class
   in the centre), or the user's GeoJSON; analysis areas: a 3 x 2 grid or the
@@ -70,6 +74,7 @@ from couplers.netimport.regions import (
     _default_zones,
     _read_user_geojson,
     _user_geojson,
+    _write_buildings,
     _zones_from_buildings,
 )
 from couplers.netimport.scenario import _write_scenario
@@ -277,13 +282,14 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
 
     # buildings and car parks (OSM only): polyconvert in the net's projection
     buildings: list = []
+    heights: list = []
     parking_polys: list = []
     if opts.osm is not None and (osm_counts["buildings"] or osm_counts["parking"]):
         poly_path = work / ".poly.xml"
         typemap = _sumo_home() / "data" / "typemap" / "osmPolyconvert.typ.xml"
         _run([_binary("polyconvert"), "--osm-files", str(opts.osm.resolve()), "--net-file", net_path.name,
               "--type-file", str(typemap), "-o", poly_path.name, "--no-warnings", "true",
-              "--xml-validation", "never"], work, opts.osm, "polyconvert")
+              "--all-attributes", "true", "--xml-validation", "never"], work, opts.osm, "polyconvert")
         for el in ET.parse(poly_path).getroot().iter("poly"):
             typ = el.get("type", "")
             try:
@@ -297,9 +303,19 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
                     continue
             if typ.startswith("building"):
                 buildings.append(poly)
+                heights.append(_osm_height({q.get("key"): q.get("value") for q in el.iter("param")}))
             elif typ == "parking" or typ.startswith("amenity.parking"):
                 parking_polys.append((el.get("id", f"p{len(parking_polys)}"), poly))
         poly_path.unlink()
+
+    if buildings:
+        _write_buildings(work / "buildings.geojson", buildings, heights, lane_tree, report)
+    elif opts.osm is not None:
+        report.not_derived.append("buildings.geojson: the extract has no buildings (no occlusion by buildings; NLOS "
+                                  "GNSS episodes by zone; every V2V link in line of sight)")
+    else:
+        report.not_derived.append("buildings.geojson: a SUMO net holds no buildings (import the OSM extract, or "
+                                  "write buildings.geojson in net x/y yourself: docs/your-city.md)")
 
     # features
     stops: dict = {"bus_stop": [], "parking": []}
@@ -358,6 +374,21 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     for leftover in work.glob(".*"):
         leftover.unlink()
     return track_area
+
+
+_NUMBER = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(m|metres|meters)?\s*$")
+
+
+def _osm_height(tags: dict) -> float:
+    """A building's height in metres from its OSM tags: ``height`` (plain metres, "12 m"), else
+    ``building:levels`` x 3 m (the storey height commonly assumed for OSM levels); NaN if neither parses."""
+    m = _NUMBER.match(tags.get("height") or "")
+    if m and float(m.group(1)) > 0:
+        return float(m.group(1))
+    m = _NUMBER.match(tags.get("building:levels") or "")
+    if m and float(m.group(1)) > 0:
+        return 3.0 * float(m.group(1))
+    return float("nan")
 
 
 def _busiest_area(areas, lane_lines: list) -> str:

@@ -57,6 +57,30 @@ def _grid_bbox(lane_xy: np.ndarray, cell: float) -> tuple[float, float, float, f
     return float(x0), float(y0), float(x0 + nx * cell), float(y0 + ny * cell), nx, ny
 
 
+def _write_buildings(path: Path, buildings: list, heights: list, lane_tree, report: _Report) -> None:
+    """``buildings.geojson`` in net x/y: every footprint not crossed by a drivable lane (an OSM building
+    passage over a street would block every sight line along it), ``height`` where the tags give one."""
+    polys = np.empty(len(buildings), dtype=object)
+    polys[:] = buildings
+    hit = np.unique(lane_tree.query(polys, predicate="intersects")[0])
+    keep = np.ones(len(polys), dtype=bool)
+    keep[hit] = False
+    feats = []
+    for i in np.flatnonzero(keep):
+        geom = _round_geom(polys[i])
+        if geom.is_empty or not geom.is_valid or geom.area <= 0:  # a sliver lost to the 1 cm grid
+            keep[i] = False
+            continue
+        props = {} if not np.isfinite(heights[i]) else {"height": round(float(heights[i]), 2)}
+        feats.append({"type": "Feature", "properties": props, "geometry": mapping(geom)})
+    doc = {"type": "FeatureCollection", "crs": CRS, "features": feats}
+    path.write_text(json.dumps(doc, separators=(",", ":")) + "\n")
+    n_h = int(np.isfinite(np.asarray(heights, dtype=float)[keep]).sum())
+    report.derived["buildings"] = {"footprints": int(keep.sum()), "with_height": n_h, "over_lanes_left_out": int(hit.size)}
+    report.lines.append(f"buildings: {int(keep.sum())} footprints ({n_h} with a height from OSM tags) in buildings.geojson"
+                        + (f"; {hit.size} over drivable lanes left out" if hit.size else ""))
+
+
 def _zones_from_buildings(path: Path, lane_xy: np.ndarray, buildings: list, cell: float, report: _Report) -> None:
     x0, y0, x1, y1, nx, ny = _grid_bbox(lane_xy, cell)
     cells = [box(x0 + i * cell, y0 + j * cell, x0 + (i + 1) * cell, y0 + (j + 1) * cell)

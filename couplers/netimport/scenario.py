@@ -77,6 +77,7 @@ def _write_scenario(work: Path, opts: ImportOptions, report: _Report) -> None:
         'zones = "zones.geojson"',
         'areas = "areas.geojson"',
         'features = "features.add.xml"',
+        *(['buildings = "buildings.geojson"'] if (work / "buildings.geojson").is_file() else []),
         "",
         "[controls]",
         "tlr = { tls_off = false }",

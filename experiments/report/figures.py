@@ -283,7 +283,8 @@ def _resolve_net_files(run: _Run) -> dict[str, Path] | None:
     if (net_dir / "scenario.toml").exists():
         with open(net_dir / "scenario.toml", "rb") as fh:
             files = (tomllib.load(fh).get("files") or {})
-    defaults = {"zones": "zones.geojson", "areas": "areas.geojson", "features": "features.add.xml"}
+    defaults = {"zones": "zones.geojson", "areas": "areas.geojson", "features": "features.add.xml",
+                "buildings": "buildings.geojson"}
     out: dict[str, Path] = {}
     for key, default in defaults.items():
         p = net_dir / str(files.get(key, default))
@@ -307,10 +308,12 @@ MAP_WIDTH_IN = 10.0  # the map's width; its height follows the net's extent (equ
 
 def _fig_map(run: _Run, files: dict[str, Path], path: Path) -> dict[str, int]:
     """Lanes, GNSS zones (one legend entry per zone class, so labels never overlap the areas'),
-    numbered analysis areas and features, in net x/y metres; the figure takes the net's aspect."""
+    buildings (when the net folder has them), numbered analysis areas and features, in net x/y
+    metres; the figure takes the net's aspect."""
+    from matplotlib.collections import PolyCollection
     from matplotlib.patches import Patch
 
-    counts = {"lanes": 0, "zones": 0, "areas": 0, "features": 0}
+    counts = {"lanes": 0, "zones": 0, "areas": 0, "features": 0, "buildings": 0}
     zones = sorted(_geojson_polys(files["zones"]), key=lambda p: _natural_key(str(p[0].get("zone", "")))) \
         if "zones" in files else []
     areas = sorted(_geojson_polys(files["areas"]), key=lambda p: _natural_key(str(p[0].get("area", "")))) \
@@ -357,6 +360,11 @@ def _fig_map(run: _Run, files: dict[str, Path], path: Path) -> dict[str, int]:
         sp = sigma_of.get(z)
         handles.append(Patch(facecolor=color, edgecolor=color, alpha=0.5,
                              label=f"GNSS zone {z}" + (f" (σp = {float(sp):g} m)" if sp is not None else "")))
+    buildings = [r for _, rings in _geojson_polys(files["buildings"]) for r in rings] if "buildings" in files else []
+    if buildings:
+        ax.add_collection(PolyCollection(buildings, facecolors="0.35", edgecolors="none", alpha=0.55, zorder=1.5))
+        handles.append(Patch(facecolor="0.35", alpha=0.55, label=f"buildings ({len(buildings)})"))
+        counts["buildings"] = len(buildings)
     if segs:
         ax.add_collection(LineCollection(segs, colors="0.45", linewidths=0.5, zorder=2))
         counts["lanes"] = len(segs)
@@ -382,6 +390,6 @@ def _fig_map(run: _Run, files: dict[str, Path], path: Path) -> dict[str, int]:
                    frameon=False)
     ax.set_xlabel("x [m] (SUMO net coordinates)")
     ax.set_ylabel("y [m]")
-    ax.set_title("net lanes, GNSS zones, analysis areas and features")
+    ax.set_title("net lanes, GNSS zones, " + ("buildings, " if buildings else "") + "analysis areas and features")
     _save(fig, path)
     return counts

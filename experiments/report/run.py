@@ -84,7 +84,8 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                 "translucent fills (legend: zone name and position accuracy σp), analysis areas "
                 "as dashed outlines labelled with their number (the CDFs below are per area), and "
                 f"static features as red triangles. {counts['lanes']} lanes, {counts['zones']} "
-                f"zone polygons, {counts['areas']} areas, {counts['features']} features. "
+                f"zone polygons, {counts['areas']} areas, {counts['features']} features"
+                + (f", {counts['buildings']} building footprints (dark grey)" if counts["buildings"] else "") + ". "
                 "Coordinates are SUMO net metres, equal aspect.", what=what))
         except Exception as exc:
             run.notes.append(f"map skipped: {exc!r}")

@@ -27,7 +27,8 @@ from osmfixture import DLAT, DLON, LAT0, LON0, _nid, write_osm_grid  # noqa: E40
 ROOT = Path(__file__).resolve().parents[2]
 ARTERIAL = ROOT / "sumo_nets" / "arterial"
 CALIB_S = 900.0  # gridlock trials over the peak only: keeps the tests short
-FILES = ("tlr.net.xml", "demand.rou.xml", "zones.geojson", "areas.geojson", "features.add.xml", "scenario.toml")
+FILES = ("tlr.net.xml", "demand.rou.xml", "zones.geojson", "areas.geojson", "features.add.xml", "scenario.toml",
+         "buildings.geojson")
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +97,38 @@ def test_zones_follow_building_density(imported):
     assert (dense, outskirts) == ("C", "A")
     scen = tomllib.loads((out / "scenario.toml").read_text())
     assert "building density" in scen["derived"]["zones"]
+
+
+def test_buildings_from_osm_with_heights_from_tags(imported):
+    """polyconvert's footprints in net x/y, height from ``height`` or 3 m a level, none over a lane."""
+    out, res = imported
+    folder = load_net_folder(out)
+    assert len(folder.buildings) == 20  # 18 dense + 2 houses of the extract
+    h = folder.buildings.heights
+    assert np.sum(h == 18.0) == 18  # building:levels = 6
+    assert np.sum(h == 7.5) == 1  # height = "7.5 m"
+    assert np.isnan(h).sum() == 1  # the house without tags
+    net = sumolib.net.readNet(str(folder.net))
+    lanes = [LineString(l.getShape()) for e in net.getEdges() for l in e.getLanes()]
+    assert not any(b.intersects(l) for b in folder.buildings.polygons for l in lanes)
+    # every footprint lies where the zones put the dense class: the 18 of the two central blocks in C
+    zones = RegionIndex(folder.zones)
+    cls = zones.names_at(np.array([[p.centroid.x, p.centroid.y] for p in folder.buildings.polygons]))
+    assert np.sum(cls == "C") >= 18
+    scen = tomllib.loads((out / "scenario.toml").read_text())
+    assert scen["files"]["buildings"] == "buildings.geojson"
+    assert scen["derived"]["buildings"] == {"footprints": 20, "with_height": 19, "over_lanes_left_out": 0}
+    assert any(line.startswith("buildings: 20 footprints") for line in res.lines)
+
+
+def test_osm_without_buildings_says_so(tmp_path):
+    osm = write_osm_grid(tmp_path / "bare.osm", buildings=False)
+    out = tmp_path / "bare"
+    res = import_net(ImportOptions(name="bare", out=out, osm=osm, seed=3, calibrate=False))
+    assert not (out / "buildings.geojson").exists()
+    assert load_net_folder(out).buildings is None
+    assert "buildings" not in tomllib.loads((out / "scenario.toml").read_text())["files"]
+    assert any("buildings.geojson: the extract has no buildings" in line for line in res.lines)
 
 
 def test_demand_follows_the_falling_profile_and_every_route_exists(imported):
@@ -359,7 +392,7 @@ def test_existing_folder_needs_force(tmp_path, osm, imported):
 def test_check_passes_the_shipped_arterial():
     problems, info = check_net_folder(ARTERIAL)
     assert problems == []
-    assert "64 features" in info
+    assert "64 features" in info and "316 buildings" in info
 
 
 def test_check_reports_one_line_per_problem(tmp_path, imported):
@@ -376,8 +409,19 @@ def test_check_reports_one_line_per_problem(tmp_path, imported):
     dem = (bad / "demand.rou.xml").read_text()
     dem = dem.replace("</routes>", '    <vehicle id="ghost" depart="0"><route edges="nowhere"/></vehicle>\n</routes>')
     (bad / "demand.rou.xml").write_text(dem)
+    # a building over a lane and one over a feature
+    lane_xy = sumolib.net.readNet(str(bad / "tlr.net.xml")).getEdges()[0].getLanes()[0].getShape()[0]
+    fxy = load_net_folder(out).features.xy[0]
+    doc = json.loads((bad / "buildings.geojson").read_text())
+    for x, y in (lane_xy, fxy):
+        ring = [[x - 2, y - 2], [x + 2, y - 2], [x + 2, y + 2], [x - 2, y + 2], [x - 2, y - 2]]
+        doc["features"].append({"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}})
+    (bad / "buildings.geojson").write_text(json.dumps(doc))
     problems, _ = check_net_folder(bad)
-    assert len(problems) == 3, problems
+    assert len(problems) == 5, problems
+    assert any("buildings.geojson" in p and "lane shape points of drivable lanes lie inside buildings" in p
+               for p in problems)
+    assert any("buildings.geojson" in p and "lies inside building features[21]" in p for p in problems)
     assert any("'lost'" in p and "from the nearest drivable lane" in p for p in problems)
     assert any("zones.geojson" in p and "uncovered" in p for p in problems)
     assert any("'ghost'" in p and "'nowhere' is not in the net" in p for p in problems)

@@ -60,7 +60,7 @@ def _polygons(name):
 
 def test_scenario_lists_existing_files(scenario):
     assert scenario["name"] == "arterial"
-    for key in ("net", "routes", "zones", "areas", "features"):
+    for key in ("net", "routes", "zones", "areas", "features", "buildings"):
         assert (FOLDER / scenario["files"][key]).is_file(), key
     assert scenario["controls"]["tlr"]["tls_off"] is False
     assert scenario["controls"]["vsr"]["tls_off"] is True
@@ -291,3 +291,61 @@ def test_full_hour_tlr_queues_more_than_vsr(tmp_path):
     assert tlr["mean_halting"] > 15
     assert vsr["mean_halting"] < 3
     assert tlr["mean_halting"] > 5 * vsr["mean_halting"]
+
+
+# --------------------------------------------------------------------------
+# buildings (issue 21 item 2)
+# --------------------------------------------------------------------------
+
+def test_buildings_keep_off_lanes_and_features(net_internal):
+    from couplers.netfolder import load_net_folder
+
+    folder = load_net_folder(FOLDER)
+    b = folder.buildings
+    assert b is not None and len(b) > 200
+    assert (b.heights >= 6.0).all()
+    from shapely import union_all
+    built = union_all(list(b.polygons))
+    # plots never overlap: the union's area is the sum of the footprints
+    assert built.area == pytest.approx(sum(p.area for p in b.polygons), rel=1e-9)
+    for edge in net_internal.getEdges(withInternal=True):
+        for lane in edge.getLanes():
+            line = LineString(lane.getShape()) if len(lane.getShape()) > 1 else Point(lane.getShape()[0])
+            assert built.distance(line) >= lane.getWidth() / 2 + 1.5 - 0.02, lane.getID()
+    for x, y in folder.features.xy:
+        assert built.distance(Point(x, y)) >= 3.0 - 0.02
+
+
+def test_buildings_denser_and_taller_where_gnss_is_class_c():
+    """Plan-area fraction within 50 m of the arterial's axis (the NLOS GNSS density of
+    couplers.gnss_error) and mean height, by the GNSS class of the zone strip."""
+    import numpy as np
+
+    from couplers.gnss_error import building_density_grid
+    from couplers.netfolder import load_net_folder
+    from couplers.zones import RegionIndex
+
+    folder = load_net_folder(FOLDER)
+    grid = building_density_grid(folder.buildings, 50.0)
+    xy = np.c_[np.arange(0.0, 2000.0, 5.0), np.full(400, 3.2)]
+    zone = RegionIndex(folder.zones).names_at(xy)
+    dens = {z: grid.at(xy[zone == z]).mean() for z in ("A", "B", "C")}
+    assert dens["C"] > 0.3 > dens["B"] > 0.1 > dens["A"] > 0.0, dens
+    cls = RegionIndex(folder.zones).names_at(np.array([[p.centroid.x, p.centroid.y] for p in folder.buildings.polygons]))
+    h = {z: folder.buildings.heights[cls == z].mean() for z in ("A", "B", "C")}
+    assert h["C"] > h["B"] > h["A"], h
+
+
+def test_buildings_are_regenerated_byte_identical(tmp_path):
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import make_arterial
+    finally:
+        sys.path.pop(0)
+    copy = tmp_path / "arterial"
+    shutil.copytree(FOLDER, copy)
+    (copy / "buildings.geojson").unlink()
+    make_arterial.write_buildings(copy)
+    assert (copy / "buildings.geojson").read_bytes() == (FOLDER / "buildings.geojson").read_bytes()
