@@ -22,6 +22,8 @@ Model:
   probability, and every message on it in every round is delivered independently with that
   probability (losses are directed: i may hear j while j misses i).
 * Rounds: ``rounds_per_step`` broadcast rounds fit in one step (0 = unlimited).
+* ``channel = "ideal"`` replaces the delivery curves by 1 on every link within Rc: the penetration and
+  the round budget alone (the ideal arm of the penetration study).
 
 What the frame carries: :class:`coloc.core.v2x.V2xFrame` (probabilities aligned with ``neighbors``,
 the round budget, a per-step seed); estimators realise round r with
@@ -102,6 +104,9 @@ DEFAULT_PDR_LOS = (1.0, 1.0, 0.999, 0.997, 0.996, 0.994, 0.992, 0.987, 0.981, 0.
 DEFAULT_PDR_NLOS = (1.0, 0.974, 0.828, 0.585, 0.354, 0.193, 0.098, 0.023, 0.005, 0.001, 0.0, 0.0, 0.0, 0.0)
 
 
+CHANNELS = ("curves", "ideal")
+
+
 def _finite(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -115,6 +120,9 @@ class V2xParams:
     pdr_los: tuple[float, ...] = DEFAULT_PDR_LOS
     pdr_nlos: tuple[float, ...] = DEFAULT_PDR_NLOS
     rounds_per_step: int = 0  # broadcast rounds per step; 0 = unlimited
+    # "curves": delivery by distance from pdr_los / pdr_nlos; "ideal": every link within Rc delivers every
+    # round (penetration and round budget alone, e.g. the ideal arm of the penetration study)
+    channel: str = "curves"
 
     def __post_init__(self):
         if not (_finite(self.penetration_rate) and 0.0 < self.penetration_rate <= 1.0):
@@ -139,6 +147,8 @@ class V2xParams:
                 if i and p > curve[i - 1]:
                     raise InputError(None, f"{key}[{i}]", f"delivery must not increase with distance, got "
                                                           f"{curve[i - 1]!r} then {p!r}")
+        if self.channel not in CHANNELS:
+            raise InputError(None, "channel", f"must be one of {', '.join(CHANNELS)}, got {self.channel!r}")
         r = self.rounds_per_step
         if isinstance(r, bool) or not isinstance(r, int) or r < 0:
             raise InputError(None, "rounds_per_step", f"must be an integer >= 0 (0 = unlimited), got {r!r}")
@@ -226,7 +236,10 @@ class V2xChannel:
 
     def frame(self, xy: np.ndarray, neighbors: sp.csr_matrix) -> V2xFrame:
         """The channel of one step for the frame's vehicles at ``xy`` (N, 2) with V2V graph ``neighbors``."""
-        nlos = link_nlos(xy, neighbors, self.buildings)
-        prob = delivery_probability(link_lengths(xy, neighbors), nlos, self.params)
+        if self.params.channel == "ideal":
+            prob = np.ones(neighbors.nnz)
+        else:
+            nlos = link_nlos(xy, neighbors, self.buildings)
+            prob = delivery_probability(link_lengths(xy, neighbors), nlos, self.params)
         step_seed = int(self.rounds.integers(0, 2**63 - 1, dtype=np.int64))
         return V2xFrame(delivery_prob=prob, rounds_per_step=self.params.rounds_per_step, seed=step_seed)

@@ -188,6 +188,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                               "building, in [0, 1], non-increasing."),
         "rounds_per_step": (NO_UNIT, "Broadcast rounds that fit in one step, shared by every iterative "
                                      "exchange of a method; 0 = unlimited."),
+        "channel": ("", "`\"curves\"`: delivery by link distance from `pdr_los` / `pdr_nlos`; `\"ideal\"`: "
+                        "every link within `sensors.v2v_range_m` delivers every round (the penetration and the "
+                        "round budget alone)."),
     },
     "perception": {
         "sensors": ("", "One `[[perception.sensors]]` table per sensor, keys below (default: a front radar "

@@ -107,6 +107,41 @@ class CommTally:
                 "vehicle_steps": self.vehicle_steps}
 
 
+@dataclass
+class V2vTally:
+    """The V2V graph over a run, for summary.json's ``v2v`` block: how many neighbours within Rc each
+    vehicle had at each step (``frame.neighbors``: the intended graph, equipped vehicles only under
+    ``[v2x]``), and under ``[v2x]`` the mean delivery probability of its directed links."""
+
+    degree_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    links: int = 0
+    delivery_sum: float = 0.0
+
+    def add(self, frame: Frame) -> None:
+        if frame.n_vehicles == 0:
+            return
+        deg = np.bincount(np.diff(frame.neighbors.indptr))
+        if deg.size > self.degree_counts.size:
+            deg[: self.degree_counts.size] += self.degree_counts
+            self.degree_counts = deg
+        else:
+            self.degree_counts[: deg.size] += deg
+        if frame.v2x is not None:
+            self.links += int(frame.v2x.delivery_prob.size)
+            self.delivery_sum += float(np.sum(frame.v2x.delivery_prob))
+
+    def summary(self) -> dict:
+        n = int(self.degree_counts.sum())
+        k = np.arange(self.degree_counts.size)
+        out = {"vehicle_steps": n,
+               "mean_degree": float((k * self.degree_counts).sum() / n) if n else None,
+               "isolated_share": float(self.degree_counts[0] / n) if n else None,
+               "degree_counts": [int(c) for c in self.degree_counts]}
+        if self.links:
+            out["mean_delivery_probability"] = self.delivery_sum / self.links
+        return out
+
+
 def step_comm(est):
     """What the estimator's vehicles sent in its last step (a :class:`coloc.inference.comm.CommCount`,
     the estimator's ``last_comm`` or its step info's ``comm``); None: the method does not count it."""
@@ -508,6 +543,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         log = EstimateLog()
         seconds = {e.name: 0.0 for e in estimators}
         comm = {e.name: CommTally() for e in estimators}
+        v2v = V2vTally()
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         with source:
@@ -517,6 +553,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 if timing and k == 0:
                     _timing_line("first frame")
                 log.add_truth(frame)
+                v2v.add(frame)
                 blind = frame.without_truth()
                 for est in estimators:
                     t0 = time.perf_counter()
@@ -564,6 +601,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "methods": {},
             "association": {},
             "traffic": traffic_summary(traffic) if version is not None else None,
+            "v2v": v2v.summary(),
             "wall_seconds": wall,
         }
         for method in methods:

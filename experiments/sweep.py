@@ -82,8 +82,10 @@ import pandas as pd
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+from experiments.sweep_factors import Factor, Variant, factors_toml, parse_factors, split_overrides, variants
+from experiments.sweep_zones import aggregate_zones, degree_partial, zone_partials
 
-SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set")
+SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
@@ -106,6 +108,7 @@ class SweepSpec:
     grid: tuple[tuple[str, tuple], ...]  # (dotted key, values) in file order
     fixed: tuple[tuple[str, object], ...]  # [sweep.set]
     distance_bin_m: float
+    factors: tuple[Factor, ...] = ()  # [sweep.factors]: one factor at a time (experiments.sweep_factors)
 
     @property
     def grid_keys(self) -> list[str]:
@@ -119,6 +122,14 @@ class SweepRun:
     seed: int
     params: tuple[tuple[str, object], ...]  # the swept (dotted key, value) of this run
     cfg: Config
+    variant: Variant | None = None  # [sweep.factors]: the preset or one factor level
+
+
+def settings_of(spec: SweepSpec) -> list[tuple[tuple, Variant | None]]:
+    """Every setting of a sweep in run order: grid combinations (file order) x variants (the preset, then
+    each factor's non-preset levels; a single None without factors)."""
+    combos = list(itertools.product(*[values for _, values in spec.grid]))
+    return [(combo, v) for combo in combos for v in variants(spec.factors)]
 
 
 def _flatten(table: dict, prefix: str = "") -> dict:
@@ -231,8 +242,17 @@ def load_sweep(path: str | Path) -> SweepSpec:
         if dotted in dict(grid):
             raise InputError(path, where, "also swept in [sweep.grid]")
         fixed.append((dotted, value))
+    factors = parse_factors(sw.get("factors", {}), path, _check_dotted)
+    shorts = set(_short_names([k for k, _ in grid]).values())
+    for f in factors:
+        if f.name in shorts:
+            raise InputError(path, f"sweep.factors.{f.name}", "also the name of a swept key: run folders would clash")
+        for i, lv in enumerate(f.levels):
+            for dotted, _ in lv.overrides:
+                if dotted in dict(grid):
+                    raise InputError(path, f"sweep.factors.{f.name}[{i}].set.{dotted}", "also swept in [sweep.grid]")
     return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
-                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin))
+                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors)
 
 
 def _load_base(spec: SweepSpec) -> dict:
@@ -269,8 +289,11 @@ def _short_names(keys: list[str]) -> dict[str, str]:
     return {k: (s if last.count(s) == 1 else k) for k, s in zip(keys, last)}
 
 
-def run_id_of(params: tuple[tuple[str, object], ...], seed: int, short: dict[str, str]) -> str:
+def run_id_of(params: tuple[tuple[str, object], ...], seed: int, short: dict[str, str],
+              variant: Variant | None = None) -> str:
     parts = [f"{short[k]}={_safe(_value_text(v))}" for k, v in params]
+    if variant is not None:
+        parts.append(variant.factor if variant.factor == "preset" else f"{variant.factor}={_safe(variant.level)}")
     return ",".join(parts + [f"seed={seed}"])
 
 
@@ -290,16 +313,25 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
             _config(spec, base_data, {**fixed, dotted: value}, f"sweep.grid.{dotted}[{i}]", dotted)
     short = _short_names(spec.grid_keys)
     runs: list[SweepRun] = []
-    combos = list(itertools.product(*[values for _, values in spec.grid]))
-    for setting, combo in enumerate(combos):
+    bases: dict = {}
+    for setting, (combo, variant) in enumerate(settings_of(spec)):
         params = tuple(zip(spec.grid_keys, combo))
         text = ", ".join(f"{k} = {_value_text(v)}" for k, v in params)
-        cfg = _config(spec, base_data, {**fixed, **dict(params)}, "sweep.grid", context=f"with {text}: ")
+        data, extra, where, cspec = base_data, {}, "sweep.grid", spec
+        if variant is not None and variant.factor != "preset":
+            where = f"sweep.factors.{variant.factor}"
+            if variant.base is not None:
+                cspec = dataclasses.replace(spec, base=variant.base)
+                data = bases.setdefault(variant.base, read_toml(variant.base, "config file"))
+            data, extra = split_overrides(data, variant.overrides, spec.path, where)
+            text = ", ".join(x for x in (text, f"{variant.factor} = {variant.level}") if x)
+        cfg = _config(cspec, data, {**fixed, **extra, **dict(params)}, where, context=f"with {text}: ")
         for seed in spec.seeds:
-            run_id = run_id_of(params, seed, short)
+            run_id = run_id_of(params, seed, short, variant)
             run_cfg = dataclasses.replace(
                 cfg, run=dataclasses.replace(cfg.run, seed=seed, name=f"{spec.name}/{run_id}"))
-            runs.append(SweepRun(run_id=run_id, setting=setting, seed=seed, params=params, cfg=run_cfg))
+            runs.append(SweepRun(run_id=run_id, setting=setting, seed=seed, params=params, cfg=run_cfg,
+                                 variant=variant))
     ids = [r.run_id for r in runs]
     if len(set(ids)) != len(ids):
         dup = next(i for i in ids if ids.count(i) > 1)
@@ -328,6 +360,8 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
     lines += [f"{_toml_value(k)} = {_toml_value(v)}" for k, v in spec.fixed]
     lines += ["", "[sweep.grid]"]
     lines += [f"{_toml_value(k)} = {_toml_value(list(v))}" for k, v in spec.grid]
+    if spec.factors:
+        lines += factors_toml(spec.factors, _toml_value)
     return "\n".join(lines) + "\n"
 
 
@@ -472,9 +506,11 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
             row.update({f"covered_{k}": cb.get(k) for k in COVERED_COLUMNS})
         rows.append(row)
     est = pq.read_table(run_dir / "estimates.parquet",
-                        columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true"]).to_pandas()
+                        columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true", "zone"]).to_pandas()
     est["method"] = est["method"].astype(str)
     out = {"summary": rows}
+    out["zone_sums"], out["zone_hist"] = zone_partials(est)
+    out["degree"] = degree_partial(summary)
     out["time"] = _sse(est, ["method", "t"], {"err_pos": "sse_pos", "err_vel": "sse_vel"}).rename(columns={"t": "x"})
     out["overall"] = _sse(est, ["method"], {"err_pos": "sse_pos", "err_vel": "sse_vel"})
     if centre is not None:
@@ -499,8 +535,10 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
 
 
 def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarray | pd.Series]:
-    """One column per swept key for the given setting indices, typed from the values."""
-    combos = list(itertools.product(*[values for _, values in spec.grid]))
+    """One column per swept key for the given setting indices, typed from the values; with factors, the
+    string columns ``factor`` and ``level``."""
+    all_settings = settings_of(spec)
+    combos = [c for c, _ in all_settings]
     cols = {}
     for j, (key, values) in enumerate(spec.grid):
         vals = [c[j] for c in combos]
@@ -514,6 +552,10 @@ def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarra
             arr = np.array([v if isinstance(v, str) else _toml_value(v) for v in vals], dtype=object)
         col = arr[settings]
         cols[key] = pd.Series(col, dtype="string") if col.dtype == object else col
+    if spec.factors:
+        for name, attr in (("factor", "factor"), ("level", "level")):
+            arr = np.array([getattr(v, attr) for _, v in all_settings], dtype=object)
+            cols[name] = pd.Series(arr[settings], dtype="string")
     return cols
 
 
@@ -541,7 +583,7 @@ def aggregate(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> tu
     table = pd.concat(blocks, axis=1)
 
     # curves.parquet
-    n_runs = np.bincount([r.setting for r in runs], minlength=1 + max((r.setting for r in runs), default=0))
+    n_runs = np.bincount([r.setting for r in runs], minlength=len(settings_of(spec)))
     parts = []
     for kind in CURVE_KINDS:
         frames = []
@@ -726,9 +768,14 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
         raise SweepFailed(f"{len(failed)} of {len(runs)} runs failed (first: {failed[0][0]}: {failed[0][1]}); "
                           "completed runs are kept: rerun the same command to retry the others")
     table, curves = aggregate(spec, runs, partials)
+    method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
+    n_runs = np.bincount([r.setting for r in runs], minlength=len(settings_of(spec)))
+    zones, v2v = aggregate_zones(runs, partials, lambda st: _param_columns(spec, st), n_runs, method_rank)
     from experiments.runner import write_parquet
 
-    for name, df in (("sweep.parquet", table), ("curves.parquet", curves)):
+    outputs = [("sweep.parquet", table), ("curves.parquet", curves)]
+    outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v)) if len(df)]
+    for name, df in outputs:
         buf = io.BytesIO()
         write_parquet(df, buf)
         write_file_atomic(out / name, buf.getvalue())

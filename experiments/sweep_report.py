@@ -224,14 +224,100 @@ def _summary_rows(curves: pd.DataFrame, keys: list[str]) -> tuple[list[str], lis
     return header, rows
 
 
+def _read_optional(path: Path) -> pd.DataFrame | None:
+    if not path.exists():
+        return None
+    df = pd.read_parquet(path)
+    for c in ("method", "zone", "factor", "level"):
+        if c in df.columns:
+            df[c] = df[c].astype(str)
+    return df
+
+
+def _study_blocks(curves, zones, v2v, spec, grid_keys, figdir, runs_text, seed_text, what) -> list[str]:
+    """Figures of a one-factor-at-a-time sweep (experiments.sweep_study_report)."""
+    from experiments.sweep_study_report import fig_factor_association, fig_factor_gap, fig_factors
+
+    blocks = []
+    lines = "one line per method" + (" and value of " + ", ".join(_esc(_key_label(k)) for k in grid_keys)
+                                     if grid_keys else "")
+    axis = ("each row one factor, its levels on the x axis in the sweep file's order; the preset's level "
+            "(or 'preset', first, where no level is the preset's) is the same runs on every row")
+    if zones is not None:
+        for ycol, name, title, word in (("rmse_pos_m", "factors_rmse_zone.png", "Position RMSE by zone, one factor at a time",
+                                         "root mean square"),
+                                        ("p95_pos_m", "factors_p95_zone.png", "95th percentile of the position error by zone, one factor at a time",
+                                         "95th percentile (exact to 1 cm)")):
+            fig_factors(zones, spec, grid_keys, ycol, "RMSE [m]" if ycol == "rmse_pos_m" else "p95 [m]", figdir / name)
+            blocks.append(_figure_html(
+                name, title,
+                f"The {word} of the vehicle position error over all vehicle-steps of a setting's runs ({runs_text}, "
+                f"{_esc(seed_text)}), per GNSS zone of the vehicle (columns; the last pools the zones); {axis}; "
+                f"{lines}. How to read: a factor's effect is the slope of its row; the gap between ICP-DA-LC and "
+                "the known-association bound is what unknown association costs under that factor.", what=what))
+        if fig_factor_gap(zones, spec, grid_keys, figdir / "factors_gap.png"):
+            blocks.append(_figure_html(
+                "factors_gap.png", "ICP-DA-LC minus the known-association bound, by zone",
+                f"RMSE of ICP-DA-LC minus the RMSE of ICP with known association on the same runs, per zone; "
+                f"{axis}. How to read: zero means the data association costs nothing; the idealised arterial "
+                "has a gap of zero.", what=what))
+    asc = curves[curves["curve"] == "association"]
+    if len(asc) and asc["correct_pct"].notna().any():
+        fig_factor_association(curves, spec, grid_keys, figdir / "factors_association.png")
+        blocks.append(_figure_html(
+            "factors_association.png", "Association of V2F rows, one factor at a time",
+            f"Correct, wrong and discarded shares of all V2F rows of a setting's runs (a clutter row counts as "
+            f"discarded when left out and as wrong when paired with any track); {axis}; {lines}.", what=what))
+    return blocks
+
+
+def _zone_blocks(zones, v2v, keys, figdir, runs_text, seed_text, what) -> list[str]:
+    """Gain over GNSS by zone and the V2V degree against the first swept key (the penetration study)."""
+    from experiments.sweep_study_report import control_difference_table, fig_degree, fig_gain, table_html
+
+    blocks = []
+    first = keys[0]
+    numeric = pd.api.types.is_numeric_dtype(zones[first])
+    if not numeric:
+        return blocks
+    gain = fig_gain(zones, keys, figdir / "gain_zone.png")
+    if len(gain):
+        blocks.append(_figure_html(
+            "gain_zone.png", f"Gain over GNSS by zone against {_esc(_key_label(first))}",
+            f"GNSS minus method, for the RMSE (top) and the 95th percentile (bottom, exact to 1 cm) of the "
+            f"position error over all vehicle-steps of a setting's runs ({runs_text}, {_esc(seed_text)}), per "
+            f"GNSS zone of the vehicle (the last column pools them); one line per method and value of "
+            + ", ".join(_esc(_key_label(k)) for k in keys[1:]) + ". How to read: above zero the method beats GNSS.",
+            what=what))
+        header, rows = control_difference_table(gain, keys)
+        if rows:
+            blocks.append("<h3>TLR against VSR: RMSE gain of ICP-DA-LC over GNSS</h3>"
+                          "<p>Gain = GNSS RMSE minus ICP-DA-LC RMSE of the same runs; a positive difference "
+                          "means the traffic-light platoons help (Brambilla et al., Sec. VII).</p>"
+                          + table_html(header, rows, len(header) - 3))
+    if v2v is not None and len(v2v) and first in v2v.columns:
+        fig_degree(v2v, keys, figdir / "v2v_degree.png")
+        blocks.append(_figure_html(
+            "v2v_degree.png", f"V2V degree against {_esc(_key_label(first))}",
+            "Neighbours within Rc of a vehicle at a step (the intended V2V graph of the equipped vehicles, "
+            "before packet loss), pooled over the vehicle-steps of a setting's runs: mean (solid), median "
+            "(dotted), 10-90 % band; right: share of vehicle-steps with no neighbour. One line per value of "
+            + (", ".join(_esc(_key_label(k)) for k in keys[1:]) or "the setting") + ".", what=what))
+    return blocks
+
+
 def write_sweep_report(out: Path) -> Path:
     """Write ``out/report.html`` and ``out/figures/*.png`` from the sweep's files."""
     out = Path(out)
     with open(out / "sweep.toml", "rb") as fh:
         spec = tomllib.load(fh)["sweep"]
-    keys = list((spec.get("grid") or {}).keys())
+    grid_keys = list((spec.get("grid") or {}).keys())
+    factors = bool(spec.get("factors"))
+    keys = grid_keys + (["factor", "level"] if factors else [])
     curves = pd.read_parquet(out / "curves.parquet")
     curves["method"] = curves["method"].astype(str)
+    zones = _read_optional(out / "zones.parquet")
+    v2v = _read_optional(out / "v2v.parquet")
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
     seeds = spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""
@@ -247,7 +333,11 @@ def write_sweep_report(out: Path) -> Path:
         with matplotlib.rc_context(_RC):
             rows = [("time", "rmse_pos_m", "vehicle position RMSE"),
                     ("feature_time", "rmse_pos_m", "feature position RMSE")]
-            if len(curves[curves["curve"] == "time"]):
+            if factors:  # one factor at a time: the study's own figures, not the Sec. V curves
+                blocks += _study_blocks(curves, zones, v2v, spec, grid_keys, figdir, runs_text, seed_text, what)
+            elif zones is not None and len(set(zones["zone"].astype(str)) - {"all"}) > 1 and grid_keys:
+                blocks += _zone_blocks(zones, v2v, grid_keys, figdir, runs_text, seed_text, what)
+            if len(curves[curves["curve"] == "time"]) and not factors:
                 _fig_panels(curves, rows, keys, "time [s]", figdir / "rmse_time.png")
                 has_feat = bool(len(curves[curves["curve"] == "feature_time"]))
                 blocks.append(_figure_html(
@@ -259,7 +349,7 @@ def write_sweep_report(out: Path) -> Path:
                     + f". {split.capitalize()}, {lines}; a method whose curve does not depend on a swept key is "
                     "drawn once. How to read: lower is better; the gap to GNSS is the cooperative gain, the gap "
                     "to ICP with known association the cost of unknown association.", what=what))
-            if len(curves[curves["curve"] == "distance"]):
+            if len(curves[curves["curve"] == "distance"]) and not factors:
                 _fig_panels(curves, [("distance", "rmse_pos_m", "vehicle position RMSE")], keys,
                             "distance to the junction centre [m]", figdir / "rmse_distance.png")
                 blocks.append(_figure_html(
@@ -270,7 +360,7 @@ def write_sweep_report(out: Path) -> Path:
                     f"{split.capitalize()}, {lines}. How to read: near the centre all clusters are connected and "
                     "sense more features, so cooperative methods gain most there.", what=what))
             asc = curves[curves["curve"] == "association"]
-            if len(asc) and asc["correct_pct"].notna().any():
+            if len(asc) and asc["correct_pct"].notna().any() and not factors:
                 _fig_association(curves, keys, figdir / "association.png")
                 blocks.append(_figure_html(
                     "association.png", "Association of V2F measurements (paper Figs. 9 and 11)",
@@ -287,6 +377,9 @@ def write_sweep_report(out: Path) -> Path:
                 ("runs", spec.get("runs", "")), ("seeds", seed_text), ("methods", ", ".join(spec.get("methods", []))),
                 ("swept", ", ".join(f"{k} = {list(v)}" for k, v in (spec.get("grid") or {}).items()) or "–"),
                 ("fixed", ", ".join(f"{k} = {v}" for k, v in (spec.get("set") or {}).items()) or "–"),
+                ("factors", "; ".join(f"{k}: " + ", ".join(lv["label"] + (" (preset)" if lv.get("preset") else "")
+                                                           for lv in v)
+                                      for k, v in (spec.get("factors") or {}).items()) or "–"),
             )) + "</dl>",
             "<h2>Summary per setting</h2>",
             "<p>Pooled over all runs of a setting: RMSE = square root of the mean squared error over all "

@@ -240,6 +240,7 @@ def test_v2x_frame_refuses_bad_values():
     (dict(pdr_distance_m=(), pdr_los=(), pdr_nlos=()), "pdr_distance_m"),
     (dict(rounds_per_step=-1), "rounds_per_step"),
     (dict(rounds_per_step=2.5), "rounds_per_step"),
+    (dict(channel="perfect"), "channel"),
 ])
 def test_bad_v2x_parameters_name_the_field(kwargs, field):
     with pytest.raises(InputError) as err:
@@ -379,3 +380,18 @@ def test_arterial_quarter_penetration_end_to_end():
     every, quarter = ids(""), ids("[v2x]\npenetration_rate = 0.25\n")
     assert quarter < every and len(every) > 40
     assert binomtest(len(quarter), len(every), 0.25).pvalue > ALPHA
+
+
+def test_ideal_channel_delivers_every_link_every_round(cross_net):
+    """channel = "ideal": delivery probability 1 on every link, every round delivers;
+    every other field as with the curves."""
+    net = load_net_folder(cross_net)
+    curves, _ = _frames(net, SensorParams(v2x=V2xParams(penetration_rate=0.5)))
+    ideal, _ = _frames(net, SensorParams(v2x=V2xParams(penetration_rate=0.5, channel="ideal")))
+    links = 0
+    for a, b in zip(curves, ideal):
+        _same_frame(a, b)
+        assert (b.v2x.delivery_prob == 1.0).all() and b.v2x.seed == a.v2x.seed
+        assert round_deliveries(b.v2x, 3).all()
+        links += b.neighbors.nnz
+    assert links > 100

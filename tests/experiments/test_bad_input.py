@@ -386,6 +386,20 @@ def run_v2x_distances_not_increasing(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "v2x.channel", "curves, ideal")
+def run_v2x_unknown_channel(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\nchannel = \"perfect\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sweep.toml", "sweep.factors.x[0]", "the preset level takes no set or base")
+def sweep_factor_preset_with_overrides(tmp, net, run):
+    path = _sweep(tmp, net)
+    path.write_text(path.read_text() + '\n[sweep.factors]\nx = [{label = "a", preset = true, '
+                                       'set = {"lc.eta_threshold" = 1.0}}]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--quiet", "--workers", "1"], None
+
+
 @case("cfg.toml", "v2x.pdr_nlos", "one value per distance")
 def run_v2x_lists_of_different_length(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\npdr_distance_m = [0.0, 100.0]\npdr_los = [1.0, 0.5]\npdr_nlos = [1.0]\n")

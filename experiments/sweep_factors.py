@@ -1,0 +1,190 @@
+"""One factor at a time around a preset: the ``[sweep.factors]`` table of a sweep file.
+
+A full product of the realistic-sensing factors (detection probability x clutter x occlusion x GNSS
+correlation x pedestrians x eta_TH x control) would be days of CPU; the study the issue asks for
+varies one factor at a time around the base config (the *preset*) and keeps the rest at their
+preset values::
+
+    [sweep.factors]
+    clutter_per_scan = [
+        {label = "0", set = {"perception.sensors[*].clutter_per_scan" = 0.0}},
+        {label = "1", preset = true},                     # the preset's own level: no run of its own
+        {label = "5", set = {"perception.sensors[*].clutter_per_scan" = 5.0}},
+    ]
+    idealised = [{label = "idealised", base = "../arterial_tlr.toml"}]   # another base config
+
+Each level is ``label`` plus either ``preset = true`` (the base config's own level, drawn at its place
+on the factor's axis from the one preset run) or ``set`` (dotted overrides as in ``[sweep.set]``;
+``"table.key[*].field"`` sets ``field`` in every table of the array ``table.key``, e.g. every
+``[[perception.sensors]]``) and optionally ``base`` (another run config, relative to the sweep file).
+The runs of a sweep are then every ``[sweep.grid]`` combination times the variants: the preset once,
+and every level that is not the preset. A run's folder name ends in ``<factor>=<label>`` (or
+``preset``); ``sweep.parquet`` and ``curves.parquet`` gain the string columns ``factor`` and
+``level`` ("preset" / "preset" for the preset runs).
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from couplers.errors import InputError
+
+LEVEL_KEYS = ("label", "preset", "set", "base")
+PRESET = "preset"
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_STAR = re.compile(r"^([a-z_]+)\.([a-z_]+)\[\*\]\.([a-z_]+)$")
+
+
+@dataclass(frozen=True)
+class Level:
+    label: str
+    preset: bool
+    overrides: tuple[tuple[str, object], ...]  # dotted keys, "table.key[*].field" allowed
+    base: Path | None  # another base config, or None
+
+
+@dataclass(frozen=True)
+class Factor:
+    name: str
+    levels: tuple[Level, ...]
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One variant of the base config: the preset, or one non-preset level of one factor."""
+
+    factor: str
+    level: str
+    overrides: tuple[tuple[str, object], ...] = ()
+    base: Path | None = None
+
+
+
+PRESET_VARIANT = Variant(PRESET, PRESET)
+
+
+def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
+    """``[sweep.factors]`` of a sweep file; ``check_dotted(dotted, path, where)`` validates a plain key."""
+    if not isinstance(table, dict):
+        raise InputError(path, "sweep.factors", "expected a table of factors (name = [levels])")
+    factors = []
+    for name, levels in table.items():
+        where = f"sweep.factors.{name}"
+        if not _NAME.match(name) or name == PRESET:
+            raise InputError(path, where, "a factor name is letters, digits and _ (and not 'preset')")
+        if not isinstance(levels, list) or not levels:
+            raise InputError(path, where, "expected a non-empty list of levels ({label = ..., set = {...}})")
+        parsed, labels = [], set()
+        for i, lv in enumerate(levels):
+            lw = f"{where}[{i}]"
+            if not isinstance(lv, dict):
+                raise InputError(path, lw, "expected a table {label = ..., preset = true} or {label = ..., set = {...}}")
+            unknown = sorted(set(lv) - set(LEVEL_KEYS))
+            if unknown:
+                raise InputError(path, f"{lw}.{unknown[0]}", f"unknown key (known: {', '.join(LEVEL_KEYS)})")
+            label = lv.get("label")
+            if not isinstance(label, str) or not label.strip() or label.strip() == PRESET:
+                raise InputError(path, f"{lw}.label", f"expected a non-empty string other than 'preset', got {label!r}")
+            if label in labels:
+                raise InputError(path, f"{lw}.label", f"{label!r} is listed twice")
+            labels.add(label)
+            preset = lv.get("preset", False)
+            if not isinstance(preset, bool):
+                raise InputError(path, f"{lw}.preset", f"expected true or false, got {preset!r}")
+            sets = lv.get("set", {})
+            if not isinstance(sets, dict):
+                raise InputError(path, f"{lw}.set", "expected a table of dotted keys")
+            base = lv.get("base")
+            if preset and (sets or base is not None):
+                raise InputError(path, lw, "the preset level takes no set or base: it is the base config")
+            if not preset and not sets and base is None:
+                raise InputError(path, lw, "a level sets something (set = {...}) or names another base config")
+            overrides = []
+            for dotted, value in _flatten_set(sets).items():
+                if _STAR.match(dotted):
+                    pass  # checked when applied (the base config must have that array of tables)
+                else:
+                    check_dotted(dotted, path, f"{lw}.set.{dotted}")
+                overrides.append((dotted, value))
+            bpath = None
+            if base is not None:
+                if not isinstance(base, str) or not base:
+                    raise InputError(path, f"{lw}.base", f"expected the path of a run config, got {base!r}")
+                bpath = (path.parent / base).resolve()
+                if not bpath.is_file():
+                    raise InputError(path, f"{lw}.base", f"no run config at {bpath}")
+            parsed.append(Level(label=label, preset=preset, overrides=tuple(overrides), base=bpath))
+        if sum(lv.preset for lv in parsed) > 1:
+            raise InputError(path, where, "more than one level is the preset")
+        factors.append(Factor(name=name, levels=tuple(parsed)))
+    return tuple(factors)
+
+
+def _flatten_set(table: dict, prefix: str = "") -> dict:
+    """Quoted dotted keys ("a.b" = ...) or TOML's nested form (a.b = ...); "[*]" stays in the key."""
+    out = {}
+    for key, value in table.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten_set(value, dotted + "."))
+        else:
+            out[dotted] = value
+    return out
+
+
+def variants(factors: tuple[Factor, ...]) -> list[Variant | None]:
+    """The preset, then every non-preset level in file order; [None] without factors (a plain grid)."""
+    if not factors:
+        return [None]
+    out = [PRESET_VARIANT]
+    for f in factors:
+        out += [Variant(f.name, lv.label, lv.overrides, lv.base) for lv in f.levels if not lv.preset]
+    return out
+
+
+def split_overrides(data: dict, overrides: tuple[tuple[str, object], ...], path: Path, where: str) -> tuple[dict, dict]:
+    """(a copy of the config ``data`` with the "[*]" overrides applied, the plain dotted overrides)."""
+    data = copy.deepcopy(data)
+    plain = {}
+    for dotted, value in overrides:
+        m = _STAR.match(dotted)
+        if m is None:
+            plain[dotted] = value
+            continue
+        sec, key, fld = m.groups()
+        items = data.get(sec, {}).get(key) if isinstance(data.get(sec), dict) else None
+        if not isinstance(items, list) or not items or not all(isinstance(t, dict) for t in items):
+            raise InputError(path, f"{where}.set.{dotted}", f"the base config has no [[{sec}.{key}]] tables")
+        for t in items:
+            t[fld] = value
+    return data, plain
+
+
+def factor_levels(factors: tuple[Factor, ...]) -> dict[str, list[str]]:
+    """Each factor's level labels in file order (the preset's where the file puts it)."""
+    return {f.name: [lv.label for lv in f.levels] for f in factors}
+
+
+def preset_labels(factors: tuple[Factor, ...]) -> dict[str, str | None]:
+    return {f.name: next((lv.label for lv in f.levels if lv.preset), None) for f in factors}
+
+
+def factors_toml(factors: tuple[Factor, ...], toml_value) -> list[str]:
+    """``[sweep.factors]`` lines of the resolved sweep (bases as absolute paths)."""
+    lines = ["", "[sweep.factors]"]
+    for f in factors:
+        items = []
+        for lv in f.levels:
+            parts = [f"label = {toml_value(lv.label)}"]
+            if lv.preset:
+                parts.append("preset = true")
+            if lv.overrides:
+                parts.append("set = {" + ", ".join(f"{toml_value(k)} = {toml_value(v)}" for k, v in lv.overrides) + "}")
+            if lv.base is not None:
+                parts.append(f"base = {toml_value(str(lv.base))}")
+            items.append("{" + ", ".join(parts) + "}")
+        lines.append(f"{f.name} = [" + ", ".join(items) + "]")
+    return lines
