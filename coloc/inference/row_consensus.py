@@ -8,6 +8,7 @@ from numba import njit
 
 from coloc.core.v2x import V2xFrame, round_deliveries
 from coloc.inference.consensus import connected_components
+from coloc.inference.lossy_consensus import lossy_max_consensus
 from coloc.kernels.lossy import running_sum_kernel
 
 # ----------------------------------------------------------------------------- consensus groups
@@ -333,7 +334,23 @@ class ChannelRowConsensus:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if rounds == 0 or self.src.size == 0:
             return x.copy()
+        return running_sum_kernel(x, self.share, self.src, self.dst, self._deliveries(first, rounds))
+
+    def maximum(self, x: np.ndarray, rounds: int) -> np.ndarray:
+        """``rounds`` rounds of max consensus of the rows' values x (O, D) (the next rounds of the step):
+        every round a row keeps the elementwise largest of its own and the values it heard
+        (:func:`coloc.inference.lossy_consensus.lossy_max_consensus`); a lost message only delays it."""
+        rounds = int(rounds)
+        first = self.rounds_used
+        self.rounds_used += rounds
+        x = np.asarray(x, dtype=np.float64)
+        if rounds == 0 or self.src.size == 0:
+            return x.copy()
+        return lossy_max_consensus(x, self.src, self.dst, self._deliveries(first, rounds))
+
+    def _deliveries(self, first: int, rounds: int) -> np.ndarray:
+        """(rounds, row links) bool: which row links delivered in rounds first .. first + rounds - 1."""
         got = np.empty((rounds, self.link.size), dtype=np.bool_)
         for k in range(rounds):
             got[k] = round_deliveries(self.v2x, first + k)[self.link]
-        return running_sum_kernel(x, self.share, self.src, self.dst, got)
+        return got

@@ -98,6 +98,7 @@ from scipy.special import logsumexp
 from scipy.stats import chi2
 
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.v2x import V2xFrame
 from coloc.core.vehicles import match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
@@ -114,7 +115,7 @@ from coloc.inference.particles import (
     systematic_resample,
     weighted_moments,
 )
-from coloc.inference.row_consensus import consensus_graph, row_components
+from coloc.inference.row_consensus import ChannelRowConsensus, consensus_graph, row_components
 from coloc.kernels.icp import scatter_add, scatter_max
 from coloc.kernels.pf import KERNELS, KernelWorkspace, RepeatedTransforms, kept_problem_count, transform_batch
 from coloc.kernels.pf_fast import FAST, FastRepeatedTransforms, fast_kept_problem_count, fast_transform_batch
@@ -269,6 +270,8 @@ class PfBpaResult:
     # (E, Jf) the first iteration's (26) and messages (19): own-sensor cavities (IcpParams.feature_message)
     first_feature_logw: np.ndarray | None = None
     first_message_logw: np.ndarray | None = None
+    # consensus rounds of the step: average (28) and max (29); None = iterations x the params' rounds
+    rounds: tuple[int, int] | None = None
 
 
 def gauss_transforms(pf: PfParams, src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r):
@@ -330,6 +333,7 @@ def pf_bpa_localization(
     output_log_b0: np.ndarray | None = None,
     track_flat: np.ndarray | None = None,
     workspace: KernelWorkspace | None = None,
+    v2x: V2xFrame | None = None,
 ) -> PfBpaResult:
     """Particle BPA-L (19)-(22) with the feature product (26) by consensus (28)-(29).
 
@@ -352,6 +356,14 @@ def pf_bpa_localization(
     weights 1 / proposal, whose variance is unbounded: the few particles in
     the proposal's tails dominate and the "flat" message becomes a random
     spike that pulls the vehicle.
+
+    ``v2x``: the frame's V2X channel (aligned with ``adjacency`` = ``frame.neighbors``): the average
+    consensus of (28) is running-sum ratio consensus and the max consensus of (29) a lossy max
+    consensus, both over the rounds the channel delivers (:class:`ChannelRowConsensus`: a vehicle's
+    broadcast of a round carries its log-weights of every track it observes), within the step's round
+    budget as in the Gaussian BPA-L (:mod:`coloc.inference.bpa`): each exchange gets min(wanted, rounds
+    left), average first, and BPA-L stops after the iteration that used the last round. The
+    participant count |V_k ∩ C| stays that of the intended graph. None: lossless, as before.
     """
     n, jv = vehicle_log_b0.shape
     k, jf = track_log_b0.shape[0], track_particles.shape[1]
@@ -370,7 +382,10 @@ def pf_bpa_localization(
     r_from_v, r_from_f = t_r + v_bw[t_vehicle], t_r + f_bw[t_track]
     graph = consensus_graph(entry_vehicle, entry_track, adjacency)
     _, count = row_components(graph)
-    weights = metropolis_weights(graph)
+    channel = None if v2x is None else ChannelRowConsensus(entry_vehicle, entry_track, k, adjacency, v2x)
+    weights = metropolis_weights(graph) if channel is None else None
+    c_avg, c_max = int(params.consensus_iterations), max(int(params.consensus_iterations), 1)
+    rounds_avg = rounds_max = 0
     log_b0_e = normalize_log(track_log_b0[entry_track])
     log_m_fv = np.zeros((e, jv))  # m_{k->i}^(0) = 1
     n_obs = np.bincount(entry_track, minlength=k)
@@ -413,10 +428,20 @@ def pf_bpa_localization(
         s_out, p1 = to_features.sum(cav_v[term_entry])
         log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
-        avg = average_consensus_with_weights(log_m_vf, weights, params.consensus_iterations)
+        if channel is None:
+            avg = average_consensus_with_weights(log_m_vf, weights, c_avg)
+        else:
+            granted = channel.grant(c_avg)
+            avg = channel.average(log_m_vf, granted)
+            rounds_avg += granted
         loc = log_b0_e + count[:, None] * avg
         loc = loc - loc.max(axis=1, keepdims=True)
-        logb_f = normalize_log(max_consensus(loc, graph, max(params.consensus_iterations, 1)))
+        if channel is None:
+            logb_f = normalize_log(max_consensus(loc, graph, c_max))
+        else:
+            granted = channel.grant(c_max)
+            logb_f = normalize_log(channel.maximum(loc, granted))
+            rounds_max += granted
         if it == 1:
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
@@ -438,6 +463,8 @@ def pf_bpa_localization(
         if dv.max() < params.stop_pos_m and dw.max() < params.stop_vel_mps:  # Sec. V-A
             converged = True
             break
+        if channel is not None and channel.exhausted:
+            break  # the step's round budget is used up
     if output_particles is not None:
         t_out, p3 = gauss_transforms(pf, f_centres, cav_f[term_entry], t_track, zero_shift, output_particles,
                                      t_vehicle, t_z, r_from_f)
@@ -456,7 +483,8 @@ def pf_bpa_localization(
     first[1:] = entry_track[order][1:] != entry_track[order][:-1]
     track_entry = np.full(k, -1, np.int64)
     track_entry[entry_track[order][first]] = order[first]
-    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs, first_f, first_m)
+    rounds = None if channel is None else (rounds_avg, rounds_max)
+    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs, first_f, first_m, rounds)
 
 
 # ----------------------------------------------------------------------------- state and step
@@ -494,19 +522,23 @@ class PfStepInfo:
 
 
 def pf_step_comm(entry_vehicle: np.ndarray, entry_track: np.ndarray, adjacency: sp.spmatrix, birth_owner: np.ndarray,
-                 iterations: int, n_vehicles: int, params: IcpParams, pf: PfParams) -> CommCount:
+                 iterations: int, n_vehicles: int, params: IcpParams, pf: PfParams,
+                 rounds: tuple[int, int] | None = None) -> CommCount:
     """What the vehicles sent in one step (:mod:`coloc.inference.comm`): every BPA-L iteration,
     ``consensus_iterations`` rounds of average consensus of the Jf log-weights (28) and
     max(``consensus_iterations``, 1) rounds of max consensus (29), one broadcast per round from every
     vehicle with an entry (vehicle, track) that has a consensus partner (another observer of the
-    track among its V2V neighbours); plus one announcement of the rows that start tracks."""
+    track among its V2V neighbours); plus one announcement of the rows that start tracks.
+    ``rounds``: the (average, max) rounds the step used over a V2X channel (:class:`PfBpaResult`), in
+    place of iterations x the params' rounds."""
     graph = consensus_graph(entry_vehicle, entry_track, adjacency)
     active = np.diff(graph.indptr) > 0 if entry_vehicle.size else np.zeros(0, bool)
     avg_words, max_words = pf_words(pf.feature_particles)
     c = int(params.consensus_iterations)
     it = int(iterations)
-    return (broadcast_rounds(entry_vehicle, active, n_vehicles, it * c, avg_words)
-            + broadcast_rounds(entry_vehicle, active, n_vehicles, it * max(c, 1), max_words)
+    r_avg, r_max = (it * c, it * max(c, 1)) if rounds is None else rounds
+    return (broadcast_rounds(entry_vehicle, active, n_vehicles, r_avg, avg_words)
+            + broadcast_rounds(entry_vehicle, active, n_vehicles, r_max, max_words)
             + announcements(birth_owner, n_vehicles, PF_BIRTH_WORDS))
 
 
@@ -749,7 +781,7 @@ def icp_da_pf_step(
     res = pf_bpa_localization(own, log_own, t_particles, t_log_b0, entry_vehicle,
                               entry_track, entry_log_c0, term_entry, term_rows, term_log_c, z, r,
                               frame.neighbors, params, pf, particles if latest else None, log_gnss if latest else None,
-                              t_flat, workspace)
+                              t_flat, workspace, frame.v2x)
     # Posterior weights of observed tracks; estimates.
     t_post = t_logw.copy()
     seen = res.track_entry >= 0
@@ -822,7 +854,7 @@ def icp_da_pf_step(
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
                       pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced], res.iterations, n,
-                                   params, pf))
+                                   params, pf, res.rounds))
     return new_state, next_id, info, estimate
 
 
