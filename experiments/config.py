@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from coloc.core.models import MotionParams
-from coloc.inference.params import FEATURE_MESSAGES, STOP_RULES
+from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
@@ -105,6 +105,8 @@ class IcpSection:
     feature_message: str = "own"
     # BPA-L stopping rule: "vehicles" (ours) or "vehicles_and_features" (Sec. V-A as written).
     stop_on: str = "vehicles"
+    # How the consensus exchanges of a step share a [v2x] round budget: "greedy" or "even".
+    budget_split: str = "greedy"
 
 
 @dataclass(frozen=True)
@@ -341,6 +343,9 @@ def _validate(cfg: Config) -> None:
                          f"unknown value {cfg.icp.feature_message!r} (available: {', '.join(FEATURE_MESSAGES)})")
     if cfg.icp.stop_on not in STOP_RULES:
         raise InputError(p, "icp.stop_on", f"unknown value {cfg.icp.stop_on!r} (available: {', '.join(STOP_RULES)})")
+    if cfg.icp.budget_split not in BUDGET_SPLITS:
+        raise InputError(p, "icp.budget_split",
+                         f"unknown value {cfg.icp.budget_split!r} (available: {', '.join(BUDGET_SPLITS)})")
     for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
         if not getattr(cfg.icp, name) > 0:
             raise InputError(p, f"icp.{name}", "must be positive")

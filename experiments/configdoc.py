@@ -251,6 +251,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "stop_on": ("", "What the BPA-L stopping rule tests: `\"vehicles\"` (ours) or `\"vehicles_and_features\"` "
                         "(Sec. V-A as written: also every vehicle's estimate of each feature it observes). The "
                         "Gaussian ICP only; ICP-DA-PF always tests both."),
+        "budget_split": ("", "How the consensus exchanges of a step share a `[v2x]` round budget (no effect "
+                             "without one): `\"greedy\"` (each takes `consensus_iterations` rounds while any "
+                             "are left: a budget below it allows one BPA-L iteration) or `\"even\"` (each takes "
+                             "at most the rounds left divided by the exchanges still to come up to "
+                             "`bpa_max_iterations`, at least one)."),
     },
     "lc": {
         "eta_threshold": (NO_UNIT, "eta_TH of (30): a track is detected by a vehicle iff b(alpha = 0) < eta_TH "

@@ -182,7 +182,8 @@ def _bpa_iterations_numpy(
         # (the 10 distinct entries of the symmetric Lambda and the 4 of eta: every entry is
         # an independent consensus, so the symmetric copies need not be run twice).
         if channel is not None:
-            avg_lam, avg_eta = _unpack_sym(channel.average(_pack_sym(m_vf_lam, m_vf_eta), channel.grant(n_iter_cons)))
+            granted = channel.grant(n_iter_cons, params.exchanges_left(it))
+            avg_lam, avg_eta = _unpack_sym(channel.average(_pack_sym(m_vf_lam, m_vf_eta), granted))
         elif n_iter_cons:
             avg = _average_kernel(w_indptr, w_indices, w_data, _pack_sym(m_vf_lam, m_vf_eta), n_iter_cons)
             avg_lam, avg_eta = _unpack_sym(avg)
@@ -247,7 +248,7 @@ def _bpa_iterations_kernels(
         if channel is None:
             avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
         else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
-            avg = channel.average(packed, channel.grant(n_iter_cons))
+            avg = channel.average(packed, channel.grant(n_iter_cons, params.exchanges_left(it)))
         # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
         # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
         ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))

@@ -10,6 +10,7 @@ from coloc.core.models import MotionParams
 FEATURE_MESSAGES = ("bpa", "own")
 #: What the BPA-L stopping rule tests (see :class:`IcpParams`).
 STOP_RULES = ("vehicles", "vehicles_and_features")
+BUDGET_SPLITS = ("greedy", "even")
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,11 @@ class IcpParams:
       0.0001 "own" gives 0.60 m, while "bpa" needs Q_F = 0.01 to forget fast
       enough (0.69 m). Kept to reproduce earlier results.
 
+    ``budget_split``: how the consensus exchanges of a step share a V2X round budget
+    (``frame.v2x.rounds_per_step``; no effect without one). "greedy" (default): each exchange takes
+    min(``consensus_iterations``, rounds left), so a budget below ``consensus_iterations`` allows a
+    single BPA-L iteration. "even": each takes min(``consensus_iterations``, max(1, rounds left //
+    exchanges still to come up to ``bpa_max_iterations``)), so every iteration gets rounds.
     ``stop_on``: the BPA-L stopping rule (Sec. V-A: stop when no MMSE
     estimate moved by more than ``stop_pos_m`` / ``stop_vel_mps`` since the
     previous iteration). "vehicles" (default) tests the vehicle estimates
@@ -79,6 +85,7 @@ class IcpParams:
     message_memory_s: float = 10.0
     feature_message: str = "own"
     stop_on: str = "vehicles"
+    budget_split: str = "greedy"
 
     def __post_init__(self):
         if self.consensus_iterations < 0:
@@ -99,6 +106,17 @@ class IcpParams:
             raise ValueError(f"feature_message must be one of {FEATURE_MESSAGES}")
         if self.stop_on not in STOP_RULES:
             raise ValueError(f"stop_on must be one of {STOP_RULES}")
+        if self.budget_split not in BUDGET_SPLITS:
+            raise ValueError(f"budget_split must be one of {BUDGET_SPLITS}")
+
+    def exchanges_left(self, iteration: int, per_iteration: int = 1, done: int = 0) -> int:
+        """How many consensus exchanges of the step share the rounds left, counting the next one: 1
+        under "greedy" (it takes what it wants), every exchange still to come in the BPA-L iterations
+        ``iteration`` .. ``bpa_max_iterations`` under "even" (``per_iteration`` exchanges an iteration,
+        ``done`` of them made in this one); coloc.inference.row_consensus.ChannelRowConsensus.grant."""
+        if self.budget_split == "greedy":
+            return 1
+        return max(1, (self.bpa_max_iterations - int(iteration) + 1) * int(per_iteration) - int(done))
 
     @property
     def feature_sigma_perp_value(self) -> float:

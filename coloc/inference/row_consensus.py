@@ -319,11 +319,16 @@ class ChannelRowConsensus:
         """The step's round budget is used up (never with an unlimited budget)."""
         return not self.v2x.unlimited and self.rounds_used >= self.v2x.rounds_per_step
 
-    def grant(self, wanted: int) -> int:
-        """Rounds the next exchange may use: ``wanted``, or what is left of the step's budget."""
+    def grant(self, wanted: int, sharing: int = 1) -> int:
+        """Rounds the next exchange may use: ``wanted``, or what is left of the step's budget; with
+        ``sharing`` > 1 exchanges still to come (IcpParams.budget_split = "even"), at most the rounds
+        left divided among them, and at least one while any is left."""
         if self.v2x.unlimited:
             return int(wanted)
-        return max(0, min(int(wanted), int(self.v2x.rounds_per_step) - self.rounds_used))
+        left = int(self.v2x.rounds_per_step) - self.rounds_used
+        if sharing > 1 and left > 0:
+            left = max(1, left // int(sharing))
+        return max(0, min(int(wanted), left))
 
     def average(self, x: np.ndarray, rounds: int) -> np.ndarray:
         """``rounds`` rounds of ratio consensus of the rows' values x (O, D) (the next rounds of the

@@ -431,7 +431,7 @@ def pf_bpa_localization(
         if channel is None:
             avg = average_consensus_with_weights(log_m_vf, weights, c_avg)
         else:
-            granted = channel.grant(c_avg)
+            granted = channel.grant(c_avg, params.exchanges_left(it, per_iteration=2))
             avg = channel.average(log_m_vf, granted)
             rounds_avg += granted
         loc = log_b0_e + count[:, None] * avg
@@ -439,7 +439,7 @@ def pf_bpa_localization(
         if channel is None:
             logb_f = normalize_log(max_consensus(loc, graph, c_max))
         else:
-            granted = channel.grant(c_max)
+            granted = channel.grant(c_max, params.exchanges_left(it, per_iteration=2, done=1))
             logb_f = normalize_log(channel.maximum(loc, granted))
             rounds_max += granted
         if it == 1:

@@ -293,3 +293,37 @@ def test_numpy_reference_loop_takes_the_same_channel_path(monkeypatch):
     assert (kern.iterations, kern.comm.rounds) == (ref.iterations, ref.comm.rounds) == (3, 17)
     np.testing.assert_allclose(kern.mean, ref.mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(kern.cov, ref.cov, rtol=0, atol=1e-8)
+
+
+def test_even_budget_split_gives_every_iteration_rounds():
+    """budget_split = "even", 10 rounds wanted per iteration, bpa_max_iterations 4, budget 10: the
+    iterations get 10 // 4 = 2, 8 // 3 = 2, 6 // 2 = 3 and 3 rounds (BPA-L never converges here), so
+    all four run; "greedy" spends the budget in the first iteration. Unlimited budget: no change."""
+    f = road_frames(steps=1, v2v_range=25.0)[0]
+    even = exact_params(10, bpa_max_iterations=4, budget_split="even")
+    greedy = exact_params(10, bpa_max_iterations=4)
+    res = run_bpa(with_channel(f, 0.8, 10), even)
+    assert res.iterations == 4 and res.comm.rounds == 10
+    assert run_bpa(with_channel(f, 0.8, 10), greedy).iterations == 1
+    a = run_bpa(with_channel(f, 0.8, 0), even)
+    b = run_bpa(with_channel(f, 0.8, 0), greedy)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    # the split rule itself
+    p = IcpParams(bpa_max_iterations=10, budget_split="even")
+    assert [p.exchanges_left(i) for i in (1, 5, 10, 11)] == [10, 6, 1, 1]
+    assert p.exchanges_left(1, per_iteration=2, done=1) == 19
+    assert IcpParams().exchanges_left(1) == 1
+
+
+def test_even_split_reaches_the_bound_under_a_tight_budget():
+    """On complete components one consensus round per iteration is exact: with a budget of 4 rounds the
+    even split runs 4 BPA-L iterations of one round and lands nearer the unlimited result than greedy's
+    single iteration of 4 rounds."""
+    f = road_frames(steps=1)[0]  # v2v range 250 m: one complete component
+    ref = run_bpa(with_channel(f, 1.0, 0), exact_params(20, bpa_max_iterations=4))
+    even = run_bpa(with_channel(f, 1.0, 4), exact_params(20, bpa_max_iterations=4, budget_split="even"))
+    greedy = run_bpa(with_channel(f, 1.0, 4), exact_params(20, bpa_max_iterations=4))
+    err_even = np.abs(even.mean - ref.mean).max()
+    err_greedy = np.abs(greedy.mean - ref.mean).max()
+    assert even.iterations == 4 and greedy.iterations == 1
+    assert err_even < 1e-9 < err_greedy

@@ -386,6 +386,12 @@ def run_v2x_distances_not_increasing(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "icp.budget_split", "greedy, even")
+def run_icp_unknown_budget_split(tmp, net, run):
+    cfg = _config(tmp, net, "[icp]\nbudget_split = \"fair\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "v2x.channel", "curves, ideal")
 def run_v2x_unknown_channel(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\nchannel = \"perfect\"\n")
