@@ -11,7 +11,9 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
     (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
      --pf-kernels tree,fast runs one icp_da_pf per [pf] kernel on the same frames, the exact tree and the
-     1e-3 fast path side by side, each printed as icp_da_pf[kernel])
+     1e-3 fast path side by side, each printed as icp_da_pf[kernel];
+     --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
+     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x)
 
 Not a test: it asserts nothing and prints numbers.
 """
@@ -82,6 +84,8 @@ def main() -> None:
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
     ap.add_argument("--pf-kernels", default="",
                     help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
+    ap.add_argument("--realistic", action="store_true",
+                    help="also time the frames of the realistic preset's sensing (same traffic)")
     args = ap.parse_args()
 
     cfg = load_config(
@@ -95,7 +99,15 @@ def main() -> None:
     )
     sumo_alone = time_sumo_binary(scenario)
     floor = time_libsumo_floor(scenario)
+    rcfg = None
+    if args.realistic:  # the preset's sensing tables on the idealised config's traffic
+        rcfg = load_config(ROOT / "experiments" / f"arterial_{args.control}_realistic.toml",
+                           {"run.duration_s": args.duration})
+    warm = dataclasses.replace(scenario, duration_s=min(60.0, scenario.duration_s))
+    for sensors in [cfg.sensors] + ([rcfg.sensors] if rcfg else []):  # imports, numba caches: not timed
+        time_coupled(warm, sensors, [])
     coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [])
+    realistic = time_coupled(scenario, rcfg.sensors, [])[0] if rcfg else None
     estimators = build_estimators(cfg)
     if args.pf_kernels:
         pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
@@ -110,6 +122,9 @@ def main() -> None:
     print(f"  sumo binary alone        {sumo_alone:8.2f} s")
     print(f"  libsumo step + getters   {floor:8.2f} s   ratio to sumo {floor / sumo_alone:5.2f}")
     print(f"  coupler (frames only)    {coupler_only:8.2f} s   ratio to sumo {coupler_only / sumo_alone:5.2f}")
+    if realistic is not None:
+        print(f"  frames, realistic preset {realistic:8.2f} s   ratio to sumo {realistic / sumo_alone:5.2f}, "
+              f"to idealised frames {realistic / coupler_only:5.2f}")
     print(f"  coupled ({args.methods:>14}) {coupled:8.2f} s   ratio to sumo {coupled / sumo_alone:5.2f}")
     for name, sec in per_method.items():
         print(f"    estimator {name:<14} {sec:8.2f} s   {1e3 * sec / max(steps, 1):.3f} ms/step")
