@@ -129,7 +129,9 @@ def settings_of(spec: SweepSpec) -> list[tuple[tuple, Variant | None]]:
     """Every setting of a sweep in run order: grid combinations (file order) x variants (the preset, then
     each factor's non-preset levels; a single None without factors)."""
     combos = list(itertools.product(*[values for _, values in spec.grid]))
-    return [(combo, v) for combo in combos for v in variants(spec.factors)]
+    keys = spec.grid_keys
+    return [(combo, v) for combo in combos for v in variants(spec.factors)
+            if v is None or v.runs_with(dict(zip(keys, combo)))]
 
 
 def _flatten(table: dict, prefix: str = "") -> dict:
@@ -251,6 +253,13 @@ def load_sweep(path: str | Path) -> SweepSpec:
             for dotted, _ in lv.overrides:
                 if dotted in dict(grid):
                     raise InputError(path, f"sweep.factors.{f.name}[{i}].set.{dotted}", "also swept in [sweep.grid]")
+            for key, values in lv.only:
+                if key not in dict(grid):
+                    raise InputError(path, f"sweep.factors.{f.name}[{i}].only.{key}", "not a key of [sweep.grid]")
+                unknown = [v for v in values if v not in dict(grid)[key]]
+                if unknown:
+                    raise InputError(path, f"sweep.factors.{f.name}[{i}].only.{key}",
+                                     f"{unknown[0]!r} is not one of the grid's values")
     return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
                      grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors)
 

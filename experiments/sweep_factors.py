@@ -16,7 +16,9 @@ preset values::
 Each level is ``label`` plus either ``preset = true`` (the base config's own level, drawn at its place
 on the factor's axis from the one preset run) or ``set`` (dotted overrides as in ``[sweep.set]``;
 ``"table.key[*].field"`` sets ``field`` in every table of the array ``table.key``, e.g. every
-``[[perception.sensors]]``) and optionally ``base`` (another run config, relative to the sweep file).
+``[[perception.sensors]]``), optionally ``base`` (another run config, relative to the sweep file) and
+``only`` (``{"scenario.control" = ["tlr"]}``: the level runs only with those values of grid keys, e.g.
+on a net that has no VSR variant).
 The runs of a sweep are then every ``[sweep.grid]`` combination times the variants: the preset once,
 and every level that is not the preset. A run's folder name ends in ``<factor>=<label>`` (or
 ``preset``); ``sweep.parquet`` and ``curves.parquet`` gain the string columns ``factor`` and
@@ -32,7 +34,7 @@ from pathlib import Path
 
 from couplers.errors import InputError
 
-LEVEL_KEYS = ("label", "preset", "set", "base")
+LEVEL_KEYS = ("label", "preset", "set", "base", "only")
 PRESET = "preset"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _STAR = re.compile(r"^([a-z_]+)\.([a-z_]+)\[\*\]\.([a-z_]+)$")
@@ -44,6 +46,7 @@ class Level:
     preset: bool
     overrides: tuple[tuple[str, object], ...]  # dotted keys, "table.key[*].field" allowed
     base: Path | None  # another base config, or None
+    only: tuple[tuple[str, tuple], ...] = ()  # grid keys and the values this level runs with (empty: all)
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,11 @@ class Variant:
     level: str
     overrides: tuple[tuple[str, object], ...] = ()
     base: Path | None = None
+    only: tuple[tuple[str, tuple], ...] = ()
+
+    def runs_with(self, params: dict) -> bool:
+        """Whether this variant runs with the grid combination ``params`` ({dotted key: value})."""
+        return all(params.get(k) in values for k, values in self.only)
 
 
 
@@ -116,7 +124,15 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
                 bpath = (path.parent / base).resolve()
                 if not bpath.is_file():
                     raise InputError(path, f"{lw}.base", f"no run config at {bpath}")
-            parsed.append(Level(label=label, preset=preset, overrides=tuple(overrides), base=bpath))
+            only = lv.get("only", {})
+            if not isinstance(only, dict) or preset and only:
+                raise InputError(path, f"{lw}.only", "expected a table {\"grid.key\" = [values]} (not on the preset)")
+            only_t = []
+            for key, values in _flatten_set(only).items():
+                if not isinstance(values, list) or not values:
+                    raise InputError(path, f"{lw}.only.{key}", f"expected a non-empty list of values, got {values!r}")
+                only_t.append((key, tuple(values)))
+            parsed.append(Level(label=label, preset=preset, overrides=tuple(overrides), base=bpath, only=tuple(only_t)))
         if sum(lv.preset for lv in parsed) > 1:
             raise InputError(path, where, "more than one level is the preset")
         factors.append(Factor(name=name, levels=tuple(parsed)))
@@ -141,7 +157,7 @@ def variants(factors: tuple[Factor, ...]) -> list[Variant | None]:
         return [None]
     out = [PRESET_VARIANT]
     for f in factors:
-        out += [Variant(f.name, lv.label, lv.overrides, lv.base) for lv in f.levels if not lv.preset]
+        out += [Variant(f.name, lv.label, lv.overrides, lv.base, lv.only) for lv in f.levels if not lv.preset]
     return out
 
 
@@ -185,6 +201,8 @@ def factors_toml(factors: tuple[Factor, ...], toml_value) -> list[str]:
                 parts.append("set = {" + ", ".join(f"{toml_value(k)} = {toml_value(v)}" for k, v in lv.overrides) + "}")
             if lv.base is not None:
                 parts.append(f"base = {toml_value(str(lv.base))}")
+            if lv.only:
+                parts.append("only = {" + ", ".join(f"{toml_value(k)} = {toml_value(list(v))}" for k, v in lv.only) + "}")
             items.append("{" + ", ".join(parts) + "}")
         lines.append(f"{f.name} = [" + ", ".join(items) + "]")
     return lines

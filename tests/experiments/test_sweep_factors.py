@@ -247,3 +247,19 @@ seeds = [1]
     html = (out / "report.html").read_text()
     assert "gain_zone.png" in html and "v2v_degree.png" in html and "TLR against VSR" in html
     assert (out / "figures" / "gain_zone.png").is_file() and (out / "figures" / "v2v_degree.png").is_file()
+
+
+def test_a_level_may_run_with_some_grid_values_only(tmp_path):
+    factors = FACTORS + 'wide = [{label = "w", set = {"lc.eta_threshold" = 0.9}, only = {"lc.detection_probability" = [0.95]}}]\n'
+    path = write(tmp_path, factors=factors, grid='[sweep.grid]\n"lc.detection_probability" = [0.9, 0.95]')
+    _, runs = expand_runs(load_sweep(path))
+    wide = [r.run_id for r in runs if r.variant.factor == "wide"]
+    assert wide == ["detection_probability=0.95,wide=w,seed=1", "detection_probability=0.95,wide=w,seed=2"]
+    assert len(runs) == 2 * 4 * 2 + 2
+    for bad, field in (('{"lc.eta_threshold" = [0.5]}', "sweep.factors.wide[0].only.lc.eta_threshold"),
+                       ('{"lc.detection_probability" = [0.5]}', "sweep.factors.wide[0].only.lc.detection_probability")):
+        path.write_text(path.read_text().replace('only = {"lc.detection_probability" = [0.95]}', f"only = {bad}"))
+        with pytest.raises(InputError) as err:
+            expand_runs(load_sweep(path))
+        assert err.value.field == field
+        path = write(tmp_path, factors=factors, grid='[sweep.grid]\n"lc.detection_probability" = [0.9, 0.95]')
