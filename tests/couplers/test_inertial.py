@@ -184,3 +184,25 @@ def test_coupler_other_streams_untouched_and_true_heading_inverts_the_imu(cross_
         turning += int(np.count_nonzero(np.abs(c.imu.yaw_rate[cont]) > 0.05))
         prev_heading = dict(zip(a.vehicle_ids, heading))
     assert turning > 0  # the cross has turning traffic: the check covered turns
+
+
+def test_inertial_table_resolves_and_round_trips():
+    """[inertial] reaches the coupler inside [sensors], is written fully resolved (every key) and reads
+    back the same; without it nothing is written and the sensors are the idealised ones."""
+    import tomllib
+    from pathlib import Path
+
+    from experiments.config import config_from_dict, config_to_toml
+
+    project = Path(__file__).resolve().parents[2]
+    data = tomllib.loads((project / "experiments" / "arterial_tlr.toml").read_text())
+    data["scenario"]["net_dir"] = str(project / "sumo_nets" / "arterial")
+    cfg = config_from_dict({**data, "inertial": {"gyro_turn_on_sigma": 0.2}}, Path("/x/cfg.toml"))
+    assert cfg.sensors.inertial is cfg.inertial and cfg.inertial == InertialParams(gyro_turn_on_sigma=0.2)
+    text = config_to_toml(cfg, {"git": "test"})
+    written = tomllib.loads(text)["inertial"]
+    assert set(written) == set(InertialParams.__dataclass_fields__)
+    again = config_from_dict(tomllib.loads(text), Path("/x/cfg.toml"))
+    assert again.sensors == cfg.sensors
+    plain = config_from_dict(data, Path("/x/cfg.toml"))
+    assert plain.sensors.inertial is None and "[inertial]" not in config_to_toml(plain, {})
