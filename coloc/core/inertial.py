@@ -31,8 +31,12 @@ at Ts = 0.75 s (tests/coloc/test_inertial.py).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # coloc.core.frame imports this module for ImuFrame
+    from coloc.core.frame import Frame
 
 
 @dataclass(frozen=True)
@@ -96,7 +100,7 @@ def carried_heading(previous: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
 
 
 def estimator_input(
-    frame, idx: np.ndarray, previous_velocity: np.ndarray, previous_heading: np.ndarray | None, min_speed: float,
+    frame: "Frame", idx: np.ndarray, previous_velocity: np.ndarray, previous_heading: np.ndarray | None, min_speed: float,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The input a_{t-1} an estimator uses this step, and the headings it keeps (rows in frame order).
 
