@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
+from couplers.inertial import InertialParams
 from couplers.perception import Detections, PerceptionParams
 from couplers.v2x import V2xParams
 
@@ -31,11 +32,12 @@ class SensorParams:
     v2v_range_m: float = 250.0  # Rc
     prior_sigma_p: float = 2.0  # m, fast-start prior (Sec. VI-A)
     prior_sigma_v: float = 0.1  # m/s
-    # Opt-in realism (issues 21, 22), from the [perception] / [gnss_error] / [v2x] config tables; None
-    # (the default) is the paper's idealisation, synthesised exactly as before. SUMO coupler only.
+    # Opt-in realism (issues 21, 22), from the [perception] / [gnss_error] / [v2x] / [inertial] config
+    # tables; None (the default) is the paper's idealisation, synthesised exactly as before. SUMO coupler only.
     perception: PerceptionParams | None = None
     gnss_error: GnssErrorParams | None = None
     v2x: V2xParams | None = None
+    inertial: InertialParams | None = None
 
 
 class SensorNoise:

@@ -13,6 +13,7 @@ from coloc.core.vehicles import match_ids
 from couplers import sumo_traffic
 from couplers.errors import InputError
 from couplers.gnss_error import GnssErrorProcess
+from couplers.inertial import InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
@@ -63,7 +64,10 @@ class SumoCoupler:
     :class:`couplers.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
     equipped vehicles (:class:`couplers.v2x.V2xChannel`) are in the frames, and each frame carries
     the channel (``frame.v2x``); every SUMO vehicle on the road, equipped or not, still occludes the
-    perception's sight lines and counts in the traffic statistics.
+    perception's sight lines and counts in the traffic statistics. With ``sensors.inertial``
+    (``[inertial]``) each frame carries the body-frame IMU of :class:`couplers.inertial.InertialProcess`
+    (``frame.imu``) and ``frame.accel`` is NaN (the net-frame input would carry the true heading);
+    the IMU draws from streams of its own, so every other measurement is unchanged.
     """
 
     def __init__(self, scenario: SumoScenario, sensors: SensorParams, infra: InfraSetup | None = None):
@@ -86,6 +90,8 @@ class SumoCoupler:
         self.gnss_error = (GnssErrorProcess(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
         self.v2x = V2xChannel(sensors.v2x, scenario.seed, buildings) if sensors.v2x is not None else None
+        self.inertial = (InertialProcess(sensors.inertial, scenario.seed, scenario.step_length)
+                         if sensors.inertial is not None else None)
         self._dim_ids = np.empty(0, dtype=object)
         self._dims = np.empty((0, 2))
 
@@ -131,6 +137,9 @@ class SumoCoupler:
             )
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
+            if self.inertial is not None:
+                imu = self.inertial.step(states.ids, states.entered, states.heading, states.accel)
+                frame = replace(frame, imu=imu, accel=np.full_like(frame.accel, np.nan))
             if self.infra is not None:
                 infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
                 frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))

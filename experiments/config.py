@@ -60,6 +60,7 @@ from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml, seed_problem
 from couplers.gnss_error import GnssErrorParams
+from couplers.inertial import InertialParams
 from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
@@ -183,6 +184,10 @@ class Config:
     # [v2x] (issue 22), optional, SUMO only: penetration, packet delivery, round budget; handed to the
     # coupler as sensors.v2x like the sensing tables.
     v2x: V2xParams | None = None
+    # [inertial] (issue 21 item 5), optional, SUMO only: a body-frame IMU per vehicle (couplers.inertial);
+    # handed to the coupler as sensors.inertial. Not with [infra] (the infrastructure methods take the
+    # net-frame input).
+    inertial: InertialParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -217,10 +222,11 @@ SECTIONS: dict[str, type] = {
 
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
-                                      "gnss_error": GnssErrorParams, "v2x": V2xParams}
+                                      "gnss_error": GnssErrorParams, "v2x": V2xParams,
+                                      "inertial": InertialParams}
 #: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
 #: [sensors].
-SENSING_SECTIONS = ("perception", "gnss_error", "v2x")
+SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial")
 
 
 def _allows_infinity(where: str) -> bool:
@@ -514,7 +520,7 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
 
 
 def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[str, str]]:
-    """Hand [perception] / [gnss_error] / [v2x] to the coupler inside [sensors] (SUMO scenarios only).
+    """Hand [perception] / [gnss_error] / [v2x] / [inertial] to the coupler inside [sensors] (SUMO scenarios only).
     With [perception], ``lc.sensing_range_m`` (not given in ``lc_given``) becomes the sensors' reach."""
     if sections["lc"].sensor_fov and sections.get("perception") is None:
         raise InputError(path, "lc.sensor_fov", "needs a [perception] table (the sensors whose field of view "
@@ -531,6 +537,9 @@ def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[st
     if "v2x" in given and sections.get("infra") is not None:
         raise InputError(path, "v2x", "not supported together with [infra] yet (the RSU radars would have to "
                                       "see the unequipped vehicles too)")
+    if "inertial" in given and sections.get("infra") is not None:
+        raise InputError(path, "inertial", "not supported together with [infra]: the infrastructure methods "
+                                           "(rsu_bp, sme, fg_topology_new) take the net-frame input")
     sections["sensors"] = dataclasses.replace(sections["sensors"], **given)
     notes = []
     if "perception" in given:

@@ -70,6 +70,15 @@ TABLE_DOCS: dict[str, str] = {
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
                   "bias episodes. The estimators keep the nominal zone covariance a receiver reports.",
+    "inertial": "Realistic inertial input (optional table, SUMO only; `couplers/inertial.py`): a body-frame IMU "
+                "per vehicle, longitudinal and lateral acceleration and yaw rate over the step, each with white "
+                "noise, a turn-on bias drawn when the vehicle enters and a first-order Gauss-Markov drift. The "
+                "estimators rotate the body-frame acceleration into the net frame by their own estimated heading "
+                "(`coloc/core/inertial.py`): the velocity estimate's direction, dead-reckoned by the measured yaw "
+                "rate below `motion.heading_min_speed`. Absent: the net-frame input with a perfect heading plus "
+                "`sensors.accel_sigma` noise, exactly as before. Not with `[infra]`. Defaults: the IMU defaults "
+                "(ADIS16448) of the RotorS / PX4 SITL Gazebo IMU plugin; each effect draws from its own seeded "
+                "stream.",
     "v2x": "Realistic V2X (optional table, SUMO only; `couplers/v2x.py`): a share of equipped vehicles "
            "(the others are not estimated, send nothing and are not in the V2V graph, but stay in the traffic "
            "statistics and still occlude sight lines), a packet delivery ratio by link distance with a separate "
@@ -174,6 +183,26 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "gnss_error": ("", "Not a key of the file (refused there): carries the `[gnss_error]` table to the "
                            "coupler."),
         "v2x": ("", "Not a key of the file (refused there): carries the `[v2x]` table to the coupler."),
+        "inertial": ("", "Not a key of the file (refused there): carries the `[inertial]` table to the "
+                         "coupler."),
+    },
+    "inertial": {
+        "accel_noise_density": ("m/s^2/sqrt(Hz)", "Accelerometer white-noise density per axis (longitudinal, "
+                                                  "lateral); the step's mean has std density / sqrt(Ts). "
+                                                  "Default 0.004: RotorS / PX4 SITL IMU plugin (ADIS16448)."),
+        "accel_bias_sigma": ("m/s^2", "Stationary std of the accelerometer bias drift (first-order Gauss-Markov) "
+                                      "per axis. Default 0.0735 = random walk 0.006 m/s^3/sqrt(Hz) x sqrt(tau / 2) "
+                                      "of RotorS."),
+        "accel_bias_tau_s": ("s", "Correlation time of the accelerometer bias drift. Default 300 s: RotorS."),
+        "accel_turn_on_sigma": ("m/s^2", "Std of the accelerometer turn-on bias per axis, drawn when a vehicle "
+                                         "enters and then constant. Default 0.196 (20 mg): RotorS."),
+        "gyro_noise_density": ("deg/s/sqrt(Hz)", "Yaw-rate white-noise density. Default 0.01944 (= 70 deg/h/sqrt(Hz)): "
+                                                 "RotorS."),
+        "gyro_bias_sigma": ("deg/s", "Stationary std of the yaw-rate bias drift (first-order Gauss-Markov). "
+                                     "Default 0.0497 = random walk 2 x 4 / 3600 deg/s^2/sqrt(Hz) x sqrt(tau / 2) of RotorS."),
+        "gyro_bias_tau_s": ("s", "Correlation time of the yaw-rate bias drift. Default 1000 s: RotorS."),
+        "gyro_turn_on_sigma": ("deg/s", "Std of the yaw-rate turn-on bias, drawn when a vehicle enters. Default "
+                                        "0.5 deg/s: RotorS."),
     },
     "v2x": {
         "penetration_rate": (NO_UNIT, "Share of SUMO vehicles with a V2X unit, in (0, 1]: a vehicle is "

@@ -2,7 +2,8 @@
 need (truth scrambled, vehicles removed, added or reordered).
 
 * :func:`road_frames`: vehicles driving east on one lane by model (1), static features on both
-  sides, measurements by ``couplers.sensors`` (seeded).
+  sides, measurements by ``couplers.sensors`` (seeded); with ``inertial`` the body-frame IMU of
+  ``couplers.inertial`` (``frame.imu``, ``frame.accel`` NaN) as the SUMO coupler makes it.
 * :func:`infra_frames`: vehicles along the x axis (two lanes, both directions) through the range
   of one or two road-side units, static features along the road; measurements from the coupler's
   own synthesis (``couplers.sensors.synthesize_frame``, ``couplers.infra.InfraSynth``).
@@ -17,16 +18,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
+from coloc.core.inertial import ImuFrame
 from coloc.core.models import input_matrix, transition_matrix
+from couplers.inertial import InertialParams, InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
 
 
 def road_frames(seed=1, n=5, steps=15, n_feat=4, v2f_range=30.0, v2v_range=250.0, gnss_sp=8.0, gnss_sv=0.2,
-             leave=None, enter=None, spacing=10.0):
+             leave=None, enter=None, spacing=10.0, inertial: InertialParams | None = None,
+                accel_sigma: float = SensorParams.accel_sigma):
     """Frames of n vehicles 10 m apart at 10 m/s east; features at x = 20, 50, ... y = +-6 m.
 
     ``leave=(i, t)``: vehicle i is gone from step t on; ``enter=(i, t)``: vehicle i appears at step t.
+    ``inertial``: frames carry the body-frame IMU (``[inertial]``) and a NaN ``accel``.
     """
     rng = np.random.default_rng(seed)
     dt = 1.0
@@ -38,8 +43,9 @@ def road_frames(seed=1, n=5, steps=15, n_feat=4, v2f_range=30.0, v2v_range=250.0
     feats[:, 0] = 20 + 30 * np.arange(n_feat)
     feats[:, 1] = np.where(np.arange(n_feat) % 2, -6.0, 6.0)
     tree = cKDTree(feats[:, :2])
-    params = SensorParams(v2f_range_m=v2f_range, v2v_range_m=v2v_range)
+    params = SensorParams(v2f_range_m=v2f_range, v2v_range_m=v2v_range, accel_sigma=accel_sigma)
     noise = SensorNoise(seed)
+    imu = InertialProcess(inertial, seed, dt) if inertial is not None else None
     ids = np.array([f"v{i}" for i in range(n)], dtype=object)
     frames = []
     for t in range(steps):
@@ -56,14 +62,16 @@ def road_frames(seed=1, n=5, steps=15, n_feat=4, v2f_range=30.0, v2v_range=250.0
             entered[enter[0]] = t == enter[1]
         sel = np.flatnonzero(cur)
         m = sel.size
-        frames.append(
-            synthesize_frame(
-                t=float(t), dt=dt, vehicle_ids=ids[sel], entered=entered[sel], x_true=x[sel],
-                accel_true=acc[sel], heading=np.zeros(m), gnss_sigma_p=np.full(m, gnss_sp),
-                gnss_sigma_v=np.full(m, gnss_sv), features_true=feats, feature_tree=tree, params=params,
-                noise=noise, zone=np.full(m, "A", dtype=object), area=np.full(m, "road", dtype=object),
-            )
+        f = synthesize_frame(
+            t=float(t), dt=dt, vehicle_ids=ids[sel], entered=entered[sel], x_true=x[sel],
+            accel_true=acc[sel], heading=np.zeros(m), gnss_sigma_p=np.full(m, gnss_sp),
+            gnss_sigma_v=np.full(m, gnss_sv), features_true=feats, feature_tree=tree, params=params,
+            noise=noise, zone=np.full(m, "A", dtype=object), area=np.full(m, "road", dtype=object),
         )
+        if imu is not None:
+            f = replace(f, imu=imu.step(ids[sel], entered[sel], np.zeros(m), acc[sel]),
+                        accel=np.full((m, 2), np.nan))
+        frames.append(f)
     return frames
 
 
@@ -145,8 +153,9 @@ def select_vehicles(frame: Frame, rows, entered=None) -> Frame:
         odom[ent] = np.nan
         infra = replace(infra, v2i=infra.v2i[:, rows].tocsr(), radar_z=infra.radar_z[keep],
                         radar_owner=infra.radar_owner[keep], odom=odom)
+    imu = None if frame.imu is None else ImuFrame(frame.imu.accel_body[rows], frame.imu.yaw_rate[rows])
     return replace(
-        frame, vehicle_ids=frame.vehicle_ids[rows], entered=ent, prior_z=prior_z, prior_R=prior_r,
+        frame, imu=imu, vehicle_ids=frame.vehicle_ids[rows], entered=ent, prior_z=prior_z, prior_R=prior_r,
         accel=frame.accel[rows], gnss_z=frame.gnss_z[rows], gnss_R=frame.gnss_R[rows], v2f_z=frame.v2f_z[o_idx],
         v2f_owner=owner[o_idx], v2f_R=frame.v2f_R[o_idx], neighbors=frame.neighbors[rows][:, rows].tocsr(),
         truth=truth, infra=infra)

@@ -2,7 +2,7 @@
 
 One frame per time step, arrays not objects (docs/architecture.md "The frame contract"). Estimators
 read only the measurement fields; ``truth`` is for scoring and tests, and an
-estimator that reads it is a bug (``tests/coloc/test_truth_blind.py``).
+estimator that reads it is a bug (``tests/coloc/test_contract.py``).
 
 State convention (Brambilla et al., model (1)): x = [px, py, vx, vy] in the
 net's Cartesian frame (metres, metres per second).
@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from coloc.core.inertial import ImuFrame
 from coloc.core.v2x import V2xFrame
 
 
@@ -77,6 +78,13 @@ class Frame:
     Brambilla Sec. VI-A; rows of vehicles that did not enter are NaN).
     ``accel`` is the inertial input a_{t-1} of model (1) over (t - dt, t],
     in the net frame; ``dt`` is the sampling interval Ts.
+
+    ``imu`` (the ``[inertial]`` table, :mod:`coloc.core.inertial`) is the vehicles' body-frame IMU:
+    ``imu.accel_body`` (N, 2) longitudinal / lateral acceleration and ``imu.yaw_rate`` (N,), each with
+    white noise and a drifting bias. When it is set, ``accel`` is NaN (it would carry the true
+    heading): an estimator forms a_{t-1} itself by rotating ``imu.accel_body`` with its *estimated*
+    heading (:func:`coloc.core.inertial.estimator_input`). None (the default): ``accel`` is the
+    paper's net-frame input, exactly as before.
     """
 
     t: float
@@ -97,6 +105,9 @@ class Frame:
     # Realistic V2X ([v2x] table): per-link delivery probabilities aligned with ``neighbors``, the
     # round budget and the step's channel seed (coloc.core.v2x). None: every link delivers every round.
     v2x: V2xFrame | None = None
+    # Body-frame IMU ([inertial] table): accel_body (N, 2) and yaw_rate (N,) (coloc.core.inertial). None:
+    # ``accel`` is the net-frame input of model (1).
+    imu: ImuFrame | None = None
 
     @property
     def n_vehicles(self) -> int:

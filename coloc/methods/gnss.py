@@ -3,6 +3,10 @@
 A Kalman tracker per vehicle with model (1) driven by the inertial input and
 updated by the GNSS fix of model (3) with the zone-dependent covariance the
 frame carries. All vehicles of a frame are processed as one batch.
+
+With ``frame.imu`` (``[inertial]``) the input of model (1) is the body-frame IMU rotated by the
+tracker's own heading estimate (:func:`coloc.core.inertial.estimator_input`); the tracker keeps one
+heading per vehicle for when it is too slow for its velocity to give one.
 """
 
 from __future__ import annotations
@@ -12,8 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov, kalman_update, predict
-from coloc.core.vehicles import carry_states
+from coloc.core.vehicles import carry_states, match_ids
 from coloc.inference.comm import CommCount
 from coloc.kernels.kalman import gnss_step_kernel
 from coloc.methods.registry import GNSS
@@ -44,15 +49,19 @@ class GnssTracker:
     _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
     last_comm: CommCount | None = None  # non-cooperative: sends nothing (coloc.inference.comm)
+    _heading: np.ndarray | None = None  # kept heading per vehicle row ([inertial] only)
 
     def step(self, frame: Frame) -> StepEstimate:
+        idx = match_ids(self._ids, frame.vehicle_ids)
+        accel, self._heading = estimator_input(frame, idx, self._mean[:, 2:], self._heading,
+                                               self.motion.heading_min_speed)
         mean, cov, fresh = carry_states(
-            self._ids, self._mean, self._cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R
+            self._ids, self._mean, self._cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, idx
         )
         # A fresh vehicle's prior is already at time t: it is only updated.
         m = self.motion
         gnss_step_kernel(
-            mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
+            mean, cov, np.ascontiguousarray(accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
             np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
             m.sigma_along, m.sigma_cross, m.heading_min_speed,
         )

@@ -95,6 +95,7 @@ from scipy.stats import chi2
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
@@ -567,8 +568,10 @@ def icp_da_lc_step(
     the new one is ``info.existence``); ``detection``: the vehicles' sensors, for a P_D per
     (vehicle, track) (:mod:`coloc.core.detection`; None: ``lc.detection_probability``)."""
     match = match_ids(state.ids, frame.vehicle_ids)
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
+    # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
+    accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
@@ -686,7 +689,7 @@ def icp_da_lc_step(
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
-    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs), next_id, info
+    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading), next_id, info
 
 
 def own_consistency_reset(

@@ -98,6 +98,7 @@ from scipy.special import logsumexp
 from scipy.stats import chi2
 
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.inertial import estimator_input
 from coloc.core.v2x import V2xFrame
 from coloc.core.vehicles import match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
@@ -508,6 +509,8 @@ class PfState:
     msg_time: np.ndarray = field(default_factory=lambda: np.empty(0))
     # Per track: evidence is folded into its weights beyond the stored messages (an expired message).
     track_folded: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=bool))
+    # [inertial] only: the heading kept per vehicle row (coloc.core.inertial.net_frame_input); None otherwise.
+    heading: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -608,13 +611,18 @@ def icp_da_pf_step(
     for i in np.flatnonzero(fresh):
         if not np.all(np.isfinite(frame.prior_z[i])):
             raise ValueError("frame marks a vehicle as new but carries no fast-start prior for it")
+    # Input of model (1): frame.accel, or with [inertial] the body-frame IMU rotated by the heading of the
+    # previous belief's mean velocity (coloc.core.inertial.estimator_input), for both particle sets.
+    prev_velocity = (state.particles[:, :, 2:].mean(axis=1) if frame.imu is not None and state.particles.shape[0]
+                     else np.empty((0, 2)))
+    accel, heading = estimator_input(frame, idx, prev_velocity, state.heading, params.motion.heading_min_speed)
 
     def vehicle_sets(carried: np.ndarray, predict_purpose: str, prior_purpose: str) -> np.ndarray:
         out = np.empty((n, jv, 4))
         old = np.flatnonzero(~fresh)
         if old.size:
             noise = np.stack([entity_rng(pf.seed, predict_purpose, ents[i], step).standard_normal((jv, 2)) for i in old])
-            out[old] = predict_vehicle_particles(carried[idx[old]], frame.accel[old], frame.dt, params, noise)
+            out[old] = predict_vehicle_particles(carried[idx[old]], accel[old], frame.dt, params, noise)
         for i in np.flatnonzero(fresh):
             out[i] = sample_gaussian(frame.prior_z[i], frame.prior_R[i], jv, entity_rng(pf.seed, prior_purpose, ents[i], step))
         return out
@@ -850,7 +858,7 @@ def icp_da_pf_step(
         keep_m = np.isin(msg_track, t_ids[keep_t])
         msg_track, msg_vehicle, msg_logv, msg_time = msg_track[keep_m], msg_vehicle[keep_m], msg_logv[keep_m], msg_time[keep_m]
     new_state = PfState(vids.copy(), new_particles, new_own, t_ids[keep_t], new_t_particles[keep_t], new_t_logw[keep_t],
-                        t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t])
+                        t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t], heading)
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
                       pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced], res.iterations, n,

@@ -35,7 +35,10 @@ Per step:
    (:func:`coloc.inference.bpa.step_feature_beliefs`).
 
 With ``frame.v2x`` set, the consensus of (20) runs over the lossy V2X channel within the step's
-round budget (:mod:`coloc.inference.bpa`). ``last_comm`` is what the vehicles sent in the last step
+round budget (:mod:`coloc.inference.bpa`). With ``frame.imu`` (``[inertial]``) the input of model (1), for
+the belief and the own-sensor track alike, is the body-frame IMU rotated by the heading of the vehicle's
+previous belief (22) (:func:`coloc.core.inertial.estimator_input`; the kept headings are
+``IcpState.heading``). ``last_comm`` is what the vehicles sent in the last step
 (:mod:`coloc.inference.comm`: per BPA-L consensus round, one broadcast per vehicle with 16 words per
 feature it shares with a neighbour).
 """
@@ -47,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import carry_states, match_ids
 from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
 from coloc.inference.comm import CommCount
@@ -60,12 +64,13 @@ __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_
 
 def vehicle_prior_beliefs(
     prev_ids: np.ndarray, prev_mean: np.ndarray, prev_cov: np.ndarray, frame: Frame, params: IcpParams,
-    match: np.ndarray | None = None,
+    match: np.ndarray | None = None, accel: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eq. (11): b_i^(0) = GNSS likelihood x predicted belief (fresh vehicles: prior x GNSS).
 
     ``match``: ``match_ids(prev_ids, frame.vehicle_ids)`` when the caller has it (b^(0) and the
-    own-sensor track share it)."""
+    own-sensor track share it); ``accel``: the input a_{t-1} of model (1) in frame order
+    (:func:`coloc.core.inertial.estimator_input`; None: ``frame.accel``)."""
     mean, cov, fresh = carry_states(
         prev_ids, prev_mean, prev_cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, match
     )
@@ -73,7 +78,8 @@ def vehicle_prior_beliefs(
     # :class:`coloc.methods.gnss.GnssTracker` (numpy reference: gnss_predict_update / kalman_update).
     m = params.motion
     gnss_step_kernel(
-        mean, cov, np.ascontiguousarray(frame.accel, dtype=float), np.ascontiguousarray(frame.gnss_z, dtype=float),
+        mean, cov, np.ascontiguousarray(frame.accel if accel is None else accel, dtype=float),
+        np.ascontiguousarray(frame.gnss_z, dtype=float),
         np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
         m.sigma_along, m.sigma_cross, m.heading_min_speed,
     )
@@ -84,8 +90,9 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     """One time step of ICP with known association (pure function of the previous state)."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
     match = match_ids(state.ids, frame.vehicle_ids)
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match)
+    accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
+    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
+    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
     owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
@@ -99,7 +106,7 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     )
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
-    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs)
+    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading)
 
 
 @dataclass(frozen=True)
@@ -115,6 +122,8 @@ class IcpState:
     # (mean, cov) of (20) for ``features.ids`` after the step's BPA-L (coloc.inference.bpa.step_feature_beliefs);
     # None: the store's moments.
     feature_beliefs: tuple[np.ndarray, np.ndarray] | None = None
+    # [inertial] only: the heading kept per vehicle row (coloc.core.inertial.net_frame_input); None otherwise.
+    heading: np.ndarray | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
         f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs

@@ -155,3 +155,30 @@ def test_covariances_stay_spd(name):
         assert_valid(e, f)
         if e.feature_cov is not None and e.feature_cov.shape[0]:
             assert np.all(np.isfinite(e.feature_cov))
+
+
+ROAD_METHODS = [m for m in RUNNABLE if not METHODS[m].infrastructure]
+
+
+@pytest.mark.parametrize("name", ROAD_METHODS)
+def test_inertial_input_contract(name):
+    """With the body-frame IMU (``[inertial]``; ``frame.accel`` NaN): truth-blind to the byte, vehicles
+    entering, leaving and coming back in another row order, covariances SPD and every output finite."""
+    from couplers.inertial import InertialParams
+
+    rng = np.random.default_rng(7)
+    frames = road_frames(steps=9, spacing=40.0, v2v_range=25.0, inertial=InertialParams())
+    assert all(f.imu is not None and np.all(np.isnan(f.accel)) for f in frames)
+    a, b = build(name), build(name)
+    for k, f in enumerate(frames):
+        present = [i for i in range(f.n_vehicles)
+                   if not (i == 1 and k >= 3) and not (i == 2 and k < 2) and not (i == 0 and 4 <= k < 6)]
+        entered = np.array([f.entered[i] or (i == 2 and k == 2) or (i == 0 and k == 6) for i in present])
+        g = select_vehicles(f, present, entered=entered) if k % 2 == 0 else select_vehicles(
+            f, np.array(present)[::-1], entered=entered[::-1])
+        assoc = g.truth.v2f_feature.copy()
+        ea = step(name, a, g, assoc)
+        eb = step(name, b, scrambled(g, rng), assoc)
+        assert ea.mean.tobytes() == eb.mean.tobytes() and ea.cov.tobytes() == eb.cov.tobytes()
+        assert_valid(ea, g)
+        np.testing.assert_array_equal(_nearest_truth(ea, g), np.arange(g.n_vehicles))

@@ -355,6 +355,49 @@ def run_gnss_error_negative_tau(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "inertial.accel_noise_density", ">= 0")
+def run_inertial_negative_noise(tmp, net, run):
+    cfg = _config(tmp, net, "[inertial]\naccel_noise_density = -0.004\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "inertial.gyro_bias_tau_s", "positive")
+def run_inertial_zero_correlation_time(tmp, net, run):
+    cfg = _config(tmp, net, "[inertial]\ngyro_bias_tau_s = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "inertial.gyro_turn_on_sigma", "number")
+def run_inertial_text_value(tmp, net, run):
+    cfg = _config(tmp, net, "[inertial]\ngyro_turn_on_sigma = 'half a degree'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "inertial.yaw_noise", "unknown key")
+def run_inertial_unknown_key(tmp, net, run):
+    cfg = _config(tmp, net, "[inertial]\nyaw_noise = 0.1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "sensors.inertial", "[inertial] table")
+def run_inertial_inside_sensors(tmp, net, run):
+    cfg = _config(tmp, net, "[sensors]\ninertial = 1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "inertial", "[infra]")
+def run_inertial_with_infra(tmp, net, run):
+    cfg = _config(tmp, net, "[infra]\n[inertial]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("single_road.toml", "inertial", "sumo")
+def run_inertial_controlled_scenario(tmp, net, run):
+    cfg = tmp / "single_road.toml"
+    cfg.write_text((PROJECT / "experiments" / "single_road.toml").read_text() + "\n[inertial]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "v2x.penetration_rate", "(0, 1]")
 def run_v2x_penetration_zero(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\npenetration_rate = 0.0\n")
@@ -629,7 +672,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 73
+    assert len(CASES) >= 80
 
 
 # ----------------------------------------------------------------------------- what --out may replace

@@ -1,0 +1,189 @@
+"""Realistic inertial input (issue 21 item 5): a body-frame IMU per vehicle, opt-in through the
+``[inertial]`` config table. Without it the frame's ``accel`` is the true net-frame change of velocity
+plus white noise (a perfect heading), exactly as before.
+
+Model, per vehicle i and step k (Ts = the step), :class:`coloc.core.inertial.ImuFrame` in the frame:
+
+* True body-frame motion (:func:`true_body_motion`): yaw rate r_k = wrap(psi_k - psi_{k-1}) / Ts and
+  acceleration a_body,k = R(psi_mid)^T (v_k - v_{k-1}) / Ts (the net-frame change of velocity rotated
+  into the body frame), psi_mid = psi_{k-1} + r_k Ts / 2, with psi SUMO's
+  heading. Longitudinal is along the heading, lateral to its left: a turn shows as lateral
+  (centripetal) acceleration. Rotating back by the true psi_mid gives today's net-frame input
+  exactly (the discretisation against a continuous IMU: :mod:`coloc.core.inertial`). A vehicle that
+  (re)enters has no previous step: zero true motion (it is not predicted at that step).
+* Measured = true + bias + white noise, per axis (accelerometer: longitudinal and lateral; gyroscope:
+  yaw):
+  - white noise: the mean over the step of white noise of density N (unit/sqrt(Hz)), standard
+    deviation N / sqrt(Ts) (:func:`white_noise`; the Allan-variance convention, sigma(tau) = N / sqrt(tau));
+  - bias = turn-on bias + drift. The turn-on bias, N(0, turn_on_sigma^2), is drawn when the vehicle
+    enters (or re-enters after a teleport) and stays constant while it is in the net
+    (:func:`turn_on_bias`). The drift is a first-order Gauss-Markov process sampled exactly,
+    b_k = a b_{k-1} + sigma sqrt(1 - a^2) w_k, a = exp(-Ts / tau) (:func:`gauss_markov_bias`), with
+    stationary standard deviation sigma and correlation a^m at lag m; it starts stationary
+    (b = sigma w) when the vehicle enters: its IMU has been running before.
+  No gravity: the net is flat (no road slope, no pitch or roll), and no scale-factor or
+  misalignment errors.
+
+Random streams: one ``numpy.random.Generator`` per effect, ``SeedSequence([seed, 0x1A0, crc32(effect
+name)])`` for "accel_noise", "accel_drift", "accel_turn_on", "gyro_noise", "gyro_drift",
+"gyro_turn_on": independent of every other stream (couplers.sensors.SensorNoise, [perception],
+[gnss_error], [v2x]), so GNSS, V2F and prior draws are the same with or without ``[inertial]``. Each
+draws for every vehicle of the frame at every step (turn-on draws too, used only for those that
+enter), so a stream does not depend on who entered.
+
+Default sources (:class:`InertialParams`): the IMU defaults of the RotorS simulator's Gazebo IMU
+plugin (ethz-asl/rotors_simulator, ``rotors_gazebo_plugins/include/rotors_gazebo_plugins/
+gazebo_imu_plugin.h``, "Default values for use with ADIS16448 IMU", the same in PX4's
+PX4-SITL_gazebo ``gazebo_imu_plugin.h``), whose model is the one above (noise density, Gauss-Markov
+bias with a correlation time, turn-on bias):
+* gyroscope: noise density 2 * 35 / 3600 deg/s/sqrt(Hz) = 0.01944 deg/s/sqrt(Hz); bias random walk
+  2 * 4 / 3600 deg/s^2/sqrt(Hz) with correlation time 1000 s, i.e. a stationary drift sigma of
+  rw sqrt(tau / 2) = 0.0497 deg/s; turn-on bias sigma 0.5 deg/s;
+* accelerometer: noise density 2 * 2e-3 = 0.004 m/s^2/sqrt(Hz); bias random walk 2 * 3e-3 m/s^3/sqrt(Hz)
+  with correlation time 300 s, i.e. stationary drift sigma 6e-3 sqrt(150) = 0.0735 m/s^2; turn-on bias
+  sigma 20 mg = 0.196 m/s^2.
+The ADIS16448 is an industrial MEMS IMU; automotive MEMS parts are in the same class (e.g. Bosch's
+CISS module quotes 120 ug/sqrt(Hz) and 0.014 deg/s/sqrt(Hz) noise densities with +-50 mg and +-1 deg/s
+zero offsets for its BMA280 / BMG160). Vehicle vibration is not modelled (our choice: none).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from coloc.core.inertial import ImuFrame, wrap_angle
+from coloc.core.vehicles import match_ids
+from couplers.errors import InputError
+from couplers.perception import effect_rng
+
+INERTIAL_STREAM_TAG = 0x1A0
+
+
+@dataclass(frozen=True)
+class InertialParams:
+    """The ``[inertial]`` table: a body-frame IMU per vehicle (sources in the module docstring)."""
+
+    # RotorS / PX4 SITL Gazebo IMU plugin defaults "for use with ADIS16448" (module docstring); the drift
+    # sigmas are its bias random walks rw converted to a stationary std, rw sqrt(tau / 2).
+    accel_noise_density: float = 0.004  # m/s^2/sqrt(Hz): 2 * 2e-3
+    accel_bias_sigma: float = 0.0735  # m/s^2: 2 * 3e-3 m/s^3/sqrt(Hz) * sqrt(300 / 2)
+    accel_bias_tau_s: float = 300.0  # s
+    accel_turn_on_sigma: float = 0.196  # m/s^2: 20 mg
+    gyro_noise_density: float = 0.01944  # deg/s/sqrt(Hz): 2 * 35 / 3600 (70 deg/h/sqrt(Hz))
+    gyro_bias_sigma: float = 0.0497  # deg/s: 2 * 4 / 3600 deg/s^2/sqrt(Hz) * sqrt(1000 / 2)
+    gyro_bias_tau_s: float = 1000.0  # s
+    gyro_turn_on_sigma: float = 0.5  # deg/s
+
+    def __post_init__(self):
+        for key in ("accel_noise_density", "accel_bias_sigma", "accel_turn_on_sigma",
+                    "gyro_noise_density", "gyro_bias_sigma", "gyro_turn_on_sigma"):
+            val = getattr(self, key)
+            if not (_finite(val) and val >= 0):
+                raise InputError(None, key, f"must be >= 0 and finite, got {val!r}")
+        for key in ("accel_bias_tau_s", "gyro_bias_tau_s"):
+            val = getattr(self, key)
+            if not (_finite(val) and val > 0):
+                raise InputError(None, key, f"must be positive and finite (the bias correlation time), got {val!r}")
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def true_body_motion(accel_net: np.ndarray, heading: np.ndarray, prev_heading: np.ndarray, dt: float,
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """True (accel_body (N, 2), yaw_rate (N,)) over the step: r = wrap(psi - psi_prev) / Ts and the
+    net-frame change of velocity ``accel_net`` rotated into the body frame at psi_mid = psi_prev + r Ts / 2.
+    Rows with a NaN ``prev_heading`` (vehicles that entered) get zero motion."""
+    new = ~np.isfinite(prev_heading)
+    prev = np.where(new, heading, prev_heading)
+    dpsi = wrap_angle(heading - prev)
+    mid = prev + 0.5 * dpsi
+    c, s = np.cos(mid), np.sin(mid)
+    a = np.asarray(accel_net, dtype=float)
+    body = np.stack([c * a[:, 0] + s * a[:, 1], -s * a[:, 0] + c * a[:, 1]], axis=1)  # R(mid)^T a
+    body[new] = 0.0
+    return body, dpsi / dt
+
+
+def white_noise(rng: np.random.Generator, shape: tuple[int, ...], density: float, dt: float) -> np.ndarray:
+    """Mean over a step of ``dt`` of white noise of ``density`` (unit/sqrt(Hz)): N(0, density^2 / dt)."""
+    return rng.standard_normal(shape) * (density / math.sqrt(dt))
+
+
+def turn_on_bias(rng: np.random.Generator, shape: tuple[int, ...], sigma: float) -> np.ndarray:
+    """Turn-on biases N(0, sigma^2), one per vehicle (and axis) drawn for every row."""
+    return rng.standard_normal(shape) * sigma
+
+
+def gauss_markov_bias(prev: np.ndarray, w: np.ndarray, fresh: np.ndarray, sigma: float, a: float) -> np.ndarray:
+    """b_k = a b_{k-1} + sigma sqrt(1 - a^2) w_k (exact first-order Gauss-Markov sampling, stationary
+    std ``sigma``, lag-m correlation a^m); rows ``fresh`` start stationary, b = sigma w."""
+    out = a * prev + sigma * math.sqrt(1.0 - a * a) * w
+    out[fresh] = sigma * w[fresh]
+    return out
+
+
+class InertialProcess:
+    """Per-vehicle IMU state (previous heading, biases) across the steps of one run."""
+
+    STREAMS = ("accel_noise", "accel_drift", "accel_turn_on", "gyro_noise", "gyro_drift", "gyro_turn_on")
+
+    def __init__(self, params: InertialParams, seed: int, dt: float):
+        self.params = params
+        self.dt = float(dt)
+        self.a_accel = math.exp(-self.dt / params.accel_bias_tau_s)
+        self.a_gyro = math.exp(-self.dt / params.gyro_bias_tau_s)
+        for name in self.STREAMS:
+            setattr(self, f"{name}_rng", effect_rng(seed, INERTIAL_STREAM_TAG, name))
+        self._ids = np.empty(0, dtype=object)
+        self._heading = np.empty(0)
+        self.accel_turn_on = np.empty((0, 2))  # current vehicles' biases, rows of the last step
+        self.accel_drift = np.empty((0, 2))
+        self.gyro_turn_on = np.empty(0)  # rad/s
+        self.gyro_drift = np.empty(0)
+
+    def step(self, ids: np.ndarray, entered: np.ndarray, heading: np.ndarray, accel_net: np.ndarray) -> ImuFrame:
+        """The step's IMU measurements; ``accel_net`` (N, 2) the true net-frame change of velocity / Ts
+        (zero rows for vehicles that entered), ``heading`` (N,) the true heading."""
+        p, dt = self.params, self.dt
+        n = len(ids)
+        idx = match_ids(self._ids, ids)
+        fresh = (idx < 0) | np.asarray(entered, dtype=bool)
+        cont = ~fresh
+        prev_heading = np.full(n, np.nan)
+        prev_heading[cont] = self._heading[idx[cont]]
+        body, yaw = true_body_motion(accel_net, heading, prev_heading, dt)
+
+        def carried(arr, shape):
+            out = np.zeros(shape)
+            out[cont] = arr[idx[cont]]
+            return out
+
+        rad = math.pi / 180.0
+        a_on = np.where(fresh[:, None], turn_on_bias(self.accel_turn_on_rng, (n, 2), p.accel_turn_on_sigma),
+                        carried(self.accel_turn_on, (n, 2)))
+        g_on = np.where(fresh, turn_on_bias(self.gyro_turn_on_rng, (n,), p.gyro_turn_on_sigma * rad),
+                        carried(self.gyro_turn_on, (n,)))
+        a_drift = gauss_markov_bias(carried(self.accel_drift, (n, 2)), self.accel_drift_rng.standard_normal((n, 2)),
+                                    fresh, p.accel_bias_sigma, self.a_accel)
+        g_drift = gauss_markov_bias(carried(self.gyro_drift, (n,)), self.gyro_drift_rng.standard_normal(n),
+                                    fresh, p.gyro_bias_sigma * rad, self.a_gyro)
+        accel = body + a_on + a_drift + white_noise(self.accel_noise_rng, (n, 2), p.accel_noise_density, dt)
+        yaw_rate = yaw + g_on + g_drift + white_noise(self.gyro_noise_rng, (n,), p.gyro_noise_density * rad, dt)
+        self._ids, self._heading = np.asarray(ids, dtype=object), np.asarray(heading, dtype=float).copy()
+        self.accel_turn_on, self.accel_drift, self.gyro_turn_on, self.gyro_drift = a_on, a_drift, g_on, g_drift
+        return ImuFrame(accel_body=accel, yaw_rate=yaw_rate)
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        """(N, 2) total accelerometer bias of the last step's vehicles, m/s^2."""
+        return self.accel_turn_on + self.accel_drift
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        """(N,) total gyroscope bias of the last step's vehicles, rad/s."""
+        return self.gyro_turn_on + self.gyro_drift
