@@ -29,6 +29,9 @@ class Truth:
     area: np.ndarray  # (N,) str, analysis area of each vehicle
     heading: np.ndarray | None = None  # (N,) true heading, rad from +x (defined when stopped too)
     feature_ids: np.ndarray | None = None  # (K,) str, stable feature names
+    # Class of each feature (0 static landmark, 1 pedestrian; couplers.pedestrians); None: all static.
+    # With SUMO pedestrians, rows K0.. are persons by first appearance (NaN state once they have left).
+    feature_class: np.ndarray | None = None  # (K,) int8
     # Infrastructure mode only: row (into the frame's vehicles) of each radar detection.
     radar_vehicle: np.ndarray | None = None  # (P,) int
 
@@ -97,6 +100,11 @@ class Frame:
     # Realistic V2X ([v2x] table): per-link delivery probabilities aligned with ``neighbors``, the
     # round budget and the step's channel seed (coloc.core.v2x). None: every link delivers every round.
     v2x: V2xFrame | None = None
+    # Class label of each V2F row as the sensor's classifier reports it (``[features] pedestrians``):
+    # 0 = static landmark, 1 = pedestrian (couplers.perception CLASS_*); a false detection is reported
+    # as static (it is drawn as a static object). None (pedestrians off): every row is a static landmark,
+    # and estimators run exactly as without classes.
+    v2f_class: np.ndarray | None = None  # (O,) int8
 
     @property
     def n_vehicles(self) -> int:

@@ -8,6 +8,10 @@ from coloc.core.models import MotionParams
 
 #: What a vehicle's stored message to a feature track is built on (see :class:`IcpParams`).
 FEATURE_MESSAGES = ("bpa", "own")
+#: Default sv_par (m/s per step) of model (2) for pedestrian tracks (see :class:`IcpParams`).
+PEDESTRIAN_SIGMA_PAR = 0.013
+#: Class codes of feature tracks (the frame's ``v2f_class``; couplers.perception CLASS_*).
+CLASS_STATIC, CLASS_PEDESTRIAN = 0, 1
 #: What the BPA-L stopping rule tests (see :class:`IcpParams`).
 STOP_RULES = ("vehicles", "vehicles_and_features")
 
@@ -23,6 +27,11 @@ class IcpParams:
     information does not grow without bound; sv_perp defaults to sv_par/2.
     A feature whose estimated speed is below ``feature_heading_min_speed``
     has no trusted heading and gets the isotropic Q_F (sv_par on both axes).
+
+    ``pedestrian_sigma_par``: sv_par of model (2) for tracks of class pedestrian (frames with
+    ``v2f_class``, ``[features] pedestrians``); sv_perp = sv_par / 2 as in Sec. V-B. Default: the
+    Sec. V-B rule sv_par = vf / 100 at a walking speed vf = 1.3 m/s (see ``PEDESTRIAN_SIGMA_PAR``
+    and docs/validation/realistic_sensing.md "SUMO pedestrians" for the measurement behind it).
 
     A feature track no vehicle observed for more than
     ``feature_drop_after_s`` seconds is dropped (the paper resets an unobserved
@@ -73,6 +82,7 @@ class IcpParams:
     stop_vel_mps: float = 0.1
     feature_sigma_par: float = 0.01
     feature_sigma_perp: float | None = None
+    pedestrian_sigma_par: float = PEDESTRIAN_SIGMA_PAR
     feature_heading_min_speed: float = 0.5
     feature_drop_after_s: float = 10.0
     feature_velocity_prior_sigma: float | None = None
@@ -89,6 +99,8 @@ class IcpParams:
             raise ValueError("stopping thresholds must be >= 0")
         if self.feature_sigma_par < 0 or (self.feature_sigma_perp is not None and self.feature_sigma_perp < 0):
             raise ValueError("feature driving noise must be >= 0")
+        if self.pedestrian_sigma_par < 0:
+            raise ValueError("pedestrian_sigma_par must be >= 0")
         if self.feature_drop_after_s < 0:
             raise ValueError("feature_drop_after_s must be >= 0")
         if self.feature_velocity_prior_sigma is not None and self.feature_velocity_prior_sigma < 0:
