@@ -59,8 +59,10 @@ class SumoCoupler:
 
     With ``sensors.perception`` (the ``[perception]`` table) the V2F rows come from
     :func:`couplers.perception.perceive`: ``c.last_detections`` holds the step's
-    :class:`couplers.perception.Detections` (with the sensor and class of every row, which the frame
-    does not carry yet) and ``c.perception_totals`` the counts over the run. With
+    :class:`couplers.perception.Detections` (with the sensor and class of every row) and
+    ``c.perception_totals`` the counts over the run. With ``sensors.features`` (``[features]
+    pedestrians``) every SUMO person is a moving feature (:mod:`couplers.pedestrians`): the frame
+    carries ``v2f_class`` and the truth keeps stable feature rows (``c.registry``). With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
     :class:`couplers.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
     equipped vehicles (:class:`couplers.v2x.V2xChannel`) are in the frames, and each frame carries

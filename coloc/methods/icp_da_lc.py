@@ -78,6 +78,13 @@ Per time step, with no knowledge of which feature produced a V2F row:
    an innovation-based fault check in the spirit of receiver autonomous
    integrity monitoring. It bounds what a wrong pairing can do to a vehicle.
 
+11. classes (issue 21 item 3; frames with ``v2f_class``, ``[features] pedestrians``): the
+   classifier's label of a row is known, so in step 3 a row is a candidate of tracks of its own
+   class only (eta(alpha = l) = 0 otherwise), step 6 clusters births per class and a new track
+   takes its rows' class, step 8 merges only tracks of one class; model (2) of a track uses its
+   class's noise (:func:`coloc.inference.feature_store.feature_track_q`). Without ``v2f_class``
+   nothing of this runs (the estimates are byte for byte those without classes).
+
 ``StepEstimate.v2f_assignment`` is the track id of each V2F row (-1 =
 discarded); scoring maps tracks to true features outside the estimator.
 """
