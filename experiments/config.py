@@ -226,8 +226,7 @@ OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": Perce
 #: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "features")
-#: Methods with a per-class feature motion model and class-gated association ([features] pedestrians).
-PEDESTRIAN_METHODS = ("gnss", "icp_known_da", "icp_da_lc")
+
 
 
 def _allows_infinity(where: str) -> bool:
@@ -370,10 +369,11 @@ def _validate_pedestrians(cfg: Config) -> None:
     if cfg.features is None or not cfg.features.pedestrians:
         return
     p = cfg.path
+    ok = [n for n in runnable_methods() if METHODS[n].feature_classes]
     for i, m in enumerate(cfg.run.methods):
-        if m not in PEDESTRIAN_METHODS:
+        if not METHODS[m].feature_classes:
             raise InputError(p, f"run.methods[{i}]", f"method {m!r} has no per-class feature model: not supported "
-                             f"with [features] pedestrians = true (use {', '.join(PEDESTRIAN_METHODS)})")
+                             f"with [features] pedestrians = true (use {', '.join(ok)})")
     if cfg.infra is not None:
         raise InputError(p, "features.pedestrians", "not supported together with [infra]")
     from couplers.netfolder import load_net_folder
