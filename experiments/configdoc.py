@@ -252,7 +252,7 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "feature_sigma_par": ("m/s", "Velocity random walk per step of a feature, model (2) (moving "
                                      "features: vf / 100)."),
         "pedestrian_sigma_par": ("m/s", "Velocity random walk per step of a pedestrian track, model (2) "
-                                        "(sv_perp = sv_par / 2). Default 0.1, measured on `arterial_ped`: the "
+                                        "(sv_perp = sv_par / 2). Default 0.05, measured on `arterial_ped`: the "
                                         "Sec. V-B rule vf / 100 = 0.013 is too tight for SUMO's walkers "
                                         "(docs/validation/realistic_sensing.md, \"SUMO pedestrians\")."),
         "feature_drop_after_s": ("s", "A track no vehicle observed for this long is dropped (the paper's "
