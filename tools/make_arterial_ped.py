@@ -23,7 +23,8 @@ this script adds
   eight ``personFlow``s (see ``ped_flows``) walking 100 m on the sidewalks
   either side of it, crossing the arterial, the side road, or both.
 
-Usage: ``python tools/make_arterial_ped.py [--out DIR] [--no-build]``.
+Usage: ``python tools/make_arterial_ped.py [--out DIR] [--no-build] [--measure]`` (``--measure``: full-hour
+SUMO runs of this folder and of the arterial, printing the README's table; pasted into ``MEASURED``).
 """
 
 from __future__ import annotations
