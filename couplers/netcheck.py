@@ -84,9 +84,14 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
 
     rproblems, n = route_problems(net, folder.routes)
     problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes)) else p for p in rproblems]
+    persons = ""
+    if folder.persons is not None:
+        pproblems, npf = person_problems(net, folder.persons)
+        problems += pproblems
+        persons = f", {npf} person flows/persons"
     info = (f"{len(net.getNodes())} junctions, {len(drivable)} drivable edges, {len(net.getTrafficLights())} "
             f"traffic lights, {len(feats.ids)} features, {n} vehicles/flows/trips, {len(folder.zones)} zones, "
-            f"{len(folder.areas)} areas")
+            f"{len(folder.areas)} areas{persons}")
     if folder.buildings is not None:
         info += f", {len(folder.buildings)} buildings"
     return problems, info
@@ -115,6 +120,28 @@ def _building_problems(folder, root: Path, xy: np.ndarray, owners: list[str], dr
             out.append(f"{path}: poi {feats.ids[i]!r} ({feats.kinds[i]}) lies inside building features[{b}]: "
                        "its sight lines are always blocked")
     return out
+
+
+def person_problems(net, path: Path) -> tuple[list[str], int]:
+    """Walks of a persons file whose edges are missing or closed to pedestrians; (problems, persons)."""
+    import xml.etree.ElementTree as ET  # noqa: PLC0415
+
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        return [f"{path}: does not parse ({exc})"], 0
+    problems, n = [], 0
+    for person in root:
+        if person.tag not in ("person", "personFlow"):
+            continue
+        n += 1
+        for walk in person.iter("walk"):
+            edges = walk.get("edges", "").split() or [walk.get("from"), walk.get("to")]
+            for e in edges:
+                if e is None or not net.hasEdge(e) or not net.getEdge(e).allows("pedestrian"):
+                    problems.append(f"{path}: {person.tag} {person.get('id')!r} walks on edge {e!r}, "
+                                    "which is missing or has no sidewalk")
+    return problems[:10], n
 
 
 def require_usable_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> None:

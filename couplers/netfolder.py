@@ -52,6 +52,9 @@ class NetFolder:
     tls_off: dict[str, bool]
     scenario: dict
     buildings: "Buildings | None" = None  # buildings.geojson, optional (occlusion, NLOS GNSS)
+    # [files] persons: a SUMO route file of persons (walkers), optional; loaded beside the vehicle
+    # routes, and what ``[features] pedestrians = true`` needs (couplers.pedestrians).
+    persons: Path | None = None
 
 
 def _load_geojson(path: Path):
@@ -213,6 +216,12 @@ def load_net_folder(root: str | Path) -> NetFolder:
     if bval is not None and not bpath.is_file():
         raise InputError(scen_path, "files.buildings", f"file {bpath} not found")
     buildings = read_buildings(bpath) if bpath.is_file() else None
+    pval = files.get("persons")
+    if pval is not None and not isinstance(pval, str):
+        raise InputError(scen_path, "files.persons", "not a string")
+    persons = root / pval if pval is not None else None
+    if persons is not None and not persons.is_file():
+        raise InputError(scen_path, "files.persons", f"file {persons} not found")
     controls = scen.get("controls", {"tlr": {"tls_off": False}, "vsr": {"tls_off": True}})
     tls_off = {}
     for name, spec in controls.items():
@@ -230,6 +239,7 @@ def load_net_folder(root: str | Path) -> NetFolder:
         tls_off=tls_off,
         scenario=scen,
         buildings=buildings,
+        persons=persons.resolve() if persons is not None else None,
     )
 
 

@@ -66,9 +66,9 @@ from couplers.errors import InputError
 from couplers.netfolder import Buildings
 
 PERCEPTION_STREAM_TAG = 0x9E5
-#: Class of a detection (the ``v2f_class`` array beside ``v2f_z``): static landmark today; SUMO
-#: pedestrians (issue 21 item 3) will add CLASS_PEDESTRIAN. A false detection carries the class
-#: the sensor reports for it, a static object.
+#: Class of a detection (``Frame.v2f_class``): static landmark, or a SUMO pedestrian
+#: (couplers.pedestrians). A false detection carries the class the sensor reports for it, a static
+#: object (it is drawn as one: relative velocity -v_vehicle).
 CLASS_STATIC = 0
 CLASS_PEDESTRIAN = 1
 
@@ -439,13 +439,15 @@ def perceive(
     occluder_corners: np.ndarray | None = None,
     observer_occluder: np.ndarray | None = None,
     buildings: Buildings | None = None,
+    feature_class: np.ndarray | None = None,
 ) -> Detections:
     """The V2F rows of one step.
 
     ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
     ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
     footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
-    measuring vehicle (-1 if it has none).
+    measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
+    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``.
     """
     n = x_true.shape[0]
     xy = x_true[:, :2]
@@ -509,4 +511,7 @@ def perceive(
     return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R[perm],
                       feature=np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm],
                       sensor=np.concatenate([sensor[first], c_sensor])[perm],
-                      klass=np.full(owner.size, CLASS_STATIC, dtype=np.int8), stats=stats)
+                      klass=(np.full(owner.size, CLASS_STATIC, dtype=np.int8) if feature_class is None else
+                             np.concatenate([np.asarray(feature_class, dtype=np.int8)[t_feat],
+                                             np.full(c_owner.size, CLASS_STATIC, dtype=np.int8)])[perm]),
+                      stats=stats)

@@ -17,6 +17,7 @@ from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
 from couplers.inertial import InertialParams
+from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
 from couplers.v2x import V2xParams
 
@@ -38,6 +39,8 @@ class SensorParams:
     gnss_error: GnssErrorParams | None = None
     v2x: V2xParams | None = None
     inertial: InertialParams | None = None
+    # [features] (issue 21 item 3): SUMO pedestrians as moving features (couplers.pedestrians).
+    features: "FeaturesParams | None" = None
 
 
 class SensorNoise:

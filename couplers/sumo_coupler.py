@@ -16,6 +16,7 @@ from couplers.gnss_error import GnssErrorProcess
 from couplers.inertial import InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
+from couplers.pedestrians import FeatureRegistry, person_states
 from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
@@ -47,6 +48,7 @@ class SumoScenario:
             tls_off=self.net.tls_off[self.control],
             ballistic=self.ballistic,
             lanechange_duration=self.lanechange_duration,
+            extra_routes=(self.net.persons,) if self.net.persons is not None else (),
         )
 
 
@@ -58,8 +60,10 @@ class SumoCoupler:
 
     With ``sensors.perception`` (the ``[perception]`` table) the V2F rows come from
     :func:`couplers.perception.perceive`: ``c.last_detections`` holds the step's
-    :class:`couplers.perception.Detections` (with the sensor and class of every row, which the frame
-    does not carry yet) and ``c.perception_totals`` the counts over the run. With
+    :class:`couplers.perception.Detections` (with the sensor and class of every row) and
+    ``c.perception_totals`` the counts over the run. With ``sensors.features`` (``[features]
+    pedestrians``) every SUMO person is a moving feature (:mod:`couplers.pedestrians`): the frame
+    carries ``v2f_class`` and the truth keeps stable feature rows (``c.registry``). With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
     :class:`couplers.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
     equipped vehicles (:class:`couplers.v2x.V2xChannel`) are in the frames, and each frame carries
@@ -81,6 +85,12 @@ class SumoCoupler:
         feats = scenario.net.features
         self.features_true = np.hstack([feats.xy, np.zeros_like(feats.xy)])  # static: zero velocity
         self.feature_tree = cKDTree(feats.xy) if len(feats.xy) else None
+        # [features] pedestrians: SUMO persons as moving features (couplers.pedestrians).
+        self.pedestrians = sensors.features is not None and sensors.features.pedestrians
+        if self.pedestrians and scenario.net.persons is None:
+            raise InputError(scenario.net.root / "scenario.toml", "files.persons",
+                             "[features] pedestrians = true needs a persons file (e.g. sumo_nets/arterial_ped)")
+        self.registry = FeatureRegistry(feats.ids, self.features_true) if self.pedestrians else None
         self.traffic = SumoTraffic(scenario.sumo_options())
         buildings = scenario.net.buildings
         self.perception = sensors.perception
@@ -114,7 +124,14 @@ class SumoCoupler:
             zone, sp, sv = gnss_sigma_for_zone(self.zones, states.xy)
             area = self.areas.names_at(states.xy, outside="outside")
             x_true = np.hstack([states.xy, states.velocity])
-            detections = self._perceive(road, states, x_true) if self.perception is not None else None
+            feats_true, tree, present, klass = self.features_true, self.feature_tree, None, None
+            if self.pedestrians:  # static features then the persons walking now (registry rows ``present``)
+                rows = self.registry.update(person_states(sumo_traffic.libsumo.person))
+                present = np.concatenate([np.arange(self.registry.k0), rows])
+                feats_true, klass = self.registry.states[present], self.registry.klass[present]
+                tree = cKDTree(feats_true[:, :2]) if present.size else None
+            detections = (self._perceive(road, states, x_true, feats_true, tree, klass)
+                          if self.perception is not None else None)
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -125,8 +142,8 @@ class SumoCoupler:
                 heading=states.heading,
                 gnss_sigma_p=sp,
                 gnss_sigma_v=sv,
-                features_true=self.features_true,
-                feature_tree=self.feature_tree,
+                features_true=feats_true,
+                feature_tree=tree,
                 params=self.sensors,
                 noise=self.noise,
                 zone=zone,
@@ -135,6 +152,8 @@ class SumoCoupler:
                 detections=detections,
                 gnss_error=self.gnss_error,
             )
+            if self.pedestrians:
+                frame = self._with_registry_rows(frame, present, klass)
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.inertial is not None:
@@ -156,20 +175,35 @@ class SumoCoupler:
         self._dim_ids, self._dims = ids, dims
         return dims
 
-    def _perceive(self, road: VehicleStates, states: VehicleStates, x_true: np.ndarray) -> Detections:
-        """V2F rows of the frame's vehicles ``states``; every vehicle on the ``road`` occludes."""
+    def _with_registry_rows(self, frame, present: np.ndarray, klass: np.ndarray):
+        """Truth in registry rows (stable for the run) and the class label of every V2F row."""
+        feat = frame.truth.v2f_feature
+        real = feat >= 0
+        row = np.full(feat.shape, -1, dtype=np.int64)
+        row[real] = present[feat[real]]
+        v2f_class = np.zeros(feat.shape, dtype=np.int8)  # CLASS_STATIC for clutter
+        v2f_class[real] = klass[feat[real]]
+        reg = self.registry
+        truth = replace(frame.truth, v2f_feature=row, features_true=reg.states, feature_ids=reg.ids,
+                        feature_class=reg.klass)
+        return replace(frame, truth=truth, v2f_class=v2f_class)
+
+    def _perceive(self, road: VehicleStates, states: VehicleStates, x_true: np.ndarray,
+                  features_true: np.ndarray, feature_tree, feature_class) -> Detections:
+        """V2F rows of the frame's vehicles ``states``; every vehicle on the ``road`` occludes
+        (pedestrians do not: couplers.pedestrians)."""
         p = self.perception
-        owner, feat = features_in_range(states.xy, self.feature_tree, p.max_reach_m)
+        owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
         corners = None
         if p.occlusion_vehicles:
             dims = self._vehicle_dims(road.ids)
             corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1])
         det = perceive(
-            x_true=x_true, heading=states.heading, features_true=self.features_true,
+            x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
             observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
-            buildings=self.scenario.net.buildings,
+            buildings=self.scenario.net.buildings, feature_class=feature_class,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val

@@ -42,12 +42,14 @@ class SumoOptions:
     # 0.27 m rms with jumps, 0.08 m with 3 s manoeuvres).
     lanechange_duration: float = 3.0
     extra_args: tuple[str, ...] = ()
+    # Further route files loaded after ``routes`` (a net folder's persons file, [files] persons).
+    extra_routes: tuple[Path, ...] = ()
 
     def command(self) -> list[str]:
         cmd = [
             "sumo",
             "--net-file", str(self.net),
-            "--route-files", str(self.routes),
+            "--route-files", ",".join(str(r) for r in (self.routes, *self.extra_routes)),
             "--step-length", repr(self.step_length),
             "--seed", str(int(self.seed)),
             "--end", repr(self.end),

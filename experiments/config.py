@@ -54,13 +54,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from coloc.core.models import MotionParams
-from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, STOP_RULES
+from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, PEDESTRIAN_SIGMA_PAR, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml, seed_problem
 from couplers.gnss_error import GnssErrorParams
 from couplers.inertial import InertialParams
+from couplers.pedestrians import FeaturesParams
 from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
@@ -98,6 +99,8 @@ class IcpSection:
     stop_pos_m: float = 0.1  # BPA-L stopping rule, Brambilla Sec. V-A
     stop_vel_mps: float = 0.1
     feature_sigma_par: float = 0.01  # m/s per step, model (2) for static features
+    # m/s per step, model (2) for pedestrian tracks ([features] pedestrians; coloc.inference.params)
+    pedestrian_sigma_par: float = PEDESTRIAN_SIGMA_PAR
     feature_drop_after_s: float = 10.0
     # Velocity prior of a newborn track, N(0, s^2 I) m/s; 0 = uniform (the paper's reset).
     feature_velocity_prior_sigma: float = 0.0
@@ -188,6 +191,9 @@ class Config:
     # handed to the coupler as sensors.inertial. Not with [infra] (the infrastructure methods take the
     # net-frame input).
     inertial: InertialParams | None = None
+    # [features] (issue 21 item 3), optional, SUMO only: SUMO pedestrians as moving features; handed to
+    # the coupler as sensors.features.
+    features: FeaturesParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -223,10 +229,11 @@ SECTIONS: dict[str, type] = {
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
-                                      "inertial": InertialParams}
+                                      "inertial": InertialParams, "features": FeaturesParams}
 #: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
 #: [sensors].
-SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial")
+SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")
+
 
 
 def _allows_infinity(where: str) -> bool:
@@ -352,7 +359,7 @@ def _validate(cfg: Config) -> None:
     if cfg.icp.budget_split not in BUDGET_SPLITS:
         raise InputError(p, "icp.budget_split",
                          f"unknown value {cfg.icp.budget_split!r} (available: {', '.join(BUDGET_SPLITS)})")
-    for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "feature_drop_after_s"):
+    for name in ("stop_pos_m", "stop_vel_mps", "feature_sigma_par", "pedestrian_sigma_par", "feature_drop_after_s"):
         if not getattr(cfg.icp, name) > 0:
             raise InputError(p, f"icp.{name}", "must be positive")
     for name in ("sigma_along", "sigma_cross"):
@@ -363,7 +370,27 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.net_dir", "required for a SUMO scenario")
         if not (Path(cfg.scenario.net_dir) / "scenario.toml").is_file():
             raise InputError(p, "scenario.net_dir", f"no net folder (scenario.toml) at {cfg.scenario.net_dir}")
+    _validate_pedestrians(cfg)
     _validate_infra(cfg)
+
+
+def _validate_pedestrians(cfg: Config) -> None:
+    """[features] pedestrians: a net folder with persons, and methods that know feature classes."""
+    if cfg.features is None or not cfg.features.pedestrians:
+        return
+    p = cfg.path
+    ok = [n for n in runnable_methods() if METHODS[n].feature_classes]
+    for i, m in enumerate(cfg.run.methods):
+        if not METHODS[m].feature_classes:
+            raise InputError(p, f"run.methods[{i}]", f"method {m!r} has no per-class feature model: not supported "
+                             f"with [features] pedestrians = true (use {', '.join(ok)})")
+    if cfg.infra is not None:
+        raise InputError(p, "features.pedestrians", "not supported together with [infra]")
+    from couplers.netfolder import load_net_folder
+
+    if load_net_folder(cfg.scenario.net_dir).persons is None:
+        raise InputError(p, "features.pedestrians", f"the net folder {cfg.scenario.net_dir} has no persons file "
+                         "([files] persons in its scenario.toml; e.g. sumo_nets/arterial_ped)")
 
 
 def _validate_infra(cfg: Config) -> None:
@@ -530,6 +557,9 @@ def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[st
         return []
     if sections["scenario"].kind != "sumo":
         name = next(iter(given))
+        if name == "features":
+            raise InputError(path, "features.pedestrians", "SUMO pedestrians need scenario.kind = \"sumo\" (this is "
+                             f"{sections['scenario'].kind!r}; its moving features are [crossroad] feature_speed_mps)")
         what = "realistic V2X" if name == "v2x" else "realistic sensing"
         raise InputError(path, name, f"{what} needs scenario.kind = \"sumo\" "
                                      f"(this is {sections['scenario'].kind!r}): the controlled scenarios "

@@ -65,6 +65,13 @@ TABLE_DOCS: dict[str, str] = {
                   "every SUMO vehicle and by the net folder's buildings. Absent: the paper's idealised V2F "
                   "sensing (every feature within `sensors.v2f_range_m`), exactly as before. Each effect "
                   "draws from its own seeded stream.",
+    "features": "Moving features from SUMO (optional table, SUMO only; `couplers/pedestrians.py`): with "
+                "`pedestrians = true` every SUMO person of the net folder's persons file (`[files] persons`, e.g. "
+                "`sumo_nets/arterial_ped`) is a feature of model (2), measured by the same V2F path as the "
+                "static landmarks, and every V2F row carries a class label (`Frame.v2f_class`: 0 static, 1 "
+                "pedestrian). Feature tracks use their class's model (2) noise (`icp.pedestrian_sigma_par`) "
+                "and a row is only associated with tracks of its class. Methods: `gnss`, `icp_known_da`, "
+                "`icp_da_lc` (others are refused). Absent or false: no classes, exactly as before.",
     "perception.sensors": "One sensor of `[perception]` (repeat the table for each sensor). Defaults and "
                           "their sources (datasheet, peer simulator): `couplers/perception.py`.",
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/gnss_error.py`): first-order "
@@ -185,6 +192,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "v2x": ("", "Not a key of the file (refused there): carries the `[v2x]` table to the coupler."),
         "inertial": ("", "Not a key of the file (refused there): carries the `[inertial]` table to the "
                          "coupler."),
+        "features": ("", "Not a key of the file (refused there): carries the `[features]` table to the "
+                         "coupler."),
     },
     "inertial": {
         "accel_noise_density": ("m/s^2/sqrt(Hz)", "Accelerometer white-noise density per axis (longitudinal, "
@@ -203,6 +212,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "gyro_bias_tau_s": ("s", "Correlation time of the yaw-rate bias drift. Default 1000 s: RotorS."),
         "gyro_turn_on_sigma": ("deg/s", "Std of the yaw-rate turn-on bias, drawn when a vehicle enters. Default "
                                         "0.5 deg/s: RotorS."),
+    },
+    "features": {
+        "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "
+                            "with `[files] persons`; refused on the controlled scenarios)."),
     },
     "v2x": {
         "penetration_rate": (NO_UNIT, "Share of SUMO vehicles with a V2X unit, in (0, 1]: a vehicle is "
@@ -270,6 +283,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "stop_vel_mps": ("m/s", "... and no velocity by more than this (Sec. V-A: 0.1 m/s)."),
         "feature_sigma_par": ("m/s", "Velocity random walk per step of a feature, model (2) (moving "
                                      "features: vf / 100)."),
+        "pedestrian_sigma_par": ("m/s", "Velocity random walk per step of a pedestrian track, model (2) "
+                                        "(sv_perp = sv_par / 2). Default 0.05, measured on `arterial_ped`: the "
+                                        "Sec. V-B rule vf / 100 = 0.013 is too tight for SUMO's walkers "
+                                        "(docs/validation/realistic_sensing.md, \"SUMO pedestrians\")."),
         "feature_drop_after_s": ("s", "A track no vehicle observed for this long is dropped (the paper's "
                                       "reset to a uniform belief)."),
         "feature_velocity_prior_sigma": ("m/s", "Velocity prior N(0, s^2 I) of a newborn track; 0 = uniform "

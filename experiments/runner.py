@@ -326,6 +326,16 @@ class EstimateLog:
                     ids, xy, feat = ids[has], xy[has], vals[pos[has]]
                 if ids.size == 0:
                     continue
+                if truth_xy.shape[0] and feat.max() >= truth_xy.shape[0]:
+                    # SUMO pedestrians: a label registered after this step (couplers.pedestrians)
+                    ok = feat < truth_xy.shape[0]
+                    ids, xy, feat = ids[ok], xy[ok], feat[ok]
+                if not np.isfinite(truth_xy[feat]).all():
+                    # SUMO pedestrians: a person that has left (NaN state) has no error to score
+                    ok = np.isfinite(truth_xy[feat]).all(axis=1)
+                    ids, xy, feat = ids[ok], xy[ok], feat[ok]
+                    if ids.size == 0:
+                        continue
                 err = xy - truth_xy[feat]
                 rows.append((m, t, ids, feat, np.hypot(err[:, 0], err[:, 1])))
         if not rows:

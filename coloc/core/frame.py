@@ -30,6 +30,9 @@ class Truth:
     area: np.ndarray  # (N,) str, analysis area of each vehicle
     heading: np.ndarray | None = None  # (N,) true heading, rad from +x (defined when stopped too)
     feature_ids: np.ndarray | None = None  # (K,) str, stable feature names
+    # Class of each feature (0 static landmark, 1 pedestrian; couplers.pedestrians); None: all static.
+    # With SUMO pedestrians, rows K0.. are persons by first appearance (NaN state once they have left).
+    feature_class: np.ndarray | None = None  # (K,) int8
     # Infrastructure mode only: row (into the frame's vehicles) of each radar detection.
     radar_vehicle: np.ndarray | None = None  # (P,) int
 
@@ -108,6 +111,11 @@ class Frame:
     # Body-frame IMU ([inertial] table): accel_body (N, 2) and yaw_rate (N,) (coloc.core.inertial). None:
     # ``accel`` is the net-frame input of model (1).
     imu: ImuFrame | None = None
+    # Class label of each V2F row as the sensor's classifier reports it (``[features] pedestrians``):
+    # 0 = static landmark, 1 = pedestrian (couplers.perception CLASS_*); a false detection is reported
+    # as static (it is drawn as a static object). None (pedestrians off): every row is a static landmark,
+    # and estimators run exactly as without classes.
+    v2f_class: np.ndarray | None = None  # (O,) int8
 
     @property
     def n_vehicles(self) -> int:

@@ -10,18 +10,28 @@ import numpy as np
 
 from coloc.core.models import feature_noise_cov, symmetrize
 from coloc.inference.gaussian import from_information, to_information
-from coloc.inference.params import IcpParams
+from coloc.inference.params import CLASS_PEDESTRIAN, IcpParams
 from coloc.kernels.icp import predict_no_input_kernel, scatter_add
 
 # ----------------------------------------------------------------------------- feature tracks
 
 
-def feature_track_q(mean: np.ndarray, dt: float, params: IcpParams) -> np.ndarray:
-    """Q_F of model (2) for tracks with these means, isotropic below the heading speed."""
+def feature_track_q(mean: np.ndarray, dt: float, params: IcpParams, klass: np.ndarray | None = None) -> np.ndarray:
+    """Q_F of model (2) for tracks with these means, isotropic below the heading speed.
+
+    ``klass`` (T,): the tracks' classes (None: every track static). Static landmarks use
+    ``feature_sigma_par`` / ``feature_sigma_perp``; pedestrians ``pedestrian_sigma_par`` with
+    sv_perp = sv_par / 2 (Brambilla et al. Sec. V-B's moving-feature noise)."""
     v = np.array(mean[:, 2:], dtype=float)
     slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
     v[slow] = 0.0
-    return feature_noise_cov(v, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
+    q = feature_noise_cov(v, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
+    if klass is not None:
+        ped = np.asarray(klass) == CLASS_PEDESTRIAN
+        if ped.any():
+            s = params.pedestrian_sigma_par
+            q[ped] = feature_noise_cov(v[ped], dt, s, s / 2)
+    return q
 
 
 def birth_information(params: IcpParams) -> np.ndarray:
@@ -30,6 +40,17 @@ def birth_information(params: IcpParams) -> np.ndarray:
     s = params.feature_velocity_prior_sigma
     if s:  # None or 0: uniform
         lam[2, 2] = lam[3, 3] = 1.0 / (s * s)
+    return lam
+
+
+def class_birth_information(params: IcpParams, klass: np.ndarray | None, k: int) -> np.ndarray:
+    """(k, 4, 4) birth information of tracks of classes ``klass`` (None: all static).
+
+    A pedestrian track is born with the paper's uniform belief (no velocity prior: it walks at
+    ~1.3 m/s in an unknown direction); a static one with :func:`birth_information`."""
+    lam = np.broadcast_to(birth_information(params), (k, 4, 4)).copy()
+    if klass is not None:
+        lam[np.asarray(klass) == CLASS_PEDESTRIAN] = 0.0
     return lam
 
 
@@ -92,6 +113,9 @@ class FeatureStore:
     msg_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     msg_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 4, 4)))
     msg_time: np.ndarray = field(default_factory=lambda: np.empty(0))
+    # (T,) int8 class of each track (CLASS_STATIC / CLASS_PEDESTRIAN), from the V2F row that started
+    # it; None while no frame carried classes (every track static: today's model (2) path).
+    klass: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -112,7 +136,10 @@ class FeatureStore:
 
     def information(self, params: IcpParams, exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Lambda, eta) of every track: birth x folded x messages (those not excluded)."""
-        lam = self.folded_lam + birth_information(params)
+        if self.klass is None:
+            lam = self.folded_lam + birth_information(params)
+        else:
+            lam = self.folded_lam + class_birth_information(params, self.klass, self.ids.size)
         eta = self.folded_eta.copy()
         use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
         if use.any():
@@ -139,7 +166,7 @@ class FeatureStore:
         if self.ids.size == 0:
             return self
         mean, _ = self.moments(params)
-        q = feature_track_q(mean, dt, params)
+        q = feature_track_q(mean, dt, params, self.klass)
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
@@ -184,15 +211,23 @@ class FeatureStore:
     def prior_information(
         self, feature_ids: np.ndarray, row_feature: np.ndarray, row_vehicle: np.ndarray, params: IcpParams,
         row_codes: np.ndarray | None = None,
+        row_class: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """b_k^(0) of (12) for ``feature_ids``, without the messages the rows' vehicles will replace.
 
         ``row_feature``/``row_vehicle``: the (track id, vehicle id) of every used
-        V2F row of this step. New ids get the birth prior only. ``row_codes``:
+        V2F row of this step. New ids get the birth prior only (of their first row's class,
+        ``row_class``, when given: :func:`class_birth_information`). ``row_codes``:
         ``vehicle_codes(row_vehicle)`` if the caller has them.
         """
         k = len(feature_ids)
-        lam = np.broadcast_to(birth_information(params), (k, 4, 4)).copy()
+        if row_class is None:
+            lam = np.broadcast_to(birth_information(params), (k, 4, 4)).copy()
+        else:
+            uniq, first = np.unique(np.asarray(row_feature, dtype=np.int64), return_index=True)
+            pos = np.minimum(np.searchsorted(uniq, feature_ids), max(uniq.size - 1, 0))
+            cls = np.asarray(row_class, dtype=np.int8)[first[pos]] if uniq.size else np.zeros(k, np.int8)
+            lam = class_birth_information(params, cls, k)
         eta = np.zeros((k, 4))
         idx = self.lookup(feature_ids)
         have = idx >= 0
@@ -210,11 +245,14 @@ class FeatureStore:
         t: float,
         params: IcpParams,
         row_codes: np.ndarray | None = None,
+        row_class: np.ndarray | None = None,
     ) -> "FeatureStore":
         """Store this step's final messages (19), fold old ones, drop stale tracks.
 
         Each row's message replaces the previous message of its (track, vehicle)
         pair; new track ids are created; tracks observed now get last_seen = t.
+        ``row_class`` (rows,): the class of each row; a new track takes the class of its first row
+        (None, and a store without classes: no classes are kept).
         """
         row_feature = np.asarray(row_feature, dtype=np.int64)
         if row_codes is None:
@@ -229,6 +267,14 @@ class FeatureStore:
         last_seen[np.searchsorted(ids, np.unique(row_feature))] = float(t)
         folded_lam = np.concatenate([self.folded_lam, np.zeros((new_ids.size, 4, 4))])[order]
         folded_eta = np.concatenate([self.folded_eta, np.zeros((new_ids.size, 4))])[order]
+        klass = None
+        if row_class is not None or self.klass is not None:
+            old_k = self.klass if self.klass is not None else np.zeros(self.ids.size, np.int8)
+            new_k = np.zeros(new_ids.size, np.int8)
+            if row_class is not None and new_ids.size:
+                uniq, first = np.unique(row_feature, return_index=True)
+                new_k = np.asarray(row_class, dtype=np.int8)[first[np.searchsorted(uniq, new_ids)]]
+            klass = np.concatenate([old_k, new_k])[order]
         msg_track = np.concatenate([self.msg_track[keep], row_feature])
         msg_vehicle = np.concatenate([self.msg_vehicle[keep], np.asarray(row_vehicle, dtype=object)])
         msg_codes = np.concatenate([self._msg_codes[keep], row_codes])
@@ -259,6 +305,7 @@ class FeatureStore:
             msg_mean=msg_mean[keep_msg],
             msg_cov=msg_cov[keep_msg],
             msg_time=msg_time[keep_msg],
+            klass=klass[live] if klass is not None else None,
         )._with_codes(msg_codes[keep_msg])
 
     def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
@@ -302,6 +349,7 @@ class FeatureStore:
             msg_mean=self.msg_mean[keep],
             msg_cov=self.msg_cov[keep],
             msg_time=self.msg_time[keep],
+            klass=self.klass[live] if self.klass is not None else None,
         )._with_codes(self._msg_codes[keep])
 
     def drop(self, track_ids: np.ndarray) -> "FeatureStore":
@@ -320,6 +368,7 @@ class FeatureStore:
             msg_mean=self.msg_mean[keep_msg],
             msg_cov=self.msg_cov[keep_msg],
             msg_time=self.msg_time[keep_msg],
+            klass=self.klass[~gone] if self.klass is not None else None,
         )._with_codes(self._msg_codes[keep_msg])
 
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":

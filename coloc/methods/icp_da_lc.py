@@ -78,6 +78,13 @@ Per time step, with no knowledge of which feature produced a V2F row:
    an innovation-based fault check in the spirit of receiver autonomous
    integrity monitoring. It bounds what a wrong pairing can do to a vehicle.
 
+11. classes (issue 21 item 3; frames with ``v2f_class``, ``[features] pedestrians``): the
+   classifier's label of a row is known, so in step 3 a row is a candidate of tracks of its own
+   class only (eta(alpha = l) = 0 otherwise), step 6 clusters births per class and a new track
+   takes its rows' class, step 8 merges only tracks of one class; model (2) of a track uses its
+   class's noise (:func:`coloc.inference.feature_store.feature_track_q`). Without ``v2f_class``
+   nothing of this runs (the estimates are byte for byte those without classes).
+
 ``StepEstimate.v2f_assignment`` is the track id of each V2F row (-1 =
 discarded); scoring maps tracks to true features outside the estimator.
 """
@@ -524,6 +531,8 @@ def merge_candidates(
     s = cov[a, :2, :2] + cov[b, :2, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
     ok = d2 <= _chi2_ppf(0.99, 2)
+    if store.klass is not None:  # a pedestrian track and a landmark track are different objects
+        ok &= store.klass[a] == store.klass[b]
     if row_owner.size and ok.any():
         n_v = int(row_owner.max()) + 1
         inc = sp.csr_matrix((np.ones(row_owner.size), (store.lookup(row_track), row_owner)), shape=(store.size, n_v))
@@ -583,6 +592,12 @@ def icp_da_lc_step(
     pv, pt, pr, w = association_weights(
         b0_mean, own_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection
     )
+    row_cls = frame.v2f_class
+    if row_cls is not None:
+        # Class gating (SUMO pedestrians): the classifier's label is known, so a row of class c is
+        # only a candidate of tracks of class c (eta(alpha = l) = 0 otherwise).
+        t_cls = predicted.klass if predicted.klass is not None else np.zeros(predicted.size, np.int8)
+        w = np.where(t_cls[pt] == row_cls[pr], w, 0.0)
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
@@ -618,14 +633,25 @@ def icp_da_lc_step(
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
     implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
     implied_cov = own_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
-    labels = birth_clusters(owner[birth], implied, implied_cov, _chi2_ppf(0.99, 2))
+    if row_cls is None:
+        labels = birth_clusters(owner[birth], implied, implied_cov, _chi2_ppf(0.99, 2))
+    else:  # rows of one class only start one track together
+        labels = np.empty(birth.size, dtype=np.int64)
+        off = 0
+        for c in np.unique(row_cls[birth]):
+            sub = np.flatnonzero(row_cls[birth] == c)
+            lab = birth_clusters(owner[birth][sub], implied[sub], implied_cov[sub], _chi2_ppf(0.99, 2))
+            labels[sub] = lab + off
+            off += int(lab.max()) + 1
     row_track[birth] = next_id + labels
     born = int(labels.max()) + 1 if labels.size else 0
     next_id += born
     # The rows of (31): every row once, plus a copy of a row for every further track that took it
     # (pairing = "paper" only; with "gated" the arrays are the frame's own).
     l_owner, l_z, l_r, l_track = owner, frame.v2f_z, frame.v2f_R, row_track
+    l_cls = row_cls
     if extra_row.size:
+        l_cls = np.concatenate([row_cls, row_cls[extra_row]]) if row_cls is not None else None
         l_owner = np.concatenate([owner, owner[extra_row]])
         l_z = np.concatenate([frame.v2f_z, frame.v2f_z[extra_row]])
         l_r = np.concatenate([frame.v2f_R, frame.v2f_R[extra_row]])
@@ -642,12 +668,14 @@ def icp_da_lc_step(
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
     row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
     fids = np.unique(bpa_track[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes)
+    f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
+                                                 l_cls[used] if l_cls is not None else None)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame.neighbors,
         f_lam0, f_eta0, params, v2x=frame.v2x,
     )
     rec_track, rec_owner, rec_lam, rec_eta = bpa_track[used], l_owner[used], res.msg_lam, res.msg_eta
+    rec_cls = l_cls[used] if l_cls is not None else None
     tentative = (l_track >= 0) & ~used
     if tentative.any():
         # A tentative track gets each observing vehicle's own-sensor message (19) (no other feature
@@ -658,9 +686,11 @@ def icp_da_lc_step(
         rec_track = np.concatenate([rec_track, l_track[tentative]])
         rec_owner = np.concatenate([rec_owner, t_own])
         rec_lam, rec_eta = np.concatenate([rec_lam, t_lam]), np.concatenate([rec_eta, t_eta])
+        if rec_cls is not None:
+            rec_cls = np.concatenate([rec_cls, l_cls[tentative]])
         row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[rec_owner]
         row_codes = vehicle_codes(frame.vehicle_ids)[rec_owner]
-    store = predicted.record(rec_track, row_vehicle, rec_lam, rec_eta, frame.t, params, row_codes)
+    store = predicted.record(rec_track, row_vehicle, rec_lam, rec_eta, frame.t, params, row_codes, rec_cls)
     # Merging (step 8).
     absorbed, into = merge_candidates(store, params, lc, rec_owner, rec_track)
     store = store.merge(absorbed, into)

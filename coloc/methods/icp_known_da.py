@@ -99,12 +99,16 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]
     row_codes = vehicle_codes(frame.vehicle_ids)[owner_used]
     fids = np.unique(assoc[used])
-    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes)
+    row_class = frame.v2f_class[used] if frame.v2f_class is not None else None
+    f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes, row_class)
     res = bpa_localization(
         b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
         f_lam0, f_eta0, params, v2x=frame.v2x,
     )
-    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes)
+    # Classes (frame.v2f_class, SUMO pedestrians): a track takes its first row's class, and its
+    # model (2) noise follows it (coloc.inference.feature_store.feature_track_q).
+    store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes,
+                             row_class)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
     return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading)
 

@@ -54,6 +54,9 @@ class Method:
     build: Callable[[MethodParams], object] | None = None  # None: made by a study, not by ``coloc run``
     known_association: bool = False  # the runner calls step_with_association(frame, true association)
     infrastructure: bool = False  # reads frame.infra: the config needs an [infra] table
+    # Handles frame.v2f_class (per-class feature model, class-gated association) or reads no V2F rows:
+    # may run with [features] pedestrians.
+    feature_classes: bool = False
 
     @property
     def runnable(self) -> bool:
@@ -117,9 +120,10 @@ def _fg_topology_new(p: MethodParams):
     return FgTopologyInfra(_infra_params(p))
 
 
-GNSS = Method("gnss", "GNSS", "tab:blue", _gnss)
-ICP_KNOWN_DA = Method("icp_known_da", "ICP known DA", "black", _icp_known_da, known_association=True)
-ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc)
+GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True)
+ICP_KNOWN_DA = Method("icp_known_da", "ICP known DA", "black", _icp_known_da, known_association=True,
+                      feature_classes=True)
+ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc, feature_classes=True)
 ICP_DA_PF = Method("icp_da_pf", "ICP-DA-PF", "tab:orange", _icp_da_pf)
 ICP_KNOWN_DA_PF = Method("icp_known_da_pf", "ICP-PF known DA", "goldenrod", _icp_known_da_pf,
                          known_association=True)

@@ -398,6 +398,46 @@ def run_inertial_controlled_scenario(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "features.pedestrians", "persons")
+def run_pedestrians_on_a_net_without_persons(tmp, net, run):
+    cfg = _config(tmp, net, "[features]\npedestrians = true\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "features.pedestrians", "true or false")
+def run_pedestrians_not_a_boolean(tmp, net, run):
+    cfg = _config(tmp, net, "[features]\npedestrians = \"yes\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "run.methods[1]", "icp_da_pf", "pedestrians")
+def run_pedestrians_with_a_method_without_classes(tmp, net, run):
+    cfg = _config(tmp, PROJECT / "sumo_nets" / "arterial_ped", "[features]\npedestrians = true\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_pf", "--quiet"], None
+
+
+@case("cfg.toml", "features.pedestrians", "sumo")
+def run_pedestrians_on_a_controlled_scenario(tmp, net, run):
+    cfg = tmp / "cfg.toml"
+    cfg.write_text('[run]\nname = "x"\nmethods = ["gnss"]\n[scenario]\nkind = "crossroad"\n'
+                   "[features]\npedestrians = true\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "icp.pedestrian_sigma_par", "positive")
+def run_negative_pedestrian_noise(tmp, net, run):
+    cfg = _config(tmp, net, "[icp]\npedestrian_sigma_par = -0.1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("scenario.toml", "files.persons", "not found")
+def run_net_folder_persons_file_missing(tmp, net, run):
+    dst = _net_copy(tmp, net)
+    scen = dst / "scenario.toml"
+    scen.write_text(scen.read_text().replace("[files]\n", "[files]\npersons = \"walkers.rou.xml\"\n", 1))
+    return ["run", str(_config(tmp, dst)), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "v2x.penetration_rate", "(0, 1]")
 def run_v2x_penetration_zero(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\npenetration_rate = 0.0\n")
@@ -672,7 +712,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 80
+    assert len(CASES) >= 86
 
 
 # ----------------------------------------------------------------------------- what --out may replace
