@@ -166,13 +166,14 @@ class PerceptionParams:
         return max(s.range_m + abs(s.mount_x_m) for s in self.sensors)
 
 
-def detection_model(params: PerceptionParams, heading_min_speed: float) -> DetectionModel:
+def detection_model(params: PerceptionParams, heading_min_speed: float, visibility: float = 1.0) -> DetectionModel:
     """The sensors as the estimators' :class:`coloc.core.detection.DetectionModel` (datasheet
-    values only: field of view, range, mounting, detection profile)."""
+    values only: field of view, range, mounting, detection profile; ``visibility``: the estimator's
+    expected share of in-view tracks not occluded, ``[lc] visibility``)."""
     a = params.arrays
     return DetectionModel(*(tuple(float(v) for v in a[k]) for k in
                             ("fov_deg", "range_m", "yaw_deg", "mount_x_m", "pd_near", "pd_far")),
-                          heading_min_speed=heading_min_speed)
+                          heading_min_speed=heading_min_speed, visibility=visibility)
 
 
 class PerceptionNoise:

@@ -333,6 +333,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "sensor_fov": ("", "P_D per (vehicle, track) from the `[perception]` sensors (field of view around the "
                            "estimated heading, range, detection profile); needs `[perception]`. Off: "
                            "`detection_probability` within the range."),
+        "visibility": (NO_UNIT, "With `sensor_fov`: the share of in-view tracks the estimator expects not to be "
+                                "occluded (it cannot predict every occluder); scales the sensors' P_D. 1 = no "
+                                "occlusion expected, so a miss of an occluded track counts fully against it."),
         "track_existence": ("", "Carry an existence probability with each track (Meyer et al. 2018): a track "
                                 "localizes vehicles only while it is at least `confirm_existence`, and is "
                                 "dropped below `drop_existence`. Off: every track exists (the paper)."),

@@ -164,7 +164,7 @@ def method_params(cfg: Config) -> MethodParams:
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
-        detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed)
+        detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
                    if cfg.perception is not None and cfg.lc.sensor_fov else None),
     )
 

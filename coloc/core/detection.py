@@ -7,8 +7,10 @@ and a track's *predicted* position, the probability that at least one sensor det
 P_D = 1 - prod_s (1 - P_D,s(d_s) [track in the field of view of s]), with the same geometry as the
 coupler's perception model (couplers.perception: a sector of opening fov_deg and radius range_m
 around the heading turned by yaw_deg, from the mount point mount_x_m along the heading; P_D,s
-linear in distance from pd_near at 0 m to pd_far at the range). Occlusion is not expected (the
-vehicle does not know every occluder).
+linear in distance from pd_near at 0 m to pd_far at the range). Occlusion is not predicted (the
+vehicle does not know every occluder: unequipped vehicles, buildings); ``visibility`` is the share
+of in-view tracks the estimator expects not to be hidden, a constant that scales P_D (1: nothing
+is ever hidden, which makes every miss of an occluded track evidence against it).
 
 The heading is the direction of the estimated velocity. Below ``heading_min_speed`` that
 direction is noise, so the heading is taken as unknown and uniform: each sensor then detects
@@ -35,8 +37,11 @@ class DetectionModel:
     pd_near: tuple[float, ...]
     pd_far: tuple[float, ...]
     heading_min_speed: float = 1.0
+    visibility: float = 1.0  # P(an in-view track is not occluded), as the estimator expects it
 
     def __post_init__(self):
+        if not 0.0 < self.visibility <= 1.0:
+            raise ValueError("visibility must be in (0, 1]")
         n = len(self.fov_deg)
         if n == 0 or any(len(getattr(self, k)) != n for k in ("range_m", "yaw_deg", "mount_x_m", "pd_near", "pd_far")):
             raise ValueError("a detection model needs at least one sensor and equally long tuples")
@@ -75,4 +80,4 @@ def expected_detection_probability(
             inside = (cos_angle >= np.cos(half) - 1e-12) | (d == 0.0)
             seen = np.where(known, inside.astype(float), model.fov_deg[s] / 360.0)
         miss *= 1.0 - pd * seen
-    return 1.0 - miss
+    return (1.0 - miss) if model.visibility == 1.0 else model.visibility * (1.0 - miss)

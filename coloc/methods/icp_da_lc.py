@@ -164,6 +164,9 @@ class LcParams:
       ``detection`` by whoever builds it (``coloc run``: from
       ``[perception]``); a track outside every field of view is not expected
       to be detected. Off: ``detection_probability`` within the range.
+      ``visibility``: the share of in-view tracks the estimator expects not
+      to be occluded (it cannot predict every occluder); it scales the
+      sensors' P_D (1, default: no occlusion expected).
     * ``track_existence``: carry an existence probability r with every track
       (step 9); off (default): every track exists (r = 1, the paper's tracks).
       ``survival_probability``: r is multiplied by it every step;
@@ -188,6 +191,7 @@ class LcParams:
     pairing: str = "gated"
     clutter_intensity: float = 0.0
     sensor_fov: bool = False
+    visibility: float = 1.0
     track_existence: bool = False
     survival_probability: float = 0.999
     confirm_existence: float = 0.9
@@ -217,6 +221,8 @@ class LcParams:
             raise ValueError("clutter_intensity must be >= 0 (false detections per m^2 per scan)")
         if not 0.0 < self.survival_probability <= 1.0:
             raise ValueError("survival_probability must be in (0, 1]")
+        if not 0.0 < self.visibility <= 1.0:
+            raise ValueError("visibility must be in (0, 1] (1: no occlusion expected)")
         if not 0.0 <= self.own_consistency_gate < 1.0:
             raise ValueError("own_consistency_gate must be in [0, 1) (0: off)")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:

@@ -2,6 +2,7 @@
 geometry (couplers.perception): same field of view, range and detection profile."""
 
 import numpy as np
+import pytest
 
 from coloc.core.detection import expected_detection_probability
 from couplers.perception import (
@@ -49,3 +50,19 @@ def test_unknown_heading_weighs_each_sensor_by_its_opening():
     target = np.array([[50.0, 0.0], [10.0, 5.0]])
     got = expected_detection_probability(v_mean, target, model)
     np.testing.assert_allclose(got, [0.9 / 3.0, 1.0 - (1.0 - 0.3) * (1.0 - 0.6)])
+
+
+def test_visibility_scales_the_expected_detection_probability():
+    """[lc] visibility v: P_D = v x (1 - prod_s (1 - P_D,s)); v = 1 is the model without it, bit for bit."""
+    params = PerceptionParams(sensors=(SensorSpec(name="front", fov_deg=120.0, range_m=80.0, pd_near=0.9, pd_far=0.7),
+                                       SensorSpec(name="round", fov_deg=360.0, range_m=30.0, pd_near=0.6, pd_far=0.6)))
+    rng = np.random.default_rng(4)
+    v_mean = np.c_[rng.uniform(-50, 50, (200, 2)), rng.normal(0, 5, (200, 2))]
+    target = v_mean[:, :2] + rng.uniform(-60, 60, (200, 2))
+    full = expected_detection_probability(v_mean, target, detection_model(params, 1.0))
+    same = expected_detection_probability(v_mean, target, detection_model(params, 1.0, visibility=1.0))
+    assert np.array_equal(full, same)
+    np.testing.assert_allclose(expected_detection_probability(v_mean, target, detection_model(params, 1.0, 0.6)),
+                               0.6 * full, rtol=1e-15, atol=0)
+    with pytest.raises(ValueError):
+        detection_model(params, 1.0, visibility=0.0)

@@ -469,6 +469,12 @@ def run_v2x_distances_not_increasing(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "lc", "visibility")
+def run_lc_visibility_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nvisibility = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "icp.budget_split", "greedy, even")
 def run_icp_unknown_budget_split(tmp, net, run):
     cfg = _config(tmp, net, "[icp]\nbudget_split = \"fair\"\n")
@@ -712,7 +718,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 86
+    assert len(CASES) >= 87
 
 
 # ----------------------------------------------------------------------------- what --out may replace
