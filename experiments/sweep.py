@@ -82,7 +82,8 @@ import pandas as pd
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
-from experiments.sweep_factors import Factor, Variant, factors_toml, parse_factors, split_overrides, variants
+from experiments.sweep_factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
+    split_overrides, variants
 from experiments.sweep_zones import aggregate_zones, degree_partial, zone_partials
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors")
@@ -132,18 +133,6 @@ def settings_of(spec: SweepSpec) -> list[tuple[tuple, Variant | None]]:
     keys = spec.grid_keys
     return [(combo, v) for combo in combos for v in variants(spec.factors)
             if v is None or v.runs_with(dict(zip(keys, combo)))]
-
-
-def _flatten(table: dict, prefix: str = "") -> dict:
-    """Grid / set tables: accept quoted dotted keys ("a.b" = ...) and TOML's nested form (a.b = ...)."""
-    out = {}
-    for key, value in table.items():
-        dotted = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(_flatten(value, dotted + "."))
-        else:
-            out[dotted] = value
-    return out
 
 
 def _check_dotted(dotted: str, path: Path, where: str) -> None:

@@ -111,7 +111,7 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
             if not preset and not sets and base is None:
                 raise InputError(path, lw, "a level sets something (set = {...}) or names another base config")
             overrides = []
-            for dotted, value in _flatten_set(sets).items():
+            for dotted, value in flatten_dotted(sets).items():
                 if _STAR.match(dotted):
                     pass  # checked when applied (the base config must have that array of tables)
                 else:
@@ -128,7 +128,7 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
             if not isinstance(only, dict) or preset and only:
                 raise InputError(path, f"{lw}.only", "expected a table {\"grid.key\" = [values]} (not on the preset)")
             only_t = []
-            for key, values in _flatten_set(only).items():
+            for key, values in flatten_dotted(only).items():
                 if not isinstance(values, list) or not values:
                     raise InputError(path, f"{lw}.only.{key}", f"expected a non-empty list of values, got {values!r}")
                 only_t.append((key, tuple(values)))
@@ -139,13 +139,14 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
     return tuple(factors)
 
 
-def _flatten_set(table: dict, prefix: str = "") -> dict:
-    """Quoted dotted keys ("a.b" = ...) or TOML's nested form (a.b = ...); "[*]" stays in the key."""
+def flatten_dotted(table: dict, prefix: str = "") -> dict:
+    """Grid / set / level tables: quoted dotted keys ("a.b" = ...) or TOML's nested form (a.b = ...);
+    a "[*]" stays in the key."""
     out = {}
     for key, value in table.items():
         dotted = f"{prefix}{key}"
         if isinstance(value, dict):
-            out.update(_flatten_set(value, dotted + "."))
+            out.update(flatten_dotted(value, dotted + "."))
         else:
             out[dotted] = value
     return out
