@@ -116,6 +116,7 @@ def scrambled(frame: Frame, rng: np.random.Generator) -> Frame:
         features_true=rng.normal(size=tr.features_true.shape), zone=tr.zone[::-1], area=tr.area[::-1],
         heading=None if tr.heading is None else rng.normal(size=tr.heading.shape),
         feature_ids=None if tr.feature_ids is None else tr.feature_ids[::-1],
+        feature_class=None if tr.feature_class is None else rng.permutation(tr.feature_class),
         radar_vehicle=None if tr.radar_vehicle is None else rng.permutation(tr.radar_vehicle)))
 
 

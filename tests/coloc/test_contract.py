@@ -182,3 +182,55 @@ def test_inertial_input_contract(name):
         assert ea.mean.tobytes() == eb.mean.tobytes() and ea.cov.tobytes() == eb.cov.tobytes()
         assert_valid(ea, g)
         np.testing.assert_array_equal(_nearest_truth(ea, g), np.arange(g.n_vehicles))
+
+
+def with_clutter_and_pedestrians(frame, rng):
+    """The frame with one false detection per vehicle (a static-looking object within 30 m, truth -1,
+    reported static) and feature 1 labelled a pedestrian, its rows class 1 (Frame.v2f_class)."""
+    from dataclasses import replace
+
+    n = frame.n_vehicles
+    tr = frame.truth
+    off = rng.uniform(-30.0, 30.0, (n, 2))
+    cz = np.c_[off, -tr.x_true[:, 2:]] + rng.normal(0.0, 0.1, (n, 4))
+    owner = np.concatenate([frame.v2f_owner, np.arange(n)])
+    order = np.argsort(owner, kind="stable")
+    feat = np.concatenate([tr.v2f_feature, np.full(n, -1)])[order]
+    klass = np.zeros(tr.features_true.shape[0], np.int8)
+    klass[1] = 1
+    row_class = np.where(feat >= 0, klass[np.maximum(feat, 0)], 0).astype(np.int8)
+    cr = np.broadcast_to(np.diag([0.01, 0.01, 0.01, 0.01]), (n, 4, 4))  # 0.1 m, 0.1 m/s as the V2F rows
+    return replace(frame, v2f_z=np.concatenate([frame.v2f_z, cz])[order], v2f_owner=owner[order],
+                   v2f_R=np.concatenate([frame.v2f_R, cr])[order], v2f_class=row_class,
+                   truth=replace(tr, v2f_feature=feat, feature_class=klass))
+
+
+@pytest.mark.parametrize("name", ["icp_known_da", "icp_da_lc"])
+def test_truth_blind_with_clutter_and_pedestrians(name):
+    """Clutter rows (truth -1), pedestrian rows (class 1) and the existence / clutter model of ICP-DA-LC:
+    scrambled truth or none gives the same bytes, pairings and tracks."""
+    from coloc.methods.icp_da_lc import IcpDaLc
+    from coloc.methods.icp_known_da import IcpKnownDA
+
+    lc = LcParams(clutter_intensity=3e-4, track_existence=True)
+    params = IcpParams(motion=ROAD_MOTION)
+
+    def make():
+        return IcpDaLc(params=params, lc=lc) if name == "icp_da_lc" else IcpKnownDA(params)
+
+    rng = np.random.default_rng(11)
+    frames = [with_clutter_and_pedestrians(f, rng) for f in road_frames(steps=8, v2v_range=25.0)]
+    a, b, c = make(), make(), make()
+    srng = np.random.default_rng(5)
+    for f in frames:
+        assert (f.truth.v2f_feature < 0).any() and (f.v2f_class == 1).any()
+        assoc = f.truth.v2f_feature.copy()
+        ea = step(name, a, f, assoc)
+        assert_valid(ea, f)
+        for e in (step(name, b, scrambled(f, srng), assoc), step(name, c, f.without_truth(), assoc)):
+            assert ea.mean.tobytes() == e.mean.tobytes() and ea.cov.tobytes() == e.cov.tobytes()
+            for field in ("v2f_assignment", "feature_mean", "feature_track_ids"):
+                x, y = getattr(ea, field), getattr(e, field)
+                assert (x is None) == (y is None), field
+                if x is not None:
+                    np.testing.assert_array_equal(x, y, err_msg=field)
