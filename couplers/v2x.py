@@ -21,7 +21,8 @@ Model:
   the channel is a layer on top: each directed entry j -> i of ``neighbors`` gets a delivery
   probability, and every message on it in every round is delivered independently with that
   probability (losses are directed: i may hear j while j misses i).
-* Rounds: ``rounds_per_step`` broadcast rounds fit in one step (0 = unlimited).
+* Rounds: ``rounds_per_step`` broadcast rounds fit in one step (an integer >= 1, or "unlimited",
+  the default; the frame carries 0 for unlimited, coloc.core.v2x).
 * ``channel = "ideal"`` replaces the delivery curves by 1 on every link within Rc: the penetration and
   the round budget alone (the ideal arm of the penetration study).
 
@@ -62,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from coloc.core.v2x import V2xFrame
+from coloc.core.v2x import UNLIMITED_ROUNDS, V2xFrame
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
@@ -105,6 +106,7 @@ DEFAULT_PDR_NLOS = (1.0, 0.974, 0.828, 0.585, 0.354, 0.193, 0.098, 0.023, 0.005,
 
 
 CHANNELS = ("curves", "ideal")
+UNLIMITED = "unlimited"  # [v2x] rounds_per_step: as many rounds as a method wants
 
 
 def _finite(value) -> bool:
@@ -119,7 +121,7 @@ class V2xParams:
     pdr_distance_m: tuple[float, ...] = DEFAULT_PDR_DISTANCE_M
     pdr_los: tuple[float, ...] = DEFAULT_PDR_LOS
     pdr_nlos: tuple[float, ...] = DEFAULT_PDR_NLOS
-    rounds_per_step: int = 0  # broadcast rounds per step; 0 = unlimited
+    rounds_per_step: int | str = UNLIMITED  # broadcast rounds per step (>= 1), or "unlimited"
     # "curves": delivery by distance from pdr_los / pdr_nlos; "ideal": every link within Rc delivers every
     # round (penetration and round budget alone, e.g. the ideal arm of the penetration study)
     channel: str = "curves"
@@ -150,8 +152,13 @@ class V2xParams:
         if self.channel not in CHANNELS:
             raise InputError(None, "channel", f"must be one of {', '.join(CHANNELS)}, got {self.channel!r}")
         r = self.rounds_per_step
-        if isinstance(r, bool) or not isinstance(r, int) or r < 0:
-            raise InputError(None, "rounds_per_step", f"must be an integer >= 0 (0 = unlimited), got {r!r}")
+        if r != UNLIMITED and (isinstance(r, bool) or not isinstance(r, int) or r < 1):
+            raise InputError(None, "rounds_per_step", f'must be an integer >= 1, or "{UNLIMITED}", got {r!r}')
+
+    @property
+    def round_budget(self) -> int:
+        """The frame's ``rounds_per_step`` (coloc.core.v2x): the budget, 0 for unlimited."""
+        return UNLIMITED_ROUNDS if self.rounds_per_step == UNLIMITED else int(self.rounds_per_step)
 
 
 # --- penetration ----------------------------------------------------------------------------------
@@ -242,4 +249,4 @@ class V2xChannel:
             nlos = link_nlos(xy, neighbors, self.buildings)
             prob = delivery_probability(link_lengths(xy, neighbors), nlos, self.params)
         step_seed = int(self.rounds.integers(0, 2**63 - 1, dtype=np.int64))
-        return V2xFrame(delivery_prob=prob, rounds_per_step=self.params.rounds_per_step, seed=step_seed)
+        return V2xFrame(delivery_prob=prob, rounds_per_step=self.params.round_budget, seed=step_seed)

@@ -283,6 +283,10 @@ def _check_value(value, annotation, where: str, path: Path):
         inner = [a for a in typing.get_args(annotation) if a is not type(None)]
         if len(inner) == 1:
             return _check_value(value, inner[0], where, path)
+        if all(a in (int, str) for a in inner):  # e.g. [v2x] rounds_per_step: an integer or "unlimited"
+            if isinstance(value, str) or (isinstance(value, int) and not isinstance(value, bool)):
+                return value
+            raise InputError(path, where, f"expected an integer or a string, got {value!r}")
         raise TypeError(f"unsupported annotation {annotation} for {where}")
     raise TypeError(f"unsupported annotation {annotation} for {where}")
 

@@ -229,7 +229,7 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "pdr_nlos": (NO_UNIT, "Packet delivery ratio at each distance of a link whose segment crosses a "
                               "building, in [0, 1], non-increasing."),
         "rounds_per_step": (NO_UNIT, "Broadcast rounds that fit in one step, shared by every iterative "
-                                     "exchange of a method; 0 = unlimited."),
+                                     "exchange of a method: an integer >= 1, or `\"unlimited\"`."),
         "channel": ("", "`\"curves\"`: delivery by link distance from `pdr_los` / `pdr_nlos`; `\"ideal\"`: "
                         "every link within `sensors.v2v_range_m` delivers every round (the penetration and the "
                         "round budget alone)."),

@@ -240,6 +240,8 @@ def test_v2x_frame_refuses_bad_values():
     (dict(pdr_distance_m=(), pdr_los=(), pdr_nlos=()), "pdr_distance_m"),
     (dict(rounds_per_step=-1), "rounds_per_step"),
     (dict(rounds_per_step=2.5), "rounds_per_step"),
+    (dict(rounds_per_step=0), "rounds_per_step"),
+    (dict(rounds_per_step="infinite"), "rounds_per_step"),
     (dict(channel="perfect"), "channel"),
 ])
 def test_bad_v2x_parameters_name_the_field(kwargs, field):
@@ -254,6 +256,8 @@ def test_bad_v2x_parameters_name_the_field(kwargs, field):
     ("[v2x]\npdr_distance_m = [0.0, 100.0]\npdr_los = [1.0, 0.6]\npdr_nlos = [0.5]", "v2x.pdr_nlos"),
     ("[v2x]\nrounds_per_step = 2.5", "v2x.rounds_per_step"),
     ("[v2x]\nrounds_per_step = -2", "v2x.rounds_per_step"),
+    ("[v2x]\nrounds_per_step = 0", "v2x.rounds_per_step"),
+    ("[v2x]\nrounds_per_step = true", "v2x.rounds_per_step"),
     ("[v2x]\nrange = 3", "v2x.range"),
     ("[sensors]\nv2x = {}", "sensors.v2x"),
     ("[v2x]\n[infra]\nrsu_junctions = ['J1']", "v2x"),
@@ -395,3 +399,8 @@ def test_ideal_channel_delivers_every_link_every_round(cross_net):
         assert round_deliveries(b.v2x, 3).all()
         links += b.neighbors.nnz
     assert links > 100
+
+
+def test_unlimited_rounds_is_the_default_and_the_frame_carries_zero():
+    assert V2xParams().rounds_per_step == "unlimited" and V2xParams().round_budget == 0
+    assert V2xParams(rounds_per_step=4).round_budget == 4

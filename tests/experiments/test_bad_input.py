@@ -501,9 +501,21 @@ def run_v2x_lists_of_different_length(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("cfg.toml", "v2x.rounds_per_step", ">= 0")
+@case("cfg.toml", "v2x.rounds_per_step", ">= 1")
 def run_v2x_negative_rounds(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\nrounds_per_step = -1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.rounds_per_step", ">= 1")
+def run_v2x_zero_rounds(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\nrounds_per_step = 0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "v2x.rounds_per_step", "unlimited")
+def run_v2x_rounds_misspelt(tmp, net, run):
+    cfg = _config(tmp, net, "[v2x]\nrounds_per_step = \"infinite\"\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
@@ -718,7 +730,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 87
+    assert len(CASES) >= 89
 
 
 # ----------------------------------------------------------------------------- what --out may replace
