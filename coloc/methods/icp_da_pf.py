@@ -552,6 +552,7 @@ class _TrackMoments:
     ids: np.ndarray
     mean: np.ndarray
     cov: np.ndarray
+    klass: np.ndarray | None = None  # the PF's tracks have no class ([features] pedestrians is refused with it)
 
     @property
     def size(self) -> int:

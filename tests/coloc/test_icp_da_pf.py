@@ -254,3 +254,15 @@ def test_empty_frames_and_bad_parameters():
                 {"message_bandwidth": "wide"}, {"kernel_cache_mb": -1.0}):
         with pytest.raises(ValueError):
             PfParams(**bad)
+
+
+def test_pf_tracks_merge_through_the_lc_rule():
+    """The PF hands its track moments to ICP-DA-LC's merge rule (step 8); its tracks carry no class."""
+    from coloc.methods.icp_da_lc import LcParams, merge_candidates
+    from coloc.methods.icp_da_pf import _TrackMoments
+
+    mean = np.array([[0.0, 0.0, 0.0, 0.0], [0.3, 0.1, 0.0, 0.0], [40.0, 0.0, 0.0, 0.0]])
+    cov = np.broadcast_to(np.diag([0.25, 0.25, 0.01, 0.01]), (3, 4, 4)).copy()
+    absorbed, into = merge_candidates(_TrackMoments(np.array([4, 9, 12]), mean, cov), IcpParams(), LcParams(),
+                                      np.empty(0, np.int64), np.empty(0, np.int64))
+    assert absorbed.tolist() == [9] and into.tolist() == [4]
