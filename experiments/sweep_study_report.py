@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA
 from experiments.report.figures import _new_fig, _save
 from experiments.report.html import _esc, _fmt, _table
 from experiments.report.styles import method_color, method_label, order_methods
@@ -137,7 +138,7 @@ def fig_factor_association(curves: pd.DataFrame, spec: dict, grid_keys: list[str
     _save(fig, path)
 
 
-def gap_table(zones: pd.DataFrame, keys: list[str], a: str = "icp_da_lc", b: str = "icp_known_da") -> pd.DataFrame:
+def gap_table(zones: pd.DataFrame, keys: list[str], a: str = ICP_DA_LC.name, b: str = ICP_KNOWN_DA.name) -> pd.DataFrame:
     """RMSE of method ``a`` minus that of ``b`` per setting and zone (``keys``: the setting columns)."""
     za = zones[zones["method"] == a].set_index(keys + ["zone"])["rmse_pos_m"]
     zb = zones[zones["method"] == b].set_index(keys + ["zone"])["rmse_pos_m"]
@@ -150,7 +151,7 @@ def fig_factor_gap(zones: pd.DataFrame, spec: dict, grid_keys: list[str], path: 
     gap = gap_table(zones, keys)
     if not len(gap):
         return False
-    fig_factors(gap.assign(method="icp_da_lc").rename(columns={"gap_m": "value"}), spec, grid_keys, "value",
+    fig_factors(gap.assign(method=ICP_DA_LC.name).rename(columns={"gap_m": "value"}), spec, grid_keys, "value",
                 "LC − known DA RMSE [m]", path, from_zero=False)
     return True
 
@@ -158,10 +159,10 @@ def fig_factor_gap(zones: pd.DataFrame, spec: dict, grid_keys: list[str], path: 
 def fig_gain(zones: pd.DataFrame, keys: list[str], path: Path) -> pd.DataFrame:
     """GNSS minus method, RMSE and p95, per zone against the first key; returns the gain table."""
     first, other = keys[0], keys[1:]
-    g = zones[zones["method"] == "gnss"].set_index(keys + ["zone"])[["rmse_pos_m", "p95_pos_m"]]
+    g = zones[zones["method"] == GNSS.name].set_index(keys + ["zone"])[["rmse_pos_m", "p95_pos_m"]]
     rows = []
     for m in order_methods(zones["method"].astype(str).unique()):
-        if m == "gnss":
+        if m == GNSS.name:
             continue
         d = zones[zones["method"] == m].set_index(keys + ["zone"])[["rmse_pos_m", "p95_pos_m"]]
         both = d.index.intersection(g.index)
@@ -238,7 +239,7 @@ def fig_degree(v2v: pd.DataFrame, keys: list[str], path: Path) -> pd.DataFrame:
     return stats
 
 
-def control_difference_table(gain: pd.DataFrame, keys: list[str], method: str = "icp_da_lc") -> tuple[list, list]:
+def control_difference_table(gain: pd.DataFrame, keys: list[str], method: str = ICP_DA_LC.name) -> tuple[list, list]:
     """TLR minus VSR RMSE gain per zone and value of the other keys (the paper's "TLR platoons help")."""
     ctl = "scenario.control"
     g = gain[gain["method"] == method]
