@@ -333,25 +333,25 @@ class ChannelRowConsensus:
     def average(self, x: np.ndarray, rounds: int) -> np.ndarray:
         """``rounds`` rounds of ratio consensus of the rows' values x (O, D) (the next rounds of the
         step); returns every row's estimate of its feature's average (O, D)."""
-        rounds = int(rounds)
-        first = self.rounds_used
-        self.rounds_used += rounds
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        if rounds == 0 or self.src.size == 0:
-            return x.copy()
-        return running_sum_kernel(x, self.share, self.src, self.dst, self._deliveries(first, rounds))
+        return self._exchange(np.ascontiguousarray(x, dtype=np.float64), rounds,
+                              lambda v, got: running_sum_kernel(v, self.share, self.src, self.dst, got))
 
     def maximum(self, x: np.ndarray, rounds: int) -> np.ndarray:
         """``rounds`` rounds of max consensus of the rows' values x (O, D) (the next rounds of the step):
         every round a row keeps the elementwise largest of its own and the values it heard
         (:func:`coloc.inference.lossy_consensus.lossy_max_consensus`); a lost message only delays it."""
+        return self._exchange(np.asarray(x, dtype=np.float64), rounds,
+                              lambda v, got: lossy_max_consensus(v, self.src, self.dst, got))
+
+    def _exchange(self, x: np.ndarray, rounds: int, run) -> np.ndarray:
+        """The next ``rounds`` rounds of the step (counted in ``rounds_used``) of the exchange ``run(x,
+        deliveries)``; no round or no row link: x unchanged."""
         rounds = int(rounds)
         first = self.rounds_used
         self.rounds_used += rounds
-        x = np.asarray(x, dtype=np.float64)
         if rounds == 0 or self.src.size == 0:
             return x.copy()
-        return lossy_max_consensus(x, self.src, self.dst, self._deliveries(first, rounds))
+        return run(x, self._deliveries(first, rounds))
 
     def _deliveries(self, first: int, rounds: int) -> np.ndarray:
         """(rounds, row links) bool: which row links delivered in rounds first .. first + rounds - 1."""
