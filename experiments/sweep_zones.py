@@ -76,12 +76,11 @@ def aggregate_zones(runs, partials: list[dict], param_columns, n_runs: np.ndarra
         s = pd.concat(sums, ignore_index=True).groupby(["_setting", "method", "zone"], sort=True).agg(
             sse_pos=("sse_pos", "sum"), n=("n", "sum"), max_pos=("max_pos", "max")).reset_index()
         h = pd.concat(hists, ignore_index=True).groupby(["_setting", "method", "zone", "bin"], sort=True)["count"].sum()
-        p95 = []
-        for key, sub in h.groupby(level=[0, 1, 2], sort=True):
-            row = s[(s["_setting"] == key[0]) & (s["method"] == key[1]) & (s["zone"] == key[2])]
-            p95.append(p95_from_histogram(sub.index.get_level_values("bin").to_numpy(), sub.to_numpy(),
-                                          float(row["max_pos"].iloc[0])))
-        s["p95_pos_m"] = p95  # same (setting, method, zone) order as the sorted groupby above
+        max_pos = s.set_index(["_setting", "method", "zone"])["max_pos"]
+        p95 = {key: p95_from_histogram(sub.index.get_level_values("bin").to_numpy(), sub.to_numpy(),
+                                       float(max_pos.loc[key]))
+               for key, sub in h.groupby(level=[0, 1, 2], sort=True)}
+        s["p95_pos_m"] = [p95[k] for k in zip(s["_setting"], s["method"], s["zone"])]
         s["rmse_pos_m"] = np.sqrt(s["sse_pos"] / s["n"])
         s["_rank"] = s["method"].map(lambda m: method_rank.get(m, len(method_rank)))
         s["_zone_rank"] = (s["zone"] == ALL_ZONES).astype(int)
