@@ -48,6 +48,16 @@ particles. Per time step:
    taken in closed form (``track_flat`` of :func:`pf_bpa_localization`).
    Merging: LC's rule on the particle moments, the older track kept; dropping
    after ``feature_drop_after_s``.
+8. under clutter and missed detections (issue 21), LC's steps 3 and 9 on the particle moments:
+   with ``detection`` (``lc.sensor_fov``, the ``[perception]`` sensors) P_D is per (vehicle, track)
+   pair at the moments, 0 outside every field of view, in eta (25) and in the terms of (18); with
+   ``lc.track_existence`` every track carries an existence probability r
+   (:mod:`coloc.inference.existence`, Meyer et al. 2018): eta(alpha = l) scaled by r, eta(alpha = 0)
+   = 1 - r P_D, r updated from the association beliefs and the expected detections that did not
+   come, a newborn track's r from the rows that started it. Rows of tracks below
+   ``lc.confirm_existence`` do not enter (18) or BPA-L: they move no vehicle, the track keeps its
+   birth particles (predicted by model (2)) until confirmed, and the rows are reported as discarded;
+   tracks below ``lc.drop_existence`` are dropped. Without either option the step is the paper's.
 
 Identical particle sets at all vehicles (the paper's synchronized local
 generators): every random draw of a vehicle's or a track's particles comes from
@@ -97,12 +107,14 @@ import scipy.sparse as sp
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
+from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.v2x import V2xFrame
 from coloc.core.vehicles import match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
+from coloc.inference.existence import TrackExistence, birth_existence, candidates_existence
 from coloc.inference.gaussian import log_gauss
 from coloc.inference.params import IcpParams
 from coloc.inference.particles import (
@@ -124,9 +136,11 @@ from coloc.methods.icp_da_lc import (
     LcParams,
     association_beliefs,
     birth_clusters,
+    candidate_pairs,
     candidate_rows,
     merge_candidates,
     new_feature_log_density,
+    new_feature_share,
 )
 from coloc.methods.registry import ICP_DA_PF
 
@@ -522,6 +536,8 @@ class PfStepInfo:
     iterations: int
     pair_evaluations: int
     comm: CommCount | None = None  # what the vehicles sent (pf_step_comm)
+    existence: TrackExistence | None = None  # the tracks' existence after the step (lc.track_existence)
+    tentative: int = 0  # rows paired with (or starting) a track not yet confirmed: not used for the vehicles
 
 
 def pf_step_comm(entry_vehicle: np.ndarray, entry_track: np.ndarray, adjacency: sp.spmatrix, birth_owner: np.ndarray,
@@ -594,9 +610,13 @@ def _birth_particles(v_mean, v_cov, z_rows, r_rows, entities, step, params: IcpP
 def icp_da_pf_step(
     state: PfState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams, pf: PfParams,
     known_association: np.ndarray | None = None, workspace: KernelWorkspace | None = None,
+    existence: TrackExistence | None = None, detection: DetectionModel | None = None,
 ) -> tuple[PfState, int, PfStepInfo, StepEstimate]:
     """One ICP-DA-PF step (pure). ``known_association`` (O,) stable feature ids: the known-DA
-    variant used by tests (association BP skipped, tracks keyed by the given ids)."""
+    variant used by tests (association BP skipped, tracks keyed by the given ids). ``existence``: the
+    tracks' existence after the previous step (``lc.track_existence``; the new one is
+    ``info.existence``); ``detection``: the vehicles' sensors, for a P_D per (vehicle, track) (None:
+    ``lc.detection_probability``). Both as ICP-DA-LC's steps 3 and 9 (:mod:`coloc.methods.icp_da_lc`)."""
     jv, jf = pf.vehicle_particles, pf.feature_particles
     step = int(round(frame.t / frame.dt)) if frame.dt > 0 else 0
     n = frame.n_vehicles
@@ -655,6 +675,17 @@ def icp_da_pf_step(
 
     row_track = np.full(o, -1, dtype=np.int64)  # track id per row
     log_pd, log_1mpd = math.log(lc.detection_probability), math.log(1.0 - lc.detection_probability)
+    # LC's steps 3 and 9 (per-pair P_D from the sensors, track existence); the known-DA variant is told
+    # the association and keeps every track.
+    with_existence = known_association is None and lc.track_existence
+    per_pair_pd = known_association is None and (lc.track_existence or detection is not None)
+    ex = None
+
+    def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
+        """P_D of (vehicle, predicted track) pairs, at the moments (as LC)."""
+        if detection is None:
+            return np.full(vi.size, lc.detection_probability)
+        return expected_detection_probability(v_mean[vi], t_mean[ti, :2], detection)
     if known_association is not None:
         assoc = np.asarray(known_association, dtype=np.int64)
         new_ids = np.setdiff1d(np.unique(assoc[assoc >= 0]), t_ids)
@@ -685,9 +716,27 @@ def icp_da_pf_step(
                                     pv, z[pr], r_eta)
             log_eta = logsumexp(assoc_logw[pv] + g, axis=1)
             log_new = new_feature_log_density(v_mean[pv], assoc_cov[pv], z[pr], r[pr], lc)
-            w = np.exp(np.minimum(log_pd + log_eta - log_new, 600.0))
-        ab = association_beliefs(pv, pt, pr, w, n, o, lc)
+            if per_pair_pd:
+                w = pd_of(pv, pt) * np.exp(np.minimum(log_eta - log_new, 600.0))
+            else:
+                w = np.exp(np.minimum(log_pd + log_eta - log_new, 600.0))
+        # Step 9 of LC: eta with the tracks' predicted existence r and the pairs' P_D.
+        missed = None
+        if with_existence:
+            r_pred = (existence or TrackExistence()).of(t_ids) * lc.survival_probability
+            w = w * r_pred[pt]
+            missed = 1.0 - r_pred[pt] * pd_of(pv, pt)
+        elif per_pair_pd:
+            missed = 1.0 - pd_of(pv, pt)
+        ab = association_beliefs(pv, pt, pr, w, n, o, lc, missed)
         row_new = np.ones(o) if ab is None else ab.row_new
+        if with_existence:  # r updated by the step: detections and expected detections that did not come
+            cv, ct = candidate_pairs(v_mean, assoc_cov, t_mean, t_cov, lc)
+            pd_c = pd_of(cv, ct)
+            if detection is None:  # expected in view: within Rs of the vehicle's estimate
+                pd_c = np.where(np.hypot(*(v_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
+            pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
+            ex = TrackExistence(t_ids.copy(), candidates_existence(r_pred, ab, cv, ct, pd_c, pd_combo, t_ids.size))
         # Terms of (18) for every combo option with a belief worth keeping.
         term_rows = np.empty(0, np.int64)
         term_track_id = np.empty(0, np.int64)
@@ -706,9 +755,15 @@ def icp_da_pf_step(
                                            z[rows[keep]], r[rows[keep]], lc)
             term_rows = rows[keep]
             term_track_id = t_ids[ab.combo_track[seg[keep]]]
-            term_log_c = np.log(bel[keep]) + log_pd - lnew
             b0 = ab.belief[ab.combo_start]
-            combo_c0 = (ab.combo_vehicle, t_ids[ab.combo_track], np.log(np.maximum(b0, 1e-300)) + log_1mpd)
+            if per_pair_pd:  # P_D of each option's (vehicle, track) combo
+                pd_cmb = pd_of(ab.combo_vehicle, ab.combo_track)
+                term_log_c = np.log(bel[keep]) + np.log(pd_cmb[seg[keep]]) - lnew
+                c0 = np.log(np.maximum(b0, 1e-300)) + np.log(np.maximum(1.0 - pd_cmb, 1e-300))
+            else:
+                term_log_c = np.log(bel[keep]) + log_pd - lnew
+                c0 = np.log(np.maximum(b0, 1e-300)) + log_1mpd
+            combo_c0 = (ab.combo_vehicle, t_ids[ab.combo_track], c0)
             # Row -> track: the option of largest belief, if it beats "new".
             best = np.full(o, -1.0)
             best_track = np.full(o, -1, np.int64)
@@ -732,6 +787,18 @@ def icp_da_pf_step(
         term_rows = np.concatenate([term_rows, birth_rows_all])
         term_track_id = np.concatenate([term_track_id, next_id - n_born + labels])
         term_log_c = np.concatenate([term_log_c, np.zeros(birth_rows_all.size)])
+        if with_existence:
+            # Births' existence (LC step 9), then confirmation: rows of tracks not yet confirmed do not
+            # enter (18) and BPA-L, so they move no vehicle (and the tentative track is only predicted
+            # until it is confirmed: it keeps the particles it was born with).
+            share = new_feature_share(v_mean[owner[birth_rows_all]], assoc_cov[owner[birth_rows_all]],
+                                      z[birth_rows_all], r[birth_rows_all], lc)
+            ex = ex.with_tracks(birth_ids, birth_existence(share, labels, n_born))
+            use = ex.confirmed(term_track_id, lc.confirm_existence)
+            term_rows, term_track_id, term_log_c = term_rows[use], term_track_id[use], term_log_c[use]
+            if combo_c0 is not None:
+                use = ex.confirmed(combo_c0[1], lc.confirm_existence)
+                combo_c0 = (combo_c0[0][use], combo_c0[1][use], combo_c0[2][use])
 
     # Newborn tracks (prior / proposal weights).
     if birth_rows.size:
@@ -851,9 +918,20 @@ def icp_da_pf_step(
             for a_id, i_id in zip(absorbed, into):
                 row_track[row_track == a_id] = i_id
     keep_t &= (frame.t - t_last) <= params.feature_drop_after_s
+    keep_f = keep_t
+    n_tentative = 0
+    if with_existence:
+        if merged:
+            ex = ex.merged(absorbed, into)
+        keep_t &= ex.of(t_ids) >= lc.drop_existence
+        ex = ex.restricted(t_ids[keep_t])
+        n_tentative = int(((row_track >= 0) & ~ex.confirmed(row_track, lc.confirm_existence)).sum())
+        # Rows not used for the vehicles are reported as discarded; only confirmed tracks are features.
+        row_track = np.where(ex.confirmed(row_track, lc.confirm_existence), row_track, -1)
+        keep_f = keep_t & ex.confirmed(t_ids, lc.confirm_existence)
     estimate = StepEstimate(
-        mean=mean, cov=cov, feature_mean=f_mean[keep_t], feature_cov=f_cov[keep_t],
-        feature_track_ids=t_ids[keep_t].copy(), v2f_assignment=row_track.copy(),
+        mean=mean, cov=cov, feature_mean=f_mean[keep_f], feature_cov=f_cov[keep_f],
+        feature_track_ids=t_ids[keep_f].copy(), v2f_assignment=row_track.copy(),
     )
     if latest:
         keep_m = np.isin(msg_track, t_ids[keep_t])
@@ -863,7 +941,7 @@ def icp_da_pf_step(
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
                       pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced], res.iterations, n,
-                                   params, pf, res.rounds))
+                                   params, pf, res.rounds), ex, n_tentative)
     return new_state, next_id, info, estimate
 
 
@@ -879,10 +957,15 @@ class IcpDaPf:
     next_id: int = 0
     last: PfStepInfo | None = None
     workspace: KernelWorkspace = field(default_factory=KernelWorkspace, repr=False)  # scratch, never read across steps
+    # The vehicles' sensors (field of view, range, detection profile), for a P_D per (vehicle,
+    # track); None: lc.detection_probability everywhere in range.
+    detection: DetectionModel | None = None
 
     def step(self, frame: Frame) -> StepEstimate:
+        existence = self.last.existence if self.last is not None else None
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
-                                                                   self.lc, self.pf, workspace=self.workspace)
+                                                                   self.lc, self.pf, workspace=self.workspace,
+                                                                   existence=existence, detection=self.detection)
         return est
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:

@@ -85,7 +85,7 @@ def _icp_da_lc(p: MethodParams):
 def _icp_da_pf(p: MethodParams):
     from coloc.methods.icp_da_pf import IcpDaPf
 
-    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf)
+    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, detection=p.detection if p.lc.sensor_fov else None)
 
 
 def _icp_known_da_pf(p: MethodParams):
