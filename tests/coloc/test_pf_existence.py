@@ -8,11 +8,10 @@ import pytest
 
 from coloc.core.detection import DetectionModel
 from coloc.inference.params import IcpParams
-from coloc.methods.gnss import GnssTracker
 from coloc.methods.icp_da_pf import IcpDaPf, PfParams
 from scenes import road_frames
 from tests.coloc.test_icp_known_da import MOTION
-from tests.coloc.test_track_confirmation import CLUTTER_RANGE_M, GNSS_SP, _lc, _rmse, with_clutter
+from tests.coloc.test_track_confirmation import CLUTTER_RANGE_M, GNSS_SP, _lc, _rmse, run_under_clutter, with_clutter
 
 PF_SMALL = PfParams(vehicle_particles=300, feature_particles=300, seed=1)
 
@@ -55,17 +54,7 @@ def test_real_features_are_confirmed_under_clutter_and_the_pf_beats_gnss():
     seed = 4
     frames = with_clutter(road_frames(seed=seed, steps=20, n_feat=4, v2v_range=25.0, gnss_sp=GNSS_SP), 1.0, seed)
     pf = IcpDaPf(params=IcpParams(motion=MOTION), lc=_lc(1.0), pf=PF_SMALL)
-    gnss = GnssTracker(MOTION)
-    out_pf, out_g = [], []
-    used_clutter = used_real = 0
-    for f in frames:
-        blind = f.without_truth()
-        out_pf.append(pf.step(blind))
-        out_g.append(gnss.step(blind))
-        a = out_pf[-1].v2f_assignment
-        used_clutter += int(((a >= 0) & (f.truth.v2f_feature < 0)).sum())
-        used_real += int(((a >= 0) & (f.truth.v2f_feature >= 0)).sum())
-        assert np.all(np.linalg.eigvalsh(out_pf[-1].cov).min(axis=1) > 0)
+    out_pf, out_g, used_real, used_clutter = run_under_clutter(pf, frames)
     print(f"real rows used {used_real}, clutter rows used {used_clutter}; "
           f"RMSE PF {_rmse(frames, out_pf):.3f} m, GNSS {_rmse(frames, out_g):.3f} m")
     assert used_real > 10 * max(used_clutter, 1)

@@ -172,24 +172,29 @@ def _rmse(frames, ests):
     return float(np.sqrt(e.mean()))
 
 
+def run_under_clutter(est, frames):
+    """``est`` and the GNSS tracker on ``frames``: their estimates, and the rows ``est`` used for the
+    vehicles that were real and that were clutter. Every covariance is checked SPD on the way."""
+    gnss = GnssTracker(MOTION)
+    out, out_g = [], []
+    used_clutter = used_real = 0
+    for f in frames:
+        blind = f.without_truth()
+        out.append(est.step(blind))
+        out_g.append(gnss.step(blind))
+        a = out[-1].v2f_assignment
+        used_clutter += int(((a >= 0) & (f.truth.v2f_feature < 0)).sum())
+        used_real += int(((a >= 0) & (f.truth.v2f_feature >= 0)).sum())
+        assert np.all(np.linalg.eigvalsh(out[-1].cov).min(axis=1) > 0)
+    return out, out_g, used_real, used_clutter
+
+
 def test_real_features_are_confirmed_under_clutter_and_help_the_vehicles():
     """Landmarks 30 m apart plus one false detection per vehicle and scan: the landmarks' tracks
     are confirmed within the window, clutter's are not, and the vehicles beat GNSS."""
     seed = 4
     frames = with_clutter(road_frames(seed=seed, steps=20, n_feat=4, v2v_range=25.0, gnss_sp=GNSS_SP), 1.0, seed)
-    params = IcpParams(motion=MOTION)
-    lc_est, gnss = IcpDaLc(params, _lc(1.0)), GnssTracker(MOTION)
-    out_lc, out_g = [], []
-    used_clutter = used_real = 0
-    for f in frames:
-        blind = f.without_truth()
-        out_lc.append(lc_est.step(blind))
-        out_g.append(gnss.step(blind))
-        a = out_lc[-1].v2f_assignment
-        used_clutter += int(((a >= 0) & (f.truth.v2f_feature < 0)).sum())
-        used_real += int(((a >= 0) & (f.truth.v2f_feature >= 0)).sum())
-        for c in out_lc[-1].cov:
-            assert np.linalg.eigvalsh(c).min() > 0
+    out_lc, out_g, used_real, used_clutter = run_under_clutter(IcpDaLc(IcpParams(motion=MOTION), _lc(1.0)), frames)
     assert used_real > 10 * max(used_clutter, 1)
     assert _rmse(frames, out_lc) < _rmse(frames, out_g)
 

@@ -1,0 +1,194 @@
+"""Benchmark: per-vehicle-step cost of frames and estimators on a city, from 100 to 3000 vehicles.
+
+Issue 24 item 4. Builds, deterministically and from files this project ships or generates:
+
+1. the doubled Berlin net (``bench/berlin_twice.py``: the eclipse-sumo wheel's Berlin OSM net twice,
+   2066 junctions, 185 lane-km, 42 traffic lights);
+2. static features: bus-stop places every ``--feature-spacing`` m (default 50 m) along every
+   drivable edge longer than 40 m, handed to ``coloc net import --additional`` so the import's own
+   feature selection (4 m apart, seeded) picks ``--features`` of them (default 1500, about 16 per km
+   of road, the arterial's density);
+3. a demand ramp: ``randomTrips.py`` trips (seeded, validated by duarouter, at least 1.5 km long)
+   inserted at ``--insertion-rate`` veh/h (default 14000) for the first ``--insert-s`` seconds (900),
+   so that the number of vehicles in the net climbs from 0 past 3000 in one run;
+4. ``coloc net import --net ... --routes ... --additional ... --no-calibrate`` writes the net folder
+   and its TLR config (default zones: C centre, B ring, A outskirts).
+
+Then one coupled run (libsumo, ``SumoCoupler``, the generated TLR config's sensing; every estimator on
+every frame, as ``bench/coupled_vs_sumo.py`` does) records per step the vehicles in the net, the V2V
+links, the V2F rows and the wall time of the frame and of each method. Printed: per bin of vehicles in
+the net, the cost per vehicle-step (microseconds) of frames, gnss, icp_known_da and icp_da_lc, with the
+mean V2V degree and V2F rows per vehicle beside them (a denser net has more neighbours per vehicle:
+the consensus cost per vehicle grows with the degree, not with N); the ratio of icp_da_lc's cost per
+vehicle-step at ~3000 vehicles to its cost at ~300 (issue target: at most 1.5); and the `sumo` binary
+alone on the same net and routes against the coupled run with gnss + icp_da_lc (target: at most 10x).
+
+    python bench/city_scale.py [--work /tmp/coloc_city] [--duration 1200] [--seed 1]
+
+The net folder is cached in ``--work`` (rebuilt when absent). Not a test: it asserts nothing and
+prints numbers measured in one run (about 15-30 minutes on 2 cores; the simulation jams as the
+demand exceeds the net's capacity, which is what puts 3000 vehicles in it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import sumo  # the eclipse-sumo wheel
+import sumolib
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from couplers.netfolder import load_net_folder  # noqa: E402
+from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
+from experiments.config import load_config  # noqa: E402
+from coloc.methods.registry import METHODS  # noqa: E402
+from experiments.runner import build_estimators  # noqa: E402
+from bench.coupled_vs_sumo import time_sumo_binary  # noqa: E402
+
+BINS = (100, 200, 300, 500, 750, 1000, 1500, 2000, 2500, 3000, 3500)
+METHOD_NAMES = ("gnss", "icp_known_da", "icp_da_lc")
+
+
+def bus_stop_places(net_file: Path, spacing: float) -> str:
+    """busStop additionals every ``spacing`` m along lane 0 of every drivable edge longer than 40 m."""
+    net = sumolib.net.readNet(str(net_file))
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>',
+             f"<!-- bench/city_scale.py: feature places every {spacing:g} m along drivable edges -->",
+             "<additional>"]
+    for e in sorted(net.getEdges(), key=lambda e: e.getID()):
+        if e.getFunction() != "" or not e.allows("passenger") or e.getLength() <= 40.0:
+            continue
+        lane = e.getLane(0)
+        for k, pos in enumerate(np.arange(20.0, lane.getLength() - 20.0, spacing)):
+            lines.append(f'    <busStop id="cs_{e.getID()}_{k}" lane="{lane.getID()}" '
+                         f'startPos="{pos:.1f}" endPos="{pos + 10.0:.1f}"/>')
+    lines.append("</additional>")
+    return "\n".join(lines) + "\n"
+
+
+def build_city(work: Path, seed: int, features: int, spacing: float, rate: float, insert_s: float) -> Path:
+    """The net folder and its TLR config under ``work`` (built once; returns the config path)."""
+    config = work / "experiments" / "city_tlr.toml"
+    if config.exists():
+        return config
+    work.mkdir(parents=True, exist_ok=True)
+    net = work / "berlin2.net.xml"
+    if not net.exists():
+        subprocess.run([sys.executable, str(ROOT / "bench" / "berlin_twice.py"), "--out", str(net)], check=True)
+    stops = work / "places.add.xml"
+    stops.write_text(bus_stop_places(net, spacing))
+    trips = work / "trips.rou.xml"
+    subprocess.run([sys.executable, str(Path(sumo.SUMO_HOME) / "tools" / "randomTrips.py"), "-n", str(net),
+                    "-e", f"{insert_s:g}", "--insertion-rate", f"{rate:g}", "--seed", str(seed),
+                    "--min-distance", "1500", "--fringe-factor", "2", "--validate",
+                    "--vehicle-class", "passenger", "-o", str(trips)],
+                   check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "experiments.cli", "net", "import", "--net", str(net), "--name", "city",
+                    "--out", str(work / "net"), "--experiments-dir", str(work / "experiments"),
+                    "--routes", str(trips), "--additional", str(stops), "--features", str(features),
+                    "--seed", str(seed), "--no-calibrate"], check=True, cwd=ROOT)
+    return config
+
+
+def coupled_steps(scenario: SumoScenario, cfg, methods) -> dict[str, np.ndarray]:
+    """Per step: vehicles, V2V links, V2F rows, frame seconds and each method's seconds."""
+    estimators = build_estimators(cfg)
+    estimators = [e for e in estimators if e.name in methods]
+    rec = {k: [] for k in ("n", "links", "rows", "frame", *[e.name for e in estimators])}
+    with SumoCoupler(scenario, cfg.sensors) as coupler:
+        frames = coupler.frames()
+        while True:
+            t0 = time.perf_counter()
+            frame = next(frames, None)
+            if frame is None:
+                break
+            rec["frame"].append(time.perf_counter() - t0)
+            rec["n"].append(frame.vehicle_ids.size)
+            rec["links"].append(frame.neighbors.nnz // 2)
+            rec["rows"].append(frame.v2f_owner.size)
+            blind = frame.without_truth()
+            for est in estimators:
+                s = time.perf_counter()
+                if METHODS[est.name].known_association:  # the bound is told the association
+                    est.step_with_association(blind, frame.truth.v2f_feature)
+                else:
+                    est.step(blind)
+                rec[est.name].append(time.perf_counter() - s)
+    return {k: np.asarray(v, dtype=float) for k, v in rec.items()}
+
+
+def per_vehicle_table(rec: dict[str, np.ndarray], names: list[str]) -> dict[int, float]:
+    """Print the per-vehicle-step cost by bin of vehicles in the net; return icp_da_lc's by bin start."""
+    n = rec["n"]
+    head = f"  {'vehicles':>11} {'steps':>6} {'degree':>7} {'rows/veh':>8} {'frames':>8}" + "".join(
+        f" {m:>13}" for m in names)
+    print(head + "   (microseconds per vehicle-step)")
+    lc = {}
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        sel = (n >= lo) & (n < hi)
+        if sel.sum() < 5:
+            continue
+        veh_steps = n[sel].sum()
+        row = (f"  {lo:>5}-{hi:<5} {int(sel.sum()):>6} {2 * rec['links'][sel].sum() / veh_steps:7.1f} "
+               f"{rec['rows'][sel].sum() / veh_steps:8.2f} {1e6 * rec['frame'][sel].sum() / veh_steps:8.1f}")
+        for m in names:
+            cost = 1e6 * rec[m][sel].sum() / veh_steps
+            row += f" {cost:13.1f}"
+            if m == "icp_da_lc":
+                lc[lo] = cost
+        print(row)
+    return lc
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/coloc_city"))
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--duration", type=float, default=1200.0, help="simulated seconds of the coupled run")
+    ap.add_argument("--features", type=int, default=1500)
+    ap.add_argument("--feature-spacing", type=float, default=50.0)
+    ap.add_argument("--insertion-rate", type=float, default=14000.0, help="veh/h while inserting")
+    ap.add_argument("--insert-s", type=float, default=900.0, help="seconds of insertion")
+    ap.add_argument("--methods", default=",".join(METHOD_NAMES))
+    args = ap.parse_args()
+
+    t0 = time.perf_counter()
+    config = build_city(args.work, args.seed, args.features, args.feature_spacing, args.insertion_rate, args.insert_s)
+    build_s = time.perf_counter() - t0
+    methods = args.methods.split(",")
+    cfg = load_config(config, {"run.duration_s": args.duration, "run.methods": methods, "run.seed": args.seed})
+    net = load_net_folder(cfg.net_dir)
+    scenario = SumoScenario(net=net, control=cfg.scenario.control, seed=cfg.run.seed,
+                            step_length=cfg.scenario.step_s, duration_s=cfg.run.duration_s,
+                            ballistic=cfg.scenario.ballistic)
+    feats = net.features.ids.size
+    sumo_alone = time_sumo_binary(scenario)
+    rec = coupled_steps(scenario, cfg, methods)
+    names = [m for m in methods if m in rec]
+
+    print(f"city: doubled Berlin, {feats} features, seed {args.seed}, {args.duration:.0f} s simulated, "
+          f"{rec['n'].size} steps, up to {int(rec['n'].max())} vehicles at once (net folder built in {build_s:.0f} s)")
+    lc = per_vehicle_table(rec, names)
+    if lc:
+        near = lambda target: min(lc, key=lambda lo: abs(lo - target))  # noqa: E731
+        a, b = near(300), near(3000)
+        print(f"  icp_da_lc per vehicle-step, bin {b}+ against bin {a}+: {lc[b] / lc[a]:.2f}x (target at most 1.5x)")
+    frames_s = rec["frame"].sum()
+    print(f"  sumo binary alone          {sumo_alone:8.1f} s")
+    print(f"  frames (libsumo + coupler) {frames_s:8.1f} s   ratio to sumo {frames_s / sumo_alone:5.2f}")
+    for m in names:
+        print(f"  estimator {m:<16} {rec[m].sum():8.1f} s")
+    if "icp_da_lc" in names and "gnss" in names:
+        run = frames_s + rec["gnss"].sum() + rec["icp_da_lc"].sum()
+        print(f"  coupled gnss + icp_da_lc   {run:8.1f} s   ratio to sumo {run / sumo_alone:5.2f} (target at most 10)")
+
+
+if __name__ == "__main__":
+    main()
