@@ -131,6 +131,9 @@ class PfSection:
     message_bandwidth: str = "prior"
     recursion: str = "latest_message"  # or "paper", the literal recursion (23)-(24)
     regularize: bool = True  # Liu-West jitter after resampling
+    # Driving noise of model (1) for the vehicle particles, m/s^2 (absent: [motion]'s); see PfParams.
+    sigma_along: float | None = None
+    sigma_cross: float | None = None
 
 
 @dataclass(frozen=True)

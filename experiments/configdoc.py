@@ -364,6 +364,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "recursion": ("", "`\"latest_message\"` (a track keeps each vehicle's latest message) or `\"paper\"` "
                           "(the literal recursion (23)-(24))."),
         "regularize": ("", "Liu-West regularised resampling (static features otherwise never rejuvenate)."),
+        "sigma_along": ("m/s^2", "Driving noise of model (1) along the heading for the vehicle particles, in place "
+                                 "of `[motion]`'s (absent: `[motion]`'s)."),
+        "sigma_cross": ("m/s^2", "The same across the heading. With `[inertial]`, at least the IMU's turn-on bias: "
+                                 "the bootstrap PF cannot follow an input error its proposal does not cover."),
     },
     "report": {
         "track_area": ("", "Analysis area of the along/cross-track figure (paper Fig. 18b)."),

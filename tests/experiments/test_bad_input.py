@@ -481,6 +481,12 @@ def run_icp_unknown_budget_split(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "pf", "sigma_along and sigma_cross must be positive")
+def run_pf_driving_noise_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[pf]\nsigma_cross = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "v2x.channel", "curves, ideal")
 def run_v2x_unknown_channel(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\nchannel = \"perfect\"\n")
