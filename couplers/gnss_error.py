@@ -54,10 +54,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
+from couplers.rows import id_rows
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -193,7 +193,7 @@ class GnssErrorProcess:
              zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws."""
         n = len(ids)
-        idx = match_ids(self._ids, ids)
+        idx = id_rows(self._ids, ids)
         cont = (idx >= 0) & ~np.asarray(entered, dtype=bool)
         u = w.copy()
         u[cont] = gauss_markov_step(self._u[idx[cont]], w[cont], self.a)

@@ -55,9 +55,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from coloc.core.inertial import ImuFrame, wrap_angle
-from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.perception import effect_rng
+from couplers.rows import id_rows
 
 INERTIAL_STREAM_TAG = 0x1A0
 
@@ -151,7 +151,7 @@ class InertialProcess:
         (zero rows for vehicles that entered), ``heading`` (N,) the true heading."""
         p, dt = self.params, self.dt
         n = len(ids)
-        idx = match_ids(self._ids, ids)
+        idx = id_rows(self._ids, ids)
         fresh = (idx < 0) | np.asarray(entered, dtype=bool)
         cont = ~fresh
         prev_heading = np.full(n, np.nan)
