@@ -19,6 +19,7 @@ from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
 from couplers.inertial import InertialParams
 from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
+from couplers.rows import shuffle_within_owner
 from couplers.v2x import V2xParams
 
 
@@ -207,12 +208,6 @@ def features_in_range(vehicle_xy: np.ndarray, feature_tree: cKDTree | None, radi
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     return _pairs_within(np.ascontiguousarray(vehicle_xy, dtype=np.float64),
                          np.ascontiguousarray(feature_tree.data, dtype=np.float64), float(radius))
-
-
-def shuffle_within_owner(owner: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Permutation that keeps rows grouped by owner but randomises order inside each group."""
-    keys = rng.random(owner.size)
-    return np.lexsort((keys, owner))
 
 
 def synthesize_frame(
