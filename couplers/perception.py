@@ -286,12 +286,24 @@ def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, 
 
     SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
     the heading and ``width`` / 2 to each side."""
-    u = unit_heading(heading)
-    n = np.stack([-u[:, 1], u[:, 0]], axis=1)  # left normal
-    xy = np.asarray(xy, dtype=float)
-    half = 0.5 * np.asarray(width, dtype=float)[:, None]
-    back = xy - np.asarray(length, dtype=float)[:, None] * u
-    return np.stack([xy - half * n, xy + half * n, back + half * n, back - half * n], axis=1)
+    return _footprints(np.ascontiguousarray(xy, dtype=np.float64), unit_heading(heading),
+                       np.asarray(length, dtype=float).reshape(-1), np.asarray(width, dtype=float).reshape(-1))
+
+
+@njit(cache=True)
+def _footprints(xy, u, length, width):
+    """Corners xy -/+ (w/2) n, back +/- (w/2) n with back = xy - length u and n = (-u_y, u_x)."""
+    k = xy.shape[0]
+    out = np.empty((k, 4, 2))
+    for i in range(k):
+        half = 0.5 * width[i]
+        nx, ny = -u[i, 1], u[i, 0]
+        bx, by = xy[i, 0] - length[i] * u[i, 0], xy[i, 1] - length[i] * u[i, 1]
+        out[i, 0, 0], out[i, 0, 1] = xy[i, 0] - half * nx, xy[i, 1] - half * ny
+        out[i, 1, 0], out[i, 1, 1] = xy[i, 0] + half * nx, xy[i, 1] + half * ny
+        out[i, 2, 0], out[i, 2, 1] = bx + half * nx, by + half * ny
+        out[i, 3, 0], out[i, 3, 1] = bx - half * nx, by - half * ny
+    return out
 
 
 @njit(cache=True)
@@ -386,13 +398,34 @@ class OccluderIndex:
 
     @classmethod
     def build(cls, corners: np.ndarray) -> "OccluderIndex":
-        corners = np.ascontiguousarray(corners, dtype=np.float64)
-        xmin = corners[:, :, 0].min(axis=1)
-        xmax = corners[:, :, 0].max(axis=1)
-        order = np.argsort(xmin, kind="stable")
-        return cls(corners=corners, order=order, xmin_sorted=xmin[order], xmax=xmax,
-                   ymin=corners[:, :, 1].min(axis=1), ymax=corners[:, :, 1].max(axis=1),
-                   max_wx=float((xmax - xmin).max()) if corners.shape[0] else 0.0)
+        corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
+        return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
+                   max_wx=max_wx)
+
+
+@njit(cache=True)
+def _occluder_boxes(corners):
+    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
+    k = corners.shape[0]
+    xmin = np.empty(k)
+    xmax = np.empty(k)
+    ymin = np.empty(k)
+    ymax = np.empty(k)
+    max_wx = 0.0
+    for q in range(k):
+        xmin[q], xmax[q] = corners[q, 0, 0], corners[q, 0, 0]
+        ymin[q], ymax[q] = corners[q, 0, 1], corners[q, 0, 1]
+        for c in range(1, 4):
+            xmin[q] = min(xmin[q], corners[q, c, 0])
+            xmax[q] = max(xmax[q], corners[q, c, 0])
+            ymin[q] = min(ymin[q], corners[q, c, 1])
+            ymax[q] = max(ymax[q], corners[q, c, 1])
+        wx = xmax[q] - xmin[q]
+        if q == 0 or wx > max_wx:
+            max_wx = wx
+    order = np.argsort(xmin, kind="mergesort")
+    return order, xmin[order], xmax, ymin, ymax, max_wx
 
 
 def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "OccluderIndex | np.ndarray",
@@ -596,6 +629,30 @@ def _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, p
     return sig, first
 
 
+def _mount_groups(mount_x_m: np.ndarray) -> np.ndarray:
+    """(S,) the first sensor with the same mount point as each sensor."""
+    return np.array([int(np.flatnonzero(mount_x_m == m)[0]) for m in mount_x_m], dtype=np.int64)
+
+
+@njit(cache=True)
+def _distinct_lines(pair, sensor, group, n_pairs):
+    """Candidates with distinct sight lines (pair, mount point of the sensor): (the first candidate of
+    each line (L,), the line of every candidate (C,))."""
+    n_groups = group.size
+    seen = np.full(n_pairs * n_groups, -1, dtype=np.int64)
+    line_of = np.empty(pair.size, dtype=np.int64)
+    first = np.empty(pair.size, dtype=np.int64)
+    count = 0
+    for c in range(pair.size):
+        key = pair[c] * n_groups + group[sensor[c]]
+        if seen[key] < 0:
+            seen[key] = count
+            first[count] = c
+            count += 1
+        line_of[c] = seen[key]
+    return first[:count], line_of
+
+
 @njit(cache=True)
 def _sight_lines(origins, sensor, owner, target):
     """(C, 4) segments from the mount point of sensor[c] on vehicle owner[c] to target[c]."""
@@ -672,14 +729,17 @@ def perceive(
     u = noise.detect.random(pair.size)
     w = noise.noise.standard_normal((pair.size, 4))
 
-    visible = np.ones(pair.size, dtype=bool)
+    # Occlusion of each distinct sight line once: sensors on one mount point share their sight lines.
     owner_c = pair_owner[pair]
-    seg = _sight_lines(origins, sensor, owner_c, target[pair])
+    line, line_of = _distinct_lines(pair, sensor, _mount_groups(a["mount_x_m"]), pair_owner.size)
+    clear = np.ones(line.size, dtype=bool)
+    seg = _sight_lines(origins, sensor[line], owner_c[line], target[pair[line]])
     if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and pair.size:
-        visible &= ~_segments_occluded_by_vehicles(seg, OccluderIndex.build(occluder_corners),
-                                                   observer_occluder[owner_c])
-    if params.occlusion_buildings and buildings is not None and len(buildings) and visible.any():
-        visible[visible] &= ~_segments_occluded_by_buildings(seg[visible], buildings)
+        clear &= ~_segments_occluded_by_vehicles(seg, OccluderIndex.build(occluder_corners),
+                                                 observer_occluder[owner_c[line]])
+    if params.occlusion_buildings and buildings is not None and len(buildings) and clear.any():
+        clear[clear] &= ~_segments_occluded_by_buildings(seg[clear], buildings)
+    visible = clear[line_of]
     # Detection by P_D(d); merge: one row per detected pair, from the detecting sensor with the smallest sigma_p.
     detected = np.empty(pair.size, dtype=bool)
     sig, first = _merge_detections(pair, dist, sensor, detected, pair_owner.size, a["range_m"], a["pd_near"],

@@ -183,3 +183,28 @@ def test_inertial_step_equals_the_array_reference():
         np.testing.assert_array_equal(got.yaw_rate, yaw_rate)
         np.testing.assert_array_equal(proc.accel_bias, a_on + a_dr)
         np.testing.assert_array_equal(proc.gyro_bias, g_on + g_dr)
+
+
+def test_footprints_and_occluder_boxes_equal_the_array_reference():
+    from couplers.perception import OccluderIndex, unit_heading, vehicle_footprints
+
+    rng = np.random.default_rng(9)
+    xy, heading = rng.uniform(-500, 500, (300, 2)), rng.uniform(-4, 4, 300)
+    length, width = rng.uniform(3, 15, 300), rng.uniform(1.5, 2.6, 300)
+    u = unit_heading(heading)
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    half, back = 0.5 * width[:, None], xy - length[:, None] * u
+    want = np.stack([xy - half * n, xy + half * n, back + half * n, back - half * n], axis=1)
+    corners = vehicle_footprints(xy, heading, length, width)
+    np.testing.assert_array_equal(corners, want)
+    corners[:50] = np.round(corners[:50])  # ties in the x minimum: the order stays stable
+    idx = OccluderIndex.build(corners)
+    xmin, xmax = corners[:, :, 0].min(axis=1), corners[:, :, 0].max(axis=1)
+    order = np.argsort(xmin, kind="stable")
+    np.testing.assert_array_equal(idx.order, order)
+    np.testing.assert_array_equal(idx.xmin_sorted, xmin[order])
+    np.testing.assert_array_equal(idx.xmax, xmax)
+    np.testing.assert_array_equal(idx.ymin, corners[:, :, 1].min(axis=1))
+    np.testing.assert_array_equal(idx.ymax, corners[:, :, 1].max(axis=1))
+    assert idx.max_wx == float((xmax - xmin).max())
+    assert OccluderIndex.build(np.empty((0, 4, 2))).max_wx == 0.0
