@@ -144,7 +144,7 @@ class Buildings:
 
     @cached_property
     def cells(self):
-        """:class:`couplers.perception.BuildingCells` of these footprints (built on first use)."""
+        """Cells near these footprints (:func:`couplers.perception.building_cells`, built on first use)."""
         from couplers.perception import building_cells  # perception imports this module
 
         return building_cells(self)

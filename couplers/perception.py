@@ -65,6 +65,7 @@ from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.rows import shuffle_within_owner
+from couplers.zones import CellGrid
 
 PERCEPTION_STREAM_TAG = 0x9E5
 #: Class of a detection (``Frame.v2f_class``): static landmark, or a SUMO pedestrian
@@ -452,18 +453,8 @@ def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer
 BUILDING_CELL_M = 4.0
 
 
-@dataclass(frozen=True)
-class BuildingCells:
-    """A grid over the buildings: ``near`` marks the cells within one cell of a building's bounding box."""
-
-    x0: float
-    y0: float
-    cell: float
-    near: np.ndarray  # (ny, nx) bool
-
-
-def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> BuildingCells:
-    """The :class:`BuildingCells` of ``buildings`` (their bounding boxes rasterised, then widened by a cell)."""
+def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> CellGrid:
+    """Cells near a building: ``values`` (bool) marks the cells within one cell of a building's bounding box."""
     b = shapely.bounds(buildings.polygons)
     x0, y0 = float(b[:, 0].min()) - 2 * cell_m, float(b[:, 1].min()) - 2 * cell_m  # two free cells around
     nx = int(math.floor((b[:, 2].max() - x0) / cell_m)) + 3
@@ -479,7 +470,7 @@ def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> Bui
     np.add.at(mark, (iy1 + 1, ix0), -1)
     np.add.at(mark, (iy1 + 1, ix1 + 1), 1)
     near = mark.cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0
-    return BuildingCells(x0=x0, y0=y0, cell=float(cell_m), near=near)
+    return CellGrid(x0=x0, y0=y0, cell=float(cell_m), values=near)
 
 
 @njit(cache=True)
@@ -522,7 +513,7 @@ def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None
         return out
     g = buildings.cells
     seg = np.ascontiguousarray(seg, dtype=np.float64)
-    near = np.flatnonzero(~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.near))
+    near = np.flatnonzero(~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values))
     if near.size:
         lines = shapely.linestrings(seg[near].reshape(-1, 2, 2))
         hit = buildings.tree.query(lines, predicate="intersects")

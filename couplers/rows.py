@@ -18,25 +18,31 @@ def id_rows(previous_ids, current_ids) -> np.ndarray:
 
 
 @njit(cache=True)
+def counting_order(keys, n_keys):
+    """Stable order of ``keys`` (ints in [0, n_keys)) by a counting sort: (perm, start), rows of key g at
+    perm[start[g]:start[g + 1]]."""
+    start = np.zeros(n_keys + 1, dtype=np.int64)
+    for c in range(keys.size):
+        start[keys[c] + 1] += 1
+    for g in range(n_keys):
+        start[g + 1] += start[g]
+    fill = start[:-1].copy()
+    perm = np.empty(keys.size, dtype=np.int64)
+    for c in range(keys.size):
+        perm[fill[keys[c]]] = c
+        fill[keys[c]] += 1
+    return perm, start
+
+
+@njit(cache=True)
 def _order_by_owner_then_key(owner, keys):
     """``np.lexsort((keys, owner))``: a stable counting sort by owner, then a stable insertion sort by key
     inside each owner's rows (a handful each; merge sort beyond 32)."""
-    m = owner.size
-    perm = np.empty(m, dtype=np.int64)
-    if m == 0:
-        return perm
-    lo, hi = owner.min(), owner.max()
-    start = np.zeros(hi - lo + 2, dtype=np.int64)
-    for c in range(m):
-        start[owner[c] - lo + 1] += 1
-    for g in range(hi - lo + 1):
-        start[g + 1] += start[g]
-    fill = start[:-1].copy()
-    for c in range(m):
-        g = owner[c] - lo
-        perm[fill[g]] = c
-        fill[g] += 1
-    for g in range(hi - lo + 1):
+    if owner.size == 0:
+        return np.empty(0, dtype=np.int64)
+    lo = owner.min()
+    perm, start = counting_order(owner - lo, owner.max() - lo + 1)
+    for g in range(start.size - 1):
         s, e = start[g], start[g + 1]
         if e - s > 32:
             block = perm[s:e].copy()

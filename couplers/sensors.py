@@ -19,7 +19,7 @@ from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
 from couplers.inertial import InertialParams
 from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
-from couplers.rows import shuffle_within_owner
+from couplers.rows import counting_order, shuffle_within_owner
 from couplers.v2x import V2xParams
 
 
@@ -61,25 +61,38 @@ def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _sweep_pairs(xy, order, radius, first, second):
-    """Sort-and-sweep along x over points sorted by ``order``: writes the pairs within
-    ``radius`` into ``first``/``second`` when they are large enough; returns the count."""
+def _sweep_windows(xy, order, radius):
+    """Sort and sweep along x over the points sorted by ``order``: point i pairs with the sorted positions
+    [lo[i], hi[i]), those after it up to the first one more than ``radius`` further in x."""
     n = xy.shape[0]
-    r2 = radius * radius
-    count = 0
-    store = first.shape[0] > 0
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    b = 0
     for a in range(n):
         i = order[a]
-        for b in range(a + 1, n):
-            j = order[b]
-            dx = xy[j, 0] - xy[i, 0]
-            if dx > radius:
-                break
-            dy = xy[j, 1] - xy[i, 1]
+        lo[i] = a + 1
+        b = max(b, a + 1)  # the window's end only moves forward: x is sorted
+        while b < n and not xy[order[b], 0] - xy[i, 0] > radius:
+            b += 1
+        hi[i] = b
+    return lo, hi
+
+
+@njit(cache=True)
+def _window_pairs(vxy, fxy, order, lo, hi, r2, owner, feat):
+    """Pairs (i, order[q]) for q in [lo[i], hi[i]) with squared distance <= r2, written into
+    ``owner``/``feat`` when they are large enough; returns the count."""
+    store = owner.shape[0] > 0
+    count = 0
+    for i in range(vxy.shape[0]):
+        for q in range(lo[i], hi[i]):
+            j = order[q]
+            dx = vxy[i, 0] - fxy[j, 0]
+            dy = vxy[i, 1] - fxy[j, 1]
             if dx * dx + dy * dy <= r2:
                 if store:
-                    first[count] = i
-                    second[count] = j
+                    owner[count] = i
+                    feat[count] = j
                 count += 1
     return count
 
@@ -88,16 +101,17 @@ def _sweep_pairs(xy, order, radius, first, second):
 def _radius_graph_csr(xy, radius):
     """CSR (indptr, indices) of all pairs within ``radius``, rows sorted.
 
-    Cost O(N log N + N k), k the vehicles within ``radius`` in x. The sweep's pairs go into their
+    Cost O(N log N + N k), k the vehicles within ``radius`` in x (:func:`_sweep_windows`). The sweep's pairs go into their
     rows unsorted; a transpose (columns visited in increasing order) then sorts every row without
     comparisons, the adjacency being symmetric (a per-row sort cost 4x the rest)."""
     n = xy.shape[0]
     order = np.argsort(xy[:, 0])
+    lo, hi = _sweep_windows(xy, order, radius)
     empty = np.empty(0, dtype=np.int64)
-    m = _sweep_pairs(xy, order, radius, empty, empty)
+    m = _window_pairs(xy, xy, order, lo, hi, radius * radius, empty, empty)
     first = np.empty(m, dtype=np.int64)
     second = np.empty(m, dtype=np.int64)
-    _sweep_pairs(xy, order, radius, first, second)
+    _window_pairs(xy, xy, order, lo, hi, radius * radius, first, second)
     start = np.zeros(n + 1, dtype=np.int64)
     for k in range(m):
         start[first[k] + 1] += 1
@@ -146,57 +160,20 @@ def _pairs_within(vxy, fxy, radius):
     n, k = vxy.shape[0], fxy.shape[0]
     order = np.argsort(fxy[:, 0])
     fx = fxy[order, 0]
-    r2 = radius * radius
     lo = np.empty(n, dtype=np.int64)
     hi = np.empty(n, dtype=np.int64)
     for i in range(n):
         slack = 1e-9 * (abs(vxy[i, 0]) + radius) + 1e-9
         lo[i] = np.searchsorted(fx, vxy[i, 0] - radius - slack, side="left")
         hi[i] = np.searchsorted(fx, vxy[i, 0] + radius + slack, side="right")
-    m = 0
-    for i in range(n):
-        for q in range(lo[i], hi[i]):
-            j = order[q]
-            dx = vxy[i, 0] - fxy[j, 0]
-            dy = vxy[i, 1] - fxy[j, 1]
-            if dx * dx + dy * dy <= r2:
-                m += 1
+    empty = np.empty(0, dtype=np.int64)
+    m = _window_pairs(vxy, fxy, order, lo, hi, radius * radius, empty, empty)
     owner = np.empty(m, dtype=np.int64)
     feat = np.empty(m, dtype=np.int64)
-    c = 0
-    for i in range(n):
-        for q in range(lo[i], hi[i]):
-            j = order[q]
-            dx = vxy[i, 0] - fxy[j, 0]
-            dy = vxy[i, 1] - fxy[j, 1]
-            if dx * dx + dy * dy <= r2:
-                owner[c] = i
-                feat[c] = j
-                c += 1
-    # stable counting sort by feature, then by owner
-    count = np.zeros(k + 1, dtype=np.int64)
-    for c in range(m):
-        count[feat[c] + 1] += 1
-    for j in range(k):
-        count[j + 1] += count[j]
-    by_feat = np.empty(m, dtype=np.int64)
-    for c in range(m):
-        by_feat[count[feat[c]]] = c
-        count[feat[c]] += 1
-    count = np.zeros(n + 1, dtype=np.int64)
-    for c in range(m):
-        count[owner[c] + 1] += 1
-    for i in range(n):
-        count[i + 1] += count[i]
-    out_owner = np.empty(m, dtype=np.int64)
-    out_feat = np.empty(m, dtype=np.int64)
-    for q in range(m):
-        c = by_feat[q]
-        pos = count[owner[c]]
-        out_owner[pos] = owner[c]
-        out_feat[pos] = feat[c]
-        count[owner[c]] += 1
-    return out_owner, out_feat
+    _window_pairs(vxy, fxy, order, lo, hi, radius * radius, owner, feat)
+    by_feat = counting_order(feat, k)[0]
+    by_owner = by_feat[counting_order(owner[by_feat], n)[0]]
+    return owner[by_owner], feat[by_owner]
 
 
 def features_in_range(vehicle_xy: np.ndarray, feature_tree: cKDTree | None, radius: float):

@@ -27,13 +27,14 @@ _OUTSIDE, _BORDER = -1, -2  # raster labels besides region indices
 
 
 @dataclass(frozen=True)
-class RegionRaster:
-    """Labels of the cells of a regular grid: a region index, ``_OUTSIDE`` or ``_BORDER``."""
+class CellGrid:
+    """Values on a regular grid in net x/y: row i, column j covers [x0 + j cell, x0 + (j + 1) cell) x
+    [y0 + i cell, y0 + (i + 1) cell) (a point's cell is floor((x - x0) / cell), floor((y - y0) / cell))."""
 
     x0: float
     y0: float
     cell: float
-    labels: np.ndarray  # (ny, nx) int16
+    values: np.ndarray  # (ny, nx)
 
 
 def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float) -> np.ndarray:
@@ -52,8 +53,9 @@ def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size:
 
 
 def region_raster(regions: tuple[Region, ...], cell_m: float = RASTER_CELL_M,
-                  max_cells: int = RASTER_MAX_CELLS, coarse: int = 8) -> RegionRaster:
-    """The raster of ``regions`` (first region listed wins, as in the polygon test).
+                  max_cells: int = RASTER_MAX_CELLS, coarse: int = 8) -> CellGrid:
+    """The raster of ``regions`` (first region listed wins, as in the polygon test): per cell a region
+    index, ``_OUTSIDE`` or ``_BORDER`` (int16).
 
     Built coarse to fine: blocks of ``coarse`` x ``coarse`` cells are classified first, and only the
     blocks a border crosses are classified cell by cell."""
@@ -75,7 +77,7 @@ def region_raster(regions: tuple[Region, ...], cell_m: float = RASTER_CELL_M,
         ix = (jx.ravel()[border, None, None] * coarse + sub[None, None, :]).repeat(coarse, axis=1)
         iy = (jy.ravel()[border, None, None] * coarse + sub[None, :, None]).repeat(coarse, axis=2)
         labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell, margin)
-    return RegionRaster(x0=float(x0), y0=float(y0), cell=float(cell), labels=labels)
+    return CellGrid(x0=float(x0), y0=float(y0), cell=float(cell), values=labels)
 
 
 @njit(cache=True)
@@ -125,7 +127,7 @@ class RegionIndex:
         return sp, sv, int(np.argmax(sp))
 
     @cached_property
-    def raster(self) -> RegionRaster:
+    def raster(self) -> CellGrid:
         return region_raster(self.regions)
 
     def locate_exact(self, xy: np.ndarray) -> np.ndarray:
@@ -144,7 +146,7 @@ class RegionIndex:
         if xy.shape[0] == 0:
             return np.empty(0, dtype=np.int64)
         g = self.raster
-        idx = _raster_labels(xy, g.x0, g.y0, g.cell, g.labels)
+        idx = _raster_labels(xy, g.x0, g.y0, g.cell, g.values)
         border = idx == _BORDER
         if border.any():
             idx[border] = self.locate_exact(xy[border])

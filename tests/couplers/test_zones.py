@@ -49,7 +49,7 @@ def _border_points(regions, rng, per_vertex=6) -> np.ndarray:
 
 def _cell_edge_points(raster, rng, n=3000) -> np.ndarray:
     """Points on the raster's cell edges and corners (where the cell index rounds either way)."""
-    ny, nx = raster.labels.shape
+    ny, nx = raster.values.shape
     ix = rng.integers(0, nx + 1, n)
     iy = rng.integers(0, ny + 1, n)
     x = raster.x0 + ix * raster.cell
@@ -88,7 +88,7 @@ def test_raster_labels_equal_the_polygon_test_on_the_arterial():
 def test_raster_cap_on_cells_and_odd_inputs():
     regions = _synthetic_regions()
     raster = region_raster(regions, cell_m=0.01, max_cells=5000)
-    assert raster.labels.size <= 2 * 5000 * 64 and raster.cell > 0.01  # the cap coarsens the cells
+    assert raster.values.size <= 2 * 5000 * 64 and raster.cell > 0.01  # the cap coarsens the cells
     index = RegionIndex(regions)
     assert index.locate(np.empty((0, 2))).shape == (0,)
     odd = np.array([[np.nan, 1.0], [np.inf, 0.0], [1e12, -1e12], [10.0, 10.0]])
