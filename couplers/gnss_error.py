@@ -53,11 +53,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
+from couplers.rows import id_rows
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -132,13 +133,21 @@ class DensityGrid:
     values: np.ndarray  # (ny, nx)
 
     def at(self, xy: np.ndarray) -> np.ndarray:
-        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        ix = np.floor((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((xy[:, 1] - self.y0) / self.cell).astype(np.int64)
-        ok = (ix >= 0) & (iy >= 0) & (ix < self.values.shape[1]) & (iy < self.values.shape[0])
-        out = np.zeros(xy.shape[0])
-        out[ok] = self.values[iy[ok], ix[ok]]
-        return out
+        return _grid_values(np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), self.x0, self.y0,
+                            self.cell, self.values)
+
+
+@njit(cache=True)
+def _grid_values(xy, x0, y0, cell, values):
+    """Value of the cell of each point, 0 outside the grid."""
+    ny, nx = values.shape
+    out = np.zeros(xy.shape[0])
+    for k in range(xy.shape[0]):
+        fx = math.floor((xy[k, 0] - x0) / cell)
+        fy = math.floor((xy[k, 1] - y0) / cell)
+        if 0 <= fx < nx and 0 <= fy < ny:
+            out[k] = values[int(fy), int(fx)]
+    return out
 
 
 def building_density_grid(buildings: Buildings, radius_m: float, cell_m: float = 5.0) -> DensityGrid:
@@ -162,6 +171,41 @@ def building_density_grid(buildings: Buildings, radius_m: float, cell_m: float =
     disc = ((kx * cell_m) ** 2 + (ky * cell_m) ** 2 <= radius_m ** 2).astype(float)
     frac = fftconvolve(built, disc / disc.sum(), mode="same")
     return DensityGrid(x0=x0, y0=y0, cell=cell_m, values=np.clip(frac, 0.0, 1.0))
+
+
+@njit(cache=True)
+def _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t):
+    """The state carried to this step: u = w for vehicles that (re)enter, else a u_prev + b w (b =
+    sqrt(1 - a^2); a = 0: u = w), and the bias and end of a running episode (bias 0 and end -inf
+    outside one). Returns (u, bias, end, active)."""
+    n = idx.size
+    u = w.copy()
+    bias = np.zeros((n, 2))
+    end = np.full(n, -np.inf)
+    active = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        r = idx[i]
+        if r < 0 or entered[i]:
+            continue
+        if a != 0.0:
+            u[i, 0] = a * u_prev[r, 0] + b * w[i, 0]
+            u[i, 1] = a * u_prev[r, 1] + b * w[i, 1]
+        if end_prev[r] > t + 1e-9:
+            active[i] = True
+            end[i] = end_prev[r]
+            bias[i, 0] = bias_prev[r, 0]
+            bias[i, 1] = bias_prev[r, 1]
+    return u, bias, end, active
+
+
+@njit(cache=True)
+def _scaled_plus(sigma, u, bias):
+    """sigma[:, None] * u + bias."""
+    out = np.empty_like(u)
+    for i in range(u.shape[0]):
+        out[i, 0] = sigma[i] * u[i, 0] + bias[i, 0]
+        out[i, 1] = sigma[i] * u[i, 1] + bias[i, 1]
+    return out
 
 
 class GnssErrorProcess:
@@ -193,29 +237,24 @@ class GnssErrorProcess:
              zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws."""
         n = len(ids)
-        idx = match_ids(self._ids, ids)
-        cont = (idx >= 0) & ~np.asarray(entered, dtype=bool)
-        u = w.copy()
-        u[cont] = gauss_markov_step(self._u[idx[cont]], w[cont], self.a)
-        bias = np.zeros((n, 2))
-        end = np.full(n, -np.inf)
-        bias[cont] = self._bias[idx[cont]]
-        end[cont] = self._end[idx[cont]]
-        # Episodes past their end stop; vehicles outside one may start one (draws for every vehicle,
-        # so the streams do not depend on who is in an episode).
-        active = end > t + 1e-9
-        bias[~active] = 0.0
+        idx = id_rows(self._ids, ids)
+        w = np.ascontiguousarray(w, dtype=float)
+        # Carried state; episodes past their end stop (bias 0, end -inf until a new start).
+        u, bias, end, active = _carry(idx, np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
+                                      self.a, math.sqrt(1.0 - self.a * self.a), float(t))
+        # Vehicles outside an episode may start one (draws for every vehicle, so the streams do not depend
+        # on who is in an episode).
         p_start = episode_start_probability(self.start_rates(zone, xy), self.dt)
         start = (self.nlos_start.random(n) < p_start) & ~active
         dur = self.nlos_duration.exponential(self.params.nlos_mean_duration_s, size=n)
         mag = self.nlos_bias.exponential(self.params.nlos_bias_mean_m, size=n) if self.params.nlos_bias_mean_m > 0 \
             else np.zeros(n)
         ang = self.nlos_bias.uniform(-np.pi, np.pi, size=n)
-        bias[start] = mag[start, None] * np.stack([np.cos(ang[start]), np.sin(ang[start])], axis=1)
-        end[start] = t + dur[start]
-        end[~active & ~start] = -np.inf
+        if start.any():
+            bias[start] = mag[start, None] * np.stack([np.cos(ang[start]), np.sin(ang[start])], axis=1)
+            end[start] = t + dur[start]
         self._ids, self._u, self._bias, self._end = np.asarray(ids, dtype=object), u, bias, end
-        return np.asarray(sigma_p, dtype=float)[:, None] * u + bias
+        return _scaled_plus(np.asarray(sigma_p, dtype=float), u, bias)
 
     @property
     def in_episode(self) -> np.ndarray:

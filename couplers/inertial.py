@@ -53,11 +53,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from coloc.core.inertial import ImuFrame, wrap_angle
-from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.perception import effect_rng
+from couplers.rows import id_rows
 
 INERTIAL_STREAM_TAG = 0x1A0
 
@@ -127,6 +128,35 @@ def gauss_markov_bias(prev: np.ndarray, w: np.ndarray, fresh: np.ndarray, sigma:
     return out
 
 
+def _carried(prev: np.ndarray, idx: np.ndarray, fresh: np.ndarray, fill: float) -> np.ndarray:
+    """prev[idx] for the vehicles carried over, ``fill`` for the fresh ones."""
+    out = np.full(idx.shape + prev.shape[1:], fill)
+    cont = ~fresh
+    out[cont] = prev[idx[cont]]
+    return out
+
+
+@njit(cache=True)
+def _imu_axes(idx, fresh, true, on_new, on_prev, drift_prev, w, noise, sigma, b, a):
+    """One sensor's axes (N, A): turn-on bias (drawn for fresh rows, carried otherwise), the Gauss-Markov
+    drift (:func:`gauss_markov_bias`, b = sigma sqrt(1 - a^2)) and the measurement
+    true + turn-on + drift + noise. Returns (turn_on, drift, measured)."""
+    n, axes = true.shape
+    on = np.empty((n, axes))
+    drift = np.empty((n, axes))
+    meas = np.empty((n, axes))
+    for i in range(n):
+        for j in range(axes):
+            if fresh[i]:
+                on[i, j] = on_new[i, j]
+                drift[i, j] = sigma * w[i, j]
+            else:
+                on[i, j] = on_prev[idx[i], j]
+                drift[i, j] = a * drift_prev[idx[i], j] + b * w[i, j]
+            meas[i, j] = true[i, j] + on[i, j] + drift[i, j] + noise[i, j]
+    return on, drift, meas
+
+
 class InertialProcess:
     """Per-vehicle IMU state (previous heading, biases) across the steps of one run."""
 
@@ -151,32 +181,29 @@ class InertialProcess:
         (zero rows for vehicles that entered), ``heading`` (N,) the true heading."""
         p, dt = self.params, self.dt
         n = len(ids)
-        idx = match_ids(self._ids, ids)
+        idx = id_rows(self._ids, ids)
         fresh = (idx < 0) | np.asarray(entered, dtype=bool)
-        cont = ~fresh
-        prev_heading = np.full(n, np.nan)
-        prev_heading[cont] = self._heading[idx[cont]]
+        prev_heading = _carried(self._heading, idx, fresh, np.nan)
         body, yaw = true_body_motion(accel_net, heading, prev_heading, dt)
-
-        def carried(arr, shape):
-            out = np.zeros(shape)
-            out[cont] = arr[idx[cont]]
-            return out
-
         rad = math.pi / 180.0
-        a_on = np.where(fresh[:, None], turn_on_bias(self.accel_turn_on_rng, (n, 2), p.accel_turn_on_sigma),
-                        carried(self.accel_turn_on, (n, 2)))
-        g_on = np.where(fresh, turn_on_bias(self.gyro_turn_on_rng, (n,), p.gyro_turn_on_sigma * rad),
-                        carried(self.gyro_turn_on, (n,)))
-        a_drift = gauss_markov_bias(carried(self.accel_drift, (n, 2)), self.accel_drift_rng.standard_normal((n, 2)),
-                                    fresh, p.accel_bias_sigma, self.a_accel)
-        g_drift = gauss_markov_bias(carried(self.gyro_drift, (n,)), self.gyro_drift_rng.standard_normal(n),
-                                    fresh, p.gyro_bias_sigma * rad, self.a_gyro)
-        accel = body + a_on + a_drift + white_noise(self.accel_noise_rng, (n, 2), p.accel_noise_density, dt)
-        yaw_rate = yaw + g_on + g_drift + white_noise(self.gyro_noise_rng, (n,), p.gyro_noise_density * rad, dt)
+        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter)
+        a_on_new = turn_on_bias(self.accel_turn_on_rng, (n, 2), p.accel_turn_on_sigma)
+        g_on_new = turn_on_bias(self.gyro_turn_on_rng, (n,), p.gyro_turn_on_sigma * rad)
+        w_accel = self.accel_drift_rng.standard_normal((n, 2))
+        w_gyro = self.gyro_drift_rng.standard_normal(n)
+        n_accel = white_noise(self.accel_noise_rng, (n, 2), p.accel_noise_density, dt)
+        n_gyro = white_noise(self.gyro_noise_rng, (n,), p.gyro_noise_density * rad, dt)
+        a_sig, g_sig = p.accel_bias_sigma, p.gyro_bias_sigma * rad
+        a_on, a_drift, accel = _imu_axes(idx, fresh, body, a_on_new, self.accel_turn_on, self.accel_drift, w_accel,
+                                         n_accel, a_sig, a_sig * math.sqrt(1.0 - self.a_accel * self.a_accel),
+                                         self.a_accel)
+        g_on, g_drift, yaw_rate = _imu_axes(idx, fresh, yaw[:, None], g_on_new[:, None], self.gyro_turn_on[:, None],
+                                            self.gyro_drift[:, None], w_gyro[:, None], n_gyro[:, None], g_sig,
+                                            g_sig * math.sqrt(1.0 - self.a_gyro * self.a_gyro), self.a_gyro)
         self._ids, self._heading = np.asarray(ids, dtype=object), np.asarray(heading, dtype=float).copy()
-        self.accel_turn_on, self.accel_drift, self.gyro_turn_on, self.gyro_drift = a_on, a_drift, g_on, g_drift
-        return ImuFrame(accel_body=accel, yaw_rate=yaw_rate)
+        self.accel_turn_on, self.accel_drift = a_on, a_drift
+        self.gyro_turn_on, self.gyro_drift = g_on[:, 0], g_drift[:, 0]
+        return ImuFrame(accel_body=accel, yaw_rate=yaw_rate[:, 0])
 
     @property
     def accel_bias(self) -> np.ndarray:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -140,6 +141,13 @@ class Buildings:
 
     def __len__(self) -> int:
         return int(self.polygons.size)
+
+    @cached_property
+    def cells(self):
+        """Cells near these footprints (:func:`couplers.perception.building_cells`, built on first use)."""
+        from couplers.perception import building_cells  # perception imports this module
+
+        return building_cells(self)
 
 
 def read_buildings(path: str | Path) -> Buildings:

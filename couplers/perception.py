@@ -64,6 +64,8 @@ from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
+from couplers.rows import shuffle_within_owner
+from couplers.zones import CellGrid
 
 PERCEPTION_STREAM_TAG = 0x9E5
 #: Class of a detection (``Frame.v2f_class``): static landmark, or a SUMO pedestrian
@@ -218,34 +220,50 @@ def sensor_origins(xy: np.ndarray, heading: np.ndarray, spec: SensorSpec) -> np.
 
 @njit(cache=True)
 def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
-    """Rows k with target[k] inside the sector of vehicle owner[k]: (rows, distances)."""
+    """Candidates of every sensor s, sensor after sensor: rows k with target[k] inside the sector of
+    sensor s on vehicle owner[k] (origin (S, N, 2), boresight (S, N, 2)). Returns (rows, distances,
+    sensors)."""
+    n_sensors = origin.shape[0]
     m = owner.size
-    rows = np.empty(m, dtype=np.int64)
-    dist = np.empty(m)
+    rows = np.empty(n_sensors * m, dtype=np.int64)
+    dist = np.empty(n_sensors * m)
+    sensor = np.empty(n_sensors * m, dtype=np.int64)
     count = 0
-    for k in range(m):
-        i = owner[k]
-        dx = target[k, 0] - origin[i, 0]
-        dy = target[k, 1] - origin[i, 1]
-        d = math.sqrt(dx * dx + dy * dy)
-        if d > range_m:
-            continue
-        # angle to the boresight <= half the opening  <=>  d . b >= |d| cos(half)
-        if not full and dx * boresight[i, 0] + dy * boresight[i, 1] < d * cos_half:
-            continue
-        rows[count] = k
-        dist[count] = d
-        count += 1
-    return rows[:count], dist[:count]
+    for s in range(n_sensors):
+        for k in range(m):
+            i = owner[k]
+            dx = target[k, 0] - origin[s, i, 0]
+            dy = target[k, 1] - origin[s, i, 1]
+            d = math.sqrt(dx * dx + dy * dy)
+            if d > range_m[s]:
+                continue
+            # angle to the boresight <= half the opening  <=>  d . b >= |d| cos(half)
+            if not full[s] and dx * boresight[s, i, 0] + dy * boresight[s, i, 1] < d * cos_half[s]:
+                continue
+            rows[count] = k
+            dist[count] = d
+            sensor[count] = s
+            count += 1
+    return rows[:count], dist[:count], sensor[:count]
+
+
+def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray,
+             sensors: tuple[SensorSpec, ...]):
+    """:func:`fov_candidates` of every sensor at once (``origins`` (S, N, 2)): (rows, distances, sensors)."""
+    heading = np.asarray(heading, dtype=float)
+    boresight = np.stack([unit_heading(heading + math.radians(spec.yaw_deg)) for spec in sensors])
+    return _fov_select(np.ascontiguousarray(origins, dtype=np.float64), boresight.reshape(len(sensors), -1, 2),
+                       np.asarray(owner, dtype=np.int64), np.ascontiguousarray(target, dtype=np.float64),
+                       np.array([spec.range_m for spec in sensors], dtype=float),
+                       np.array([math.cos(math.radians(spec.fov_deg) / 2.0) for spec in sensors]),
+                       np.array([spec.fov_deg >= 360.0 for spec in sensors]))
 
 
 def fov_candidates(origin: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray, spec: SensorSpec):
     """Rows k whose ``target[k]`` (M, 2) is inside the field of view of ``spec`` mounted at ``origin``
     (N, 2) on vehicle ``owner[k]`` with ``heading`` (N,). Returns (rows (C,), distances (C,))."""
-    boresight = unit_heading(np.asarray(heading, dtype=float) + math.radians(spec.yaw_deg))
-    return _fov_select(np.ascontiguousarray(origin, dtype=np.float64), boresight, np.asarray(owner, dtype=np.int64),
-                       np.ascontiguousarray(target, dtype=np.float64), float(spec.range_m),
-                       math.cos(math.radians(spec.fov_deg) / 2.0), spec.fov_deg >= 360.0)
+    rows, dist, _ = _fov_all(np.asarray(origin, dtype=float)[None], heading, owner, target, (spec,))
+    return rows, dist
 
 
 def detection_probability(dist: np.ndarray, spec) -> np.ndarray:
@@ -269,12 +287,24 @@ def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, 
 
     SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
     the heading and ``width`` / 2 to each side."""
-    u = unit_heading(heading)
-    n = np.stack([-u[:, 1], u[:, 0]], axis=1)  # left normal
-    xy = np.asarray(xy, dtype=float)
-    half = 0.5 * np.asarray(width, dtype=float)[:, None]
-    back = xy - np.asarray(length, dtype=float)[:, None] * u
-    return np.stack([xy - half * n, xy + half * n, back + half * n, back - half * n], axis=1)
+    return _footprints(np.ascontiguousarray(xy, dtype=np.float64), unit_heading(heading),
+                       np.asarray(length, dtype=float).reshape(-1), np.asarray(width, dtype=float).reshape(-1))
+
+
+@njit(cache=True)
+def _footprints(xy, u, length, width):
+    """Corners xy -/+ (w/2) n, back +/- (w/2) n with back = xy - length u and n = (-u_y, u_x)."""
+    k = xy.shape[0]
+    out = np.empty((k, 4, 2))
+    for i in range(k):
+        half = 0.5 * width[i]
+        nx, ny = -u[i, 1], u[i, 0]
+        bx, by = xy[i, 0] - length[i] * u[i, 0], xy[i, 1] - length[i] * u[i, 1]
+        out[i, 0, 0], out[i, 0, 1] = xy[i, 0] - half * nx, xy[i, 1] - half * ny
+        out[i, 1, 0], out[i, 1, 1] = xy[i, 0] + half * nx, xy[i, 1] + half * ny
+        out[i, 2, 0], out[i, 2, 1] = bx + half * nx, by + half * ny
+        out[i, 3, 0], out[i, 3, 1] = bx - half * nx, by - half * ny
+    return out
 
 
 @njit(cache=True)
@@ -369,13 +399,34 @@ class OccluderIndex:
 
     @classmethod
     def build(cls, corners: np.ndarray) -> "OccluderIndex":
-        corners = np.ascontiguousarray(corners, dtype=np.float64)
-        xmin = corners[:, :, 0].min(axis=1)
-        xmax = corners[:, :, 0].max(axis=1)
-        order = np.argsort(xmin, kind="stable")
-        return cls(corners=corners, order=order, xmin_sorted=xmin[order], xmax=xmax,
-                   ymin=corners[:, :, 1].min(axis=1), ymax=corners[:, :, 1].max(axis=1),
-                   max_wx=float((xmax - xmin).max()) if corners.shape[0] else 0.0)
+        corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
+        return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
+                   max_wx=max_wx)
+
+
+@njit(cache=True)
+def _occluder_boxes(corners):
+    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
+    k = corners.shape[0]
+    xmin = np.empty(k)
+    xmax = np.empty(k)
+    ymin = np.empty(k)
+    ymax = np.empty(k)
+    max_wx = 0.0
+    for q in range(k):
+        xmin[q], xmax[q] = corners[q, 0, 0], corners[q, 0, 0]
+        ymin[q], ymax[q] = corners[q, 0, 1], corners[q, 0, 1]
+        for c in range(1, 4):
+            xmin[q] = min(xmin[q], corners[q, c, 0])
+            xmax[q] = max(xmax[q], corners[q, c, 0])
+            ymin[q] = min(ymin[q], corners[q, c, 1])
+            ymax[q] = max(ymax[q], corners[q, c, 1])
+        wx = xmax[q] - xmin[q]
+        if q == 0 or wx > max_wx:
+            max_wx = wx
+    order = np.argsort(xmin, kind="mergesort")
+    return order, xmin[order], xmax, ymin, ymax, max_wx
 
 
 def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "OccluderIndex | np.ndarray",
@@ -383,25 +434,90 @@ def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "Occlude
     """(M,) bool: the sight line start[i] -> end[i] crosses a vehicle footprint (``occluders``: an
     OccluderIndex or corners (K, 4, 2)) other than ``observer[i]`` and ``target[i]`` (-1 when the
     target is not a vehicle)."""
-    m = start.shape[0]
     idx = occluders if isinstance(occluders, OccluderIndex) else OccluderIndex.build(occluders)
+    return _segments_occluded_by_vehicles(np.hstack([start, end]), idx, observer, target)
+
+
+def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer: np.ndarray,
+                                   target: np.ndarray | None = None) -> np.ndarray:
+    """:func:`occluded_by_vehicles` of the segments ``seg`` (M, 4): start x, y, end x, y."""
+    m = seg.shape[0]
     if m == 0 or idx.corners.shape[0] == 0:
         return np.zeros(m, dtype=bool)
-    seg = np.ascontiguousarray(np.hstack([start, end]), dtype=np.float64)
     skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
-    return _occluded_by_quads(seg, np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
-                              idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx)
+    return _occluded_by_quads(np.ascontiguousarray(seg, dtype=np.float64), np.asarray(observer, dtype=np.int64),
+                              skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
+                              idx.max_wx)
+
+
+BUILDING_CELL_M = 4.0
+
+
+def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> CellGrid:
+    """Cells near a building: ``values`` (bool) marks the cells within one cell of a building's bounding box."""
+    b = shapely.bounds(buildings.polygons)
+    x0, y0 = float(b[:, 0].min()) - 2 * cell_m, float(b[:, 1].min()) - 2 * cell_m  # two free cells around
+    nx = int(math.floor((b[:, 2].max() - x0) / cell_m)) + 3
+    ny = int(math.floor((b[:, 3].max() - y0) / cell_m)) + 3
+    # the lookup's floor((x - x0) / cell), on the boxes' corners, widened by one cell each side
+    ix0 = np.floor((b[:, 0] - x0) / cell_m).astype(np.int64) - 1
+    iy0 = np.floor((b[:, 1] - y0) / cell_m).astype(np.int64) - 1
+    ix1 = np.floor((b[:, 2] - x0) / cell_m).astype(np.int64) + 1
+    iy1 = np.floor((b[:, 3] - y0) / cell_m).astype(np.int64) + 1
+    mark = np.zeros((ny + 1, nx + 1), dtype=np.int64)  # 2-D difference array of the boxes
+    np.add.at(mark, (iy0, ix0), 1)
+    np.add.at(mark, (iy0, ix1 + 1), -1)
+    np.add.at(mark, (iy1 + 1, ix0), -1)
+    np.add.at(mark, (iy1 + 1, ix1 + 1), 1)
+    near = mark.cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0
+    return CellGrid(x0=x0, y0=y0, cell=float(cell_m), values=near)
+
+
+@njit(cache=True)
+def _clear_of_buildings(seg, x0, y0, cell, near):
+    """(M,) bool: segment i certainly misses every building. Samples less than a cell apart along the
+    segment: every point of it lies within half a cell of a sample, so in a cell next to the sample's;
+    a building point on the segment lies in its bounding box's cells, which ``near`` widens by one."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+        if not math.isfinite(length):
+            continue
+        k_max = int(length / cell) + 1
+        clear = True
+        for k in range(k_max + 1):
+            t = k / k_max
+            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
+            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            if 0 <= fx < nx and 0 <= fy < ny and near[int(fy), int(fx)]:
+                clear = False
+                break
+        out[i] = clear
+    return out
 
 
 def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
-    """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all)."""
-    m = start.shape[0]
+    """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all
+    sight lines that pass near one: ``buildings.cells`` clears the others without shapely)."""
+    return _segments_occluded_by_buildings(np.hstack([start, end]), buildings)
+
+
+def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None) -> np.ndarray:
+    """:func:`occluded_by_buildings` of the segments ``seg`` (M, 4): start x, y, end x, y."""
+    m = seg.shape[0]
     out = np.zeros(m, dtype=bool)
     if m == 0 or buildings is None or len(buildings) == 0:
         return out
-    lines = shapely.linestrings(np.stack([start, end], axis=1))
-    hit = buildings.tree.query(lines, predicate="intersects")
-    out[hit[0]] = True
+    g = buildings.cells
+    seg = np.ascontiguousarray(seg, dtype=np.float64)
+    near = np.flatnonzero(~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values))
+    if near.size:
+        lines = shapely.linestrings(seg[near].reshape(-1, 2, 2))
+        hit = buildings.tree.query(lines, predicate="intersects")
+        out[near[hit[0]]] = True
     return out
 
 
@@ -409,23 +525,162 @@ def clutter_points(origins: np.ndarray, heading: np.ndarray, params: PerceptionP
     """False detections of every sensor on every vehicle: Poisson(clutter_per_scan) per (vehicle,
     sensor), uniform over the field-of-view sector's area. ``origins`` (S, N, 2): the sensors' mount
     points. Returns (vehicle row (C,), sensor (C,), point (C, 2), distance to the mount point (C,))."""
+    owner, sensor, r, ang = _clutter_polar(origins.shape[1], heading, params, rng)
+    return owner, sensor, _clutter_xy(origins, owner, sensor, r, unit_heading(ang)), r
+
+
+def _clutter_polar(n: int, heading: np.ndarray, params: PerceptionParams, rng: np.random.Generator):
+    """The clutter draws: (vehicle row, sensor, distance, bearing) of every false detection."""
     a = params.arrays
-    n_sensors, n = origins.shape[0], origins.shape[1]
+    n_sensors = len(params.sensors)
     counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
-    owner = np.repeat(np.repeat(np.arange(n, dtype=np.int64), n_sensors), counts)
-    sensor = np.repeat(np.tile(np.arange(n_sensors, dtype=np.int64), n), counts)
+    owner, sensor = _repeat_rows(counts, n_sensors)
     c = owner.size
     r = a["range_m"][sensor] * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
     ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(c) - 0.5))
-    pts = origins[sensor, owner] + r[:, None] * unit_heading(ang)
-    return owner, sensor, pts, r
+    return owner, sensor, r, ang
+
+
+@njit(cache=True)
+def _repeat_rows(counts, n_sensors):
+    """(vehicle, sensor) of each of counts[i * S + s] rows, in that order."""
+    total = 0
+    for k in range(counts.size):
+        total += counts[k]
+    owner = np.empty(total, dtype=np.int64)
+    sensor = np.empty(total, dtype=np.int64)
+    c = 0
+    for k in range(counts.size):
+        for _ in range(counts[k]):
+            owner[c] = k // n_sensors
+            sensor[c] = k % n_sensors
+            c += 1
+    return owner, sensor
+
+
+@njit(cache=True)
+def _clutter_xy(origins, owner, sensor, r, direction):
+    """origins[sensor, owner] + r * direction."""
+    pts = np.empty((owner.size, 2))
+    for c in range(owner.size):
+        pts[c, 0] = origins[sensor[c], owner[c], 0] + r[c] * direction[c, 0]
+        pts[c, 1] = origins[sensor[c], owner[c], 1] + r[c] * direction[c, 1]
+    return pts
+
+
+@njit(cache=True)
+def _clutter_rows(origins, owner, sensor, r, direction, x_true, cw, range_m, sigma_p_m, sigma_growth, sigma_v):
+    """Rows of the false detections: z (static objects: relative velocity -v_vehicle), sigma_p, sigma_v."""
+    c_total = owner.size
+    z = np.empty((c_total, 4))
+    sp = np.empty(c_total)
+    sv = np.empty(c_total)
+    for c in range(c_total):
+        s, i = sensor[c], owner[c]
+        frac = min(max(r[c] / range_m[s], 0.0), 1.0)
+        sp[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+        sv[c] = sigma_v[s]
+        for j in range(2):
+            z[c, j] = (origins[s, i, j] + r[c] * direction[c, j]) - x_true[i, j] + cw[c, j] * sp[c]
+            z[c, 2 + j] = -x_true[i, 2 + j] + cw[c, 2 + j] * sv[c]
+    return z, sp, sv
 
 
 # --- one step -------------------------------------------------------------------------------------
 
 
-def _shuffle_within_owner(owner: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    return np.lexsort((rng.random(owner.size), owner))
+@njit(cache=True)
+def _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, pd_far, sigma_p_m, sigma_growth,
+                      u, visible):
+    """P_D and sigma_p of every candidate (per its sensor), the detections (visible and u < P_D), and
+    per detected pair the detecting candidate of smallest sigma_p (ties: the sensor listed first).
+    Writes ``detected`` (C,) and returns (sigma_p (C,), first (D,) candidate rows in pair order)."""
+    c_total = pair.size
+    sig = np.empty(c_total)
+    best = np.full(n_pairs, -1, dtype=np.int64)
+    for c in range(c_total):
+        s = sensor[c]
+        frac = min(max(dist[c] / range_m[s], 0.0), 1.0)
+        sig[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+        detected[c] = visible[c] and u[c] < pd_near[s] + (pd_far[s] - pd_near[s]) * frac
+        if detected[c]:
+            b = best[pair[c]]
+            if b < 0 or sig[c] < sig[b] or (sig[c] == sig[b] and s < sensor[b]):
+                best[pair[c]] = c
+    count = 0
+    for p in range(n_pairs):
+        if best[p] >= 0:
+            count += 1
+    first = np.empty(count, dtype=np.int64)
+    count = 0
+    for p in range(n_pairs):
+        if best[p] >= 0:
+            first[count] = best[p]
+            count += 1
+    return sig, first
+
+
+def _mount_groups(mount_x_m: np.ndarray) -> np.ndarray:
+    """(S,) the first sensor with the same mount point as each sensor."""
+    return np.array([int(np.flatnonzero(mount_x_m == m)[0]) for m in mount_x_m], dtype=np.int64)
+
+
+@njit(cache=True)
+def _distinct_lines(pair, sensor, group, n_pairs):
+    """Candidates with distinct sight lines (pair, mount point of the sensor): (the first candidate of
+    each line (L,), the line of every candidate (C,))."""
+    n_groups = group.size
+    seen = np.full(n_pairs * n_groups, -1, dtype=np.int64)
+    line_of = np.empty(pair.size, dtype=np.int64)
+    first = np.empty(pair.size, dtype=np.int64)
+    count = 0
+    for c in range(pair.size):
+        key = pair[c] * n_groups + group[sensor[c]]
+        if seen[key] < 0:
+            seen[key] = count
+            first[count] = c
+            count += 1
+        line_of[c] = seen[key]
+    return first[:count], line_of
+
+
+@njit(cache=True)
+def _sight_lines(origins, sensor, owner, target):
+    """(C, 4) segments from the mount point of sensor[c] on vehicle owner[c] to target[c]."""
+    c_total = sensor.size
+    seg = np.empty((c_total, 4))
+    for c in range(c_total):
+        seg[c, 0] = origins[sensor[c], owner[c], 0]
+        seg[c, 1] = origins[sensor[c], owner[c], 1]
+        seg[c, 2] = target[c, 0]
+        seg[c, 3] = target[c, 1]
+    return seg
+
+
+@njit(cache=True)
+def _detected_rows(first, pair, sensor, pair_owner, pair_feature, features_true, x_true, w, sig, sigma_v):
+    """Rows of the detections ``first``: owner, feature, sensor, sigma_p, sigma_v and z = x_F - x_V + n."""
+    d = first.size
+    owner = np.empty(d, dtype=np.int64)
+    feat = np.empty(d, dtype=np.int64)
+    sens = np.empty(d, dtype=np.int64)
+    sp = np.empty(d)
+    sv = np.empty(d)
+    z = np.empty((d, 4))
+    for r in range(d):
+        c = first[r]
+        i = pair_owner[pair[c]]
+        f = pair_feature[pair[c]]
+        owner[r], feat[r], sens[r] = i, f, sensor[c]
+        sp[r] = sig[c]
+        sv[r] = sigma_v[sensor[c]]
+        for j in range(4):
+            z[r, j] = features_true[f, j] - x_true[i, j]
+        z[r, 0] += w[c, 0] * sp[r]
+        z[r, 1] += w[c, 1] * sp[r]
+        z[r, 2] += w[c, 2] * sv[r]
+        z[r, 3] += w[c, 3] * sv[r]
+    return owner, feat, sens, sp, sv, z
 
 
 def perceive(
@@ -454,65 +709,54 @@ def perceive(
     xy = x_true[:, :2]
     heading = np.asarray(heading, dtype=float)
     a = params.arrays
-    n_sensors = len(params.sensors)
     if observer_occluder is None:
         observer_occluder = np.full(n, -1, dtype=np.int64)
     origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * unit_heading(heading)[None, :, :]  # (S, N, 2)
 
-    # Candidates: (sensor, pair) with the feature inside the sensor's field of view.
+    # Candidates: (sensor, pair) with the feature inside the sensor's field of view, sensor after sensor.
     target = features_true[pair_feature, :2]
-    rows, dists = zip(*(fov_candidates(origins[s], heading, pair_owner, target, spec)
-                        for s, spec in enumerate(params.sensors))) if n_sensors else ((), ())
-    pair = np.concatenate(rows)
-    dist = np.concatenate(dists)
-    sensor = np.repeat(np.arange(n_sensors, dtype=np.int64), [r.size for r in rows])
-    per = {k: v[sensor] for k, v in a.items()}
+    pair, dist, sensor = _fov_all(origins, heading, pair_owner, target, params.sensors)
     # One draw per candidate, before occlusion (common random numbers across P_D / occlusion settings).
     u = noise.detect.random(pair.size)
     w = noise.noise.standard_normal((pair.size, 4))
 
-    visible = np.ones(pair.size, dtype=bool)
+    # Occlusion of each distinct sight line once: sensors on one mount point share their sight lines.
     owner_c = pair_owner[pair]
-    start, end = origins[sensor, owner_c], target[pair]
+    line, line_of = _distinct_lines(pair, sensor, _mount_groups(a["mount_x_m"]), pair_owner.size)
+    clear = np.ones(line.size, dtype=bool)
+    seg = _sight_lines(origins, sensor[line], owner_c[line], target[pair[line]])
     if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and pair.size:
-        visible &= ~occluded_by_vehicles(start, end, OccluderIndex.build(occluder_corners), observer_occluder[owner_c])
-    if params.occlusion_buildings and buildings is not None and len(buildings) and visible.any():
-        visible[visible] &= ~occluded_by_buildings(start[visible], end[visible], buildings)
-    sig = range_sigma(dist, per)
-    hit = np.flatnonzero(visible & (u < detection_probability(dist, per)))
-
-    # Merge: one row per detected pair, from the detecting sensor with the smallest sigma_p.
-    order = hit[np.lexsort((sensor[hit], sig[hit], pair[hit]))]
-    first = order[np.unique(pair[order], return_index=True)[1]]
-    t_owner = pair_owner[pair[first]]
-    t_feat = pair_feature[pair[first]]
-    t_z = features_true[t_feat] - x_true[t_owner]
-    t_z[:, :2] += w[first, :2] * sig[first, None]
-    t_z[:, 2:] += w[first, 2:] * per["sigma_v_mps"][first, None]
+        clear &= ~_segments_occluded_by_vehicles(seg, OccluderIndex.build(occluder_corners),
+                                                 observer_occluder[owner_c[line]])
+    if params.occlusion_buildings and buildings is not None and len(buildings) and clear.any():
+        clear[clear] &= ~_segments_occluded_by_buildings(seg[clear], buildings)
+    visible = clear[line_of]
+    # Detection by P_D(d); merge: one row per detected pair, from the detecting sensor with the smallest sigma_p.
+    detected = np.empty(pair.size, dtype=bool)
+    sig, first = _merge_detections(pair, dist, sensor, detected, pair_owner.size, a["range_m"], a["pd_near"],
+                                   a["pd_far"], a["sigma_p_m"], a["sigma_growth"], u, visible)
+    t_owner, t_feat, t_sensor, t_sig, t_sv, t_z = _detected_rows(
+        first, pair, sensor, pair_owner, pair_feature, np.ascontiguousarray(features_true, dtype=np.float64),
+        np.ascontiguousarray(x_true, dtype=np.float64), w, sig, a["sigma_v_mps"])
 
     # Clutter of every sensor on every vehicle (own stream; never occluded): static objects.
-    c_owner, c_sensor, c_pts, c_dist = clutter_points(origins, heading, params, noise.clutter)
-    c_sig = range_sigma(c_dist, {k: v[c_sensor] for k, v in a.items()})
+    c_owner, c_sensor, c_dist, c_ang = _clutter_polar(n, heading, params, noise.clutter)
     cw = noise.clutter.standard_normal((c_owner.size, 4))
-    c_z = np.empty((c_owner.size, 4))
-    c_z[:, :2] = c_pts - xy[c_owner] + cw[:, :2] * c_sig[:, None]
-    c_z[:, 2:] = -x_true[c_owner, 2:] + cw[:, 2:] * a["sigma_v_mps"][c_sensor, None]
+    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, unit_heading(c_ang),
+                                     np.ascontiguousarray(x_true, dtype=np.float64), cw, a["range_m"],
+                                     a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
 
     owner = np.concatenate([t_owner, c_owner])
-    perm = _shuffle_within_owner(owner, noise.shuffle)
-    R = gnss_cov(np.concatenate([sig[first], c_sig]),
-                 np.concatenate([per["sigma_v_mps"][first], a["sigma_v_mps"][c_sensor]]))
-    in_fov = np.zeros(pair_owner.size, dtype=bool)
-    in_fov[pair] = True
-    seen = np.zeros(pair_owner.size, dtype=bool)
-    seen[pair[visible]] = True
-    n_fov, n_vis = int(in_fov.sum()), int(seen.sum())
+    perm = shuffle_within_owner(owner, noise.shuffle)
+    R = gnss_cov(np.concatenate([t_sig, c_sig])[perm], np.concatenate([t_sv, c_sv])[perm])
+    n_fov = int(np.count_nonzero(np.bincount(pair, minlength=pair_owner.size)))
+    n_vis = int(np.count_nonzero(np.bincount(pair[visible], minlength=pair_owner.size)))
     stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - int(first.size), detected=int(first.size),
                  clutter=int(c_owner.size))
-    return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R[perm],
-                      feature=np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm],
-                      sensor=np.concatenate([sensor[first], c_sensor])[perm],
-                      klass=(np.full(owner.size, CLASS_STATIC, dtype=np.int8) if feature_class is None else
-                             np.concatenate([np.asarray(feature_class, dtype=np.int8)[t_feat],
-                                             np.full(c_owner.size, CLASS_STATIC, dtype=np.int8)])[perm]),
-                      stats=stats)
+    feature = np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm]
+    klass = np.full(owner.size, CLASS_STATIC, dtype=np.int8)
+    if feature_class is not None:
+        klass[:t_feat.size] = np.asarray(feature_class, dtype=np.int8)[t_feat]
+        klass = klass[perm]
+    return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R, feature=feature,
+                      sensor=np.concatenate([t_sensor, c_sensor])[perm], klass=klass, stats=stats)

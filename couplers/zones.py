@@ -1,13 +1,104 @@
-"""Vectorised point-in-polygon lookups: GNSS class and analysis area of each vehicle."""
+"""Point-in-polygon lookups: GNSS class and analysis area of each vehicle.
+
+:meth:`RegionIndex.locate` answers from a raster of the regions built once per index: a cell that
+lies inside one region and touches no region listed before it has that region's label for every
+point in it, a cell that touches no region is outside all, and only the points in cells that a
+region's border crosses are tested against the polygons (:meth:`RegionIndex.locate_exact`, the
+reference). Cells are closed boxes widened by a margin far above the rounding of the cell index,
+so a point is always inside the box of the cell it is looked up in: the raster gives the labels of
+the polygon test exactly (``tests/couplers/test_zones.py``).
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import shapely
+from numba import njit
 
 from couplers.netfolder import Region
+
+RASTER_CELL_M = 5.0  # cell side; coarser when the regions' extent would need more than RASTER_MAX_CELLS
+RASTER_MAX_CELLS = 1 << 20
+_OUTSIDE, _BORDER = -1, -2  # raster labels besides region indices
+
+
+@dataclass(frozen=True)
+class CellGrid:
+    """Values on a regular grid in net x/y: row i, column j covers [x0 + j cell, x0 + (j + 1) cell) x
+    [y0 + i cell, y0 + (i + 1) cell) (a point's cell is floor((x - x0) / cell), floor((y - y0) / cell))."""
+
+    x0: float
+    y0: float
+    cell: float
+    values: np.ndarray  # (ny, nx)
+
+
+def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float) -> np.ndarray:
+    """Labels of the closed boxes [bx, bx + size] x [by, by + size] widened by ``margin``."""
+    boxes = shapely.box(bx - margin, by - margin, bx + size + margin, by + size + margin)
+    labels = np.full(boxes.size, _OUTSIDE, dtype=np.int16)
+    open_ = np.ones(boxes.size, dtype=bool)  # no region listed so far touches the box
+    for i, r in enumerate(regions):
+        cand = np.flatnonzero(open_)
+        if cand.size == 0:
+            break
+        hit = cand[shapely.intersects(r.polygon, boxes[cand])]
+        labels[hit] = np.where(shapely.covers(r.polygon, boxes[hit]), i, _BORDER)
+        open_[hit] = False
+    return labels
+
+
+def region_raster(regions: tuple[Region, ...], cell_m: float = RASTER_CELL_M,
+                  max_cells: int = RASTER_MAX_CELLS, coarse: int = 8) -> CellGrid:
+    """The raster of ``regions`` (first region listed wins, as in the polygon test): per cell a region
+    index, ``_OUTSIDE`` or ``_BORDER`` (int16).
+
+    Built coarse to fine: blocks of ``coarse`` x ``coarse`` cells are classified first, and only the
+    blocks a border crosses are classified cell by cell."""
+    xmin, ymin, xmax, ymax = shapely.total_bounds([r.polygon for r in regions])
+    cell = max(float(cell_m), math.sqrt((xmax - xmin + 2 * cell_m) * (ymax - ymin + 2 * cell_m) / max_cells))
+    x0, y0 = xmin - cell, ymin - cell  # padding: points beyond the grid are outside every region
+    block = coarse * cell
+    bnx = int(math.ceil((xmax + cell - x0) / block))
+    bny = int(math.ceil((ymax + cell - y0) / block))
+    # Margin: the lookup's floor((x - x0) / cell) may round a point across a cell edge by ~1e-16 of the
+    # coordinates' magnitude; 1e-9 of it (and at least a micrometre) keeps every point inside its box.
+    margin = max(1e-6, 1e-9 * max(abs(xmin), abs(xmax), abs(ymin), abs(ymax), cell))
+    jx, jy = np.meshgrid(np.arange(bnx), np.arange(bny))
+    coarse_labels = _classify(regions, x0 + jx.ravel() * block, y0 + jy.ravel() * block, block, margin)
+    labels = np.repeat(np.repeat(coarse_labels.reshape(bny, bnx), coarse, axis=0), coarse, axis=1)
+    border = np.flatnonzero(coarse_labels == _BORDER)
+    if border.size:
+        sub = np.arange(coarse)
+        ix = (jx.ravel()[border, None, None] * coarse + sub[None, None, :]).repeat(coarse, axis=1)
+        iy = (jy.ravel()[border, None, None] * coarse + sub[None, :, None]).repeat(coarse, axis=2)
+        labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell, margin)
+    return CellGrid(x0=float(x0), y0=float(y0), cell=float(cell), values=labels)
+
+
+@njit(cache=True)
+def _raster_labels(xy, x0, y0, cell, labels):
+    """Label of the cell of each point (``_OUTSIDE`` beyond the grid, ``_BORDER`` for non-finite points)."""
+    n = xy.shape[0]
+    ny, nx = labels.shape
+    out = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        fx = (xy[k, 0] - x0) / cell
+        fy = (xy[k, 1] - y0) / cell
+        if not (math.isfinite(fx) and math.isfinite(fy)):
+            out[k] = _BORDER
+            continue
+        ix = math.floor(fx)
+        iy = math.floor(fy)
+        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+            out[k] = _OUTSIDE
+        else:
+            out[k] = labels[iy, ix]
+    return out
 
 
 @dataclass(frozen=True)
@@ -16,24 +107,56 @@ class RegionIndex:
 
     regions: tuple[Region, ...]
 
-    @property
+    @cached_property
     def names(self) -> np.ndarray:
         return np.array([r.name for r in self.regions], dtype=object)
 
-    def locate(self, xy: np.ndarray) -> np.ndarray:
-        """Index of the containing region for each point (N,), -1 outside all regions."""
+    @cached_property
+    def _names_outside(self) -> dict[str, np.ndarray]:
+        return {}
+
+    @cached_property
+    def polygons(self) -> np.ndarray:
+        return np.array([r.polygon for r in self.regions], dtype=object)
+
+    @cached_property
+    def sigmas(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """GNSS zones: (sigma_p (Z,), sigma_v (Z,), index of the zone of largest sigma_p)."""
+        sp = np.array([r.sigma_p for r in self.regions])
+        sv = np.array([r.sigma_v for r in self.regions])
+        return sp, sv, int(np.argmax(sp))
+
+    @cached_property
+    def raster(self) -> CellGrid:
+        return region_raster(self.regions)
+
+    def locate_exact(self, xy: np.ndarray) -> np.ndarray:
+        """:meth:`locate` by testing every point against the polygons (the raster's reference)."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
         if xy.shape[0] == 0:
             return np.empty(0, dtype=np.int64)
-        # A handful of prepared polygons, each tested against all points at once.
-        hits = np.stack([shapely.intersects_xy(r.polygon, xy[:, 0], xy[:, 1]) for r in self.regions])
+        # (regions, points) in one vectorised call over the prepared polygons.
+        hits = shapely.intersects_xy(self.polygons[:, None], xy[None, :, 0], xy[None, :, 1])
         first = np.argmax(hits, axis=0)
         return np.where(hits[first, np.arange(xy.shape[0])], first, -1).astype(np.int64)
 
+    def locate(self, xy: np.ndarray) -> np.ndarray:
+        """Index of the containing region for each point (N,), -1 outside all regions."""
+        xy = np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2))
+        if xy.shape[0] == 0:
+            return np.empty(0, dtype=np.int64)
+        g = self.raster
+        idx = _raster_labels(xy, g.x0, g.y0, g.cell, g.values)
+        border = idx == _BORDER
+        if border.any():
+            idx[border] = self.locate_exact(xy[border])
+        return idx
+
     def names_at(self, xy: np.ndarray, outside: str = "") -> np.ndarray:
-        idx = self.locate(xy)
-        names = np.append(self.names, outside)
-        return names[idx]
+        names = self._names_outside.get(outside)
+        if names is None:
+            names = self._names_outside[outside] = np.append(self.names, outside)
+        return names[self.locate(xy)]
 
 
 def gnss_sigma_for_zone(zones: RegionIndex, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -43,8 +166,6 @@ def gnss_sigma_for_zone(zones: RegionIndex, xy: np.ndarray) -> tuple[np.ndarray,
     choice; ``coloc net check`` flags nets whose zones leave roads uncovered).
     """
     idx = zones.locate(xy)
-    sp = np.array([r.sigma_p for r in zones.regions])
-    sv = np.array([r.sigma_v for r in zones.regions])
-    worst = int(np.argmax(sp))
+    sp, sv, worst = zones.sigmas
     idx = np.where(idx < 0, worst, idx)
     return zones.names[idx], sp[idx], sv[idx]

@@ -5,7 +5,7 @@ import pytest
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from couplers.sensors import SensorNoise, SensorParams, neighbor_graph, synthesize_frame
+from couplers.sensors import SensorNoise, SensorParams, features_in_range, neighbor_graph, synthesize_frame
 
 
 def scene(seed=0, n=60, k=40, extent=600.0):
@@ -110,3 +110,43 @@ def test_prior_only_for_entering_vehicles_and_noise_streams_independent():
     # Changing which vehicles enter does not shift the GNSS noise draws.
     fr2 = frame_for(x, feats, entered=np.ones(20, bool))
     np.testing.assert_array_equal(fr.gnss_z, fr2.gnss_z)
+
+
+def _lattice_scene(rng, n=120, k=80, radius=50.0):
+    """Points on an integer lattice with 3-4-5 offsets (distances exactly ``radius``), duplicates
+    (distance 0) and random points."""
+    base = rng.integers(0, 40, (n, 2)).astype(float) * 10.0
+    feats = np.vstack([base[: k // 2] + np.array([30.0, 40.0]) * rng.choice([-1, 1], (k // 2, 2)),
+                       base[k // 2: k - k // 4], rng.uniform(0, 400, (k // 4, 2))])
+    veh = np.vstack([base, rng.uniform(0, 400, (n // 4, 2)), base[:5]])  # base[:5] twice: coincident vehicles
+    return veh, feats
+
+
+def test_neighbor_graph_matches_dense_reference_at_the_radius():
+    """Sorted CSR rows, exactly as a dense distance test; pairs at exactly the radius and coincident points."""
+    rng = np.random.default_rng(5)
+    for radius in (50.0, 250.0):
+        xy, _ = _lattice_scene(rng, radius=radius)
+        adj = neighbor_graph(xy, radius)
+        d2 = ((xy[:, None] - xy[None]) ** 2).sum(axis=2)
+        expected = (d2 <= radius * radius) & ~np.eye(len(xy), dtype=bool)
+        np.testing.assert_array_equal(adj.toarray(), expected)
+        assert adj.has_sorted_indices and adj.dtype == bool
+        for i in range(len(xy)):  # rows strictly increasing (sorted, no duplicates)
+            assert np.all(np.diff(adj.indices[adj.indptr[i]:adj.indptr[i + 1]]) > 0)
+        assert np.any(np.isclose(d2[expected], radius * radius))  # the boundary is exercised
+
+
+def test_features_in_range_equals_the_kd_tree_pairs():
+    """The numba pair search against cKDTree.sparse_distance_matrix (the previous implementation)."""
+    rng = np.random.default_rng(6)
+    for radius in (50.0, 80.0, 0.5):
+        veh, feats = _lattice_scene(rng, radius=radius)
+        tree = cKDTree(feats)
+        pairs = cKDTree(veh).sparse_distance_matrix(tree, radius, output_type="ndarray")
+        order = np.lexsort((pairs["j"], pairs["i"]))
+        owner, feat = features_in_range(veh, tree, radius)
+        np.testing.assert_array_equal(owner, pairs["i"][order].astype(np.int64))
+        np.testing.assert_array_equal(feat, pairs["j"][order].astype(np.int64))
+    assert [a.size for a in features_in_range(veh[:0], tree, 50.0)] == [0, 0]
+    assert [a.size for a in features_in_range(veh, None, 50.0)] == [0, 0]

@@ -1,0 +1,210 @@
+"""The numba fast paths of frame synthesis against numpy / shapely references: identical outputs.
+
+(Zone lookup: test_zones.py; V2V graph and V2F pairs: test_sensors.py; id rows: test_rows.py.)
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+
+from couplers.gnss_error import (
+    DensityGrid,
+    GnssErrorParams,
+    GnssErrorProcess,
+    episode_start_probability,
+    gauss_markov_step,
+)
+from couplers.inertial import (
+    InertialParams,
+    InertialProcess,
+    gauss_markov_bias,
+    true_body_motion,
+    turn_on_bias,
+    white_noise,
+)
+from couplers.netfolder import load_net_folder
+from couplers.perception import _merge_detections, occluded_by_buildings
+from couplers.rows import shuffle_within_owner
+
+ARTERIAL = Path(__file__).resolve().parents[2] / "sumo_nets" / "arterial"
+
+
+def test_shuffle_within_owner_is_lexsort_of_the_same_draws():
+    rng = np.random.default_rng(1)
+    for size, owners in [(0, 1), (1, 1), (50, 3), (400, 120), (300, 2)]:  # (300, 2): groups past 32 rows
+        owner = rng.integers(0, owners, size)
+        if size == 400:
+            owner = np.sort(owner)
+        got = shuffle_within_owner(owner, np.random.default_rng(size))
+        want = np.lexsort((np.random.default_rng(size).random(size), owner))
+        np.testing.assert_array_equal(got, want)
+    keys = np.array([0.5, 0.5, 0.1, 0.5, 0.1])  # equal keys keep their order, as lexsort's
+    got = shuffle_within_owner(np.zeros(5, dtype=np.int64), type("R", (), {"random": lambda self, n: keys})())
+    np.testing.assert_array_equal(got, np.lexsort((keys, np.zeros(5))))
+
+
+def test_merge_detections_equals_the_lexsort_reference():
+    rng = np.random.default_rng(2)
+    range_m, pd_near, pd_far = np.array([80.0, 30.0, 50.0]), np.array([0.95, 0.9, 1.0]), np.array([0.7, 0.6, 0.5])
+    sigma_p, growth = np.array([0.1, 0.1, 0.2]), np.array([3.0, 3.0, 0.0])
+    for _ in range(50):
+        n_pairs, c = 60, 150
+        pair = rng.integers(0, n_pairs, c)
+        sensor = rng.integers(0, 3, c)
+        dist = np.where(rng.random(c) < 0.2, 0.0, rng.uniform(0, 90, c))  # ties in sigma_p at d = 0
+        u, visible = rng.random(c), rng.random(c) < 0.8
+        detected = np.empty(c, dtype=bool)
+        sig, first = _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, pd_far, sigma_p,
+                                       growth, u, visible)
+        frac = np.clip(dist / range_m[sensor], 0.0, 1.0)
+        sig_ref = sigma_p[sensor] * (1.0 + growth[sensor] * frac)
+        hit = np.flatnonzero(visible & (u < pd_near[sensor] + (pd_far[sensor] - pd_near[sensor]) * frac))
+        order = hit[np.lexsort((sensor[hit], sig_ref[hit], pair[hit]))]
+        np.testing.assert_array_equal(sig, sig_ref)
+        np.testing.assert_array_equal(first, order[np.unique(pair[order], return_index=True)[1]])
+        np.testing.assert_array_equal(np.flatnonzero(detected), hit)
+
+
+def test_buildings_prefilter_gives_the_strtree_answer():
+    blds = load_net_folder(ARTERIAL).buildings
+    rng = np.random.default_rng(3)
+    xmin, ymin, xmax, ymax = shapely.total_bounds(blds.polygons)
+    start = np.column_stack([rng.uniform(xmin - 30, xmax + 30, 20000), rng.uniform(ymin - 30, ymax + 30, 20000)])
+    ang, length = rng.uniform(-np.pi, np.pi, 20000), rng.uniform(0, 90, 20000)
+    end = start + length[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    # segments ending on building corners and edges, or running along an edge
+    corners = shapely.get_coordinates(shapely.get_exterior_ring(shapely.get_parts(blds.polygons)))
+    pick = corners[rng.integers(0, len(corners), 3000)]
+    start = np.vstack([start, pick + rng.normal(0, 20, pick.shape), pick[:-1]])
+    end = np.vstack([end, pick, pick[1:]])
+    got = occluded_by_buildings(start, end, blds)
+    lines = shapely.linestrings(np.stack([start, end], axis=1))
+    want = np.zeros(len(start), dtype=bool)
+    want[blds.tree.query(lines, predicate="intersects")[0]] = True
+    np.testing.assert_array_equal(got, want)
+    assert 0.01 < want.mean() < 0.9
+
+
+def test_density_grid_lookup_equals_the_floor_reference():
+    rng = np.random.default_rng(4)
+    grid = DensityGrid(x0=-3.3, y0=7.1, cell=5.0, values=rng.random((20, 30)))
+    xy = np.vstack([rng.uniform(-20, 170, (5000, 2)) + [0, 10],
+                    np.column_stack([-3.3 + 5.0 * rng.integers(-1, 32, 500), 7.1 + 5.0 * rng.integers(-1, 22, 500)])])
+    ix = np.floor((xy[:, 0] - grid.x0) / grid.cell).astype(np.int64)
+    iy = np.floor((xy[:, 1] - grid.y0) / grid.cell).astype(np.int64)
+    ok = (ix >= 0) & (iy >= 0) & (ix < 30) & (iy < 20)
+    want = np.zeros(len(xy))
+    want[ok] = grid.values[iy[ok], ix[ok]]
+    np.testing.assert_array_equal(grid.at(xy), want)
+
+
+def _fleet(rng, steps=60, pool=40):
+    """Per step: ids (vehicles entering and leaving), entered flags, headings and positions."""
+    out, present = [], rng.random(pool) < 0.5
+    for _ in range(steps):
+        present ^= rng.random(pool) < 0.08
+        ids = np.array([f"v{i}" for i in np.flatnonzero(present)], dtype=object)
+        rng.shuffle(ids)
+        out.append((ids, rng.random(ids.size) < 0.05, rng.uniform(-np.pi, np.pi, ids.size),
+                    rng.uniform(0, 400, (ids.size, 2))))
+    return out
+
+
+@pytest.mark.parametrize("tau_s", [0.0, 30.0])
+def test_gnss_error_step_equals_the_array_reference(tau_s):
+    params = GnssErrorParams(tau_s=tau_s, nlos_rate_per_min=(3.0, 12.0))
+    dt, proc = 0.75, GnssErrorProcess(params, seed=5, dt=0.75)
+    ref = GnssErrorProcess(params, seed=5, dt=0.75)  # its streams drive the reference below
+    state = dict(ids=np.empty(0, dtype=object), u=np.empty((0, 2)), bias=np.empty((0, 2)), end=np.empty(0))
+    rng = np.random.default_rng(6)
+    for k, (ids, entered, _, xy) in enumerate(_fleet(rng)):
+        n, t = ids.size, (k + 1) * dt
+        w, sp = rng.standard_normal((n, 2)), rng.choice([3.0, 8.0, 15.0], n)
+        zone = np.where(sp == 3.0, "A", np.where(sp == 8.0, "B", "C")).astype(object)
+        got = proc.step(t, ids, entered, w, sp, zone, xy)
+        # the previous implementation, step by step
+        prev = {v: i for i, v in enumerate(state["ids"])}
+        idx = np.array([prev.get(v, -1) for v in ids], dtype=np.int64)
+        cont = (idx >= 0) & ~entered
+        u = w.copy()
+        u[cont] = gauss_markov_step(state["u"][idx[cont]], w[cont], ref.a)
+        bias, end = np.zeros((n, 2)), np.full(n, -np.inf)
+        bias[cont], end[cont] = state["bias"][idx[cont]], state["end"][idx[cont]]
+        active = end > t + 1e-9
+        bias[~active] = 0.0
+        start = (ref.nlos_start.random(n) < episode_start_probability(ref.start_rates(zone, xy), dt)) & ~active
+        dur = ref.nlos_duration.exponential(params.nlos_mean_duration_s, size=n)
+        mag = ref.nlos_bias.exponential(params.nlos_bias_mean_m, size=n)
+        ang = ref.nlos_bias.uniform(-np.pi, np.pi, size=n)
+        bias[start] = mag[start, None] * np.stack([np.cos(ang[start]), np.sin(ang[start])], axis=1)
+        end[start] = t + dur[start]
+        end[~active & ~start] = -np.inf
+        state = dict(ids=ids, u=u, bias=bias, end=end)
+        np.testing.assert_array_equal(got, sp[:, None] * u + bias)
+        np.testing.assert_array_equal(proc.in_episode, np.any(bias != 0.0, axis=1))
+
+
+def test_inertial_step_equals_the_array_reference():
+    p, dt = InertialParams(), 0.75
+    proc, ref = InertialProcess(p, seed=7, dt=dt), InertialProcess(p, seed=7, dt=dt)
+    rad = math.pi / 180.0
+    st = dict(ids=np.empty(0, dtype=object), heading=np.empty(0), a_on=np.empty((0, 2)), a_dr=np.empty((0, 2)),
+              g_on=np.empty(0), g_dr=np.empty(0))
+    rng = np.random.default_rng(8)
+    for ids, entered, heading, _ in _fleet(rng):
+        n = ids.size
+        accel_net = rng.normal(0, 1, (n, 2))
+        got = proc.step(ids, entered, heading, accel_net)
+        prev = {v: i for i, v in enumerate(st["ids"])}
+        idx = np.array([prev.get(v, -1) for v in ids], dtype=np.int64)
+        fresh = (idx < 0) | entered
+        cont = ~fresh
+
+        def carried(arr, fill=0.0):
+            out = np.full((n,) + arr.shape[1:], fill)
+            out[cont] = arr[idx[cont]]
+            return out
+
+        body, yaw = true_body_motion(accel_net, heading, carried(st["heading"], np.nan), dt)
+        a_on = np.where(fresh[:, None], turn_on_bias(ref.accel_turn_on_rng, (n, 2), p.accel_turn_on_sigma),
+                        carried(st["a_on"]))
+        g_on = np.where(fresh, turn_on_bias(ref.gyro_turn_on_rng, (n,), p.gyro_turn_on_sigma * rad), carried(st["g_on"]))
+        a_dr = gauss_markov_bias(carried(st["a_dr"]), ref.accel_drift_rng.standard_normal((n, 2)), fresh,
+                                 p.accel_bias_sigma, ref.a_accel)
+        g_dr = gauss_markov_bias(carried(st["g_dr"]), ref.gyro_drift_rng.standard_normal(n), fresh,
+                                 p.gyro_bias_sigma * rad, ref.a_gyro)
+        accel = body + a_on + a_dr + white_noise(ref.accel_noise_rng, (n, 2), p.accel_noise_density, dt)
+        yaw_rate = yaw + g_on + g_dr + white_noise(ref.gyro_noise_rng, (n,), p.gyro_noise_density * rad, dt)
+        st = dict(ids=ids, heading=heading, a_on=a_on, a_dr=a_dr, g_on=g_on, g_dr=g_dr)
+        np.testing.assert_array_equal(got.accel_body, accel)
+        np.testing.assert_array_equal(got.yaw_rate, yaw_rate)
+        np.testing.assert_array_equal(proc.accel_bias, a_on + a_dr)
+        np.testing.assert_array_equal(proc.gyro_bias, g_on + g_dr)
+
+
+def test_footprints_and_occluder_boxes_equal_the_array_reference():
+    from couplers.perception import OccluderIndex, unit_heading, vehicle_footprints
+
+    rng = np.random.default_rng(9)
+    xy, heading = rng.uniform(-500, 500, (300, 2)), rng.uniform(-4, 4, 300)
+    length, width = rng.uniform(3, 15, 300), rng.uniform(1.5, 2.6, 300)
+    u = unit_heading(heading)
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    half, back = 0.5 * width[:, None], xy - length[:, None] * u
+    want = np.stack([xy - half * n, xy + half * n, back + half * n, back - half * n], axis=1)
+    corners = vehicle_footprints(xy, heading, length, width)
+    np.testing.assert_array_equal(corners, want)
+    corners[:50] = np.round(corners[:50])  # ties in the x minimum: the order stays stable
+    idx = OccluderIndex.build(corners)
+    xmin, xmax = corners[:, :, 0].min(axis=1), corners[:, :, 0].max(axis=1)
+    order = np.argsort(xmin, kind="stable")
+    np.testing.assert_array_equal(idx.order, order)
+    np.testing.assert_array_equal(idx.xmin_sorted, xmin[order])
+    np.testing.assert_array_equal(idx.xmax, xmax)
+    np.testing.assert_array_equal(idx.ymin, corners[:, :, 1].min(axis=1))
+    np.testing.assert_array_equal(idx.ymax, corners[:, :, 1].max(axis=1))
+    assert idx.max_wx == float((xmax - xmin).max())
+    assert OccluderIndex.build(np.empty((0, 4, 2))).max_wx == 0.0
