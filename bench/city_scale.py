@@ -88,8 +88,8 @@ def build_city(work: Path, seed: int, features: int, spacing: float, rate: float
     subprocess.run([sys.executable, str(Path(sumo.SUMO_HOME) / "tools" / "randomTrips.py"), "-n", str(net),
                     "-e", f"{insert_s:g}", "--insertion-rate", f"{rate:g}", "--seed", str(seed),
                     "--min-distance", "1500", "--fringe-factor", "2", "--validate",
-                    "--vehicle-class", "passenger", "-o", str(trips)],
-                   check=True, capture_output=True)
+                    "--vehicle-class", "passenger", "-o", str(trips), "-r", str(work / "routes.rou.xml")],
+                   check=True, capture_output=True, cwd=work)  # randomTrips writes its helper files to cwd
     subprocess.run([sys.executable, "-m", "experiments.cli", "net", "import", "--net", str(net), "--name", "city",
                     "--out", str(work / "net"), "--experiments-dir", str(work / "experiments"),
                     "--routes", str(trips), "--additional", str(stops), "--features", str(features),
