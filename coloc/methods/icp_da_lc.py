@@ -111,6 +111,8 @@ from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.existence import TrackExistence, birth_existence, existence_update
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
+from coloc.kernels import icp_fused
+from coloc.kernels.icp_fused import association_layout_kernel, association_terms_kernel, map_pairing_kernel
 from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
 from coloc.methods.registry import ICP_DA_LC
 
@@ -232,6 +234,14 @@ class LcParams:
 
 
 
+def _f64(*arrays):
+    return tuple(np.ascontiguousarray(a, dtype=np.float64) for a in arrays)
+
+
+def _i64(*arrays):
+    return tuple(np.ascontiguousarray(a, dtype=np.int64) for a in arrays)
+
+
 @lru_cache(maxsize=64)
 def _chi2_ppf(p: float, dof: int) -> float:
     """chi-square quantile, computed once per (p, dof): scipy's ppf costs ~0.1 ms a call."""
@@ -318,12 +328,21 @@ def association_weights(
     (:func:`coloc.core.detection.expected_detection_probability`), not
     ``lc.detection_probability``.
     """
-    pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
-    if pr.size == 0:
-        return pv, pt, pr, np.empty(0)
-    nu = z[pr] - (t_mean[pt] - v_mean[pv])
-    log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
-    log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
+    if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused)
+        owner = np.asarray(owner, dtype=np.int64)
+        pv, pt, pr, log_lik, d2 = association_terms_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r),
+                                                           float(lc.sensing_range_m))
+        if pr.size == 0:
+            return pv, pt, pr, np.empty(0)
+        # a row's new-feature density depends on the row alone: once per row, then per pair
+        log_new = new_feature_log_density(v_mean[owner], v_cov[owner], z, r, lc)[pr]
+    else:
+        pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
+        if pr.size == 0:
+            return pv, pt, pr, np.empty(0)
+        nu = z[pr] - (t_mean[pt] - v_mean[pv])
+        log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
+        log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     if detection is None:
         log_w = math.log(lc.detection_probability) + log_lik - log_new
     else:
@@ -370,6 +389,15 @@ def association_beliefs(
     equal over the rows of one (vehicle, track) combo): eta(alpha = 0) of the
     combo (1 - r P_D, step 9, with a per-pair P_D); None: 1 - P_D."""
     row_new = np.ones(n_rows)
+    if icp_fused.FUSED:  # the layout below in one numba pass (coloc.kernels.icp_fused)
+        missed = np.full(weight.size, 1.0 - lc.detection_probability) if missed_weight is None else missed_weight
+        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = association_layout_kernel(
+            *_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed), int(n_vehicles))
+        if c_vehicle.size == 0:
+            return None
+        pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
+        row_new[rows_sorted] = pn
+        return AssociationBeliefs(pf, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, row_new)
     keep = weight > 0
     pv, pt, pr, w = pair_vehicle[keep], pair_track[keep], pair_row[keep], weight[keep]
     if pv.size == 0:
@@ -472,6 +500,10 @@ def pairs_from_beliefs(
     none = np.empty(0, np.int64)
     if ab is None:
         return row_track, np.ones(n_rows), none, none
+    if icp_fused.FUSED and lc.pairing != "paper":  # (30) in one numba pass (coloc.kernels.icp_fused)
+        row_track = map_pairing_kernel(ab.belief, ab.combo_start, ab.combo_rows, ab.row_first, ab.rows, ab.combo_track,
+                                       int(n_rows), float(lc.eta_threshold), lc.eta_threshold < 1.0)
+        return row_track, ab.row_new, none, none
     cand, cand_row, cand_val = _map_decisions(ab, lc)
     order = np.lexsort((cand, -cand_val, cand_row))  # by row, then larger belief, then combo
     first = np.ones(order.size, dtype=bool)
