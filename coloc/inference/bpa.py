@@ -37,9 +37,11 @@ from coloc.kernels.icp import (
     complete_component_consensus,
     extrinsic_kernel,
     feature_to_vehicle_kernel,
+    relative_message_kernel,
     scatter_add,
     vehicle_to_feature_kernel,
 )
+from coloc.kernels.icp_fused import unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
@@ -58,7 +60,7 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
     used = f >= 0
     if used.any():
         key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]
-        if np.unique(key).size != key.size:
+        if unique_inverse(key)[0].size != key.size:
             raise ValueError("a vehicle has two V2F rows associated with the same feature")
     return f
 
@@ -148,6 +150,12 @@ class _FeatureEstimates:
         dvel = np.nan_to_num(np.hypot(*(new[:, 2:] - old[:, 2:]).T), nan=np.inf)
         return bool(dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps)
 
+
+#: The message a track keeps (``IcpParams.feature_message = "own"``) by the numba Cholesky kernel
+#: :func:`coloc.kernels.icp.relative_message_kernel` instead of the numpy reference (LAPACK inverse and
+#: BLAS products): the same formula, different rounding (relative differences ~1e-13, tests); off by
+#: default so that the shipped configs' estimates stay byte for byte.
+OWN_MESSAGE_KERNEL = False
 
 #: Run the BPA-L iterations with the numba kernels of :mod:`coloc.kernels.icp` (False: the
 #: numpy reference below; same algorithm, results equal up to rounding, see tests).
@@ -321,7 +329,7 @@ def bpa_localization(
         return BpaResult(prior_mean.copy(), prior_cov.copy(), used, np.empty((0, 4, 4)), np.empty((0, 4)), 0, True,
                          comm=CommCount.zeros(n))
 
-    fids, fidx = np.unique(feat_u, return_inverse=True)
+    fids, fidx = unique_inverse(feat_u)
     if feature_prior_lam.shape != (fids.size, 4, 4) or feature_prior_eta.shape != (fids.size, 4):
         raise ValueError(f"feature priors must be given for the {fids.size} features of the used rows")
     lam_f0_row, eta_f0_row = feature_prior_lam[fidx], feature_prior_eta[fidx]
@@ -348,7 +356,11 @@ def bpa_localization(
     if params.feature_message == "own":
         # The message a track keeps: (19) on the vehicle's own-sensor belief alone (no other
         # feature in the cavity), so no vehicle's evidence reaches a track twice (IcpParams).
-        keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
+        if OWN_MESSAGE_KERNEL:
+            keep_lam, keep_eta = relative_message_kernel(own_lam0[owner_u], own_eta0[owner_u],
+                                                         np.ascontiguousarray(z_u), 1.0, r_inv)
+        else:
+            keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
     mean, cov = from_information(v_lam, v_eta)
     alone = np.bincount(owner_u, minlength=n) == 0
     mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]

@@ -170,12 +170,16 @@ class FeatureStore:
         """Track means and covariances (every stored track has had at least one message).
 
         Cached per store and params (the store is immutable); treat the arrays as read-only."""
+        last = self.__dict__.get("_moments_last")
+        if last is not None and last[0] is params:  # the same params object: no hashing of the dataclass
+            return last[1]
         cache = self.__dict__.setdefault("_moments_cache", {})
         if params not in cache:
             if self.ids.size == 0:
                 cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
             else:
                 cache[params] = from_information(*self.information(params))
+        self.__dict__["_moments_last"] = (params, cache[params])
         return cache[params]
 
     def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
@@ -345,10 +349,30 @@ class FeatureStore:
             klass = np.where(src >= 0, old_k[np.maximum(src, 0)] if old_k.size else 0, new_k).astype(np.int8)
         msg_vehicle = np.concatenate([self.msg_vehicle, np.asarray(row_vehicle, dtype=object)])[m_src]
         codes = np.concatenate([self._msg_codes, np.asarray(row_codes, dtype=np.int64)])[m_src]
+        # The information of the kept messages is what this store computed for them (row by row, the
+        # same kernel): only the step's messages are converted.
+        ml, me = self._message_information
+        nl, ne = to_information(mm, mc)
+        info = (np.concatenate([ml, nl])[m_src], np.concatenate([me, ne])[m_src])
         return FeatureStore(
             ids=ids, last_seen=last_seen, folded_lam=folded_lam, folded_eta=folded_eta, msg_track=m_track,
             msg_vehicle=msg_vehicle, msg_mean=m_mean, msg_cov=m_cov, msg_time=m_time, klass=klass,
-        )._with_codes(codes)
+        )._with_codes(codes)._with_message_information(info)
+
+    def _with_message_information(self, info) -> "FeatureStore":
+        """Seed :attr:`_message_information` (the messages' (Lambda, eta), as to_information gives them)."""
+        self.__dict__["_message_information"] = info
+        return self
+
+    def _subset_information(self, keep: np.ndarray):
+        """The messages' information restricted to ``keep`` when already computed (fused path), else None."""
+        info = self.__dict__.get("_message_information")
+        if not icp_fused.FUSED or info is None:
+            return None
+        return info[0][keep], info[1][keep]
+
+    def _seeded(self, info) -> "FeatureStore":
+        return self if info is None else self._with_message_information(info)
 
     def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
         """Merge track ``absorbed[j]`` into track ``into[j]`` (ids; every absorbed id distinct, not a target).
@@ -392,7 +416,7 @@ class FeatureStore:
             msg_cov=self.msg_cov[keep],
             msg_time=self.msg_time[keep],
             klass=self.klass[live] if self.klass is not None else None,
-        )._with_codes(self._msg_codes[keep])
+        )._with_codes(self._msg_codes[keep])._seeded(self._subset_information(keep))
 
     def drop(self, track_ids: np.ndarray) -> "FeatureStore":
         """The store without the tracks ``track_ids`` (ids not in the store are ignored)."""
@@ -411,7 +435,7 @@ class FeatureStore:
             msg_cov=self.msg_cov[keep_msg],
             msg_time=self.msg_time[keep_msg],
             klass=self.klass[~gone] if self.klass is not None else None,
-        )._with_codes(self._msg_codes[keep_msg])
+        )._with_codes(self._msg_codes[keep_msg])._seeded(self._subset_information(keep_msg))
 
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""

@@ -85,14 +85,21 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
         rows[fill[owner[q]]] = q
         fill[owner[q]] += 1
     tr_t = np.empty(nt)
+    tr_max = -np.inf
     for k in range(nt):
         tr_t[k] = t_cov[k, 0, 0] + t_cov[k, 1, 1]
+        tr_max = max(tr_max, tr_t[k])
     total = 0
     cand = np.zeros((n, nt), dtype=np.bool_)
     for i in range(n):
         m_i = start[i + 1] - start[i]
         tr_v = v_cov[i, 0, 0] + v_cov[i, 1, 1]
+        # a bound on every track's threshold (each rounding step is monotone), with a margin far
+        # above hypot's error: a track farther than it along x or y is surely out of range
+        reach = (sensing_range + 3.0 * np.sqrt(tr_v + tr_max)) * (1.0 + 1e-9)
         for k in range(nt):
+            if abs(v_mean[i, 0] - t_mean[k, 0]) > reach or abs(v_mean[i, 1] - t_mean[k, 1]) > reach:
+                continue
             d = np.hypot(v_mean[i, 0] - t_mean[k, 0], v_mean[i, 1] - t_mean[k, 1])
             if d <= sensing_range + 3.0 * np.sqrt(tr_v + tr_t[k]):
                 cand[i, k] = True
@@ -141,6 +148,14 @@ def _unique_inverse(keys):
             uniq[u] = x
         inv[order[a]] = u
     return uniq[: u + 1], inv
+
+
+def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True)`` for int64 keys (FUSED; else numpy itself)."""
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    if not FUSED:
+        return np.unique(keys, return_inverse=True)
+    return _unique_inverse(keys)
 
 
 @njit(cache=True)

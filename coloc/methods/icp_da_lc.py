@@ -112,7 +112,12 @@ from coloc.inference.existence import TrackExistence, birth_existence, existence
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
-from coloc.kernels.icp_fused import association_layout_kernel, association_terms_kernel, map_pairing_kernel
+from coloc.kernels.icp_fused import (
+    association_layout_kernel,
+    association_terms_kernel,
+    map_pairing_kernel,
+    unique_inverse,
+)
 from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
 from coloc.methods.registry import ICP_DA_LC
 
@@ -705,7 +710,7 @@ def icp_da_lc_step(
     used = bpa_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
     row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
-    fids = np.unique(bpa_track[used])
+    fids = unique_inverse(bpa_track[used])[0]
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
                                                  l_cls[used] if l_cls is not None else None)
     res = bpa_localization(

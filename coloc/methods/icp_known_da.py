@@ -56,6 +56,7 @@ from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_belief
 from coloc.inference.comm import CommCount
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.params import IcpParams
+from coloc.kernels.icp_fused import unique_inverse
 from coloc.kernels.kalman import gnss_step_kernel
 from coloc.methods.registry import ICP_KNOWN_DA
 
@@ -98,7 +99,7 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]
     row_codes = vehicle_codes(frame.vehicle_ids)[owner_used]
-    fids = np.unique(assoc[used])
+    fids = unique_inverse(assoc[used])[0]
     row_class = frame.v2f_class[used] if frame.v2f_class is not None else None
     f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes, row_class)
     res = bpa_localization(
