@@ -41,6 +41,8 @@ from coloc.kernels.icp import (
     scatter_add,
     vehicle_to_feature_kernel,
 )
+from coloc.kernels import icp_fused
+from coloc.kernels.bpa_rows import feature_to_vehicle_rows, vehicle_to_feature_rows
 from coloc.kernels.icp_fused import unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
@@ -245,10 +247,13 @@ def _bpa_iterations_kernels(
     in_eta = np.zeros((n, 4))
     converged = False
     features = _FeatureEstimates(lam_f0_row, eta_f0_row) if params.stop_on == "vehicles_and_features" else None
+    # the same kernels computed across rows (coloc.kernels.bpa_rows: byte for byte, SIMD)
+    v_to_f, f_to_v = ((vehicle_to_feature_rows, feature_to_vehicle_rows) if icp_fused.FUSED
+                      else (vehicle_to_feature_kernel, feature_to_vehicle_kernel))
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): cavity (own belief x messages of the other features), integrated over x_V.
-        m_vf_lam, m_vf_eta, packed = vehicle_to_feature_kernel(
+        m_vf_lam, m_vf_eta, packed = v_to_f(
             owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
         )
         # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
@@ -260,7 +265,7 @@ def _bpa_iterations_kernels(
         # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
         # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
         ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
-        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
+        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = f_to_v(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
         )
         # Stopping rule of Sec. V-A (as in the numpy loop; b_k = b_k^(0) + |V_k ∩ C| x average).

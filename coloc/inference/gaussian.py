@@ -9,6 +9,8 @@ import numpy as np
 from numba import njit
 
 from coloc.core.models import symmetrize
+from coloc.kernels import icp_fused
+from coloc.kernels.bpa_rows import information_rows
 from coloc.kernels.icp import information_kernel, inverse_spd_kernel, log_gauss_kernel
 
 # ----------------------------------------------------------------------------- Gaussian algebra
@@ -33,7 +35,8 @@ def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.nd
     if cov.shape[-2:] != (4, 4) or mean.shape != cov.shape[:-1]:
         lam = _inv_spd_numpy(cov)
         return lam, np.einsum("...ij,...j->...i", lam, mean)
-    lam, eta = information_kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
+    kernel = information_rows if icp_fused.FUSED else information_kernel  # same numbers (tests)
+    lam, eta = kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
     return lam.reshape(cov.shape), eta.reshape(mean.shape)
 
 
