@@ -27,7 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from coloc.kernels.icp import information_kernel
+from coloc.kernels.bpa_rows import information_rows
+from coloc.kernels.kalman import gnss_step_kernel
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
 FUSED = True
@@ -137,17 +138,16 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
 @njit(cache=True)
 def _unique_inverse(keys):
     """Sorted unique values of ``keys`` and the index of every key among them."""
-    order = np.argsort(keys, kind="mergesort")
-    inv = np.empty(keys.size, dtype=np.int64)
+    srt = np.sort(keys)
     uniq = np.empty(keys.size, dtype=np.int64)
     u = -1
-    for a in range(order.size):
-        x = keys[order[a]]
-        if u < 0 or x != uniq[u]:
+    for a in range(srt.size):
+        if u < 0 or srt[a] != uniq[u]:
             u += 1
-            uniq[u] = x
-        inv[order[a]] = u
-    return uniq[: u + 1], inv
+            uniq[u] = srt[a]
+    uniq = uniq[: u + 1]
+    inv = np.searchsorted(uniq, keys)
+    return uniq, inv
 
 
 def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -417,7 +417,7 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
                         oc[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
                 orow[j] = np.searchsorted(ids2, tr)
                 j += 1
-        ol, oe = information_kernel(om, oc)
+        ol, oe = information_rows(om, oc)  # byte for byte information_kernel
         for j in range(n_fold):
             k = orow[j]
             for c in range(4):
@@ -469,3 +469,36 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
                 k_cov[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
         j += 1
     return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time
+
+
+# ----------------------------------------------------------------------------- (11)
+
+
+@njit(cache=True)
+def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior_r, accel, z, r, dt, s_along,
+                      s_cross, min_speed):
+    """b_i^(0) of (11) for two carried tracks of every vehicle (the belief and the own-sensor one):
+    the previous step's rows (``match``) or, where ``fresh``, the fast-start prior, then
+    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (``coloc.core.vehicles.carry_states`` +
+    ``vehicle_prior_beliefs`` twice, the same numbers). Returns (mean_a, cov_a, mean_b, cov_b)."""
+    n = match.size
+    out = (np.empty((n, 4)), np.empty((n, 4, 4)), np.empty((n, 4)), np.empty((n, 4, 4)))
+    for i in range(n):
+        for c in range(4):
+            if fresh[i]:
+                out[0][i, c] = prior_z[i, c]
+                out[2][i, c] = prior_z[i, c]
+            else:
+                out[0][i, c] = mean_a[match[i], c]
+                out[2][i, c] = mean_b[match[i], c]
+            for e in range(4):
+                if fresh[i]:
+                    out[1][i, c, e] = prior_r[i, c, e]
+                    out[3][i, c, e] = prior_r[i, c, e]
+                else:
+                    out[1][i, c, e] = cov_a[match[i], c, e]
+                    out[3][i, c, e] = cov_b[match[i], c, e]
+    predict = ~fresh
+    gnss_step_kernel(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    gnss_step_kernel(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    return out

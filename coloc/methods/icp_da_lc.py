@@ -107,7 +107,7 @@ from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
-from coloc.inference.feature_store import FeatureStore, vehicle_codes
+from coloc.inference.feature_store import FeatureStore
 from coloc.inference.existence import TrackExistence, birth_existence, existence_update
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
@@ -118,7 +118,7 @@ from coloc.kernels.icp_fused import (
     map_pairing_kernel,
     unique_inverse,
 )
-from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, vehicle_prior_pair
 from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
@@ -622,8 +622,7 @@ def icp_da_lc_step(
     match = match_ids(state.ids, frame.vehicle_ids)
     # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
+    b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
@@ -709,7 +708,8 @@ def icp_da_lc_step(
     # BPA-L on the paired rows of confirmed tracks (31).
     used = bpa_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
-    row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
+    codes = frame_vehicle_codes(state, frame, match)
+    row_codes = codes[l_owner[used]]
     fids = unique_inverse(bpa_track[used])[0]
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
                                                  l_cls[used] if l_cls is not None else None)
@@ -732,7 +732,7 @@ def icp_da_lc_step(
         if rec_cls is not None:
             rec_cls = np.concatenate([rec_cls, l_cls[tentative]])
         row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[rec_owner]
-        row_codes = vehicle_codes(frame.vehicle_ids)[rec_owner]
+        row_codes = codes[rec_owner]
     store = predicted.record(rec_track, row_vehicle, rec_lam, rec_eta, frame.t, params, row_codes, rec_cls)
     # Merging (step 8).
     absorbed, into = merge_candidates(store, params, lc, rec_owner, rec_track)
@@ -762,7 +762,7 @@ def icp_da_lc_step(
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
-    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading), next_id, info
+    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes), next_id, info
 
 
 def own_consistency_reset(
