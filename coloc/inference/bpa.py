@@ -43,7 +43,7 @@ from coloc.kernels.icp import (
 )
 from coloc.kernels import icp_fused
 from coloc.kernels.bpa_rows import feature_to_vehicle_rows, vehicle_to_feature_rows
-from coloc.kernels.icp_fused import unique_inverse
+from coloc.kernels.icp_fused import step_beliefs_kernel, unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
@@ -387,6 +387,8 @@ def step_feature_beliefs(
         return None
     lam, eta = store.information(params)
     rows = store.lookup(row_track)
+    if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.step_beliefs_kernel)
+        return step_beliefs_kernel(lam, eta, rows, res.final_lam, res.msg_lam, res.final_eta, res.msg_eta)
     scatter_add(lam, rows, res.final_lam - res.msg_lam)
     scatter_add(eta, rows, res.final_eta - res.msg_eta)
     return from_information(symmetrize(lam), eta)

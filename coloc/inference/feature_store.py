@@ -13,7 +13,13 @@ from coloc.inference.gaussian import from_information, to_information
 from coloc.inference.params import CLASS_PEDESTRIAN, IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp import predict_no_input_kernel, scatter_add
-from coloc.kernels.icp_fused import lookup_kernel, pair_member_kernel, record_kernel, track_information_kernel
+from coloc.kernels.icp_fused import (
+    lookup_kernel,
+    pair_member_kernel,
+    predict_store_kernel,
+    record_kernel,
+    track_information_kernel,
+)
 
 # ----------------------------------------------------------------------------- feature tracks
 
@@ -188,6 +194,14 @@ class FeatureStore:
             return self
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params, self.klass)
+        if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.predict_store_kernel)
+            folded_lam, folded_eta, msg_mean, msg_cov = predict_store_kernel(
+                self.folded_lam, self.folded_eta, np.ascontiguousarray(q), self.lookup(self.msg_track),
+                np.ascontiguousarray(self.msg_mean), np.ascontiguousarray(self.msg_cov), float(dt))
+            out = dataclasses.replace(
+                self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
+            )
+            return out._with_codes(self._msg_codes)
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():

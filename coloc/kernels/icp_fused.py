@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from coloc.kernels.bpa_rows import information_rows
+from coloc.kernels.icp import predict_no_input_kernel
 from coloc.kernels.kalman import gnss_step_kernel
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
@@ -502,3 +503,70 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
     gnss_step_kernel(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
     gnss_step_kernel(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
     return out
+
+
+# ----------------------------------------------------------------------------- (12)
+
+
+@njit(cache=True)
+def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov, dt):
+    """Eq. (12) on the track store (``FeatureStore.predict``, the same numbers): every nonzero folded
+    part to moments, predicted by model (2) with its track's Q_F, back to information; every stored
+    message predicted with its track's Q_F (``msg_rows``). Returns (folded_lam, folded_eta,
+    msg_mean, msg_cov)."""
+    t = folded_lam.shape[0]
+    out_lam = folded_lam.copy()
+    out_eta = folded_eta.copy()
+    has = np.zeros(t, dtype=np.bool_)
+    for k in range(t):
+        nz, nan = False, False
+        for a in range(4):
+            for b in range(4):
+                v = folded_lam[k, a, b]
+                if v != v:
+                    nan = True
+                elif v != 0.0:
+                    nz = True
+        has[k] = nz and not nan  # np.abs(lam).sum() > 0
+    idx = np.flatnonzero(has)
+    if idx.size:
+        fl = np.empty((idx.size, 4, 4))
+        fe = np.empty((idx.size, 4))
+        fq = np.empty((idx.size, 4, 4))
+        for j in range(idx.size):
+            fl[j] = folded_lam[idx[j]]
+            fe[j] = folded_eta[idx[j]]
+            fq[j] = q[idx[j]]
+        fp, fm = information_rows(fe, fl)  # from_information: (P, m) = (Lambda^-1, Lambda^-1 eta)
+        fm, fp = predict_no_input_kernel(fm, fp, fq, dt)
+        nl, ne = information_rows(fm, fp)
+        for j in range(idx.size):
+            out_lam[idx[j]] = nl[j]
+            out_eta[idx[j]] = ne[j]
+    mq = np.empty((msg_rows.size, 4, 4))
+    for j in range(msg_rows.size):
+        mq[j] = q[msg_rows[j]]
+    mm, mc = predict_no_input_kernel(msg_mean, msg_cov, mq, dt)
+    return out_lam, out_eta, mm, mc
+
+
+@njit(cache=True)
+def step_beliefs_kernel(lam, eta, rows, final_lam, kept_lam, final_eta, kept_eta):
+    """Eq. (20) after BPA-L (``coloc.inference.bpa.step_feature_beliefs``, the same numbers): each
+    row's kept message swapped for its final one in the tracks' information (added in row order),
+    symmetrised, to moments. Returns (mean, cov)."""
+    for q in range(rows.size):
+        k = rows[q]
+        for a in range(4):
+            for b in range(4):
+                lam[k, a, b] = lam[k, a, b] + (final_lam[q, a, b] - kept_lam[q, a, b])
+        for a in range(4):
+            eta[k, a] = eta[k, a] + (final_eta[q, a] - kept_eta[q, a])
+    t = lam.shape[0]
+    sym = np.empty((t, 4, 4))
+    for k in range(t):
+        for a in range(4):
+            for b in range(4):
+                sym[k, a, b] = 0.5 * (lam[k, a, b] + lam[k, b, a])
+    cov, mean = information_rows(eta, sym)
+    return mean, cov
