@@ -39,34 +39,6 @@ FUSED = True
 
 
 @njit(cache=True)
-def _log_gauss_row(nu, s, d, l, w, log2pi):
-    """log N(nu; 0, S) and nu^T S^-1 nu for one (d, d) S: the operations of
-    :func:`coloc.kernels.icp.log_gauss_kernel` in its order (NaN, NaN if S is not PD)."""
-    for j in range(d):
-        acc = s[j, j]
-        for k in range(j):
-            acc -= l[j, k] * l[j, k]
-        if not acc > 0.0:
-            return np.nan, np.nan
-        l[j, j] = np.sqrt(acc)
-        for i in range(j + 1, d):
-            a = s[i, j]
-            for k in range(j):
-                a -= l[i, k] * l[j, k]
-            l[i, j] = a / l[j, j]
-    q = 0.0
-    logdet = 0.0
-    for i in range(d):
-        a = nu[i]
-        for k in range(i):
-            a -= l[i, k] * w[k]
-        w[i] = a / l[i, i]
-        q += w[i] * w[i]
-        logdet += np.log(l[i, i])
-    return -0.5 * (q + 2.0 * logdet + d * log2pi), q
-
-
-@njit(cache=True)
 def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range):
     """Every (vehicle i, candidate track k, row l of i) and log N(z_l; m_k - m_i, P_k + P_i + R_l)
     with its squared Mahalanobis distance.
@@ -109,13 +81,8 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
     pv = np.empty(total, dtype=np.int64)
     pt = np.empty(total, dtype=np.int64)
     pr = np.empty(total, dtype=np.int64)
-    log_lik = np.empty(total)
-    d2 = np.empty(total)
-    nu = np.empty(4)
-    s = np.empty((4, 4))
-    l = np.empty((4, 4))
-    w = np.empty(4)
-    log2pi = np.log(2.0 * np.pi)
+    nu = np.empty((4, total))
+    s = np.empty((16, total))  # the lower triangle is read
     p = 0
     for i in range(n):
         for k in range(nt):
@@ -124,13 +91,73 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
             for a in range(start[i], start[i + 1]):
                 q = rows[a]
                 for c in range(4):
-                    nu[c] = z[q, c] - (t_mean[k, c] - v_mean[i, c])
-                    for e in range(4):
-                        s[c, e] = (t_cov[k, c, e] + v_cov[i, c, e]) + r[q, c, e]
+                    nu[c, p] = z[q, c] - (t_mean[k, c] - v_mean[i, c])
+                    for e in range(c + 1):
+                        s[c * 4 + e, p] = (t_cov[k, c, e] + v_cov[i, c, e]) + r[q, c, e]
                 pv[p], pt[p], pr[p] = i, k, q
-                log_lik[p], d2[p] = _log_gauss_row(nu, s, 4, l, w, log2pi)
                 p += 1
+    log_lik, d2 = _log_gauss4_soa(nu, s)
     return pv, pt, pr, log_lik, d2
+
+
+@njit(cache=True)
+def _log_gauss4_soa(nu, s):
+    """:func:`coloc.kernels.icp.log_gauss_kernel` (d = 4) for every column of ``nu`` (4, P) / ``s`` (16, P), each scalar
+    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD."""
+    p = nu.shape[1]
+    l = np.empty((16, p))
+    w = np.empty((4, p))
+    acc = np.empty(p)
+    ok = np.ones(p, dtype=np.bool_)
+    for j in range(4):
+        sjj = s[j * 4 + j]
+        for r in range(p):
+            acc[r] = sjj[r]
+        for k in range(j):
+            ljk = l[j * 4 + k]
+            for r in range(p):
+                acc[r] -= ljk[r] * ljk[r]
+        ljj = l[j * 4 + j]
+        for r in range(p):
+            if not acc[r] > 0.0:
+                ok[r] = False
+                acc[r] = 1.0  # any value: the column is NaN at the end
+            ljj[r] = np.sqrt(acc[r])
+        for i in range(j + 1, 4):
+            sij = s[i * 4 + j]
+            for r in range(p):
+                acc[r] = sij[r]
+            for k in range(j):
+                lik, ljk = l[i * 4 + k], l[j * 4 + k]
+                for r in range(p):
+                    acc[r] -= lik[r] * ljk[r]
+            lij = l[i * 4 + j]
+            for r in range(p):
+                lij[r] = acc[r] / ljj[r]
+    q = np.zeros(p)
+    logdet = np.zeros(p)
+    for i in range(4):
+        nui = nu[i]
+        for r in range(p):
+            acc[r] = nui[r]
+        for k in range(i):
+            lik, wk = l[i * 4 + k], w[k]
+            for r in range(p):
+                acc[r] -= lik[r] * wk[r]
+        lii, wi = l[i * 4 + i], w[i]
+        for r in range(p):
+            wi[r] = acc[r] / lii[r]
+            q[r] += wi[r] * wi[r]
+        for r in range(p):
+            logdet[r] += np.log(lii[r])
+    log2pi = np.log(2.0 * np.pi)
+    log_pdf = np.empty(p)
+    for r in range(p):
+        if ok[r]:
+            log_pdf[r] = -0.5 * (q[r] + 2.0 * logdet[r] + 4 * log2pi)
+        else:
+            log_pdf[r], q[r] = np.nan, np.nan
+    return log_pdf, q
 
 
 # ----------------------------------------------------------------------------- (14)-(17)
@@ -570,3 +597,21 @@ def step_beliefs_kernel(lam, eta, rows, final_lam, kept_lam, final_eta, kept_eta
                 sym[k, a, b] = 0.5 * (lam[k, a, b] + lam[k, b, a])
     cov, mean = information_rows(eta, sym)
     return mean, cov
+
+
+# ----------------------------------------------------------------------------- merging (LC step 8)
+
+
+@njit(cache=True)
+def any_pair_within(xy, radius):
+    """True when two rows of ``xy`` (T, 2) are within ``radius`` of each other, with a relative
+    margin of 1e-9 (a pre-check: False means no pair is within ``radius`` by any rounding)."""
+    t = xy.shape[0]
+    r2 = (radius * (1.0 + 1e-9)) ** 2
+    for a in range(t):
+        for b in range(a + 1, t):
+            dx = xy[a, 0] - xy[b, 0]
+            dy = xy[a, 1] - xy[b, 1]
+            if not dx * dx + dy * dy > r2:  # NaN: "maybe"
+                return True
+    return False

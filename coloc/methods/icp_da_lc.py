@@ -114,6 +114,7 @@ from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import (
     association_layout_kernel,
+    any_pair_within,
     association_terms_kernel,
     map_pairing_kernel,
     unique_inverse,
@@ -566,6 +567,8 @@ def merge_candidates(
     if store.size < 2 or lc.merge_gate_m <= 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
     mean, cov = store.moments(params)
+    if icp_fused.FUSED and not any_pair_within(np.ascontiguousarray(mean[:, :2]), float(lc.merge_gate_m)):
+        return np.empty(0, np.int64), np.empty(0, np.int64)  # no two tracks within the gate: no pair below
     pairs = cKDTree(mean[:, :2]).query_pairs(lc.merge_gate_m, output_type="ndarray")
     if pairs.size == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
