@@ -10,7 +10,7 @@ from numba import njit
 
 from coloc.core.models import symmetrize
 from coloc.kernels import icp_fused
-from coloc.kernels.bpa_rows import information_rows
+from coloc.kernels.bpa_rows import information_rows, inverse_rows
 from coloc.kernels.icp import information_kernel, inverse_spd_kernel, log_gauss_kernel
 
 # ----------------------------------------------------------------------------- Gaussian algebra
@@ -25,7 +25,8 @@ def _inv_spd(m: np.ndarray) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)
     if m.ndim < 2 or m.shape[-2:] != (4, 4):
         return _inv_spd_numpy(m)
-    return inverse_spd_kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
+    kernel = inverse_rows if icp_fused.FUSED else inverse_spd_kernel  # same numbers (tests)
+    return kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
 
 
 def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,8 @@ Equation -> function (Brambilla et al.):
   (twin :func:`coloc.kernels.icp.vehicle_to_feature_kernel`);
 * (21) second half and (22): :func:`feature_to_vehicle_rows` (twin
   :func:`coloc.kernels.icp.feature_to_vehicle_kernel`);
-* (mean, cov) <-> (Lambda, eta): :func:`information_rows` (twin :func:`coloc.kernels.icp.information_kernel`).
+* (mean, cov) <-> (Lambda, eta): :func:`information_rows` (twin :func:`coloc.kernels.icp.information_kernel`),
+  and the SPD inverse :func:`inverse_rows` (twin :func:`coloc.kernels.icp.inverse_spd_kernel`).
 """
 
 from __future__ import annotations
@@ -291,3 +292,17 @@ def information_rows(mean, cov):
         for r in range(k):
             eta[r, a] = acc[r]
     return lam, eta
+
+
+@njit(cache=True)
+def inverse_rows(m):
+    """:func:`coloc.kernels.icp.inverse_spd_kernel` (batched SPD 4x4 inverse), byte for byte."""
+    k = m.shape[0]
+    si = np.empty((16, k))
+    _inv4_spd_soa(_soa16(m), si, np.empty(k), np.empty(k))
+    out = np.empty((k, 4, 4))
+    for r in range(k):
+        for a in range(4):
+            for b in range(4):
+                out[r, a, b] = si[a * 4 + b, r]
+    return out

@@ -220,3 +220,4 @@ def test_row_kernels_across_rows_are_byte_identical_to_the_row_by_row_kernels(se
     mean = rng.normal(size=(o, 4))
     assert all(x.tobytes() == y.tobytes() for x, y in zip(icp.information_kernel(mean, cov),
                                                           bpa_rows.information_rows(mean, cov)))
+    assert icp.inverse_spd_kernel(cov).tobytes() == bpa_rows.inverse_rows(cov).tobytes()
