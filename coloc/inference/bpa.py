@@ -42,7 +42,7 @@ from coloc.kernels.icp import (
     vehicle_to_feature_kernel,
 )
 from coloc.kernels import icp_fused
-from coloc.kernels.bpa_rows import feature_to_vehicle_rows, vehicle_to_feature_rows
+from coloc.kernels.bpa_rows import bpa_forward_rows, feature_to_vehicle_rows, vehicle_to_feature_rows
 from coloc.kernels.icp_fused import step_beliefs_kernel, unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
@@ -252,19 +252,25 @@ def _bpa_iterations_kernels(
                       else (vehicle_to_feature_kernel, feature_to_vehicle_kernel))
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
-        # (19): cavity (own belief x messages of the other features), integrated over x_V.
-        m_vf_lam, m_vf_eta, packed = v_to_f(
-            owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
-        )
-        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        # (one round on complete components, where W = J/m is a projection: see the kernel)
-        if channel is None:
-            avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
-        else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
-            avg = channel.average(packed, channel.grant(n_iter_cons, params.exchanges_left(it)))
-        # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
-        # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
-        ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
+        if channel is None and icp_fused.FUSED:  # (19)-(21) below in one call (coloc.kernels.bpa_rows)
+            m_vf_lam, m_vf_eta, avg, ext_lam, ext_eta, sure = bpa_forward_rows(
+                owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv, w_indptr, w_indices,
+                w_data, n_iter_cons, complete, count, lam_f0_row, eta_f0_row)
+            ext_lam, ext_eta = psd_clip(ext_lam, ext_eta, sure=sure)
+        else:
+            # (19): cavity (own belief x messages of the other features), integrated over x_V.
+            m_vf_lam, m_vf_eta, packed = v_to_f(
+                owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
+            )
+            # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
+            # (one round on complete components, where W = J/m is a projection: see the kernel)
+            if channel is None:
+                avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+            else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
+                avg = channel.average(packed, channel.grant(n_iter_cons, params.exchanges_left(it)))
+            # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F.
+            ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
+        # (21), second half; (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
         m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = f_to_v(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
         )

@@ -14,6 +14,9 @@ Equation -> function (Brambilla et al.):
   (row twin :func:`coloc.kernels.icp._relative_message_row`);
 * (19) cavity and vehicle -> feature messages with the consensus input: :func:`vehicle_to_feature_rows`
   (twin :func:`coloc.kernels.icp.vehicle_to_feature_kernel`);
+* (19), (20) and the first half of (21) in one call: :func:`bpa_forward_rows` (the twins above,
+  :func:`coloc.kernels.icp.complete_component_consensus`, :func:`coloc.kernels.icp.extrinsic_kernel`
+  and the PSD pre-check :func:`coloc.kernels.icp.surely_above_floor`, one after the other);
 * (21) second half and (22): :func:`feature_to_vehicle_rows` (twin
   :func:`coloc.kernels.icp.feature_to_vehicle_kernel`);
 * (mean, cov) <-> (Lambda, eta): :func:`information_rows` (twin :func:`coloc.kernels.icp.information_kernel`),
@@ -25,7 +28,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from coloc.kernels.icp import _inv4_general, _inv4_spd
+from coloc.kernels.icp import (
+    _inv4_general,
+    _inv4_spd,
+    complete_component_consensus,
+    extrinsic_kernel,
+    surely_above_floor,
+)
 
 
 @njit(cache=True)
@@ -306,3 +315,17 @@ def inverse_rows(m):
             for b in range(4):
                 out[r, a, b] = si[a * 4 + b, r]
     return out
+
+
+@njit(cache=True)
+def bpa_forward_rows(owner, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z, r_inv, w_indptr, w_indices,
+                     w_data, n_iter_cons, complete, count, lam_f0_row, eta_f0_row):
+    """One BPA-L iteration up to the PSD projection, in one call: (19) (:func:`vehicle_to_feature_rows`),
+    (20) by consensus on complete components, the extrinsic information of (21) and which rows are
+    surely positive definite (:func:`coloc.kernels.icp.surely_above_floor`, floor 0). Returns
+    (m_vf_lam, m_vf_eta, avg, ext_lam, ext_eta, sure)."""
+    m_vf_lam, m_vf_eta, packed = vehicle_to_feature_rows(owner, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam,
+                                                         m_fv_eta, z, r_inv)
+    avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+    ext_lam, ext_eta = extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta)
+    return m_vf_lam, m_vf_eta, avg, ext_lam, ext_eta, surely_above_floor(ext_lam, 0.0)

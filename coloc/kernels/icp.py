@@ -455,3 +455,45 @@ def predict_no_input_kernel(mean, cov, q, dt):
             for b in range(4):
                 p_out[r, a, b] = 0.5 * (u[a, b] + u[b, a])
     return m_out, p_out
+
+
+@njit(cache=True)
+def surely_above_floor(lam, floor):
+    """Per (4, 4) matrix: True when symmetrize(lam) - (floor + margin) I has a Cholesky
+    factor with positive pivots, margin = 1e-8 * (largest |diagonal entry|). Cholesky is
+    backward stable (error ~1e-15 of the entries), so such a matrix has every eigenvalue
+    above ``floor`` by far more than a LAPACK eigensolver's rounding: it is never clipped.
+    False means only "not proven" (singular or indefinite matrices, NaN)."""
+    n = lam.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = np.empty((4, 4))
+    for m in range(n):
+        scale = 0.0
+        for i in range(4):
+            d = abs(lam[m, i, i])
+            if d > scale:
+                scale = d
+        shift = floor + 1e-8 * scale
+        for i in range(4):
+            for j in range(4):
+                a[i, j] = 0.5 * (lam[m, i, j] + lam[m, j, i])
+            a[i, i] -= shift
+        ok = scale > 0.0
+        for j in range(4):
+            if not ok:
+                break
+            d = a[j, j]
+            for k in range(j):
+                d -= a[j, k] * a[j, k]
+            if not d > 0.0:  # also catches NaN
+                ok = False
+                break
+            d = np.sqrt(d)
+            a[j, j] = d
+            for i in range(j + 1, 4):
+                acc = a[i, j]
+                for k in range(j):
+                    acc -= a[i, k] * a[j, k]
+                a[i, j] = acc / d
+        out[m] = ok
+    return out
