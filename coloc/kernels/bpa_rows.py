@@ -20,7 +20,8 @@ Equation -> function (Brambilla et al.):
 * (21) second half and (22): :func:`feature_to_vehicle_rows` (twin
   :func:`coloc.kernels.icp.feature_to_vehicle_kernel`);
 * (mean, cov) <-> (Lambda, eta): :func:`information_rows` (twin :func:`coloc.kernels.icp.information_kernel`),
-  and the SPD inverse :func:`inverse_rows` (twin :func:`coloc.kernels.icp.inverse_spd_kernel`).
+  and the SPD inverse :func:`inverse_rows` (twin :func:`coloc.kernels.icp.inverse_spd_kernel`);
+* (12), model (2) without input: :func:`predict_no_input_rows` (twin :func:`coloc.kernels.icp.predict_no_input_kernel`).
 """
 
 from __future__ import annotations
@@ -329,3 +330,43 @@ def bpa_forward_rows(owner, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_e
     avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
     ext_lam, ext_eta = extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta)
     return m_vf_lam, m_vf_eta, avg, ext_lam, ext_eta, surely_above_floor(ext_lam, 0.0)
+
+
+@njit(cache=True)
+def predict_no_input_rows(mean, cov, q, dt):
+    """:func:`coloc.kernels.icp.predict_no_input_kernel` (model (2): m = A m, P = sym(A P A^T + Q)),
+    byte for byte, each scalar step one loop over the rows."""
+    k = mean.shape[0]
+    m_out = np.empty((k, 4))
+    p_out = np.empty((k, 4, 4))
+    for r in range(k):
+        m_out[r, 0] = mean[r, 0] + dt * mean[r, 2]
+        m_out[r, 1] = mean[r, 1] + dt * mean[r, 3]
+        m_out[r, 2] = mean[r, 2]
+        m_out[r, 3] = mean[r, 3]
+    p = _soa16(cov)
+    qq = _soa16(q)
+    t = np.empty((16, k))
+    for b in range(4):  # t = A P
+        t0, t1, t2, t3 = t[b], t[4 + b], t[8 + b], t[12 + b]
+        p0, p1, p2, p3 = p[b], p[4 + b], p[8 + b], p[12 + b]
+        for r in range(k):
+            t0[r] = p0[r] + dt * p2[r]
+            t1[r] = p1[r] + dt * p3[r]
+            t2[r] = p2[r]
+            t3[r] = p3[r]
+    u = np.empty((16, k))
+    for a in range(4):  # u = t A^T + Q
+        ta0, ta1, ta2, ta3 = t[a * 4], t[a * 4 + 1], t[a * 4 + 2], t[a * 4 + 3]
+        u0, u1, u2, u3 = u[a * 4], u[a * 4 + 1], u[a * 4 + 2], u[a * 4 + 3]
+        q0, q1, q2, q3 = qq[a * 4], qq[a * 4 + 1], qq[a * 4 + 2], qq[a * 4 + 3]
+        for r in range(k):
+            u0[r] = ta0[r] + dt * ta2[r] + q0[r]
+            u1[r] = ta1[r] + dt * ta3[r] + q1[r]
+            u2[r] = ta2[r] + q2[r]
+            u3[r] = ta3[r] + q3[r]
+    for r in range(k):
+        for a in range(4):
+            for b in range(4):
+                p_out[r, a, b] = 0.5 * (u[a * 4 + b, r] + u[b * 4 + a, r])
+    return m_out, p_out

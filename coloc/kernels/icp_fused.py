@@ -27,8 +27,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from coloc.kernels.bpa_rows import information_rows
-from coloc.kernels.icp import predict_no_input_kernel
+from coloc.kernels.bpa_rows import information_rows, predict_no_input_rows
 from coloc.kernels.kalman import gnss_step_kernel
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
@@ -565,7 +564,7 @@ def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov,
             fe[j] = folded_eta[idx[j]]
             fq[j] = q[idx[j]]
         fp, fm = information_rows(fe, fl)  # from_information: (P, m) = (Lambda^-1, Lambda^-1 eta)
-        fm, fp = predict_no_input_kernel(fm, fp, fq, dt)
+        fm, fp = predict_no_input_rows(fm, fp, fq, dt)  # byte for byte predict_no_input_kernel
         nl, ne = information_rows(fm, fp)
         for j in range(idx.size):
             out_lam[idx[j]] = nl[j]
@@ -573,7 +572,7 @@ def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov,
     mq = np.empty((msg_rows.size, 4, 4))
     for j in range(msg_rows.size):
         mq[j] = q[msg_rows[j]]
-    mm, mc = predict_no_input_kernel(msg_mean, msg_cov, mq, dt)
+    mm, mc = predict_no_input_rows(msg_mean, msg_cov, mq, dt)
     return out_lam, out_eta, mm, mc
 
 

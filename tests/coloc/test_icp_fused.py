@@ -221,3 +221,6 @@ def test_row_kernels_across_rows_are_byte_identical_to_the_row_by_row_kernels(se
     assert all(x.tobytes() == y.tobytes() for x, y in zip(icp.information_kernel(mean, cov),
                                                           bpa_rows.information_rows(mean, cov)))
     assert icp.inverse_spd_kernel(cov).tobytes() == bpa_rows.inverse_rows(cov).tobytes()
+    q = _spd_rows(rng, o, 0.1)
+    assert all(x.tobytes() == y.tobytes() for x, y in zip(icp.predict_no_input_kernel(mean, cov, q, 0.75),
+                                                          bpa_rows.predict_no_input_rows(mean, cov, q, 0.75)))
