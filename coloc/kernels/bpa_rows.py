@@ -31,48 +31,55 @@ from numba import njit
 
 from coloc.kernels.icp import (
     _inv4_general,
-    _inv4_spd,
     complete_component_consensus,
     extrinsic_kernel,
     surely_above_floor,
+    vehicle_beliefs_kernel,
 )
 
 
 @njit(cache=True)
-def _inv4_spd_soa(s, si, acc, d):
+def cholesky4_soa(s, l, ok, acc):
+    """Lower Cholesky factor of every column of ``s`` (16, o) (entries a*4+b, the lower triangle
+    read) into ``l``, the operations of :func:`coloc.kernels.icp._chol4` in its order; ``ok``
+    cleared where a pivot is not > 0 (or NaN): such a column's factor is meaningless."""
+    o = s.shape[1]
+    for j in range(4):
+        sjj = s[j * 4 + j]
+        for r in range(o):
+            acc[r] = sjj[r]
+        for k in range(j):
+            ljk = l[j * 4 + k]
+            for r in range(o):
+                acc[r] -= ljk[r] * ljk[r]
+        ljj = l[j * 4 + j]
+        for r in range(o):
+            if not acc[r] > 0.0:
+                ok[r] = False
+                acc[r] = 1.0  # any value
+            ljj[r] = np.sqrt(acc[r])
+        for i in range(j + 1, 4):
+            sij = s[i * 4 + j]
+            for r in range(o):
+                acc[r] = sij[r]
+            for k in range(j):
+                lik, ljk = l[i * 4 + k], l[j * 4 + k]
+                for r in range(o):
+                    acc[r] -= lik[r] * ljk[r]
+            lij = l[i * 4 + j]
+            for r in range(o):
+                lij[r] = acc[r] / ljj[r]
+
+
+@njit(cache=True)
+def _inv4_spd_soa(s, si, acc):
     """si = s^-1 for every row (columns of the (16, o) arrays, entry a*4+b), the operations of
     :func:`coloc.kernels.icp._inv4_spd` in its order: Cholesky, L^-1, L^-T L^-1; rows that are
     not numerically positive definite by :func:`coloc.kernels.icp._inv4_general`."""
     o = s.shape[1]
     c = np.zeros((16, o))
     ok = np.ones(o, dtype=np.bool_)
-    for j in range(4):
-        sjj = s[j * 4 + j]
-        for r in range(o):
-            d[r] = sjj[r]
-        for k in range(j):
-            cjk = c[j * 4 + k]
-            for r in range(o):
-                d[r] -= cjk[r] * cjk[r]
-        for r in range(o):
-            if not d[r] > 0.0:
-                ok[r] = False
-                d[r] = 1.0  # any value: the row is redone below
-        cjj = c[j * 4 + j]
-        for r in range(o):
-            d[r] = np.sqrt(d[r])
-            cjj[r] = d[r]
-        for i in range(j + 1, 4):
-            sij = s[i * 4 + j]
-            for r in range(o):
-                acc[r] = sij[r]
-            for k in range(j):
-                cik, cjk = c[i * 4 + k], c[j * 4 + k]
-                for r in range(o):
-                    acc[r] -= cik[r] * cjk[r]
-            cij = c[i * 4 + j]
-            for r in range(o):
-                cij[r] = acc[r] / d[r]
+    cholesky4_soa(s, c, ok, acc)
     li = np.zeros((16, o))
     for j in range(4):
         cjj, lijj = c[j * 4 + j], li[j * 4 + j]
@@ -145,7 +152,7 @@ def _relative_message_soa(lam, eta, offset, sign, r_inv, out_lam, out_eta):
         for r in range(o):
             sc[r] = lc[r] + rc[r]
     s_inv = np.empty((16, o))
-    _inv4_spd_soa(s, s_inv, acc, d)
+    _inv4_spd_soa(s, s_inv, acc)
     t = np.empty((16, o))
     _matmul_soa(lam, s_inv, t, acc)
     _matmul_soa(t, r_inv, s, acc)  # s = Lambda S^-1 R^-1 (s reused)
@@ -174,26 +181,26 @@ def _relative_message_soa(lam, eta, offset, sign, r_inv, out_lam, out_eta):
 
 
 @njit(cache=True)
-def _soa16(x):
-    """(o, 4, 4) -> (16, o)."""
-    o = x.shape[0]
-    out = np.empty((16, o))
+def _soa4(x):
+    """(o, m) -> (m, o): one contiguous array per entry."""
+    o, m = x.shape
+    out = np.empty((m, o))
     for r in range(o):
-        for a in range(4):
-            for b in range(4):
-                out[a * 4 + b, r] = x[r, a, b]
+        for a in range(m):
+            out[a, r] = x[r, a]
     return out
 
 
 @njit(cache=True)
-def _soa4(x):
-    """(o, 4) -> (4, o)."""
-    o = x.shape[0]
-    out = np.empty((4, o))
-    for r in range(o):
-        for a in range(4):
-            out[a, r] = x[r, a]
-    return out
+def _aos16(x):
+    """(16, o) -> (o, 4, 4), the inverse of :func:`_soa16`."""
+    return np.ascontiguousarray(x.T).reshape((x.shape[1], 4, 4))
+
+
+@njit(cache=True)
+def _soa16(x):
+    """(o, 4, 4) -> (16, o), entry a*4+b."""
+    return _soa4(np.ascontiguousarray(x).reshape((x.shape[0], 16)))
 
 
 @njit(cache=True)
@@ -235,47 +242,10 @@ def feature_to_vehicle_rows(owner, ext_lam, ext_eta, z, r_inv, v_lam0, v_eta0, p
     ol = np.empty((16, o))
     oe = np.empty((4, o))
     _relative_message_soa(_soa16(ext_lam), _soa4(ext_eta), _soa4(z), -1.0, _soa16(r_inv), ol, oe)
-    m_lam = np.empty((o, 4, 4))
-    m_eta = np.empty((o, 4))
-    for r in range(o):
-        for a in range(4):
-            for b in range(4):
-                m_lam[r, a, b] = ol[a * 4 + b, r]
-            m_eta[r, a] = oe[a, r]
-    # (22), as the row kernel: information sums in row order, then each vehicle's mean
-    in_lam = np.zeros((n, 4, 4))
-    in_eta = np.zeros((n, 4))
-    for r in range(o):
-        i = owner[r]
-        for a in range(4):
-            for b in range(4):
-                in_lam[i, a, b] += m_lam[r, a, b]
-            in_eta[i, a] += m_eta[r, a]
-    v_lam = np.empty((n, 4, 4))
-    v_eta = np.empty((n, 4))
-    new_mean = np.empty((n, 4))
-    s, cov, l, li = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
-    dpos, dvel = 0.0, 0.0
-    for i in range(n):
-        for a in range(4):
-            for b in range(4):
-                s[a, b] = v_lam0[i, a, b] + in_lam[i, a, b]
-        for a in range(4):
-            for b in range(4):
-                v_lam[i, a, b] = 0.5 * (s[a, b] + s[b, a])
-            v_eta[i, a] = v_eta0[i, a] + in_eta[i, a]
-        _inv4_spd(v_lam[i], cov, l, li)
-        for a in range(4):
-            acc = 0.0
-            for b in range(4):
-                acc += cov[a, b] * v_eta[i, b]
-            new_mean[i, a] = acc
-        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
-        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
-        if dp > dpos or dp != dp:
-            dpos = dp if dp == dp else np.inf
-        if dv > dvel or dv != dv:
-            dvel = dv if dv == dv else np.inf
+    m_lam, m_eta = _aos16(ol), np.ascontiguousarray(oe.T)
+    # (22), as the row kernel (the same function)
+    in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel = vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0,
+                                                                                prev_mean)
     return m_lam, m_eta, in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel
 
 
@@ -285,13 +255,9 @@ def information_rows(mean, cov):
     k = mean.shape[0]
     si = np.empty((16, k))
     acc = np.empty(k)
-    _inv4_spd_soa(_soa16(cov), si, acc, np.empty(k))
-    lam = np.empty((k, 4, 4))
+    _inv4_spd_soa(_soa16(cov), si, acc)
+    lam = _aos16(si)
     eta = np.empty((k, 4))
-    for r in range(k):
-        for a in range(4):
-            for b in range(4):
-                lam[r, a, b] = si[a * 4 + b, r]
     for a in range(4):
         for r in range(k):
             acc[r] = 0.0
@@ -309,13 +275,8 @@ def inverse_rows(m):
     """:func:`coloc.kernels.icp.inverse_spd_kernel` (batched SPD 4x4 inverse), byte for byte."""
     k = m.shape[0]
     si = np.empty((16, k))
-    _inv4_spd_soa(_soa16(m), si, np.empty(k), np.empty(k))
-    out = np.empty((k, 4, 4))
-    for r in range(k):
-        for a in range(4):
-            for b in range(4):
-                out[r, a, b] = si[a * 4 + b, r]
-    return out
+    _inv4_spd_soa(_soa16(m), si, np.empty(k))
+    return _aos16(si)
 
 
 @njit(cache=True)

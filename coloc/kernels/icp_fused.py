@@ -27,7 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from coloc.kernels.bpa_rows import information_rows, predict_no_input_rows
+from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
+from coloc.kernels.icp import rows_by_key
 from coloc.kernels.kalman import gnss_step_kernel
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
@@ -46,17 +47,7 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
     vehicle, then track, then row (``np.nonzero`` order, rows by a stable sort on the owner).
     Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
     n, nt, o = v_mean.shape[0], t_mean.shape[0], owner.size
-    # rows of each vehicle, ascending (counting sort = stable argsort of owner)
-    start = np.zeros(n + 1, dtype=np.int64)
-    for q in range(o):
-        start[owner[q] + 1] += 1
-    for i in range(n):
-        start[i + 1] += start[i]
-    rows = np.empty(o, dtype=np.int64)
-    fill = start[:n].copy()
-    for q in range(o):
-        rows[fill[owner[q]]] = q
-        fill[owner[q]] += 1
+    start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
     tr_t = np.empty(nt)
     tr_max = -np.inf
     for k in range(nt):
@@ -108,31 +99,7 @@ def _log_gauss4_soa(nu, s):
     w = np.empty((4, p))
     acc = np.empty(p)
     ok = np.ones(p, dtype=np.bool_)
-    for j in range(4):
-        sjj = s[j * 4 + j]
-        for r in range(p):
-            acc[r] = sjj[r]
-        for k in range(j):
-            ljk = l[j * 4 + k]
-            for r in range(p):
-                acc[r] -= ljk[r] * ljk[r]
-        ljj = l[j * 4 + j]
-        for r in range(p):
-            if not acc[r] > 0.0:
-                ok[r] = False
-                acc[r] = 1.0  # any value: the column is NaN at the end
-            ljj[r] = np.sqrt(acc[r])
-        for i in range(j + 1, 4):
-            sij = s[i * 4 + j]
-            for r in range(p):
-                acc[r] = sij[r]
-            for k in range(j):
-                lik, ljk = l[i * 4 + k], l[j * 4 + k]
-                for r in range(p):
-                    acc[r] -= lik[r] * ljk[r]
-            lij = l[i * 4 + j]
-            for r in range(p):
-                lij[r] = acc[r] / ljj[r]
+    cholesky4_soa(s, l, ok, acc)
     q = np.zeros(p)
     logdet = np.zeros(p)
     for i in range(4):
