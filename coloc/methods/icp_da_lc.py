@@ -397,8 +397,9 @@ def association_beliefs(
     row_new = np.ones(n_rows)
     if icp_fused.FUSED:  # the layout below in one numba pass (coloc.kernels.icp_fused)
         missed = np.full(weight.size, 1.0 - lc.detection_probability) if missed_weight is None else missed_weight
-        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = association_layout_kernel(
-            *_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed), int(n_vehicles))
+        layout = association_layout_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
+                                           int(n_vehicles))
+        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = layout
         if c_vehicle.size == 0:
             return None
         pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
