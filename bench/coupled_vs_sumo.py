@@ -12,6 +12,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
     (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
      --pf-kernels tree,fast runs one icp_da_pf per [pf] kernel on the same frames, the exact tree and the
      1e-3 fast path side by side, each printed as icp_da_pf[kernel];
+     --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
+     step by step beside the fused path on the same frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
      same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x)
 
@@ -38,8 +40,12 @@ from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from couplers.sumo_traffic import SumoTraffic  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
-from coloc.methods.registry import ICP_DA_PF, METHODS  # noqa: E402
+from coloc.kernels import icp_fused  # noqa: E402
+from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA, METHODS  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
+
+
+REFERENCE = "[reference]"
 
 
 def time_sumo_binary(scenario: SumoScenario) -> float:
@@ -69,11 +75,13 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
             blind = frame.without_truth()
             for est in estimators:
                 s = time.perf_counter()
+                icp_fused.FUSED = not est.name.endswith(REFERENCE)  # the numpy reference path of --reference
                 if METHODS[est.name.split("[")[0]].known_association:  # the bound is told the association
                     est.step_with_association(blind, frame.truth.v2f_feature)
                 else:
                     est.step(blind)
                 per_method[est.name] += time.perf_counter() - s
+    icp_fused.FUSED = True
     return time.perf_counter() - t0, steps, per_method
 
 
@@ -84,6 +92,9 @@ def main() -> None:
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
     ap.add_argument("--pf-kernels", default="",
                     help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
+    ap.add_argument("--reference", action="store_true",
+                    help="also run icp_known_da / icp_da_lc on the numpy reference path (icp_fused.FUSED = False), "
+                         "interleaved step by step with the fused path on the same frames, named <method>[reference]")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
     args = ap.parse_args()
@@ -116,7 +127,14 @@ def main() -> None:
             for kernel in args.pf_kernels.split(","):
                 estimators.append(dataclasses.replace(base, pf=dataclasses.replace(base.pf, kernel=kernel),
                                                       name=f"{ICP_DA_PF.name}[{kernel}]", workspace=KernelWorkspace()))
+    if args.reference:
+        estimators += [dataclasses.replace(e, name=e.name + REFERENCE) for e in build_estimators(cfg)
+                       if e.name in (ICP_KNOWN_DA.name, ICP_DA_LC.name)]
+        # both paths' numba caches loaded before timing (fresh estimators on the warm-up scenario)
+        time_coupled(warm, cfg.sensors, [dataclasses.replace(e, state=type(e.state)()) for e in estimators
+                                         if e.name.split("[")[0] in (ICP_KNOWN_DA.name, ICP_DA_LC.name)])
     coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
+    reference_s = sum(sec for name, sec in per_method.items() if name.endswith(REFERENCE))
 
     print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")
     print(f"  sumo binary alone        {sumo_alone:8.2f} s")
@@ -125,9 +143,14 @@ def main() -> None:
     if realistic is not None:
         print(f"  frames, realistic preset {realistic:8.2f} s   ratio to sumo {realistic / sumo_alone:5.2f}, "
               f"to idealised frames {realistic / coupler_only:5.2f}")
-    print(f"  coupled ({args.methods:>14}) {coupled:8.2f} s   ratio to sumo {coupled / sumo_alone:5.2f}")
+    print(f"  coupled ({args.methods:>14}) {coupled - reference_s:8.2f} s   ratio to sumo "
+          f"{(coupled - reference_s) / sumo_alone:5.2f}" + ("   (the [reference] estimators' time left out)"
+                                                            if args.reference else ""))
     for name, sec in per_method.items():
-        print(f"    estimator {name:<14} {sec:8.2f} s   {1e3 * sec / max(steps, 1):.3f} ms/step")
+        line = f"    estimator {name:<25} {sec:8.2f} s   {1e3 * sec / max(steps, 1):.3f} ms/step"
+        if name.endswith(REFERENCE) and per_method.get(name[: -len(REFERENCE)]):
+            line += f"   fused / reference {per_method[name[: -len(REFERENCE)]] / sec:5.3f}"
+        print(line)
 
 
 if __name__ == "__main__":

@@ -37,9 +37,13 @@ from coloc.kernels.icp import (
     complete_component_consensus,
     extrinsic_kernel,
     feature_to_vehicle_kernel,
+    relative_message_kernel,
     scatter_add,
     vehicle_to_feature_kernel,
 )
+from coloc.kernels import icp_fused
+from coloc.kernels.bpa_rows import bpa_forward_rows, feature_to_vehicle_rows, vehicle_to_feature_rows
+from coloc.kernels.icp_fused import step_beliefs_kernel, unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
@@ -58,7 +62,7 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
     used = f >= 0
     if used.any():
         key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]
-        if np.unique(key).size != key.size:
+        if unique_inverse(key)[0].size != key.size:
             raise ValueError("a vehicle has two V2F rows associated with the same feature")
     return f
 
@@ -149,6 +153,12 @@ class _FeatureEstimates:
         return bool(dpos.max() < params.stop_pos_m and dvel.max() < params.stop_vel_mps)
 
 
+#: The message a track keeps (``IcpParams.feature_message = "own"``) by the numba Cholesky kernel
+#: :func:`coloc.kernels.icp.relative_message_kernel` instead of the numpy reference (LAPACK inverse and
+#: BLAS products): the same formula, different rounding (relative differences ~1e-13, tests); off by
+#: default so that the shipped configs' estimates stay byte for byte.
+OWN_MESSAGE_KERNEL = False
+
 #: Run the BPA-L iterations with the numba kernels of :mod:`coloc.kernels.icp` (False: the
 #: numpy reference below; same algorithm, results equal up to rounding, see tests).
 BPA_KERNELS = True
@@ -237,22 +247,31 @@ def _bpa_iterations_kernels(
     in_eta = np.zeros((n, 4))
     converged = False
     features = _FeatureEstimates(lam_f0_row, eta_f0_row) if params.stop_on == "vehicles_and_features" else None
+    # the same kernels computed across rows (coloc.kernels.bpa_rows: byte for byte, SIMD)
+    v_to_f, f_to_v = ((vehicle_to_feature_rows, feature_to_vehicle_rows) if icp_fused.FUSED
+                      else (vehicle_to_feature_kernel, feature_to_vehicle_kernel))
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
-        # (19): cavity (own belief x messages of the other features), integrated over x_V.
-        m_vf_lam, m_vf_eta, packed = vehicle_to_feature_kernel(
-            owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
-        )
-        # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
-        # (one round on complete components, where W = J/m is a projection: see the kernel)
-        if channel is None:
-            avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
-        else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
-            avg = channel.average(packed, channel.grant(n_iter_cons, params.exchanges_left(it)))
-        # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F;
-        # (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
-        ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
-        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_kernel(
+        if channel is None and icp_fused.FUSED:  # (19)-(21) below in one call (coloc.kernels.bpa_rows)
+            m_vf_lam, m_vf_eta, avg, ext_lam, ext_eta, sure = bpa_forward_rows(
+                owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv, w_indptr, w_indices,
+                w_data, n_iter_cons, complete, count, lam_f0_row, eta_f0_row)
+            ext_lam, ext_eta = psd_clip(ext_lam, ext_eta, sure=sure)
+        else:
+            # (19): cavity (own belief x messages of the other features), integrated over x_V.
+            m_vf_lam, m_vf_eta, packed = v_to_f(
+                owner_u, own_lam0, own_eta0, in_lam, in_eta, m_fv_lam, m_fv_eta, z_u, r_inv
+            )
+            # (20): product over V_k by average consensus among the participants, times |V_k ∩ C|.
+            # (one round on complete components, where W = J/m is a projection: see the kernel)
+            if channel is None:
+                avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+            else:  # over the V2X channel: ratio consensus on the links that delivered, within the budget
+                avg = channel.average(packed, channel.grant(n_iter_cons, params.exchanges_left(it)))
+            # (21): extrinsic b_k / m_{i->k} at vehicle i (PSD-projected), then integrate over x_F.
+            ext_lam, ext_eta = psd_clip(*extrinsic_kernel(avg, count, lam_f0_row, eta_f0_row, m_vf_lam, m_vf_eta))
+        # (21), second half; (22): b_i = b_i^(0) prod_k m_{k->i} and the new means.
+        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = f_to_v(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean
         )
         # Stopping rule of Sec. V-A (as in the numpy loop; b_k = b_k^(0) + |V_k ∩ C| x average).
@@ -321,7 +340,7 @@ def bpa_localization(
         return BpaResult(prior_mean.copy(), prior_cov.copy(), used, np.empty((0, 4, 4)), np.empty((0, 4)), 0, True,
                          comm=CommCount.zeros(n))
 
-    fids, fidx = np.unique(feat_u, return_inverse=True)
+    fids, fidx = unique_inverse(feat_u)
     if feature_prior_lam.shape != (fids.size, 4, 4) or feature_prior_eta.shape != (fids.size, 4):
         raise ValueError(f"feature priors must be given for the {fids.size} features of the used rows")
     lam_f0_row, eta_f0_row = feature_prior_lam[fidx], feature_prior_eta[fidx]
@@ -348,7 +367,11 @@ def bpa_localization(
     if params.feature_message == "own":
         # The message a track keeps: (19) on the vehicle's own-sensor belief alone (no other
         # feature in the cavity), so no vehicle's evidence reaches a track twice (IcpParams).
-        keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
+        if OWN_MESSAGE_KERNEL:
+            keep_lam, keep_eta = relative_message_kernel(own_lam0[owner_u], own_eta0[owner_u],
+                                                         np.ascontiguousarray(z_u), 1.0, r_inv)
+        else:
+            keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
     mean, cov = from_information(v_lam, v_eta)
     alone = np.bincount(owner_u, minlength=n) == 0
     mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]
@@ -370,6 +393,8 @@ def step_feature_beliefs(
         return None
     lam, eta = store.information(params)
     rows = store.lookup(row_track)
+    if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.step_beliefs_kernel)
+        return step_beliefs_kernel(lam, eta, rows, res.final_lam, res.msg_lam, res.final_eta, res.msg_eta)
     scatter_add(lam, rows, res.final_lam - res.msg_lam)
     scatter_add(eta, rows, res.final_eta - res.msg_eta)
     return from_information(symmetrize(lam), eta)

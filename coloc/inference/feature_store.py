@@ -11,7 +11,15 @@ import numpy as np
 from coloc.core.models import feature_noise_cov, symmetrize
 from coloc.inference.gaussian import from_information, to_information
 from coloc.inference.params import CLASS_PEDESTRIAN, IcpParams
+from coloc.kernels import icp_fused
 from coloc.kernels.icp import predict_no_input_kernel, scatter_add
+from coloc.kernels.icp_fused import (
+    lookup_kernel,
+    pair_member_kernel,
+    predict_store_kernel,
+    record_kernel,
+    track_information_kernel,
+)
 
 # ----------------------------------------------------------------------------- feature tracks
 
@@ -124,6 +132,8 @@ class FeatureStore:
     def lookup(self, feature_ids: np.ndarray) -> np.ndarray:
         """Row of each id in the store (ids are sorted), -1 where absent."""
         feature_ids = np.asarray(feature_ids, dtype=np.int64)
+        if icp_fused.FUSED:
+            return lookup_kernel(self.ids, np.ascontiguousarray(feature_ids))
         if self.ids.size == 0:
             return np.full(feature_ids.size, -1, dtype=np.int64)
         pos = np.minimum(np.searchsorted(self.ids, feature_ids), self.ids.size - 1)
@@ -136,6 +146,19 @@ class FeatureStore:
 
     def information(self, params: IcpParams, exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Lambda, eta) of every track: birth x folded x messages (those not excluded)."""
+        if icp_fused.FUSED:  # one numba pass, same operations; the full product is kept per store and params
+            cache = self.__dict__.setdefault("_information_cache", {})
+            if exclude is None and params in cache:
+                return tuple(a.copy() for a in cache[params])
+            birth = (birth_information(params)[None] if self.klass is None
+                     else class_birth_information(params, self.klass, self.ids.size))
+            use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
+            ml, me = self._message_information
+            out = track_information_kernel(self.folded_lam, self.folded_eta, birth, self.ids, self.msg_track, ml, me,
+                                           use)
+            if exclude is None:
+                cache[params] = tuple(a.copy() for a in out)
+            return out
         if self.klass is None:
             lam = self.folded_lam + birth_information(params)
         else:
@@ -153,12 +176,16 @@ class FeatureStore:
         """Track means and covariances (every stored track has had at least one message).
 
         Cached per store and params (the store is immutable); treat the arrays as read-only."""
+        last = self.__dict__.get("_moments_last")
+        if last is not None and last[0] is params:  # the same params object: no hashing of the dataclass
+            return last[1]
         cache = self.__dict__.setdefault("_moments_cache", {})
         if params not in cache:
             if self.ids.size == 0:
                 cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
             else:
                 cache[params] = from_information(*self.information(params))
+        self.__dict__["_moments_last"] = (params, cache[params])
         return cache[params]
 
     def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
@@ -167,6 +194,14 @@ class FeatureStore:
             return self
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params, self.klass)
+        if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.predict_store_kernel)
+            folded_lam, folded_eta, msg_mean, msg_cov = predict_store_kernel(
+                self.folded_lam, self.folded_eta, np.ascontiguousarray(q), self.lookup(self.msg_track),
+                np.ascontiguousarray(self.msg_mean), np.ascontiguousarray(self.msg_cov), float(dt))
+            out = dataclasses.replace(
+                self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
+            )
+            return out._with_codes(self._msg_codes)
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
@@ -204,7 +239,7 @@ class FeatureStore:
             return last[2]
         km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
         kr = row_feature * (1 << 32) + row_codes
-        mask = np.isin(km, kr)
+        mask = pair_member_kernel(km, np.sort(kr)) if icp_fused.FUSED else np.isin(km, kr)
         self.__dict__["_replaced_last"] = (row_feature.copy(), np.array(row_codes, copy=True), mask)
         return mask
 
@@ -259,6 +294,8 @@ class FeatureStore:
             row_codes = vehicle_codes(row_vehicle)
         keep = ~self._replaced(row_feature, row_vehicle, row_codes)
         mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
+        if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.record_kernel)
+            return self._record_fused(row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, float(t), params)
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)
         ids = np.concatenate([self.ids, new_ids])
         order = np.argsort(ids, kind="stable")
@@ -308,6 +345,49 @@ class FeatureStore:
             klass=klass[live] if klass is not None else None,
         )._with_codes(msg_codes[keep_msg])
 
+    def _record_fused(self, row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, t: float,
+                      params: IcpParams) -> "FeatureStore":
+        """:meth:`record` by :func:`coloc.kernels.icp_fused.record_kernel` (the numpy code of
+        :meth:`record` is the reference)."""
+        ids, last_seen, folded_lam, folded_eta, src, m_src, m_track, m_mean, m_cov, m_time = record_kernel(
+            self.ids, self.last_seen, self.folded_lam, self.folded_eta, self.msg_track, self.msg_mean, self.msg_cov,
+            self.msg_time, keep, row_feature, np.ascontiguousarray(mm), np.ascontiguousarray(mc), t,
+            t - params.message_memory_s, float(params.feature_drop_after_s),
+        )
+        klass = None
+        if row_class is not None or self.klass is not None:
+            old_k = self.klass if self.klass is not None else np.zeros(self.ids.size, np.int8)
+            new_row = np.maximum(-1 - src, 0)
+            new_k = (np.asarray(row_class, dtype=np.int8)[new_row] if row_class is not None and row_feature.size
+                     else np.zeros(src.size, np.int8))
+            klass = np.where(src >= 0, old_k[np.maximum(src, 0)] if old_k.size else 0, new_k).astype(np.int8)
+        msg_vehicle = np.concatenate([self.msg_vehicle, np.asarray(row_vehicle, dtype=object)])[m_src]
+        codes = np.concatenate([self._msg_codes, np.asarray(row_codes, dtype=np.int64)])[m_src]
+        # The information of the kept messages is what this store computed for them (row by row, the
+        # same kernel): only the step's messages are converted.
+        ml, me = self._message_information
+        nl, ne = to_information(mm, mc)
+        info = (np.concatenate([ml, nl])[m_src], np.concatenate([me, ne])[m_src])
+        return FeatureStore(
+            ids=ids, last_seen=last_seen, folded_lam=folded_lam, folded_eta=folded_eta, msg_track=m_track,
+            msg_vehicle=msg_vehicle, msg_mean=m_mean, msg_cov=m_cov, msg_time=m_time, klass=klass,
+        )._with_codes(codes)._with_message_information(info)
+
+    def _with_message_information(self, info) -> "FeatureStore":
+        """Seed :attr:`_message_information` (the messages' (Lambda, eta), as to_information gives them)."""
+        self.__dict__["_message_information"] = info
+        return self
+
+    def _subset_information(self, keep: np.ndarray):
+        """The messages' information restricted to ``keep`` when already computed (fused path), else None."""
+        info = self.__dict__.get("_message_information")
+        if not icp_fused.FUSED or info is None:
+            return None
+        return info[0][keep], info[1][keep]
+
+    def _seeded(self, info) -> "FeatureStore":
+        return self if info is None else self._with_message_information(info)
+
     def merge(self, absorbed: np.ndarray, into: np.ndarray) -> "FeatureStore":
         """Merge track ``absorbed[j]`` into track ``into[j]`` (ids; every absorbed id distinct, not a target).
 
@@ -350,7 +430,7 @@ class FeatureStore:
             msg_cov=self.msg_cov[keep],
             msg_time=self.msg_time[keep],
             klass=self.klass[live] if self.klass is not None else None,
-        )._with_codes(self._msg_codes[keep])
+        )._with_codes(self._msg_codes[keep])._seeded(self._subset_information(keep))
 
     def drop(self, track_ids: np.ndarray) -> "FeatureStore":
         """The store without the tracks ``track_ids`` (ids not in the store are ignored)."""
@@ -369,7 +449,7 @@ class FeatureStore:
             msg_cov=self.msg_cov[keep_msg],
             msg_time=self.msg_time[keep_msg],
             klass=self.klass[~gone] if self.klass is not None else None,
-        )._with_codes(self._msg_codes[keep_msg])
+        )._with_codes(self._msg_codes[keep_msg])._seeded(self._subset_information(keep_msg))
 
     def drop_stale(self, t: float, params: IcpParams) -> "FeatureStore":
         """Drop tracks nobody observed for longer than ``feature_drop_after_s`` (no new messages)."""

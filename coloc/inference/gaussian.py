@@ -6,10 +6,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from coloc.core.models import symmetrize
+from coloc.kernels import icp_fused
+from coloc.kernels.bpa_rows import information_rows, inverse_rows
 from coloc.kernels.icp import information_kernel, inverse_spd_kernel, log_gauss_kernel
+from coloc.kernels.icp import surely_above_floor as _surely_above_floor  # noqa: F401 (its home before)
 
 # ----------------------------------------------------------------------------- Gaussian algebra
 
@@ -23,7 +25,8 @@ def _inv_spd(m: np.ndarray) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)
     if m.ndim < 2 or m.shape[-2:] != (4, 4):
         return _inv_spd_numpy(m)
-    return inverse_spd_kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
+    kernel = inverse_rows if icp_fused.FUSED else inverse_spd_kernel  # same numbers (tests)
+    return kernel(np.ascontiguousarray(m.reshape(-1, 4, 4))).reshape(m.shape)
 
 
 def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -33,7 +36,8 @@ def to_information(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.nd
     if cov.shape[-2:] != (4, 4) or mean.shape != cov.shape[:-1]:
         lam = _inv_spd_numpy(cov)
         return lam, np.einsum("...ij,...j->...i", lam, mean)
-    lam, eta = information_kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
+    kernel = information_rows if icp_fused.FUSED else information_kernel  # same numbers (tests)
+    lam, eta = kernel(np.ascontiguousarray(mean.reshape(-1, 4)), np.ascontiguousarray(cov.reshape(-1, 4, 4)))
     return lam.reshape(cov.shape), eta.reshape(mean.shape)
 
 
@@ -43,7 +47,8 @@ def from_information(lam: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.n
     return mean, cov
 
 
-def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0, sure: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Project information matrices on the PSD cone (eigenvalues < floor -> floor).
 
     Only needed for extrinsic information after *finite* consensus: count *
@@ -56,7 +61,9 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     # (smallest eigenvalue far above the floor and the eigensolver's rounding) cannot be
     # clipped; only the others need the eigendecomposition. If none of them is clipped the
     # inputs are returned as they are, exactly as below.
-    unsure = np.flatnonzero(~_surely_above_floor(np.ascontiguousarray(lam, dtype=np.float64), float(floor)))
+    if sure is None:  # (``sure``: the caller's _surely_above_floor(lam, floor), e.g. from a fused kernel)
+        sure = _surely_above_floor(np.ascontiguousarray(lam, dtype=np.float64), float(floor))
+    unsure = np.flatnonzero(~sure)
     if unsure.size == 0 or not (np.linalg.eigh(symmetrize(lam[unsure]))[0] < floor).any():
         return lam, eta
     w, v = np.linalg.eigh(symmetrize(lam))
@@ -70,48 +77,6 @@ def psd_clip(lam: np.ndarray, eta: np.ndarray, floor: float = 0.0) -> tuple[np.n
     coef = np.einsum("...ki,...k->...i", v, eta) * keep
     eta_c = np.einsum("...ik,...k->...i", v, coef)
     return symmetrize(lam_c), eta_c
-
-
-@njit(cache=True)
-def _surely_above_floor(lam, floor):
-    """Per (4, 4) matrix: True when symmetrize(lam) - (floor + margin) I has a Cholesky
-    factor with positive pivots, margin = 1e-8 * (largest |diagonal entry|). Cholesky is
-    backward stable (error ~1e-15 of the entries), so such a matrix has every eigenvalue
-    above ``floor`` by far more than a LAPACK eigensolver's rounding: it is never clipped.
-    False means only "not proven" (singular or indefinite matrices, NaN)."""
-    n = lam.shape[0]
-    out = np.zeros(n, dtype=np.bool_)
-    a = np.empty((4, 4))
-    for m in range(n):
-        scale = 0.0
-        for i in range(4):
-            d = abs(lam[m, i, i])
-            if d > scale:
-                scale = d
-        shift = floor + 1e-8 * scale
-        for i in range(4):
-            for j in range(4):
-                a[i, j] = 0.5 * (lam[m, i, j] + lam[m, j, i])
-            a[i, i] -= shift
-        ok = scale > 0.0
-        for j in range(4):
-            if not ok:
-                break
-            d = a[j, j]
-            for k in range(j):
-                d -= a[j, k] * a[j, k]
-            if not d > 0.0:  # also catches NaN
-                ok = False
-                break
-            d = np.sqrt(d)
-            a[j, j] = d
-            for i in range(j + 1, 4):
-                acc = a[i, j]
-                for k in range(j):
-                    acc -= a[i, k] * a[j, k]
-                a[i, j] = acc / d
-        out[m] = ok
-    return out
 
 
 def relative_message(

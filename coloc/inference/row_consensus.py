@@ -9,6 +9,7 @@ from numba import njit
 from coloc.core.v2x import V2xFrame, round_deliveries
 from coloc.inference.consensus import connected_components
 from coloc.inference.lossy_consensus import lossy_max_consensus
+from coloc.kernels.icp import rows_by_key
 from coloc.kernels.lossy import running_sum_kernel
 
 # ----------------------------------------------------------------------------- consensus groups
@@ -131,16 +132,7 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
             if adj_data[p] != 0:
                 adj[i, adj_indices[p]] = True
     # Rows of each group, ascending (counting sort keeps row order).
-    g_count = np.zeros(n_groups + 1, dtype=np.int64)
-    for r in range(o):
-        g_count[group[r] + 1] += 1
-    for g in range(n_groups):
-        g_count[g + 1] += g_count[g]
-    g_rows = np.empty(o, dtype=np.int64)
-    fill = g_count[:n_groups].copy()
-    for r in range(o):
-        g_rows[fill[group[r]]] = r
-        fill[group[r]] += 1
+    g_count, g_rows = rows_by_key(group, n_groups)
     # Degrees, and components by union-find (links never cross groups).
     deg = np.zeros(o, dtype=np.int64)
     parent = np.arange(o)

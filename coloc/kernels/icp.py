@@ -217,40 +217,8 @@ def feature_to_vehicle_kernel(owner, ext_lam, ext_eta, z, r_inv, v_lam0, v_eta0,
     s, s_inv, t, l, li = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
     for r in range(o):
         _relative_message_row(ext_lam[r], ext_eta[r], z[r], -1.0, r_inv[r], m_lam[r], m_eta[r], s, s_inv, t, l, li)
-    in_lam = np.zeros((n, 4, 4))
-    in_eta = np.zeros((n, 4))
-    for r in range(o):
-        i = owner[r]
-        for a in range(4):
-            for b in range(4):
-                in_lam[i, a, b] += m_lam[r, a, b]
-            in_eta[i, a] += m_eta[r, a]
-    v_lam = np.empty((n, 4, 4))
-    v_eta = np.empty((n, 4))
-    new_mean = np.empty((n, 4))
-    cov = np.empty((4, 4))
-    dpos, dvel = 0.0, 0.0
-    for i in range(n):
-        for a in range(4):
-            for b in range(4):
-                s[a, b] = v_lam0[i, a, b] + in_lam[i, a, b]
-        for a in range(4):
-            for b in range(4):
-                v_lam[i, a, b] = 0.5 * (s[a, b] + s[b, a])
-            v_eta[i, a] = v_eta0[i, a] + in_eta[i, a]
-        _inv4_spd(v_lam[i], cov, l, li)
-        for a in range(4):
-            acc = 0.0
-            for b in range(4):
-                acc += cov[a, b] * v_eta[i, b]
-            new_mean[i, a] = acc
-        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
-        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
-        # NaN propagates as "not converged", as numpy's max would
-        if dp > dpos or dp != dp:
-            dpos = dp if dp == dp else np.inf
-        if dv > dvel or dv != dv:
-            dvel = dv if dv == dv else np.inf
+    in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel = vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0,
+                                                                                prev_mean)
     return m_lam, m_eta, in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel
 
 
@@ -455,3 +423,91 @@ def predict_no_input_kernel(mean, cov, q, dt):
             for b in range(4):
                 p_out[r, a, b] = 0.5 * (u[a, b] + u[b, a])
     return m_out, p_out
+
+
+@njit(cache=True)
+def surely_above_floor(lam, floor):
+    """Per (4, 4) matrix: True when symmetrize(lam) - (floor + margin) I has a Cholesky
+    factor with positive pivots, margin = 1e-8 * (largest |diagonal entry|). Cholesky is
+    backward stable (error ~1e-15 of the entries), so such a matrix has every eigenvalue
+    above ``floor`` by far more than a LAPACK eigensolver's rounding: it is never clipped.
+    False means only "not proven" (singular or indefinite matrices, NaN)."""
+    n = lam.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = np.empty((4, 4))
+    l = np.empty((4, 4))
+    for m in range(n):
+        scale = 0.0
+        for i in range(4):
+            d = abs(lam[m, i, i])
+            if d > scale:
+                scale = d
+        shift = floor + 1e-8 * scale
+        for i in range(4):
+            for j in range(4):
+                a[i, j] = 0.5 * (lam[m, i, j] + lam[m, j, i])
+            a[i, i] -= shift
+        out[m] = scale > 0.0 and _chol4(a, l)  # a pivot that is not > 0 (or NaN): not proven
+    return out
+
+
+@njit(cache=True)
+def rows_by_key(keys, n_keys):
+    """Rows grouped by key, ascending within a key (a counting sort, i.e. a stable argsort of
+    ``keys`` in [0, n_keys)). Returns (start (n_keys + 1,), rows): the rows of key g are
+    ``rows[start[g]:start[g + 1]]``."""
+    start = np.zeros(n_keys + 1, dtype=np.int64)
+    for q in range(keys.size):
+        start[keys[q] + 1] += 1
+    for g in range(n_keys):
+        start[g + 1] += start[g]
+    rows = np.empty(keys.size, dtype=np.int64)
+    fill = start[:n_keys].copy()
+    for q in range(keys.size):
+        rows[fill[keys[q]]] = q
+        fill[keys[q]] += 1
+    return start, rows
+
+
+@njit(cache=True)
+def vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0, prev_mean):
+    """Eq. (22): b_i = b_i^(0) prod_k m_{k->i} (information sums in row order), the symmetrised
+    Lambda, the means, and the largest position / velocity change from ``prev_mean`` (NaN
+    propagates as "not converged", as numpy's max would). Returns (in_lam, in_eta, v_lam, v_eta,
+    new_mean, dpos, dvel)."""
+    o = owner.size
+    n = v_lam0.shape[0]
+    in_lam = np.zeros((n, 4, 4))
+    in_eta = np.zeros((n, 4))
+    for r in range(o):
+        i = owner[r]
+        for a in range(4):
+            for b in range(4):
+                in_lam[i, a, b] += m_lam[r, a, b]
+            in_eta[i, a] += m_eta[r, a]
+    v_lam = np.empty((n, 4, 4))
+    v_eta = np.empty((n, 4))
+    new_mean = np.empty((n, 4))
+    s, cov, l, li = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
+    dpos, dvel = 0.0, 0.0
+    for i in range(n):
+        for a in range(4):
+            for b in range(4):
+                s[a, b] = v_lam0[i, a, b] + in_lam[i, a, b]
+        for a in range(4):
+            for b in range(4):
+                v_lam[i, a, b] = 0.5 * (s[a, b] + s[b, a])
+            v_eta[i, a] = v_eta0[i, a] + in_eta[i, a]
+        _inv4_spd(v_lam[i], cov, l, li)
+        for a in range(4):
+            acc = 0.0
+            for b in range(4):
+                acc += cov[a, b] * v_eta[i, b]
+            new_mean[i, a] = acc
+        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
+        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
+        if dp > dpos or dp != dp:
+            dpos = dp if dp == dp else np.inf
+        if dv > dvel or dv != dv:
+            dvel = dv if dv == dv else np.inf
+    return in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel

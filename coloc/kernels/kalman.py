@@ -37,9 +37,9 @@ def _driving_q(vx, vy, dt, s_along, s_cross, min_speed, q):
 
 
 @njit(cache=True)
-def _cholesky4_solve_into(s, b, out):
-    """out = S^-1 b for a symmetric positive definite 4x4 S (explicit Cholesky, no LAPACK call)."""
-    l = np.zeros((4, 4))
+def _cholesky4_solve_into(s, b, out, l, y):
+    """out = S^-1 b for a symmetric positive definite 4x4 S (explicit Cholesky, no LAPACK call);
+    ``l`` (4, 4) and ``y`` (4,) scratch (every entry read is written first)."""
     for i in range(4):
         for j in range(i + 1):
             acc = s[i, j]
@@ -50,7 +50,6 @@ def _cholesky4_solve_into(s, b, out):
             else:
                 l[i, j] = acc / l[j, j]
     for c in range(b.shape[1]):
-        y = np.zeros(4)
         for i in range(4):
             acc = b[i, c]
             for k in range(i):
@@ -100,6 +99,8 @@ def gnss_step_kernel(mean, cov, accel, z, r, predict_mask, dt, s_along, s_cross,
     t1 = np.empty((4, 4))
     t2 = np.empty((4, 4))
     innov = np.empty(4)
+    chol = np.zeros((4, 4))
+    y = np.zeros(4)
     for i in range(n):
         m0, m1, m2, m3 = mean[i, 0], mean[i, 1], mean[i, 2], mean[i, 3]
         for a in range(4):
@@ -123,7 +124,7 @@ def gnss_step_kernel(mean, cov, accel, z, r, predict_mask, dt, s_along, s_cross,
         for a in range(4):
             for b in range(4):
                 s[a, b] = p[a, b] + r[i, a, b]
-        _cholesky4_solve_into(s, p, kt)  # K^T = S^-1 P
+        _cholesky4_solve_into(s, p, kt, chol, y)  # K^T = S^-1 P
         for a in range(4):
             for b in range(4):
                 k[a, b] = kt[b, a]

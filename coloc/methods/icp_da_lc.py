@@ -107,11 +107,19 @@ from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
-from coloc.inference.feature_store import FeatureStore, vehicle_codes
+from coloc.inference.feature_store import FeatureStore
 from coloc.inference.existence import TrackExistence, birth_existence, existence_update
 from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
-from coloc.methods.icp_known_da import IcpState, vehicle_prior_beliefs
+from coloc.kernels import icp_fused
+from coloc.kernels.icp_fused import (
+    association_layout_kernel,
+    any_pair_within,
+    association_terms_kernel,
+    map_pairing_kernel,
+    unique_inverse,
+)
+from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, vehicle_prior_pair
 from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
@@ -232,6 +240,14 @@ class LcParams:
 
 
 
+def _f64(*arrays):
+    return tuple(np.ascontiguousarray(a, dtype=np.float64) for a in arrays)
+
+
+def _i64(*arrays):
+    return tuple(np.ascontiguousarray(a, dtype=np.int64) for a in arrays)
+
+
 @lru_cache(maxsize=64)
 def _chi2_ppf(p: float, dof: int) -> float:
     """chi-square quantile, computed once per (p, dof): scipy's ppf costs ~0.1 ms a call."""
@@ -318,12 +334,21 @@ def association_weights(
     (:func:`coloc.core.detection.expected_detection_probability`), not
     ``lc.detection_probability``.
     """
-    pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
-    if pr.size == 0:
-        return pv, pt, pr, np.empty(0)
-    nu = z[pr] - (t_mean[pt] - v_mean[pv])
-    log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
-    log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
+    if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused)
+        owner = np.asarray(owner, dtype=np.int64)
+        pv, pt, pr, log_lik, d2 = association_terms_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r),
+                                                           float(lc.sensing_range_m))
+        if pr.size == 0:
+            return pv, pt, pr, np.empty(0)
+        # a row's new-feature density depends on the row alone: once per row, then per pair
+        log_new = new_feature_log_density(v_mean[owner], v_cov[owner], z, r, lc)[pr]
+    else:
+        pv, pt, pr = candidate_rows(v_mean, v_cov, t_mean, t_cov, owner, lc)
+        if pr.size == 0:
+            return pv, pt, pr, np.empty(0)
+        nu = z[pr] - (t_mean[pt] - v_mean[pv])
+        log_lik, d2 = log_gauss(nu, t_cov[pt] + v_cov[pv] + r[pr])
+        log_new = new_feature_log_density(v_mean[pv], v_cov[pv], z[pr], r[pr], lc)
     if detection is None:
         log_w = math.log(lc.detection_probability) + log_lik - log_new
     else:
@@ -370,6 +395,16 @@ def association_beliefs(
     equal over the rows of one (vehicle, track) combo): eta(alpha = 0) of the
     combo (1 - r P_D, step 9, with a per-pair P_D); None: 1 - P_D."""
     row_new = np.ones(n_rows)
+    if icp_fused.FUSED:  # the layout below in one numba pass (coloc.kernels.icp_fused)
+        missed = np.full(weight.size, 1.0 - lc.detection_probability) if missed_weight is None else missed_weight
+        layout = association_layout_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
+                                           int(n_vehicles))
+        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = layout
+        if c_vehicle.size == 0:
+            return None
+        pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
+        row_new[rows_sorted] = pn
+        return AssociationBeliefs(pf, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, row_new)
     keep = weight > 0
     pv, pt, pr, w = pair_vehicle[keep], pair_track[keep], pair_row[keep], weight[keep]
     if pv.size == 0:
@@ -472,6 +507,10 @@ def pairs_from_beliefs(
     none = np.empty(0, np.int64)
     if ab is None:
         return row_track, np.ones(n_rows), none, none
+    if icp_fused.FUSED and lc.pairing != "paper":  # (30) in one numba pass (coloc.kernels.icp_fused)
+        row_track = map_pairing_kernel(ab.belief, ab.combo_start, ab.combo_rows, ab.row_first, ab.rows, ab.combo_track,
+                                       int(n_rows), float(lc.eta_threshold), lc.eta_threshold < 1.0)
+        return row_track, ab.row_new, none, none
     cand, cand_row, cand_val = _map_decisions(ab, lc)
     order = np.lexsort((cand, -cand_val, cand_row))  # by row, then larger belief, then combo
     first = np.ones(order.size, dtype=bool)
@@ -529,6 +568,8 @@ def merge_candidates(
     if store.size < 2 or lc.merge_gate_m <= 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
     mean, cov = store.moments(params)
+    if icp_fused.FUSED and not any_pair_within(np.ascontiguousarray(mean[:, :2]), float(lc.merge_gate_m)):
+        return np.empty(0, np.int64), np.empty(0, np.int64)  # no two tracks within the gate: no pair below
     pairs = cKDTree(mean[:, :2]).query_pairs(lc.merge_gate_m, output_type="ndarray")
     if pairs.size == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
@@ -585,8 +626,7 @@ def icp_da_lc_step(
     match = match_ids(state.ids, frame.vehicle_ids)
     # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
+    b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
@@ -672,8 +712,9 @@ def icp_da_lc_step(
     # BPA-L on the paired rows of confirmed tracks (31).
     used = bpa_track >= 0
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[l_owner[used]]
-    row_codes = vehicle_codes(frame.vehicle_ids)[l_owner[used]]
-    fids = np.unique(bpa_track[used])
+    codes = frame_vehicle_codes(state, frame, match)
+    row_codes = codes[l_owner[used]]
+    fids = unique_inverse(bpa_track[used])[0]
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
                                                  l_cls[used] if l_cls is not None else None)
     res = bpa_localization(
@@ -695,7 +736,7 @@ def icp_da_lc_step(
         if rec_cls is not None:
             rec_cls = np.concatenate([rec_cls, l_cls[tentative]])
         row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[rec_owner]
-        row_codes = vehicle_codes(frame.vehicle_ids)[rec_owner]
+        row_codes = codes[rec_owner]
     store = predicted.record(rec_track, row_vehicle, rec_lam, rec_eta, frame.t, params, row_codes, rec_cls)
     # Merging (step 8).
     absorbed, into = merge_candidates(store, params, lc, rec_owner, rec_track)
@@ -725,7 +766,7 @@ def icp_da_lc_step(
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
-    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading), next_id, info
+    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes), next_id, info
 
 
 def own_consistency_reset(

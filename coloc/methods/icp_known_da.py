@@ -56,10 +56,12 @@ from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_belief
 from coloc.inference.comm import CommCount
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
 from coloc.inference.params import IcpParams
+from coloc.kernels import icp_fused
+from coloc.kernels.icp_fused import carry_gnss_kernel, unique_inverse
 from coloc.kernels.kalman import gnss_step_kernel
 from coloc.methods.registry import ICP_KNOWN_DA
 
-__all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step"]
+__all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step", "frame_vehicle_codes"]
 
 
 def vehicle_prior_beliefs(
@@ -86,19 +88,41 @@ def vehicle_prior_beliefs(
     return mean, cov
 
 
+def vehicle_prior_pair(
+    state: "IcpState", frame: Frame, params: IcpParams, match: np.ndarray, accel: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`vehicle_prior_beliefs` of the belief and of the own-sensor track, (b0_mean, b0_cov, own_mean,
+    own_cov): in one numba pass on the fused path (:func:`coloc.kernels.icp_fused.carry_gnss_kernel`,
+    the same kernel and numbers), else two calls."""
+    if not icp_fused.FUSED:
+        b0 = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
+        return *b0, *vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
+    fresh = (match < 0) | np.asarray(frame.entered, dtype=bool)
+    if fresh.any() and not np.all(np.isfinite(frame.prior_z[fresh])):
+        raise ValueError("frame marks a vehicle as new but carries no fast-start prior for it")
+    m = params.motion
+    f64 = np.ascontiguousarray
+    return carry_gnss_kernel(
+        f64(state.mean, dtype=float), f64(state.cov, dtype=float), f64(state.own_mean, dtype=float),
+        f64(state.own_cov, dtype=float), match, fresh, f64(frame.prior_z, dtype=float), f64(frame.prior_R, dtype=float),
+        f64(frame.accel if accel is None else accel, dtype=float), f64(frame.gnss_z, dtype=float),
+        f64(frame.gnss_R, dtype=float), float(frame.dt), m.sigma_along, m.sigma_cross, m.heading_min_speed,
+    )
+
+
 def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams) -> tuple[BpaResult, "IcpState"]:
     """One time step of ICP with known association (pure function of the previous state)."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
     match = match_ids(state.ids, frame.vehicle_ids)
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
-    b0_mean, b0_cov = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
-    own_mean, own_cov = vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
+    b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
     owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]
-    row_codes = vehicle_codes(frame.vehicle_ids)[owner_used]
-    fids = np.unique(assoc[used])
+    codes = frame_vehicle_codes(state, frame, match)
+    row_codes = codes[owner_used]
+    fids = unique_inverse(assoc[used])[0]
     row_class = frame.v2f_class[used] if frame.v2f_class is not None else None
     f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes, row_class)
     res = bpa_localization(
@@ -110,7 +134,20 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes,
                              row_class)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
-    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading)
+    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading, codes)
+
+
+def frame_vehicle_codes(state: "IcpState", frame: Frame, match: np.ndarray) -> np.ndarray:
+    """``vehicle_codes(frame.vehicle_ids)``: carried from the previous step's for the vehicles still
+    present (``match = match_ids(state.ids, frame.vehicle_ids)``), looked up for the others."""
+    if state.codes is None or not icp_fused.FUSED:
+        return vehicle_codes(frame.vehicle_ids)
+    codes = np.full(match.size, -1, dtype=np.int64)
+    have = match >= 0
+    codes[have] = state.codes[match[have]]
+    if not have.all():
+        codes[~have] = vehicle_codes(np.asarray(frame.vehicle_ids, dtype=object)[~have])
+    return codes
 
 
 @dataclass(frozen=True)
@@ -128,6 +165,8 @@ class IcpState:
     feature_beliefs: tuple[np.ndarray, np.ndarray] | None = None
     # [inertial] only: the heading kept per vehicle row (coloc.core.inertial.net_frame_input); None otherwise.
     heading: np.ndarray | None = None
+    # vehicle_codes(ids) (coloc.inference.feature_store), carried to the next step; None: not kept.
+    codes: np.ndarray | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
         f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs

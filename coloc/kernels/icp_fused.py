@@ -1,0 +1,583 @@
+"""Fused numba passes for the per-step bookkeeping of the Gaussian ICP family (issue 24 item 1).
+
+Each kernel replaces a chain of batched numpy calls (``unique``, ``isin``, ``lexsort``, fancy
+indexing, ``ufunc.at``) of :mod:`coloc.methods.icp_da_lc` and
+:mod:`coloc.inference.feature_store` by one pass over preallocated arrays, with the **same
+floating-point operations in the same order**: the estimates are byte for byte those of the
+numpy reference (kept beside each dispatch site; ``FUSED = False`` runs it, tests compare the two).
+
+Equation -> function (Brambilla et al.):
+
+* (13), candidate tracks F_i,t and the Gaussian integral N(z_l; m_k - m_i, P_k + P_i + R_l) of
+  every (vehicle, candidate track, row): :func:`association_terms_kernel`
+  (reference ``candidate_pairs`` / ``candidate_rows`` / ``association_weights`` of icp_da_lc);
+* (14)-(17), the per-vehicle BPA-DA problems laid out block by block:
+  :func:`association_layout_kernel` (reference ``association_beliefs``);
+* (30), the MAP pairing of the detected (vehicle, track) combos with the "gated" rule (a row
+  claimed twice goes to the larger belief, ties to the lower combo): :func:`map_pairing_kernel`
+  (reference ``_map_decisions`` + ``pairs_from_beliefs``);
+* (12)/(20), the information of the shared feature tracks (birth x folded x stored messages,
+  latest-message store): :func:`track_information_kernel` (reference
+  ``FeatureStore.information``) and the (track, vehicle) membership test of the messages a
+  step replaces: :func:`pair_member_kernel` (reference ``np.isin`` on pair keys).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
+from coloc.kernels.icp import rows_by_key
+from coloc.kernels.kalman import gnss_step_kernel
+
+#: Run the fused kernels (False: the batched numpy reference at every dispatch site).
+FUSED = True
+
+
+# ----------------------------------------------------------------------------- (13)
+
+
+@njit(cache=True)
+def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range):
+    """Every (vehicle i, candidate track k, row l of i) and log N(z_l; m_k - m_i, P_k + P_i + R_l)
+    with its squared Mahalanobis distance.
+
+    Candidates: hypot(m_i - m_k) <= Rs + 3 sqrt(tr P_i,pos + tr P_k,pos); pairs ordered by
+    vehicle, then track, then row (``np.nonzero`` order, rows by a stable sort on the owner).
+    Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
+    n, nt, o = v_mean.shape[0], t_mean.shape[0], owner.size
+    start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
+    tr_t = np.empty(nt)
+    tr_max = -np.inf
+    for k in range(nt):
+        tr_t[k] = t_cov[k, 0, 0] + t_cov[k, 1, 1]
+        tr_max = max(tr_max, tr_t[k])
+    total = 0
+    cand = np.zeros((n, nt), dtype=np.bool_)
+    for i in range(n):
+        m_i = start[i + 1] - start[i]
+        tr_v = v_cov[i, 0, 0] + v_cov[i, 1, 1]
+        # a bound on every track's threshold (each rounding step is monotone), with a margin far
+        # above hypot's error: a track farther than it along x or y is surely out of range
+        reach = (sensing_range + 3.0 * np.sqrt(tr_v + tr_max)) * (1.0 + 1e-9)
+        for k in range(nt):
+            if abs(v_mean[i, 0] - t_mean[k, 0]) > reach or abs(v_mean[i, 1] - t_mean[k, 1]) > reach:
+                continue
+            d = np.hypot(v_mean[i, 0] - t_mean[k, 0], v_mean[i, 1] - t_mean[k, 1])
+            if d <= sensing_range + 3.0 * np.sqrt(tr_v + tr_t[k]):
+                cand[i, k] = True
+                total += m_i
+    pv = np.empty(total, dtype=np.int64)
+    pt = np.empty(total, dtype=np.int64)
+    pr = np.empty(total, dtype=np.int64)
+    nu = np.empty((4, total))
+    s = np.empty((16, total))  # the lower triangle is read
+    p = 0
+    for i in range(n):
+        for k in range(nt):
+            if not cand[i, k]:
+                continue
+            for a in range(start[i], start[i + 1]):
+                q = rows[a]
+                for c in range(4):
+                    nu[c, p] = z[q, c] - (t_mean[k, c] - v_mean[i, c])
+                    for e in range(c + 1):
+                        s[c * 4 + e, p] = (t_cov[k, c, e] + v_cov[i, c, e]) + r[q, c, e]
+                pv[p], pt[p], pr[p] = i, k, q
+                p += 1
+    log_lik, d2 = _log_gauss4_soa(nu, s)
+    return pv, pt, pr, log_lik, d2
+
+
+@njit(cache=True)
+def _log_gauss4_soa(nu, s):
+    """:func:`coloc.kernels.icp.log_gauss_kernel` (d = 4) for every column of ``nu`` (4, P) / ``s`` (16, P), each scalar
+    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD."""
+    p = nu.shape[1]
+    l = np.empty((16, p))
+    w = np.empty((4, p))
+    acc = np.empty(p)
+    ok = np.ones(p, dtype=np.bool_)
+    cholesky4_soa(s, l, ok, acc)
+    q = np.zeros(p)
+    logdet = np.zeros(p)
+    for i in range(4):
+        nui = nu[i]
+        for r in range(p):
+            acc[r] = nui[r]
+        for k in range(i):
+            lik, wk = l[i * 4 + k], w[k]
+            for r in range(p):
+                acc[r] -= lik[r] * wk[r]
+        lii, wi = l[i * 4 + i], w[i]
+        for r in range(p):
+            wi[r] = acc[r] / lii[r]
+            q[r] += wi[r] * wi[r]
+        for r in range(p):
+            logdet[r] += np.log(lii[r])
+    log2pi = np.log(2.0 * np.pi)
+    log_pdf = np.empty(p)
+    for r in range(p):
+        if ok[r]:
+            log_pdf[r] = -0.5 * (q[r] + 2.0 * logdet[r] + 4 * log2pi)
+        else:
+            log_pdf[r], q[r] = np.nan, np.nan
+    return log_pdf, q
+
+
+# ----------------------------------------------------------------------------- (14)-(17)
+
+
+@njit(cache=True)
+def _unique_inverse(keys):
+    """Sorted unique values of ``keys`` and the index of every key among them."""
+    srt = np.sort(keys)
+    uniq = np.empty(keys.size, dtype=np.int64)
+    u = -1
+    for a in range(srt.size):
+        if u < 0 or srt[a] != uniq[u]:
+            u += 1
+            uniq[u] = srt[a]
+    uniq = uniq[: u + 1]
+    inv = np.searchsorted(uniq, keys)
+    return uniq, inv
+
+
+def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True)`` for int64 keys (FUSED; else numpy itself)."""
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    if not FUSED:
+        return np.unique(keys, return_inverse=True)
+    return _unique_inverse(keys)
+
+
+@njit(cache=True)
+def association_layout_kernel(pv, pt, pr, w, missed, n_vehicles):
+    """The BPA-DA problems of all vehicles (one per vehicle with a pair of positive weight),
+    laid out as :func:`coloc.inference.association.association_marginals_batch` takes them.
+
+    ``missed`` (P,): eta(alpha = 0) of each pair's combo (equal over a combo's pairs).
+    Returns (eta, k_sizes, m_sizes, combo_vehicle, combo_track, combo_start, combo_rows,
+    combo_row_first, rows_sorted): combos = (vehicle, track) with a positive weight sorted by
+    key vehicle * n_t + track; rows sorted by (vehicle, row)."""
+    keep = np.flatnonzero(w > 0)
+    nk = keep.size
+    n_t = 1
+    for a in range(nk):
+        if pt[keep[a]] + 1 > n_t:
+            n_t = pt[keep[a]] + 1
+    ckey = np.empty(nk, dtype=np.int64)
+    rkey = np.empty(nk, dtype=np.int64)
+    for a in range(nk):
+        ckey[a] = pv[keep[a]] * n_t + pt[keep[a]]
+        rkey[a] = pr[keep[a]]
+    combo, c_inv = _unique_inverse(ckey)
+    rows_u, r_inv = _unique_inverse(rkey)
+    nc, nr = combo.size, rows_u.size
+    c_vehicle = combo // n_t
+    c_track = combo % n_t
+    r_vehicle = np.zeros(nr, dtype=np.int64)
+    for a in range(nk):
+        r_vehicle[r_inv[a]] = pv[keep[a]]
+    # rows sorted by (vehicle, row): rows_u is ascending, so a stable sort on the vehicle
+    order_r = np.argsort(r_vehicle, kind="mergesort")
+    rank_r = np.empty(nr, dtype=np.int64)
+    for a in range(nr):
+        rank_r[order_r[a]] = a
+    k_all = np.zeros(n_vehicles, dtype=np.int64)
+    m_all = np.zeros(n_vehicles, dtype=np.int64)
+    for c in range(nc):
+        k_all[c_vehicle[c]] += 1
+    for a in range(nr):
+        m_all[r_vehicle[a]] += 1
+    prob_of_vehicle = np.full(n_vehicles, -1, dtype=np.int64)
+    n_prob = 0
+    for i in range(n_vehicles):
+        if k_all[i] > 0:
+            prob_of_vehicle[i] = n_prob
+            n_prob += 1
+    k_sizes = np.empty(n_prob, dtype=np.int64)
+    m_sizes = np.empty(n_prob, dtype=np.int64)
+    block_off = np.empty(n_prob, dtype=np.int64)
+    c_first = np.empty(n_prob, dtype=np.int64)
+    r_first = np.empty(n_prob, dtype=np.int64)
+    tot_b, tot_c, tot_r = 0, 0, 0
+    for i in range(n_vehicles):
+        g = prob_of_vehicle[i]
+        if g < 0:
+            continue
+        k_sizes[g], m_sizes[g] = k_all[i], m_all[i]
+        block_off[g], c_first[g], r_first[g] = tot_b, tot_c, tot_r
+        tot_b += k_all[i] * (m_all[i] + 1)
+        tot_c += k_all[i]
+        tot_r += m_all[i]
+    c_start = np.empty(nc, dtype=np.int64)
+    c_rows = np.empty(nc, dtype=np.int64)
+    c_row_first = np.empty(nc, dtype=np.int64)
+    for c in range(nc):
+        g = prob_of_vehicle[c_vehicle[c]]
+        c_start[c] = block_off[g] + (c - c_first[g]) * (m_sizes[g] + 1)
+        c_rows[c] = m_sizes[g]
+        c_row_first[c] = r_first[g]
+    eta = np.zeros(tot_b)
+    for a in range(nk):
+        eta[c_start[c_inv[a]]] = missed[keep[a]]
+    for a in range(nk):
+        g = prob_of_vehicle[pv[keep[a]]]
+        eta[c_start[c_inv[a]] + 1 + rank_r[r_inv[a]] - r_first[g]] = w[keep[a]]
+    rows_sorted = np.empty(nr, dtype=np.int64)
+    for a in range(nr):
+        rows_sorted[a] = rows_u[order_r[a]]
+    return eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted
+
+
+# ----------------------------------------------------------------------------- (30)
+
+
+@njit(cache=True)
+def map_pairing_kernel(pf, combo_start, combo_rows, combo_row_first, rows, combo_track, n_rows, threshold,
+                       use_threshold):
+    """MAP pairing (30), rule "gated": per combo the best row (largest belief, ties to the lowest
+    option; detected iff that belief is > 0 and, with ``use_threshold``, b(alpha = 0) < eta_TH);
+    a row claimed by several detected combos goes to the larger belief, ties to the lower combo.
+    Returns the track index paired with each row (-1 = none)."""
+    row_track = np.full(n_rows, -1, dtype=np.int64)
+    row_val = np.zeros(n_rows)
+    for c in range(combo_start.size):
+        best = 0.0
+        for opt in range(combo_rows[c]):
+            v = pf[combo_start[c] + 1 + opt]
+            if v > best or v != v:  # np.maximum: NaN wins
+                best = v
+        if not best > 0.0:
+            continue
+        if use_threshold and not pf[combo_start[c]] < threshold:
+            continue
+        best_opt = 0
+        for opt in range(combo_rows[c]):
+            if pf[combo_start[c] + 1 + opt] == best:
+                best_opt = opt
+                break
+        q = rows[combo_row_first[c] + best_opt]
+        if row_track[q] < 0 or best > row_val[q]:
+            row_track[q] = combo_track[c]
+            row_val[q] = best
+    return row_track
+
+
+# ----------------------------------------------------------------------------- (12), (20)
+
+
+@njit(cache=True)
+def pair_member_kernel(keys, sorted_keys):
+    """``np.isin(keys, sorted_keys)`` for int64 keys, ``sorted_keys`` ascending."""
+    out = np.zeros(keys.size, dtype=np.bool_)
+    m = sorted_keys.size
+    if m == 0:
+        return out
+    for a in range(keys.size):
+        pos = np.searchsorted(sorted_keys, keys[a])
+        out[a] = pos < m and sorted_keys[pos] == keys[a]
+    return out
+
+
+@njit(cache=True)
+def lookup_kernel(ids, feature_ids):
+    """Row of each id in the ascending ``ids``, -1 where absent (``FeatureStore.lookup``)."""
+    out = np.full(feature_ids.size, -1, dtype=np.int64)
+    m = ids.size
+    if m == 0:
+        return out
+    for a in range(feature_ids.size):
+        pos = np.searchsorted(ids, feature_ids[a])
+        if pos > m - 1:
+            pos = m - 1
+        if ids[pos] == feature_ids[a]:
+            out[a] = pos
+    return out
+
+
+@njit(cache=True)
+def track_information_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_lam, msg_eta, use):
+    """(Lambda, eta) of every track: sym((folded + birth) + the used messages added in message
+    order), eta = folded + messages. ``birth_lam`` (T, 4, 4) per track, or (1, 4, 4) for all."""
+    t = ids.size
+    lam = np.empty((t, 4, 4))
+    eta = np.empty((t, 4))
+    for k in range(t):
+        kb = min(k, birth_lam.shape[0] - 1)
+        for a in range(4):
+            for b in range(4):
+                lam[k, a, b] = folded_lam[k, a, b] + birth_lam[kb, a, b]
+            eta[k, a] = folded_eta[k, a]
+    rows = lookup_kernel(ids, msg_track)
+    for q in range(msg_track.size):
+        if not use[q]:
+            continue
+        k = rows[q]
+        for a in range(4):
+            for b in range(4):
+                lam[k, a, b] = lam[k, a, b] + msg_lam[q, a, b]
+            eta[k, a] = eta[k, a] + msg_eta[q, a]
+    out = np.empty((t, 4, 4))
+    for k in range(t):
+        for a in range(4):
+            for b in range(4):
+                out[k, a, b] = 0.5 * (lam[k, a, b] + lam[k, b, a])
+    return out, eta
+
+
+@njit(cache=True)
+def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, msg_cov, msg_time, keep,
+                  row_feature, mm, mc, t, old_before, drop_after):
+    """The latest-message store after a step (``FeatureStore.record``): new tracks for new ids
+    (ids stay sorted), last_seen = t for every observed track, the kept old messages then the
+    step's (``mm``/``mc``, time t), messages older than ``old_before`` folded into their track in
+    information form (added in message order), tracks unseen for more than ``drop_after`` dropped
+    with their messages, folded parts symmetrised.
+
+    Returns (ids, last_seen, folded_lam, folded_eta, track_src, msg_src, msg_track, msg_mean,
+    msg_cov, msg_time): ``track_src`` >= 0 an old track's row, -1 - r a new track first seen
+    in row r; ``msg_src`` each message's index in [old messages, the step's rows]."""
+    n_old, n_msg, o = ids.size, msg_track.size, row_feature.size
+    uniq, _ = _unique_inverse(row_feature)
+    first = np.full(uniq.size, o, dtype=np.int64)
+    for q in range(o):
+        u = np.searchsorted(uniq, row_feature[q])
+        if q < first[u]:
+            first[u] = q
+    in_old = lookup_kernel(ids, uniq)
+    n_new = 0
+    for u in range(uniq.size):
+        if in_old[u] < 0:
+            n_new += 1
+    # merge the sorted old ids and the sorted new ids
+    nt = n_old + n_new
+    ids2 = np.empty(nt, dtype=np.int64)
+    src = np.empty(nt, dtype=np.int64)
+    a, b, k = 0, 0, 0
+    while k < nt:
+        while b < uniq.size and in_old[b] >= 0:
+            b += 1
+        if b >= uniq.size or (a < n_old and ids[a] < uniq[b]):
+            ids2[k], src[k] = ids[a], a
+            a += 1
+        else:
+            ids2[k], src[k] = uniq[b], -1 - first[b]
+            b += 1
+        k += 1
+    seen2 = np.empty(nt)
+    f_lam = np.zeros((nt, 4, 4))
+    f_eta = np.zeros((nt, 4))
+    for k in range(nt):
+        if src[k] >= 0:
+            seen2[k] = last_seen[src[k]]
+            for c in range(4):
+                for e in range(4):
+                    f_lam[k, c, e] = folded_lam[src[k], c, e]
+                f_eta[k, c] = folded_eta[src[k], c]
+        else:
+            seen2[k] = t
+    for u in range(uniq.size):
+        seen2[np.searchsorted(ids2, uniq[u])] = t
+    # messages: kept old ones, then the step's; fold the old ones
+    m_src = np.empty(n_msg + o, dtype=np.int64)
+    m_time = np.empty(n_msg + o)
+    m = 0
+    for q in range(n_msg):
+        if keep[q]:
+            m_src[m], m_time[m] = q, msg_time[q]
+            m += 1
+    for q in range(o):
+        m_src[m], m_time[m] = n_msg + q, t
+        m += 1
+    n_fold = 0
+    for q in range(m):
+        if m_time[q] < old_before:
+            n_fold += 1
+    if n_fold:
+        om = np.empty((n_fold, 4))
+        oc = np.empty((n_fold, 4, 4))
+        orow = np.empty(n_fold, dtype=np.int64)
+        j = 0
+        for q in range(m):
+            if m_time[q] < old_before:
+                s = m_src[q]
+                tr = msg_track[s] if s < n_msg else row_feature[s - n_msg]
+                for c in range(4):
+                    om[j, c] = msg_mean[s, c] if s < n_msg else mm[s - n_msg, c]
+                    for e in range(4):
+                        oc[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
+                orow[j] = np.searchsorted(ids2, tr)
+                j += 1
+        ol, oe = information_rows(om, oc)  # byte for byte information_kernel
+        for j in range(n_fold):
+            k = orow[j]
+            for c in range(4):
+                for e in range(4):
+                    f_lam[k, c, e] = f_lam[k, c, e] + ol[j, c, e]
+                f_eta[k, c] = f_eta[k, c] + oe[j, c]
+    live = np.empty(nt, dtype=np.bool_)
+    n_live = 0
+    for k in range(nt):
+        live[k] = (t - seen2[k]) <= drop_after
+        if live[k]:
+            n_live += 1
+    out_ids = np.empty(n_live, dtype=np.int64)
+    out_seen = np.empty(n_live)
+    out_lam = np.empty((n_live, 4, 4))
+    out_eta = np.empty((n_live, 4))
+    out_src = np.empty(n_live, dtype=np.int64)
+    j = 0
+    for k in range(nt):
+        if not live[k]:
+            continue
+        out_ids[j], out_seen[j], out_src[j] = ids2[k], seen2[k], src[k]
+        for c in range(4):
+            for e in range(4):
+                out_lam[j, c, e] = 0.5 * (f_lam[k, c, e] + f_lam[k, e, c])
+            out_eta[j, c] = f_eta[k, c]
+        j += 1
+    n_keep = 0
+    for q in range(m):
+        s = m_src[q]
+        tr = msg_track[s] if s < n_msg else row_feature[s - n_msg]
+        if not m_time[q] < old_before and live[np.searchsorted(ids2, tr)]:
+            n_keep += 1
+    k_src = np.empty(n_keep, dtype=np.int64)
+    k_track = np.empty(n_keep, dtype=np.int64)
+    k_mean = np.empty((n_keep, 4))
+    k_cov = np.empty((n_keep, 4, 4))
+    k_time = np.empty(n_keep)
+    j = 0
+    for q in range(m):
+        s = m_src[q]
+        tr = msg_track[s] if s < n_msg else row_feature[s - n_msg]
+        if m_time[q] < old_before or not live[np.searchsorted(ids2, tr)]:
+            continue
+        k_src[j], k_track[j], k_time[j] = s, tr, m_time[q]
+        for c in range(4):
+            k_mean[j, c] = msg_mean[s, c] if s < n_msg else mm[s - n_msg, c]
+            for e in range(4):
+                k_cov[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
+        j += 1
+    return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time
+
+
+# ----------------------------------------------------------------------------- (11)
+
+
+@njit(cache=True)
+def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior_r, accel, z, r, dt, s_along,
+                      s_cross, min_speed):
+    """b_i^(0) of (11) for two carried tracks of every vehicle (the belief and the own-sensor one):
+    the previous step's rows (``match``) or, where ``fresh``, the fast-start prior, then
+    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (``coloc.core.vehicles.carry_states`` +
+    ``vehicle_prior_beliefs`` twice, the same numbers). Returns (mean_a, cov_a, mean_b, cov_b)."""
+    n = match.size
+    out = (np.empty((n, 4)), np.empty((n, 4, 4)), np.empty((n, 4)), np.empty((n, 4, 4)))
+    for i in range(n):
+        for c in range(4):
+            if fresh[i]:
+                out[0][i, c] = prior_z[i, c]
+                out[2][i, c] = prior_z[i, c]
+            else:
+                out[0][i, c] = mean_a[match[i], c]
+                out[2][i, c] = mean_b[match[i], c]
+            for e in range(4):
+                if fresh[i]:
+                    out[1][i, c, e] = prior_r[i, c, e]
+                    out[3][i, c, e] = prior_r[i, c, e]
+                else:
+                    out[1][i, c, e] = cov_a[match[i], c, e]
+                    out[3][i, c, e] = cov_b[match[i], c, e]
+    predict = ~fresh
+    gnss_step_kernel(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    gnss_step_kernel(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    return out
+
+
+# ----------------------------------------------------------------------------- (12)
+
+
+@njit(cache=True)
+def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov, dt):
+    """Eq. (12) on the track store (``FeatureStore.predict``, the same numbers): every nonzero folded
+    part to moments, predicted by model (2) with its track's Q_F, back to information; every stored
+    message predicted with its track's Q_F (``msg_rows``). Returns (folded_lam, folded_eta,
+    msg_mean, msg_cov)."""
+    t = folded_lam.shape[0]
+    out_lam = folded_lam.copy()
+    out_eta = folded_eta.copy()
+    has = np.zeros(t, dtype=np.bool_)
+    for k in range(t):
+        nz, nan = False, False
+        for a in range(4):
+            for b in range(4):
+                v = folded_lam[k, a, b]
+                if v != v:
+                    nan = True
+                elif v != 0.0:
+                    nz = True
+        has[k] = nz and not nan  # np.abs(lam).sum() > 0
+    idx = np.flatnonzero(has)
+    if idx.size:
+        fl = np.empty((idx.size, 4, 4))
+        fe = np.empty((idx.size, 4))
+        fq = np.empty((idx.size, 4, 4))
+        for j in range(idx.size):
+            fl[j] = folded_lam[idx[j]]
+            fe[j] = folded_eta[idx[j]]
+            fq[j] = q[idx[j]]
+        fp, fm = information_rows(fe, fl)  # from_information: (P, m) = (Lambda^-1, Lambda^-1 eta)
+        fm, fp = predict_no_input_rows(fm, fp, fq, dt)  # byte for byte predict_no_input_kernel
+        nl, ne = information_rows(fm, fp)
+        for j in range(idx.size):
+            out_lam[idx[j]] = nl[j]
+            out_eta[idx[j]] = ne[j]
+    mq = np.empty((msg_rows.size, 4, 4))
+    for j in range(msg_rows.size):
+        mq[j] = q[msg_rows[j]]
+    mm, mc = predict_no_input_rows(msg_mean, msg_cov, mq, dt)
+    return out_lam, out_eta, mm, mc
+
+
+@njit(cache=True)
+def step_beliefs_kernel(lam, eta, rows, final_lam, kept_lam, final_eta, kept_eta):
+    """Eq. (20) after BPA-L (``coloc.inference.bpa.step_feature_beliefs``, the same numbers): each
+    row's kept message swapped for its final one in the tracks' information (added in row order),
+    symmetrised, to moments. Returns (mean, cov)."""
+    for q in range(rows.size):
+        k = rows[q]
+        for a in range(4):
+            for b in range(4):
+                lam[k, a, b] = lam[k, a, b] + (final_lam[q, a, b] - kept_lam[q, a, b])
+        for a in range(4):
+            eta[k, a] = eta[k, a] + (final_eta[q, a] - kept_eta[q, a])
+    t = lam.shape[0]
+    sym = np.empty((t, 4, 4))
+    for k in range(t):
+        for a in range(4):
+            for b in range(4):
+                sym[k, a, b] = 0.5 * (lam[k, a, b] + lam[k, b, a])
+    cov, mean = information_rows(eta, sym)
+    return mean, cov
+
+
+# ----------------------------------------------------------------------------- merging (LC step 8)
+
+
+@njit(cache=True)
+def any_pair_within(xy, radius):
+    """True when two rows of ``xy`` (T, 2) are within ``radius`` of each other, with a relative
+    margin of 1e-9 (a pre-check: False means no pair is within ``radius`` by any rounding)."""
+    t = xy.shape[0]
+    r2 = (radius * (1.0 + 1e-9)) ** 2
+    for a in range(t):
+        for b in range(a + 1, t):
+            dx = xy[a, 0] - xy[b, 0]
+            dy = xy[a, 1] - xy[b, 1]
+            if not dx * dx + dy * dy > r2:  # NaN: "maybe"
+                return True
+    return False
