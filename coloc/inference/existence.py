@@ -9,8 +9,6 @@ probability r that it is a real object.
   (``ab`` is a :class:`coloc.methods.icp_da_lc.AssociationBeliefs`: ``combo_track``,
   ``combo_start``, ``belief``), the vehicles' evidence adding in log-odds.
 - :func:`birth_existence`: r of a new track from the rows that started it.
-- :func:`candidates_existence`: :func:`existence_update` from the gated candidate pairs of a step
-  (the part ICP-DA-LC and ICP-DA-PF share).
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import expit, logit
 
-__all__ = ["TrackExistence", "existence_update", "birth_existence", "candidates_existence"]
+__all__ = ["TrackExistence", "existence_update", "birth_existence"]
 
 
 _R_CLIP = 1e-12  # existence probabilities are kept in [1e-12, 1 - 1e-12] (finite log-odds)
@@ -110,17 +108,3 @@ def birth_existence(share: np.ndarray, labels: np.ndarray, n_born: int) -> np.nd
     log_odds = np.zeros(n_born)
     np.add.at(log_odds, labels, _logit(share))
     return _sigmoid(log_odds)
-
-
-def candidates_existence(
-    r_prior: np.ndarray, ab, cand_vehicle: np.ndarray, cand_track: np.ndarray, pd_cand: np.ndarray,
-    pd_combo: np.ndarray, n_tracks: int,
-) -> np.ndarray:
-    """:func:`existence_update` for one step: the candidate (vehicle, track) pairs of the step
-    (``cand_vehicle``, ``cand_track``, with P_D ``pd_cand``; 0 where the track is not expected in the
-    vehicle's view) that have no gated row in ``ab`` are the missed detections."""
-    n_t = max(n_tracks, 1)
-    missed = pd_cand > 0
-    if ab is not None:  # candidates with a gated row are in ab already
-        missed &= ~np.isin(cand_vehicle * n_t + cand_track, ab.combo_vehicle * n_t + ab.combo_track)
-    return existence_update(r_prior, ab, pd_combo, cand_track[missed], pd_cand[missed])

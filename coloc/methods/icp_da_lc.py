@@ -662,16 +662,8 @@ def icp_da_lc_step(
     ab = association_beliefs(pv, pt, pr, w, frame.n_vehicles, o, lc, missed)
     row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
     if lc.track_existence:  # r updated by the step
-        cv, ct = candidate_pairs(b0_mean, own_cov, t_mean, t_cov, lc)
-        pd_c = pd_of(cv, ct)
-        if detection is None:  # expected in view: within Rs of the vehicle's estimate
-            pd_c = np.where(np.hypot(*(b0_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
-        n_t = max(predicted.size, 1)
-        missed_c = pd_c > 0
-        if ab is not None:  # candidates with a gated row are in ab already
-            missed_c &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
-        pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
-        existence = TrackExistence(predicted.ids, existence_update(r_pred, ab, pd_combo, ct[missed_c], pd_c[missed_c]))
+        existence = existence_after_association(r_pred, ab, b0_mean, own_cov, t_mean, t_cov, predicted.ids, pd_of,
+                                                lc, detection is None)
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
     # Births (step 6). A row no track explains may be a new feature or clutter: it starts a track
     # either way, and with clutter in the model the confirmation of step 9 tells them apart (a
@@ -767,6 +759,28 @@ def icp_da_lc_step(
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes), next_id, info
+
+
+def existence_after_association(
+    r_pred: np.ndarray, ab: AssociationBeliefs | None, v_mean: np.ndarray, v_cov: np.ndarray, t_mean: np.ndarray,
+    t_cov: np.ndarray, track_ids: np.ndarray, pd_of, lc: LcParams, in_range_only: bool,
+) -> TrackExistence:
+    """Step 9's update of the tracks' existence (:func:`existence_update`): the detections of the
+    step's association beliefs ``ab`` and the expected detections that did not come, i.e. the
+    candidate (vehicle, track) pairs with no gated row, with P_D ``pd_of(vehicles, tracks)``
+    (``in_range_only``: without a sensor model, expected only within Rs of the vehicle's estimate).
+    ``r_pred``: the predicted r of ``track_ids`` (the rows of ``t_mean``). Shared by ICP-DA-LC and
+    ICP-DA-PF (which passes its particle moments)."""
+    cv, ct = candidate_pairs(v_mean, v_cov, t_mean, t_cov, lc)
+    pd_c = pd_of(cv, ct)
+    if in_range_only:
+        pd_c = np.where(np.hypot(*(v_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
+    n_t = max(track_ids.size, 1)
+    missed = pd_c > 0
+    if ab is not None:  # candidates with a gated row are in ab already
+        missed &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
+    pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
+    return TrackExistence(track_ids.copy(), existence_update(r_pred, ab, pd_combo, ct[missed], pd_c[missed]))
 
 
 def own_consistency_reset(

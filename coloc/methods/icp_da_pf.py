@@ -114,7 +114,7 @@ from coloc.core.v2x import V2xFrame
 from coloc.core.vehicles import match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
-from coloc.inference.existence import TrackExistence, birth_existence, candidates_existence
+from coloc.inference.existence import TrackExistence, birth_existence
 from coloc.inference.gaussian import log_gauss
 from coloc.inference.params import IcpParams
 from coloc.inference.particles import (
@@ -136,8 +136,8 @@ from coloc.methods.icp_da_lc import (
     LcParams,
     association_beliefs,
     birth_clusters,
-    candidate_pairs,
     candidate_rows,
+    existence_after_association,
     merge_candidates,
     new_feature_log_density,
     new_feature_share,
@@ -749,12 +749,8 @@ def icp_da_pf_step(
         ab = association_beliefs(pv, pt, pr, w, n, o, lc, missed)
         row_new = np.ones(o) if ab is None else ab.row_new
         if with_existence:  # r updated by the step: detections and expected detections that did not come
-            cv, ct = candidate_pairs(v_mean, assoc_cov, t_mean, t_cov, lc)
-            pd_c = pd_of(cv, ct)
-            if detection is None:  # expected in view: within Rs of the vehicle's estimate
-                pd_c = np.where(np.hypot(*(v_mean[cv, :2] - t_mean[ct, :2]).T) <= lc.sensing_range_m, pd_c, 0.0)
-            pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
-            ex = TrackExistence(t_ids.copy(), candidates_existence(r_pred, ab, cv, ct, pd_c, pd_combo, t_ids.size))
+            ex = existence_after_association(r_pred, ab, v_mean, assoc_cov, t_mean, t_cov, t_ids, pd_of, lc,
+                                             detection is None)
         # Terms of (18) for every combo option with a belief worth keeping.
         term_rows = np.empty(0, np.int64)
         term_track_id = np.empty(0, np.int64)
