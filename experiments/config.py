@@ -131,6 +131,8 @@ class PfSection:
     message_bandwidth: str = "prior"
     recursion: str = "latest_message"  # or "paper", the literal recursion (23)-(24)
     regularize: bool = True  # Liu-West jitter after resampling
+    # BPA-L's stopping rule over the whole net ("net", the paper) or per connected component ("component")
+    bpa_stop: str = "net"
 
 
 @dataclass(frozen=True)

@@ -364,6 +364,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "recursion": ("", "`\"latest_message\"` (a track keeps each vehicle's latest message) or `\"paper\"` "
                           "(the literal recursion (23)-(24))."),
         "regularize": ("", "Liu-West regularised resampling (static features otherwise never rejuvenate)."),
+        "bpa_stop": ("", "Where BPA-L's stopping rule (Sec. V-A) applies: `\"net\"` (every vehicle and track "
+                         "iterates until the whole net has settled, the paper) or `\"component\"` (a connected "
+                         "component of BPA-L's graph that has settled stops iterating, the others continue; "
+                         "each component ends as if it ran alone under the net rule)."),
     },
     "report": {
         "track_area": ("", "Analysis area of the along/cross-track figure (paper Fig. 18b)."),
