@@ -48,7 +48,10 @@ sys.path.insert(0, str(ROOT))
 
 WINDOWS = ((10.0, 19.0), (20.0, 30.0))
 SPACINGS = (0.5, 3.0)
-KERNELS = ("tree", "fast")
+KERNELS = ("tree", "fast")  # the reference and the default approximation (the records' "kernel" field)
+# Each approximation the tool can pair against the exact tree ("tree"), by its [pf] overrides.
+VARIANTS = {"tree": {"pf.kernel": "tree"}, "fast": {"pf.kernel": "fast"},
+            "fast_component": {"pf.kernel": "fast", "pf.bpa_stop": "component"}}
 NULL = "tree_reseeded"  # the exact tree with other particle generators: the Monte Carlo floor of the pairing
 NULL_OFFSET = 1000
 SINGLE_ROAD = {"lc.eta_threshold": 1.0, "pf.vehicle_particles": 5000, "pf.feature_particles": 5000,
@@ -108,23 +111,36 @@ def load_records(path: Path) -> dict:
 
 
 def paired_table(recs: dict) -> tuple[list[str], bool]:
-    lines, ok_all, nulls = [], True, []
-    lines.append("single road, Fig. 7 settings, J = 5000: window MSE, fast - exact, paired by seed")
+    """The tables of every approximation recorded (``VARIANTS`` other than the tree) against the tree."""
+    lines, ok_all = [], True
+    found = [v for v in VARIANTS if v != "tree" and any(k == v for (_, _, k) in recs)] or ["fast"]
+    for i, variant in enumerate(found):
+        part, ok = _variant_table(recs, variant, nulls=i == 0)
+        lines.extend((["", f"=== {variant} ({', '.join(f'{a} = {b}' for a, b in VARIANTS[variant].items())})"]
+                      if len(found) > 1 else []) + part)
+        ok_all &= ok
+    return lines, ok_all
+
+
+def _variant_table(recs: dict, variant: str, nulls: bool = True) -> tuple[list[str], bool]:
+    fast = variant
+    lines, ok_all, null_lines = [], True, []
+    lines.append(f"single road, Fig. 7 settings, J = 5000: window MSE, {fast} - exact, paired by seed")
     lines.append(f"{'df':>5} {'window':>8} {'seeds':>5} {'MSE exact':>10} {'MSE fast':>9} {'diff':>9} "
                  f"{'SE':>7} {'|d|/SE':>6} {'pass':>5}")
     for df in SPACINGS:
         case = f"single_road_df{df}"
-        seeds = sorted(s for (c, s, k) in recs if c == case and k == "tree" and (c, s, "fast") in recs)
+        seeds = sorted(s for (c, s, k) in recs if c == case and k == "tree" and (c, s, fast) in recs)
         for w, (lo, hi) in enumerate(WINDOWS):
             null = sorted(s for (c, s, k) in recs if c == case and k == NULL and (c, s, "tree") in recs)
-            if len(null) > 1:
+            if nulls and len(null) > 1:
                 d = np.array([recs[(case, s, NULL)]["window_mse"][w] - recs[(case, s, "tree")]["window_mse"][w]
                               for s in null])
-                nulls.append(f"{df:5.1f} {f'{lo:.0f}-{hi:.0f} s':>8} {d.size:5d} {d.mean():+9.4f} "
+                null_lines.append(f"{df:5.1f} {f'{lo:.0f}-{hi:.0f} s':>8} {d.size:5d} {d.mean():+9.4f} "
                              f"{d.std(ddof=1) / np.sqrt(d.size):7.4f} {np.sqrt(np.mean(d**2)):9.4f}")
             if not seeds:
                 continue
-            a = np.array([recs[(case, s, "fast")]["window_mse"][w] for s in seeds])
+            a = np.array([recs[(case, s, fast)]["window_mse"][w] for s in seeds])
             b = np.array([recs[(case, s, "tree")]["window_mse"][w] for s in seeds])
             d = a - b
             se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
@@ -133,39 +149,39 @@ def paired_table(recs: dict) -> tuple[list[str], bool]:
             lines.append(f"{df:5.1f} {f'{lo:.0f}-{hi:.0f} s':>8} {d.size:5d} {b.mean():10.3f} {a.mean():9.3f} "
                          f"{d.mean():+9.4f} {se:7.4f} {abs(d.mean()) / se if se > 0 else float('nan'):6.2f} "
                          f"{'yes' if ok else 'NO':>5}")
-    if nulls:
+    if null_lines:
         lines.append("")
         lines.append("Monte Carlo floor: exact tree with other particle generators - exact tree, same scenario seeds")
         lines.append(f"{'df':>5} {'window':>8} {'seeds':>5} {'diff':>9} {'SE':>7} {'rms diff':>9}")
-        lines.extend(nulls)
+        lines.extend(null_lines)
     fast_rms = []
     for df in SPACINGS:
         case = f"single_road_df{df}"
         for w in range(len(WINDOWS)):
-            d = [recs[(case, s, "fast")]["window_mse"][w] - recs[(case, s, "tree")]["window_mse"][w]
-                 for (c, s, k) in recs if c == case and k == "tree" and (c, s, "fast") in recs]
+            d = [recs[(case, s, fast)]["window_mse"][w] - recs[(case, s, "tree")]["window_mse"][w]
+                 for (c, s, k) in recs if c == case and k == "tree" and (c, s, fast) in recs]
             if d:
                 fast_rms.append(f"df {df} w{w}: {np.sqrt(np.mean(np.square(d))):.4f}")
     if fast_rms:
-        lines.append("rms of the paired difference fast - exact (compare with the floor): " + ", ".join(fast_rms))
+        lines.append(f"rms of the paired difference {fast} - exact (compare with the floor): " + ", ".join(fast_rms))
     lines.append("")
     lines.append("seconds per step with V2F rows (mean over runs of the run's mean; worst single step)")
     for df in SPACINGS:
         case = f"single_road_df{df}"
-        for k in KERNELS:
+        for k in ("tree", fast):
             rs = [r for (c, s, kk), r in recs.items() if c == case and kk == k]
             if rs:
-                lines.append(f"  df = {df} m, {k:4s}: mean {np.mean([r['step_s_mean'] for r in rs]):.3f} s, "
+                lines.append(f"  df = {df} m, {k:>4s}: mean {np.mean([r['step_s_mean'] for r in rs]):.3f} s, "
                              f"worst {max(r['step_s_max'] for r in rs):.3f} s ({len(rs)} runs)")
-    art = sorted(s for (c, s, k) in recs if c == "arterial" and k == "tree" and ("arterial", s, "fast") in recs)
+    art = sorted(s for (c, s, k) in recs if c == "arterial" and k == "tree" and ("arterial", s, fast) in recs)
     if art:
         lines.append("")
-        lines.append("arterial TLR, J = 1000: fast against exact")
+        lines.append(f"arterial TLR, J = 1000: {fast} against exact")
         lines.append(f"{'seed':>4} {'RMSE exact':>10} {'RMSE fast':>9} {'rel':>7} {'p95 exact':>9} {'p95 fast':>8} "
                      f"{'rel':>7} {'correct/wrong/discarded exact':>30} {'fast':>22} {'s/step exact':>12} "
                      f"{'fast':>6} {'pass':>5}")
         for s in art:
-            e, f = recs[("arterial", s, "tree")], recs[("arterial", s, "fast")]
+            e, f = recs[("arterial", s, "tree")], recs[("arterial", s, fast)]
             r1, r2 = f["rmse"] / e["rmse"] - 1, f["p95"] / e["p95"] - 1
             dsh = max(abs(x - y) for x, y in zip(f["shares"], e["shares"]))
             ok = abs(r1) <= REL_LIMIT and abs(r2) <= REL_LIMIT and dsh <= SHARE_LIMIT
@@ -185,9 +201,15 @@ def main(argv=None) -> int:
     ap.add_argument("--null-seeds", type=int, default=0,
                     help="single-road seeds (1..N) also run by the exact tree with other particle generators "
                          "(pf seed + 1000): how far two exact runs differ by Monte Carlo alone")
+    ap.add_argument("--variants", default="fast",
+                    help=f"approximations run against the exact tree, comma-separated (of {', '.join(VARIANTS)})")
+    ap.add_argument("--arterial-first", action="store_true", help="run the arterial seeds before the single road")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "pf_equivalence")
     ap.add_argument("--table-only", action="store_true", help="print the table of the recorded runs")
     args = ap.parse_args(argv)
+    variants = ["tree"] + [v for v in args.variants.split(",") if v]
+    if unknown := [v for v in variants if v not in VARIANTS]:
+        ap.error(f"unknown variant {unknown[0]!r} (available: {', '.join(VARIANTS)})")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "runs.jsonl"
     recs = load_records(path)
@@ -195,19 +217,19 @@ def main(argv=None) -> int:
     if not args.table_only:
         for seed in range(1, args.seeds + 1):
             for df in SPACINGS:
-                for k in KERNELS:
+                for k in variants:
                     todo.append((f"single_road_df{df}", seed, k, ROOT / "experiments" / "single_road.toml",
                                  {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed,
-                                  "pf.kernel": k}))
+                                  **VARIANTS[k]}))
         for seed in range(1, args.null_seeds + 1):
             for df in SPACINGS:
                 todo.append((f"single_road_df{df}", seed, NULL, ROOT / "experiments" / "single_road.toml",
                              {**SINGLE_ROAD, "single_road.feature_spacing_m": df, "run.seed": seed,
                               "pf.kernel": "tree"}))
-        for seed in range(1, args.arterial_seeds + 1):
-            for k in KERNELS:
-                todo.append(("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",
-                             {"run.seed": seed, "run.duration_s": args.arterial_duration, "pf.kernel": k}))
+        arterial = [("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",
+                     {"run.seed": seed, "run.duration_s": args.arterial_duration, **VARIANTS[k]})
+                    for seed in range(1, args.arterial_seeds + 1) for k in variants]
+        todo = arterial + todo if args.arterial_first else todo + arterial
     for case, seed, kernel, config, over in todo:
         if (case, seed, kernel) in recs:
             continue
