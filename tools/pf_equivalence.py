@@ -61,9 +61,29 @@ REL_LIMIT = 0.02  # arterial RMSE and p95
 SHARE_LIMIT = 0.5  # percentage points
 
 
+def _rss_mb(field: str = "VmRSS") -> float:
+    """This process's resident memory (VmRSS) or its peak since the last :func:`_reset_peak` (VmHWM), MB;
+    nan where /proc does not tell."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _reset_peak() -> None:
+    try:
+        Path("/proc/self/clear_refs").write_text("5")  # Linux: VmHWM := VmRSS
+    except OSError:
+        pass
+
+
 def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
-    """One icp_da_pf run in this process: per-step position errors, association counts, step times.
-    ``pf_seed_offset``: the particle generators seeded apart from the scenario (the null comparison)."""
+    """One icp_da_pf run in this process: per-step position errors, association counts, step times,
+    resident memory (every 80 steps, and the run's peak). ``pf_seed_offset``: the particle generators
+    seeded apart from the scenario (the null comparison)."""
     import dataclasses
 
     from coloc.methods.registry import ICP_DA_PF
@@ -75,15 +95,19 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
     (est,) = build_estimators(cfg)
     if pf_seed_offset:
         est.pf = dataclasses.replace(est.pf, seed=est.pf.seed + pf_seed_offset)
-    t, err, step_s, assoc = [], [], [], []
+    t, err, step_s, step_cpu, assoc, rss = [], [], [], [], [], []
+    _reset_peak()
     with frame_source(cfg) as source:
-        for frame in source.frames():
+        for k, frame in enumerate(source.frames()):
+            if k % 80 == 0:
+                rss.append([float(frame.t), _rss_mb()])
             blind = frame.without_truth()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             out = est.step(blind)
-            dt = time.perf_counter() - t0
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
             if blind.v2f_owner.size:
                 step_s.append(dt)
+                step_cpu.append(dc)
             e = out.mean[:, :2] - frame.truth.x_true[:, :2]
             t.append(np.full(frame.n_vehicles, frame.t))
             err.append(np.hypot(e[:, 0], e[:, 1]))
@@ -98,6 +122,10 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
         "shares": [100.0 * float(v) / total for v in c], "v2f_rows": int(c.sum()),
         "step_s_mean": float(np.mean(step_s)) if step_s else 0.0, "step_s_max": float(np.max(step_s, initial=0.0)),
         "steps_with_v2f": len(step_s), "wall_s": float(np.sum(step_s)),
+        "rss_mb": rss, "peak_rss_mb": _rss_mb("VmHWM"),
+        # CPU seconds of the process per step: with NUMBA_NUM_THREADS=1 what a quiet core would take
+        "step_cpu_mean": float(np.mean(step_cpu)) if step_cpu else 0.0,
+        "step_cpu_max": float(np.max(step_cpu, initial=0.0)),
     }
 
 
@@ -108,6 +136,15 @@ def load_records(path: Path) -> dict:
             r = json.loads(line)
             recs[(r["case"], r["seed"], r["kernel"])] = r
     return recs
+
+
+def _cpu(rs: list[dict]) -> str:
+    """CPU seconds per step of the runs that recorded them (the load-independent measure)."""
+    rs = [r for r in rs if "step_cpu_mean" in r]
+    if not rs:
+        return ""
+    return (f"; CPU {np.mean([r['step_cpu_mean'] for r in rs]):.3f} s, worst {max(r['step_cpu_max'] for r in rs):.3f} s"
+            f" ({len(rs)} runs), peak RSS {max(r['peak_rss_mb'] for r in rs):.0f} MB")
 
 
 def paired_table(recs: dict) -> tuple[list[str], bool]:
@@ -172,7 +209,7 @@ def _variant_table(recs: dict, variant: str, nulls: bool = True) -> tuple[list[s
             rs = [r for (c, s, kk), r in recs.items() if c == case and kk == k]
             if rs:
                 lines.append(f"  df = {df} m, {k:>4s}: mean {np.mean([r['step_s_mean'] for r in rs]):.3f} s, "
-                             f"worst {max(r['step_s_max'] for r in rs):.3f} s ({len(rs)} runs)")
+                             f"worst {max(r['step_s_max'] for r in rs):.3f} s ({len(rs)} runs)" + _cpu(rs))
     art = sorted(s for (c, s, k) in recs if c == "arterial" and k == "tree" and ("arterial", s, fast) in recs)
     if art:
         lines.append("")
@@ -190,6 +227,10 @@ def _variant_table(recs: dict, variant: str, nulls: bool = True) -> tuple[list[s
             lines.append(f"{s:4d} {e['rmse']:10.3f} {f['rmse']:9.3f} {r1:+7.2%} {e['p95']:9.3f} {f['p95']:8.3f} "
                          f"{r2:+7.2%} {sh(e):>30} {sh(f):>22} {e['step_s_mean']:12.3f} {f['step_s_mean']:6.3f} "
                          f"{'yes' if ok else 'NO':>5}")
+        for k in ("tree", fast):
+            rs = [recs[("arterial", s, k)] for s in art]
+            if c := _cpu(rs):
+                lines.append(f"  {k}: per step with V2F rows{c[1:]}")
     return lines, ok_all
 
 
@@ -240,7 +281,8 @@ def main(argv=None) -> int:
         recs[(case, seed, kernel)] = rec
         with path.open("a") as fh:
             fh.write(json.dumps(rec) + "\n")
-        print(f"{case} seed {seed} {kernel}: {rec['run_s']:.0f} s, step {rec['step_s_mean']:.3f} s", flush=True)
+        print(f"{case} seed {seed} {kernel}: {rec['run_s']:.0f} s, step {rec['step_s_mean']:.3f} s, "
+              f"CPU {rec['step_cpu_mean']:.3f} s, peak RSS {rec['peak_rss_mb']:.0f} MB", flush=True)
     lines, ok = paired_table(recs)
     print("\n".join(lines))
     print(f"\nequivalence {'PASSED' if ok else 'NOT SHOWN'} (fast within the limits on every row)")
