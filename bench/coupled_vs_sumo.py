@@ -11,7 +11,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
     (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
      --pf-kernels tree,fast runs one icp_da_pf per [pf] kernel on the same frames, the exact tree and the
-     1e-3 fast path side by side, each printed as icp_da_pf[kernel];
+     1e-3 fast path side by side, each printed as icp_da_pf[kernel]; "fast+component" also stops BPA-L
+     per connected component ([pf] bpa_stop = "component");
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
      same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x)
 
@@ -83,7 +84,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
     ap.add_argument("--pf-kernels", default="",
-                    help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
+                    help="comma separated [pf] kernels (e.g. tree,fast,fast+component): one icp_da_pf each")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
     args = ap.parse_args()
@@ -113,9 +114,11 @@ def main() -> None:
         pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
         estimators = [e for e in estimators if e.name != ICP_DA_PF.name]
         for base in pfs:
-            for kernel in args.pf_kernels.split(","):
-                estimators.append(dataclasses.replace(base, pf=dataclasses.replace(base.pf, kernel=kernel),
-                                                      name=f"{ICP_DA_PF.name}[{kernel}]", workspace=KernelWorkspace()))
+            for spec in args.pf_kernels.split(","):  # kernel, optionally +component: [pf] bpa_stop = "component"
+                kernel, _, stop = spec.partition("+")
+                pf = dataclasses.replace(base.pf, kernel=kernel, bpa_stop=stop or base.pf.bpa_stop)
+                estimators.append(dataclasses.replace(base, pf=pf, name=f"{ICP_DA_PF.name}[{spec}]",
+                                                      workspace=KernelWorkspace()))
     coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
 
     print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")

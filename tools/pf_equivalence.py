@@ -95,7 +95,7 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
     (est,) = build_estimators(cfg)
     if pf_seed_offset:
         est.pf = dataclasses.replace(est.pf, seed=est.pf.seed + pf_seed_offset)
-    t, err, step_s, step_cpu, assoc, rss = [], [], [], [], [], []
+    t, err, step_s, step_cpu, step_rows, assoc, rss = [], [], [], [], [], [], []
     _reset_peak()
     with frame_source(cfg) as source:
         for k, frame in enumerate(source.frames()):
@@ -108,6 +108,7 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
             if blind.v2f_owner.size:
                 step_s.append(dt)
                 step_cpu.append(dc)
+                step_rows.append(int(blind.v2f_owner.size))
             e = out.mean[:, :2] - frame.truth.x_true[:, :2]
             t.append(np.full(frame.n_vehicles, frame.t))
             err.append(np.hypot(e[:, 0], e[:, 1]))
@@ -126,6 +127,8 @@ def run_one(config: Path, overrides: dict, pf_seed_offset: int = 0) -> dict:
         # CPU seconds of the process per step: with NUMBA_NUM_THREADS=1 what a quiet core would take
         "step_cpu_mean": float(np.mean(step_cpu)) if step_cpu else 0.0,
         "step_cpu_max": float(np.max(step_cpu, initial=0.0)),
+        # per step with V2F rows: rows and CPU seconds (cost against rows, for projections to longer runs)
+        "step_rows": step_rows, "step_cpu": [round(c, 4) for c in step_cpu],
     }
 
 
