@@ -447,17 +447,22 @@ def pf_bpa_localization(
         comp_e, comp_v, n_comp = bpa_components(graph, entry_vehicle, n)
         live = np.ones(n_comp, bool)
         comp_iterations = np.zeros(n_comp, np.int64)
+
+    def messages(transforms, cavity: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(19) or (21): the terms' sums of the cavity, mixed per entry with its constant; the live
+        entries' only (``act_e``), the others keep ``previous``."""
+        if act_t is None:
+            out, p = transforms.sum(cavity[term_entry])
+            return normalize_log(_segment_logsumexp(term_log_c[:, None] + out, term_entry, e, entry_log_c0)), p
+        out, p = transforms.sum(cavity[term_entry[act_t]], act_t)
+        new = previous.copy()
+        new[act_e] = normalize_log(_segment_logsumexp(term_log_c[act_t, None] + out, act_seg, act_e.size,
+                                                      entry_log_c0[act_e]))
+        return new, p
+
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
-        cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
-        if act_t is None:
-            s_out, p1 = to_features.sum(cav_v[term_entry])
-            log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
-        else:
-            s_out, p1 = to_features.sum(cav_v[term_entry[act_t]], act_t)
-            log_m_vf = log_m_vf.copy()
-            log_m_vf[act_e] = normalize_log(_segment_logsumexp(term_log_c[act_t, None] + s_out, act_seg, act_e.size,
-                                                               entry_log_c0[act_e]))
+        log_m_vf, p1 = messages(to_features, normalize_log(logb_v[entry_vehicle] - log_m_fv), log_m_vf)
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
         # (A settled component's rows are recomputed from its unchanged messages: the same values.)
         if channel is None:
@@ -483,14 +488,7 @@ def pf_bpa_localization(
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
-        if act_t is None:
-            t_out, p2 = to_vehicles.sum(cav_f[term_entry])
-            log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
-        else:
-            t_out, p2 = to_vehicles.sum(cav_f[term_entry[act_t]], act_t)
-            log_m_fv = log_m_fv.copy()
-            log_m_fv[act_e] = normalize_log(_segment_logsumexp(term_log_c[act_t, None] + t_out, act_seg, act_e.size,
-                                                               entry_log_c0[act_e]))
+        log_m_fv, p2 = messages(to_vehicles, cav_f, log_m_fv)
         if flat_m is not None:
             log_m_fv[flat_e] = flat_m
         pairs += int(p1.sum() + p2.sum())
