@@ -503,8 +503,8 @@ def pf_bpa_localization(
         v_mean, f_mean = new_v, new_f
         if per_component:  # Sec. V-A within each component
             moved = np.zeros(n_comp, bool)
-            moved[comp_v[(dv_v >= params.stop_pos_m) | (dw_v >= params.stop_vel_mps)]] = True
-            moved[comp_e[(dv_f >= params.stop_pos_m) | (dw_f >= params.stop_vel_mps)]] = True
+            moved[comp_v[~((dv_v < params.stop_pos_m) & (dw_v < params.stop_vel_mps))]] = True  # (nan: moved,
+            moved[comp_e[~((dv_f < params.stop_pos_m) & (dw_f < params.stop_vel_mps))]] = True  # as the net rule)
             comp_iterations[live] = it
             live &= moved
             if not live.any():
