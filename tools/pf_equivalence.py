@@ -24,6 +24,11 @@ where it stopped: rerun with more ``--seeds``); the table is printed from that f
     python tools/pf_equivalence.py --seeds 10 --arterial-seeds 1
     python tools/pf_equivalence.py --table-only                 # print the table of what is recorded
     python tools/pf_equivalence.py --seeds 10 --null-seeds 10   # and the Monte Carlo floor of the pairing
+    python tools/pf_equivalence.py --seeds 0 --arterial-seeds 3 --variants fast_component   # fast kernel and
+                                                                # BPA-L stopped per component ([pf] bpa_stop)
+
+Each record also holds the CPU seconds per step (with ``NUMBA_NUM_THREADS=1`` what one quiet core would
+take), the rows per step and the process's resident memory (every 80 steps and the run's peak).
 
 Two PF runs on the same frames part ways at the first resampling draw that a weight differing in its
 last bits moves, and from there on differ by the filter's own Monte Carlo error; ``--null-seeds``
