@@ -11,7 +11,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
     (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
      --pf-kernels tree,fast runs one icp_da_pf per [pf] kernel on the same frames, the exact tree and the
-     1e-3 fast path side by side, each printed as icp_da_pf[kernel];
+     1e-3 fast path side by side, each printed as icp_da_pf[kernel]; "fast+component" also stops BPA-L
+     per connected component ([pf] bpa_stop = "component");
      --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
      step by step beside the fused path on the same frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
@@ -91,7 +92,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc")
     ap.add_argument("--pf-kernels", default="",
-                    help="comma separated [pf] kernels (e.g. tree,fast): one icp_da_pf each")
+                    help="comma separated [pf] kernels (e.g. tree,fast,fast+component): one icp_da_pf each")
     ap.add_argument("--reference", action="store_true",
                     help="also run icp_known_da / icp_da_lc on the numpy reference path (icp_fused.FUSED = False), "
                          "interleaved step by step with the fused path on the same frames, named <method>[reference]")
@@ -124,9 +125,11 @@ def main() -> None:
         pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
         estimators = [e for e in estimators if e.name != ICP_DA_PF.name]
         for base in pfs:
-            for kernel in args.pf_kernels.split(","):
-                estimators.append(dataclasses.replace(base, pf=dataclasses.replace(base.pf, kernel=kernel),
-                                                      name=f"{ICP_DA_PF.name}[{kernel}]", workspace=KernelWorkspace()))
+            for spec in args.pf_kernels.split(","):  # kernel, optionally +component: [pf] bpa_stop = "component"
+                kernel, _, stop = spec.partition("+")
+                pf = dataclasses.replace(base.pf, kernel=kernel, bpa_stop=stop or base.pf.bpa_stop)
+                estimators.append(dataclasses.replace(base, pf=pf, name=f"{ICP_DA_PF.name}[{spec}]",
+                                                      workspace=KernelWorkspace()))
     if args.reference:
         estimators += [dataclasses.replace(e, name=e.name + REFERENCE) for e in build_estimators(cfg)
                        if e.name in (ICP_KNOWN_DA.name, ICP_DA_LC.name)]

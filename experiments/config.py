@@ -134,6 +134,8 @@ class PfSection:
     # Driving noise of model (1) for the vehicle particles, m/s^2 (absent: [motion]'s); see PfParams.
     sigma_along: float | None = None
     sigma_cross: float | None = None
+    # BPA-L's stopping rule over the whole net ("net", the paper) or per connected component ("component")
+    bpa_stop: str = "net"
 
 
 @dataclass(frozen=True)

@@ -368,6 +368,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                  "of `[motion]`'s (absent: `[motion]`'s)."),
         "sigma_cross": ("m/s^2", "The same across the heading. With `[inertial]`, at least the IMU's turn-on bias: "
                                  "the bootstrap PF cannot follow an input error its proposal does not cover."),
+        "bpa_stop": ("", "Where BPA-L's stopping rule (Sec. V-A) applies: `\"net\"` (every vehicle and track "
+                         "iterates until the whole net has settled, the paper) or `\"component\"` (a connected "
+                         "component of BPA-L's graph that has settled stops iterating, the others continue; "
+                         "each component ends as if it ran alone under the net rule)."),
     },
     "report": {
         "track_area": ("", "Analysis area of the along/cross-track figure (paper Fig. 18b)."),

@@ -501,16 +501,18 @@ def _build_dense(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift,
 
 
 @nb.njit(cache=True, parallel=True)
-def _apply_dense(values, low, log_norm, src_w, tgt_w, src_logw, rel_tol, out):
-    """out[p, t] = log sum_s exp(logw_s) N(...) from the kept values; exact log-sum where they cannot vouch."""
-    for p in nb.prange(values.shape[0]):
+def _apply_dense(values, low, log_norm, src_w, tgt_w, src_logw, problems, rel_tol, out):
+    """out[q, t] = log sum_s exp(logw_s) N(...) of the kept problem ``problems[q]`` for the weights
+    ``src_logw[q]``, from the kept values; exact log-sum where they cannot vouch."""
+    for q in nb.prange(problems.shape[0]):
+        p = problems[q]
         ws = np.empty(values.shape[2])
-        wmax, total = _scaled_weights(src_logw[p], ws)
+        wmax, total = _scaled_weights(src_logw[q], ws)
         acc = np.empty(values.shape[1])
         if wmax > -np.inf:
             for t in range(values.shape[1]):
                 acc[t] = _dense_row_sum(values[p, t], ws)
-        _finish_dense(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[p], tgt_w[p], rel_tol, out[p])
+        _finish_dense(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[q], tgt_w[p], rel_tol, out[q])
 
 
 class KernelWorkspace:
@@ -601,14 +603,17 @@ class RepeatedTransforms:
         self._options = (kernel, rel_tol, max_bytes, storage)
         self.fixed: FixedTransforms | None = None
 
-    def sum(self, src_logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def sum(self, src_logw: np.ndarray, problems: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(log_out (P, Jt), kernel evaluations (P,))`` for source log-weights (P, Js); the first
-        call's evaluations include the build's."""
+        call's evaluations include the build's. ``problems``: after the first call, sum only these
+        (as :func:`transform_fixed`)."""
         if self.fixed is None:
+            if problems is not None:
+                raise ValueError("the first sum builds the kept matrices of every problem")
             self.fixed, out, pairs = fixed_transforms_summed(self._src_sets, src_logw, *self._problems,
                                                              *self._options)
             return out, pairs + self.fixed.build_pairs
-        return transform_fixed(self.fixed, src_logw)
+        return transform_fixed(self.fixed, src_logw, problems)
 
 
 def _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r, kernel, rel_tol, max_bytes,
@@ -642,35 +647,43 @@ def _build_fixed(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift,
     return fixed, kept_out
 
 
-def transform_fixed(fixed: FixedTransforms, src_logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transform_fixed(fixed: FixedTransforms, src_logw: np.ndarray,
+                    problems: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`transform_batch` of the prepared problems with source log-weights ``src_logw`` (P, Js).
 
     Returns ``(log_out (P, Jt), kernel evaluations (P,))``; a kept problem evaluates none (its matrix
-    was built by :func:`fixed_transforms`, whose ``build_pairs`` count them)."""
+    was built by :func:`fixed_transforms`, whose ``build_pairs`` count them). ``problems``: sum only
+    these (sorted indices; ``src_logw`` and the output have one row each, in their order); every
+    problem's sum is the same, bit for bit, with or without the others."""
     src_logw = np.ascontiguousarray(src_logw, dtype=float)
-    kept = fixed.kept
+    problems = np.arange(fixed.kept.size) if problems is None else np.asarray(problems, dtype=np.int64)
+    kept = fixed.kept[problems]
     kept_out = np.empty((int(kept.sum()), fixed.low.shape[1]))
-    if kept.any():
+    if kept.any():  # the kept problems are the first ones, stored in order
         _apply_dense(fixed.values, fixed.low, fixed.log_norm, fixed.src_w, fixed.tgt_w,
-                     np.ascontiguousarray(src_logw[kept]), fixed.rel_tol, kept_out)
-    return _sum_fixed(fixed, src_logw, kept_out)
+                     np.ascontiguousarray(src_logw[kept]), problems[kept], fixed.rel_tol, kept_out)
+    return _sum_fixed(fixed, src_logw, kept_out, problems)
 
 
-def _sum_fixed(fixed: FixedTransforms, src_logw: np.ndarray, kept_out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All P sums: the kept problems' ``kept_out``, the others by :func:`transform_batch`."""
-    kept = fixed.kept
+def _sum_fixed(fixed: FixedTransforms, src_logw: np.ndarray, kept_out: np.ndarray,
+               problems: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The sums of ``problems`` (all P if None): the kept problems' ``kept_out``, the others by
+    :func:`transform_batch`."""
+    p = fixed.kept.size
+    problems = np.arange(p) if problems is None else problems
+    kept = fixed.kept[problems]
     jt = fixed.args[3].shape[1] if np.ndim(fixed.args[3]) == 3 else 0
-    out = np.empty((kept.size, jt))
-    pairs = np.zeros(kept.size, np.int64)
+    out = np.empty((problems.size, jt))
+    pairs = np.zeros(problems.size, np.int64)
     out[kept] = kept_out
     rest = ~kept
     if rest.any():
         src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r = fixed.args
-        p = kept.size
+        sel = problems[rest]
         out[rest], pairs[rest] = transform_batch(
-            src_sets, src_logw[rest], src_index[rest], np.asarray(src_shift, float).reshape(p, 4)[rest], tgt_sets,
-            tgt_index[rest], np.asarray(tgt_shift, float).reshape(p, 4)[rest],
-            np.asarray(r, float).reshape(p, 4, 4)[rest], fixed.kernel, fixed.rel_tol)
+            src_sets, src_logw[rest], src_index[sel], np.asarray(src_shift, float).reshape(p, 4)[sel], tgt_sets,
+            tgt_index[sel], np.asarray(tgt_shift, float).reshape(p, 4)[sel],
+            np.asarray(r, float).reshape(p, 4, 4)[sel], fixed.kernel, fixed.rel_tol)
     return out, pairs
 
 

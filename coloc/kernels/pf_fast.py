@@ -350,16 +350,18 @@ def _build_coded(src_sets, src_index, src_shift, tgt_sets, tgt_index, tgt_shift,
 
 
 @nb.njit(cache=True, parallel=True)
-def _apply_coded(codes, low, log_norm, src_w, tgt_w, src_logw, out):
-    for p in nb.prange(codes.shape[0]):
+def _apply_coded(codes, low, log_norm, src_w, tgt_w, src_logw, problems, out):
+    """out[q] = the kept problem ``problems[q]``'s sum for the weights ``src_logw[q]``."""
+    for q in nb.prange(problems.shape[0]):
+        p = problems[q]
         ws = np.empty(codes.shape[2])
-        wmax, total = _scaled_weights(src_logw[p], ws)
+        wmax, total = _scaled_weights(src_logw[q], ws)
         ws32 = ws.astype(np.float32)
         acc = np.zeros(codes.shape[1])
         if wmax > -np.inf:
             for t in range(codes.shape[1]):
                 acc[t] = _coded_row_sum(codes[p, t], ws32)
-        _finish(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[p], tgt_w[p], True, out[p])
+        _finish(acc, total, wmax, low[p], log_norm[p], src_w[p], src_logw[q], tgt_w[p], True, out[q])
 
 
 def fast_kept_problem_count(n_problems: int, js: int, jt: int, max_bytes: float) -> int:
@@ -400,26 +402,37 @@ class FastRepeatedTransforms:
         self.kept = np.arange(p) < k
         self._built = False
 
-    def sum(self, src_logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def sum(self, src_logw: np.ndarray, problems: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(log_out (P, Jt), pair evaluations (P,))`` for source log-weights (P, Js); kept problems
-        count their pairs once, at the build."""
+        count their pairs once, at the build. ``problems``: sum only these (sorted indices; rows of
+        ``src_logw`` and of the output in their order), after the first sum (which builds every kept
+        problem); each problem's sum is the same, bit for bit, with or without the others."""
         src_logw = np.ascontiguousarray(src_logw, dtype=float)
-        p, k = self.kept.size, int(self.kept.sum())
+        k = int(self.kept.sum())
+        if problems is None:
+            problems = np.arange(self.kept.size)
+        elif not self._built:
+            raise ValueError("the first sum builds the kept matrices of every problem")
+        problems = np.asarray(problems, dtype=np.int64)
+        p = problems.size
         out = np.empty((p, self.jt))
         pairs = np.zeros(p, np.int64)
-        if k:
-            kept_out = np.empty((k, self.jt))
+        m = int(np.searchsorted(problems, k))  # problems[:m] are kept
+        if m:
+            kept_out = np.empty((m, self.jt))
             if not self._built:
-                self._build(src_logw[:k], kept_out)
-                pairs[:k] = self.js * self.jt
+                self._build(src_logw[:m], kept_out)
+                pairs[:m] = self.js * self.jt
             else:
-                _apply_coded(self.codes, self.low, self.log_norm, self.src_w, self.tgt_w, src_logw[:k], kept_out)
-            out[:k] = kept_out
-        if k < p:
-            rest = slice(k, p)
-            out[rest], pairs[rest] = fast_transform_batch(self.src_sets, src_logw[rest], self.src_index[rest],
-                                                          self.src_shift[rest], self.tgt_sets, self.tgt_index[rest],
-                                                          self.tgt_shift[rest], self.r[rest])
+                _apply_coded(self.codes, self.low, self.log_norm, self.src_w, self.tgt_w, src_logw[:m], problems[:m],
+                             kept_out)
+            out[:m] = kept_out
+        if m < p:
+            rest = problems[m:]
+            out[m:], pairs[m:] = fast_transform_batch(self.src_sets, src_logw[m:], self.src_index[rest],
+                                                      self.src_shift[rest], self.tgt_sets, self.tgt_index[rest],
+                                                      self.tgt_shift[rest], self.r[rest])
+        self._built = True  # (also when nothing is kept)
         return out, pairs
 
     def _build(self, first_logw: np.ndarray, first_out: np.ndarray) -> None:

@@ -104,6 +104,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
@@ -152,6 +153,7 @@ __all__ = [
 RECURSIONS = ("latest_message", "paper")
 PF_KERNELS = KERNELS + (FAST,)  # the exact tree (reference), brute force, the 1e-3 approximation
 BANDWIDTHS = ("prior", "shrunk", "none")
+BPA_STOPS = ("net", "component")  # PfParams.bpa_stop
 _PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
             "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
 
@@ -228,6 +230,15 @@ class PfParams:
     turn-on accelerometer bias (0.196 m/s^2, RotorS) is twice the presets' sigma_cross = 0.1 m/s^2,
     and the PF diverges (realistic TLR preset, first 60 s, J = 200: PF 12.96 m against GNSS 4.93 m;
     with sigma_cross = 0.3 m/s^2: 3.51 m against 5.00 m, docs/validation/realistic_sensing.md).
+    ``bpa_stop``: where BPA-L's stopping rule (Sec. V-A) applies. "net" (default, the paper): every
+    vehicle and track iterates until the whole net has converged. "component": per connected
+    component of BPA-L's graph (entries (vehicle, track) linked through their vehicle and through
+    V2V links among a track's observers, :func:`bpa_components`): a component whose vehicles and
+    tracks have settled stops iterating (its messages and beliefs stay those of its last iteration),
+    the others continue. Components share no message, so each ends exactly as if it ran alone
+    with the net rule (tested bit for bit); what changes is only that a settled component no longer
+    waits for the slowest one (whose further iterations would move it by less than the stopping
+    tolerance). The iteration count of the step is then its slowest component's.
     """
 
     vehicle_particles: int = 1000
@@ -242,6 +253,7 @@ class PfParams:
     message_bandwidth: str = "prior"
     sigma_along: float | None = None
     sigma_cross: float | None = None
+    bpa_stop: str = "net"
 
     def __post_init__(self):
         if self.vehicle_particles < 1 or self.feature_particles < 1:
@@ -258,6 +270,8 @@ class PfParams:
             raise ValueError(f"message_bandwidth must be one of {', '.join(BANDWIDTHS)}")
         if self.recursion not in RECURSIONS:
             raise ValueError(f"recursion must be one of {', '.join(RECURSIONS)}")
+        if self.bpa_stop not in BPA_STOPS:
+            raise ValueError(f"bpa_stop must be one of {', '.join(BPA_STOPS)}")
         if not 0.0 <= self.min_association_belief < 1.0:
             raise ValueError("min_association_belief must be in [0, 1)")
 
@@ -298,6 +312,8 @@ class PfBpaResult:
     first_message_logw: np.ndarray | None = None
     # consensus rounds of the step: average (28) and max (29); None = iterations x the params' rounds
     rounds: tuple[int, int] | None = None
+    # (E,) iterations each entry's component ran (PfParams.bpa_stop = "component"); None = all ``iterations``
+    entry_iterations: np.ndarray | None = None
 
 
 def gauss_transforms(pf: PfParams, src_sets, src_logw, src_index, src_shift, tgt_sets, tgt_index, tgt_shift, r):
@@ -448,12 +464,32 @@ def pf_bpa_localization(
                                          pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[0])
         to_vehicles = RepeatedTransforms(f_centres, t_track, zero_shift, vehicle_particles, t_vehicle, t_z, r_from_f,
                                          pf.kernel, pf.kernel_rel_tol, keep_bytes, storage[1])
+    # PfParams.bpa_stop = "component": only the entries (act_e) and terms (act_t) of components still
+    # iterating are summed; the others keep their last messages. None: every one (the net rule).
+    per_component = pf.bpa_stop == "component"
+    act_e = act_t = act_seg = None
+    if per_component:
+        comp_e, comp_v, n_comp = bpa_components(graph, entry_vehicle, n)
+        live = np.ones(n_comp, bool)
+        comp_iterations = np.zeros(n_comp, np.int64)
+
+    def messages(transforms, cavity: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(19) or (21): the terms' sums of the cavity, mixed per entry with its constant; the live
+        entries' only (``act_e``), the others keep ``previous``."""
+        if act_t is None:
+            out, p = transforms.sum(cavity[term_entry])
+            return normalize_log(_segment_logsumexp(term_log_c[:, None] + out, term_entry, e, entry_log_c0)), p
+        out, p = transforms.sum(cavity[term_entry[act_t]], act_t)
+        new = previous.copy()
+        new[act_e] = normalize_log(_segment_logsumexp(term_log_c[act_t, None] + out, act_seg, act_e.size,
+                                                      entry_log_c0[act_e]))
+        return new, p
+
     for it in range(1, params.bpa_max_iterations + 1):
         # (19): vehicle cavity b_i / m_{k->i}, summed over the vehicle particles for every feature particle.
-        cav_v = normalize_log(logb_v[entry_vehicle] - log_m_fv)
-        s_out, p1 = to_features.sum(cav_v[term_entry])
-        log_m_vf = normalize_log(_segment_logsumexp(term_log_c[:, None] + s_out, term_entry, e, entry_log_c0))
+        log_m_vf, p1 = messages(to_features, normalize_log(logb_v[entry_vehicle] - log_m_fv), log_m_vf)
         # (28)-(29): sum of log-messages over V_k = |V_k ∩ C| x average consensus; then max consensus.
+        # (A settled component's rows are recomputed from its unchanged messages: the same values.)
         if channel is None:
             avg = average_consensus_with_weights(log_m_vf, weights, c_avg)
         else:
@@ -463,17 +499,21 @@ def pf_bpa_localization(
         loc = log_b0_e + count[:, None] * avg
         loc = loc - loc.max(axis=1, keepdims=True)
         if channel is None:
-            logb_f = normalize_log(max_consensus(loc, graph, c_max))
+            new_f = normalize_log(max_consensus(loc, graph, c_max))
         else:
             granted = channel.grant(c_max, params.exchanges_left(it, per_iteration=2, done=1))
-            logb_f = normalize_log(channel.maximum(loc, granted))
+            new_f = normalize_log(channel.maximum(loc, granted))
             rounds_max += granted
+        if act_e is None:
+            logb_f = new_f
+        else:  # (over a lossy channel a settled component's rows would differ: keep them)
+            logb_f = logb_f.copy()
+            logb_f[act_e] = new_f[act_e]
         if it == 1:
             first_f, first_m = logb_f, log_m_vf
         # (21): feature cavity b_k / m_{i->k}, summed over the feature particles for every vehicle particle.
         cav_f = normalize_log(logb_f - log_m_vf)
-        t_out, p2 = to_vehicles.sum(cav_f[term_entry])
-        log_m_fv = normalize_log(_segment_logsumexp(term_log_c[:, None] + t_out, term_entry, e, entry_log_c0))
+        log_m_fv, p2 = messages(to_vehicles, cav_f, log_m_fv)
         if flat_m is not None:
             log_m_fv[flat_e] = flat_m
         pairs += int(p1.sum() + p2.sum())
@@ -483,10 +523,23 @@ def pf_bpa_localization(
         logb_v = normalize_log(acc)
         new_v, _ = weighted_moments(vehicle_particles, logb_v)
         new_f, _ = weighted_moments(track_particles[entry_track], logb_f)
-        dv = np.concatenate([np.hypot(*(new_v[:, :2] - v_mean[:, :2]).T), np.hypot(*(new_f[:, :2] - f_mean[:, :2]).T)])
-        dw = np.concatenate([np.hypot(*(new_v[:, 2:] - v_mean[:, 2:]).T), np.hypot(*(new_f[:, 2:] - f_mean[:, 2:]).T)])
+        dv_v, dv_f = np.hypot(*(new_v[:, :2] - v_mean[:, :2]).T), np.hypot(*(new_f[:, :2] - f_mean[:, :2]).T)
+        dw_v, dw_f = np.hypot(*(new_v[:, 2:] - v_mean[:, 2:]).T), np.hypot(*(new_f[:, 2:] - f_mean[:, 2:]).T)
         v_mean, f_mean = new_v, new_f
-        if dv.max() < params.stop_pos_m and dw.max() < params.stop_vel_mps:  # Sec. V-A
+        if per_component:  # Sec. V-A within each component
+            moved = np.zeros(n_comp, bool)
+            moved[comp_v[~((dv_v < params.stop_pos_m) & (dw_v < params.stop_vel_mps))]] = True  # (nan: moved,
+            moved[comp_e[~((dv_f < params.stop_pos_m) & (dw_f < params.stop_vel_mps))]] = True  # as the net rule)
+            comp_iterations[live] = it
+            live &= moved
+            if not live.any():
+                converged = True
+                break
+            act_e = np.flatnonzero(live[comp_e])
+            act_t = np.flatnonzero(live[comp_e[term_entry]])
+            act_seg = np.searchsorted(act_e, term_entry[act_t])
+        elif np.concatenate([dv_v, dv_f]).max() < params.stop_pos_m and \
+                np.concatenate([dw_v, dw_f]).max() < params.stop_vel_mps:  # Sec. V-A
             converged = True
             break
         if channel is not None and channel.exhausted:
@@ -510,7 +563,27 @@ def pf_bpa_localization(
     track_entry = np.full(k, -1, np.int64)
     track_entry[entry_track[order][first]] = order[first]
     rounds = None if channel is None else (rounds_avg, rounds_max)
-    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs, first_f, first_m, rounds)
+    entry_its = None
+    if per_component:
+        comp_iterations[live] = it
+        entry_its = comp_iterations[comp_e]
+    return PfBpaResult(logb_v, logb_f, log_m_vf, track_entry, it, converged, pairs, first_f, first_m, rounds,
+                       entry_its)
+
+
+def bpa_components(graph: sp.csr_matrix, entry_vehicle: np.ndarray, n_vehicles: int
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Connected components of BPA-L's graph: entries (vehicle, track) linked to their vehicle and,
+    by the consensus ``graph`` (:func:`coloc.inference.row_consensus.consensus_graph`), to the other
+    observers of their track among their V2V neighbours. No message of (19)-(29) crosses from one
+    component to another. Returns (component of each entry (E,), of each vehicle (N,), count); a
+    vehicle without entries is a component of its own."""
+    e = entry_vehicle.size
+    g = sp.csr_matrix(graph, dtype=bool)
+    links = sp.bmat([[g, sp.csr_matrix((np.ones(e, bool), (np.arange(e), entry_vehicle)), shape=(e, n_vehicles))],
+                     [None, sp.csr_matrix((n_vehicles, n_vehicles), dtype=bool)]], format="csr")
+    count, labels = connected_components(links, directed=False)
+    return labels[:e].astype(np.int64), labels[e:].astype(np.int64), int(count)
 
 
 # ----------------------------------------------------------------------------- state and step
@@ -552,7 +625,7 @@ class PfStepInfo:
 
 
 def pf_step_comm(entry_vehicle: np.ndarray, entry_track: np.ndarray, adjacency: sp.spmatrix, birth_owner: np.ndarray,
-                 iterations: int, n_vehicles: int, params: IcpParams, pf: PfParams,
+                 iterations: int | np.ndarray, n_vehicles: int, params: IcpParams, pf: PfParams,
                  rounds: tuple[int, int] | None = None) -> CommCount:
     """What the vehicles sent in one step (:mod:`coloc.inference.comm`): every BPA-L iteration,
     ``consensus_iterations`` rounds of average consensus of the Jf log-weights (28) and
@@ -560,16 +633,27 @@ def pf_step_comm(entry_vehicle: np.ndarray, entry_track: np.ndarray, adjacency: 
     vehicle with an entry (vehicle, track) that has a consensus partner (another observer of the
     track among its V2V neighbours); plus one announcement of the rows that start tracks.
     ``rounds``: the (average, max) rounds the step used over a V2X channel (:class:`PfBpaResult`), in
-    place of iterations x the params' rounds."""
+    place of iterations x the params' rounds. ``iterations``: the step's, or (E,) per entry (its
+    component's, ``PfParams.bpa_stop = "component"``)."""
     graph = consensus_graph(entry_vehicle, entry_track, adjacency)
     active = np.diff(graph.indptr) > 0 if entry_vehicle.size else np.zeros(0, bool)
     avg_words, max_words = pf_words(pf.feature_particles)
     c = int(params.consensus_iterations)
-    it = int(iterations)
+    birth = announcements(birth_owner, n_vehicles, PF_BIRTH_WORDS)
+    if np.ndim(iterations) and rounds is None:  # per entry (bpa_stop = "component"): each component its own
+        its = np.asarray(iterations, dtype=np.int64)
+        total = CommCount.zeros(n_vehicles)
+        for g in np.unique(its):
+            sel = active & (its == g)
+            total = (total + broadcast_rounds(entry_vehicle, sel, n_vehicles, int(g) * c, avg_words)
+                     + broadcast_rounds(entry_vehicle, sel, n_vehicles, int(g) * max(c, 1), max_words))
+        most = int(its.max(initial=0))
+        return CommCount(total.messages, total.bytes, most * c + most * max(c, 1)) + birth
+    it = int(np.max(iterations, initial=0))
     r_avg, r_max = (it * c, it * max(c, 1)) if rounds is None else rounds
     return (broadcast_rounds(entry_vehicle, active, n_vehicles, r_avg, avg_words)
             + broadcast_rounds(entry_vehicle, active, n_vehicles, r_max, max_words)
-            + announcements(birth_owner, n_vehicles, PF_BIRTH_WORDS))
+            + birth)
 
 
 @dataclass(frozen=True)
@@ -954,7 +1038,8 @@ def icp_da_pf_step(
                         t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t], heading)
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
-                      pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced], res.iterations, n,
+                      pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced],
+                                   res.iterations if res.entry_iterations is None else res.entry_iterations, n,
                                    params, pf, res.rounds), ex, n_tentative)
     return new_state, next_id, info, estimate
 

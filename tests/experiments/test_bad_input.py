@@ -398,6 +398,11 @@ def run_inertial_controlled_scenario(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "pf", "bpa_stop", "net, component")
+def run_pf_bpa_stop_unknown(tmp, net, run):
+    return ["run", str(_config(tmp, net, "[pf]\nbpa_stop = \"track\"\n")), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "features.pedestrians", "persons")
 def run_pedestrians_on_a_net_without_persons(tmp, net, run):
     cfg = _config(tmp, net, "[features]\npedestrians = true\n")
