@@ -18,8 +18,8 @@ Then one coupled run (libsumo, ``SumoCoupler``, the generated TLR config's sensi
 every frame, as ``bench/coupled_vs_sumo.py`` does) records per step the vehicles in the net, the V2V
 links, the V2F rows and the wall time of the frame and of each method. Printed: per bin of vehicles in
 the net, the cost per vehicle-step (microseconds) of frames, gnss, icp_known_da and icp_da_lc, with the
-mean V2V degree and V2F rows per vehicle beside them (a denser net has more neighbours per vehicle:
-the consensus cost per vehicle grows with the degree, not with N); the ratio of icp_da_lc's cost per
+mean V2V degree and V2F rows per vehicle beside them (the jam packs the net, so the degree grows with
+N: a change in cost can be read against it); the ratio of icp_da_lc's cost per
 vehicle-step at ~3000 vehicles to its cost at ~300 (issue target: at most 1.5); and the `sumo` binary
 alone on the same net and routes against the coupled run with gnss + icp_da_lc (target: at most 10x).
 
@@ -48,12 +48,12 @@ sys.path.insert(0, str(ROOT))
 from couplers.netfolder import load_net_folder  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from experiments.config import load_config  # noqa: E402
-from coloc.methods.registry import METHODS  # noqa: E402
+from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA, METHODS  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
 from bench.coupled_vs_sumo import time_sumo_binary  # noqa: E402
 
 BINS = (100, 200, 300, 500, 750, 1000, 1500, 2000, 2500, 3000, 3500)
-METHOD_NAMES = ("gnss", "icp_known_da", "icp_da_lc")
+METHOD_NAMES = (GNSS.name, ICP_KNOWN_DA.name, ICP_DA_LC.name)
 
 
 def bus_stop_places(net_file: Path, spacing: float) -> str:
@@ -141,7 +141,7 @@ def per_vehicle_table(rec: dict[str, np.ndarray], names: list[str]) -> dict[int,
         for m in names:
             cost = 1e6 * rec[m][sel].sum() / veh_steps
             row += f" {cost:13.1f}"
-            if m == "icp_da_lc":
+            if m == ICP_DA_LC.name:
                 lc[lo] = cost
         print(row)
     return lc
@@ -185,8 +185,8 @@ def main() -> None:
     print(f"  frames (libsumo + coupler) {frames_s:8.1f} s   ratio to sumo {frames_s / sumo_alone:5.2f}")
     for m in names:
         print(f"  estimator {m:<16} {rec[m].sum():8.1f} s")
-    if "icp_da_lc" in names and "gnss" in names:
-        run = frames_s + rec["gnss"].sum() + rec["icp_da_lc"].sum()
+    if ICP_DA_LC.name in names and GNSS.name in names:
+        run = frames_s + rec[GNSS.name].sum() + rec[ICP_DA_LC.name].sum()
         print(f"  coupled gnss + icp_da_lc   {run:8.1f} s   ratio to sumo {run / sumo_alone:5.2f} (target at most 10)")
 
 

@@ -75,7 +75,11 @@ def test_runs_are_the_preset_plus_every_other_level(tmp_path):
 def test_star_key_sets_every_sensor_and_a_level_may_take_another_base():
     spec = load_sweep(PROJECT / "experiments" / "sweeps" / "arterial_sensing.toml")
     _, runs = expand_runs(spec)
-    assert len(runs) == 2 * 10 * 5  # controls x (preset + 9 levels) x seeds, as the file's header says
+    # controls x (preset + 9 levels) x seeds, and the two pedestrian levels in TLR only, as the file's header says
+    assert len(runs) == 2 * 10 * 5 + 2 * 5
+    ped = [r for r in runs if "pedestrians=" in r.run_id]
+    assert len(ped) == 10 and all(r.cfg.scenario.control == "tlr" for r in ped)
+    assert all(r.cfg.features.pedestrians == ("=on," in r.run_id) for r in ped)
     cfg = {r.run_id: r.cfg for r in runs if r.seed == 1}
     pd07 = cfg["control=vsr,detection_probability=0.7,seed=1"]
     assert pd07.scenario.control == "vsr"
