@@ -331,14 +331,14 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                        "look like static objects); joins the new-feature density in the "
                                        "normaliser of eta (13). 0 = no clutter (the paper)."),
         "sensor_fov": ("", "P_D per (vehicle, track) from the `[perception]` sensors (field of view around the "
-                           "estimated heading, range, detection profile); needs `[perception]`. Off: "
+                           "estimated heading, range, detection profile), for ICP-DA-LC and ICP-DA-PF; needs `[perception]`. Off: "
                            "`detection_probability` within the range."),
         "visibility": (NO_UNIT, "With `sensor_fov`: the share of in-view tracks the estimator expects not to be "
                                 "occluded (it cannot predict every occluder); scales the sensors' P_D. 1 = no "
                                 "occlusion expected, so a miss of an occluded track counts fully against it."),
         "track_existence": ("", "Carry an existence probability with each track (Meyer et al. 2018): a track "
                                 "localizes vehicles only while it is at least `confirm_existence`, and is "
-                                "dropped below `drop_existence`. Off: every track exists (the paper)."),
+                                "dropped below `drop_existence` (ICP-DA-LC and ICP-DA-PF). Off: every track exists (the paper)."),
         "survival_probability": (NO_UNIT, "A track's existence is multiplied by this every step."),
         "confirm_existence": (NO_UNIT, "Existence from which a track localizes vehicles."),
         "drop_existence": (NO_UNIT, "Existence below which a track is dropped."),
