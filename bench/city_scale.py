@@ -1,4 +1,4 @@
-"""Benchmark: per-vehicle-step cost of frames and estimators on a city, from 100 to 3000 vehicles.
+"""Benchmark: per-vehicle-step cost of frames and estimators on a city, from 100 to about 2700 vehicles.
 
 Issue 24 item 4. Builds, deterministically and from files this project ships or generates:
 
