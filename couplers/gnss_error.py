@@ -55,10 +55,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
-from couplers.rows import id_rows
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -237,7 +237,7 @@ class GnssErrorProcess:
              zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws."""
         n = len(ids)
-        idx = id_rows(self._ids, ids)
+        idx = match_ids(self._ids, ids)
         w = np.ascontiguousarray(w, dtype=float)
         # Carried state; episodes past their end stop (bias 0, end -inf until a new start).
         u, bias, end, active = _carry(idx, np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,

@@ -56,9 +56,9 @@ import numpy as np
 from numba import njit
 
 from coloc.core.inertial import ImuFrame, wrap_angle
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.perception import effect_rng
-from couplers.rows import id_rows
 
 INERTIAL_STREAM_TAG = 0x1A0
 
@@ -181,7 +181,7 @@ class InertialProcess:
         (zero rows for vehicles that entered), ``heading`` (N,) the true heading."""
         p, dt = self.params, self.dt
         n = len(ids)
-        idx = id_rows(self._ids, ids)
+        idx = match_ids(self._ids, ids)
         fresh = (idx < 0) | np.asarray(entered, dtype=bool)
         prev_heading = _carried(self._heading, idx, fresh, np.nan)
         body, yaw = true_body_motion(accel_net, heading, prev_heading, dt)

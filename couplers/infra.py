@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from coloc.core.frame import InfraFrame
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.rows import id_rows
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,7 @@ class InfraSynth:
         local = np.stack([c * rel[:, 0] + si * rel[:, 1], -si * rel[:, 0] + c * rel[:, 1]], axis=1)
         radar_z = local + s.radar_sigma_m * self.rng.standard_normal((owner.size, 2))
         # Odometry: true displacement since the last step + N(0, odom_sigma^2 I2); NaN when fresh.
-        idx = id_rows(self._prev_ids, vehicle_ids)
+        idx = match_ids(self._prev_ids, vehicle_ids)
         fresh = (idx < 0) | np.asarray(entered, bool)
         odom = np.full((n, 2), np.nan)
         noise = s.odom_sigma_m * self.rng.standard_normal((n, 2))

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coloc.core.vehicles import match_ids
 from couplers.perception import CLASS_PEDESTRIAN, CLASS_STATIC
-from couplers.rows import id_rows
 
 __all__ = ["FeaturesParams", "PersonStates", "person_states", "FeatureRegistry", "CLASS_STATIC",
            "CLASS_PEDESTRIAN"]
@@ -83,7 +83,7 @@ class FeatureRegistry:
     def update(self, persons: PersonStates) -> np.ndarray:
         """Register new persons, write this step's states (NaN for persons gone); returns the (P,)
         registry row of each person of ``persons``."""
-        idx = id_rows(self._person_ids, persons.ids)
+        idx = match_ids(self._person_ids, persons.ids)
         new = idx < 0
         if new.any():
             n_old = self._person_ids.size

@@ -15,11 +15,12 @@ from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
+from coloc.kernels.icp import rows_by_key
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
 from couplers.inertial import InertialParams
 from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
-from couplers.rows import counting_order, shuffle_within_owner
+from couplers.rows import shuffle_within_owner
 from couplers.v2x import V2xParams
 
 
@@ -171,8 +172,8 @@ def _pairs_within(vxy, fxy, radius):
     owner = np.empty(m, dtype=np.int64)
     feat = np.empty(m, dtype=np.int64)
     _window_pairs(vxy, fxy, order, lo, hi, radius * radius, owner, feat)
-    by_feat = counting_order(feat, k)[0]
-    by_owner = by_feat[counting_order(owner[by_feat], n)[0]]
+    by_feat = rows_by_key(feat, k)[1]
+    by_owner = by_feat[rows_by_key(owner[by_feat], n)[1]]
     return owner[by_owner], feat[by_owner]
 
 

@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
+from coloc.core.vehicles import match_ids
 from couplers import sumo_traffic
 from couplers.errors import InputError
 from couplers.gnss_error import GnssErrorProcess
@@ -17,7 +18,6 @@ from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.pedestrians import FeatureRegistry, person_states
 from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
-from couplers.rows import id_rows
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
 from couplers.v2x import V2xChannel
@@ -166,7 +166,7 @@ class SumoCoupler:
 
     def _vehicle_dims(self, ids: np.ndarray) -> np.ndarray:
         """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle."""
-        idx = id_rows(self._dim_ids, ids)
+        idx = match_ids(self._dim_ids, ids)
         dims = np.empty((len(ids), 2))
         dims[idx >= 0] = self._dims[idx[idx >= 0]]
         veh = sumo_traffic.libsumo.vehicle
@@ -202,7 +202,7 @@ class SumoCoupler:
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
-            observer_occluder=np.arange(len(states.ids)) if states is road else id_rows(road.ids, states.ids),
+            observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
             buildings=self.scenario.net.buildings, feature_class=feature_class,
         )
         for key, val in det.stats.items():

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.rows import id_rows
 
 try:  # imported lazily by callers that only need the pure parts of couplers
     import libsumo
@@ -204,7 +204,7 @@ class SumoTraffic:
         heading = np.radians(90.0 - angle)
         velocity = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
 
-        idx = id_rows(self._prev_ids, ids_arr)
+        idx = match_ids(self._prev_ids, ids_arr)
         seen = idx >= 0
         entered = ~seen
         if self._back_from_teleport:

@@ -64,10 +64,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from coloc.core.v2x import UNLIMITED_ROUNDS, V2xFrame
+from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng, occluded_by_buildings
-from couplers.rows import id_rows
 
 V2X_STREAM_TAG = 0x5A2
 _EQUIP_PERSON = b"coloc.v2x.equip"  # BLAKE2b personalisation: this hash is the equipment draw only
@@ -234,7 +234,7 @@ class V2xChannel:
     def equipped(self, ids: np.ndarray) -> np.ndarray:
         """(N,) bool for the vehicles on the road; hashes only the ids not seen at the previous step."""
         ids = np.asarray(ids, dtype=object)
-        idx = id_rows(self._ids, ids)
+        idx = match_ids(self._ids, ids)
         out = np.empty(ids.size, dtype=bool)
         known = idx >= 0
         out[known] = self._equipped[idx[known]]

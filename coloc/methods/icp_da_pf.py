@@ -112,7 +112,7 @@ from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.v2x import V2xFrame
-from coloc.core.vehicles import match_ids
+from coloc.core.vehicles import fresh_rows, match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
 from coloc.inference.existence import TrackExistence, birth_existence
@@ -723,10 +723,7 @@ def icp_da_pf_step(
     # 1. Vehicles: model (1) or the fast-start prior, then (23).
     latest = pf.recursion == "latest_message"
     idx = match_ids(state.ids, frame.vehicle_ids)
-    fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
-    for i in np.flatnonzero(fresh):
-        if not np.all(np.isfinite(frame.prior_z[i])):
-            raise ValueError("frame marks a vehicle as new but carries no fast-start prior for it")
+    fresh = fresh_rows(idx, frame.entered, frame.prior_z)
     # Input of model (1): frame.accel, or with [inertial] the body-frame IMU rotated by the heading of the
     # previous belief's mean velocity (coloc.core.inertial.estimator_input), for both particle sets.
     prev_velocity = (state.particles[:, :, 2:].mean(axis=1) if frame.imu is not None and state.particles.shape[0]

@@ -51,7 +51,7 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
-from coloc.core.vehicles import carry_states, match_ids
+from coloc.core.vehicles import carry_states, fresh_rows, match_ids
 from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
 from coloc.inference.comm import CommCount
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
@@ -97,9 +97,7 @@ def vehicle_prior_pair(
     if not icp_fused.FUSED:
         b0 = vehicle_prior_beliefs(state.ids, state.mean, state.cov, frame, params, match, accel)
         return *b0, *vehicle_prior_beliefs(state.ids, state.own_mean, state.own_cov, frame, params, match, accel)
-    fresh = (match < 0) | np.asarray(frame.entered, dtype=bool)
-    if fresh.any() and not np.all(np.isfinite(frame.prior_z[fresh])):
-        raise ValueError("frame marks a vehicle as new but carries no fast-start prior for it")
+    fresh = fresh_rows(match, frame.entered, frame.prior_z)
     m = params.motion
     f64 = np.ascontiguousarray
     return carry_gnss_kernel(
