@@ -59,6 +59,7 @@ from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
+from couplers.zones import CellGrid
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -123,34 +124,7 @@ def zone_rates(params: GnssErrorParams, zone: np.ndarray) -> np.ndarray:
     return rates
 
 
-@dataclass(frozen=True)
-class DensityGrid:
-    """Building plan-area fraction within a radius, precomputed on a grid (net x/y) for lookups."""
-
-    x0: float
-    y0: float
-    cell: float
-    values: np.ndarray  # (ny, nx)
-
-    def at(self, xy: np.ndarray) -> np.ndarray:
-        return _grid_values(np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), self.x0, self.y0,
-                            self.cell, self.values)
-
-
-@njit(cache=True)
-def _grid_values(xy, x0, y0, cell, values):
-    """Value of the cell of each point, 0 outside the grid."""
-    ny, nx = values.shape
-    out = np.zeros(xy.shape[0])
-    for k in range(xy.shape[0]):
-        fx = math.floor((xy[k, 0] - x0) / cell)
-        fy = math.floor((xy[k, 1] - y0) / cell)
-        if 0 <= fx < nx and 0 <= fy < ny:
-            out[k] = values[int(fy), int(fx)]
-    return out
-
-
-def building_density_grid(buildings: Buildings, radius_m: float, cell_m: float = 5.0) -> DensityGrid:
+def building_density_grid(buildings: Buildings, radius_m: float, cell_m: float = 5.0) -> CellGrid:
     """Plan-area fraction of buildings within ``radius_m`` of each cell centre: buildings rasterised at
     ``cell_m`` (cell centres inside a footprint), then averaged over a disc by FFT convolution."""
     import shapely
@@ -170,7 +144,7 @@ def building_density_grid(buildings: Buildings, radius_m: float, cell_m: float =
     ky, kx = np.mgrid[-k:k + 1, -k:k + 1]
     disc = ((kx * cell_m) ** 2 + (ky * cell_m) ** 2 <= radius_m ** 2).astype(float)
     frac = fftconvolve(built, disc / disc.sum(), mode="same")
-    return DensityGrid(x0=x0, y0=y0, cell=cell_m, values=np.clip(frac, 0.0, 1.0))
+    return CellGrid(x0=x0, y0=y0, cell=cell_m, values=np.clip(frac, 0.0, 1.0))
 
 
 @njit(cache=True)

@@ -36,6 +36,24 @@ class CellGrid:
     cell: float
     values: np.ndarray  # (ny, nx)
 
+    def at(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) float: the value of each point's cell, 0 outside the grid (and for non-finite points)."""
+        return _grid_values(np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), self.x0, self.y0,
+                            self.cell, self.values)
+
+
+@njit(cache=True)
+def _grid_values(xy, x0, y0, cell, values):
+    """Value of the cell of each point, 0 outside the grid."""
+    ny, nx = values.shape
+    out = np.zeros(xy.shape[0])
+    for k in range(xy.shape[0]):
+        fx = math.floor((xy[k, 0] - x0) / cell)
+        fy = math.floor((xy[k, 1] - y0) / cell)
+        if 0 <= fx < nx and 0 <= fy < ny:
+            out[k] = values[int(fy), int(fx)]
+    return out
+
 
 def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float) -> np.ndarray:
     """Labels of the closed boxes [bx, bx + size] x [by, by + size] widened by ``margin``."""

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import shapely
 
+from couplers.zones import CellGrid
 from couplers.gnss_error import (
-    DensityGrid,
     GnssErrorParams,
     GnssErrorProcess,
     episode_start_probability,
@@ -90,7 +90,7 @@ def test_buildings_prefilter_gives_the_strtree_answer():
 
 def test_density_grid_lookup_equals_the_floor_reference():
     rng = np.random.default_rng(4)
-    grid = DensityGrid(x0=-3.3, y0=7.1, cell=5.0, values=rng.random((20, 30)))
+    grid = CellGrid(x0=-3.3, y0=7.1, cell=5.0, values=rng.random((20, 30)))
     xy = np.vstack([rng.uniform(-20, 170, (5000, 2)) + [0, 10],
                     np.column_stack([-3.3 + 5.0 * rng.integers(-1, 32, 500), 7.1 + 5.0 * rng.integers(-1, 22, 500)])])
     ix = np.floor((xy[:, 0] - grid.x0) / grid.cell).astype(np.int64)
