@@ -47,6 +47,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from experiments.runner import run_experiment
     from experiments.studies import is_study, run_study
 
+    if args.workers < 1:
+        raise InputError(None, "--workers", "must be >= 1")
     check_target(Path(args.out), ("run",), force=args.force)  # before anything is read or simulated
     data = read_toml(args.config, "config file")
     if is_study(data):  # a study of another source paper (experiments/studies)
@@ -64,7 +66,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.methods is not None:
         overrides["run.methods"] = _methods(args.methods)
     cfg = load_config(args.config, overrides)
-    summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force)
+    summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force,
+                             workers=args.workers)
     for method, block in summary["methods"].items():
         print(
             f"{method:>14}: RMSE {block['rmse_pos_m']:.2f} m, p50 {block['p50_pos_m']:.2f} m, "
@@ -236,6 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--duration", type=float, help="override [run] duration_s (simulated seconds)")
     r.add_argument("--methods", help="override [run] methods, comma separated (e.g. gnss)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--workers", type=int, default=1,
+                   help="step the estimators in this many worker processes beside SUMO and the coupler "
+                        "(default 1: all in one process); the files written are the same, byte for byte")
     r.set_defaults(func=cmd_run)
 
     sw = sub.add_parser("sweep", help="Monte Carlo / parameter sweep on Dask (resumable)")

@@ -539,48 +539,97 @@ def frame_source(cfg: Config):
     return _ScenarioSource(cfg) if cfg.is_controlled_scenario else _SumoSource(cfg)
 
 
+def _serial_steps(frames, estimators: list, timing: bool):
+    """Step every estimator on every frame in this process: (frame, [StepResult, ...]) per frame."""
+    from experiments.pipeline import StepResult
+
+    for k, frame in enumerate(frames):
+        if timing and k == 0:
+            _timing_line("first frame")
+        blind = frame.without_truth()
+        results = []
+        for est in estimators:
+            t0 = time.perf_counter()
+            if METHODS[est.name].known_association:
+                # The bound is told the true association, by the runner, never from the frame.
+                res = est.step_with_association(blind, frame.truth.v2f_feature)
+            else:
+                res = est.step(blind)
+            results.append(StepResult(est.name, res, step_comm(est), time.perf_counter() - t0))
+        if timing and k == 0:
+            _timing_line("first step of the estimators done")
+        yield frame, results
+
+
+def _pooled_steps(frames, pool, timing: bool):
+    """The same as :func:`_serial_steps` with the estimators in ``pool``'s worker processes
+    (:mod:`experiments.pipeline`): the frames are made while the workers step the earlier ones."""
+    k = 0
+    pool.wait_ready()
+    for frame in frames:
+        if timing and k == 0:
+            _timing_line("first frame")
+        for done in pool.submit(frame):
+            yield done
+            if timing and k == 0:
+                _timing_line("first step of the estimators done")
+            k += 1
+    for done in pool.finish():
+        yield done
+        if timing and k == 0:
+            _timing_line("first step of the estimators done")
+        k += 1
+
+
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
-                   force: bool = False) -> dict:
+                   force: bool = False, workers: int = 1) -> dict:
     """Run one config; returns the summary dict also written to summary.json.
 
     ``out_dir`` must be absent, empty or an earlier run's folder (``force``: anything but a file);
     it is replaced only when the run has finished (:func:`couplers.publish.staged_folder`).
+    ``workers`` > 1 steps the estimators in that many worker processes beside the frame source
+    (:mod:`experiments.pipeline`); every file written is the same, byte for byte, except the wall
+    and estimator seconds of summary.json.
     """
     out_dir = Path(out_dir)
     source = frame_source(cfg)
-    estimators = build_estimators(cfg)
+    pool = None
+    if workers > 1:
+        from experiments.pipeline import EstimatorPool
+
+        estimators = []
+    else:
+        estimators = build_estimators(cfg)
     with staged_folder(out_dir, "run", force=force) as tmp:
         log = EstimateLog()
-        seconds = {e.name: 0.0 for e in estimators}
-        comm = {e.name: CommTally() for e in estimators}
+        seconds = {m: 0.0 for m in cfg.run.methods}
+        comm = {m: CommTally() for m in cfg.run.methods}
         v2v = V2vTally()
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
-        with source:
-            version = source.sumo_version
-            frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
-            for k, frame in enumerate(frames):
-                if timing and k == 0:
-                    _timing_line("first frame")
-                log.add_truth(frame)
-                v2v.add(frame)
-                blind = frame.without_truth()
-                for est in estimators:
-                    t0 = time.perf_counter()
-                    if METHODS[est.name].known_association:
-                        # The bound is told the true association, by the runner, never from the frame.
-                        res = est.step_with_association(blind, frame.truth.v2f_feature)
-                    else:
-                        res = est.step(blind)
-                    seconds[est.name] += time.perf_counter() - t0
-                    sent = step_comm(est)
-                    if sent is not None:
-                        comm[est.name].add(sent)
-                    log.add(est.name, res)
-                    log.add_association(est.name, frame, res)
-                    log.add_features(est.name, frame, res)
-                if timing and k == 0:
-                    _timing_line("first step of the estimators done")
+        try:
+            if workers > 1:  # started before SUMO, so that the workers' imports overlap its start-up
+                pool = EstimatorPool(cfg, workers)
+            with source:
+                version = source.sumo_version
+                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
+                steps = _serial_steps(frames, estimators, timing) if pool is None else _pooled_steps(frames, pool,
+                                                                                                     timing)
+                for frame, results in steps:
+                    log.add_truth(frame)
+                    v2v.add(frame)
+                    for r in results:
+                        seconds[r.name] += r.seconds
+                        if r.sent is not None:
+                            comm[r.name].add(r.sent)
+                        log.add(r.name, r.estimate)
+                        log.add_association(r.name, frame, r.estimate)
+                        log.add_features(r.name, frame, r.estimate)
+        finally:
+            if pool is not None:
+                pool.close()
+        method_stats = (dict(pool.stats) if pool is not None else
+                        {e.name: dict(e.stats) for e in estimators if hasattr(e, "stats")})
         wall = time.perf_counter() - t_start
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
@@ -637,9 +686,9 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                                      "per_vehicle_step": {k: v / vehicle_steps for k, v in totals.items()}}
         if log.infra_parts:
             cov_summary = coverage_summary(estimates, methods)
-            for est in estimators:
-                if hasattr(est, "stats") and est.name in cov_summary["methods"]:
-                    cov_summary["methods"][est.name]["stats"] = dict(est.stats)
+            for name, stats in method_stats.items():
+                if stats is not None and name in cov_summary["methods"]:
+                    cov_summary["methods"][name]["stats"] = stats
             summary["within_rsu_coverage"] = cov_summary
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:

@@ -1,0 +1,204 @@
+"""Estimators in worker processes beside the frame source (``coloc run --workers N``).
+
+A coupled run is open loop: SUMO and the coupler never read an estimate, so frame k + 1 can be
+made while the estimators work on frame k. :class:`EstimatorPool` runs the config's estimators in
+``N`` worker processes (spawned, so SUMO's process is never forked) and hands their results back
+to the runner in step order and in the config's method order, so the runner logs exactly what it
+logs when it steps them itself: the same estimates.parquet, association.parquet and summary
+numbers, byte for byte (``tests/experiments/test_pipeline.py``), only the wall time changes.
+
+Each worker builds its own estimators from the config (the registry, as the runner does) and steps
+them on the frames it is sent without truth; the known-association bound is sent the true
+association of the rows with it, by the runner, as in the serial loop. At most ``lookahead``
+frames wait for their results, so memory stays bounded. Estimators go to workers round robin in the
+config's order; with more workers than estimators the extra ones are not started.
+
+What it costs: each frame is pickled once per worker (about 0.1 ms for the arterial's ~400 rows),
+and each worker imports the estimators once (in parallel with SUMO's start-up). What it gains: the
+runner's process makes frames while the estimators run; on 2 cores the hour of
+``gnss,icp_known_da,icp_da_lc`` on the arterial runs in the estimators' time instead of the sum
+(docs/performance.md, "Estimators beside the traffic").
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from coloc.core.frame import Frame, StepEstimate
+
+#: frames sent ahead of the oldest result the runner has not taken yet
+LOOKAHEAD = 8
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One estimator's output for one frame, as the runner logs it."""
+
+    name: str
+    estimate: StepEstimate
+    sent: object  # coloc.inference.comm.CommCount | None (runner.step_comm)
+    seconds: float  # the estimator's step, measured in its worker
+
+
+def assign_round_robin(n_methods: int, n_workers: int) -> list[list[int]]:
+    """Method indices per worker: method i to worker i mod n (only workers that get a method)."""
+    n = max(1, min(int(n_workers), n_methods))
+    return [list(range(w, n_methods, n)) for w in range(n)]
+
+
+def _worker_main(conn, cfg, indices: list[int]) -> None:
+    """Worker process: build the estimators ``indices`` of ``cfg.run.methods``, then step them on every
+    frame received until None; reply per frame with their :class:`StepResult` list, at the end with
+    each estimator's ``stats`` (infrastructure methods' counters) or None."""
+    try:
+        from coloc.methods.registry import METHODS, build_method
+        from experiments.runner import method_params, step_comm
+
+        params = method_params(cfg)
+        estimators = [build_method(cfg.run.methods[i], params) for i in indices]
+        known = [METHODS[e.name].known_association for e in estimators]
+        conn.send(("ready", None))
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            blind, association = msg
+            out = []
+            for est, told in zip(estimators, known):
+                t0 = time.perf_counter()
+                res = est.step_with_association(blind, association) if told else est.step(blind)
+                out.append(StepResult(est.name, res, step_comm(est), time.perf_counter() - t0))
+            conn.send(("step", out))
+        conn.send(("stats", [dict(est.stats) if hasattr(est, "stats") else None for est in estimators]))
+    except BaseException:  # noqa: BLE001 - the runner raises it in the main process
+        try:
+            conn.send(("error", traceback.format_exc()))
+        except (BrokenPipeError, OSError):
+            pass
+    finally:
+        conn.close()
+
+
+def _drain(conn, replies: queue.Queue) -> None:
+    """Move a worker's replies from its pipe to ``replies`` until its last one ("stats" or "error")."""
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            replies.put(("eof", None))
+            return
+        replies.put(msg)
+        if msg[0] in ("stats", "error"):
+            return
+
+
+class EstimatorWorkerError(RuntimeError):
+    """An estimator failed in its worker process (the message carries the worker's traceback)."""
+
+
+class EstimatorPool:
+    """The config's estimators in worker processes; results in step and method order.
+
+    ``submit(frame)`` sends a frame (with truth: the pool strips it, keeping the true association for
+    the known-association bound) and returns the finished steps as (frame, [StepResult, ...]) in order,
+    at most :data:`LOOKAHEAD` frames behind; ``finish()`` returns the rest and ends the workers.
+    """
+
+    def __init__(self, cfg, n_workers: int, lookahead: int = LOOKAHEAD):
+        from coloc.methods.registry import METHODS
+
+        self.methods = list(cfg.run.methods)
+        self.groups = assign_round_robin(len(self.methods), n_workers)
+        self._needs_truth = [any(getattr(METHODS.get(self.methods[i]), "known_association", False) for i in g)
+                             for g in self.groups]
+        self.lookahead = max(1, int(lookahead))
+        self._pending: deque[Frame] = deque()
+        self.stats: dict[str, dict | None] = {}
+        ctx = multiprocessing.get_context("spawn")
+        self._conns, self._procs, self._replies = [], [], []
+        for group in self.groups:
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker_main, args=(child, cfg, group), daemon=True)
+            proc.start()
+            child.close()
+            # A thread per worker takes its replies off the pipe as they come: a worker never blocks on
+            # a full pipe while the runner is blocked sending it the next frame.
+            replies: queue.Queue = queue.Queue()
+            threading.Thread(target=_drain, args=(parent, replies), daemon=True).start()
+            self._conns.append(parent)
+            self._procs.append(proc)
+            self._replies.append(replies)
+
+    def _receive(self, w: int, kind: str):
+        tag, payload = self._replies[w].get()
+        if tag == "eof":
+            raise EstimatorWorkerError(f"estimator worker {w} ({', '.join(self.methods[i] for i in self.groups[w])}) "
+                                       "ended without a reply")
+        if tag == "error":
+            raise EstimatorWorkerError(f"estimator worker {w} failed:\n{payload}")
+        if tag != kind:
+            raise EstimatorWorkerError(f"estimator worker {w}: expected {kind!r}, got {tag!r}")
+        return payload
+
+    def wait_ready(self) -> None:
+        for w in range(len(self._conns)):
+            self._receive(w, "ready")
+
+    def _collect_oldest(self) -> tuple[Frame, list[StepResult]]:
+        frame = self._pending.popleft()
+        results: list[StepResult | None] = [None] * len(self.methods)
+        for w, group in enumerate(self.groups):
+            for i, res in zip(group, self._receive(w, "step")):
+                results[i] = res
+        return frame, results
+
+    def submit(self, frame: Frame) -> list[tuple[Frame, list[StepResult]]]:
+        blind = frame.without_truth()
+        association = (np.asarray(frame.truth.v2f_feature) if frame.truth is not None else None)
+        for w, conn in enumerate(self._conns):
+            conn.send((blind, association if self._needs_truth[w] else None))
+        self._pending.append(frame)
+        done = []
+        while len(self._pending) > self.lookahead:
+            done.append(self._collect_oldest())
+        return done
+
+    def finish(self) -> list[tuple[Frame, list[StepResult]]]:
+        done = []
+        while self._pending:
+            done.append(self._collect_oldest())
+        for conn in self._conns:
+            conn.send(None)
+        for w, group in enumerate(self.groups):
+            for i, stats in zip(group, self._receive(w, "stats")):
+                self.stats[self.methods[i]] = stats
+        self.close()
+        return done
+
+    def close(self) -> None:
+        """End the workers (also after an error: nothing is left running)."""
+        for conn in self._conns:
+            try:
+                conn.close()
+            except OSError:
+                pass
+        for proc in self._procs:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join()
+        self._conns, self._procs = [], []
+
+    def __enter__(self) -> "EstimatorPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
