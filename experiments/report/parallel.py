@@ -8,7 +8,9 @@ through a pipe. Drawing is CPU-bound Python (matplotlib), so threads would not h
 
 Only :func:`os.fork` is used (no ``multiprocessing`` start-up, no re-import): on a system without
 it, with one core, or while other Python threads run (a fork copies no thread, so a lock one of
-them holds would never be released in the child), every job runs in this process.
+them holds would never be released in the child), every job runs in this process. The threads of
+native pools (numpy's OpenBLAS, Arrow's, started by the imports and the Parquet reading) are
+harmless: the children use neither pool's locks (OpenBLAS and Arrow reset them after a fork).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import pickle
 import sys
 import threading
 import traceback
+import warnings
 from typing import Callable, TypeVar
 
 T = TypeVar("T")
@@ -62,7 +65,12 @@ def run_jobs(jobs: list[tuple[float, Callable[[], T]]], workers: int = 1) -> lis
     try:
         for part in parts[1:]:
             r, w = os.pipe()
-            pid = os.fork()
+            with warnings.catch_warnings():
+                # Python >= 3.12 warns on a fork while OS threads run (numpy's OpenBLAS and Arrow's
+                # pools are started by then); the child only runs numpy, pandas and matplotlib on
+                # inherited data, and both libraries re-initialize their pools after a fork.
+                warnings.filterwarnings("ignore", r".*multi-threaded.*fork", DeprecationWarning)
+                pid = os.fork()
             if pid == 0:  # child: run its jobs, send the results, exit without cleanup
                 os.close(r)
                 _child(w, [jobs[i][1] for i in part])

@@ -294,20 +294,23 @@ def test_run_jobs_in_worker_processes():
         assert out[1][1] == os.getpid() and {pid for _, pid in out} - {os.getpid()}
 
 
-def test_run_jobs_error_in_worker():
+def test_run_jobs_error_in_worker(tmp_path):
     from experiments.report.parallel import run_jobs
 
     if threading.active_count() > 1:
         pytest.skip("jobs run in this process while other threads run")
 
     def bad():
+        (tmp_path / "pid").write_text(str(os.getpid()))
         raise ValueError("figure failed")
 
     with pytest.raises(ValueError, match="figure failed") as info:
         run_jobs([(5.0, lambda: 1), (1.0, bad)], 2)
     assert any("worker process" in note for note in info.value.__notes__)
-    with pytest.raises(ChildProcessError):  # every child has been waited for
-        os.waitpid(-1, os.WNOHANG)
+    pid = int((tmp_path / "pid").read_text())
+    assert pid != os.getpid()
+    with pytest.raises(ChildProcessError):  # the child has been waited for
+        os.waitpid(pid, os.WNOHANG)
 
 
 def test_run_report_workers_same_bytes(tmp_path, net_dir):
