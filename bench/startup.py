@@ -6,12 +6,16 @@ CPU time (user + system; on a busy machine wall times stretch, CPU times much le
   2. the imports of ``coloc run`` (``experiments.config``, ``experiments.runner``, ``experiments.studies``);
   3. ``coloc run CONFIG --duration 60`` from process start to its first frame and to the end of the
      estimators' first step (the runner's ``COLOC_TIMING=1`` line), and the whole short run;
-  4. with ``--report RUN_DIR`` (a finished run, e.g. the TLR hour): ``coloc report`` on a copy of it;
+  4. with ``--report RUN_DIR`` (a finished run, e.g. the TLR hour): ``coloc report`` on a copy of it
+     (the CPU time includes the report's figure worker process: it is waited for), and with
+     ``--compare RUN_DIR2`` as well (e.g. the VSR hour): ``coloc report RUN_DIR RUN_DIR2 --out ...``,
+     the comparison ``make run`` writes (on copies that already have their run reports);
 and which of the heavy optional libraries (gtsam, dask, matplotlib, ...) the run path imported.
 Issue 24's targets: first step within 2 s of process start on a warm numba cache; the hour's
 report within 3 s. Run once before, to warm the numba cache (``coloc run`` of any config).
 
-    python bench/startup.py [--config experiments/arterial_tlr.toml] [--repeat 5] [--report /tmp/tlr_hour]
+    python bench/startup.py [--config experiments/arterial_tlr.toml] [--repeat 5] [--report /tmp/tlr_hour
+                            [--compare /tmp/vsr_hour]] [--skip-run]
 
 Not a test: it asserts nothing and prints numbers.
 """
@@ -67,8 +71,17 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--report", help="a finished run folder (e.g. the TLR hour) to time `coloc report` on")
+    ap.add_argument("--compare", help="with --report: a second run folder (e.g. the VSR hour) to time the "
+                                      "comparison report of the two on")
+    ap.add_argument("--skip-run", action="store_true", help="time only the reports (no start-up measurements)")
     args = ap.parse_args()
+    if not args.skip_run:
+        _startup(args)
+    if args.report:
+        _reports(args)
 
+
+def _startup(args: argparse.Namespace) -> None:
     print(f"start-up of `coloc run {Path(args.config).name} --duration {args.duration:g}`, {args.repeat} processes each")
     cpu: list[float] = []
     cli = [_wall([PY, "-c", "import experiments.cli"], cpu)[0] for _ in range(args.repeat)]
@@ -97,14 +110,23 @@ def main() -> None:
         _line(f"run: {what}", values, first_cpu[what])
     _line(f"coloc run --duration {args.duration:g}, whole", whole, cpu)
 
-    if args.report:
-        src = Path(args.report)
-        with tempfile.TemporaryDirectory() as tmp:
-            copy = Path(tmp) / src.name
-            shutil.copytree(src, copy, ignore=shutil.ignore_patterns("figures", "report.html"))
+
+def _reports(args: argparse.Namespace) -> None:
+    srcs = [Path(args.report)] + ([Path(args.compare)] if args.compare else [])
+    with tempfile.TemporaryDirectory() as tmp:
+        copies = []
+        for src in srcs:
+            copies.append(Path(tmp) / f"{len(copies)}" / src.name)
+            shutil.copytree(src, copies[-1], ignore=shutil.ignore_patterns("figures", "report.html"))
+        cpu: list[float] = []
+        rep = [_wall([COLOC, "report", str(copies[0])], cpu)[0] for _ in range(args.repeat)]
+        _line(f"coloc report {srcs[0]}", rep, cpu)
+        if args.compare:
+            _wall([COLOC, "report", str(copies[1])])  # its run report, so the comparison only compares
             cpu = []
-            rep = [_wall([COLOC, "report", str(copy)], cpu)[0] for _ in range(args.repeat)]
-        _line(f"coloc report {src}", rep, cpu)
+            cmp = [_wall([COLOC, "report", *map(str, copies), "--out", str(Path(tmp) / "compare")], cpu)[0]
+                   for _ in range(args.repeat)]
+            _line(f"coloc report {srcs[0].name} {srcs[1].name} --out ...", cmp, cpu)
 
 
 if __name__ == "__main__":

@@ -123,6 +123,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     from experiments.report import write_comparison_report, write_run_report
+    from experiments.report.parallel import available_workers
 
     dirs = [Path(d) for d in args.dirs]
     if len(dirs) == 1 and args.out is None and (dirs[0] / "sweep.toml").is_file():
@@ -138,10 +139,10 @@ def cmd_report(args: argparse.Namespace) -> int:
             if not (d / name).is_file():
                 raise InputError(d / name, None, "not found: is this a `coloc run` output folder?")
     if len(dirs) == 1 and args.out is None:
-        path = write_run_report(dirs[0])
+        path = write_run_report(dirs[0], workers=available_workers())
     else:
         out = Path(args.out) if args.out else dirs[0].parent / "compare"
-        path = write_comparison_report(dirs, out, force=args.force)
+        path = write_comparison_report(dirs, out, force=args.force, workers=available_workers())
     print(f"wrote {path}")
     return 0
 

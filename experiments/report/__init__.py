@@ -9,7 +9,9 @@ several runs (e.g. TLR vs VSR, paper Figs. 13-16).
 Everything is read back from the files, never from the in-memory state of a
 run, so ``coloc report DIR`` rebuilds the same report a run wrote.  Output is
 deterministic (fixed styles, sorted methods/areas, PNGs without software/date
-metadata) and written atomically (:func:`couplers.publish.publish_members`).
+metadata; the same bytes whether the figures are drawn in one process or split between
+forked workers, :mod:`experiments.report.parallel`) and written atomically
+(:func:`couplers.publish.publish_members`).
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Callable
 
 import matplotlib
 
@@ -21,6 +22,7 @@ from experiments.report.html import (
 )
 from experiments.report.load import _EST_COLS, _Run, _load_run, _read_parquet, _summary_from_estimates
 from experiments.report.output import _atomic_publish
+from experiments.report.parallel import run_jobs
 from experiments.report.run import write_run_report
 from experiments.report.styles import _RC, _RUN_LINESTYLES, _sorted_labels, method_label
 
@@ -31,12 +33,12 @@ from experiments.report.styles import _RC, _RUN_LINESTYLES, _sorted_labels, meth
 
 
 def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
-                            build_missing: bool = True, force: bool = False) -> Path:
+                            build_missing: bool = True, force: bool = False, workers: int = 1) -> Path:
     """Compare runs side by side (e.g. TLR vs VSR); writes ``out_dir/report.html`` and figures.
 
     Runs keep the order given (the first is drawn with continuous lines, the second
     dashed, ...).  When ``build_missing`` is true, a run without ``report.html`` gets one
-    so the links work.
+    so the links work.  ``workers``: processes drawing the figures, as in :func:`write_run_report`.
     """
     run_dirs = [Path(d) for d in run_dirs]
     out_dir = Path(out_dir)
@@ -47,7 +49,7 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
     if build_missing:
         for d in run_dirs:
             if not (d / "report.html").exists():
-                write_run_report(d)
+                write_run_report(d, workers=workers)
     runs = [_load_run(d, need_areas=False) for d in run_dirs]
     for r in runs:  # per-area tables come from summary.json; compute only if it lacks them
         if not r.summary.get("methods"):
@@ -57,29 +59,40 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
 
     what = " ".join(_what_was_run(r) for r in runs)
 
+    def figure_jobs(figdir: Path) -> list[tuple[float, Callable[[], str]]]:
+        """The figures as ``(weight, draw)`` jobs; each draws its PNG and returns its HTML block."""
+
+        def traffic() -> str:
+            _fig_traffic(runs, figdir / "compare_traffic.png")
+            return _figure_html(
+                "compare_traffic.png", "Traffic over time per run (paper Figs. 13-15)",
+                "One line per run (colour and line style per run, see legend), one point per "
+                "5-minute interval: exit flow, mean vehicles in the network, mean queue (halting "
+                "vehicles) and stop time per km. How to read: with similar exit flow, a run with "
+                "more vehicles and queues inside the network (e.g. traffic lights) offers denser "
+                "cooperation.", what=what)
+
+        def rmse_time() -> str:
+            width = _fig_rmse_time(runs, figdir / "compare_rmse_time.png")
+            styles = ", ".join(f"{_esc(_run_label(r, runs))}: {_ls_name(k)}"
+                               for k, r in enumerate(runs))
+            return _figure_html(
+                "compare_rmse_time.png", "Accuracy over time per run (paper Fig. 16)",
+                f"Position (a) and velocity (b) RMSE over vehicles per {width} s bin; colour is the "
+                f"method, line style the run ({styles}); green lines with triangles are feature "
+                "RMSE of cooperative methods. How to read: compare the same colour across line "
+                "styles to see how traffic control changes each method's accuracy.", what=what)
+
+        jobs: list[tuple[float, Callable[[], str]]] = []
+        if any(r.traffic is not None and len(r.traffic) for r in runs):
+            jobs.append((2.0, traffic))
+        if any(r.estimates is not None and len(r.estimates) for r in runs):
+            jobs.append((2.0, rmse_time))
+        return jobs
+
     def build(tmp: Path) -> None:
-        figdir = tmp / "figures"
-        blocks: list[str] = []
         with matplotlib.rc_context(_RC):
-            if any(r.traffic is not None and len(r.traffic) for r in runs):
-                _fig_traffic(runs, figdir / "compare_traffic.png")
-                blocks.append(_figure_html(
-                    "compare_traffic.png", "Traffic over time per run (paper Figs. 13-15)",
-                    "One line per run (colour and line style per run, see legend), one point per "
-                    "5-minute interval: exit flow, mean vehicles in the network, mean queue (halting "
-                    "vehicles) and stop time per km. How to read: with similar exit flow, a run with "
-                    "more vehicles and queues inside the network (e.g. traffic lights) offers denser "
-                    "cooperation.", what=what))
-            if any(r.estimates is not None and len(r.estimates) for r in runs):
-                width = _fig_rmse_time(runs, figdir / "compare_rmse_time.png")
-                styles = ", ".join(f"{_esc(_run_label(r, runs))}: {_ls_name(k)}"
-                                   for k, r in enumerate(runs))
-                blocks.append(_figure_html(
-                    "compare_rmse_time.png", "Accuracy over time per run (paper Fig. 16)",
-                    f"Position (a) and velocity (b) RMSE over vehicles per {width} s bin; colour is the "
-                    f"method, line style the run ({styles}); green lines with triangles are feature "
-                    "RMSE of cooperative methods. How to read: compare the same colour across line "
-                    "styles to see how traffic control changes each method's accuracy.", what=what))
+            blocks = run_jobs(figure_jobs(tmp / "figures"), workers)
         (tmp / "report.html").write_text(_comparison_html(runs, out_dir, blocks), encoding="utf-8")
 
     page = _atomic_publish(out_dir, build)

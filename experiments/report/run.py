@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import matplotlib
 
@@ -29,6 +31,7 @@ from experiments.report.html import (
 )
 from experiments.report.load import _Run, _load_run
 from experiments.report.output import _atomic_publish
+from experiments.report.parallel import run_jobs
 from experiments.report.styles import _RC
 
 
@@ -37,38 +40,66 @@ from experiments.report.styles import _RC
 # --------------------------------------------------------------------------- #
 
 
-def write_run_report(run_dir: Path) -> Path:
-    """Write ``run_dir/figures/*.png`` and ``run_dir/report.html`` from the run's files."""
+def write_run_report(run_dir: Path, *, workers: int = 1) -> Path:
+    """Write ``run_dir/figures/*.png`` and ``run_dir/report.html`` from the run's files.
+
+    ``workers``: processes drawing the figures (:func:`experiments.report.parallel.run_jobs`; the
+    same bytes with any number). ``coloc report`` uses two when it may run on two cores; the default
+    draws in this process (e.g. at the end of ``coloc run``, possibly inside a sweep's worker)."""
     run_dir = Path(run_dir)
     run = _load_run(run_dir)
 
     def build(tmp: Path) -> None:
         figdir = tmp / "figures"
-        figs: list[str] = []
         with matplotlib.rc_context(_RC):
-            figs = _run_figures(run, figdir)
+            figs = _run_figures(run, figdir, workers)
         (tmp / "report.html").write_text(_run_html(run, figs), encoding="utf-8")
 
     return _atomic_publish(run_dir, build)
 
 
-def _run_figures(run: _Run, figdir: Path) -> list[str]:
-    """Draw the figures; returns HTML <figure> blocks in display order."""
+@dataclass(frozen=True)
+class _Drawn:
+    """What drawing one figure gives the page: its HTML blocks, notes and warnings (picklable, so a
+    worker process can send it back)."""
+
+    blocks: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+
+def _run_figures(run: _Run, figdir: Path, workers: int = 1) -> list[str]:
+    """Draw the figures (in ``workers`` processes); returns HTML <figure> blocks in display order."""
+    drawn = run_jobs(_figure_jobs(run, figdir), workers)
     blocks: list[str] = []
+    for d in drawn:
+        blocks.extend(d.blocks)
+        run.notes.extend(d.notes)
+        for w in d.warnings:
+            warnings.warn(w, stacklevel=2)
+    return blocks
+
+
+def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Drawn]]]:
+    """The figures to draw as ``(weight, draw)`` jobs in display order; the weight is about the
+    figure's drawing time (its panels; a CDF panel has a legend and 1001-point curves)."""
+    jobs: list[tuple[float, Callable[[], _Drawn]]] = []
     what = _what_was_run(run)
     est = run.estimates
     has_est = est is not None and len(est) > 0
 
     tr = run.traffic
     if tr is not None and len(tr):
-        _fig_traffic([run], figdir / "traffic.png")
-        blocks.append(_figure_html(
-            "traffic.png", "Traffic over time (paper Figs. 13-15)",
-            "From <code>traffic.parquet</code>, one point per aggregation interval (5 min) at its "
-            "midpoint: exit flow (vehicles leaving the network per hour), mean number of vehicles "
-            "in the network, mean queue (mean number of halting vehicles) and stop time per km "
-            "travelled. How to read: higher queue and stop time mean more platooning at junctions "
-            "(denser V2V cooperation) but longer exposure to poor-GNSS zones.", what=what))
+        def traffic() -> _Drawn:
+            _fig_traffic([run], figdir / "traffic.png")
+            return _Drawn((_figure_html(
+                "traffic.png", "Traffic over time (paper Figs. 13-15)",
+                "From <code>traffic.parquet</code>, one point per aggregation interval (5 min) at its "
+                "midpoint: exit flow (vehicles leaving the network per hour), mean number of vehicles "
+                "in the network, mean queue (mean number of halting vehicles) and stop time per km "
+                "travelled. How to read: higher queue and stop time mean more platooning at junctions "
+                "(denser V2V cooperation) but longer exposure to poor-GNSS zones.", what=what),))
+        jobs.append((2.0, traffic))
 
     files = None
     try:
@@ -76,9 +107,14 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
     except Exception as exc:  # malformed scenario.toml: report it, keep the rest of the report
         run.notes.append(f"map skipped: {exc!r}")
     if files:
-        try:
-            counts = _fig_map(run, files, figdir / "map.png")
-            blocks.append(_figure_html(
+        def map_() -> _Drawn:
+            try:
+                counts = _fig_map(run, files, figdir / "map.png")
+            except Exception as exc:
+                (figdir / "map.png").unlink(missing_ok=True)
+                return _Drawn(notes=(f"map skipped: {exc!r}",),
+                              warnings=(f"coloc report: map skipped for {run.run_dir}: {exc!r}",))
+            return _Drawn((_figure_html(
                 "map.png", "Scenario map (paper Figs. 12 and 17a)",
                 "Net lanes (thin grey lines, internal junction lanes omitted), GNSS zones as "
                 "translucent fills (legend: zone name and position accuracy σp), analysis areas "
@@ -86,61 +122,77 @@ def _run_figures(run: _Run, figdir: Path) -> list[str]:
                 f"static features as red triangles. {counts['lanes']} lanes, {counts['zones']} "
                 f"zone polygons, {counts['areas']} areas, {counts['features']} features"
                 + (f", {counts['buildings']} building footprints (dark grey)" if counts["buildings"] else "") + ". "
-                "Coordinates are SUMO net metres, equal aspect.", what=what))
-        except Exception as exc:
-            run.notes.append(f"map skipped: {exc!r}")
-            warnings.warn(f"coloc report: map skipped for {run.run_dir}: {exc!r}", stacklevel=2)
-            (figdir / "map.png").unlink(missing_ok=True)
+                "Coordinates are SUMO net metres, equal aspect.", what=what),))
+        jobs.append((2.0, map_))
 
-    if has_est:
+    if not has_est:
+        return jobs
+
+    def rmse_time() -> _Drawn:
         width = _fig_rmse_time([run], figdir / "rmse_time.png")
         feat = run.features is not None and len(run.features) > 0
-        blocks.append(_figure_html(
+        return _Drawn((_figure_html(
             "rmse_time.png", "Accuracy over time (paper Fig. 16)",
             f"Root-mean-square error over all vehicles and all time steps inside each {width} s bin, "
             "plotted at the bin midpoint: (a) vehicle position RMSE, (b) velocity RMSE, one line per "
             "method" + (" ; green lines with triangles are the RMSE of the feature position estimates "
                         "of each cooperative method (from <code>features.parquet</code>)" if feat else "")
             + ". How to read: lower is better; the gap between GNSS and a cooperative method is the "
-            "cooperative gain at that time of the traffic evolution.", what=what))
+            "cooperative gain at that time of the traffic evolution.", what=what),))
+    jobs.append((2.0, rmse_time))
 
-        if "area" in est.columns:
-            areas = _fig_cdf(run, "area", figdir / "cdf_area.png", "area")
-            if areas:
-                blocks.append(_figure_html(
-                    "cdf_area.png", "Position error CDF per analysis area (paper Fig. 17b)",
-                    "Empirical CDF of the Euclidean position error of all (vehicle, time) samples "
-                    "whose true position lies in the area, one subplot per area and one line per "
-                    "method (drawn from 1001 exact quantiles). The dot and dotted line mark the 95th "
-                    "percentile, also given in the legend. How to read: a curve further left is "
-                    "better; compare p95 between methods within one area.", what=what))
-        if "zone" in est.columns:
-            zones = _fig_cdf(run, "zone", figdir / "cdf_zone.png", "zone")
-            if zones:
-                blocks.append(_figure_html(
-                    "cdf_zone.png", "Position error CDF per GNSS zone",
-                    "Same as the per-area CDF, but grouping samples by the GNSS zone of the vehicle's "
-                    "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
-                    "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
-                    "cooperative method should flatten that difference.", what=what))
-        rep = run.config.get("report") or {}
-        areas = [str(a) for a in (rep.get("track_areas") or [rep.get("track_area", "5")])]
-        control = str((run.config.get("scenario") or {}).get("control", "")).upper()
-        paper_fig = "Fig. 19" if control == "VSR" else "Fig. 18"
-        # The labels present, from the column's distinct values (not a Python string per row: 1.77M on an hour).
-        present = {str(v) for v in est["area"].unique()} if "area" in est.columns else set()
-        for area in areas:
-            if not ({"err_along", "err_cross"} <= set(est.columns) and area in present):
-                continue
-            name = "track_errors.png" if len(areas) == 1 else f"track_errors_area_{_file_part(area)}.png"
+    if "area" in est.columns:
+        def cdf_area() -> _Drawn:
+            if not _fig_cdf(run, "area", figdir / "cdf_area.png", "area"):
+                return _Drawn()
+            return _Drawn((_figure_html(
+                "cdf_area.png", "Position error CDF per analysis area (paper Fig. 17b)",
+                "Empirical CDF of the Euclidean position error of all (vehicle, time) samples "
+                "whose true position lies in the area, one subplot per area and one line per "
+                "method (drawn from 1001 exact quantiles). The dot and dotted line mark the 95th "
+                "percentile, also given in the legend. How to read: a curve further left is "
+                "better; compare p95 between methods within one area.", what=what),))
+        jobs.append((_cdf_weight(est, "area"), cdf_area))
+    if "zone" in est.columns:
+        def cdf_zone() -> _Drawn:
+            if not _fig_cdf(run, "zone", figdir / "cdf_zone.png", "zone"):
+                return _Drawn()
+            return _Drawn((_figure_html(
+                "cdf_zone.png", "Position error CDF per GNSS zone",
+                "Same as the per-area CDF, but grouping samples by the GNSS zone of the vehicle's "
+                "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
+                "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
+                "cooperative method should flatten that difference.", what=what),))
+        jobs.append((_cdf_weight(est, "zone"), cdf_zone))
+    rep = run.config.get("report") or {}
+    areas = [str(a) for a in (rep.get("track_areas") or [rep.get("track_area", "5")])]
+    control = str((run.config.get("scenario") or {}).get("control", "")).upper()
+    paper_fig = "Fig. 19" if control == "VSR" else "Fig. 18"
+    # The labels present, from the column's distinct values (not a Python string per row: 1.77M on an hour).
+    present = {str(v) for v in est["area"].unique()} if "area" in est.columns else set()
+    for area in areas:
+        if not ({"err_along", "err_cross"} <= set(est.columns) and area in present):
+            continue
+        name = "track_errors.png" if len(areas) == 1 else f"track_errors_area_{_file_part(area)}.png"
+
+        def track(area: str = area, name: str = name) -> _Drawn:
             w = _fig_track(run, area, figdir / name)
-            blocks.append(_figure_html(
+            return _Drawn((_figure_html(
                 name, f"Along-track and cross-track accuracy in area {area} (paper {paper_fig})",
                 f"RMSE of the signed position error component along the true heading (top) and across "
                 f"it (bottom), over all vehicles in area {_esc(area)} within each {w:g} s bin, one line "
                 "per method. How to read: periodic GNSS error follows the traffic-light cycle (vehicles "
-                "averaging while stopped); cross-track below about 1 m is what lane-level services need.", what=what))
-    return blocks
+                "averaging while stopped); cross-track below about 1 m is what lane-level services need.",
+                what=what),))
+        jobs.append((2.0, track))
+    return jobs
+
+
+def _cdf_weight(est, col: str) -> float:
+    """A CDF figure's weight: one per panel (label), from the column's categories (no pass over the rows)."""
+    dtype = est[col].dtype
+    n = len(dtype.categories) if hasattr(dtype, "categories") else 6
+    return 0.5 + float(n)
 
 
 def _file_part(label: str) -> str:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -236,3 +238,100 @@ def test_method_styles():
     assert styles.method_label("my_new_method") == "my_new_method"
     assert styles.method_color("my_new_method") == styles.method_color("my_new_method")
     assert styles.order_methods(["zeta", "icp_da_lc", "gnss", "alpha"]) == ["gnss", "icp_da_lc", "alpha", "zeta"]
+
+
+# --------------------------------------------------------------------------- #
+# Speed-ups that must not change the report: worker processes, the CDF quantiles
+# --------------------------------------------------------------------------- #
+
+
+def _quantile_curves_reference(df: pd.DataFrame, group_col: str) -> dict:
+    """The CDF points as computed before the one-sort grouping: pandas groups, np.quantile of each."""
+    from experiments.report.load import _valid_label
+
+    out = {}
+    err = df["err_pos"].to_numpy(dtype=float)
+    for (lab, m), idx in df.groupby([group_col, "method"], observed=True, sort=False).indices.items():
+        e = err[idx]
+        e = e[np.isfinite(e)]
+        if _valid_label(lab) and e.size:
+            out[(str(lab), str(m))] = np.quantile(e, styles._CDF_GRID)
+    return out
+
+
+@pytest.mark.parametrize("categorical", [True, False])
+def test_quantile_curves_equal_reference(categorical):
+    from experiments.report.figures import _quantile_curves
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    df = pd.DataFrame({
+        "method": rng.choice(["gnss", "icp_da_lc", "b"], n),
+        "area": rng.choice(["1", "2", "10", "", "nan", None], n),
+        "err_pos": rng.gamma(2.0, 1.0, n),
+    })
+    df.loc[rng.random(n) < 0.05, "err_pos"] = np.nan
+    df.loc[rng.random(n) < 0.01, "err_pos"] = np.inf
+    df.loc[(df["method"] == "b") & (df["area"] == "2"), "err_pos"] = np.nan  # a group without finite errors
+    if categorical:
+        df = df.astype({"method": "category", "area": "category"})
+    got, ref = _quantile_curves(df, "area"), _quantile_curves_reference(df, "area")
+    assert sorted(got) == sorted(ref) and ("2", "b") not in got
+    for k in ref:
+        assert np.array_equal(got[k], ref[k]), k
+
+
+def test_run_jobs_in_worker_processes():
+    from experiments.report.parallel import run_jobs, split_by_weight
+
+    assert split_by_weight([6.5, 3.5, 2, 2, 2, 2, 2], 2) == [[0, 4, 6], [1, 2, 3, 5]]
+    assert split_by_weight([1.0], 3) == [[0], [], []]
+    jobs = [(w, (lambda i=i: (i, os.getpid()))) for i, w in enumerate([1.0, 5.0, 1.0, 2.0])]
+    assert run_jobs(jobs, 1) == [(i, os.getpid()) for i in range(4)]
+    out = run_jobs(jobs, 2)
+    assert [i for i, _ in out] == [0, 1, 2, 3]
+    if threading.active_count() == 1:  # with other threads everything runs in this process
+        assert out[1][1] == os.getpid() and {pid for _, pid in out} - {os.getpid()}
+
+
+def test_run_jobs_error_in_worker(tmp_path):
+    from experiments.report.parallel import run_jobs
+
+    if threading.active_count() > 1:
+        pytest.skip("jobs run in this process while other threads run")
+
+    def bad():
+        (tmp_path / "pid").write_text(str(os.getpid()))
+        raise ValueError("figure failed")
+
+    with pytest.raises(ValueError, match="figure failed") as info:
+        run_jobs([(5.0, lambda: 1), (1.0, bad)], 2)
+    assert any("worker process" in note for note in info.value.__notes__)
+    pid = int((tmp_path / "pid").read_text())
+    assert pid != os.getpid()
+    with pytest.raises(ChildProcessError):  # the child has been waited for
+        os.waitpid(pid, os.WNOHANG)
+
+
+def test_run_report_workers_same_bytes(tmp_path, net_dir):
+    """Two drawing processes give the same page and figure bytes as one; a map failure in a worker
+    still becomes a note on the page and a warning here."""
+    pages, figs = [], []
+    for workers in (1, 2, 1):
+        d = _make_run(tmp_path / f"w{len(pages)}", "tlr", "tlr", 1, net_dir)
+        pages.append(report.write_run_report(d, workers=workers).read_text(encoding="utf-8")
+                     .replace(str(d), "RUN"))
+        figs.append({p.name: p.read_bytes() for p in (d / "figures").glob("*.png")})
+    assert pages[0] == pages[1] == pages[2] and figs[0] == figs[1] == figs[2] and len(figs[0]) == 6
+
+    bad_net = tmp_path / "bad_net"
+    bad_net.mkdir()
+    for f in net_dir.iterdir():
+        (bad_net / f.name).write_bytes(f.read_bytes())
+    (bad_net / "zones.geojson").write_text('{"type": "FeatureCollection", "features": [{"geometry": '
+                                           '{"type": "Polygon", "coordinates": [[["x", 0], [1, 0], [1, 1]]]}}]}')
+    d = _make_run(tmp_path / "bad", "tlr", "tlr", 1, bad_net)
+    with pytest.warns(UserWarning, match="map skipped"):
+        page = report.write_run_report(d, workers=2).read_text(encoding="utf-8")
+    assert "map skipped" in page and "figures/map.png" not in page
+    assert not (d / "figures" / "map.png").exists() and (d / "figures" / "cdf_area.png").exists()
