@@ -693,6 +693,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=False) + "\n")
         if write_report and cfg.report.figures:
             from experiments.report import write_run_report
+            from experiments.report.parallel import available_workers
 
-            write_run_report(tmp)
+            # with --workers, the figures too are drawn in that many processes (at most the cores)
+            write_run_report(tmp, workers=available_workers(workers) if workers > 1 else 1)
     return summary

@@ -86,3 +86,17 @@ def test_workers_below_one_is_one_clear_line(cross_net, tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "--workers" in res.stderr and len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+def test_workers_draw_the_same_figures(cross_net, tmp_path):
+    """With --workers the end-of-run report draws its figures in two processes: the same PNG bytes."""
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(CONFIG.format(net=cross_net).replace("figures = false", "figures = true")
+                   .replace("duration_s = 90", "duration_s = 60"))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "serial"), "--quiet", "--methods", "gnss"]) == 0
+    assert main(["run", str(cfg), "--out", str(tmp_path / "pooled"), "--quiet", "--methods", "gnss",
+                 "--workers", "2"]) == 0
+    serial = sorted(p.name for p in (tmp_path / "serial" / "figures").iterdir())
+    assert serial and serial == sorted(p.name for p in (tmp_path / "pooled" / "figures").iterdir())
+    for name in serial:
+        assert _digest(tmp_path / "serial" / "figures" / name) == _digest(tmp_path / "pooled" / "figures" / name), name
