@@ -49,6 +49,7 @@ Default sources:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -195,6 +196,12 @@ class GnssErrorProcess:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
         self.density = (building_density_grid(buildings, params.nlos_density_radius_m)
                         if buildings is not None and len(buildings) else None)
+        # The start probability of each density cell, computed once: per step a lookup instead of the rate and
+        # expm1 of every vehicle (the same numpy expressions on the same cell values, so the same probabilities;
+        # outside the grid the lookup's 0 is the probability of a zero rate).
+        self._p_start_grid = (None if self.density is None else dataclasses.replace(
+            self.density, values=episode_start_probability(
+                self.params.nlos_rate_per_density_per_min * self.density.values, self.dt)))
         self._ids = np.empty(0, dtype=object)
         self._u = np.empty((0, 2))
         self._bias = np.empty((0, 2))
@@ -207,18 +214,28 @@ class GnssErrorProcess:
             return self.params.nlos_rate_per_density_per_min * self.density.at(xy)
         return zone_rates(self.params, zone)
 
+    def start_probabilities(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """(N,) probability that each vehicle starts an episode this step (:func:`episode_start_probability`
+        of :meth:`start_rates`; with buildings a lookup of the per-cell probabilities)."""
+        if self._p_start_grid is not None:
+            return self._p_start_grid.at(xy)
+        return episode_start_probability(self.start_rates(zone, xy), self.dt)
+
     def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
-             zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws."""
+             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws. ``idx``: the row
+        of each vehicle among the ``ids`` of the previous call, -1 if new (``match_ids(previous ids, ids)``,
+        which the SUMO coupler has from ``SumoTraffic.step``); None: matched here."""
         n = len(ids)
-        idx = match_ids(self._ids, ids)
+        if idx is None:
+            idx = match_ids(self._ids, ids)
         w = np.ascontiguousarray(w, dtype=float)
         # Carried state; episodes past their end stop (bias 0, end -inf until a new start).
         u, bias, end, active = _carry(idx, np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
                                       self.a, math.sqrt(1.0 - self.a * self.a), float(t))
         # Vehicles outside an episode may start one (draws for every vehicle, so the streams do not depend
         # on who is in an episode).
-        p_start = episode_start_probability(self.start_rates(zone, xy), self.dt)
+        p_start = self.start_probabilities(zone, xy)
         start = (self.nlos_start.random(n) < p_start) & ~active
         dur = self.nlos_duration.exponential(self.params.nlos_mean_duration_s, size=n)
         mag = self.nlos_bias.exponential(self.params.nlos_bias_mean_m, size=n) if self.params.nlos_bias_mean_m > 0 \

@@ -162,6 +162,22 @@ class PerceptionParams:
                 "sigma_p_m", "sigma_growth", "sigma_v_mps")
         return {k: np.array([getattr(s, k) for s in self.sensors], dtype=float) for k in keys}
 
+    @cached_property
+    def kernel_consts(self) -> dict:
+        """Per-step constants of :func:`perceive`, computed once: the fields of view's cos(opening / 2) and
+        full-circle flags, the mount groups (:func:`_mount_groups`), which sensors look along the heading
+        (yaw 0: their boresight is the heading's unit vector) and the common clutter rate (None if the
+        sensors' rates differ)."""
+        a = self.arrays
+        rates = a["clutter_per_scan"]
+        return dict(
+            cos_half=np.array([math.cos(math.radians(s.fov_deg) / 2.0) for s in self.sensors]),
+            full=np.array([s.fov_deg >= 360.0 for s in self.sensors]),
+            groups=_mount_groups(a["mount_x_m"]),
+            along_heading=tuple(s.yaw_deg == 0.0 for s in self.sensors),
+            clutter_rate=float(rates[0]) if np.all(rates == rates[0]) else None,
+        )
+
     @property
     def max_reach_m(self) -> float:
         """Distance from the vehicle position beyond which no sensor sees anything."""
@@ -249,7 +265,8 @@ def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
 
 def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray,
              sensors: tuple[SensorSpec, ...]):
-    """:func:`fov_candidates` of every sensor at once (``origins`` (S, N, 2)): (rows, distances, sensors)."""
+    """:func:`fov candidates <fov_candidates>` of every sensor at once (``origins`` (S, N, 2)): (rows, distances,
+    sensors)."""
     heading = np.asarray(heading, dtype=float)
     boresight = np.stack([unit_heading(heading + math.radians(spec.yaw_deg)) for spec in sensors])
     return _fov_select(np.ascontiguousarray(origins, dtype=np.float64), boresight.reshape(len(sensors), -1, 2),
@@ -257,6 +274,19 @@ def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target
                        np.array([spec.range_m for spec in sensors], dtype=float),
                        np.array([math.cos(math.radians(spec.fov_deg) / 2.0) for spec in sensors]),
                        np.array([spec.fov_deg >= 360.0 for spec in sensors]))
+
+
+def _fov_params(origins: np.ndarray, heading: np.ndarray, direction: np.ndarray, owner: np.ndarray,
+                target: np.ndarray, params: "PerceptionParams"):
+    """:func:`_fov_all` with the constants of ``params.kernel_consts``, and the boresight of a sensor with
+    yaw 0 taken from ``direction`` (the heading's unit vector, computed once a step) instead of the unit
+    vector of heading + 0.0: the two differ at most in the sign of a zero, which :func:`_fov_select`'s
+    comparison does not see."""
+    k = params.kernel_consts
+    boresight = np.empty((len(params.sensors),) + direction.shape)
+    for s, spec in enumerate(params.sensors):
+        boresight[s] = direction if k["along_heading"][s] else unit_heading(heading + math.radians(spec.yaw_deg))
+    return _fov_select(origins, boresight, owner, target, params.arrays["range_m"], k["cos_half"], k["full"])
 
 
 def fov_candidates(origin: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray, spec: SensorSpec):
@@ -282,12 +312,14 @@ def range_sigma(dist: np.ndarray, spec) -> np.ndarray:
     return g("sigma_p_m") * (1.0 + g("sigma_growth") * frac)
 
 
-def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray,
+                       direction: np.ndarray | None = None) -> np.ndarray:
     """(N, 4, 2) corners of the vehicles' rectangles, counter-clockwise.
 
     SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
-    the heading and ``width`` / 2 to each side."""
-    return _footprints(np.ascontiguousarray(xy, dtype=np.float64), unit_heading(heading),
+    the heading and ``width`` / 2 to each side. ``direction``: ``unit_heading(heading)`` when the caller has it."""
+    return _footprints(np.ascontiguousarray(xy, dtype=np.float64),
+                       unit_heading(heading) if direction is None else np.ascontiguousarray(direction),
                        np.asarray(length, dtype=float).reshape(-1), np.asarray(width, dtype=float).reshape(-1))
 
 
@@ -533,7 +565,11 @@ def _clutter_polar(n: int, heading: np.ndarray, params: PerceptionParams, rng: n
     """The clutter draws: (vehicle row, sensor, distance, bearing) of every false detection."""
     a = params.arrays
     n_sensors = len(params.sensors)
-    counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
+    rate = params.kernel_consts["clutter_rate"]
+    if rate is not None:  # one rate for all: numpy's scalar path, the same draws in the same order (tested)
+        counts = rng.poisson(rate, size=(n, n_sensors)).ravel()
+    else:
+        counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
     owner, sensor = _repeat_rows(counts, n_sensors)
     c = owner.size
     r = a["range_m"][sensor] * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
@@ -696,6 +732,7 @@ def perceive(
     observer_occluder: np.ndarray | None = None,
     buildings: Buildings | None = None,
     feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
 ) -> Detections:
     """The V2F rows of one step.
 
@@ -703,7 +740,8 @@ def perceive(
     ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
     footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
     measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
-    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``.
+    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
+    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
     """
     n = x_true.shape[0]
     xy = x_true[:, :2]
@@ -711,18 +749,21 @@ def perceive(
     a = params.arrays
     if observer_occluder is None:
         observer_occluder = np.full(n, -1, dtype=np.int64)
-    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * unit_heading(heading)[None, :, :]  # (S, N, 2)
+    if direction is None:
+        direction = unit_heading(heading)
+    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]  # (S, N, 2)
 
     # Candidates: (sensor, pair) with the feature inside the sensor's field of view, sensor after sensor.
     target = features_true[pair_feature, :2]
-    pair, dist, sensor = _fov_all(origins, heading, pair_owner, target, params.sensors)
+    pair, dist, sensor = _fov_params(origins, heading, direction, np.asarray(pair_owner, dtype=np.int64),
+                                     np.ascontiguousarray(target, dtype=np.float64), params)
     # One draw per candidate, before occlusion (common random numbers across P_D / occlusion settings).
     u = noise.detect.random(pair.size)
     w = noise.noise.standard_normal((pair.size, 4))
 
     # Occlusion of each distinct sight line once: sensors on one mount point share their sight lines.
     owner_c = pair_owner[pair]
-    line, line_of = _distinct_lines(pair, sensor, _mount_groups(a["mount_x_m"]), pair_owner.size)
+    line, line_of = _distinct_lines(pair, sensor, params.kernel_consts["groups"], pair_owner.size)
     clear = np.ones(line.size, dtype=bool)
     seg = _sight_lines(origins, sensor[line], owner_c[line], target[pair[line]])
     if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and pair.size:
@@ -746,17 +787,52 @@ def perceive(
                                      np.ascontiguousarray(x_true, dtype=np.float64), cw, a["range_m"],
                                      a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
 
-    owner = np.concatenate([t_owner, c_owner])
-    perm = shuffle_within_owner(owner, noise.shuffle)
-    R = gnss_cov(np.concatenate([t_sig, c_sig])[perm], np.concatenate([t_sv, c_sv])[perm])
-    n_fov = int(np.count_nonzero(np.bincount(pair, minlength=pair_owner.size)))
-    n_vis = int(np.count_nonzero(np.bincount(pair[visible], minlength=pair_owner.size)))
+    # Detections then clutter, shuffled within each vehicle (one uniform key per row); R, stats in kernels.
+    perm = shuffle_within_owner(np.concatenate([t_owner, c_owner]), noise.shuffle)
+    t_klass = (np.zeros(t_feat.size, dtype=np.int8) if feature_class is None
+               else np.asarray(feature_class, dtype=np.int8)[t_feat])
+    z, owner, R, feature, sensor_rows, klass = _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
+                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+    n_fov, n_vis = _pair_counts(pair, visible, pair_owner.size)
     stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - int(first.size), detected=int(first.size),
                  clutter=int(c_owner.size))
-    feature = np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm]
-    klass = np.full(owner.size, CLASS_STATIC, dtype=np.int8)
-    if feature_class is not None:
-        klass[:t_feat.size] = np.asarray(feature_class, dtype=np.int8)[t_feat]
-        klass = klass[perm]
-    return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R, feature=feature,
-                      sensor=np.concatenate([t_sensor, c_sensor])[perm], klass=klass, stats=stats)
+    return Detections(z=z, owner=owner, R=R, feature=feature, sensor=sensor_rows, klass=klass, stats=stats)
+
+
+@njit(cache=True)
+def _pair_counts(pair, visible, n_pairs):
+    """(pairs with a candidate, pairs with a visible candidate): the counts of ``np.bincount`` > 0."""
+    fov = np.zeros(n_pairs, dtype=np.bool_)
+    vis = np.zeros(n_pairs, dtype=np.bool_)
+    for c in range(pair.size):
+        fov[pair[c]] = True
+        if visible[c]:
+            vis[pair[c]] = True
+    return int(fov.sum()), int(vis.sum())
+
+
+@njit(cache=True)
+def _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass):
+    """The detections then the clutter rows, in the order ``perm``: z, owner, R (``gnss_cov`` of sigma_p,
+    sigma_v: blockdiag(sp^2 I, sv^2 I)), feature (-1 for clutter), sensor, class (clutter CLASS_STATIC)."""
+    m, d = perm.size, t_owner.size
+    z = np.empty((m, 4))
+    owner = np.empty(m, dtype=np.int64)
+    R = np.zeros((m, 4, 4))
+    feature = np.empty(m, dtype=np.int64)
+    sensor = np.empty(m, dtype=np.int64)
+    klass = np.empty(m, dtype=np.int8)
+    for r in range(m):
+        k = perm[r]
+        if k < d:
+            z[r] = t_z[k]
+            owner[r], feature[r], sensor[r], klass[r] = t_owner[k], t_feat[k], t_sensor[k], t_klass[k]
+            sp, sv = t_sig[k], t_sv[k]
+        else:
+            k -= d
+            z[r] = c_z[k]
+            owner[r], feature[r], sensor[r], klass[r] = c_owner[k], -1, c_sensor[k], CLASS_STATIC
+            sp, sv = c_sig[k], c_sv[k]
+        R[r, 0, 0] = R[r, 1, 1] = sp * sp
+        R[r, 2, 2] = R[r, 3, 3] = sv * sv
+    return z, owner, R, feature, sensor, klass

@@ -17,6 +17,7 @@ from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from coloc.kernels.icp import rows_by_key
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
+from coloc.core.inertial import ImuFrame
 from couplers.inertial import InertialParams
 from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
@@ -137,17 +138,53 @@ def _radius_graph_csr(xy, radius):
     return start.astype(np.int32), indices
 
 
+def _csr_attributes(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, shape: tuple[int, int],
+                    maxprint: int) -> dict:
+    """The instance attributes scipy's ``csr_matrix((data, indices, indptr), shape=shape)`` sets for int32
+    index arrays within range, with sorted indices (the arrays themselves where scipy keeps views of them)."""
+    return dict(_shape=shape, maxprint=maxprint, indices=indices, indptr=indptr, data=data,
+                _has_sorted_indices=True)
+
+
+def _csr_checked(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, shape: tuple[int, int]) -> sp.csr_matrix:
+    """scipy's constructor (it checks the index dtype against the contents and the format), sorted indices."""
+    adj = sp.csr_matrix((data, indices, indptr), shape=shape)
+    adj.has_sorted_indices = True
+    return adj
+
+
+def _csr_probe() -> int | None:
+    """scipy's default ``maxprint`` if its constructor sets exactly :func:`_csr_attributes` (else None: the
+    fast path is off and :func:`_csr_checked` builds every graph)."""
+    indptr, indices = np.array([0, 1, 2], dtype=np.int32), np.array([1, 0], dtype=np.int32)
+    ref = _csr_checked(np.ones(2, dtype=bool), indices, indptr, (2, 2))
+    keys = set(_csr_attributes(ref.data, indices, indptr, (2, 2), ref.maxprint))
+    if set(vars(ref)) != keys or not all(np.shares_memory(getattr(ref, k), v) and getattr(ref, k).dtype == v.dtype
+                                         for k, v in (("indices", indices), ("indptr", indptr))):
+        return None
+    return ref.maxprint
+
+
+_CSR_MAXPRINT = _csr_probe()
+
+
 def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
     """V2V links: symmetric boolean CSR of vehicle pairs within ``radius``, empty diagonal.
 
     A numba sort-and-sweep writes the CSR arrays directly: scipy's KD-tree pair
-    query plus COO->CSR conversion was the coupler's largest cost at ~150 vehicles."""
+    query plus COO->CSR conversion was the coupler's largest cost at ~150 vehicles. The matrix is then
+    assembled from its arrays without scipy's constructor, whose checks (index dtype against the contents,
+    format) cost more than the sweep at ~120 vehicles: the arrays are int32 and valid by construction, and
+    the attributes are those the constructor sets (``_csr_probe``; ``tests/couplers/test_sensors.py``)."""
     n = xy.shape[0]
     if n < 2:
         return sp.csr_matrix((n, n), dtype=bool)
     indptr, indices = _radius_graph_csr(np.ascontiguousarray(xy, dtype=np.float64), float(radius))
-    adj = sp.csr_matrix((np.ones(indices.size, dtype=bool), indices, indptr), shape=(n, n))
-    adj.has_sorted_indices = True
+    data = np.ones(indices.size, dtype=bool)
+    if _CSR_MAXPRINT is None or n > np.iinfo(np.int32).max:
+        return _csr_checked(data, indices, indptr, (n, n))
+    adj = sp.csr_matrix.__new__(sp.csr_matrix)
+    adj.__dict__.update(_csr_attributes(data, indices, indptr, (n, n), _CSR_MAXPRINT))
     return adj
 
 
@@ -208,12 +245,17 @@ def synthesize_frame(
     feature_ids: np.ndarray | None = None,
     detections: Detections | None = None,
     gnss_error: GnssErrorProcess | None = None,
+    prev_row: np.ndarray | None = None,
+    imu: ImuFrame | None = None,
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
     ``detections`` (couplers.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
     replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
-    standard normal draws (both None: the paper's idealisation, byte for byte as before)."""
+    standard normal draws (both None: the paper's idealisation, byte for byte as before). ``prev_row``: the
+    row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
+    matches the ids itself). ``imu`` (``couplers.inertial.InertialProcess``): the frame carries it and
+    ``accel`` is NaN (the net-frame input would carry the true heading)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
@@ -227,6 +269,8 @@ def synthesize_frame(
         prior_R[entered] = _diag_cov(k, params.prior_sigma_p, params.prior_sigma_v)
 
     accel = accel_true + params.accel_sigma * noise.accel.standard_normal((n, 2))
+    if imu is not None:
+        accel = np.full_like(accel, np.nan)
 
     # GNSS, model (3): z = x + n, zone-dependent R.
     gnss_R = gnss_cov(gnss_sigma_p, gnss_sigma_v)
@@ -235,7 +279,7 @@ def synthesize_frame(
     gnss_z = x_true + gnss_w * gsig
     if gnss_error is not None:
         gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
-                                                        x_true[:, :2])
+                                                        x_true[:, :2], idx=prev_row)
 
     if detections is not None:
         v2f_z, owner, v2f_R, feat = detections.z, detections.owner, detections.R, detections.feature
@@ -273,4 +317,5 @@ def synthesize_frame(
         v2f_R=v2f_R,
         neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
         truth=truth,
+        imu=imu,
     )

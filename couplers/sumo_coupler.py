@@ -130,8 +130,14 @@ class SumoCoupler:
                 present = np.concatenate([np.arange(self.registry.k0), rows])
                 feats_true, klass = self.registry.states[present], self.registry.klass[present]
                 tree = cKDTree(feats_true[:, :2]) if present.size else None
+            # Row of each vehicle in the previous step's states: SumoTraffic's (the processes' previous ids are
+            # the previous step's road ids) unless the V2X subset changes the rows (then they match ids).
+            prev_row = states.prev_row if states is road else None
             detections = (self._perceive(road, states, x_true, feats_true, tree, klass)
                           if self.perception is not None else None)
+            # The IMU draws from its own streams: computed before the frame so that the frame is built once.
+            imu = (self.inertial.step(states.ids, states.entered, states.heading, states.accel, idx=prev_row)
+                   if self.inertial is not None else None)
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -151,22 +157,23 @@ class SumoCoupler:
                 feature_ids=self.scenario.net.features.ids,
                 detections=detections,
                 gnss_error=self.gnss_error,
+                prev_row=prev_row,
+                imu=imu,
             )
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
-            if self.inertial is not None:
-                imu = self.inertial.step(states.ids, states.entered, states.heading, states.accel)
-                frame = replace(frame, imu=imu, accel=np.full_like(frame.accel, np.nan))
             if self.infra is not None:
                 infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
                 frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))
             yield frame
 
-    def _vehicle_dims(self, ids: np.ndarray) -> np.ndarray:
-        """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle."""
-        idx = match_ids(self._dim_ids, ids)
+    def _vehicle_dims(self, ids: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle. ``idx``: the
+        row of each vehicle among the ``ids`` of the previous call (-1 if new); None: matched here."""
+        if idx is None:
+            idx = match_ids(self._dim_ids, ids)
         dims = np.empty((len(ids), 2))
         dims[idx >= 0] = self._dims[idx[idx >= 0]]
         veh = sumo_traffic.libsumo.vehicle
@@ -196,14 +203,14 @@ class SumoCoupler:
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
         corners = None
         if p.occlusion_vehicles:
-            dims = self._vehicle_dims(road.ids)
-            corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1])
+            dims = self._vehicle_dims(road.ids, road.prev_row)
+            corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1], direction=road.direction)
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
             observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
-            buildings=self.scenario.net.buildings, feature_class=feature_class,
+            buildings=self.scenario.net.buildings, feature_class=feature_class, direction=states.direction,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val

@@ -81,6 +81,9 @@ class VehicleStates:
     heading: np.ndarray  # (N,) rad from +x, counter-clockwise
     accel: np.ndarray  # (N, 2) mean acceleration over the last step, m/s^2
     entered: np.ndarray  # (N,) bool: new, or back after a teleport / discontinuity
+    # Derived per step by SumoTraffic.step so that the coupler does not recompute them (None: not given).
+    direction: np.ndarray | None = None  # (N, 2) unit heading [cos, sin] (the values velocity was built from)
+    prev_row: np.ndarray | None = None  # (N,) int, row of each vehicle in the previous step's states, -1 if new
 
 
 @dataclass
@@ -202,7 +205,8 @@ class SumoTraffic:
         ids_arr = np.array(ids, dtype=object)
         # Navigational angle (0 = north, clockwise) -> heading from +x, counter-clockwise.
         heading = np.radians(90.0 - angle)
-        velocity = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        direction = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        velocity = speed[:, None] * direction
 
         idx = match_ids(self._prev_ids, ids_arr)
         seen = idx >= 0
@@ -223,7 +227,8 @@ class SumoTraffic:
         halting = int(np.count_nonzero(speed < HALT_SPEED))
         self.stats.add(t, n, halting, arrived, float(speed.sum() * dt), len(starting))
         self._prev_ids, self._prev_xy, self._prev_vel = ids_arr, xy, velocity
-        return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered)
+        return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered,
+                             direction=direction, prev_row=idx)
 
 
 def sumo_version() -> str:

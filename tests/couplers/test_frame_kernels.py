@@ -208,3 +208,114 @@ def test_footprints_and_occluder_boxes_equal_the_array_reference():
     np.testing.assert_array_equal(idx.ymax, corners[:, :, 1].max(axis=1))
     assert idx.max_wx == float((xmax - xmin).max())
     assert OccluderIndex.build(np.empty((0, 4, 2))).max_wx == 0.0
+
+
+# --- second pass (per-step overhead): fused kernels against the numpy they replace -----------------
+
+
+def test_inertial_step_equals_its_numpy_reference_with_and_without_rows():
+    from coloc.core.vehicles import match_ids
+
+    p, dt = InertialParams(), 0.75
+    fused, fused_rows, ref = (InertialProcess(p, seed=3, dt=dt) for _ in range(3))
+    rng = np.random.default_rng(10)
+    prev = np.empty(0, dtype=object)
+    for k, (ids, entered, heading, _) in enumerate(_fleet(rng, steps=80)):
+        # headings on and around the wrap (+-pi, signed zeros, a turn across the cut) as well as random ones
+        special = np.array([np.pi, -np.pi, 0.0, -0.0, np.pi - 1e-12, -np.pi + 1e-12, 3.0, -3.0])
+        heading = np.where(rng.random(ids.size) < 0.3, special[rng.integers(0, 8, ids.size)], heading)
+        accel_net = rng.normal(0, 1, (ids.size, 2))
+        got = fused.step(ids, entered, heading, accel_net)
+        got_rows = fused_rows.step(ids, entered, heading, accel_net, idx=match_ids(prev, ids))
+        want = ref.step_reference(ids, entered, heading, accel_net)
+        prev = ids
+        for g in (got, got_rows):
+            np.testing.assert_array_equal(g.accel_body, want.accel_body)
+            np.testing.assert_array_equal(g.yaw_rate, want.yaw_rate)
+        for proc in (fused, fused_rows):
+            np.testing.assert_array_equal(proc.accel_bias, ref.accel_bias)
+            np.testing.assert_array_equal(proc.gyro_bias, ref.gyro_bias)
+
+
+def test_gnss_start_probability_lookup_equals_rate_then_expm1():
+    blds = load_net_folder(ARTERIAL).buildings
+    proc = GnssErrorProcess(GnssErrorParams(), seed=1, dt=0.75, buildings=blds)
+    g = proc.density
+    rng = np.random.default_rng(11)
+    xy = np.vstack([rng.uniform([g.x0 - 50, g.y0 - 50], [g.x0 + g.cell * g.values.shape[1] + 50,
+                                                          g.y0 + g.cell * g.values.shape[0] + 50], (20000, 2)),
+                    [[np.nan, 0.0], [np.inf, 1.0]]])
+    zone = np.full(len(xy), "B", dtype=object)
+    want = episode_start_probability(proc.start_rates(zone, xy), proc.dt)
+    np.testing.assert_array_equal(proc.start_probabilities(zone, xy), want)
+    assert (want > 0).mean() > 0.1
+
+
+def test_fov_with_the_heading_vectors_equals_fov_all():
+    from couplers.perception import PerceptionParams, SensorSpec, _fov_all, _fov_params, unit_heading
+
+    rng = np.random.default_rng(12)
+    params = PerceptionParams(sensors=(SensorSpec(), SensorSpec(name="s", fov_deg=360.0, range_m=30.0),
+                                       SensorSpec(name="rear", fov_deg=90.0, yaw_deg=180.0, mount_x_m=-4.0)))
+    n, m = 150, 3000
+    heading = np.where(rng.random(n) < 0.1, rng.choice([0.0, -0.0, np.pi, -np.pi], n), rng.uniform(-4, 4, n))
+    xy = rng.uniform(0, 300, (n, 2))
+    u = unit_heading(heading)
+    origins = xy[None] + params.arrays["mount_x_m"][:, None, None] * u[None]
+    owner, target = rng.integers(0, n, m), rng.uniform(-50, 350, (m, 2))
+    got = _fov_params(origins, heading, u, owner, target, params)
+    want = _fov_all(origins, heading, owner, target, params.sensors)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    assert got[0].size > 100
+
+
+@pytest.mark.parametrize("rates", [(1.0, 1.0), (0.3, 2.0), (0.0, 0.0), (12.0, 12.0)])
+def test_clutter_draws_equal_the_broadcast_poisson(rates):
+    from couplers.perception import PerceptionParams, SensorSpec, _clutter_polar
+
+    params = PerceptionParams(sensors=(SensorSpec(clutter_per_scan=rates[0]),
+                                       SensorSpec(name="s", fov_deg=360.0, range_m=30.0, clutter_per_scan=rates[1])))
+    heading = np.random.default_rng(13).uniform(-4, 4, 130)
+    for n in (0, 1, 130):
+        got = _clutter_polar(n, heading[:n], params, np.random.default_rng(n))
+        rng = np.random.default_rng(n)  # the previous draws: Poisson counts of a broadcast rate array
+        counts = rng.poisson(np.broadcast_to(params.arrays["clutter_per_scan"], (n, 2))).ravel()
+        owner, sensor = np.repeat(np.arange(n), 2)[np.repeat(np.arange(2 * n), counts)], \
+            np.tile([0, 1], n)[np.repeat(np.arange(2 * n), counts)]
+        a = params.arrays
+        r = a["range_m"][sensor] * np.sqrt(rng.random(owner.size))
+        ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(owner.size) - 0.5))
+        for g, w in zip(got, (owner, sensor, r, ang)):
+            np.testing.assert_array_equal(g, w)
+
+
+def test_shuffled_rows_and_pair_counts_equal_the_concatenate_reference():
+    from coloc.core.models import gnss_cov
+    from couplers.perception import _pair_counts, _shuffled_rows
+
+    rng = np.random.default_rng(14)
+    for d, c in [(0, 0), (0, 5), (7, 0), (300, 120)]:
+        t_owner, c_owner = np.sort(rng.integers(0, 90, d)), np.sort(rng.integers(0, 90, c))
+        t_feat, t_sensor, c_sensor = rng.integers(0, 60, d), rng.integers(0, 2, d), rng.integers(0, 2, c)
+        t_z, c_z = rng.normal(size=(d, 4)), rng.normal(size=(c, 4))
+        t_sig, c_sig, t_sv, c_sv = rng.random(d), rng.random(c), rng.random(d), rng.random(c)
+        t_klass = rng.integers(0, 2, d).astype(np.int8)
+        owner = np.concatenate([t_owner, c_owner])
+        perm = shuffle_within_owner(owner, np.random.default_rng(d))
+        z, own, R, feat, sens, klass = _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor,
+                                                      t_sig, c_sig, t_sv, c_sv, t_klass)
+        np.testing.assert_array_equal(z, np.concatenate([t_z, c_z])[perm])
+        np.testing.assert_array_equal(own, owner[perm])
+        np.testing.assert_array_equal(R, gnss_cov(np.concatenate([t_sig, c_sig])[perm],
+                                                  np.concatenate([t_sv, c_sv])[perm]))
+        np.testing.assert_array_equal(feat, np.concatenate([t_feat, np.full(c, -1, dtype=np.int64)])[perm])
+        np.testing.assert_array_equal(sens, np.concatenate([t_sensor, c_sensor])[perm])
+        np.testing.assert_array_equal(klass, np.concatenate([t_klass, np.zeros(c, dtype=np.int8)])[perm])
+        assert (z.dtype, own.dtype, R.dtype, feat.dtype, sens.dtype, klass.dtype) == \
+            (np.float64, np.int64, np.float64, np.int64, np.int64, np.int8)
+    for n_pairs, m in [(0, 0), (10, 0), (50, 400)]:
+        pair, visible = rng.integers(0, max(n_pairs, 1), m), rng.random(m) < 0.5
+        want = (int(np.count_nonzero(np.bincount(pair, minlength=n_pairs))),
+                int(np.count_nonzero(np.bincount(pair[visible], minlength=n_pairs))))
+        assert _pair_counts(pair, visible, n_pairs) == want
