@@ -62,6 +62,83 @@ def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
     return gnss_cov(np.full(n, sigma_p), np.full(n, sigma_v))
 
 
+# --- the per-step rows of models (3), (4) and the prior: numba kernels and their numpy references ----------
+
+
+@njit(cache=True)
+def _prior_rows(entered, x_true, w, sig):
+    """Fast-start prior: rows of the entering vehicles x_true + w sig (w: one (4,) draw per entering vehicle,
+    in row order), R = diag(sig^2); NaN rows for the others."""
+    n = x_true.shape[0]
+    z = np.full((n, 4), np.nan)
+    R = np.full((n, 4, 4), np.nan)
+    r = 0
+    for i in range(n):
+        if not entered[i]:
+            continue
+        R[i] = 0.0
+        for j in range(4):
+            z[i, j] = x_true[i, j] + w[r, j] * sig[j]
+            R[i, j, j] = sig[j] * sig[j]
+        r += 1
+    return z, R
+
+
+def _prior_rows_reference(entered, x_true, w, sig):
+    """:func:`_prior_rows` in numpy."""
+    n = x_true.shape[0]
+    z, R = np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan)
+    if entered.any():
+        z[entered] = x_true[entered] + w * sig
+        R[entered] = _diag_cov(int(entered.sum()), sig[0], sig[2])
+    return z, R
+
+
+@njit(cache=True)
+def _gnss_rows(x_true, w, sigma_p, sigma_v):
+    """Model (3): z = x + w [sp, sp, sv, sv] and R = blockdiag(sp^2 I, sv^2 I) (``gnss_cov``) per vehicle."""
+    n = x_true.shape[0]
+    z = np.empty((n, 4))
+    R = np.zeros((n, 4, 4))
+    for i in range(n):
+        sp, sv = sigma_p[i], sigma_v[i]
+        z[i, 0] = x_true[i, 0] + w[i, 0] * sp
+        z[i, 1] = x_true[i, 1] + w[i, 1] * sp
+        z[i, 2] = x_true[i, 2] + w[i, 2] * sv
+        z[i, 3] = x_true[i, 3] + w[i, 3] * sv
+        R[i, 0, 0] = R[i, 1, 1] = sp * sp
+        R[i, 2, 2] = R[i, 3, 3] = sv * sv
+    return z, R
+
+
+def _gnss_rows_reference(x_true, w, sigma_p, sigma_v):
+    """:func:`_gnss_rows` in numpy."""
+    return x_true + w * np.stack([sigma_p, sigma_p, sigma_v, sigma_v], axis=1), gnss_cov(sigma_p, sigma_v)
+
+
+@njit(cache=True)
+def _v2f_rows(perm, owner, feat, features_true, x_true, w, sig):
+    """Model (4) for the pairs in the order ``perm``: owner, feature, z = (x_F - x_V) + w sig, R = diag(sig^2)."""
+    o = perm.size
+    own = np.empty(o, dtype=np.int64)
+    ft = np.empty(o, dtype=np.int64)
+    z = np.empty((o, 4))
+    R = np.zeros((o, 4, 4))
+    for r in range(o):
+        i, f = owner[perm[r]], feat[perm[r]]
+        own[r], ft[r] = i, f
+        for j in range(4):
+            z[r, j] = (features_true[f, j] - x_true[i, j]) + w[r, j] * sig[j]
+            R[r, j, j] = sig[j] * sig[j]
+    return own, ft, z, R
+
+
+def _v2f_rows_reference(perm, owner, feat, features_true, x_true, w, sig):
+    """:func:`_v2f_rows` in numpy."""
+    owner, feat = owner[perm], feat[perm]
+    return owner, feat, features_true[feat] - x_true[owner] + w * sig, _diag_cov(owner.size, sig[0], sig[2])
+
+
 @njit(cache=True)
 def _sweep_windows(xy, order, radius):
     """Sort and sweep along x over the points sorted by ``order``: point i pairs with the sorted positions
@@ -166,6 +243,7 @@ def _csr_probe() -> int | None:
 
 
 _CSR_MAXPRINT = _csr_probe()
+_INT32_MAX = int(np.iinfo(np.int32).max)
 
 
 def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
@@ -181,7 +259,7 @@ def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
         return sp.csr_matrix((n, n), dtype=bool)
     indptr, indices = _radius_graph_csr(np.ascontiguousarray(xy, dtype=np.float64), float(radius))
     data = np.ones(indices.size, dtype=bool)
-    if _CSR_MAXPRINT is None or n > np.iinfo(np.int32).max:
+    if _CSR_MAXPRINT is None or n > _INT32_MAX:
         return _csr_checked(data, indices, indptr, (n, n))
     adj = sp.csr_matrix.__new__(sp.csr_matrix)
     adj.__dict__.update(_csr_attributes(data, indices, indptr, (n, n), _CSR_MAXPRINT))
@@ -259,24 +337,21 @@ def synthesize_frame(
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
+    xf = np.ascontiguousarray(x_true, dtype=np.float64)  # the kernels' view of x_true (the truth keeps the input)
     # Fast-start prior for vehicles entering now: N(x_true, diag(sp^2, sp^2, sv^2, sv^2)).
-    prior_z = np.full((n, 4), np.nan)
-    prior_R = np.full((n, 4, 4), np.nan)
-    k = int(entered.sum())
-    if k:
-        sig = np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2)
-        prior_z[entered] = x_true[entered] + noise.prior.standard_normal((k, 4)) * sig
-        prior_R[entered] = _diag_cov(k, params.prior_sigma_p, params.prior_sigma_v)
+    k = int(np.count_nonzero(entered))
+    w = noise.prior.standard_normal((k, 4)) if k else np.empty((0, 4))
+    prior_z, prior_R = _prior_rows(entered, xf, w,
+                                   np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2))
 
     accel = accel_true + params.accel_sigma * noise.accel.standard_normal((n, 2))
     if imu is not None:
         accel = np.full_like(accel, np.nan)
 
     # GNSS, model (3): z = x + n, zone-dependent R.
-    gnss_R = gnss_cov(gnss_sigma_p, gnss_sigma_v)
-    gsig = np.stack([gnss_sigma_p, gnss_sigma_p, gnss_sigma_v, gnss_sigma_v], axis=1)
     gnss_w = noise.gnss.standard_normal((n, 4))
-    gnss_z = x_true + gnss_w * gsig
+    gnss_z, gnss_R = _gnss_rows(xf, gnss_w, np.asarray(gnss_sigma_p, dtype=np.float64),
+                                np.asarray(gnss_sigma_v, dtype=np.float64))
     if gnss_error is not None:
         gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
                                                         x_true[:, :2], idx=prev_row)
@@ -287,11 +362,10 @@ def synthesize_frame(
         # V2F, model (4): z = x_F - x_V + n for every feature within Rs; rows shuffled per vehicle.
         owner, feat = features_in_range(x_true[:, :2], feature_tree, params.v2f_range_m)
         perm = shuffle_within_owner(owner, noise.shuffle)
-        owner, feat = owner[perm], feat[perm]
-        o = owner.size
-        vsig = np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2)
-        v2f_z = features_true[feat] - x_true[owner] + noise.v2f.standard_normal((o, 4)) * vsig
-        v2f_R = _diag_cov(o, params.v2f_sigma_p, params.v2f_sigma_v)
+        owner, feat, v2f_z, v2f_R = _v2f_rows(
+            perm, owner, feat, np.ascontiguousarray(features_true, dtype=np.float64), xf,
+            noise.v2f.standard_normal((owner.size, 4)),
+            np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2))
 
     truth = Truth(
         x_true=x_true,

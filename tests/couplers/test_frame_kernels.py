@@ -319,3 +319,28 @@ def test_shuffled_rows_and_pair_counts_equal_the_concatenate_reference():
         want = (int(np.count_nonzero(np.bincount(pair, minlength=n_pairs))),
                 int(np.count_nonzero(np.bincount(pair[visible], minlength=n_pairs))))
         assert _pair_counts(pair, visible, n_pairs) == want
+
+
+def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
+    from couplers.sensors import (_gnss_rows, _gnss_rows_reference, _prior_rows, _prior_rows_reference, _v2f_rows,
+                                  _v2f_rows_reference)
+
+    rng = np.random.default_rng(15)
+    for n, o in [(0, 0), (1, 0), (5, 3), (150, 600)]:
+        x = rng.normal(0, 300, (n, 4))
+        entered = rng.random(n) < 0.3
+        sig = np.array([2.0, 2.0, 0.1, 0.1])
+        w = rng.standard_normal((int(entered.sum()), 4))
+        for g, r in zip(_prior_rows(entered, x, w, sig), _prior_rows_reference(entered, x, w, sig)):
+            np.testing.assert_array_equal(g, r)
+        sp, sv, w = rng.choice([3.0, 8.0, 15.0], n), rng.choice([0.1, 0.17, 0.45], n), rng.standard_normal((n, 4))
+        for g, r in zip(_gnss_rows(x, w, sp, sv), _gnss_rows_reference(x, w, sp, sv)):
+            np.testing.assert_array_equal(g, r)
+        feats = rng.normal(0, 300, (40, 4))
+        owner, feat = np.sort(rng.integers(0, max(n, 1), o)), rng.integers(0, 40, o)
+        perm, w = shuffle_within_owner(owner, rng), rng.standard_normal((o, 4))
+        sig = np.array([0.1, 0.1, 0.1, 0.1])
+        for g, r in zip(_v2f_rows(perm, owner, feat, feats, x if n else np.empty((1, 4)), w, sig),
+                        _v2f_rows_reference(perm, owner, feat, feats, x if n else np.empty((1, 4)), w, sig)):
+            assert g.dtype == r.dtype
+            np.testing.assert_array_equal(g, r)
