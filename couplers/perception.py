@@ -531,9 +531,120 @@ def _clear_of_buildings(seg, x0, y0, cell, near):
     return out
 
 
+@dataclass(frozen=True)
+class BuildingBoxes:
+    """The buildings' bounding boxes (B, 4: xmin, ymin, xmax, ymax) and, per cell of ``buildings.cells`` (ny * nx,
+    CSR ``start`` / ``ids``), the buildings whose box widened by one cell covers it: the candidates of the
+    sight lines sampled in that cell (:func:`_needs_building_test`)."""
+
+    boxes: np.ndarray
+    start: np.ndarray
+    ids: np.ndarray
+    margin: float  # widening of the boxes in the segment test, far above its rounding
+
+    @classmethod
+    def build(cls, buildings: Buildings) -> "BuildingBoxes":
+        g = buildings.cells
+        ny, nx = g.values.shape
+        b = np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64)
+        # the cells of building_cells' difference array: floor((x - x0) / cell) of the corners, widened by one
+        ix0 = np.clip(np.floor((b[:, 0] - g.x0) / g.cell).astype(np.int64) - 1, 0, nx - 1)
+        iy0 = np.clip(np.floor((b[:, 1] - g.y0) / g.cell).astype(np.int64) - 1, 0, ny - 1)
+        ix1 = np.clip(np.floor((b[:, 2] - g.x0) / g.cell).astype(np.int64) + 1, 0, nx - 1)
+        iy1 = np.clip(np.floor((b[:, 3] - g.y0) / g.cell).astype(np.int64) + 1, 0, ny - 1)
+        start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
+        margin = max(1e-6, 1e-9 * float(np.abs(b).max(initial=0.0)))
+        return cls(boxes=b, start=start, ids=ids, margin=margin)
+
+
+@njit(cache=True)
+def _cell_lists(ix0, iy0, ix1, iy1, nx, ny):
+    """CSR of the boxes [ix0, ix1] x [iy0, iy1] (cells, inclusive) covering each cell iy * nx + ix."""
+    count = np.zeros(nx * ny + 1, dtype=np.int64)
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                count[iy * nx + ix + 1] += 1
+    for c in range(nx * ny):
+        count[c + 1] += count[c]
+    ids = np.empty(count[nx * ny], dtype=np.int64)
+    fill = count[:-1].copy()
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                ids[fill[iy * nx + ix]] = k
+                fill[iy * nx + ix] += 1
+    return count, ids
+
+
+@njit(cache=True)
+def _segment_meets_box(ax, ay, bx, by, xmin, ymin, xmax, ymax):
+    """The closed segment a-b meets the closed box (slab clipping of t in [0, 1])."""
+    t0, t1 = 0.0, 1.0
+    for axis in range(2):
+        p0 = ax if axis == 0 else ay
+        d = (bx - ax) if axis == 0 else (by - ay)
+        lo = xmin if axis == 0 else ymin
+        hi = xmax if axis == 0 else ymax
+        if d == 0.0:
+            if p0 < lo or p0 > hi:
+                return False
+            continue
+        ta, tb = (lo - p0) / d, (hi - p0) / d
+        if ta > tb:
+            ta, tb = tb, ta
+        t0, t1 = max(t0, ta), min(t1, tb)
+        if t0 > t1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _needs_building_test(seg, x0, y0, cell, near, start, ids, boxes, margin):
+    """(M,) bool: segment i may meet a building, i.e. it is not certainly clear by :func:`_clear_of_buildings`
+    and it meets the bounding box, widened by ``margin``, of a building listed in one of its sample cells (or
+    it is not finite). The others certainly miss every building (a polygon lies in its box, and a box the
+    segment meets is listed in a sample cell: :func:`_clear_of_buildings`' argument), so only these go to the
+    polygon test."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.bool_)
+    seen = np.full(boxes.shape[0], -1, dtype=np.int64)
+    clear = _clear_of_buildings(seg, x0, y0, cell, near)
+    for i in range(m):
+        if clear[i]:
+            continue
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+        if not math.isfinite(length):
+            out[i] = True
+            continue
+        k_max = int(length / cell) + 1
+        for k in range(k_max + 1):
+            t = k / k_max
+            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
+            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            if not (0 <= fx < nx and 0 <= fy < ny):
+                continue
+            c = int(fy) * nx + int(fx)
+            for q in range(start[c], start[c + 1]):
+                b = ids[q]
+                if seen[b] == i:
+                    continue
+                seen[b] = i
+                if _segment_meets_box(ax, ay, bx, by, boxes[b, 0] - margin, boxes[b, 1] - margin,
+                                      boxes[b, 2] + margin, boxes[b, 3] + margin):
+                    out[i] = True
+                    break
+            if out[i]:
+                break
+    return out
+
+
 def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
     """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all
-    sight lines that pass near one: ``buildings.cells`` clears the others without shapely)."""
+    sight lines that meet a building's bounding box: ``buildings.cells`` and ``buildings.boxes`` clear the
+    others without shapely, :func:`_needs_building_test`)."""
     return _segments_occluded_by_buildings(np.hstack([start, end]), buildings)
 
 
@@ -543,9 +654,10 @@ def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None
     out = np.zeros(m, dtype=bool)
     if m == 0 or buildings is None or len(buildings) == 0:
         return out
-    g = buildings.cells
+    g, bb = buildings.cells, buildings.boxes
     seg = np.ascontiguousarray(seg, dtype=np.float64)
-    near = np.flatnonzero(~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values))
+    near = np.flatnonzero(_needs_building_test(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes,
+                                               bb.margin))
     if near.size:
         lines = shapely.linestrings(seg[near].reshape(-1, 2, 2))
         hit = buildings.tree.query(lines, predicate="intersects")
@@ -570,10 +682,25 @@ def _clutter_polar(n: int, heading: np.ndarray, params: PerceptionParams, rng: n
         counts = rng.poisson(rate, size=(n, n_sensors)).ravel()
     else:
         counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
+    c = int(counts.sum())
+    u_r = rng.random(c)  # distance: uniform in area, P(r' <= r) = (r / R)^2
+    u_a = rng.random(c)  # bearing: uniform over the opening
+    return _clutter_geometry(counts, n_sensors, u_r, u_a, np.asarray(heading, dtype=np.float64), a["range_m"],
+                             a["yaw_deg"], a["fov_deg"])
+
+
+@njit(cache=True)
+def _clutter_geometry(counts, n_sensors, u_r, u_a, heading, range_m, yaw_deg, fov_deg):
+    """(vehicle, sensor) of each false detection (:func:`_repeat_rows`), r = range sqrt(u_r) and bearing
+    heading + radians(yaw + fov (u_a - 0.5)) (``np.radians``: x * (pi / 180), tested equal)."""
     owner, sensor = _repeat_rows(counts, n_sensors)
     c = owner.size
-    r = a["range_m"][sensor] * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
-    ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(c) - 0.5))
+    r = np.empty(c)
+    ang = np.empty(c)
+    for k in range(c):
+        s = sensor[k]
+        r[k] = range_m[s] * math.sqrt(u_r[k])
+        ang[k] = heading[owner[k]] + (yaw_deg[s] + fov_deg[s] * (u_a[k] - 0.5)) * (math.pi / 180.0)
     return owner, sensor, r, ang
 
 
@@ -605,8 +732,9 @@ def _clutter_xy(origins, owner, sensor, r, direction):
 
 
 @njit(cache=True)
-def _clutter_rows(origins, owner, sensor, r, direction, x_true, cw, range_m, sigma_p_m, sigma_growth, sigma_v):
-    """Rows of the false detections: z (static objects: relative velocity -v_vehicle), sigma_p, sigma_v."""
+def _clutter_rows(origins, owner, sensor, r, cos_a, sin_a, x_true, cw, range_m, sigma_p_m, sigma_growth, sigma_v):
+    """Rows of the false detections at origins + r (cos_a, sin_a): z (static objects: relative velocity
+    -v_vehicle), sigma_p, sigma_v."""
     c_total = owner.size
     z = np.empty((c_total, 4))
     sp = np.empty(c_total)
@@ -616,8 +744,9 @@ def _clutter_rows(origins, owner, sensor, r, direction, x_true, cw, range_m, sig
         frac = min(max(r[c] / range_m[s], 0.0), 1.0)
         sp[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
         sv[c] = sigma_v[s]
+        z[c, 0] = (origins[s, i, 0] + r[c] * cos_a[c]) - x_true[i, 0] + cw[c, 0] * sp[c]
+        z[c, 1] = (origins[s, i, 1] + r[c] * sin_a[c]) - x_true[i, 1] + cw[c, 1] * sp[c]
         for j in range(2):
-            z[c, j] = (origins[s, i, j] + r[c] * direction[c, j]) - x_true[i, j] + cw[c, j] * sp[c]
             z[c, 2 + j] = -x_true[i, 2 + j] + cw[c, 2 + j] * sv[c]
     return z, sp, sv
 
@@ -783,7 +912,7 @@ def perceive(
     # Clutter of every sensor on every vehicle (own stream; never occluded): static objects.
     c_owner, c_sensor, c_dist, c_ang = _clutter_polar(n, heading, params, noise.clutter)
     cw = noise.clutter.standard_normal((c_owner.size, 4))
-    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, unit_heading(c_ang),
+    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang),
                                      np.ascontiguousarray(x_true, dtype=np.float64), cw, a["range_m"],
                                      a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
 

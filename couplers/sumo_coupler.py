@@ -6,6 +6,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
@@ -174,10 +175,9 @@ class SumoCoupler:
         row of each vehicle among the ``ids`` of the previous call (-1 if new); None: matched here."""
         if idx is None:
             idx = match_ids(self._dim_ids, ids)
-        dims = np.empty((len(ids), 2))
-        dims[idx >= 0] = self._dims[idx[idx >= 0]]
+        dims, new = _carried_rows(np.asarray(idx, dtype=np.int64), self._dims)
         veh = sumo_traffic.libsumo.vehicle
-        for i in np.flatnonzero(idx < 0):  # new vehicles only
+        for i in new.tolist():  # new vehicles only
             dims[i] = (veh.getLength(ids[i]), veh.getWidth(ids[i]))
         self._dim_ids, self._dims = ids, dims
         return dims
@@ -216,6 +216,21 @@ class SumoCoupler:
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
         self.last_detections = det
         return det
+
+
+@njit(cache=True)
+def _carried_rows(idx, prev):
+    """prev[idx[i]] for the rows with idx[i] >= 0 (the others left unset), and those others' rows."""
+    out = np.empty((idx.size, prev.shape[1]))
+    new = np.empty(idx.size, dtype=np.int64)
+    m = 0
+    for i in range(idx.size):
+        if idx[i] >= 0:
+            out[i] = prev[idx[i]]
+        else:
+            new[m] = i
+            m += 1
+    return out, new[:m]
 
 
 def _subset(states: VehicleStates, keep: np.ndarray) -> VehicleStates:

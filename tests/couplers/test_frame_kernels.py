@@ -344,3 +344,50 @@ def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
                         _v2f_rows_reference(perm, owner, feat, feats, x if n else np.empty((1, 4)), w, sig)):
             assert g.dtype == r.dtype
             np.testing.assert_array_equal(g, r)
+
+
+def test_building_box_filter_keeps_every_hit_and_drops_most_near_misses():
+    from couplers.perception import _clear_of_buildings, _needs_building_test
+
+    blds = load_net_folder(ARTERIAL).buildings
+    g, bb = blds.cells, blds.boxes
+    rng = np.random.default_rng(16)
+    xmin, ymin, xmax, ymax = shapely.total_bounds(blds.polygons)
+    start = np.column_stack([rng.uniform(xmin - 30, xmax + 30, 20000), rng.uniform(ymin - 30, ymax + 30, 20000)])
+    ang, length = rng.uniform(-np.pi, np.pi, 20000), rng.uniform(0, 90, 20000)
+    end = start + length[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    # segments through the boxes' corners and along their edges, and zero-length ones on them
+    b = bb.boxes[rng.integers(0, len(bb.boxes), 3000)]
+    corner = np.column_stack([np.where(rng.random(3000) < 0.5, b[:, 0], b[:, 2]),
+                              np.where(rng.random(3000) < 0.5, b[:, 1], b[:, 3])])
+    seg = np.vstack([np.hstack([start, end]), np.hstack([corner + rng.normal(0, 20, corner.shape), corner]),
+                     np.hstack([corner, corner]), np.hstack([b[:, [0, 1]], b[:, [2, 1]]]),
+                     [[np.nan, 0.0, 1.0, 1.0]]])
+    lines = shapely.linestrings(seg[:-1].reshape(-1, 2, 2))
+    hit = np.zeros(len(seg), dtype=bool)
+    hit[blds.tree.query(lines, predicate="intersects")[0]] = True
+    meets_box = np.zeros(len(seg), dtype=bool)
+    meets_box[blds.tree.query(lines)[0][shapely.intersects(
+        lines[blds.tree.query(lines)[0]], shapely.box(*bb.boxes[blds.tree.query(lines)[1]].T))]] = True
+    need = _needs_building_test(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin)
+    near = ~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values)
+    assert need[-1] and np.all(need[hit]) and np.all(need[meets_box]) and not np.any(need & ~near)
+    assert need.sum() < 0.9 * near.sum() and hit.sum() > 1000
+
+
+def test_continuity_equals_its_numpy_reference():
+    from couplers.sumo_traffic import _continuity, _continuity_reference
+
+    rng = np.random.default_rng(17)
+    for n, m in [(0, 0), (0, 5), (4, 0), (150, 140)]:
+        idx = np.where(rng.random(n) < 0.1, -1, rng.integers(0, max(m, 1), n)) if m else np.full(n, -1)
+        back = rng.random(n) < 0.05
+        prev_xy, prev_vel = rng.uniform(0, 500, (m, 2)), rng.normal(0, 10, (m, 2))
+        xy = rng.uniform(0, 500, (n, 2))
+        near = idx >= 0
+        xy[near] = prev_xy[idx[near]] + rng.normal(0, 20, (int(near.sum()), 2))  # steps around the 30 m jump
+        vel = rng.normal(0, 10, (n, 2))
+        for g, w in zip(_continuity(idx, back, xy, prev_xy, vel, prev_vel, 0.75, 30.0),
+                        _continuity_reference(idx, back, xy, prev_xy, vel, prev_vel, 0.75, 30.0)):
+            assert g.dtype == w.dtype
+            np.testing.assert_array_equal(g, w)
