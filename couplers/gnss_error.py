@@ -174,6 +174,19 @@ def _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t):
 
 
 @njit(cache=True)
+def _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end):
+    """In place, for the k-th vehicle where ``start``: bias = mag (cos_a[k], sin_a[k]), end = t + dur
+    (``bias[start] = mag[start, None] * [cos, sin]``, ``end[start] = t + dur[start]``)."""
+    k = 0
+    for i in range(start.size):
+        if start[i]:
+            bias[i, 0] = mag[i] * cos_a[k]
+            bias[i, 1] = mag[i] * sin_a[k]
+            end[i] = t + dur[i]
+            k += 1
+
+
+@njit(cache=True)
 def _scaled_plus(sigma, u, bias):
     """sigma[:, None] * u + bias."""
     out = np.empty_like(u)
@@ -241,9 +254,9 @@ class GnssErrorProcess:
         mag = self.nlos_bias.exponential(self.params.nlos_bias_mean_m, size=n) if self.params.nlos_bias_mean_m > 0 \
             else np.zeros(n)
         ang = self.nlos_bias.uniform(-np.pi, np.pi, size=n)
-        if start.any():
-            bias[start] = mag[start, None] * np.stack([np.cos(ang[start]), np.sin(ang[start])], axis=1)
-            end[start] = t + dur[start]
+        if start.any():  # numpy's cos / sin of the starting vehicles' angles (as gathered before)
+            a = ang[start]
+            _start_episodes(start, mag, np.cos(a), np.sin(a), dur, float(t), bias, end)
         self._ids, self._u, self._bias, self._end = np.asarray(ids, dtype=object), u, bias, end
         return _scaled_plus(np.asarray(sigma_p, dtype=float), u, bias)
 

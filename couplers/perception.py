@@ -417,9 +417,83 @@ def _occluded_by_quads(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymi
     return out
 
 
+#: A sight line passes a footprint for certain when all four corners lie on one side of its line, more than
+#: SIDE_MARGIN_M from it (_occluded_by_quads_sided).
+SIDE_MARGIN_M = 1e-6
+
+
+@njit(cache=True)
+def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
+    """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
+    quad: when all four corners lie on one side of the segment's line by more than SIDE_MARGIN_M (each
+    corner's orientation, as :func:`_orient` computes it, beyond that margin times the segment's length plus
+    1e-12 of its two products, far above their rounding of ~1e-16), the quad misses the segment, and so does
+    the exact test: its proper crossing needs corners on both sides, and the segment's end points lie more
+    than the margin outside a counter-clockwise rectangle, so none of its orientation tests or on-segment
+    tests can tip (their rounding is ~1e-13 m at these coordinates)."""
+    m = seg.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        dx, dy = bx - ax, by - ay
+        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
+        hi = np.searchsorted(xmin_sorted, sx1, side="right")
+        for r in range(lo, hi):
+            q = order[r]
+            if q == skip_a[i] or q == skip_b[i]:
+                continue
+            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
+                continue
+            if rectangle[q]:
+                above = 0
+                below = 0
+                for k in range(4):
+                    p1 = dx * (quads[q, k, 1] - ay)
+                    p2 = dy * (quads[q, k, 0] - ax)
+                    o = p1 - p2  # _orient(ax, ay, bx, by, corner)
+                    bound = side_margin + 1e-12 * (abs(p1) + abs(p2))
+                    if o > bound:
+                        above += 1
+                    elif o < -bound:
+                        below += 1
+                if above == 4 or below == 4:
+                    continue
+            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+                out[i] = True
+                break
+    return out
+
+
+@njit(cache=True)
+def _rectangles(corners):
+    """(K,) bool: quad q is a counter-clockwise rectangle with sides longer than 0.1 m (corners as
+    :func:`_footprints` writes them, right angles within 1e-6), the quads :func:`_occluded_by_quads_sided`
+    may pass by their sides."""
+    k = corners.shape[0]
+    out = np.zeros(k, dtype=np.bool_)
+    for q in range(k):
+        ok = True
+        for c in range(4):
+            ex = corners[q, (c + 1) % 4, 0] - corners[q, c, 0]
+            ey = corners[q, (c + 1) % 4, 1] - corners[q, c, 1]
+            fx = corners[q, (c + 2) % 4, 0] - corners[q, (c + 1) % 4, 0]
+            fy = corners[q, (c + 2) % 4, 1] - corners[q, (c + 1) % 4, 1]
+            le, lf = math.sqrt(ex * ex + ey * ey), math.sqrt(fx * fx + fy * fy)
+            if not (le > 0.1 and lf > 0.1 and abs(ex * fx + ey * fy) <= 1e-6 * le * lf
+                    and ex * fy - ey * fx > 0.0):
+                ok = False
+                break
+        out[q] = ok
+    return out
+
+
 @dataclass(frozen=True)
 class OccluderIndex:
-    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step."""
+    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step;
+    ``rectangle`` marks the footprints that are counter-clockwise rectangles (:func:`_rectangles`)."""
 
     corners: np.ndarray
     order: np.ndarray
@@ -428,13 +502,14 @@ class OccluderIndex:
     ymin: np.ndarray
     ymax: np.ndarray
     max_wx: float
+    rectangle: np.ndarray
 
     @classmethod
     def build(cls, corners: np.ndarray) -> "OccluderIndex":
         corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
         order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
         return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
-                   max_wx=max_wx)
+                   max_wx=max_wx, rectangle=_rectangles(corners))
 
 
 @njit(cache=True)
@@ -477,9 +552,9 @@ def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer
     if m == 0 or idx.corners.shape[0] == 0:
         return np.zeros(m, dtype=bool)
     skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
-    return _occluded_by_quads(np.ascontiguousarray(seg, dtype=np.float64), np.asarray(observer, dtype=np.int64),
-                              skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
-                              idx.max_wx)
+    return _occluded_by_quads_sided(np.ascontiguousarray(seg, dtype=np.float64),
+                                    np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
+                                    idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx, idx.rectangle)
 
 
 BUILDING_CELL_M = 4.0

@@ -391,3 +391,47 @@ def test_continuity_equals_its_numpy_reference():
                         _continuity_reference(idx, back, xy, prev_xy, vel, prev_vel, 0.75, 30.0)):
             assert g.dtype == w.dtype
             np.testing.assert_array_equal(g, w)
+
+
+def test_occlusion_side_shortcut_gives_the_exact_answers():
+    """Footprints (rectangles) and other quads against sight lines in general position and through corners,
+    along edges, starting on edges or inside, touching at one point, of zero length: every answer as the exact
+    kernel's."""
+    from couplers.perception import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_sided, unit_heading,
+                                     vehicle_footprints)
+
+    rng = np.random.default_rng(18)
+    for offset in (0.0, 4.0e4):  # coordinates of a small net, and of a large one (more rounding)
+        xy = rng.uniform(0, 300, (200, 2)) + offset
+        heading = np.where(rng.random(200) < 0.2, rng.choice([0.0, np.pi / 2, -np.pi, np.pi / 4], 200),
+                           rng.uniform(-4, 4, 200))
+        corners = vehicle_footprints(xy, heading, rng.uniform(3, 15, 200), rng.uniform(1.5, 2.6, 200))
+        odd = corners[:20].copy()
+        odd[:, 2] += rng.normal(0, 0.5, (20, 2))  # not rectangles: the exact test only
+        odd[:5] = odd[:5, ::-1]  # clockwise
+        quads = np.vstack([corners, odd])
+        idx = OccluderIndex.build(quads)
+        assert idx.rectangle[:200].all() and not idx.rectangle[200:].any()
+        c = quads[rng.integers(0, len(quads), 4000)]
+        k = rng.integers(0, 4, 4000)
+        pick = c[np.arange(4000), k]
+        nxt = c[np.arange(4000), (k + 1) % 4]
+        t = rng.random((4000, 1))
+        on_edge = pick + t * (nxt - pick)
+        far = pick + rng.normal(0, 30, pick.shape)
+        seg = np.vstack([
+            np.hstack([rng.uniform(0, 300, (20000, 2)) + offset, rng.uniform(0, 300, (20000, 2)) + offset]),
+            np.hstack([far, pick]), np.hstack([pick, far]),  # ending or starting on a corner
+            np.hstack([pick + 3 * (nxt - pick), pick - 2 * (nxt - pick)]),  # along an edge's line
+            np.hstack([on_edge, far]), np.hstack([far, on_edge]),  # from / to a point of an edge
+            np.hstack([on_edge, on_edge]), np.hstack([pick, pick]),  # zero length on the boundary
+            np.hstack([far, far + 1e-9]),
+            np.hstack([pick + 1e-7 * (far - pick), far]), np.hstack([far, pick - 1e-7 * (far - pick)]),
+        ])
+        skip_a = rng.integers(-1, len(quads), len(seg))
+        skip_b = np.full(len(seg), -1, dtype=np.int64)
+        args = (seg, skip_a, skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
+                idx.max_wx)
+        want = _occluded_by_quads(*args)
+        np.testing.assert_array_equal(_occluded_by_quads_sided(*args, idx.rectangle), want)
+        assert 0.05 < want.mean() < 0.95
