@@ -64,7 +64,7 @@ from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
-from couplers.rows import shuffle_within_owner
+from couplers.rows import _order_by_owner_then_key, shuffle_within_owner
 from couplers.zones import CellGrid
 
 PERCEPTION_STREAM_TAG = 0x9E5
@@ -939,6 +939,229 @@ def perceive(
     direction: np.ndarray | None = None,
 ) -> Detections:
     """The V2F rows of one step.
+
+    ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
+    ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
+    footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
+    measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
+    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
+    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
+
+    Four numba stages between the random draws, numpy's trigonometry and shapely's building query (the
+    kernels of :func:`perceive_reference`, same operations in the same order, the same draws from each stream
+    in the same order): field of view and clutter geometry; sight lines and their occlusion; detections,
+    merge and rows; the shuffle within each vehicle.
+    """
+    n = x_true.shape[0]
+    heading = np.asarray(heading, dtype=np.float64)
+    a, k = params.arrays, params.kernel_consts
+    n_sensors = len(params.sensors)
+    if observer_occluder is None:
+        observer_occluder = np.full(n, -1, dtype=np.int64)
+    if direction is None:
+        direction = unit_heading(heading)
+    boresight = np.empty((n_sensors, n, 2))  # rows of the sensors along the heading: ``direction`` instead
+    for s, spec in enumerate(params.sensors):
+        if not k["along_heading"][s]:
+            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    xf = np.ascontiguousarray(x_true, dtype=np.float64)
+    ft = np.ascontiguousarray(features_true, dtype=np.float64)
+    pair_owner = np.asarray(pair_owner, dtype=np.int64)
+    pair_feature = np.asarray(pair_feature, dtype=np.int64)
+
+    # Clutter draws (own stream, never occluded), as _clutter_polar draws them, then the candidates' draws:
+    # one per candidate, before occlusion (common random numbers across P_D / occlusion settings).
+    rate = k["clutter_rate"]
+    counts = (noise.clutter.poisson(rate, size=(n, n_sensors)) if rate is not None
+              else noise.clutter.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors)))).ravel()
+    c = int(counts.sum())
+    u_r, u_a = noise.clutter.random(c), noise.clutter.random(c)
+    cw = noise.clutter.standard_normal((c, 4))
+    origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang = _fov_stage(
+        xf, np.ascontiguousarray(direction, dtype=np.float64), a["mount_x_m"], boresight,
+        np.array(k["along_heading"]), ft, pair_owner, pair_feature, a["range_m"], k["cos_half"], k["full"],
+        counts, n_sensors, u_r, u_a, heading, a["yaw_deg"], a["fov_deg"])
+    u = noise.detect.random(pair.size)
+    w = noise.noise.standard_normal((pair.size, 4))
+
+    # Occlusion of each distinct sight line once (sensors on one mount point share their sight lines); the
+    # lines that meet a building's box go to shapely.
+    use_vehicles = bool(params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners)
+                        and pair.size)
+    corners = (np.ascontiguousarray(occluder_corners, dtype=np.float64).reshape(-1, 4, 2) if use_vehicles
+               else _NO_CORNERS)
+    use_buildings = bool(params.occlusion_buildings and buildings is not None and len(buildings))
+    if use_buildings:
+        g, bb = buildings.cells, buildings.boxes
+        grid = (g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin)
+    else:
+        grid = _NO_BUILDINGS
+    line_of, clear, seg, need = _occlusion_stage(pair, sensor, k["groups"], pair_owner.size, origins, pair_owner,
+                                                 target, np.asarray(observer_occluder, dtype=np.int64),
+                                                 use_vehicles, corners, use_buildings, *grid)
+    if need.size:
+        lines = shapely.linestrings(seg[need].reshape(-1, 2, 2))
+        clear[need[buildings.tree.query(lines, predicate="intersects")[0]]] = False
+
+    # Detection by P_D(d); merge: one row per detected pair, from the detecting sensor with the smallest
+    # sigma_p; detection and clutter rows (numpy's cos / sin of the clutter bearings).
+    (t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, n_det) = _detection_stage(
+        pair, dist, sensor, pair_owner.size, clear, line_of, u, w, pair_owner, pair_feature, ft, xf,
+        a["range_m"], a["pd_near"], a["pd_far"], a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"], origins,
+        c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang), cw)
+
+    # Detections then clutter, shuffled within each vehicle (one uniform key per row).
+    keys = noise.shuffle.random(t_owner.size + c_owner.size)
+    t_klass = (np.zeros(t_feat.size, dtype=np.int8) if feature_class is None
+               else np.asarray(feature_class, dtype=np.int8)[t_feat])
+    z, owner, R, feature, sensor_rows, klass = _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
+                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+    stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - n_det, detected=n_det, clutter=c)
+    return Detections(z=z, owner=owner, R=R, feature=feature, sensor=sensor_rows, klass=klass, stats=stats)
+
+
+_NO_CORNERS = np.empty((0, 4, 2))
+_NO_BUILDINGS = (0.0, 0.0, 1.0, np.zeros((1, 1), dtype=np.bool_), np.zeros(2, dtype=np.int64),
+                 np.empty(0, dtype=np.int64), np.empty((0, 4)), 0.0)
+
+
+@njit(cache=True)
+def _fov_stage(xy, direction, mount_x, boresight, along, features, pair_owner, pair_feature, range_m, cos_half,
+               full, counts, n_sensors, u_r, u_a, heading, yaw_deg, fov_deg):
+    """Mount points (S, N, 2) xy + mount_x direction, the pairs' targets, the candidates of the fields of view
+    (:func:`_fov_select`, boresight ``direction`` for the sensors ``along`` the heading) and the clutter's
+    geometry (:func:`_clutter_geometry`)."""
+    n_s, n = mount_x.size, xy.shape[0]
+    origins = np.empty((n_s, n, 2))
+    bore = np.empty((n_s, n, 2))
+    for s in range(n_s):
+        for i in range(n):
+            for j in range(2):
+                origins[s, i, j] = xy[i, j] + mount_x[s] * direction[i, j]
+                bore[s, i, j] = direction[i, j] if along[s] else boresight[s, i, j]
+    target = np.empty((pair_feature.size, 2))
+    for p in range(pair_feature.size):
+        target[p, 0] = features[pair_feature[p], 0]
+        target[p, 1] = features[pair_feature[p], 1]
+    pair, dist, sensor = _fov_select(origins, bore, pair_owner, target, range_m, cos_half, full)
+    c_owner, c_sensor, c_dist, c_ang = _clutter_geometry(counts, n_sensors, u_r, u_a, heading, range_m, yaw_deg,
+                                                         fov_deg)
+    return origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang
+
+
+@njit(cache=True)
+def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
+                     corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
+    """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
+    footprint other than the observer's hides (:func:`_occluded_by_quads_sided`); of the clear ones, the
+    lines that may meet a building (:func:`_needs_building_test`). Returns (line of each candidate, clear
+    (L,), segments (L, 4), the lines for the building query)."""
+    line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
+    m = line.size
+    seg = np.empty((m, 4))
+    skip_a = np.empty(m, dtype=np.int64)
+    for r in range(m):
+        c = line[r]
+        i = pair_owner[pair[c]]
+        seg[r, 0] = origins[sensor[c], i, 0]
+        seg[r, 1] = origins[sensor[c], i, 1]
+        seg[r, 2] = target[pair[c], 0]
+        seg[r, 3] = target[pair[c], 1]
+        skip_a[r] = observer_occluder[i]
+    clear = np.ones(m, dtype=np.bool_)
+    if use_vehicles and m > 0 and corners.shape[0] > 0:
+        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
+        hidden = _occluded_by_quads_sided(seg, skip_a, np.full(m, -1, dtype=np.int64), corners, order,
+                                          xmin_sorted, xmax, ymin, ymax, max_wx, _rectangles(corners))
+        for r in range(m):
+            clear[r] = not hidden[r]
+    n_clear = 0
+    for r in range(m):
+        if clear[r]:
+            n_clear += 1
+    if not use_buildings or n_clear == 0:
+        return line_of, clear, seg, np.empty(0, dtype=np.int64)
+    rows = np.empty(n_clear, dtype=np.int64)
+    q = 0
+    for r in range(m):
+        if clear[r]:
+            rows[q] = r
+            q += 1
+    needs = _needs_building_test(seg[rows], x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin)
+    return line_of, clear, seg, rows[needs]
+
+
+@njit(cache=True)
+def _detection_stage(pair, dist, sensor, n_pairs, clear, line_of, u, w, pair_owner, pair_feature, features, x_true,
+                     range_m, pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v, origins, c_owner, c_sensor, c_dist,
+                     c_cos, c_sin, cw):
+    """:func:`_merge_detections` of the visible candidates, their rows (:func:`_detected_rows`), the clutter
+    rows (:func:`_clutter_rows`) and the pair counts (:func:`_pair_counts`)."""
+    visible = np.empty(pair.size, dtype=np.bool_)
+    for c in range(pair.size):
+        visible[c] = clear[line_of[c]]
+    detected = np.empty(pair.size, dtype=np.bool_)
+    sig, first = _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, pd_far, sigma_p_m,
+                                   sigma_growth, u, visible)
+    t_owner, t_feat, t_sensor, t_sig, t_sv, t_z = _detected_rows(first, pair, sensor, pair_owner, pair_feature,
+                                                                 features, x_true, w, sig, sigma_v)
+    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, c_cos, c_sin, x_true, cw, range_m,
+                                     sigma_p_m, sigma_growth, sigma_v)
+    n_fov, n_vis = _pair_counts(pair, visible, n_pairs)
+    return t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, first.size
+
+
+@njit(cache=True)
+def _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass):
+    """:func:`couplers.rows.shuffle_within_owner` of the detections then the clutter rows with the uniform
+    ``keys``, and the rows in that order (:func:`_shuffled_rows`)."""
+    owner = np.empty(t_owner.size + c_owner.size, dtype=np.int64)
+    owner[:t_owner.size] = t_owner
+    owner[t_owner.size:] = c_owner
+    perm = _order_by_owner_then_key(owner, keys)
+    return _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv,
+                          t_klass)
+
+
+def perceive_reference(
+    *,
+    x_true: np.ndarray,
+    heading: np.ndarray,
+    features_true: np.ndarray,
+    pair_owner: np.ndarray,
+    pair_feature: np.ndarray,
+    params: PerceptionParams,
+    noise: PerceptionNoise,
+    occluder_corners: np.ndarray | None = None,
+    observer_occluder: np.ndarray | None = None,
+    buildings: Buildings | None = None,
+    feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> Detections:
+    """:func:`perceive` as a sequence of separate kernels with numpy between them (the reference of its
+    fused stages: ``tests/couplers/test_frame_kernels.py`` compares the two)."""
+    return _perceive_steps(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
+                           pair_feature=pair_feature, params=params, noise=noise, occluder_corners=occluder_corners,
+                           observer_occluder=observer_occluder, buildings=buildings, feature_class=feature_class,
+                           direction=direction)
+
+
+def _perceive_steps(
+    *,
+    x_true: np.ndarray,
+    heading: np.ndarray,
+    features_true: np.ndarray,
+    pair_owner: np.ndarray,
+    pair_feature: np.ndarray,
+    params: PerceptionParams,
+    noise: PerceptionNoise,
+    occluder_corners: np.ndarray | None = None,
+    observer_occluder: np.ndarray | None = None,
+    buildings: Buildings | None = None,
+    feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> Detections:
+    """The V2F rows of one step (see :func:`perceive`).
 
     ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
     ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):

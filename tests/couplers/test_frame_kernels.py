@@ -435,3 +435,47 @@ def test_occlusion_side_shortcut_gives_the_exact_answers():
         want = _occluded_by_quads(*args)
         np.testing.assert_array_equal(_occluded_by_quads_sided(*args, idx.rectangle), want)
         assert 0.05 < want.mean() < 0.95
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_perceive_stages_equal_the_separate_kernels(seed):
+    """The fused stages of perceive against perceive_reference (the separate kernels): every array and
+    count, and each random stream left in the same state; with and without occluders, buildings, classes,
+    the heading vectors, one clutter rate or several, sensors off the heading and behind the bumper."""
+    from couplers.perception import (PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference,
+                                     unit_heading, vehicle_footprints)
+    from couplers.sensors import features_in_range
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    blds = load_net_folder(ARTERIAL).buildings
+    xmin, ymin, xmax, ymax = shapely.total_bounds(blds.polygons)
+    n, k = (0, 30) if seed == 4 else (120, 80)
+    xy = np.column_stack([rng.uniform(xmin, xmax, n), rng.uniform(ymin, ymax, n)])
+    heading = rng.uniform(-np.pi, np.pi, n)
+    x_true = np.hstack([xy, rng.normal(0, 8, (n, 2))])
+    feats = np.hstack([np.column_stack([rng.uniform(xmin, xmax, k), rng.uniform(ymin, ymax, k)]), np.zeros((k, 2))])
+    corners = vehicle_footprints(xy, heading, rng.uniform(4, 12, n), rng.uniform(1.6, 2.5, n))
+    sensors = (SensorSpec(), SensorSpec(name="s", fov_deg=360.0, range_m=30.0),
+               SensorSpec(name="rear", fov_deg=90.0, range_m=40.0, yaw_deg=135.0, mount_x_m=-3.0,
+                          clutter_per_scan=1.0 if seed % 2 else 2.5))
+    for params in (PerceptionParams(sensors=sensors), PerceptionParams(sensors=sensors[:2], occlusion_buildings=False),
+                   PerceptionParams(sensors=sensors[:2], occlusion_vehicles=False)):
+        owner, feat = features_in_range(xy, cKDTree(feats[:, :2]) if k else None, params.max_reach_m)
+        klass = (rng.random(k) < 0.3).astype(np.int8) if seed % 2 else None
+        kw = dict(x_true=x_true, heading=heading, features_true=feats, pair_owner=owner, pair_feature=feat,
+                  params=params, occluder_corners=corners, observer_occluder=np.arange(n), buildings=blds,
+                  feature_class=klass)
+        for direction in (None, unit_heading(heading)):
+            na, nb = PerceptionNoise(seed), PerceptionNoise(seed)
+            got = perceive(noise=na, direction=direction, **kw)
+            want = perceive_reference(noise=nb, **kw)
+            for name in ("z", "owner", "R", "feature", "sensor", "klass"):
+                g, w = getattr(got, name), getattr(want, name)
+                assert g.dtype == w.dtype and g.shape == w.shape, name
+                np.testing.assert_array_equal(g, w, err_msg=name)
+            assert got.stats == want.stats
+            for stream in PerceptionNoise.STREAMS:
+                assert getattr(na, stream).random() == getattr(nb, stream).random()
+        if n and params.occlusion_vehicles and params.occlusion_buildings:
+            assert want.stats["occluded"] > 0 and want.stats["detected"] > 0 and want.stats["clutter"] > 0
