@@ -60,7 +60,7 @@ from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
-from couplers.zones import CellGrid
+from couplers.zones import CellGrid, _grid_values
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -187,6 +187,21 @@ def _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end):
 
 
 @njit(cache=True)
+def _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, x0, y0, cell, p_grid):
+    """:func:`_carry` and the start probability of each vehicle's cell (:func:`couplers.zones._grid_values`
+    of the per-cell probabilities)."""
+    u, bias, end, active = _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t)
+    return u, bias, end, active, _grid_values(xy, x0, y0, cell, p_grid)
+
+
+@njit(cache=True)
+def _episodes_and_error(start, mag, cos_a, sin_a, dur, t, bias, end, sigma, u):
+    """:func:`_start_episodes` (in place) and the position error :func:`_scaled_plus`."""
+    _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end)
+    return _scaled_plus(sigma, u, bias)
+
+
+@njit(cache=True)
 def _scaled_plus(sigma, u, bias):
     """sigma[:, None] * u + bias."""
     out = np.empty_like(u)
@@ -243,22 +258,27 @@ class GnssErrorProcess:
         if idx is None:
             idx = match_ids(self._ids, ids)
         w = np.ascontiguousarray(w, dtype=float)
-        # Carried state; episodes past their end stop (bias 0, end -inf until a new start).
-        u, bias, end, active = _carry(idx, np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
-                                      self.a, math.sqrt(1.0 - self.a * self.a), float(t))
-        # Vehicles outside an episode may start one (draws for every vehicle, so the streams do not depend
-        # on who is in an episode).
-        p_start = self.start_probabilities(zone, xy)
+        # Carried state; episodes past their end stop (bias 0, end -inf until a new start). Vehicles outside an
+        # episode may start one (draws for every vehicle, so the streams do not depend on who is in one).
+        args = (np.asarray(idx, dtype=np.int64), np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
+                self.a, math.sqrt(1.0 - self.a * self.a), float(t))
+        if self._p_start_grid is not None:  # with the start probability of each vehicle's cell
+            g = self._p_start_grid
+            u, bias, end, active, p_start = _carry_with_grid(
+                *args, np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), g.x0, g.y0, g.cell, g.values)
+        else:
+            u, bias, end, active = _carry(*args)
+            p_start = self.start_probabilities(zone, xy)
         start = (self.nlos_start.random(n) < p_start) & ~active
         dur = self.nlos_duration.exponential(self.params.nlos_mean_duration_s, size=n)
         mag = self.nlos_bias.exponential(self.params.nlos_bias_mean_m, size=n) if self.params.nlos_bias_mean_m > 0 \
             else np.zeros(n)
         ang = self.nlos_bias.uniform(-np.pi, np.pi, size=n)
-        if start.any():  # numpy's cos / sin of the starting vehicles' angles (as gathered before)
-            a = ang[start]
-            _start_episodes(start, mag, np.cos(a), np.sin(a), dur, float(t), bias, end)
+        a = ang[start]  # numpy's cos / sin of the starting vehicles' angles (as gathered before)
+        error = _episodes_and_error(start, mag, np.cos(a), np.sin(a), dur, float(t), bias, end,
+                                    np.asarray(sigma_p, dtype=float), u)
         self._ids, self._u, self._bias, self._end = np.asarray(ids, dtype=object), u, bias, end
-        return _scaled_plus(np.asarray(sigma_p, dtype=float), u, bias)
+        return error
 
     @property
     def in_episode(self) -> np.ndarray:

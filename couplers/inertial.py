@@ -181,14 +181,20 @@ def _turn_angles(idx, entered, heading, prev_heading):
 
 
 @njit(cache=True)
-def _imu_step(idx, fresh, new, dpsi, c, s, accel_net, dt,
+def _imu_step(idx, fresh, new, dpsi, c, s, accel_net, dt, scale,
               a_on_new, a_on_prev, a_drift_prev, w_accel, n_accel, a_sig, a_b, a_a,
               g_on_new, g_on_prev, g_drift_prev, w_gyro, n_gyro, g_sig, g_b, g_a):
     """:func:`true_body_motion` from the angles of :func:`_turn_angles` and their numpy cos / sin ``c``, ``s``
     (accel_body = R(mid)^T a, zero for ``new`` rows; yaw rate dpsi / dt), then :func:`_imu_axes` of the
-    accelerometer (2 axes) and the gyroscope (1 axis), same operations in the same order.
+    accelerometer (2 axes) and the gyroscope (1 axis), same operations in the same order. The turn-on and
+    white-noise draws come as standard normals, scaled here by ``scale`` (accel turn-on sigma, gyro turn-on
+    sigma, accel and gyro white-noise sigma), the products :func:`turn_on_bias` and :func:`white_noise` form.
     Returns (a_on, a_drift, accel (N, 2), g_on, g_drift, yaw_rate (N,))."""
     n = idx.size
+    a_on_new = a_on_new * scale[0]
+    g_on_new = g_on_new * scale[1]
+    n_accel = n_accel * scale[2]
+    n_gyro = n_gyro * scale[3]
     body = np.empty((n, 2))
     yaw = np.empty((n, 1))
     for i in range(n):
@@ -243,16 +249,19 @@ class InertialProcess:
                                              heading, self._heading)
         c, s = np.cos(mid), np.sin(mid)  # numpy's, as true_body_motion's
         rad = math.pi / 180.0
-        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter)
-        a_on_new = turn_on_bias(self.accel_turn_on_rng, (n, 2), p.accel_turn_on_sigma)
-        g_on_new = turn_on_bias(self.gyro_turn_on_rng, (n,), p.gyro_turn_on_sigma * rad)
+        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter); the
+        # standard normals are scaled in the kernel as turn_on_bias / white_noise scale them
+        scale = np.array([p.accel_turn_on_sigma, p.gyro_turn_on_sigma * rad, p.accel_noise_density / math.sqrt(dt),
+                          (p.gyro_noise_density * rad) / math.sqrt(dt)])
+        a_on_new = self.accel_turn_on_rng.standard_normal((n, 2))
+        g_on_new = self.gyro_turn_on_rng.standard_normal(n)
         w_accel = self.accel_drift_rng.standard_normal((n, 2))
         w_gyro = self.gyro_drift_rng.standard_normal(n)
-        n_accel = white_noise(self.accel_noise_rng, (n, 2), p.accel_noise_density, dt)
-        n_gyro = white_noise(self.gyro_noise_rng, (n,), p.gyro_noise_density * rad, dt)
+        n_accel = self.accel_noise_rng.standard_normal((n, 2))
+        n_gyro = self.gyro_noise_rng.standard_normal(n)
         a_sig, g_sig = p.accel_bias_sigma, p.gyro_bias_sigma * rad
         a_on, a_drift, accel, g_on, g_drift, yaw_rate = _imu_step(
-            idx, fresh, new, dpsi, c, s, np.ascontiguousarray(accel_net, dtype=float), dt,
+            idx, fresh, new, dpsi, c, s, np.ascontiguousarray(accel_net, dtype=float), dt, scale,
             a_on_new, self.accel_turn_on, self.accel_drift, w_accel, n_accel, a_sig,
             a_sig * math.sqrt(1.0 - self.a_accel * self.a_accel), self.a_accel,
             g_on_new, self.gyro_turn_on, self.gyro_drift, w_gyro, n_gyro, g_sig,

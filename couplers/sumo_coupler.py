@@ -18,7 +18,7 @@ from couplers.inertial import InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.pedestrians import FeatureRegistry, person_states
-from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
+from couplers.perception import Detections, PerceptionNoise, _footprints, perceive, vehicle_footprints
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
 from couplers.v2x import V2xChannel
@@ -204,7 +204,8 @@ class SumoCoupler:
         corners = None
         if p.occlusion_vehicles:
             dims = self._vehicle_dims(road.ids, road.prev_row)
-            corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1], direction=road.direction)
+            corners = (_footprints(road.xy, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
+                       else vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1]))
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,

@@ -113,14 +113,17 @@ def _fleet(rng, steps=60, pool=40):
     return out
 
 
-@pytest.mark.parametrize("tau_s", [0.0, 30.0])
-def test_gnss_error_step_equals_the_array_reference(tau_s):
-    params = GnssErrorParams(tau_s=tau_s, nlos_rate_per_min=(3.0, 12.0))
-    dt, proc = 0.75, GnssErrorProcess(params, seed=5, dt=0.75)
-    ref = GnssErrorProcess(params, seed=5, dt=0.75)  # its streams drive the reference below
+@pytest.mark.parametrize("tau_s, buildings", [(0.0, False), (30.0, False), (30.0, True)])
+def test_gnss_error_step_equals_the_array_reference(tau_s, buildings):
+    params = GnssErrorParams(tau_s=tau_s, nlos_rate_per_min=(3.0, 12.0), nlos_rate_per_density_per_min=30.0)
+    blds = load_net_folder(ARTERIAL).buildings if buildings else None
+    dt, proc = 0.75, GnssErrorProcess(params, seed=5, dt=0.75, buildings=blds)
+    ref = GnssErrorProcess(params, seed=5, dt=0.75, buildings=blds)  # its streams drive the reference below
     state = dict(ids=np.empty(0, dtype=object), u=np.empty((0, 2)), bias=np.empty((0, 2)), end=np.empty(0))
     rng = np.random.default_rng(6)
+    lo = np.array(shapely.total_bounds(blds.polygons)[:2]) if buildings else np.zeros(2)
     for k, (ids, entered, _, xy) in enumerate(_fleet(rng)):
+        xy = xy + lo  # over the buildings (their density) when the net has them
         n, t = ids.size, (k + 1) * dt
         w, sp = rng.standard_normal((n, 2)), rng.choice([3.0, 8.0, 15.0], n)
         zone = np.where(sp == 3.0, "A", np.where(sp == 8.0, "B", "C")).astype(object)
