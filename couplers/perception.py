@@ -246,11 +246,17 @@ def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
     sensor = np.empty(n_sensors * m, dtype=np.int64)
     count = 0
     for s in range(n_sensors):
+        # d^2 beyond range^2 (1 + 1e-12) puts d = sqrt(d^2) (correctly rounded, monotone) beyond the range for
+        # certain: those pairs skip the square root
+        far2 = range_m[s] * range_m[s] * (1.0 + 1e-12)
         for k in range(m):
             i = owner[k]
             dx = target[k, 0] - origin[s, i, 0]
             dy = target[k, 1] - origin[s, i, 1]
-            d = math.sqrt(dx * dx + dy * dy)
+            d2 = dx * dx + dy * dy
+            if d2 > far2:
+                continue
+            d = math.sqrt(d2)
             if d > range_m[s]:
                 continue
             # angle to the boresight <= half the opening  <=>  d . b >= |d| cos(half)

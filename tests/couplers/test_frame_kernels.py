@@ -482,3 +482,31 @@ def test_perceive_stages_equal_the_separate_kernels(seed):
                 assert getattr(na, stream).random() == getattr(nb, stream).random()
         if n and params.occlusion_vehicles and params.occlusion_buildings:
             assert want.stats["occluded"] > 0 and want.stats["detected"] > 0 and want.stats["clutter"] > 0
+
+
+def test_fov_select_at_the_range_equals_the_square_root_test():
+    """Targets at the range to the last bits (where the squared-distance shortcut must not decide): the
+    candidates of _fov_select are those of the distance test d = sqrt(dx^2 + dy^2) <= range."""
+    from couplers.perception import _fov_select
+
+    rng = np.random.default_rng(20)
+    n, m = 50, 20000
+    origin = rng.uniform(-1e4, 1e4, (2, n, 2))
+    bore = np.stack([np.cos(rng.uniform(-4, 4, (2, n))), np.sin(rng.uniform(-4, 4, (2, n)))], axis=-1)
+    owner = rng.integers(0, n, m)
+    range_m = np.array([80.0, 30.0])
+    ang = rng.uniform(-np.pi, np.pi, m)
+    r = range_m[rng.integers(0, 2, m)] * (1.0 + rng.integers(-40, 40, m) * 2.0 ** -52)
+    s0 = rng.integers(0, 2, m)
+    target = origin[s0, owner] + r[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    rows, dist, sensor = _fov_select(origin, bore, owner, target, range_m, np.array([0.5, -1.0]),
+                                     np.array([False, True]))
+    want = []
+    for s in range(2):
+        d = np.sqrt(((target - origin[s, owner]) ** 2).sum(axis=1))
+        dot = ((target - origin[s, owner]) * bore[s, owner]).sum(axis=1)
+        ok = (d <= range_m[s]) & ((s == 1) | (dot >= d * 0.5))
+        want.append(np.flatnonzero(ok))
+    np.testing.assert_array_equal(rows, np.concatenate(want))
+    np.testing.assert_array_equal(sensor, np.repeat([0, 1], [len(w) for w in want]))
+    assert 0.2 < np.mean(np.sqrt(((target - origin[s0, owner]) ** 2).sum(axis=1)) <= range_m[s0]) < 0.8
