@@ -18,8 +18,10 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
   (a length x width rectangle behind the front bumper, along the heading: every vehicle on the road,
   connected or not) or a building polygon (``buildings.geojson`` of the net folder). The observing
   vehicle never occludes its own sight lines, nor does a target that is itself a vehicle. Vehicles:
-  a numba sort-and-sweep over the footprints' x extents plus exact segment/rectangle tests;
-  buildings: a shapely 2 STRtree ``query(..., predicate="intersects")`` over all sight lines at once.
+  a numba sort-and-sweep over the footprints' x extents plus exact segment/rectangle tests (skipped for a
+  footprint that lies wholly to one side of the line, :func:`_occluded_by_quads_sided`);
+  buildings: a shapely 2 STRtree ``query(..., predicate="intersects")`` over the sight lines that meet a
+  building's bounding box (:func:`_needs_building_test`), all at once.
 * Detection: a visible feature at distance d is detected with probability
   P_D(d) = pd_near + (pd_far - pd_near) d / range_m, linear in d from ``pd_near`` at 0 m to
   ``pd_far`` at the range. Eclipse MOSAIC's perception error models decide detection by distance
