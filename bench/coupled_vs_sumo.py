@@ -18,6 +18,9 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
      same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x)
 
+Each line also gives the CPU seconds of the work (the process's, or the `sumo` child's for the binary): on
+a shared machine wall times stretch with the load, CPU times much less.
+
 Not a test: it asserts nothing and prints numbers.
 """
 
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import resource
 import subprocess
 import sys
 import time
@@ -49,27 +53,38 @@ from experiments.runner import build_estimators  # noqa: E402
 REFERENCE = "[reference]"
 
 
+CPU: dict[str, float] = {}  # CPU seconds of the timed runs, by what main() prints them as
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def time_sumo_binary(scenario: SumoScenario) -> float:
     cmd = scenario.sumo_options().command()
     cmd[0] = sumolib.checkBinary("sumo")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     subprocess.run(cmd, check=True, capture_output=True)
+    CPU["sumo"] = _children_cpu() - c0
     return time.perf_counter() - t0
 
 
 def time_libsumo_floor(scenario: SumoScenario) -> float:
     """libsumo stepping plus the three per-vehicle getters: what any coupler must pay."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with SumoTraffic(scenario.sumo_options()) as traffic:
         while not traffic.done():
             traffic.step()
+    CPU["floor"] = time.process_time() - c0
     return time.perf_counter() - t0
 
 
-def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list) -> tuple[float, int, dict]:
+def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list,
+                 cpu_key: str = "") -> tuple[float, int, dict]:
     per_method = {e.name: 0.0 for e in estimators}
     steps = 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with SumoCoupler(scenario, sensors) as coupler:
         for frame in coupler.frames():
             steps += 1
@@ -83,6 +98,8 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
                     est.step(blind)
                 per_method[est.name] += time.perf_counter() - s
     icp_fused.FUSED = True
+    if cpu_key:
+        CPU[cpu_key] = time.process_time() - c0
     return time.perf_counter() - t0, steps, per_method
 
 
@@ -118,8 +135,8 @@ def main() -> None:
     warm = dataclasses.replace(scenario, duration_s=min(60.0, scenario.duration_s))
     for sensors in [cfg.sensors] + ([rcfg.sensors] if rcfg else []):  # imports, numba caches: not timed
         time_coupled(warm, sensors, [])
-    coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [])
-    realistic = time_coupled(scenario, rcfg.sensors, [])[0] if rcfg else None
+    coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [], "frames")
+    realistic = time_coupled(scenario, rcfg.sensors, [], "realistic")[0] if rcfg else None
     estimators = build_estimators(cfg)
     if args.pf_kernels:
         pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
@@ -139,13 +156,19 @@ def main() -> None:
     coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
     reference_s = sum(sec for name, sec in per_method.items() if name.endswith(REFERENCE))
 
+    def cpu(key: str) -> str:
+        """CPU seconds and their ratio to the `sumo` binary's (and to the idealised frames' for the realistic)."""
+        out = f"   | CPU {CPU[key]:6.2f} s, to sumo {CPU[key] / CPU['sumo']:5.2f}" if CPU.get("sumo") else ""
+        return out + (f", to idealised {CPU[key] / CPU['frames']:5.2f}" if key == "realistic" else "")
+
     print(f"arterial {args.control}, {args.duration:.0f} s simulated, {steps} steps")
-    print(f"  sumo binary alone        {sumo_alone:8.2f} s")
-    print(f"  libsumo step + getters   {floor:8.2f} s   ratio to sumo {floor / sumo_alone:5.2f}")
-    print(f"  coupler (frames only)    {coupler_only:8.2f} s   ratio to sumo {coupler_only / sumo_alone:5.2f}")
+    print(f"  sumo binary alone        {sumo_alone:8.2f} s   (CPU {CPU['sumo']:.2f} s)")
+    print(f"  libsumo step + getters   {floor:8.2f} s   ratio to sumo {floor / sumo_alone:5.2f}" + cpu("floor"))
+    print(f"  coupler (frames only)    {coupler_only:8.2f} s   ratio to sumo {coupler_only / sumo_alone:5.2f}"
+          + cpu("frames"))
     if realistic is not None:
         print(f"  frames, realistic preset {realistic:8.2f} s   ratio to sumo {realistic / sumo_alone:5.2f}, "
-              f"to idealised frames {realistic / coupler_only:5.2f}")
+              f"to idealised frames {realistic / coupler_only:5.2f}" + cpu("realistic"))
     print(f"  coupled ({args.methods:>14}) {coupled - reference_s:8.2f} s   ratio to sumo "
           f"{(coupled - reference_s) / sumo_alone:5.2f}" + ("   (the [reference] estimators' time left out)"
                                                             if args.reference else ""))

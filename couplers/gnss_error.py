@@ -49,6 +49,7 @@ Default sources:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -59,7 +60,7 @@ from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
 from couplers.perception import effect_rng
-from couplers.zones import CellGrid
+from couplers.zones import CellGrid, _grid_values
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -173,6 +174,34 @@ def _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t):
 
 
 @njit(cache=True)
+def _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end):
+    """In place, for the k-th vehicle where ``start``: bias = mag (cos_a[k], sin_a[k]), end = t + dur
+    (``bias[start] = mag[start, None] * [cos, sin]``, ``end[start] = t + dur[start]``)."""
+    k = 0
+    for i in range(start.size):
+        if start[i]:
+            bias[i, 0] = mag[i] * cos_a[k]
+            bias[i, 1] = mag[i] * sin_a[k]
+            end[i] = t + dur[i]
+            k += 1
+
+
+@njit(cache=True)
+def _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, x0, y0, cell, p_grid):
+    """:func:`_carry` and the start probability of each vehicle's cell (:func:`couplers.zones._grid_values`
+    of the per-cell probabilities)."""
+    u, bias, end, active = _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t)
+    return u, bias, end, active, _grid_values(xy, x0, y0, cell, p_grid)
+
+
+@njit(cache=True)
+def _episodes_and_error(start, mag, cos_a, sin_a, dur, t, bias, end, sigma, u):
+    """:func:`_start_episodes` (in place) and the position error :func:`_scaled_plus`."""
+    _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end)
+    return _scaled_plus(sigma, u, bias)
+
+
+@njit(cache=True)
 def _scaled_plus(sigma, u, bias):
     """sigma[:, None] * u + bias."""
     out = np.empty_like(u)
@@ -195,6 +224,12 @@ class GnssErrorProcess:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
         self.density = (building_density_grid(buildings, params.nlos_density_radius_m)
                         if buildings is not None and len(buildings) else None)
+        # The start probability of each density cell, computed once: per step a lookup instead of the rate and
+        # expm1 of every vehicle (the same numpy expressions on the same cell values, so the same probabilities;
+        # outside the grid the lookup's 0 is the probability of a zero rate).
+        self._p_start_grid = (None if self.density is None else dataclasses.replace(
+            self.density, values=episode_start_probability(
+                self.params.nlos_rate_per_density_per_min * self.density.values, self.dt)))
         self._ids = np.empty(0, dtype=object)
         self._u = np.empty((0, 2))
         self._bias = np.empty((0, 2))
@@ -207,28 +242,43 @@ class GnssErrorProcess:
             return self.params.nlos_rate_per_density_per_min * self.density.at(xy)
         return zone_rates(self.params, zone)
 
+    def start_probabilities(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """(N,) probability that each vehicle starts an episode this step (:func:`episode_start_probability`
+        of :meth:`start_rates`; with buildings a lookup of the per-cell probabilities)."""
+        if self._p_start_grid is not None:
+            return self._p_start_grid.at(xy)
+        return episode_start_probability(self.start_rates(zone, xy), self.dt)
+
     def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
-             zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws."""
+             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws. ``idx``: the row
+        of each vehicle among the ``ids`` of the previous call, -1 if new (``match_ids(previous ids, ids)``,
+        which the SUMO coupler has from ``SumoTraffic.step``); None: matched here."""
         n = len(ids)
-        idx = match_ids(self._ids, ids)
+        if idx is None:
+            idx = match_ids(self._ids, ids)
         w = np.ascontiguousarray(w, dtype=float)
-        # Carried state; episodes past their end stop (bias 0, end -inf until a new start).
-        u, bias, end, active = _carry(idx, np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
-                                      self.a, math.sqrt(1.0 - self.a * self.a), float(t))
-        # Vehicles outside an episode may start one (draws for every vehicle, so the streams do not depend
-        # on who is in an episode).
-        p_start = episode_start_probability(self.start_rates(zone, xy), self.dt)
+        # Carried state; episodes past their end stop (bias 0, end -inf until a new start). Vehicles outside an
+        # episode may start one (draws for every vehicle, so the streams do not depend on who is in one).
+        args = (np.asarray(idx, dtype=np.int64), np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
+                self.a, math.sqrt(1.0 - self.a * self.a), float(t))
+        if self._p_start_grid is not None:  # with the start probability of each vehicle's cell
+            g = self._p_start_grid
+            u, bias, end, active, p_start = _carry_with_grid(
+                *args, np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), g.x0, g.y0, g.cell, g.values)
+        else:
+            u, bias, end, active = _carry(*args)
+            p_start = self.start_probabilities(zone, xy)
         start = (self.nlos_start.random(n) < p_start) & ~active
         dur = self.nlos_duration.exponential(self.params.nlos_mean_duration_s, size=n)
         mag = self.nlos_bias.exponential(self.params.nlos_bias_mean_m, size=n) if self.params.nlos_bias_mean_m > 0 \
             else np.zeros(n)
         ang = self.nlos_bias.uniform(-np.pi, np.pi, size=n)
-        if start.any():
-            bias[start] = mag[start, None] * np.stack([np.cos(ang[start]), np.sin(ang[start])], axis=1)
-            end[start] = t + dur[start]
+        a = ang[start]  # numpy's cos / sin of the starting vehicles' angles (as gathered before)
+        error = _episodes_and_error(start, mag, np.cos(a), np.sin(a), dur, float(t), bias, end,
+                                    np.asarray(sigma_p, dtype=float), u)
         self._ids, self._u, self._bias, self._end = np.asarray(ids, dtype=object), u, bias, end
-        return _scaled_plus(np.asarray(sigma_p, dtype=float), u, bias)
+        return error
 
     @property
     def in_episode(self) -> np.ndarray:

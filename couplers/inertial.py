@@ -157,6 +157,62 @@ def _imu_axes(idx, fresh, true, on_new, on_prev, drift_prev, w, noise, sigma, b,
     return on, drift, meas
 
 
+@njit(cache=True)
+def _turn_angles(idx, entered, heading, prev_heading):
+    """The step's angles before numpy's trigonometry: for each vehicle whether it is fresh (new or
+    re-entered), whether it has no previous heading (``new`` of :func:`true_body_motion`: fresh, or a
+    non-finite carried heading), dpsi = wrap(psi - psi_prev) and psi_mid = psi_prev + dpsi / 2, with the
+    operations of :func:`true_body_motion` and :func:`coloc.core.inertial.wrap_angle` (numba's float ``%``
+    is Python's, which is numpy's remainder). Returns (fresh, new, dpsi, mid)."""
+    n = idx.size
+    fresh = np.empty(n, dtype=np.bool_)
+    new = np.empty(n, dtype=np.bool_)
+    dpsi = np.empty(n)
+    mid = np.empty(n)
+    for i in range(n):
+        fresh[i] = idx[i] < 0 or entered[i]
+        prev = np.nan if fresh[i] else prev_heading[idx[i]]
+        new[i] = not math.isfinite(prev)
+        if new[i]:
+            prev = heading[i]
+        dpsi[i] = (heading[i] - prev + np.pi) % (2.0 * np.pi) - np.pi
+        mid[i] = prev + 0.5 * dpsi[i]
+    return fresh, new, dpsi, mid
+
+
+@njit(cache=True)
+def _imu_step(idx, fresh, new, dpsi, c, s, accel_net, dt, scale,
+              a_on_new, a_on_prev, a_drift_prev, w_accel, n_accel, a_sig, a_b, a_a,
+              g_on_new, g_on_prev, g_drift_prev, w_gyro, n_gyro, g_sig, g_b, g_a):
+    """:func:`true_body_motion` from the angles of :func:`_turn_angles` and their numpy cos / sin ``c``, ``s``
+    (accel_body = R(mid)^T a, zero for ``new`` rows; yaw rate dpsi / dt), then :func:`_imu_axes` of the
+    accelerometer (2 axes) and the gyroscope (1 axis), same operations in the same order. The turn-on and
+    white-noise draws come as standard normals, scaled here by ``scale`` (accel turn-on sigma, gyro turn-on
+    sigma, accel and gyro white-noise sigma), the products :func:`turn_on_bias` and :func:`white_noise` form.
+    Returns (a_on, a_drift, accel (N, 2), g_on, g_drift, yaw_rate (N,))."""
+    n = idx.size
+    a_on_new = a_on_new * scale[0]
+    g_on_new = g_on_new * scale[1]
+    n_accel = n_accel * scale[2]
+    n_gyro = n_gyro * scale[3]
+    body = np.empty((n, 2))
+    yaw = np.empty((n, 1))
+    for i in range(n):
+        if new[i]:
+            body[i, 0] = 0.0
+            body[i, 1] = 0.0
+        else:
+            body[i, 0] = c[i] * accel_net[i, 0] + s[i] * accel_net[i, 1]
+            body[i, 1] = -s[i] * accel_net[i, 0] + c[i] * accel_net[i, 1]
+        yaw[i, 0] = dpsi[i] / dt
+    a_on, a_drift, accel = _imu_axes(idx, fresh, body, a_on_new, a_on_prev, a_drift_prev, w_accel, n_accel,
+                                     a_sig, a_b, a_a)
+    g_on, g_drift, yaw_rate = _imu_axes(idx, fresh, yaw, g_on_new.reshape(n, 1), g_on_prev.reshape(-1, 1),
+                                        g_drift_prev.reshape(-1, 1), w_gyro.reshape(n, 1), n_gyro.reshape(n, 1),
+                                        g_sig, g_b, g_a)
+    return a_on, a_drift, accel, g_on[:, 0], g_drift[:, 0], yaw_rate[:, 0]
+
+
 class InertialProcess:
     """Per-vehicle IMU state (previous heading, biases) across the steps of one run."""
 
@@ -176,9 +232,48 @@ class InertialProcess:
         self.gyro_turn_on = np.empty(0)  # rad/s
         self.gyro_drift = np.empty(0)
 
-    def step(self, ids: np.ndarray, entered: np.ndarray, heading: np.ndarray, accel_net: np.ndarray) -> ImuFrame:
+    def step(self, ids: np.ndarray, entered: np.ndarray, heading: np.ndarray, accel_net: np.ndarray,
+             idx: np.ndarray | None = None) -> ImuFrame:
         """The step's IMU measurements; ``accel_net`` (N, 2) the true net-frame change of velocity / Ts
-        (zero rows for vehicles that entered), ``heading`` (N,) the true heading."""
+        (zero rows for vehicles that entered), ``heading`` (N,) the true heading. ``idx``: the row of each
+        vehicle among the ``ids`` of the previous call, -1 if new (``match_ids(previous ids, ids)``, which the
+        SUMO coupler has from ``SumoTraffic.step``); None: matched here.
+
+        :meth:`step_reference` is the same step in numpy (:func:`true_body_motion`, :func:`_imu_axes`)."""
+        p, dt = self.params, self.dt
+        n = len(ids)
+        if idx is None:
+            idx = match_ids(self._ids, ids)
+        heading = np.ascontiguousarray(heading, dtype=float)
+        fresh, new, dpsi, mid = _turn_angles(np.asarray(idx, dtype=np.int64), np.asarray(entered, dtype=bool),
+                                             heading, self._heading)
+        c, s = np.cos(mid), np.sin(mid)  # numpy's, as true_body_motion's
+        rad = math.pi / 180.0
+        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter); the
+        # standard normals are scaled in the kernel as turn_on_bias / white_noise scale them
+        scale = np.array([p.accel_turn_on_sigma, p.gyro_turn_on_sigma * rad, p.accel_noise_density / math.sqrt(dt),
+                          (p.gyro_noise_density * rad) / math.sqrt(dt)])
+        a_on_new = self.accel_turn_on_rng.standard_normal((n, 2))
+        g_on_new = self.gyro_turn_on_rng.standard_normal(n)
+        w_accel = self.accel_drift_rng.standard_normal((n, 2))
+        w_gyro = self.gyro_drift_rng.standard_normal(n)
+        n_accel = self.accel_noise_rng.standard_normal((n, 2))
+        n_gyro = self.gyro_noise_rng.standard_normal(n)
+        a_sig, g_sig = p.accel_bias_sigma, p.gyro_bias_sigma * rad
+        a_on, a_drift, accel, g_on, g_drift, yaw_rate = _imu_step(
+            idx, fresh, new, dpsi, c, s, np.ascontiguousarray(accel_net, dtype=float), dt, scale,
+            a_on_new, self.accel_turn_on, self.accel_drift, w_accel, n_accel, a_sig,
+            a_sig * math.sqrt(1.0 - self.a_accel * self.a_accel), self.a_accel,
+            g_on_new, self.gyro_turn_on, self.gyro_drift, w_gyro, n_gyro, g_sig,
+            g_sig * math.sqrt(1.0 - self.a_gyro * self.a_gyro), self.a_gyro)
+        self._ids, self._heading = np.asarray(ids, dtype=object), heading.copy()
+        self.accel_turn_on, self.accel_drift = a_on, a_drift
+        self.gyro_turn_on, self.gyro_drift = g_on, g_drift
+        return ImuFrame(accel_body=accel, yaw_rate=yaw_rate)
+
+    def step_reference(self, ids: np.ndarray, entered: np.ndarray, heading: np.ndarray,
+                       accel_net: np.ndarray) -> ImuFrame:
+        """:meth:`step` with the body motion in numpy (the reference of the fused kernels)."""
         p, dt = self.params, self.dt
         n = len(ids)
         idx = match_ids(self._ids, ids)

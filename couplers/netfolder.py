@@ -149,6 +149,13 @@ class Buildings:
 
         return building_cells(self)
 
+    @cached_property
+    def boxes(self):
+        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.perception.BuildingBoxes`)."""
+        from couplers.perception import BuildingBoxes
+
+        return BuildingBoxes.build(self)
+
 
 def read_buildings(path: str | Path) -> Buildings:
     """``buildings.geojson``: net x/y (Multi)Polygons, optional ``height`` property (m, positive).

@@ -18,8 +18,10 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
   (a length x width rectangle behind the front bumper, along the heading: every vehicle on the road,
   connected or not) or a building polygon (``buildings.geojson`` of the net folder). The observing
   vehicle never occludes its own sight lines, nor does a target that is itself a vehicle. Vehicles:
-  a numba sort-and-sweep over the footprints' x extents plus exact segment/rectangle tests;
-  buildings: a shapely 2 STRtree ``query(..., predicate="intersects")`` over all sight lines at once.
+  a numba sort-and-sweep over the footprints' x extents plus exact segment/rectangle tests (skipped for a
+  footprint that lies wholly to one side of the line, :func:`_occluded_by_quads_sided`);
+  buildings: a shapely 2 STRtree ``query(..., predicate="intersects")`` over the sight lines that meet a
+  building's bounding box (:func:`_needs_building_test`), all at once.
 * Detection: a visible feature at distance d is detected with probability
   P_D(d) = pd_near + (pd_far - pd_near) d / range_m, linear in d from ``pd_near`` at 0 m to
   ``pd_far`` at the range. Eclipse MOSAIC's perception error models decide detection by distance
@@ -64,7 +66,7 @@ from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
-from couplers.rows import shuffle_within_owner
+from couplers.rows import _order_by_owner_then_key, shuffle_within_owner
 from couplers.zones import CellGrid
 
 PERCEPTION_STREAM_TAG = 0x9E5
@@ -162,6 +164,22 @@ class PerceptionParams:
                 "sigma_p_m", "sigma_growth", "sigma_v_mps")
         return {k: np.array([getattr(s, k) for s in self.sensors], dtype=float) for k in keys}
 
+    @cached_property
+    def kernel_consts(self) -> dict:
+        """Per-step constants of :func:`perceive`, computed once: the fields of view's cos(opening / 2) and
+        full-circle flags, the mount groups (:func:`_mount_groups`), which sensors look along the heading
+        (yaw 0: their boresight is the heading's unit vector) and the common clutter rate (None if the
+        sensors' rates differ)."""
+        a = self.arrays
+        rates = a["clutter_per_scan"]
+        return dict(
+            cos_half=np.array([math.cos(math.radians(s.fov_deg) / 2.0) for s in self.sensors]),
+            full=np.array([s.fov_deg >= 360.0 for s in self.sensors]),
+            groups=_mount_groups(a["mount_x_m"]),
+            along_heading=tuple(s.yaw_deg == 0.0 for s in self.sensors),
+            clutter_rate=float(rates[0]) if np.all(rates == rates[0]) else None,
+        )
+
     @property
     def max_reach_m(self) -> float:
         """Distance from the vehicle position beyond which no sensor sees anything."""
@@ -230,11 +248,17 @@ def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
     sensor = np.empty(n_sensors * m, dtype=np.int64)
     count = 0
     for s in range(n_sensors):
+        # d^2 beyond range^2 (1 + 1e-12) puts d = sqrt(d^2) (correctly rounded, monotone) beyond the range for
+        # certain: those pairs skip the square root
+        far2 = range_m[s] * range_m[s] * (1.0 + 1e-12)
         for k in range(m):
             i = owner[k]
             dx = target[k, 0] - origin[s, i, 0]
             dy = target[k, 1] - origin[s, i, 1]
-            d = math.sqrt(dx * dx + dy * dy)
+            d2 = dx * dx + dy * dy
+            if d2 > far2:
+                continue
+            d = math.sqrt(d2)
             if d > range_m[s]:
                 continue
             # angle to the boresight <= half the opening  <=>  d . b >= |d| cos(half)
@@ -249,7 +273,8 @@ def _fov_select(origin, boresight, owner, target, range_m, cos_half, full):
 
 def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray,
              sensors: tuple[SensorSpec, ...]):
-    """:func:`fov_candidates` of every sensor at once (``origins`` (S, N, 2)): (rows, distances, sensors)."""
+    """:func:`fov candidates <fov_candidates>` of every sensor at once (``origins`` (S, N, 2)): (rows, distances,
+    sensors)."""
     heading = np.asarray(heading, dtype=float)
     boresight = np.stack([unit_heading(heading + math.radians(spec.yaw_deg)) for spec in sensors])
     return _fov_select(np.ascontiguousarray(origins, dtype=np.float64), boresight.reshape(len(sensors), -1, 2),
@@ -257,6 +282,19 @@ def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target
                        np.array([spec.range_m for spec in sensors], dtype=float),
                        np.array([math.cos(math.radians(spec.fov_deg) / 2.0) for spec in sensors]),
                        np.array([spec.fov_deg >= 360.0 for spec in sensors]))
+
+
+def _fov_params(origins: np.ndarray, heading: np.ndarray, direction: np.ndarray, owner: np.ndarray,
+                target: np.ndarray, params: "PerceptionParams"):
+    """:func:`_fov_all` with the constants of ``params.kernel_consts``, and the boresight of a sensor with
+    yaw 0 taken from ``direction`` (the heading's unit vector, computed once a step) instead of the unit
+    vector of heading + 0.0: the two differ at most in the sign of a zero, which :func:`_fov_select`'s
+    comparison does not see."""
+    k = params.kernel_consts
+    boresight = np.empty((len(params.sensors),) + direction.shape)
+    for s, spec in enumerate(params.sensors):
+        boresight[s] = direction if k["along_heading"][s] else unit_heading(heading + math.radians(spec.yaw_deg))
+    return _fov_select(origins, boresight, owner, target, params.arrays["range_m"], k["cos_half"], k["full"])
 
 
 def fov_candidates(origin: np.ndarray, heading: np.ndarray, owner: np.ndarray, target: np.ndarray, spec: SensorSpec):
@@ -282,12 +320,14 @@ def range_sigma(dist: np.ndarray, spec) -> np.ndarray:
     return g("sigma_p_m") * (1.0 + g("sigma_growth") * frac)
 
 
-def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray,
+                       direction: np.ndarray | None = None) -> np.ndarray:
     """(N, 4, 2) corners of the vehicles' rectangles, counter-clockwise.
 
     SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
-    the heading and ``width`` / 2 to each side."""
-    return _footprints(np.ascontiguousarray(xy, dtype=np.float64), unit_heading(heading),
+    the heading and ``width`` / 2 to each side. ``direction``: ``unit_heading(heading)`` when the caller has it."""
+    return _footprints(np.ascontiguousarray(xy, dtype=np.float64),
+                       unit_heading(heading) if direction is None else np.ascontiguousarray(direction),
                        np.asarray(length, dtype=float).reshape(-1), np.asarray(width, dtype=float).reshape(-1))
 
 
@@ -385,9 +425,83 @@ def _occluded_by_quads(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymi
     return out
 
 
+#: A sight line passes a footprint for certain when all four corners lie on one side of its line, more than
+#: SIDE_MARGIN_M from it (_occluded_by_quads_sided).
+SIDE_MARGIN_M = 1e-6
+
+
+@njit(cache=True)
+def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
+    """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
+    quad: when all four corners lie on one side of the segment's line by more than SIDE_MARGIN_M (each
+    corner's orientation, as :func:`_orient` computes it, beyond that margin times the segment's length plus
+    1e-12 of its two products, far above their rounding of ~1e-16), the quad misses the segment, and so does
+    the exact test: its proper crossing needs corners on both sides, and the segment's end points lie more
+    than the margin outside a counter-clockwise rectangle, so none of its orientation tests or on-segment
+    tests can tip (their rounding is ~1e-13 m at these coordinates)."""
+    m = seg.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        dx, dy = bx - ax, by - ay
+        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
+        hi = np.searchsorted(xmin_sorted, sx1, side="right")
+        for r in range(lo, hi):
+            q = order[r]
+            if q == skip_a[i] or q == skip_b[i]:
+                continue
+            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
+                continue
+            if rectangle[q]:
+                above = 0
+                below = 0
+                for k in range(4):
+                    p1 = dx * (quads[q, k, 1] - ay)
+                    p2 = dy * (quads[q, k, 0] - ax)
+                    o = p1 - p2  # _orient(ax, ay, bx, by, corner)
+                    bound = side_margin + 1e-12 * (abs(p1) + abs(p2))
+                    if o > bound:
+                        above += 1
+                    elif o < -bound:
+                        below += 1
+                if above == 4 or below == 4:
+                    continue
+            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+                out[i] = True
+                break
+    return out
+
+
+@njit(cache=True)
+def _rectangles(corners):
+    """(K,) bool: quad q is a counter-clockwise rectangle with sides longer than 0.1 m (corners as
+    :func:`_footprints` writes them, right angles within 1e-6), the quads :func:`_occluded_by_quads_sided`
+    may pass by their sides."""
+    k = corners.shape[0]
+    out = np.zeros(k, dtype=np.bool_)
+    for q in range(k):
+        ok = True
+        for c in range(4):
+            ex = corners[q, (c + 1) % 4, 0] - corners[q, c, 0]
+            ey = corners[q, (c + 1) % 4, 1] - corners[q, c, 1]
+            fx = corners[q, (c + 2) % 4, 0] - corners[q, (c + 1) % 4, 0]
+            fy = corners[q, (c + 2) % 4, 1] - corners[q, (c + 1) % 4, 1]
+            le, lf = math.sqrt(ex * ex + ey * ey), math.sqrt(fx * fx + fy * fy)
+            if not (le > 0.1 and lf > 0.1 and abs(ex * fx + ey * fy) <= 1e-6 * le * lf
+                    and ex * fy - ey * fx > 0.0):
+                ok = False
+                break
+        out[q] = ok
+    return out
+
+
 @dataclass(frozen=True)
 class OccluderIndex:
-    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step."""
+    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step;
+    ``rectangle`` marks the footprints that are counter-clockwise rectangles (:func:`_rectangles`)."""
 
     corners: np.ndarray
     order: np.ndarray
@@ -396,13 +510,14 @@ class OccluderIndex:
     ymin: np.ndarray
     ymax: np.ndarray
     max_wx: float
+    rectangle: np.ndarray
 
     @classmethod
     def build(cls, corners: np.ndarray) -> "OccluderIndex":
         corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
         order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
         return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
-                   max_wx=max_wx)
+                   max_wx=max_wx, rectangle=_rectangles(corners))
 
 
 @njit(cache=True)
@@ -445,9 +560,9 @@ def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer
     if m == 0 or idx.corners.shape[0] == 0:
         return np.zeros(m, dtype=bool)
     skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
-    return _occluded_by_quads(np.ascontiguousarray(seg, dtype=np.float64), np.asarray(observer, dtype=np.int64),
-                              skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
-                              idx.max_wx)
+    return _occluded_by_quads_sided(np.ascontiguousarray(seg, dtype=np.float64),
+                                    np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
+                                    idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx, idx.rectangle)
 
 
 BUILDING_CELL_M = 4.0
@@ -499,9 +614,120 @@ def _clear_of_buildings(seg, x0, y0, cell, near):
     return out
 
 
+@dataclass(frozen=True)
+class BuildingBoxes:
+    """The buildings' bounding boxes (B, 4: xmin, ymin, xmax, ymax) and, per cell of ``buildings.cells`` (ny * nx,
+    CSR ``start`` / ``ids``), the buildings whose box widened by one cell covers it: the candidates of the
+    sight lines sampled in that cell (:func:`_needs_building_test`)."""
+
+    boxes: np.ndarray
+    start: np.ndarray
+    ids: np.ndarray
+    margin: float  # widening of the boxes in the segment test, far above its rounding
+
+    @classmethod
+    def build(cls, buildings: Buildings) -> "BuildingBoxes":
+        g = buildings.cells
+        ny, nx = g.values.shape
+        b = np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64)
+        # the cells of building_cells' difference array: floor((x - x0) / cell) of the corners, widened by one
+        ix0 = np.clip(np.floor((b[:, 0] - g.x0) / g.cell).astype(np.int64) - 1, 0, nx - 1)
+        iy0 = np.clip(np.floor((b[:, 1] - g.y0) / g.cell).astype(np.int64) - 1, 0, ny - 1)
+        ix1 = np.clip(np.floor((b[:, 2] - g.x0) / g.cell).astype(np.int64) + 1, 0, nx - 1)
+        iy1 = np.clip(np.floor((b[:, 3] - g.y0) / g.cell).astype(np.int64) + 1, 0, ny - 1)
+        start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
+        margin = max(1e-6, 1e-9 * float(np.abs(b).max(initial=0.0)))
+        return cls(boxes=b, start=start, ids=ids, margin=margin)
+
+
+@njit(cache=True)
+def _cell_lists(ix0, iy0, ix1, iy1, nx, ny):
+    """CSR of the boxes [ix0, ix1] x [iy0, iy1] (cells, inclusive) covering each cell iy * nx + ix."""
+    count = np.zeros(nx * ny + 1, dtype=np.int64)
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                count[iy * nx + ix + 1] += 1
+    for c in range(nx * ny):
+        count[c + 1] += count[c]
+    ids = np.empty(count[nx * ny], dtype=np.int64)
+    fill = count[:-1].copy()
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                ids[fill[iy * nx + ix]] = k
+                fill[iy * nx + ix] += 1
+    return count, ids
+
+
+@njit(cache=True)
+def _segment_meets_box(ax, ay, bx, by, xmin, ymin, xmax, ymax):
+    """The closed segment a-b meets the closed box (slab clipping of t in [0, 1])."""
+    t0, t1 = 0.0, 1.0
+    for axis in range(2):
+        p0 = ax if axis == 0 else ay
+        d = (bx - ax) if axis == 0 else (by - ay)
+        lo = xmin if axis == 0 else ymin
+        hi = xmax if axis == 0 else ymax
+        if d == 0.0:
+            if p0 < lo or p0 > hi:
+                return False
+            continue
+        ta, tb = (lo - p0) / d, (hi - p0) / d
+        if ta > tb:
+            ta, tb = tb, ta
+        t0, t1 = max(t0, ta), min(t1, tb)
+        if t0 > t1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _needs_building_test(seg, x0, y0, cell, near, start, ids, boxes, margin):
+    """(M,) bool: segment i may meet a building, i.e. it is not certainly clear by :func:`_clear_of_buildings`
+    and it meets the bounding box, widened by ``margin``, of a building listed in one of its sample cells (or
+    it is not finite). The others certainly miss every building (a polygon lies in its box, and a box the
+    segment meets is listed in a sample cell: :func:`_clear_of_buildings`' argument), so only these go to the
+    polygon test."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.bool_)
+    seen = np.full(boxes.shape[0], -1, dtype=np.int64)
+    clear = _clear_of_buildings(seg, x0, y0, cell, near)
+    for i in range(m):
+        if clear[i]:
+            continue
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+        if not math.isfinite(length):
+            out[i] = True
+            continue
+        k_max = int(length / cell) + 1
+        for k in range(k_max + 1):
+            t = k / k_max
+            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
+            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            if not (0 <= fx < nx and 0 <= fy < ny):
+                continue
+            c = int(fy) * nx + int(fx)
+            for q in range(start[c], start[c + 1]):
+                b = ids[q]
+                if seen[b] == i:
+                    continue
+                seen[b] = i
+                if _segment_meets_box(ax, ay, bx, by, boxes[b, 0] - margin, boxes[b, 1] - margin,
+                                      boxes[b, 2] + margin, boxes[b, 3] + margin):
+                    out[i] = True
+                    break
+            if out[i]:
+                break
+    return out
+
+
 def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
     """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all
-    sight lines that pass near one: ``buildings.cells`` clears the others without shapely)."""
+    sight lines that meet a building's bounding box: ``buildings.cells`` and ``buildings.boxes`` clear the
+    others without shapely, :func:`_needs_building_test`)."""
     return _segments_occluded_by_buildings(np.hstack([start, end]), buildings)
 
 
@@ -511,9 +737,10 @@ def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None
     out = np.zeros(m, dtype=bool)
     if m == 0 or buildings is None or len(buildings) == 0:
         return out
-    g = buildings.cells
+    g, bb = buildings.cells, buildings.boxes
     seg = np.ascontiguousarray(seg, dtype=np.float64)
-    near = np.flatnonzero(~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values))
+    near = np.flatnonzero(_needs_building_test(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes,
+                                               bb.margin))
     if near.size:
         lines = shapely.linestrings(seg[near].reshape(-1, 2, 2))
         hit = buildings.tree.query(lines, predicate="intersects")
@@ -533,11 +760,30 @@ def _clutter_polar(n: int, heading: np.ndarray, params: PerceptionParams, rng: n
     """The clutter draws: (vehicle row, sensor, distance, bearing) of every false detection."""
     a = params.arrays
     n_sensors = len(params.sensors)
-    counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
+    rate = params.kernel_consts["clutter_rate"]
+    if rate is not None:  # one rate for all: numpy's scalar path, the same draws in the same order (tested)
+        counts = rng.poisson(rate, size=(n, n_sensors)).ravel()
+    else:
+        counts = rng.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors))).ravel()
+    c = int(counts.sum())
+    u_r = rng.random(c)  # distance: uniform in area, P(r' <= r) = (r / R)^2
+    u_a = rng.random(c)  # bearing: uniform over the opening
+    return _clutter_geometry(counts, n_sensors, u_r, u_a, np.asarray(heading, dtype=np.float64), a["range_m"],
+                             a["yaw_deg"], a["fov_deg"])
+
+
+@njit(cache=True)
+def _clutter_geometry(counts, n_sensors, u_r, u_a, heading, range_m, yaw_deg, fov_deg):
+    """(vehicle, sensor) of each false detection (:func:`_repeat_rows`), r = range sqrt(u_r) and bearing
+    heading + radians(yaw + fov (u_a - 0.5)) (``np.radians``: x * (pi / 180), tested equal)."""
     owner, sensor = _repeat_rows(counts, n_sensors)
     c = owner.size
-    r = a["range_m"][sensor] * np.sqrt(rng.random(c))  # uniform in area: P(r' <= r) = (r / R)^2
-    ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(c) - 0.5))
+    r = np.empty(c)
+    ang = np.empty(c)
+    for k in range(c):
+        s = sensor[k]
+        r[k] = range_m[s] * math.sqrt(u_r[k])
+        ang[k] = heading[owner[k]] + (yaw_deg[s] + fov_deg[s] * (u_a[k] - 0.5)) * (math.pi / 180.0)
     return owner, sensor, r, ang
 
 
@@ -569,8 +815,9 @@ def _clutter_xy(origins, owner, sensor, r, direction):
 
 
 @njit(cache=True)
-def _clutter_rows(origins, owner, sensor, r, direction, x_true, cw, range_m, sigma_p_m, sigma_growth, sigma_v):
-    """Rows of the false detections: z (static objects: relative velocity -v_vehicle), sigma_p, sigma_v."""
+def _clutter_rows(origins, owner, sensor, r, cos_a, sin_a, x_true, cw, range_m, sigma_p_m, sigma_growth, sigma_v):
+    """Rows of the false detections at origins + r (cos_a, sin_a): z (static objects: relative velocity
+    -v_vehicle), sigma_p, sigma_v."""
     c_total = owner.size
     z = np.empty((c_total, 4))
     sp = np.empty(c_total)
@@ -580,8 +827,9 @@ def _clutter_rows(origins, owner, sensor, r, direction, x_true, cw, range_m, sig
         frac = min(max(r[c] / range_m[s], 0.0), 1.0)
         sp[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
         sv[c] = sigma_v[s]
+        z[c, 0] = (origins[s, i, 0] + r[c] * cos_a[c]) - x_true[i, 0] + cw[c, 0] * sp[c]
+        z[c, 1] = (origins[s, i, 1] + r[c] * sin_a[c]) - x_true[i, 1] + cw[c, 1] * sp[c]
         for j in range(2):
-            z[c, j] = (origins[s, i, j] + r[c] * direction[c, j]) - x_true[i, j] + cw[c, j] * sp[c]
             z[c, 2 + j] = -x_true[i, 2 + j] + cw[c, 2 + j] * sv[c]
     return z, sp, sv
 
@@ -696,6 +944,7 @@ def perceive(
     observer_occluder: np.ndarray | None = None,
     buildings: Buildings | None = None,
     feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
 ) -> Detections:
     """The V2F rows of one step.
 
@@ -703,7 +952,231 @@ def perceive(
     ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
     footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
     measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
-    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``.
+    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
+    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
+
+    Four numba stages between the random draws, numpy's trigonometry and shapely's building query (the
+    kernels of :func:`perceive_reference`, same operations in the same order, the same draws from each stream
+    in the same order): field of view and clutter geometry; sight lines and their occlusion; detections,
+    merge and rows; the shuffle within each vehicle.
+    """
+    n = x_true.shape[0]
+    heading = np.asarray(heading, dtype=np.float64)
+    a, k = params.arrays, params.kernel_consts
+    n_sensors = len(params.sensors)
+    if observer_occluder is None:
+        observer_occluder = np.full(n, -1, dtype=np.int64)
+    if direction is None:
+        direction = unit_heading(heading)
+    boresight = np.empty((n_sensors, n, 2))  # rows of the sensors along the heading: ``direction`` instead
+    for s, spec in enumerate(params.sensors):
+        if not k["along_heading"][s]:
+            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    xf = np.ascontiguousarray(x_true, dtype=np.float64)
+    ft = np.ascontiguousarray(features_true, dtype=np.float64)
+    pair_owner = np.asarray(pair_owner, dtype=np.int64)
+    pair_feature = np.asarray(pair_feature, dtype=np.int64)
+
+    # Clutter draws (own stream, never occluded), as _clutter_polar draws them, then the candidates' draws:
+    # one per candidate, before occlusion (common random numbers across P_D / occlusion settings).
+    rate = k["clutter_rate"]
+    counts = (noise.clutter.poisson(rate, size=(n, n_sensors)) if rate is not None
+              else noise.clutter.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors)))).ravel()
+    c = int(counts.sum())
+    u_r, u_a = noise.clutter.random(c), noise.clutter.random(c)
+    cw = noise.clutter.standard_normal((c, 4))
+    origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang = _fov_stage(
+        xf, np.ascontiguousarray(direction, dtype=np.float64), a["mount_x_m"], boresight,
+        np.array(k["along_heading"]), ft, pair_owner, pair_feature, a["range_m"], k["cos_half"], k["full"],
+        counts, n_sensors, u_r, u_a, heading, a["yaw_deg"], a["fov_deg"])
+    u = noise.detect.random(pair.size)
+    w = noise.noise.standard_normal((pair.size, 4))
+
+    # Occlusion of each distinct sight line once (sensors on one mount point share their sight lines); the
+    # lines that meet a building's box go to shapely.
+    use_vehicles = bool(params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners)
+                        and pair.size)
+    corners = (np.ascontiguousarray(occluder_corners, dtype=np.float64).reshape(-1, 4, 2) if use_vehicles
+               else _NO_CORNERS)
+    use_buildings = bool(params.occlusion_buildings and buildings is not None and len(buildings))
+    if use_buildings:
+        g, bb = buildings.cells, buildings.boxes
+        grid = (g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin)
+    else:
+        grid = _NO_BUILDINGS
+    line_of, clear, seg, need = _occlusion_stage(pair, sensor, k["groups"], pair_owner.size, origins, pair_owner,
+                                                 target, np.asarray(observer_occluder, dtype=np.int64),
+                                                 use_vehicles, corners, use_buildings, *grid)
+    if need.size:
+        lines = shapely.linestrings(seg[need].reshape(-1, 2, 2))
+        clear[need[buildings.tree.query(lines, predicate="intersects")[0]]] = False
+
+    # Detection by P_D(d); merge: one row per detected pair, from the detecting sensor with the smallest
+    # sigma_p; detection and clutter rows (numpy's cos / sin of the clutter bearings).
+    (t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, n_det) = _detection_stage(
+        pair, dist, sensor, pair_owner.size, clear, line_of, u, w, pair_owner, pair_feature, ft, xf,
+        a["range_m"], a["pd_near"], a["pd_far"], a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"], origins,
+        c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang), cw)
+
+    # Detections then clutter, shuffled within each vehicle (one uniform key per row).
+    keys = noise.shuffle.random(t_owner.size + c_owner.size)
+    t_klass = (np.zeros(t_feat.size, dtype=np.int8) if feature_class is None
+               else np.asarray(feature_class, dtype=np.int8)[t_feat])
+    z, owner, R, feature, sensor_rows, klass = _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
+                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+    stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - n_det, detected=n_det, clutter=c)
+    return Detections(z=z, owner=owner, R=R, feature=feature, sensor=sensor_rows, klass=klass, stats=stats)
+
+
+_NO_CORNERS = np.empty((0, 4, 2))
+_NO_BUILDINGS = (0.0, 0.0, 1.0, np.zeros((1, 1), dtype=np.bool_), np.zeros(2, dtype=np.int64),
+                 np.empty(0, dtype=np.int64), np.empty((0, 4)), 0.0)
+
+
+@njit(cache=True)
+def _fov_stage(xy, direction, mount_x, boresight, along, features, pair_owner, pair_feature, range_m, cos_half,
+               full, counts, n_sensors, u_r, u_a, heading, yaw_deg, fov_deg):
+    """Mount points (S, N, 2) xy + mount_x direction, the pairs' targets, the candidates of the fields of view
+    (:func:`_fov_select`, boresight ``direction`` for the sensors ``along`` the heading) and the clutter's
+    geometry (:func:`_clutter_geometry`)."""
+    n_s, n = mount_x.size, xy.shape[0]
+    origins = np.empty((n_s, n, 2))
+    bore = np.empty((n_s, n, 2))
+    for s in range(n_s):
+        for i in range(n):
+            for j in range(2):
+                origins[s, i, j] = xy[i, j] + mount_x[s] * direction[i, j]
+                bore[s, i, j] = direction[i, j] if along[s] else boresight[s, i, j]
+    target = np.empty((pair_feature.size, 2))
+    for p in range(pair_feature.size):
+        target[p, 0] = features[pair_feature[p], 0]
+        target[p, 1] = features[pair_feature[p], 1]
+    pair, dist, sensor = _fov_select(origins, bore, pair_owner, target, range_m, cos_half, full)
+    c_owner, c_sensor, c_dist, c_ang = _clutter_geometry(counts, n_sensors, u_r, u_a, heading, range_m, yaw_deg,
+                                                         fov_deg)
+    return origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang
+
+
+@njit(cache=True)
+def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
+                     corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
+    """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
+    footprint other than the observer's hides (:func:`_occluded_by_quads_sided`); of the clear ones, the
+    lines that may meet a building (:func:`_needs_building_test`). Returns (line of each candidate, clear
+    (L,), segments (L, 4), the lines for the building query)."""
+    line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
+    m = line.size
+    seg = np.empty((m, 4))
+    skip_a = np.empty(m, dtype=np.int64)
+    for r in range(m):
+        c = line[r]
+        i = pair_owner[pair[c]]
+        seg[r, 0] = origins[sensor[c], i, 0]
+        seg[r, 1] = origins[sensor[c], i, 1]
+        seg[r, 2] = target[pair[c], 0]
+        seg[r, 3] = target[pair[c], 1]
+        skip_a[r] = observer_occluder[i]
+    clear = np.ones(m, dtype=np.bool_)
+    if use_vehicles and m > 0 and corners.shape[0] > 0:
+        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
+        hidden = _occluded_by_quads_sided(seg, skip_a, np.full(m, -1, dtype=np.int64), corners, order,
+                                          xmin_sorted, xmax, ymin, ymax, max_wx, _rectangles(corners))
+        for r in range(m):
+            clear[r] = not hidden[r]
+    n_clear = 0
+    for r in range(m):
+        if clear[r]:
+            n_clear += 1
+    if not use_buildings or n_clear == 0:
+        return line_of, clear, seg, np.empty(0, dtype=np.int64)
+    rows = np.empty(n_clear, dtype=np.int64)
+    q = 0
+    for r in range(m):
+        if clear[r]:
+            rows[q] = r
+            q += 1
+    needs = _needs_building_test(seg[rows], x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin)
+    return line_of, clear, seg, rows[needs]
+
+
+@njit(cache=True)
+def _detection_stage(pair, dist, sensor, n_pairs, clear, line_of, u, w, pair_owner, pair_feature, features, x_true,
+                     range_m, pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v, origins, c_owner, c_sensor, c_dist,
+                     c_cos, c_sin, cw):
+    """:func:`_merge_detections` of the visible candidates, their rows (:func:`_detected_rows`), the clutter
+    rows (:func:`_clutter_rows`) and the pair counts (:func:`_pair_counts`)."""
+    visible = np.empty(pair.size, dtype=np.bool_)
+    for c in range(pair.size):
+        visible[c] = clear[line_of[c]]
+    detected = np.empty(pair.size, dtype=np.bool_)
+    sig, first = _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, pd_far, sigma_p_m,
+                                   sigma_growth, u, visible)
+    t_owner, t_feat, t_sensor, t_sig, t_sv, t_z = _detected_rows(first, pair, sensor, pair_owner, pair_feature,
+                                                                 features, x_true, w, sig, sigma_v)
+    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, c_cos, c_sin, x_true, cw, range_m,
+                                     sigma_p_m, sigma_growth, sigma_v)
+    n_fov, n_vis = _pair_counts(pair, visible, n_pairs)
+    return t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, first.size
+
+
+@njit(cache=True)
+def _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass):
+    """:func:`couplers.rows.shuffle_within_owner` of the detections then the clutter rows with the uniform
+    ``keys``, and the rows in that order (:func:`_shuffled_rows`)."""
+    owner = np.empty(t_owner.size + c_owner.size, dtype=np.int64)
+    owner[:t_owner.size] = t_owner
+    owner[t_owner.size:] = c_owner
+    perm = _order_by_owner_then_key(owner, keys)
+    return _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv,
+                          t_klass)
+
+
+def perceive_reference(
+    *,
+    x_true: np.ndarray,
+    heading: np.ndarray,
+    features_true: np.ndarray,
+    pair_owner: np.ndarray,
+    pair_feature: np.ndarray,
+    params: PerceptionParams,
+    noise: PerceptionNoise,
+    occluder_corners: np.ndarray | None = None,
+    observer_occluder: np.ndarray | None = None,
+    buildings: Buildings | None = None,
+    feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> Detections:
+    """:func:`perceive` as a sequence of separate kernels with numpy between them (the reference of its
+    fused stages: ``tests/couplers/test_frame_kernels.py`` compares the two)."""
+    return _perceive_steps(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
+                           pair_feature=pair_feature, params=params, noise=noise, occluder_corners=occluder_corners,
+                           observer_occluder=observer_occluder, buildings=buildings, feature_class=feature_class,
+                           direction=direction)
+
+
+def _perceive_steps(
+    *,
+    x_true: np.ndarray,
+    heading: np.ndarray,
+    features_true: np.ndarray,
+    pair_owner: np.ndarray,
+    pair_feature: np.ndarray,
+    params: PerceptionParams,
+    noise: PerceptionNoise,
+    occluder_corners: np.ndarray | None = None,
+    observer_occluder: np.ndarray | None = None,
+    buildings: Buildings | None = None,
+    feature_class: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> Detections:
+    """The V2F rows of one step (see :func:`perceive`).
+
+    ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
+    ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
+    footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
+    measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
+    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
+    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
     """
     n = x_true.shape[0]
     xy = x_true[:, :2]
@@ -711,18 +1184,21 @@ def perceive(
     a = params.arrays
     if observer_occluder is None:
         observer_occluder = np.full(n, -1, dtype=np.int64)
-    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * unit_heading(heading)[None, :, :]  # (S, N, 2)
+    if direction is None:
+        direction = unit_heading(heading)
+    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]  # (S, N, 2)
 
     # Candidates: (sensor, pair) with the feature inside the sensor's field of view, sensor after sensor.
     target = features_true[pair_feature, :2]
-    pair, dist, sensor = _fov_all(origins, heading, pair_owner, target, params.sensors)
+    pair, dist, sensor = _fov_params(origins, heading, direction, np.asarray(pair_owner, dtype=np.int64),
+                                     np.ascontiguousarray(target, dtype=np.float64), params)
     # One draw per candidate, before occlusion (common random numbers across P_D / occlusion settings).
     u = noise.detect.random(pair.size)
     w = noise.noise.standard_normal((pair.size, 4))
 
     # Occlusion of each distinct sight line once: sensors on one mount point share their sight lines.
     owner_c = pair_owner[pair]
-    line, line_of = _distinct_lines(pair, sensor, _mount_groups(a["mount_x_m"]), pair_owner.size)
+    line, line_of = _distinct_lines(pair, sensor, params.kernel_consts["groups"], pair_owner.size)
     clear = np.ones(line.size, dtype=bool)
     seg = _sight_lines(origins, sensor[line], owner_c[line], target[pair[line]])
     if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and pair.size:
@@ -742,21 +1218,56 @@ def perceive(
     # Clutter of every sensor on every vehicle (own stream; never occluded): static objects.
     c_owner, c_sensor, c_dist, c_ang = _clutter_polar(n, heading, params, noise.clutter)
     cw = noise.clutter.standard_normal((c_owner.size, 4))
-    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, unit_heading(c_ang),
+    c_z, c_sig, c_sv = _clutter_rows(origins, c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang),
                                      np.ascontiguousarray(x_true, dtype=np.float64), cw, a["range_m"],
                                      a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
 
-    owner = np.concatenate([t_owner, c_owner])
-    perm = shuffle_within_owner(owner, noise.shuffle)
-    R = gnss_cov(np.concatenate([t_sig, c_sig])[perm], np.concatenate([t_sv, c_sv])[perm])
-    n_fov = int(np.count_nonzero(np.bincount(pair, minlength=pair_owner.size)))
-    n_vis = int(np.count_nonzero(np.bincount(pair[visible], minlength=pair_owner.size)))
+    # Detections then clutter, shuffled within each vehicle (one uniform key per row); R, stats in kernels.
+    perm = shuffle_within_owner(np.concatenate([t_owner, c_owner]), noise.shuffle)
+    t_klass = (np.zeros(t_feat.size, dtype=np.int8) if feature_class is None
+               else np.asarray(feature_class, dtype=np.int8)[t_feat])
+    z, owner, R, feature, sensor_rows, klass = _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
+                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+    n_fov, n_vis = _pair_counts(pair, visible, pair_owner.size)
     stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - int(first.size), detected=int(first.size),
                  clutter=int(c_owner.size))
-    feature = np.concatenate([t_feat, np.full(c_owner.size, -1, dtype=np.int64)])[perm]
-    klass = np.full(owner.size, CLASS_STATIC, dtype=np.int8)
-    if feature_class is not None:
-        klass[:t_feat.size] = np.asarray(feature_class, dtype=np.int8)[t_feat]
-        klass = klass[perm]
-    return Detections(z=np.concatenate([t_z, c_z])[perm], owner=owner[perm], R=R, feature=feature,
-                      sensor=np.concatenate([t_sensor, c_sensor])[perm], klass=klass, stats=stats)
+    return Detections(z=z, owner=owner, R=R, feature=feature, sensor=sensor_rows, klass=klass, stats=stats)
+
+
+@njit(cache=True)
+def _pair_counts(pair, visible, n_pairs):
+    """(pairs with a candidate, pairs with a visible candidate): the counts of ``np.bincount`` > 0."""
+    fov = np.zeros(n_pairs, dtype=np.bool_)
+    vis = np.zeros(n_pairs, dtype=np.bool_)
+    for c in range(pair.size):
+        fov[pair[c]] = True
+        if visible[c]:
+            vis[pair[c]] = True
+    return int(fov.sum()), int(vis.sum())
+
+
+@njit(cache=True)
+def _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass):
+    """The detections then the clutter rows, in the order ``perm``: z, owner, R (``gnss_cov`` of sigma_p,
+    sigma_v: blockdiag(sp^2 I, sv^2 I)), feature (-1 for clutter), sensor, class (clutter CLASS_STATIC)."""
+    m, d = perm.size, t_owner.size
+    z = np.empty((m, 4))
+    owner = np.empty(m, dtype=np.int64)
+    R = np.zeros((m, 4, 4))
+    feature = np.empty(m, dtype=np.int64)
+    sensor = np.empty(m, dtype=np.int64)
+    klass = np.empty(m, dtype=np.int8)
+    for r in range(m):
+        k = perm[r]
+        if k < d:
+            z[r] = t_z[k]
+            owner[r], feature[r], sensor[r], klass[r] = t_owner[k], t_feat[k], t_sensor[k], t_klass[k]
+            sp, sv = t_sig[k], t_sv[k]
+        else:
+            k -= d
+            z[r] = c_z[k]
+            owner[r], feature[r], sensor[r], klass[r] = c_owner[k], -1, c_sensor[k], CLASS_STATIC
+            sp, sv = c_sig[k], c_sv[k]
+        R[r, 0, 0] = R[r, 1, 1] = sp * sp
+        R[r, 2, 2] = R[r, 3, 3] = sv * sv
+    return z, owner, R, feature, sensor, klass

@@ -17,6 +17,7 @@ from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from coloc.kernels.icp import rows_by_key
 from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
+from coloc.core.inertial import ImuFrame
 from couplers.inertial import InertialParams
 from couplers.pedestrians import FeaturesParams
 from couplers.perception import Detections, PerceptionParams
@@ -59,6 +60,83 @@ class SensorNoise:
 
 def _diag_cov(n: int, sigma_p: float, sigma_v: float) -> np.ndarray:
     return gnss_cov(np.full(n, sigma_p), np.full(n, sigma_v))
+
+
+# --- the per-step rows of models (3), (4) and the prior: numba kernels and their numpy references ----------
+
+
+@njit(cache=True)
+def _prior_rows(entered, x_true, w, sig):
+    """Fast-start prior: rows of the entering vehicles x_true + w sig (w: one (4,) draw per entering vehicle,
+    in row order), R = diag(sig^2); NaN rows for the others."""
+    n = x_true.shape[0]
+    z = np.full((n, 4), np.nan)
+    R = np.full((n, 4, 4), np.nan)
+    r = 0
+    for i in range(n):
+        if not entered[i]:
+            continue
+        R[i] = 0.0
+        for j in range(4):
+            z[i, j] = x_true[i, j] + w[r, j] * sig[j]
+            R[i, j, j] = sig[j] * sig[j]
+        r += 1
+    return z, R
+
+
+def _prior_rows_reference(entered, x_true, w, sig):
+    """:func:`_prior_rows` in numpy."""
+    n = x_true.shape[0]
+    z, R = np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan)
+    if entered.any():
+        z[entered] = x_true[entered] + w * sig
+        R[entered] = _diag_cov(int(entered.sum()), sig[0], sig[2])
+    return z, R
+
+
+@njit(cache=True)
+def _gnss_rows(x_true, w, sigma_p, sigma_v):
+    """Model (3): z = x + w [sp, sp, sv, sv] and R = blockdiag(sp^2 I, sv^2 I) (``gnss_cov``) per vehicle."""
+    n = x_true.shape[0]
+    z = np.empty((n, 4))
+    R = np.zeros((n, 4, 4))
+    for i in range(n):
+        sp, sv = sigma_p[i], sigma_v[i]
+        z[i, 0] = x_true[i, 0] + w[i, 0] * sp
+        z[i, 1] = x_true[i, 1] + w[i, 1] * sp
+        z[i, 2] = x_true[i, 2] + w[i, 2] * sv
+        z[i, 3] = x_true[i, 3] + w[i, 3] * sv
+        R[i, 0, 0] = R[i, 1, 1] = sp * sp
+        R[i, 2, 2] = R[i, 3, 3] = sv * sv
+    return z, R
+
+
+def _gnss_rows_reference(x_true, w, sigma_p, sigma_v):
+    """:func:`_gnss_rows` in numpy."""
+    return x_true + w * np.stack([sigma_p, sigma_p, sigma_v, sigma_v], axis=1), gnss_cov(sigma_p, sigma_v)
+
+
+@njit(cache=True)
+def _v2f_rows(perm, owner, feat, features_true, x_true, w, sig):
+    """Model (4) for the pairs in the order ``perm``: owner, feature, z = (x_F - x_V) + w sig, R = diag(sig^2)."""
+    o = perm.size
+    own = np.empty(o, dtype=np.int64)
+    ft = np.empty(o, dtype=np.int64)
+    z = np.empty((o, 4))
+    R = np.zeros((o, 4, 4))
+    for r in range(o):
+        i, f = owner[perm[r]], feat[perm[r]]
+        own[r], ft[r] = i, f
+        for j in range(4):
+            z[r, j] = (features_true[f, j] - x_true[i, j]) + w[r, j] * sig[j]
+            R[r, j, j] = sig[j] * sig[j]
+    return own, ft, z, R
+
+
+def _v2f_rows_reference(perm, owner, feat, features_true, x_true, w, sig):
+    """:func:`_v2f_rows` in numpy."""
+    owner, feat = owner[perm], feat[perm]
+    return owner, feat, features_true[feat] - x_true[owner] + w * sig, _diag_cov(owner.size, sig[0], sig[2])
 
 
 @njit(cache=True)
@@ -137,17 +215,54 @@ def _radius_graph_csr(xy, radius):
     return start.astype(np.int32), indices
 
 
+def _csr_attributes(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, shape: tuple[int, int],
+                    maxprint: int) -> dict:
+    """The instance attributes scipy's ``csr_matrix((data, indices, indptr), shape=shape)`` sets for int32
+    index arrays within range, with sorted indices (the arrays themselves where scipy keeps views of them)."""
+    return dict(_shape=shape, maxprint=maxprint, indices=indices, indptr=indptr, data=data,
+                _has_sorted_indices=True)
+
+
+def _csr_checked(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, shape: tuple[int, int]) -> sp.csr_matrix:
+    """scipy's constructor (it checks the index dtype against the contents and the format), sorted indices."""
+    adj = sp.csr_matrix((data, indices, indptr), shape=shape)
+    adj.has_sorted_indices = True
+    return adj
+
+
+def _csr_probe() -> int | None:
+    """scipy's default ``maxprint`` if its constructor sets exactly :func:`_csr_attributes` (else None: the
+    fast path is off and :func:`_csr_checked` builds every graph)."""
+    indptr, indices = np.array([0, 1, 2], dtype=np.int32), np.array([1, 0], dtype=np.int32)
+    ref = _csr_checked(np.ones(2, dtype=bool), indices, indptr, (2, 2))
+    keys = set(_csr_attributes(ref.data, indices, indptr, (2, 2), ref.maxprint))
+    if set(vars(ref)) != keys or not all(np.shares_memory(getattr(ref, k), v) and getattr(ref, k).dtype == v.dtype
+                                         for k, v in (("indices", indices), ("indptr", indptr))):
+        return None
+    return ref.maxprint
+
+
+_CSR_MAXPRINT = _csr_probe()
+_INT32_MAX = int(np.iinfo(np.int32).max)
+
+
 def neighbor_graph(xy: np.ndarray, radius: float) -> sp.csr_matrix:
     """V2V links: symmetric boolean CSR of vehicle pairs within ``radius``, empty diagonal.
 
     A numba sort-and-sweep writes the CSR arrays directly: scipy's KD-tree pair
-    query plus COO->CSR conversion was the coupler's largest cost at ~150 vehicles."""
+    query plus COO->CSR conversion was the coupler's largest cost at ~150 vehicles. The matrix is then
+    assembled from its arrays without scipy's constructor, whose checks (index dtype against the contents,
+    format) cost more than the sweep at ~120 vehicles: the arrays are int32 and valid by construction, and
+    the attributes are those the constructor sets (``_csr_probe``; ``tests/couplers/test_sensors.py``)."""
     n = xy.shape[0]
     if n < 2:
         return sp.csr_matrix((n, n), dtype=bool)
     indptr, indices = _radius_graph_csr(np.ascontiguousarray(xy, dtype=np.float64), float(radius))
-    adj = sp.csr_matrix((np.ones(indices.size, dtype=bool), indices, indptr), shape=(n, n))
-    adj.has_sorted_indices = True
+    data = np.ones(indices.size, dtype=bool)
+    if _CSR_MAXPRINT is None or n > _INT32_MAX:
+        return _csr_checked(data, indices, indptr, (n, n))
+    adj = sp.csr_matrix.__new__(sp.csr_matrix)
+    adj.__dict__.update(_csr_attributes(data, indices, indptr, (n, n), _CSR_MAXPRINT))
     return adj
 
 
@@ -208,34 +323,38 @@ def synthesize_frame(
     feature_ids: np.ndarray | None = None,
     detections: Detections | None = None,
     gnss_error: GnssErrorProcess | None = None,
+    prev_row: np.ndarray | None = None,
+    imu: ImuFrame | None = None,
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
     ``detections`` (couplers.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
     replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
-    standard normal draws (both None: the paper's idealisation, byte for byte as before)."""
+    standard normal draws (both None: the paper's idealisation, byte for byte as before). ``prev_row``: the
+    row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
+    matches the ids itself). ``imu`` (``couplers.inertial.InertialProcess``): the frame carries it and
+    ``accel`` is NaN (the net-frame input would carry the true heading)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
+    xf = np.ascontiguousarray(x_true, dtype=np.float64)  # the kernels' view of x_true (the truth keeps the input)
     # Fast-start prior for vehicles entering now: N(x_true, diag(sp^2, sp^2, sv^2, sv^2)).
-    prior_z = np.full((n, 4), np.nan)
-    prior_R = np.full((n, 4, 4), np.nan)
-    k = int(entered.sum())
-    if k:
-        sig = np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2)
-        prior_z[entered] = x_true[entered] + noise.prior.standard_normal((k, 4)) * sig
-        prior_R[entered] = _diag_cov(k, params.prior_sigma_p, params.prior_sigma_v)
+    k = int(np.count_nonzero(entered))
+    w = noise.prior.standard_normal((k, 4)) if k else np.empty((0, 4))
+    prior_z, prior_R = _prior_rows(entered, xf, w,
+                                   np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2))
 
     accel = accel_true + params.accel_sigma * noise.accel.standard_normal((n, 2))
+    if imu is not None:
+        accel = np.full_like(accel, np.nan)
 
     # GNSS, model (3): z = x + n, zone-dependent R.
-    gnss_R = gnss_cov(gnss_sigma_p, gnss_sigma_v)
-    gsig = np.stack([gnss_sigma_p, gnss_sigma_p, gnss_sigma_v, gnss_sigma_v], axis=1)
     gnss_w = noise.gnss.standard_normal((n, 4))
-    gnss_z = x_true + gnss_w * gsig
+    gnss_z, gnss_R = _gnss_rows(xf, gnss_w, np.asarray(gnss_sigma_p, dtype=np.float64),
+                                np.asarray(gnss_sigma_v, dtype=np.float64))
     if gnss_error is not None:
         gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
-                                                        x_true[:, :2])
+                                                        x_true[:, :2], idx=prev_row)
 
     if detections is not None:
         v2f_z, owner, v2f_R, feat = detections.z, detections.owner, detections.R, detections.feature
@@ -243,11 +362,10 @@ def synthesize_frame(
         # V2F, model (4): z = x_F - x_V + n for every feature within Rs; rows shuffled per vehicle.
         owner, feat = features_in_range(x_true[:, :2], feature_tree, params.v2f_range_m)
         perm = shuffle_within_owner(owner, noise.shuffle)
-        owner, feat = owner[perm], feat[perm]
-        o = owner.size
-        vsig = np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2)
-        v2f_z = features_true[feat] - x_true[owner] + noise.v2f.standard_normal((o, 4)) * vsig
-        v2f_R = _diag_cov(o, params.v2f_sigma_p, params.v2f_sigma_v)
+        owner, feat, v2f_z, v2f_R = _v2f_rows(
+            perm, owner, feat, np.ascontiguousarray(features_true, dtype=np.float64), xf,
+            noise.v2f.standard_normal((owner.size, 4)),
+            np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2))
 
     truth = Truth(
         x_true=x_true,
@@ -273,4 +391,5 @@ def synthesize_frame(
         v2f_R=v2f_R,
         neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
         truth=truth,
+        imu=imu,
     )

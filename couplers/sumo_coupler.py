@@ -6,6 +6,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
@@ -17,7 +18,7 @@ from couplers.inertial import InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.pedestrians import FeatureRegistry, person_states
-from couplers.perception import Detections, PerceptionNoise, perceive, vehicle_footprints
+from couplers.perception import Detections, PerceptionNoise, _footprints, perceive, vehicle_footprints
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
 from couplers.v2x import V2xChannel
@@ -130,8 +131,14 @@ class SumoCoupler:
                 present = np.concatenate([np.arange(self.registry.k0), rows])
                 feats_true, klass = self.registry.states[present], self.registry.klass[present]
                 tree = cKDTree(feats_true[:, :2]) if present.size else None
+            # Row of each vehicle in the previous step's states: SumoTraffic's (the processes' previous ids are
+            # the previous step's road ids) unless the V2X subset changes the rows (then they match ids).
+            prev_row = states.prev_row if states is road else None
             detections = (self._perceive(road, states, x_true, feats_true, tree, klass)
                           if self.perception is not None else None)
+            # The IMU draws from its own streams: computed before the frame so that the frame is built once.
+            imu = (self.inertial.step(states.ids, states.entered, states.heading, states.accel, idx=prev_row)
+                   if self.inertial is not None else None)
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -151,26 +158,26 @@ class SumoCoupler:
                 feature_ids=self.scenario.net.features.ids,
                 detections=detections,
                 gnss_error=self.gnss_error,
+                prev_row=prev_row,
+                imu=imu,
             )
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
-            if self.inertial is not None:
-                imu = self.inertial.step(states.ids, states.entered, states.heading, states.accel)
-                frame = replace(frame, imu=imu, accel=np.full_like(frame.accel, np.nan))
             if self.infra is not None:
                 infra, radar_vehicle = self.infra.step(states.ids, states.entered, states.xy)
                 frame = replace(frame, infra=infra, truth=replace(frame.truth, radar_vehicle=radar_vehicle))
             yield frame
 
-    def _vehicle_dims(self, ids: np.ndarray) -> np.ndarray:
-        """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle."""
-        idx = match_ids(self._dim_ids, ids)
-        dims = np.empty((len(ids), 2))
-        dims[idx >= 0] = self._dims[idx[idx >= 0]]
+    def _vehicle_dims(self, ids: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) length and width of each vehicle (its vType's), asked of SUMO once per vehicle. ``idx``: the
+        row of each vehicle among the ``ids`` of the previous call (-1 if new); None: matched here."""
+        if idx is None:
+            idx = match_ids(self._dim_ids, ids)
+        dims, new = _carried_rows(np.asarray(idx, dtype=np.int64), self._dims)
         veh = sumo_traffic.libsumo.vehicle
-        for i in np.flatnonzero(idx < 0):  # new vehicles only
+        for i in new.tolist():  # new vehicles only
             dims[i] = (veh.getLength(ids[i]), veh.getWidth(ids[i]))
         self._dim_ids, self._dims = ids, dims
         return dims
@@ -196,19 +203,35 @@ class SumoCoupler:
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
         corners = None
         if p.occlusion_vehicles:
-            dims = self._vehicle_dims(road.ids)
-            corners = vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1])
+            dims = self._vehicle_dims(road.ids, road.prev_row)
+            corners = (_footprints(road.xy, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
+                       else vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1]))
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
             observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
-            buildings=self.scenario.net.buildings, feature_class=feature_class,
+            buildings=self.scenario.net.buildings, feature_class=feature_class, direction=states.direction,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
         self.last_detections = det
         return det
+
+
+@njit(cache=True)
+def _carried_rows(idx, prev):
+    """prev[idx[i]] for the rows with idx[i] >= 0 (the others left unset), and those others' rows."""
+    out = np.empty((idx.size, prev.shape[1]))
+    new = np.empty(idx.size, dtype=np.int64)
+    m = 0
+    for i in range(idx.size):
+        if idx[i] >= 0:
+            out[i] = prev[idx[i]]
+        else:
+            new[m] = i
+            m += 1
+    return out, new[:m]
 
 
 def _subset(states: VehicleStates, keep: np.ndarray) -> VehicleStates:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
@@ -81,6 +82,9 @@ class VehicleStates:
     heading: np.ndarray  # (N,) rad from +x, counter-clockwise
     accel: np.ndarray  # (N, 2) mean acceleration over the last step, m/s^2
     entered: np.ndarray  # (N,) bool: new, or back after a teleport / discontinuity
+    # Derived per step by SumoTraffic.step so that the coupler does not recompute them (None: not given).
+    direction: np.ndarray | None = None  # (N, 2) unit heading [cos, sin] (the values velocity was built from)
+    prev_row: np.ndarray | None = None  # (N,) int, row of each vehicle in the previous step's states, -1 if new
 
 
 @dataclass
@@ -202,28 +206,58 @@ class SumoTraffic:
         ids_arr = np.array(ids, dtype=object)
         # Navigational angle (0 = north, clockwise) -> heading from +x, counter-clockwise.
         heading = np.radians(90.0 - angle)
-        velocity = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        direction = np.empty((n, 2))
+        direction[:, 0] = np.cos(heading)  # numpy's cos / sin of the contiguous headings (copied into place)
+        direction[:, 1] = np.sin(heading)
+        velocity = speed[:, None] * direction
 
         idx = match_ids(self._prev_ids, ids_arr)
-        seen = idx >= 0
-        entered = ~seen
+        back = np.zeros(n, dtype=bool)
         if self._back_from_teleport:
             back = np.array([v in self._back_from_teleport for v in ids], dtype=bool)
-            entered |= back
             self._back_from_teleport.difference_update(ids)
-        jump = np.zeros(n, dtype=bool)
-        jump[seen] = np.hypot(*(xy[seen] - self._prev_xy[idx[seen]]).T) > self.JUMP_SPEED * dt
-        entered |= jump
-        accel = np.zeros((n, 2))
-        cont = ~entered
-        # Mean acceleration over (t - Ts, t]: what a two-axis IMU integrates, turning included.
-        accel[cont] = (velocity[cont] - self._prev_vel[idx[cont]]) / dt
+        # Entered (new, back from a teleport, or a jump) and the mean acceleration over (t - Ts, t] of the
+        # others: what a two-axis IMU integrates, turning included (_continuity_reference in numpy).
+        entered, accel = _continuity(idx, back, xy, self._prev_xy, velocity, self._prev_vel, dt, self.JUMP_SPEED * dt)
 
         arrived = sim.getArrivedNumber()
         halting = int(np.count_nonzero(speed < HALT_SPEED))
         self.stats.add(t, n, halting, arrived, float(speed.sum() * dt), len(starting))
         self._prev_ids, self._prev_xy, self._prev_vel = ids_arr, xy, velocity
-        return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered)
+        return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered,
+                             direction=direction, prev_row=idx)
+
+
+@njit(cache=True)
+def _continuity(idx, back, xy, prev_xy, velocity, prev_vel, dt, max_jump):
+    """(entered (N,), accel (N, 2)): a vehicle enters when it is new (idx < 0), back from a teleport, or
+    moved more than ``max_jump`` (``np.hypot``'s libm hypot) since its previous row; the others get
+    (v - v_prev) / dt, the entered zero."""
+    n = idx.size
+    entered = np.empty(n, dtype=np.bool_)
+    accel = np.zeros((n, 2))
+    for i in range(n):
+        r = idx[i]
+        entered[i] = r < 0 or back[i]
+        if r >= 0 and math.hypot(xy[i, 0] - prev_xy[r, 0], xy[i, 1] - prev_xy[r, 1]) > max_jump:
+            entered[i] = True
+        if not entered[i]:
+            accel[i, 0] = (velocity[i, 0] - prev_vel[r, 0]) / dt
+            accel[i, 1] = (velocity[i, 1] - prev_vel[r, 1]) / dt
+    return entered, accel
+
+
+def _continuity_reference(idx, back, xy, prev_xy, velocity, prev_vel, dt, max_jump):
+    """:func:`_continuity` in numpy."""
+    seen = idx >= 0
+    entered = ~seen | back
+    jump = np.zeros(idx.size, dtype=bool)
+    jump[seen] = np.hypot(*(xy[seen] - prev_xy[idx[seen]]).T) > max_jump
+    entered |= jump
+    accel = np.zeros((idx.size, 2))
+    cont = ~entered
+    accel[cont] = (velocity[cont] - prev_vel[idx[cont]]) / dt
+    return entered, accel
 
 
 def sumo_version() -> str:

@@ -22,6 +22,9 @@ from numba import njit
 from couplers.netfolder import Region
 
 RASTER_CELL_M = 5.0  # cell side; coarser when the regions' extent would need more than RASTER_MAX_CELLS
+# A cell that a border crosses is split into REFINE x REFINE cells, classified when a point first falls in one
+# of them (RegionIndex.locate): only points in the fine cells a border crosses go to the polygon test.
+REFINE = 8
 RASTER_MAX_CELLS = 1 << 20
 _OUTSIDE, _BORDER = -1, -2  # raster labels besides region indices
 
@@ -158,6 +161,47 @@ class RegionIndex:
         first = np.argmax(hits, axis=0)
         return np.where(hits[first, np.arange(xy.shape[0])], first, -1).astype(np.int64)
 
+    @cached_property
+    def _fine_blocks(self) -> dict:
+        """Labels of the fine cells of the border cells met so far (:meth:`_refine`), by raster and block."""
+        return {}
+
+    @cached_property
+    def _margin(self) -> float:
+        """Widening of the fine cells' boxes: as :func:`region_raster`'s, far above the rounding of a cell index."""
+        xmin, ymin, xmax, ymax = shapely.total_bounds(self.polygons)
+        return max(1e-6, 1e-9 * max(abs(xmin), abs(xmax), abs(ymin), abs(ymax), self.raster.cell))
+
+    def _refine(self, xy: np.ndarray, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """Labels of the points ``rows`` (in border cells of the raster) from the fine cells (cell / REFINE on
+        the raster's origin, classified as the raster's cells are, a block of REFINE x REFINE at a time when a
+        point first falls in it), written into ``idx``; returns the rows whose fine cell a border crosses too
+        (and non-finite points), for the polygon test."""
+        g = self.raster
+        fine = g.cell / REFINE
+        blocks = self._fine_blocks
+        left = []
+        for k in rows.tolist():
+            fx, fy = (float(xy[k, 0]) - g.x0) / fine, (float(xy[k, 1]) - g.y0) / fine
+            if not (math.isfinite(fx) and math.isfinite(fy)):
+                left.append(k)
+                continue
+            jx, jy = math.floor(fx), math.floor(fy)
+            key = (g.x0, g.y0, fine, jy // REFINE, jx // REFINE)
+            block = blocks.get(key)
+            if block is None:
+                sub = np.arange(REFINE)
+                ix = np.tile((jx // REFINE) * REFINE + sub, REFINE)
+                iy = np.repeat((jy // REFINE) * REFINE + sub, REFINE)
+                block = blocks[key] = _classify(self.regions, g.x0 + ix * fine, g.y0 + iy * fine, fine,
+                                                self._margin).reshape(REFINE, REFINE)
+            label = block[jy % REFINE, jx % REFINE]
+            if label == _BORDER:
+                left.append(k)
+            else:
+                idx[k] = label
+        return np.array(left, dtype=np.int64)
+
     def locate(self, xy: np.ndarray) -> np.ndarray:
         """Index of the containing region for each point (N,), -1 outside all regions."""
         xy = np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2))
@@ -165,9 +209,11 @@ class RegionIndex:
             return np.empty(0, dtype=np.int64)
         g = self.raster
         idx = _raster_labels(xy, g.x0, g.y0, g.cell, g.values)
-        border = idx == _BORDER
-        if border.any():
-            idx[border] = self.locate_exact(xy[border])
+        border = np.flatnonzero(idx == _BORDER)
+        if border.size:
+            left = self._refine(xy, border, idx)
+            if left.size:
+                idx[left] = self.locate_exact(xy[left])
         return idx
 
     def names_at(self, xy: np.ndarray, outside: str = "") -> np.ndarray:

@@ -113,14 +113,17 @@ def _fleet(rng, steps=60, pool=40):
     return out
 
 
-@pytest.mark.parametrize("tau_s", [0.0, 30.0])
-def test_gnss_error_step_equals_the_array_reference(tau_s):
-    params = GnssErrorParams(tau_s=tau_s, nlos_rate_per_min=(3.0, 12.0))
-    dt, proc = 0.75, GnssErrorProcess(params, seed=5, dt=0.75)
-    ref = GnssErrorProcess(params, seed=5, dt=0.75)  # its streams drive the reference below
+@pytest.mark.parametrize("tau_s, buildings", [(0.0, False), (30.0, False), (30.0, True)])
+def test_gnss_error_step_equals_the_array_reference(tau_s, buildings):
+    params = GnssErrorParams(tau_s=tau_s, nlos_rate_per_min=(3.0, 12.0), nlos_rate_per_density_per_min=30.0)
+    blds = load_net_folder(ARTERIAL).buildings if buildings else None
+    dt, proc = 0.75, GnssErrorProcess(params, seed=5, dt=0.75, buildings=blds)
+    ref = GnssErrorProcess(params, seed=5, dt=0.75, buildings=blds)  # its streams drive the reference below
     state = dict(ids=np.empty(0, dtype=object), u=np.empty((0, 2)), bias=np.empty((0, 2)), end=np.empty(0))
     rng = np.random.default_rng(6)
+    lo = np.array(shapely.total_bounds(blds.polygons)[:2]) if buildings else np.zeros(2)
     for k, (ids, entered, _, xy) in enumerate(_fleet(rng)):
+        xy = xy + lo  # over the buildings (their density) when the net has them
         n, t = ids.size, (k + 1) * dt
         w, sp = rng.standard_normal((n, 2)), rng.choice([3.0, 8.0, 15.0], n)
         zone = np.where(sp == 3.0, "A", np.where(sp == 8.0, "B", "C")).astype(object)
@@ -208,3 +211,302 @@ def test_footprints_and_occluder_boxes_equal_the_array_reference():
     np.testing.assert_array_equal(idx.ymax, corners[:, :, 1].max(axis=1))
     assert idx.max_wx == float((xmax - xmin).max())
     assert OccluderIndex.build(np.empty((0, 4, 2))).max_wx == 0.0
+
+
+# --- second pass (per-step overhead): fused kernels against the numpy they replace -----------------
+
+
+def test_inertial_step_equals_its_numpy_reference_with_and_without_rows():
+    from coloc.core.vehicles import match_ids
+
+    p, dt = InertialParams(), 0.75
+    fused, fused_rows, ref = (InertialProcess(p, seed=3, dt=dt) for _ in range(3))
+    rng = np.random.default_rng(10)
+    prev = np.empty(0, dtype=object)
+    for k, (ids, entered, heading, _) in enumerate(_fleet(rng, steps=80)):
+        # headings on and around the wrap (+-pi, signed zeros, a turn across the cut) as well as random ones
+        special = np.array([np.pi, -np.pi, 0.0, -0.0, np.pi - 1e-12, -np.pi + 1e-12, 3.0, -3.0])
+        heading = np.where(rng.random(ids.size) < 0.3, special[rng.integers(0, 8, ids.size)], heading)
+        accel_net = rng.normal(0, 1, (ids.size, 2))
+        got = fused.step(ids, entered, heading, accel_net)
+        got_rows = fused_rows.step(ids, entered, heading, accel_net, idx=match_ids(prev, ids))
+        want = ref.step_reference(ids, entered, heading, accel_net)
+        prev = ids
+        for g in (got, got_rows):
+            np.testing.assert_array_equal(g.accel_body, want.accel_body)
+            np.testing.assert_array_equal(g.yaw_rate, want.yaw_rate)
+        for proc in (fused, fused_rows):
+            np.testing.assert_array_equal(proc.accel_bias, ref.accel_bias)
+            np.testing.assert_array_equal(proc.gyro_bias, ref.gyro_bias)
+
+
+def test_gnss_start_probability_lookup_equals_rate_then_expm1():
+    blds = load_net_folder(ARTERIAL).buildings
+    proc = GnssErrorProcess(GnssErrorParams(), seed=1, dt=0.75, buildings=blds)
+    g = proc.density
+    rng = np.random.default_rng(11)
+    xy = np.vstack([rng.uniform([g.x0 - 50, g.y0 - 50], [g.x0 + g.cell * g.values.shape[1] + 50,
+                                                          g.y0 + g.cell * g.values.shape[0] + 50], (20000, 2)),
+                    [[np.nan, 0.0], [np.inf, 1.0]]])
+    zone = np.full(len(xy), "B", dtype=object)
+    want = episode_start_probability(proc.start_rates(zone, xy), proc.dt)
+    np.testing.assert_array_equal(proc.start_probabilities(zone, xy), want)
+    assert (want > 0).mean() > 0.1
+
+
+def test_fov_with_the_heading_vectors_equals_fov_all():
+    from couplers.perception import PerceptionParams, SensorSpec, _fov_all, _fov_params, unit_heading
+
+    rng = np.random.default_rng(12)
+    params = PerceptionParams(sensors=(SensorSpec(), SensorSpec(name="s", fov_deg=360.0, range_m=30.0),
+                                       SensorSpec(name="rear", fov_deg=90.0, yaw_deg=180.0, mount_x_m=-4.0)))
+    n, m = 150, 3000
+    heading = np.where(rng.random(n) < 0.1, rng.choice([0.0, -0.0, np.pi, -np.pi], n), rng.uniform(-4, 4, n))
+    xy = rng.uniform(0, 300, (n, 2))
+    u = unit_heading(heading)
+    origins = xy[None] + params.arrays["mount_x_m"][:, None, None] * u[None]
+    owner, target = rng.integers(0, n, m), rng.uniform(-50, 350, (m, 2))
+    got = _fov_params(origins, heading, u, owner, target, params)
+    want = _fov_all(origins, heading, owner, target, params.sensors)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    assert got[0].size > 100
+
+
+@pytest.mark.parametrize("rates", [(1.0, 1.0), (0.3, 2.0), (0.0, 0.0), (12.0, 12.0)])
+def test_clutter_draws_equal_the_broadcast_poisson(rates):
+    from couplers.perception import PerceptionParams, SensorSpec, _clutter_polar
+
+    params = PerceptionParams(sensors=(SensorSpec(clutter_per_scan=rates[0]),
+                                       SensorSpec(name="s", fov_deg=360.0, range_m=30.0, clutter_per_scan=rates[1])))
+    heading = np.random.default_rng(13).uniform(-4, 4, 130)
+    for n in (0, 1, 130):
+        got = _clutter_polar(n, heading[:n], params, np.random.default_rng(n))
+        rng = np.random.default_rng(n)  # the previous draws: Poisson counts of a broadcast rate array
+        counts = rng.poisson(np.broadcast_to(params.arrays["clutter_per_scan"], (n, 2))).ravel()
+        owner, sensor = np.repeat(np.arange(n), 2)[np.repeat(np.arange(2 * n), counts)], \
+            np.tile([0, 1], n)[np.repeat(np.arange(2 * n), counts)]
+        a = params.arrays
+        r = a["range_m"][sensor] * np.sqrt(rng.random(owner.size))
+        ang = heading[owner] + np.radians(a["yaw_deg"][sensor] + a["fov_deg"][sensor] * (rng.random(owner.size) - 0.5))
+        for g, w in zip(got, (owner, sensor, r, ang)):
+            np.testing.assert_array_equal(g, w)
+
+
+def test_shuffled_rows_and_pair_counts_equal_the_concatenate_reference():
+    from coloc.core.models import gnss_cov
+    from couplers.perception import _pair_counts, _shuffled_rows
+
+    rng = np.random.default_rng(14)
+    for d, c in [(0, 0), (0, 5), (7, 0), (300, 120)]:
+        t_owner, c_owner = np.sort(rng.integers(0, 90, d)), np.sort(rng.integers(0, 90, c))
+        t_feat, t_sensor, c_sensor = rng.integers(0, 60, d), rng.integers(0, 2, d), rng.integers(0, 2, c)
+        t_z, c_z = rng.normal(size=(d, 4)), rng.normal(size=(c, 4))
+        t_sig, c_sig, t_sv, c_sv = rng.random(d), rng.random(c), rng.random(d), rng.random(c)
+        t_klass = rng.integers(0, 2, d).astype(np.int8)
+        owner = np.concatenate([t_owner, c_owner])
+        perm = shuffle_within_owner(owner, np.random.default_rng(d))
+        z, own, R, feat, sens, klass = _shuffled_rows(perm, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor,
+                                                      t_sig, c_sig, t_sv, c_sv, t_klass)
+        np.testing.assert_array_equal(z, np.concatenate([t_z, c_z])[perm])
+        np.testing.assert_array_equal(own, owner[perm])
+        np.testing.assert_array_equal(R, gnss_cov(np.concatenate([t_sig, c_sig])[perm],
+                                                  np.concatenate([t_sv, c_sv])[perm]))
+        np.testing.assert_array_equal(feat, np.concatenate([t_feat, np.full(c, -1, dtype=np.int64)])[perm])
+        np.testing.assert_array_equal(sens, np.concatenate([t_sensor, c_sensor])[perm])
+        np.testing.assert_array_equal(klass, np.concatenate([t_klass, np.zeros(c, dtype=np.int8)])[perm])
+        assert (z.dtype, own.dtype, R.dtype, feat.dtype, sens.dtype, klass.dtype) == \
+            (np.float64, np.int64, np.float64, np.int64, np.int64, np.int8)
+    for n_pairs, m in [(0, 0), (10, 0), (50, 400)]:
+        pair, visible = rng.integers(0, max(n_pairs, 1), m), rng.random(m) < 0.5
+        want = (int(np.count_nonzero(np.bincount(pair, minlength=n_pairs))),
+                int(np.count_nonzero(np.bincount(pair[visible], minlength=n_pairs))))
+        assert _pair_counts(pair, visible, n_pairs) == want
+
+
+def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
+    from couplers.sensors import (_gnss_rows, _gnss_rows_reference, _prior_rows, _prior_rows_reference, _v2f_rows,
+                                  _v2f_rows_reference)
+
+    rng = np.random.default_rng(15)
+    for n, o in [(0, 0), (1, 0), (5, 3), (150, 600)]:
+        x = rng.normal(0, 300, (n, 4))
+        entered = rng.random(n) < 0.3
+        sig = np.array([2.0, 2.0, 0.1, 0.1])
+        w = rng.standard_normal((int(entered.sum()), 4))
+        for g, r in zip(_prior_rows(entered, x, w, sig), _prior_rows_reference(entered, x, w, sig)):
+            np.testing.assert_array_equal(g, r)
+        sp, sv, w = rng.choice([3.0, 8.0, 15.0], n), rng.choice([0.1, 0.17, 0.45], n), rng.standard_normal((n, 4))
+        for g, r in zip(_gnss_rows(x, w, sp, sv), _gnss_rows_reference(x, w, sp, sv)):
+            np.testing.assert_array_equal(g, r)
+        feats = rng.normal(0, 300, (40, 4))
+        owner, feat = np.sort(rng.integers(0, max(n, 1), o)), rng.integers(0, 40, o)
+        perm, w = shuffle_within_owner(owner, rng), rng.standard_normal((o, 4))
+        sig = np.array([0.1, 0.1, 0.1, 0.1])
+        for g, r in zip(_v2f_rows(perm, owner, feat, feats, x if n else np.empty((1, 4)), w, sig),
+                        _v2f_rows_reference(perm, owner, feat, feats, x if n else np.empty((1, 4)), w, sig)):
+            assert g.dtype == r.dtype
+            np.testing.assert_array_equal(g, r)
+
+
+def test_building_box_filter_keeps_every_hit_and_drops_most_near_misses():
+    from couplers.perception import _clear_of_buildings, _needs_building_test
+
+    blds = load_net_folder(ARTERIAL).buildings
+    g, bb = blds.cells, blds.boxes
+    rng = np.random.default_rng(16)
+    xmin, ymin, xmax, ymax = shapely.total_bounds(blds.polygons)
+    start = np.column_stack([rng.uniform(xmin - 30, xmax + 30, 20000), rng.uniform(ymin - 30, ymax + 30, 20000)])
+    ang, length = rng.uniform(-np.pi, np.pi, 20000), rng.uniform(0, 90, 20000)
+    end = start + length[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    # segments through the boxes' corners and along their edges, and zero-length ones on them
+    b = bb.boxes[rng.integers(0, len(bb.boxes), 3000)]
+    corner = np.column_stack([np.where(rng.random(3000) < 0.5, b[:, 0], b[:, 2]),
+                              np.where(rng.random(3000) < 0.5, b[:, 1], b[:, 3])])
+    seg = np.vstack([np.hstack([start, end]), np.hstack([corner + rng.normal(0, 20, corner.shape), corner]),
+                     np.hstack([corner, corner]), np.hstack([b[:, [0, 1]], b[:, [2, 1]]]),
+                     [[np.nan, 0.0, 1.0, 1.0]]])
+    lines = shapely.linestrings(seg[:-1].reshape(-1, 2, 2))
+    hit = np.zeros(len(seg), dtype=bool)
+    hit[blds.tree.query(lines, predicate="intersects")[0]] = True
+    meets_box = np.zeros(len(seg), dtype=bool)
+    meets_box[blds.tree.query(lines)[0][shapely.intersects(
+        lines[blds.tree.query(lines)[0]], shapely.box(*bb.boxes[blds.tree.query(lines)[1]].T))]] = True
+    need = _needs_building_test(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin)
+    near = ~_clear_of_buildings(seg, g.x0, g.y0, g.cell, g.values)
+    assert need[-1] and np.all(need[hit]) and np.all(need[meets_box]) and not np.any(need & ~near)
+    assert need.sum() < 0.9 * near.sum() and hit.sum() > 1000
+
+
+def test_continuity_equals_its_numpy_reference():
+    from couplers.sumo_traffic import _continuity, _continuity_reference
+
+    rng = np.random.default_rng(17)
+    for n, m in [(0, 0), (0, 5), (4, 0), (150, 140)]:
+        idx = np.where(rng.random(n) < 0.1, -1, rng.integers(0, max(m, 1), n)) if m else np.full(n, -1)
+        back = rng.random(n) < 0.05
+        prev_xy, prev_vel = rng.uniform(0, 500, (m, 2)), rng.normal(0, 10, (m, 2))
+        xy = rng.uniform(0, 500, (n, 2))
+        near = idx >= 0
+        xy[near] = prev_xy[idx[near]] + rng.normal(0, 20, (int(near.sum()), 2))  # steps around the 30 m jump
+        vel = rng.normal(0, 10, (n, 2))
+        for g, w in zip(_continuity(idx, back, xy, prev_xy, vel, prev_vel, 0.75, 30.0),
+                        _continuity_reference(idx, back, xy, prev_xy, vel, prev_vel, 0.75, 30.0)):
+            assert g.dtype == w.dtype
+            np.testing.assert_array_equal(g, w)
+
+
+def test_occlusion_side_shortcut_gives_the_exact_answers():
+    """Footprints (rectangles) and other quads against sight lines in general position and through corners,
+    along edges, starting on edges or inside, touching at one point, of zero length: every answer as the exact
+    kernel's."""
+    from couplers.perception import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_sided, unit_heading,
+                                     vehicle_footprints)
+
+    rng = np.random.default_rng(18)
+    for offset in (0.0, 4.0e4):  # coordinates of a small net, and of a large one (more rounding)
+        xy = rng.uniform(0, 300, (200, 2)) + offset
+        heading = np.where(rng.random(200) < 0.2, rng.choice([0.0, np.pi / 2, -np.pi, np.pi / 4], 200),
+                           rng.uniform(-4, 4, 200))
+        corners = vehicle_footprints(xy, heading, rng.uniform(3, 15, 200), rng.uniform(1.5, 2.6, 200))
+        odd = corners[:20].copy()
+        odd[:, 2] += rng.normal(0, 0.5, (20, 2))  # not rectangles: the exact test only
+        odd[:5] = odd[:5, ::-1]  # clockwise
+        quads = np.vstack([corners, odd])
+        idx = OccluderIndex.build(quads)
+        assert idx.rectangle[:200].all() and not idx.rectangle[200:].any()
+        c = quads[rng.integers(0, len(quads), 4000)]
+        k = rng.integers(0, 4, 4000)
+        pick = c[np.arange(4000), k]
+        nxt = c[np.arange(4000), (k + 1) % 4]
+        t = rng.random((4000, 1))
+        on_edge = pick + t * (nxt - pick)
+        far = pick + rng.normal(0, 30, pick.shape)
+        seg = np.vstack([
+            np.hstack([rng.uniform(0, 300, (20000, 2)) + offset, rng.uniform(0, 300, (20000, 2)) + offset]),
+            np.hstack([far, pick]), np.hstack([pick, far]),  # ending or starting on a corner
+            np.hstack([pick + 3 * (nxt - pick), pick - 2 * (nxt - pick)]),  # along an edge's line
+            np.hstack([on_edge, far]), np.hstack([far, on_edge]),  # from / to a point of an edge
+            np.hstack([on_edge, on_edge]), np.hstack([pick, pick]),  # zero length on the boundary
+            np.hstack([far, far + 1e-9]),
+            np.hstack([pick + 1e-7 * (far - pick), far]), np.hstack([far, pick - 1e-7 * (far - pick)]),
+        ])
+        skip_a = rng.integers(-1, len(quads), len(seg))
+        skip_b = np.full(len(seg), -1, dtype=np.int64)
+        args = (seg, skip_a, skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
+                idx.max_wx)
+        want = _occluded_by_quads(*args)
+        np.testing.assert_array_equal(_occluded_by_quads_sided(*args, idx.rectangle), want)
+        assert 0.05 < want.mean() < 0.95
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_perceive_stages_equal_the_separate_kernels(seed):
+    """The fused stages of perceive against perceive_reference (the separate kernels): every array and
+    count, and each random stream left in the same state; with and without occluders, buildings, classes,
+    the heading vectors, one clutter rate or several, sensors off the heading and behind the bumper."""
+    from couplers.perception import (PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference,
+                                     unit_heading, vehicle_footprints)
+    from couplers.sensors import features_in_range
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    blds = load_net_folder(ARTERIAL).buildings
+    xmin, ymin, xmax, ymax = shapely.total_bounds(blds.polygons)
+    n, k = (0, 30) if seed == 4 else (120, 80)
+    xy = np.column_stack([rng.uniform(xmin, xmax, n), rng.uniform(ymin, ymax, n)])
+    heading = rng.uniform(-np.pi, np.pi, n)
+    x_true = np.hstack([xy, rng.normal(0, 8, (n, 2))])
+    feats = np.hstack([np.column_stack([rng.uniform(xmin, xmax, k), rng.uniform(ymin, ymax, k)]), np.zeros((k, 2))])
+    corners = vehicle_footprints(xy, heading, rng.uniform(4, 12, n), rng.uniform(1.6, 2.5, n))
+    sensors = (SensorSpec(), SensorSpec(name="s", fov_deg=360.0, range_m=30.0),
+               SensorSpec(name="rear", fov_deg=90.0, range_m=40.0, yaw_deg=135.0, mount_x_m=-3.0,
+                          clutter_per_scan=1.0 if seed % 2 else 2.5))
+    for params in (PerceptionParams(sensors=sensors), PerceptionParams(sensors=sensors[:2], occlusion_buildings=False),
+                   PerceptionParams(sensors=sensors[:2], occlusion_vehicles=False)):
+        owner, feat = features_in_range(xy, cKDTree(feats[:, :2]) if k else None, params.max_reach_m)
+        klass = (rng.random(k) < 0.3).astype(np.int8) if seed % 2 else None
+        kw = dict(x_true=x_true, heading=heading, features_true=feats, pair_owner=owner, pair_feature=feat,
+                  params=params, occluder_corners=corners, observer_occluder=np.arange(n), buildings=blds,
+                  feature_class=klass)
+        for direction in (None, unit_heading(heading)):
+            na, nb = PerceptionNoise(seed), PerceptionNoise(seed)
+            got = perceive(noise=na, direction=direction, **kw)
+            want = perceive_reference(noise=nb, **kw)
+            for name in ("z", "owner", "R", "feature", "sensor", "klass"):
+                g, w = getattr(got, name), getattr(want, name)
+                assert g.dtype == w.dtype and g.shape == w.shape, name
+                np.testing.assert_array_equal(g, w, err_msg=name)
+            assert got.stats == want.stats
+            for stream in PerceptionNoise.STREAMS:
+                assert getattr(na, stream).random() == getattr(nb, stream).random()
+        if n and params.occlusion_vehicles and params.occlusion_buildings:
+            assert want.stats["occluded"] > 0 and want.stats["detected"] > 0 and want.stats["clutter"] > 0
+
+
+def test_fov_select_at_the_range_equals_the_square_root_test():
+    """Targets at the range to the last bits (where the squared-distance shortcut must not decide): the
+    candidates of _fov_select are those of the distance test d = sqrt(dx^2 + dy^2) <= range."""
+    from couplers.perception import _fov_select
+
+    rng = np.random.default_rng(20)
+    n, m = 50, 20000
+    origin = rng.uniform(-1e4, 1e4, (2, n, 2))
+    bore = np.stack([np.cos(rng.uniform(-4, 4, (2, n))), np.sin(rng.uniform(-4, 4, (2, n)))], axis=-1)
+    owner = rng.integers(0, n, m)
+    range_m = np.array([80.0, 30.0])
+    ang = rng.uniform(-np.pi, np.pi, m)
+    r = range_m[rng.integers(0, 2, m)] * (1.0 + rng.integers(-40, 40, m) * 2.0 ** -52)
+    s0 = rng.integers(0, 2, m)
+    target = origin[s0, owner] + r[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    rows, dist, sensor = _fov_select(origin, bore, owner, target, range_m, np.array([0.5, -1.0]),
+                                     np.array([False, True]))
+    want = []
+    for s in range(2):
+        d = np.sqrt(((target - origin[s, owner]) ** 2).sum(axis=1))
+        dot = ((target - origin[s, owner]) * bore[s, owner]).sum(axis=1)
+        ok = (d <= range_m[s]) & ((s == 1) | (dot >= d * 0.5))
+        want.append(np.flatnonzero(ok))
+    np.testing.assert_array_equal(rows, np.concatenate(want))
+    np.testing.assert_array_equal(sensor, np.repeat([0, 1], [len(w) for w in want]))
+    assert 0.2 < np.mean(np.sqrt(((target - origin[s0, owner]) ** 2).sum(axis=1)) <= range_m[s0]) < 0.8

@@ -150,3 +150,25 @@ def test_features_in_range_equals_the_kd_tree_pairs():
         np.testing.assert_array_equal(feat, pairs["j"][order].astype(np.int64))
     assert [a.size for a in features_in_range(veh[:0], tree, 50.0)] == [0, 0]
     assert [a.size for a in features_in_range(veh, None, 50.0)] == [0, 0]
+
+
+def test_neighbor_graph_is_the_matrix_scipys_constructor_builds():
+    from couplers.sensors import _CSR_MAXPRINT, _csr_checked, _radius_graph_csr
+
+    assert _CSR_MAXPRINT is not None  # the fast path is on with this scipy
+    rng = np.random.default_rng(3)
+    for n in (2, 3, 40, 200):
+        xy = rng.uniform(0, 800, (n, 2))
+        got = neighbor_graph(xy, 250.0)
+        indptr, indices = _radius_graph_csr(xy, 250.0)
+        want = _csr_checked(np.ones(indices.size, dtype=bool), indices, indptr, (n, n))
+        assert type(got) is type(want) and set(vars(got)) == set(vars(want))
+        for key, val in vars(want).items():
+            if isinstance(val, np.ndarray):
+                assert getattr(got, key).dtype == val.dtype
+                np.testing.assert_array_equal(getattr(got, key), val)
+            else:
+                assert getattr(got, key) == val, key
+        assert got.has_sorted_indices and got.has_canonical_format
+        np.testing.assert_array_equal(got.toarray(), want.toarray())
+        got.check_format(full_check=True)

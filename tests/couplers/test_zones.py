@@ -105,3 +105,22 @@ def test_names_and_sigmas_follow_the_labels():
     assert names.tolist() == ["sq", "slant", "big", "isl"]  # outside every zone: the worst (largest sigma_p)
     np.testing.assert_array_equal(sp, [3.0, 8.0, 15.0, 9.0])
     np.testing.assert_array_equal(sv, [0.3, 0.8, 1.5, 0.9])
+
+
+def test_fine_cells_of_the_border_cells_give_the_polygon_test():
+    """Points on the edges of the fine cells (REFINE per raster cell) and near the borders: same labels."""
+    from couplers.zones import REFINE
+
+    rng = np.random.default_rng(12)
+    net = load_net_folder(ARTERIAL)
+    for regions in (_synthetic_regions(), net.zones, net.areas):
+        index = RegionIndex(regions)
+        g = index.raster
+        near = _border_points(regions, rng)
+        fine = g.cell / REFINE
+        jx, jy = np.floor((near[:, 0] - g.x0) / fine), np.floor((near[:, 1] - g.y0) / fine)
+        edges = np.vstack([np.column_stack([g.x0 + jx * fine, near[:, 1]]), np.column_stack([near[:, 0], g.y0 + jy * fine]),
+                           np.column_stack([g.x0 + (jx + 1) * fine, g.y0 + (jy + 1) * fine])])
+        pts = np.vstack([near, edges, np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf)])
+        np.testing.assert_array_equal(index.locate(pts), index.locate_exact(pts))
+        assert index._fine_blocks  # the fine cells were used
