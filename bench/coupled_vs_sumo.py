@@ -16,7 +16,10 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
      --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
      step by step beside the fused path on the same frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
-     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x)
+     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x;
+     --workers N also times the coupled run with the estimators in N worker processes beside SUMO and the
+     coupler, as `coloc run --workers N` runs them (experiments.pipeline): wall time, and the CPU seconds of
+     all processes together)
 
 Each line also gives the CPU seconds of the work (the process's, or the `sumo` child's for the binary): on
 a shared machine wall times stretch with the load, CPU times much less.
@@ -103,6 +106,25 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
     return time.perf_counter() - t0, steps, per_method
 
 
+def time_pooled(scenario: SumoScenario, cfg, workers: int) -> tuple[float, float]:
+    """The coupled run of ``cfg.run.methods`` with the estimators in ``workers`` processes
+    (:class:`experiments.pipeline.EstimatorPool`, started inside the timing, as `coloc run` starts it):
+    (wall seconds, CPU seconds of this process and the workers)."""
+    from experiments.pipeline import EstimatorPool
+
+    t0, c0 = time.perf_counter(), time.process_time() + _children_cpu()
+    pool = EstimatorPool(cfg, workers)
+    try:
+        pool.wait_ready()
+        with SumoCoupler(scenario, cfg.sensors) as coupler:
+            for frame in coupler.frames():
+                pool.submit(frame)
+        pool.finish()
+    finally:
+        pool.close()
+    return time.perf_counter() - t0, time.process_time() + _children_cpu() - c0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--control", default="tlr", choices=["tlr", "vsr"])
@@ -115,6 +137,8 @@ def main() -> None:
                          "interleaved step by step with the fused path on the same frames, named <method>[reference]")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="also time the coupled run with the estimators in this many worker processes")
     args = ap.parse_args()
 
     cfg = load_config(
@@ -153,7 +177,8 @@ def main() -> None:
         # both paths' numba caches loaded before timing (fresh estimators on the warm-up scenario)
         time_coupled(warm, cfg.sensors, [dataclasses.replace(e, state=type(e.state)()) for e in estimators
                                          if e.name.split("[")[0] in (ICP_KNOWN_DA.name, ICP_DA_LC.name)])
-    coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators)
+    coupled, _, per_method = time_coupled(scenario, cfg.sensors, estimators, "coupled")
+    pooled = time_pooled(scenario, cfg, args.workers) if args.workers > 0 else None
     reference_s = sum(sec for name, sec in per_method.items() if name.endswith(REFERENCE))
 
     def cpu(key: str) -> str:
@@ -172,6 +197,10 @@ def main() -> None:
     print(f"  coupled ({args.methods:>14}) {coupled - reference_s:8.2f} s   ratio to sumo "
           f"{(coupled - reference_s) / sumo_alone:5.2f}" + ("   (the [reference] estimators' time left out)"
                                                             if args.reference else ""))
+    if pooled is not None:
+        print(f"  coupled, estimators in {args.workers} processes {pooled[0]:8.2f} s   ratio to sumo "
+              f"{pooled[0] / sumo_alone:5.2f}   | CPU of all processes {pooled[1]:6.2f} s (one process: "
+              f"{CPU['coupled']:.2f} s)")
     for name, sec in per_method.items():
         line = f"    estimator {name:<25} {sec:8.2f} s   {1e3 * sec / max(steps, 1):.3f} ms/step"
         if name.endswith(REFERENCE) and per_method.get(name[: -len(REFERENCE)]):
