@@ -50,7 +50,7 @@ from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
 from coloc.kernels import icp_fused  # noqa: E402
 from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA, METHODS  # noqa: E402
-from experiments.runner import build_estimators  # noqa: E402
+from experiments.runner import build_estimators, method_params  # noqa: E402
 
 
 REFERENCE = "[reference]"
@@ -113,7 +113,7 @@ def time_pooled(scenario: SumoScenario, cfg, workers: int) -> tuple[float, float
     from experiments.pipeline import EstimatorPool
 
     t0, c0 = time.perf_counter(), time.process_time() + _children_cpu()
-    pool = EstimatorPool(cfg, workers)
+    pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
     try:
         pool.wait_ready()
         with SumoCoupler(scenario, cfg.sensors) as coupler:

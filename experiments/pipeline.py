@@ -7,7 +7,7 @@ to the runner in step order and in the config's method order, so the runner logs
 logs when it steps them itself: the same estimates.parquet, association.parquet and summary
 numbers, byte for byte (``tests/experiments/test_pipeline.py``), only the wall time changes.
 
-Each worker builds its own estimators from the config (the registry, as the runner does) and steps
+Each worker builds its own estimators from the registry's parameters (as the runner does) and steps
 them on the frames it is sent without truth; the known-association bound is sent the true
 association of the rows with it, by the runner, as in the serial loop. At most ``lookahead``
 frames wait for their results, so memory stays bounded. Estimators go to workers round robin in the
@@ -44,8 +44,17 @@ class StepResult:
 
     name: str
     estimate: StepEstimate
-    sent: object  # coloc.inference.comm.CommCount | None (runner.step_comm)
+    sent: object  # coloc.inference.comm.CommCount | None (:func:`step_comm`)
     seconds: float  # the estimator's step, measured in its worker
+
+
+def step_comm(est):
+    """What the estimator's vehicles sent in its last step (a :class:`coloc.inference.comm.CommCount`,
+    the estimator's ``last_comm`` or its step info's ``comm``); None: the method does not count it."""
+    comm = getattr(est, "last_comm", None)
+    if comm is None:
+        comm = getattr(getattr(est, "last", None), "comm", None)
+    return comm
 
 
 def assign_round_robin(n_methods: int, n_workers: int) -> list[list[int]]:
@@ -54,16 +63,15 @@ def assign_round_robin(n_methods: int, n_workers: int) -> list[list[int]]:
     return [list(range(w, n_methods, n)) for w in range(n)]
 
 
-def _worker_main(conn, cfg, indices: list[int]) -> None:
-    """Worker process: build the estimators ``indices`` of ``cfg.run.methods``, then step them on every
-    frame received until None; reply per frame with their :class:`StepResult` list, at the end with
-    each estimator's ``stats`` (infrastructure methods' counters) or None."""
+def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
+    """Worker process: build the estimators ``indices`` of ``methods`` from ``params`` (the registry's
+    :class:`coloc.methods.registry.MethodParams`), then step them on every frame received until None;
+    reply per frame with their :class:`StepResult` list, at the end with each estimator's ``stats``
+    (infrastructure methods' counters) or None. It imports the registry, not the runner."""
     try:
         from coloc.methods.registry import METHODS, build_method
-        from experiments.runner import method_params, step_comm
 
-        params = method_params(cfg)
-        estimators = [build_method(cfg.run.methods[i], params) for i in indices]
+        estimators = [build_method(methods[i], params) for i in indices]
         known = [METHODS[e.name].known_association for e in estimators]
         conn.send(("ready", None))
         while True:
@@ -112,10 +120,10 @@ class EstimatorPool:
     at most :data:`LOOKAHEAD` frames behind; ``finish()`` returns the rest and ends the workers.
     """
 
-    def __init__(self, cfg, n_workers: int, lookahead: int = LOOKAHEAD):
+    def __init__(self, methods: list[str], params, n_workers: int, lookahead: int = LOOKAHEAD):
         from coloc.methods.registry import METHODS
 
-        self.methods = list(cfg.run.methods)
+        self.methods = list(methods)
         self.groups = assign_round_robin(len(self.methods), n_workers)
         self._needs_truth = [any(getattr(METHODS.get(self.methods[i]), "known_association", False) for i in g)
                              for g in self.groups]
@@ -126,7 +134,7 @@ class EstimatorPool:
         self._conns, self._procs, self._replies = [], [], []
         for group in self.groups:
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker_main, args=(child, cfg, group), daemon=True)
+            proc = ctx.Process(target=_worker_main, args=(child, self.methods, params, group), daemon=True)
             proc.start()
             child.close()
             # A thread per worker takes its replies off the pipe as they come: a worker never blocks on

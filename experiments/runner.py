@@ -53,6 +53,7 @@ from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
+from experiments.pipeline import StepResult, step_comm
 from experiments.scoring import (
     along_cross_errors,
     association_by_group,
@@ -140,15 +141,6 @@ class V2vTally:
         if self.links:
             out["mean_delivery_probability"] = self.delivery_sum / self.links
         return out
-
-
-def step_comm(est):
-    """What the estimator's vehicles sent in its last step (a :class:`coloc.inference.comm.CommCount`,
-    the estimator's ``last_comm`` or its step info's ``comm``); None: the method does not count it."""
-    comm = getattr(est, "last_comm", None)
-    if comm is None:
-        comm = getattr(getattr(est, "last", None), "comm", None)
-    return comm
 
 
 def build_estimators(cfg: Config) -> list:
@@ -541,8 +533,6 @@ def frame_source(cfg: Config):
 
 def _serial_steps(frames, estimators: list, timing: bool):
     """Step every estimator on every frame in this process: (frame, [StepResult, ...]) per frame."""
-    from experiments.pipeline import StepResult
-
     for k, frame in enumerate(frames):
         if timing and k == 0:
             _timing_line("first frame")
@@ -609,7 +599,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         try:
             if workers > 1:  # started before SUMO, so that the workers' imports overlap its start-up
-                pool = EstimatorPool(cfg, workers)
+                pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
             with source:
                 version = source.sumo_version
                 frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)

@@ -1,7 +1,6 @@
 """`coloc run --workers N` (experiments.pipeline): the estimators in worker processes write the same
 files, byte for byte, as the serial loop; a failing worker fails the run cleanly."""
 
-import dataclasses
 import hashlib
 import json
 import subprocess
@@ -13,6 +12,7 @@ import pytest
 from experiments.cli import main
 from experiments.config import load_config
 from experiments.pipeline import EstimatorPool, EstimatorWorkerError, assign_round_robin
+from experiments.runner import method_params
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -70,8 +70,7 @@ def test_failing_worker_raises_and_ends_every_worker(cross_net, tmp_path):
     cfg_path = tmp_path / "cfg.toml"
     cfg_path.write_text(CONFIG.format(net=cross_net))
     cfg = load_config(cfg_path, {})
-    broken = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, methods=["gnss", "no_such_method"]))
-    pool = EstimatorPool(broken, 2)
+    pool = EstimatorPool(["gnss", "no_such_method"], method_params(cfg), 2)
     with pytest.raises(EstimatorWorkerError, match="no_such_method"):
         pool.wait_ready()
     pool.close()
