@@ -300,3 +300,54 @@ def test_predict_no_input_kernel_equals_numpy():
     np.testing.assert_allclose(m, m0, rtol=1e-14, atol=1e-12)
     np.testing.assert_allclose(p, p0, rtol=1e-13, atol=1e-15)
     assert np.array_equal(p, np.swapaxes(p, 1, 2))
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("cons,iters,stop", [(5, 6, 0.1), (2, 8, 0.0), (1, 3, 1e3), (0, 4, 0.1)])
+def test_bpa_loop_kernel_equals_the_per_iteration_kernels(seed, cons, iters, stop, monkeypatch):
+    """coloc.kernels.bpa_rows.bpa_loop_rows (all BPA-L iterations in one call) against one call per
+    iteration (LOOP_KERNEL = False), byte for byte: incomplete row graphs (finite consensus), tracks
+    at the velocity-only prior (rows the PSD projection leaves as they are, learnt into
+    bpa._UNCLIPPED), tracks with an indefinite prior (rows it clips: the loop stops, the caller
+    projects, the loop resumes), with the learnt rows and without."""
+    rng = np.random.default_rng(100 + seed)
+    n, n_feat = 25, 30
+    owner, feat, adj = random_scene(rng, n=n, o=120, n_feat=n_feat, p_edge=0.3 + 0.1 * (seed % 3))
+    o = owner.size
+    x = rng.standard_normal((n, 4)) * [50, 50, 5, 5]
+    xf = rng.standard_normal((n_feat, 4)) * [50, 50, 0, 0]
+    prior_cov = random_spd(rng, n, 1.0) + 4 * np.eye(4)
+    prior_mean = x + rng.standard_normal((n, 4))
+    z = xf[feat] - x[owner] + 0.1 * rng.standard_normal((o, 4))
+    r = random_spd(rng, o, 0.1) + 0.01 * np.eye(4)
+    fids = np.unique(feat)
+    f_lam = np.zeros((fids.size, 4, 4))
+    f_lam[1::3, 2, 2] = f_lam[1::3, 3, 3] = 100.0  # velocity prior only (the birth information)
+    f_lam[::3] = random_spd(rng, f_lam[::3].shape[0], 0.5)
+    f_lam[2::6] = np.diag([1.0, -1e-3, 1.0, 1.0])  # indefinite: rows the projection clips
+    f_eta = np.einsum("kij,kj->ki", f_lam, xf[fids])
+    params = IcpParams(consensus_iterations=cons, bpa_max_iterations=iters, stop_pos_m=stop, stop_vel_mps=stop)
+    args = (prior_mean, prior_cov, prior_mean, prior_cov * 1.5, owner, feat, z, r, adj, f_lam, f_eta, params)
+    clipped = []
+    real_clip = bpa.psd_clip
+
+    def clip(lam, eta, floor=0.0, sure=None):
+        out = real_clip(lam, eta, floor, sure)
+        clipped.append(out[0] is not lam)
+        return out
+
+    monkeypatch.setattr(bpa, "psd_clip", clip)
+    results = []
+    for loop, learnt in [(False, None), (True, False), (True, True)]:
+        monkeypatch.setattr(bpa, "LOOP_KERNEL", loop)
+        if learnt is False:
+            bpa._UNCLIPPED.clear()
+            bpa._UNCLIPPED_ROWS[0] = np.empty((0, 16))
+        clipped.clear()
+        results.append(bpa_localization(*args))
+        assert any(clipped)  # (the loop kernel stopped for the projection and resumed)
+    ref = results[0]
+    for res in results[1:]:
+        assert (res.iterations, res.converged) == (ref.iterations, ref.converged)
+        for field in ("mean", "cov", "msg_lam", "msg_eta", "final_lam", "final_eta"):
+            assert getattr(res, field).tobytes() == getattr(ref, field).tobytes(), field
