@@ -39,12 +39,14 @@ FUSED = True
 
 
 @njit(cache=True)
-def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range):
+def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range, gate):
     """Every (vehicle i, candidate track k, row l of i) and log N(z_l; m_k - m_i, P_k + P_i + R_l)
     with its squared Mahalanobis distance.
 
     Candidates: hypot(m_i - m_k) <= Rs + 3 sqrt(tr P_i,pos + tr P_k,pos); pairs ordered by
     vehicle, then track, then row (``np.nonzero`` order, rows by a stable sort on the owner).
+    ``gate``: the log-likelihood of a pair with d2 > gate is not computed (0 is returned; the
+    caller gives such a pair weight 0 whatever it is); ``inf``: every pair's.
     Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
     n, nt, o = v_mean.shape[0], t_mean.shape[0], owner.size
     start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
@@ -86,14 +88,15 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
                         s[c * 4 + e, p] = (t_cov[k, c, e] + v_cov[i, c, e]) + r[q, c, e]
                 pv[p], pt[p], pr[p] = i, k, q
                 p += 1
-    log_lik, d2 = _log_gauss4_soa(nu, s)
+    log_lik, d2 = _log_gauss4_soa(nu, s, gate)
     return pv, pt, pr, log_lik, d2
 
 
 @njit(cache=True)
-def _log_gauss4_soa(nu, s):
+def _log_gauss4_soa(nu, s, gate=np.inf):
     """:func:`coloc.kernels.icp.log_gauss_kernel` (d = 4) for every column of ``nu`` (4, P) / ``s`` (16, P), each scalar
-    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD."""
+    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD.
+    Columns whose squared distance is above ``gate`` get log N = 0 (their logarithms are skipped)."""
     p = nu.shape[1]
     l = np.empty((16, p))
     w = np.empty((4, p))
@@ -114,12 +117,15 @@ def _log_gauss4_soa(nu, s):
         for r in range(p):
             wi[r] = acc[r] / lii[r]
             q[r] += wi[r] * wi[r]
-        for r in range(p):
-            logdet[r] += np.log(lii[r])
     log2pi = np.log(2.0 * np.pi)
     log_pdf = np.empty(p)
     for r in range(p):
         if ok[r]:
+            if q[r] > gate:
+                log_pdf[r] = 0.0
+                continue
+            for i in range(4):  # logdet = 0 + log l_00 + ... + log l_33, in this order
+                logdet[r] += np.log(l[i * 4 + i, r])
             log_pdf[r] = -0.5 * (q[r] + 2.0 * logdet[r] + 4 * log2pi)
         else:
             log_pdf[r], q[r] = np.nan, np.nan

@@ -336,8 +336,10 @@ def association_weights(
     """
     if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused)
         owner = np.asarray(owner, dtype=np.int64)
+        # pairs outside the gate get weight 0 below: their log-likelihoods are not computed
+        gate = _chi2_ppf(lc.gate_probability, 4) if lc.pairing == "gated" else math.inf
         pv, pt, pr, log_lik, d2 = association_terms_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r),
-                                                           float(lc.sensing_range_m))
+                                                           float(lc.sensing_range_m), gate)
         if pr.size == 0:
             return pv, pt, pr, np.empty(0)
         # a row's new-feature density depends on the row alone: once per row, then per pair
