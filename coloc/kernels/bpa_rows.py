@@ -403,6 +403,50 @@ def _known_unclipped(lam, r, safe):
 
 
 @njit(cache=True)
+def _vehicle_beliefs_soa(owner, m_l, m_e, v_lam0, v_eta0, prev_mean, in_l, in_e, vl, ve, new_mean, ws, acc, okn):
+    """:func:`coloc.kernels.icp.vehicle_beliefs_kernel` (eq. (22)) with the messages, the sums and the
+    beliefs as (16, .) / (4, .) arrays (``m_l``, ``m_e`` over the rows; ``in_l`` .. ``ve`` over the
+    vehicles, written here): the same operations in the same order per vehicle, the inverse by
+    :func:`_inv4_spd_soa` (that of :func:`coloc.kernels.icp._inv4_spd`). ``ws`` (3, 16, n).
+    Returns (dpos, dvel)."""
+    o = owner.size
+    n = v_lam0.shape[0]
+    in_l[:] = 0.0
+    in_e[:] = 0.0
+    for r in range(o):
+        i = owner[r]
+        for c in range(16):
+            in_l[c, i] += m_l[c, r]
+        for a in range(4):
+            in_e[a, i] += m_e[a, r]
+    for i in range(n):
+        for a in range(4):
+            for b in range(4):
+                vl[a * 4 + b, i] = 0.5 * ((v_lam0[i, a, b] + in_l[a * 4 + b, i]) + (v_lam0[i, b, a] + in_l[b * 4 + a, i]))
+            ve[a, i] = v_eta0[i, a] + in_e[a, i]
+    cov = ws[0]
+    _inv4_spd_soa_ws(vl, cov, acc, ws[1], ws[2], okn)
+    for a in range(4):
+        for i in range(n):
+            acc[i] = 0.0
+        for b in range(4):
+            x, y = cov[a * 4 + b], ve[b]
+            for i in range(n):
+                acc[i] += x[i] * y[i]
+        for i in range(n):
+            new_mean[i, a] = acc[i]
+    dpos, dvel = 0.0, 0.0
+    for i in range(n):
+        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
+        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
+        if dp > dpos or dp != dp:
+            dpos = dp if dp == dp else np.inf
+        if dv > dvel or dv != dv:
+            dvel = dv if dv == dv else np.inf
+    return dpos, dvel
+
+
+@njit(cache=True)
 def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr, w_indices, w_data, n_iter_cons,
                   complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, it_first, it_last,
                   stop_pos, stop_vel, safe):
@@ -434,9 +478,13 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
     fv_e = _soa4(m_fv_eta)
     packed = np.empty((o, 14))
     sure = np.empty(o, dtype=np.bool_)
-    v_lam, v_eta = v_lam0.copy(), v_eta0.copy()
-    m_lam = np.ascontiguousarray(m_fv_lam).copy()
-    m_eta = np.ascontiguousarray(m_fv_eta).copy()
+    in_l, in_e = _soa16(in_lam), _soa4(in_eta)  # (22)'s sums and beliefs over the vehicles
+    vl, ve = _soa16(v_lam0), _soa4(v_eta0)
+    mean = np.ascontiguousarray(mean).copy()
+    new_mean = np.empty((n, 4))
+    wsn = np.empty((3, 16, n))
+    accn = np.empty(n)
+    okn = np.empty(n, dtype=np.bool_)
     status = LOOP_MAX_ITERATIONS
     it = it_first
     for it in range(it_first, it_last + 1):
@@ -445,8 +493,8 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
             i = owner[r]
             for a in range(4):
                 for b in range(4):
-                    cav_l[a * 4 + b, r] = own_lam0[i, a, b] + in_lam[i, a, b] - fv_l[a * 4 + b, r]
-                cav_e[a, r] = own_eta0[i, a] + in_eta[i, a] - fv_e[a, r]
+                    cav_l[a * 4 + b, r] = own_lam0[i, a, b] + in_l[a * 4 + b, i] - fv_l[a * 4 + b, r]
+                cav_e[a, r] = own_eta0[i, a] + in_e[a, i] - fv_e[a, r]
         _relative_message_soa_ws(cav_l, cav_e, zs, 1.0, rs, vf_l, vf_e, ws, ws1, okw)
         for r in range(o):
             c = 0
@@ -477,13 +525,9 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
                 break
         # (21) second half, (22): feature_to_vehicle_rows
         _relative_message_soa_ws(ext_l, ext_e, zs, -1.0, rs, fv_l, fv_e, ws, ws1, okw)
-        for r in range(o):
-            for a in range(4):
-                for b in range(4):
-                    m_lam[r, a, b] = fv_l[a * 4 + b, r]
-                m_eta[r, a] = fv_e[a, r]
-        in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0,
-                                                                                mean)
+        dpos, dvel = _vehicle_beliefs_soa(owner, fv_l, fv_e, v_lam0, v_eta0, mean, in_l, in_e, vl, ve, new_mean, wsn,
+                                          accn, okn)
+        mean, new_mean = new_mean, mean
         if dpos < stop_pos and dvel < stop_vel:
             status = LOOP_CONVERGED
             break
@@ -491,5 +535,5 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
         ext_lam, ext_eta = _aos16(ext_l), np.ascontiguousarray(ext_e.T)
     else:
         ext_lam, ext_eta = np.empty((0, 4, 4)), np.empty((0, 4))
-    return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), v_lam, v_eta, in_lam, in_eta, m_lam, m_eta, mean,
-            ext_lam, ext_eta, sure)
+    return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), _aos16(vl), np.ascontiguousarray(ve.T), _aos16(in_l),
+            np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean, ext_lam, ext_eta, sure)

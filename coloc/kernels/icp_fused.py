@@ -29,7 +29,7 @@ from numba import njit
 
 from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
 from coloc.kernels.icp import rows_by_key
-from coloc.kernels.kalman import gnss_step_kernel
+from coloc.kernels.kalman import gnss_step_rows
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
 FUSED = True
@@ -479,7 +479,8 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
                       s_cross, min_speed):
     """b_i^(0) of (11) for two carried tracks of every vehicle (the belief and the own-sensor one):
     the previous step's rows (``match``) or, where ``fresh``, the fast-start prior, then
-    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (``coloc.core.vehicles.carry_states`` +
+    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (by :func:`coloc.kernels.kalman.gnss_step_rows`;
+    ``coloc.core.vehicles.carry_states`` +
     ``vehicle_prior_beliefs`` twice, the same numbers). Returns (mean_a, cov_a, mean_b, cov_b)."""
     n = match.size
     out = (np.empty((n, 4)), np.empty((n, 4, 4)), np.empty((n, 4)), np.empty((n, 4, 4)))
@@ -499,8 +500,9 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
                     out[1][i, c, e] = cov_a[match[i], c, e]
                     out[3][i, c, e] = cov_b[match[i], c, e]
     predict = ~fresh
-    gnss_step_kernel(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
-    gnss_step_kernel(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    # gnss_step_kernel across the vehicles (coloc.kernels.kalman.gnss_step_rows, the same numbers)
+    gnss_step_rows(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    gnss_step_rows(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
     return out
 
 

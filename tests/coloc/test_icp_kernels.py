@@ -382,3 +382,29 @@ def test_relative_message_by_numpy_blas_is_byte_identical_to_numpy(o):
         assert not numpy_blas.relative_message_numpy_blas(bad, eta, z, r_inv)[2]
         with pytest.raises(np.linalg.LinAlgError):
             relative_message(bad, eta, z, None, r_inv)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_gnss_step_rows_equals_the_row_kernel(seed):
+    """coloc.kernels.kalman.gnss_step_rows (vehicles as SIMD lanes) against gnss_step_kernel byte for
+    byte: slow vehicles (isotropic Q), vehicles not predicted (fresh), an S that is not positive
+    definite (NaN from the square root, as the row kernel gives)."""
+    from coloc.kernels.kalman import gnss_step_kernel, gnss_step_rows
+
+    rng = np.random.default_rng(seed)
+    n = 70 + seed
+    mean = rng.standard_normal((n, 4)) * [100, 100, 8, 8]
+    mean[:6, 2:] = 0.01 * rng.standard_normal((6, 2))
+    mean[6, 2:] = 0.0
+    cov = random_spd(rng, n, 1.0)
+    accel = rng.standard_normal((n, 2))
+    z = mean + rng.standard_normal((n, 4))
+    r = random_spd(rng, n, 0.5) + np.diag([4.0, 4.0, 0.04, 0.04])
+    r[-1] = -10.0 * np.eye(4)  # S not PD
+    predict = rng.random(n) < 0.8
+    for dt in (0.75, 0.1):
+        a = (mean.copy(), cov.copy())
+        b = (mean.copy(), cov.copy())
+        gnss_step_kernel(a[0], a[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
+        gnss_step_rows(b[0], b[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
+        assert a[0].tobytes() == b[0].tobytes() and a[1].tobytes() == b[1].tobytes()
