@@ -408,3 +408,28 @@ def test_gnss_step_rows_equals_the_row_kernel(seed):
         gnss_step_kernel(a[0], a[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
         gnss_step_rows(b[0], b[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
         assert a[0].tobytes() == b[0].tobytes() and a[1].tobytes() == b[1].tobytes()
+
+
+def test_unique_inverse_kernel_equals_numpy():
+    """coloc.kernels.icp_fused._unique_inverse (a table over the key range, or a sort) is np.unique."""
+    from coloc.kernels.icp_fused import _unique_inverse, _unique_inverse_sort
+
+    rng = np.random.default_rng(3)
+    cases = [np.empty(0, np.int64), np.array([5]), np.array([-3, -3, 7, -1 << 40]), rng.integers(0, 60, 468),
+             rng.integers(-5, 5, 100), rng.integers(0, 1 << 50, 300), np.arange(1000)[::-1], np.full(50, 9)]
+    for keys in cases:
+        keys = np.asarray(keys, dtype=np.int64)
+        ref_u, ref_i = np.unique(keys, return_inverse=True)
+        for kernel in (_unique_inverse, _unique_inverse_sort):
+            u, i = kernel(keys)
+            assert u.tobytes() == ref_u.astype(np.int64).tobytes() and i.tobytes() == ref_i.astype(np.int64).tobytes()
+
+
+def test_lower_bound_is_searchsorted_left():
+    from coloc.kernels.icp_fused import lower_bound
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 3, 7, 8, 9, 100, 1000):
+        a = np.sort(rng.integers(-50, 50, n)).astype(np.int64)
+        for x in (*range(-52, 53), -(1 << 62), 1 << 62):
+            assert lower_bound(a, x) == np.searchsorted(a, x)
