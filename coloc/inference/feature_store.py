@@ -15,6 +15,7 @@ from coloc.kernels import icp_fused
 from coloc.kernels.icp import predict_no_input_kernel, scatter_add
 from coloc.kernels.icp_fused import (
     lookup_kernel,
+    message_round_trip,
     pair_member_kernel,
     predict_store_kernel,
     record_kernel,
@@ -195,13 +196,13 @@ class FeatureStore:
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params, self.klass)
         if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.predict_store_kernel)
-            folded_lam, folded_eta, msg_mean, msg_cov = predict_store_kernel(
+            folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta = predict_store_kernel(
                 self.folded_lam, self.folded_eta, np.ascontiguousarray(q), self.lookup(self.msg_track),
                 np.ascontiguousarray(self.msg_mean), np.ascontiguousarray(self.msg_cov), float(dt))
             out = dataclasses.replace(
                 self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
             )
-            return out._with_codes(self._msg_codes)
+            return out._with_codes(self._msg_codes)._with_message_information((msg_lam, msg_eta))
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
@@ -293,9 +294,13 @@ class FeatureStore:
         if row_codes is None:
             row_codes = vehicle_codes(row_vehicle)
         keep = ~self._replaced(row_feature, row_vehicle, row_codes)
-        mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.record_kernel)
-            return self._record_fused(row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, float(t), params)
+            # the messages to moments and back (the kept information) in one call
+            mm, mc, nl, ne = message_round_trip(np.ascontiguousarray(msg_lam, dtype=np.float64),
+                                                np.ascontiguousarray(msg_eta, dtype=np.float64))
+            return self._record_fused(row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, nl, ne, float(t),
+                                      params)
+        mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)
         ids = np.concatenate([self.ids, new_ids])
         order = np.argsort(ids, kind="stable")
@@ -345,7 +350,7 @@ class FeatureStore:
             klass=klass[live] if klass is not None else None,
         )._with_codes(msg_codes[keep_msg])
 
-    def _record_fused(self, row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, t: float,
+    def _record_fused(self, row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, nl, ne, t: float,
                       params: IcpParams) -> "FeatureStore":
         """:meth:`record` by :func:`coloc.kernels.icp_fused.record_kernel` (the numpy code of
         :meth:`record` is the reference)."""
@@ -365,8 +370,7 @@ class FeatureStore:
         codes = np.concatenate([self._msg_codes, np.asarray(row_codes, dtype=np.int64)])[m_src]
         # The information of the kept messages is what this store computed for them (row by row, the
         # same kernel): only the step's messages are converted.
-        ml, me = self._message_information
-        nl, ne = to_information(mm, mc)
+        ml, me = self._message_information  # (the step's: nl, ne = to_information(mm, mc))
         info = (np.concatenate([ml, nl])[m_src], np.concatenate([me, ne])[m_src])
         return FeatureStore(
             ids=ids, last_seen=last_seen, folded_lam=folded_lam, folded_eta=folded_eta, msg_track=m_track,

@@ -560,8 +560,8 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
 def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov, dt):
     """Eq. (12) on the track store (``FeatureStore.predict``, the same numbers): every nonzero folded
     part to moments, predicted by model (2) with its track's Q_F, back to information; every stored
-    message predicted with its track's Q_F (``msg_rows``). Returns (folded_lam, folded_eta,
-    msg_mean, msg_cov)."""
+    message predicted with its track's Q_F (``msg_rows``), and its information (:func:`information_rows`,
+    as ``to_information`` gives it). Returns (folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta)."""
     t = folded_lam.shape[0]
     out_lam = folded_lam.copy()
     out_eta = folded_eta.copy()
@@ -595,7 +595,18 @@ def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov,
     for j in range(msg_rows.size):
         mq[j] = q[msg_rows[j]]
     mm, mc = predict_no_input_rows(msg_mean, msg_cov, mq, dt)
-    return out_lam, out_eta, mm, mc
+    ml, me = information_rows(mm, mc)  # the messages' (Lambda, eta): FeatureStore._message_information
+    return out_lam, out_eta, mm, mc, ml, me
+
+
+@njit(cache=True)
+def message_round_trip(msg_lam, msg_eta):
+    """The step's messages (Lambda, eta) to moments and back, as ``FeatureStore.record`` keeps them:
+    (mean, cov) = from_information, then (Lambda', eta') = to_information of those (both
+    :func:`information_rows`). Returns (mean, cov, Lambda', eta')."""
+    cov, mean = information_rows(msg_eta, msg_lam)
+    lam, eta = information_rows(mean, cov)
+    return mean, cov, lam, eta
 
 
 @njit(cache=True)
