@@ -230,7 +230,7 @@ def _bpa_iterations_numpy(
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
 
-    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, None
 
 
 #: Run the BPA-L iterations of the fused path in one numba call (:func:`coloc.kernels.bpa_rows.bpa_loop_rows`;
@@ -273,20 +273,21 @@ def _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr,
     it, last = 1, params.bpa_max_iterations
     stop_pos, stop_vel = float(params.stop_pos_m), float(params.stop_vel_mps)
     while True:
-        (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, ext_lam, ext_eta,
+        (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, cov, ext_lam, ext_eta,
          sure) = bpa_loop_rows(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data,
                                n_iter_cons, complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta,
                                mean, it, last, stop_pos, stop_vel, _UNCLIPPED_ROWS[0])
         if status != LOOP_NEEDS_CLIP:
-            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, status == LOOP_CONVERGED
+            # the last iteration's beliefs (22) as moments: from_information(v_lam, v_eta), the same kernel
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, status == LOOP_CONVERGED, (mean, cov)
         _learn_unclipped(ext_lam, sure)
         ext_lam, ext_eta = psd_clip(ext_lam, ext_eta, sure=sure)
         m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_rows(
             owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean)
         if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
-            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, True
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, True, None
         if it == last:
-            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, False
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, False, None
         it += 1
 
 
@@ -353,7 +354,7 @@ def _bpa_iterations_kernels(
             break
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
-    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, None
 
 
 def bpa_localization(
@@ -429,7 +430,7 @@ def bpa_localization(
         own_lam0, own_eta0 = to_information(own_mean, own_cov)
     channel = None if v2x is None else ChannelRowConsensus(owner_u, fidx, fids.size, adjacency, v2x)
     loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
-    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
+    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, moments = loop(
         prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
         count, complete, (w_indptr, w_indices, w_data), params, channel,
     )
@@ -445,7 +446,7 @@ def bpa_localization(
                                                          np.ascontiguousarray(z_u), 1.0, r_inv)
         else:
             keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
-    mean, cov = from_information(v_lam, v_eta)
+    mean, cov = from_information(v_lam, v_eta) if moments is None else moments
     alone = np.bincount(owner_u, minlength=n) == 0
     mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]
     return BpaResult(mean, cov, used, keep_lam, keep_eta, it, converged, m_vf_lam, m_vf_eta, comm)

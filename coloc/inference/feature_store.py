@@ -20,6 +20,7 @@ from coloc.kernels.icp_fused import (
     predict_store_kernel,
     record_kernel,
     track_information_kernel,
+    track_moments_kernel,
 )
 
 # ----------------------------------------------------------------------------- feature tracks
@@ -151,12 +152,7 @@ class FeatureStore:
             cache = self.__dict__.setdefault("_information_cache", {})
             if exclude is None and params in cache:
                 return tuple(a.copy() for a in cache[params])
-            birth = (birth_information(params)[None] if self.klass is None
-                     else class_birth_information(params, self.klass, self.ids.size))
-            use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
-            ml, me = self._message_information
-            out = track_information_kernel(self.folded_lam, self.folded_eta, birth, self.ids, self.msg_track, ml, me,
-                                           use)
+            out = track_information_kernel(*self._information_args(params, exclude))
             if exclude is None:
                 cache[params] = tuple(a.copy() for a in out)
             return out
@@ -173,6 +169,14 @@ class FeatureStore:
             scatter_add(eta, rows, me[use])
         return symmetrize(lam), eta
 
+    def _information_args(self, params: IcpParams, exclude: np.ndarray | None):
+        """The arguments of :func:`coloc.kernels.icp_fused.track_information_kernel`."""
+        birth = (birth_information(params)[None] if self.klass is None
+                 else class_birth_information(params, self.klass, self.ids.size))
+        use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
+        ml, me = self._message_information
+        return self.folded_lam, self.folded_eta, birth, self.ids, self.msg_track, ml, me, use
+
     def moments(self, params: IcpParams) -> tuple[np.ndarray, np.ndarray]:
         """Track means and covariances (every stored track has had at least one message).
 
@@ -182,8 +186,14 @@ class FeatureStore:
             return last[1]
         cache = self.__dict__.setdefault("_moments_cache", {})
         if params not in cache:
+            info = self.__dict__.get("_information_cache", {})
             if self.ids.size == 0:
                 cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
+            elif icp_fused.FUSED and params not in info:
+                # the information and its moments in one call (track_moments_kernel: the same kernels)
+                lam, eta, mean, cov = track_moments_kernel(*self._information_args(params, None))
+                self.__dict__.setdefault("_information_cache", {})[params] = (lam, eta)
+                cache[params] = (mean, cov)
             else:
                 cache[params] = from_information(*self.information(params))
         self.__dict__["_moments_last"] = (params, cache[params])

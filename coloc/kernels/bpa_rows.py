@@ -460,9 +460,10 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
     function of the bits, found no eigenvalue below 0 there); otherwise the loop stops before the
     projection with status :data:`LOOP_NEEDS_CLIP` and the caller projects and finishes the iteration.
 
-    Returns (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean,
+    Returns (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, cov,
     ext_lam, ext_eta, sure): the messages (19) of the last iteration, the beliefs (22) (after
-    iteration ``it``; with :data:`LOOP_NEEDS_CLIP` those of ``it`` - 1 and ``ext_lam``, ``ext_eta``,
+    iteration ``it``, ``mean`` and ``cov`` = ``v_lam``^-1 as ``from_information`` computes them; with
+    :data:`LOOP_NEEDS_CLIP` those of ``it`` - 1 (``cov`` then meaningless) and ``ext_lam``, ``ext_eta``,
     ``sure`` of iteration ``it`` before the projection)."""
     o = owner.size
     n = v_lam0.shape[0]
@@ -536,4 +537,5 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
     else:
         ext_lam, ext_eta = np.empty((0, 4, 4)), np.empty((0, 4))
     return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), _aos16(vl), np.ascontiguousarray(ve.T), _aos16(in_l),
-            np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean, ext_lam, ext_eta, sure)
+            np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean, _aos16(wsn[0]), ext_lam,
+            ext_eta, sure)

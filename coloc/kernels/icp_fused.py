@@ -382,6 +382,15 @@ def track_information_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, 
 
 
 @njit(cache=True)
+def track_moments_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_lam, msg_eta, use):
+    """:func:`track_information_kernel` and the moments of its result (``from_information``:
+    :func:`information_rows`) in one call. Returns (Lambda, eta, mean, cov)."""
+    lam, eta = track_information_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_lam, msg_eta, use)
+    cov, mean = information_rows(eta, lam)
+    return lam, eta, mean, cov
+
+
+@njit(cache=True)
 def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, msg_cov, msg_time, keep,
                   row_feature, mm, mc, t, old_before, drop_after):
     """The latest-message store after a step (``FeatureStore.record``): new tracks for new ids
