@@ -35,12 +35,36 @@ def feature_track_q(mean: np.ndarray, dt: float, params: IcpParams, klass: np.nd
     v = np.array(mean[:, 2:], dtype=float)
     slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
     v[slow] = 0.0
-    q = feature_noise_cov(v, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
+    q = _feature_noise_cov_rows(v, slow, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
     if klass is not None:
         ped = np.asarray(klass) == CLASS_PEDESTRIAN
         if ped.any():
             s = params.pedestrian_sigma_par
             q[ped] = feature_noise_cov(v[ped], dt, s, s / 2)
+    return q
+
+
+_STILL_Q: dict[tuple[float, float, float], np.ndarray] = {}
+
+
+def _feature_noise_cov_rows(v: np.ndarray, slow: np.ndarray, dt: float, s_par: float, s_perp: float) -> np.ndarray:
+    """``feature_noise_cov(v, dt, s_par, s_perp)``. It is computed row by row (elementwise operations
+    and one matrix product per row), and a row with zero velocity (``slow``: set to 0 by the caller)
+    gets the isotropic Q_F whatever its heading: on the fused path those rows take that row as
+    feature_noise_cov computes it for one still row (kept per (dt, s_par, s_perp)), the others are
+    computed as they are."""
+    if not icp_fused.FUSED or not slow.any():
+        return feature_noise_cov(v, dt, s_par, s_perp)
+    key = (float(dt), float(s_par), float(s_perp))
+    still_q = _STILL_Q.get(key)
+    if still_q is None:
+        if len(_STILL_Q) > 64:
+            _STILL_Q.clear()
+        still_q = _STILL_Q[key] = feature_noise_cov(np.zeros((1, 2)), dt, s_par, s_perp)[0]
+    q = np.empty((v.shape[0], 4, 4))
+    q[slow] = still_q
+    if not slow.all():
+        q[~slow] = feature_noise_cov(v[~slow], dt, s_par, s_perp)
     return q
 
 

@@ -433,3 +433,21 @@ def test_lower_bound_is_searchsorted_left():
         a = np.sort(rng.integers(-50, 50, n)).astype(np.int64)
         for x in (*range(-52, 53), -(1 << 62), 1 << 62):
             assert lower_bound(a, x) == np.searchsorted(a, x)
+
+
+@pytest.mark.parametrize("dt", [0.75, 0.1])
+def test_feature_track_q_with_still_rows_shared_equals_feature_noise_cov(dt):
+    """feature_track_q's fused path (the still tracks' Q_F computed once) is feature_noise_cov byte for byte."""
+    from coloc.core.models import feature_noise_cov
+    from coloc.inference.feature_store import _feature_noise_cov_rows
+
+    rng = np.random.default_rng(11)
+    for frac in (0.0, 0.3, 0.9, 1.0):
+        v = rng.standard_normal((40, 2)) * 2.0
+        slow = rng.random(40) < frac
+        v[slow] = 0.0
+        v[:2] = [[1e-300, 0.0], [-3.0, 0.0]]
+        slow[:2] = False
+        for s_par, s_perp in ((0.01, 0.005), (0.3, 0.15)):
+            ref = feature_noise_cov(v, dt, s_par, s_perp)
+            assert _feature_noise_cov_rows(v, slow, dt, s_par, s_perp).tobytes() == ref.tobytes()
