@@ -104,7 +104,7 @@ from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
-from coloc.inference.association import association_marginals_batch
+from coloc.inference.association import association_marginals_batch, layout_and_marginals_kernel
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore
@@ -113,7 +113,6 @@ from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import (
-    association_layout_kernel,
     any_pair_within,
     association_terms_kernel,
     map_pairing_kernel,
@@ -399,12 +398,14 @@ def association_beliefs(
     row_new = np.ones(n_rows)
     if icp_fused.FUSED:  # the layout below in one numba pass (coloc.kernels.icp_fused)
         missed = np.full(weight.size, 1.0 - lc.detection_probability) if missed_weight is None else missed_weight
-        layout = association_layout_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
-                                           int(n_vehicles))
-        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = layout
+        # the layout and the BP of every problem in one call (association.layout_and_marginals_kernel)
+        out = layout_and_marginals_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
+                                          int(n_vehicles), int(lc.bp_iterations), float(lc.bp_tol))
+        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, pf, pn, ok = out
         if c_vehicle.size == 0:
             return None
-        pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
+        if not ok:  # not finite or negative: association_marginals_batch raises
+            pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
         row_new[rows_sorted] = pn
         return AssociationBeliefs(pf, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, row_new)
     keep = weight > 0
