@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 
 from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
-from coloc.kernels.icp import rows_by_key
+from coloc.kernels.icp import log_gauss_kernel, rows_by_key
 from coloc.kernels.kalman import gnss_step_rows
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
@@ -90,6 +90,33 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
                 p += 1
     log_lik, d2 = _log_gauss4_soa(nu, s, gate)
     return pv, pt, pr, log_lik, d2
+
+
+@njit(cache=True)
+def association_log_weights_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range, gate, new_sigma2,
+                                   log_new_const, log_pd):
+    """:func:`association_terms_kernel` and the log of eta(alpha = l) of (13) normalised by the density
+    of a row from an untracked feature, as ``coloc.methods.icp_da_lc.association_weights`` computes it
+    without clutter and field of view (its numpy is the reference): per row
+    log N(z_v + m_i,v; 0, P_i,vv + R_vv + s^2 I) (:func:`coloc.kernels.icp.log_gauss_kernel`) plus
+    ``log_new_const``, then per pair (``log_pd`` + log_lik) - log_new. Returns (pair_vehicle,
+    pair_track, pair_row, log_w, d2)."""
+    pv, pt, pr, log_lik, d2 = association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range,
+                                                       gate)
+    o = owner.size
+    nu = np.empty((o, 2))
+    s = np.empty((o, 2, 2))
+    for q in range(o):
+        i = owner[q]
+        for a in range(2):
+            nu[q, a] = z[q, 2 + a] + v_mean[i, 2 + a]
+            for b in range(2):  # (P + R) + s^2 I, the identity's zeros added too
+                s[q, a, b] = (v_cov[i, 2 + a, 2 + b] + r[q, 2 + a, 2 + b]) + new_sigma2 * (1.0 if a == b else 0.0)
+    log_v, _ = log_gauss_kernel(nu, s)
+    log_w = np.empty(pr.size)
+    for p in range(pr.size):
+        log_w[p] = (log_pd + log_lik[p]) - (log_new_const + log_v[pr[p]])
+    return pv, pt, pr, log_w, d2
 
 
 @njit(cache=True)

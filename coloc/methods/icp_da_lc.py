@@ -114,6 +114,7 @@ from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import (
     any_pair_within,
+    association_log_weights_kernel,
     association_terms_kernel,
     map_pairing_kernel,
     unique_inverse,
@@ -337,8 +338,16 @@ def association_weights(
         owner = np.asarray(owner, dtype=np.int64)
         # pairs outside the gate get weight 0 below: their log-likelihoods are not computed
         gate = _chi2_ppf(lc.gate_probability, 4) if lc.pairing == "gated" else math.inf
-        pv, pt, pr, log_lik, d2 = association_terms_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r),
-                                                           float(lc.sensing_range_m), gate)
+        args = (*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r), float(lc.sensing_range_m), gate)
+        if detection is None and lc.new_feature_density == 0 and lc.clutter_intensity <= 0:
+            # log_w below in the same call (the density of _untracked_feature_log_density per row)
+            log_new_const = math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2)
+            pv, pt, pr, log_w, d2 = association_log_weights_kernel(
+                *args, float(lc.new_feature_velocity_sigma**2), log_new_const, math.log(lc.detection_probability))
+            if pr.size == 0:
+                return pv, pt, pr, np.empty(0)
+            return pv, pt, pr, _gated_weights(log_w, d2, lc)
+        pv, pt, pr, log_lik, d2 = association_terms_kernel(*args)
         if pr.size == 0:
             return pv, pt, pr, np.empty(0)
         # a row's new-feature density depends on the row alone: once per row, then per pair
@@ -355,10 +364,15 @@ def association_weights(
     else:
         with np.errstate(divide="ignore"):
             log_w = np.log(expected_detection_probability(v_mean[pv], t_mean[pt, :2], detection)) + log_lik - log_new
+    return pv, pt, pr, _gated_weights(log_w, d2, lc)
+
+
+def _gated_weights(log_w: np.ndarray, d2: np.ndarray, lc: LcParams) -> np.ndarray:
+    """exp(log eta), capped, and 0 outside the chi-square gate (``pairing = "gated"``)."""
     w = np.exp(np.minimum(log_w, 600.0))
     if lc.pairing == "gated":
         w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
-    return pv, pt, pr, w
+    return w
 
 
 @dataclass(frozen=True)
