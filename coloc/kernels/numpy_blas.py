@@ -62,10 +62,21 @@ def _einsum_row(a, x, i):
 
 
 @njit(cache=True)
+def _same_row(bits, r):
+    """Row ``r`` of ``bits`` (O, 16) equals row ``r`` - 1."""
+    for c in range(16):
+        if bits[r, c] != bits[r - 1, c]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def relative_message_numpy_blas(lam, eta, offset, r_inv):
     """:func:`coloc.inference.gaussian.relative_message` with ``r_inv`` given (C-contiguous float64
     (O, 4, 4), (O, 4)), byte for byte. Returns (lam_y, eta_y, ok); ``ok`` False when dgesv found
-    a singular S = Lambda + R^-1 (numpy raises there: the caller runs numpy)."""
+    a singular S = Lambda + R^-1 (numpy raises there: the caller runs numpy). A row whose Lambda and
+    R^-1 are bit for bit those of the row before reuses its S^-1 products (the same calls on the same
+    bits give the same bits)."""
     o = lam.shape[0]
     out_lam = np.empty((o, 4, 4))
     out_eta = np.empty((o, 4))
@@ -80,7 +91,18 @@ def relative_message_numpy_blas(lam, eta, offset, r_inv):
     p_int = ints.ctypes.data
     p_a, p_b, p_piv = a_f.ctypes.data, b_f.ctypes.data, ipiv.ctypes.data
     p_sinv, p_t, p_u = s_inv.ctypes.data, t.ctypes.data, u.ctypes.data
+    lam_bits = lam.reshape((o, 16)).view(np.int64)
+    r_bits = r_inv.reshape((o, 16)).view(np.int64)
     for r in range(o):
+        if r > 0 and _same_row(lam_bits, r) and _same_row(r_bits, r):
+            # the row before had the same Lambda and R^-1, bit for bit (a vehicle's rows when the sensor
+            # noise is the same): S^-1, Lambda_y and R^-1 S^-1 are those numpy computes again for it
+            for i in range(4):
+                for j in range(4):
+                    out_lam[r, i, j] = out_lam[r - 1, i, j]
+            for i in range(4):
+                out_eta[r, i] = _einsum_row(t, eta[r], i) + _einsum_row(out_lam[r], offset[r], i)
+            continue
         for i in range(4):
             for j in range(4):
                 s[i, j] = lam[r, i, j] + r_inv[r, i, j]

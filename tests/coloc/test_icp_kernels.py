@@ -357,7 +357,8 @@ def test_bpa_loop_kernel_equals_the_per_iteration_kernels(seed, cons, iters, sto
 def test_relative_message_by_numpy_blas_is_byte_identical_to_numpy(o):
     """coloc.kernels.numpy_blas (numpy's dgesv / dgemm called row by row from numba, einsum's sums)
     against the numpy reference, byte for byte: zero (uniform) beliefs, signed zeros, scales from
-    1e-3 to 1e3; a singular S falls back to numpy (which raises)."""
+    1e-3 to 1e3, runs of rows with the same Lambda and R^-1; a singular S falls back to numpy (which
+    raises)."""
     from coloc.inference.gaussian import relative_message_numpy
     from coloc.kernels import numpy_blas
 
@@ -370,6 +371,12 @@ def test_relative_message_by_numpy_blas_is_byte_identical_to_numpy(o):
     eta[rng.random(o) < 0.15] = -0.0
     z = rng.standard_normal((o, 4)) * 50
     r_inv = symmetrize(np.linalg.inv(random_spd(rng, o, 0.3) + 0.01 * np.eye(4))) if o else np.empty((0, 4, 4))
+    if o > 3:  # runs of rows with the same Lambda and R^-1 (a vehicle's rows; S^-1 reused), one with -0.0
+        rep = np.flatnonzero(rng.random(o) < 0.5)
+        rep = rep[rep > 0]
+        for k in rep:
+            lam[k], r_inv[k] = lam[k - 1], r_inv[k - 1]
+        lam[rep[0]] = np.where(lam[rep[0]] == 0.0, -0.0, lam[rep[0]])
     for sign in (1.0, -1.0):
         ly, ey = relative_message_numpy(lam, eta, sign * z, r_inv)
         lk, ek, ok = numpy_blas.relative_message_numpy_blas(lam, eta, sign * z, r_inv)
