@@ -51,7 +51,7 @@ from coloc.kernels.bpa_rows import (
     feature_to_vehicle_rows,
     vehicle_to_feature_rows,
 )
-from coloc.kernels.icp_fused import step_beliefs_kernel, unique_inverse
+from coloc.kernels.icp_fused import repeated_pair, step_beliefs_kernel, unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
@@ -67,6 +67,10 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
     f = f.astype(np.int64)
     if (f < -1).any():
         raise ValueError("association ids must be >= 0 (or -1 for an unused row)")
+    if icp_fused.FUSED:  # one pass (coloc.kernels.icp_fused.repeated_pair)
+        if repeated_pair(np.ascontiguousarray(owner, dtype=np.int64), f):
+            raise ValueError("a vehicle has two V2F rows associated with the same feature")
+        return f
     used = f >= 0
     if used.any():
         key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]

@@ -224,6 +224,51 @@ def _unique_inverse_sort(keys):
     return uniq, inv
 
 
+@njit(cache=True)
+def repeated_pair(owner, feature):
+    """Whether two rows with ``feature`` >= 0 have the same (owner, feature) (the ``np.unique`` test of
+    ``coloc.inference.bpa.validate_association``): rows grouped by feature, each group's owners
+    stamped in a table over the owners."""
+    o = owner.size
+    n_used = 0
+    for q in range(o):
+        if feature[q] >= 0:
+            n_used += 1
+    if n_used < 2:
+        return False
+    rows = np.empty(n_used, dtype=np.int64)
+    j = 0
+    for q in range(o):
+        if feature[q] >= 0:
+            rows[j] = q
+            j += 1
+    fu = np.empty(n_used, dtype=np.int64)
+    lo, hi = owner[rows[0]], owner[rows[0]]
+    for j in range(n_used):
+        fu[j] = feature[rows[j]]
+        lo = min(lo, owner[rows[j]])
+        hi = max(hi, owner[rows[j]])
+    uniq, inv = _unique_inverse(fu)
+    start, order = rows_by_key(inv, uniq.size)
+    if hi - lo > 16 * n_used + 64:  # owners spread out: compare the keys by a sort
+        key = np.empty(n_used, dtype=np.int64)
+        for j in range(n_used):
+            key[j] = inv[j] * (hi - lo + 1) + (owner[rows[j]] - lo)
+        srt = np.sort(key)
+        for j in range(1, n_used):
+            if srt[j] == srt[j - 1]:
+                return True
+        return False
+    stamp = np.full(hi - lo + 1, -1, dtype=np.int64)
+    for g in range(uniq.size):
+        for a in range(start[g], start[g + 1]):
+            v = owner[rows[order[a]]] - lo
+            if stamp[v] == g:
+                return True
+            stamp[v] = g
+    return False
+
+
 def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(keys, return_inverse=True)`` for int64 keys (FUSED; else numpy itself)."""
     keys = np.ascontiguousarray(keys, dtype=np.int64)

@@ -458,3 +458,16 @@ def test_feature_track_q_with_still_rows_shared_equals_feature_noise_cov(dt):
         for s_par, s_perp in ((0.01, 0.005), (0.3, 0.15)):
             ref = feature_noise_cov(v, dt, s_par, s_perp)
             assert _feature_noise_cov_rows(v, slow, dt, s_par, s_perp).tobytes() == ref.tobytes()
+
+
+def test_repeated_pair_is_the_unique_test():
+    from coloc.kernels.icp_fused import repeated_pair
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        o = int(rng.integers(0, 40))
+        owner = rng.integers(0, int(rng.choice([3, 30, 10**9])), o).astype(np.int64)
+        feature = rng.integers(-1, int(rng.choice([2, 20, 10**6])), o).astype(np.int64)
+        used = feature >= 0
+        key = owner[used] * (int(feature.max(initial=0)) + 1) + feature[used]
+        assert repeated_pair(owner, feature) == (np.unique(key).size != key.size)
