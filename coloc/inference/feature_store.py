@@ -16,7 +16,7 @@ from coloc.kernels.icp import predict_no_input_kernel, scatter_add
 from coloc.kernels.icp_fused import (
     lookup_kernel,
     message_round_trip,
-    pair_member_kernel,
+    pair_member_table,
     predict_store_kernel,
     record_kernel,
     track_information_kernel,
@@ -272,9 +272,14 @@ class FeatureStore:
         last = self.__dict__.get("_replaced_last")
         if last is not None and np.array_equal(last[0], row_feature) and np.array_equal(last[1], row_codes):
             return last[2]
-        km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
-        kr = row_feature * (1 << 32) + row_codes
-        mask = pair_member_kernel(km, np.sort(kr)) if icp_fused.FUSED else np.isin(km, kr)
+        if icp_fused.FUSED:  # the pairs marked in a table (coloc.kernels.icp_fused.pair_member_table), same mask
+            mask = pair_member_table(np.ascontiguousarray(self.msg_track, dtype=np.int64),
+                                     np.ascontiguousarray(self._msg_codes, dtype=np.int64), row_feature,
+                                     np.ascontiguousarray(row_codes, dtype=np.int64))
+        else:
+            km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
+            kr = row_feature * (1 << 32) + row_codes
+            mask = np.isin(km, kr)
         self.__dict__["_replaced_last"] = (row_feature.copy(), np.array(row_codes, copy=True), mask)
         return mask
 

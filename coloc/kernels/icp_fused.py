@@ -408,6 +408,52 @@ def pair_member_kernel(keys, sorted_keys):
 
 
 @njit(cache=True)
+def pair_member_table(msg_track, msg_codes, row_track, row_codes):
+    """``np.isin(msg_track * 2^32 + msg_codes, row_track * 2^32 + row_codes)`` (the (track, vehicle)
+    pairs of the messages among the rows'): the rows' pairs marked in a table over their tracks and
+    vehicles; keys outside [0, 2^32) or spread-out ids go to :func:`pair_member_kernel`."""
+    n_m, n_r = msg_track.size, row_track.size
+    out = np.zeros(n_m, dtype=np.bool_)
+    if n_r == 0:
+        return out
+    tlo, thi, clo, chi = row_track[0], row_track[0], row_codes[0], row_codes[0]
+    for q in range(n_r):
+        tlo, thi = min(tlo, row_track[q]), max(thi, row_track[q])
+        clo, chi = min(clo, row_codes[q]), max(chi, row_codes[q])
+    ok = tlo >= 0 and clo >= 0 and chi < (1 << 32) and thi - tlo <= 16 * n_r + 4096 and chi - clo <= 16 * n_r + 4096
+    for q in range(n_m):
+        ok = ok and msg_track[q] >= 0 and 0 <= msg_codes[q] < (1 << 32)
+    if not ok:
+        km = np.empty(n_m, dtype=np.int64)
+        kr = np.empty(n_r, dtype=np.int64)
+        for q in range(n_m):
+            km[q] = msg_track[q] * (1 << 32) + msg_codes[q]
+        for q in range(n_r):
+            kr[q] = row_track[q] * (1 << 32) + row_codes[q]
+        return pair_member_kernel(km, np.sort(kr))
+    ttab = np.full(thi - tlo + 1, -1, dtype=np.int64)
+    vtab = np.full(chi - clo + 1, -1, dtype=np.int64)
+    nt, nv = 0, 0
+    for q in range(n_r):
+        if ttab[row_track[q] - tlo] < 0:
+            ttab[row_track[q] - tlo] = nt
+            nt += 1
+        if vtab[row_codes[q] - clo] < 0:
+            vtab[row_codes[q] - clo] = nv
+            nv += 1
+    mark = np.zeros(nt * nv, dtype=np.bool_)
+    for q in range(n_r):
+        mark[ttab[row_track[q] - tlo] * nv + vtab[row_codes[q] - clo]] = True
+    for q in range(n_m):
+        t, c = msg_track[q], msg_codes[q]
+        if tlo <= t <= thi and clo <= c <= chi:
+            ti, vi = ttab[t - tlo], vtab[c - clo]
+            if ti >= 0 and vi >= 0:
+                out[q] = mark[ti * nv + vi]
+    return out
+
+
+@njit(cache=True)
 def lookup_kernel(ids, feature_ids):
     """Row of each id in the ascending ``ids``, -1 where absent (``FeatureStore.lookup``)."""
     out = np.full(feature_ids.size, -1, dtype=np.int64)

@@ -471,3 +471,22 @@ def test_repeated_pair_is_the_unique_test():
         used = feature >= 0
         key = owner[used] * (int(feature.max(initial=0)) + 1) + feature[used]
         assert repeated_pair(owner, feature) == (np.unique(key).size != key.size)
+
+
+def test_pair_member_table_is_isin_of_the_pair_keys():
+    from coloc.kernels.icp_fused import pair_member_table
+
+    rng = np.random.default_rng(10)
+    for trial in range(300):
+        n_m, n_r = int(rng.integers(0, 60)), int(rng.integers(0, 40))
+        span_t, span_c = int(rng.choice([5, 50, 10**7])), int(rng.choice([5, 300, 10**8]))
+        mt, rt = rng.integers(0, span_t, n_m), rng.integers(0, span_t, n_r)
+        mc, rc = rng.integers(0, span_c, n_m), rng.integers(0, span_c, n_r)
+        if n_m and n_r and trial % 2:
+            k = rng.integers(0, n_r, n_m // 2)
+            mt[: k.size], mc[: k.size] = rt[k], rc[k]
+        if trial % 7 == 0 and n_r:
+            rt[0] = -3  # not a track id: the key path
+        args = [np.asarray(a, dtype=np.int64) for a in (mt, mc, rt, rc)]
+        ref = np.isin(args[0] * (1 << 32) + args[1], args[2] * (1 << 32) + args[3])
+        assert (pair_member_table(*args) == ref).all()
