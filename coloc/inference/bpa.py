@@ -269,8 +269,8 @@ def _learn_unclipped(lam: np.ndarray, sure: np.ndarray) -> None:
     _UNCLIPPED_ROWS[0] = np.array(list(_UNCLIPPED.values())).reshape(-1, 16)
 
 
-def _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data, n_iter_cons, complete,
-              count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, params):
+def _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data, n_iter_cons,
+              complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, params):
     """The iterations of :func:`_bpa_iterations_kernels` (lossless consensus, stopping on the vehicles)
     in :func:`coloc.kernels.bpa_rows.bpa_loop_rows`; an iteration whose extrinsic information may need
     the PSD projection is finished here, as the per-iteration loop does, and the kernel resumes."""
@@ -321,8 +321,9 @@ def _bpa_iterations_kernels(
     v_to_f, f_to_v = ((vehicle_to_feature_rows, feature_to_vehicle_rows) if icp_fused.FUSED
                       else (vehicle_to_feature_kernel, feature_to_vehicle_kernel))
     if LOOP_KERNEL and icp_fused.FUSED and channel is None and features is None:
-        return _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data, n_iter_cons,
-                         complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, params)
+        return _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data,
+                         n_iter_cons, complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean,
+                         params)
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         if channel is None and icp_fused.FUSED:  # (19)-(21) below in one call (coloc.kernels.bpa_rows)

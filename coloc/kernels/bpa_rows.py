@@ -422,7 +422,9 @@ def _vehicle_beliefs_soa(owner, m_l, m_e, v_lam0, v_eta0, prev_mean, in_l, in_e,
     for i in range(n):
         for a in range(4):
             for b in range(4):
-                vl[a * 4 + b, i] = 0.5 * ((v_lam0[i, a, b] + in_l[a * 4 + b, i]) + (v_lam0[i, b, a] + in_l[b * 4 + a, i]))
+                s_ab = v_lam0[i, a, b] + in_l[a * 4 + b, i]
+                s_ba = v_lam0[i, b, a] + in_l[b * 4 + a, i]
+                vl[a * 4 + b, i] = 0.5 * (s_ab + s_ba)
             ve[a, i] = v_eta0[i, a] + in_e[a, i]
     cov = ws[0]
     _inv4_spd_soa_ws(vl, cov, acc, ws[1], ws[2], okn)
@@ -536,6 +538,6 @@ def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr,
         ext_lam, ext_eta = _aos16(ext_l), np.ascontiguousarray(ext_e.T)
     else:
         ext_lam, ext_eta = np.empty((0, 4, 4)), np.empty((0, 4))
-    return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), _aos16(vl), np.ascontiguousarray(ve.T), _aos16(in_l),
-            np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean, _aos16(wsn[0]), ext_lam,
-            ext_eta, sure)
+    return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), _aos16(vl), np.ascontiguousarray(ve.T),
+            _aos16(in_l), np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean,
+            _aos16(wsn[0]), ext_lam, ext_eta, sure)
