@@ -393,10 +393,15 @@ class FeatureStore:
                       params: IcpParams) -> "FeatureStore":
         """:meth:`record` by :func:`coloc.kernels.icp_fused.record_kernel` (the numpy code of
         :meth:`record` is the reference)."""
-        ids, last_seen, folded_lam, folded_eta, src, m_src, m_track, m_mean, m_cov, m_time = record_kernel(
+        # The information of the kept messages is what this store computed for them (row by row, the
+        # same kernel), and the step's (nl, ne) = to_information(mm, mc): the kernel gathers both.
+        ml, me = self._message_information
+        (ids, last_seen, folded_lam, folded_eta, src, m_src, m_track, m_mean, m_cov, m_time, k_lam,
+         k_eta) = record_kernel(
             self.ids, self.last_seen, self.folded_lam, self.folded_eta, self.msg_track, self.msg_mean, self.msg_cov,
             self.msg_time, keep, row_feature, np.ascontiguousarray(mm), np.ascontiguousarray(mc), t,
-            t - params.message_memory_s, float(params.feature_drop_after_s),
+            t - params.message_memory_s, float(params.feature_drop_after_s), np.ascontiguousarray(ml),
+            np.ascontiguousarray(me), np.ascontiguousarray(nl), np.ascontiguousarray(ne),
         )
         klass = None
         if row_class is not None or self.klass is not None:
@@ -407,10 +412,7 @@ class FeatureStore:
             klass = np.where(src >= 0, old_k[np.maximum(src, 0)] if old_k.size else 0, new_k).astype(np.int8)
         msg_vehicle = np.concatenate([self.msg_vehicle, np.asarray(row_vehicle, dtype=object)])[m_src]
         codes = np.concatenate([self._msg_codes, np.asarray(row_codes, dtype=np.int64)])[m_src]
-        # The information of the kept messages is what this store computed for them (row by row, the
-        # same kernel): only the step's messages are converted.
-        ml, me = self._message_information  # (the step's: nl, ne = to_information(mm, mc))
-        info = (np.concatenate([ml, nl])[m_src], np.concatenate([me, ne])[m_src])
+        info = (k_lam, k_eta)
         return FeatureStore(
             ids=ids, last_seen=last_seen, folded_lam=folded_lam, folded_eta=folded_eta, msg_track=m_track,
             msg_vehicle=msg_vehicle, msg_mean=m_mean, msg_cov=m_cov, msg_time=m_time, klass=klass,

@@ -510,7 +510,7 @@ def track_moments_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_
 
 @njit(cache=True)
 def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, msg_cov, msg_time, keep,
-                  row_feature, mm, mc, t, old_before, drop_after):
+                  row_feature, mm, mc, t, old_before, drop_after, msg_lam, msg_eta, ml, me):
     """The latest-message store after a step (``FeatureStore.record``): new tracks for new ids
     (ids stay sorted), last_seen = t for every observed track, the kept old messages then the
     step's (``mm``/``mc``, time t), messages older than ``old_before`` folded into their track in
@@ -518,8 +518,10 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
     with their messages, folded parts symmetrised.
 
     Returns (ids, last_seen, folded_lam, folded_eta, track_src, msg_src, msg_track, msg_mean,
-    msg_cov, msg_time): ``track_src`` >= 0 an old track's row, -1 - r a new track first seen
-    in row r; ``msg_src`` each message's index in [old messages, the step's rows]."""
+    msg_cov, msg_time, msg_lam, msg_eta): ``track_src`` >= 0 an old track's row, -1 - r a new track
+    first seen in row r; ``msg_src`` each message's index in [old messages, the step's rows];
+    ``msg_lam``, ``msg_eta``: the kept messages' information, taken from the old messages'
+    (``msg_lam``, ``msg_eta`` given) and the step's (``ml``, ``me``) by ``msg_src``."""
     n_old, n_msg, o = ids.size, msg_track.size, row_feature.size
     uniq, _ = _unique_inverse(row_feature)
     first = np.full(uniq.size, o, dtype=np.int64)
@@ -630,6 +632,8 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
     k_mean = np.empty((n_keep, 4))
     k_cov = np.empty((n_keep, 4, 4))
     k_time = np.empty(n_keep)
+    k_lam = np.empty((n_keep, 4, 4))
+    k_eta = np.empty((n_keep, 4))
     j = 0
     for q in range(m):
         s = m_src[q]
@@ -639,10 +643,12 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
         k_src[j], k_track[j], k_time[j] = s, tr, m_time[q]
         for c in range(4):
             k_mean[j, c] = msg_mean[s, c] if s < n_msg else mm[s - n_msg, c]
+            k_eta[j, c] = msg_eta[s, c] if s < n_msg else me[s - n_msg, c]
             for e in range(4):
                 k_cov[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
+                k_lam[j, c, e] = msg_lam[s, c, e] if s < n_msg else ml[s - n_msg, c, e]
         j += 1
-    return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time
+    return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time, k_lam, k_eta
 
 
 # ----------------------------------------------------------------------------- (11)
