@@ -56,6 +56,8 @@ import math
 import numpy as np
 from numba import njit
 
+from coloc.kernels.icp_fused import association_layout_kernel
+
 __all__ = [
     "association_marginals",
     "association_marginals_both",
@@ -328,3 +330,30 @@ def association_marginals_batch(
     if k_sizes.size:
         _batch_kernel(eta_flat, k_sizes, m_sizes, eta_offsets, new_offsets, int(iterations), float(tol), pf, pn)
     return pf, pn
+
+
+@njit(cache=True)
+def layout_and_marginals_kernel(pv, pt, pr, w, missed, n_vehicles, iterations, tol):
+    """:func:`coloc.kernels.icp_fused.association_layout_kernel` and :func:`association_marginals_batch`
+    of its problems in one call (the same kernels). Returns the layout's nine arrays, the feature-side
+    marginals, the "new" marginals and ``ok``: False when eta is not finite and non-negative (nothing
+    solved; :func:`association_marginals_batch` raises on it)."""
+    eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = association_layout_kernel(
+        pv, pt, pr, w, missed, n_vehicles)
+    n_new = 0
+    for p in range(m_sizes.size):
+        n_new += m_sizes[p]
+    pf = np.empty_like(eta)
+    pn = np.empty(n_new)
+    ok = True
+    for a in range(eta.size):
+        if not (np.isfinite(eta[a]) and eta[a] >= 0.0):
+            ok = False
+    if ok and k_sizes.size:
+        eta_offsets = np.zeros(k_sizes.size, dtype=np.int64)
+        new_offsets = np.zeros(k_sizes.size, dtype=np.int64)
+        for p in range(1, k_sizes.size):
+            eta_offsets[p] = eta_offsets[p - 1] + k_sizes[p - 1] * (m_sizes[p - 1] + 1)
+            new_offsets[p] = new_offsets[p - 1] + m_sizes[p - 1]
+        _batch_kernel(eta, k_sizes, m_sizes, eta_offsets, new_offsets, iterations, tol, pf, pn)
+    return eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, pf, pn, ok

@@ -42,8 +42,16 @@ from coloc.kernels.icp import (
     vehicle_to_feature_kernel,
 )
 from coloc.kernels import icp_fused
-from coloc.kernels.bpa_rows import bpa_forward_rows, feature_to_vehicle_rows, vehicle_to_feature_rows
-from coloc.kernels.icp_fused import step_beliefs_kernel, unique_inverse
+from coloc.kernels.bpa_rows import (
+    LOOP_CONVERGED,
+    LOOP_NEEDS_CLIP,
+    bpa_forward_rows,
+    information_rows,
+    bpa_loop_rows,
+    feature_to_vehicle_rows,
+    vehicle_to_feature_rows,
+)
+from coloc.kernels.icp_fused import repeated_pair, step_beliefs_kernel, unique_inverse
 
 def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) -> np.ndarray:
     """Check a per-row feature id array; returns it as int64.
@@ -59,6 +67,10 @@ def validate_association(owner: np.ndarray, feature: np.ndarray, n_rows: int) ->
     f = f.astype(np.int64)
     if (f < -1).any():
         raise ValueError("association ids must be >= 0 (or -1 for an unused row)")
+    if icp_fused.FUSED:  # one pass (coloc.kernels.icp_fused.repeated_pair)
+        if repeated_pair(np.ascontiguousarray(owner, dtype=np.int64), f):
+            raise ValueError("a vehicle has two V2F rows associated with the same feature")
+        return f
     used = f >= 0
     if used.any():
         key = np.asarray(owner, dtype=np.int64)[used] * (int(f.max()) + 1) + f[used]
@@ -222,7 +234,65 @@ def _bpa_iterations_numpy(
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
 
-    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, None
+
+
+#: Run the BPA-L iterations of the fused path in one numba call (:func:`coloc.kernels.bpa_rows.bpa_loop_rows`;
+#: False: one call per iteration and step, :func:`_bpa_iterations_kernels` below). Same numbers (tests).
+LOOP_KERNEL = True
+
+#: Symmetrised extrinsic matrices (flattened, float64) that :func:`psd_clip`'s eigh left unclipped (floor 0):
+#: :func:`coloc.kernels.bpa_rows.bpa_loop_rows` skips the projection of a row bit for bit equal to one
+#: (eigh is a deterministic function of the bits, so the projection would leave it as it is). A
+#: process-wide cache: the estimates do not depend on what it holds. On the arterial they are a
+#: handful of matrices, the birth information of a track that only one vehicle observes.
+_UNCLIPPED: dict[bytes, np.ndarray] = {}
+_UNCLIPPED_MAX = 64
+_UNCLIPPED_ROWS = [np.empty((0, 16))]
+
+
+def _learn_unclipped(lam: np.ndarray, sure: np.ndarray) -> None:
+    """Add the rows of ``lam`` not proven positive definite (``~sure``) whose symmetrised matrix
+    numpy's eigh leaves unclipped (no eigenvalue below 0, finite) to :data:`_UNCLIPPED`."""
+    if len(_UNCLIPPED) >= _UNCLIPPED_MAX:
+        return
+    sym = symmetrize(lam[~sure])
+    ok = np.isfinite(sym).all(axis=(1, 2))
+    if not ok.any():
+        return
+    sym = sym[ok]
+    unclipped = ~(np.linalg.eigh(sym)[0] < 0.0).any(axis=1)
+    for m in sym[unclipped]:
+        key = m.tobytes()
+        if key not in _UNCLIPPED and len(_UNCLIPPED) < _UNCLIPPED_MAX:
+            _UNCLIPPED[key] = m.reshape(16).copy()
+    _UNCLIPPED_ROWS[0] = np.array(list(_UNCLIPPED.values())).reshape(-1, 16)
+
+
+def _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data, n_iter_cons,
+              complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, params):
+    """The iterations of :func:`_bpa_iterations_kernels` (lossless consensus, stopping on the vehicles)
+    in :func:`coloc.kernels.bpa_rows.bpa_loop_rows`; an iteration whose extrinsic information may need
+    the PSD projection is finished here, as the per-iteration loop does, and the kernel resumes."""
+    it, last = 1, params.bpa_max_iterations
+    stop_pos, stop_vel = float(params.stop_pos_m), float(params.stop_vel_mps)
+    while True:
+        (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, cov, ext_lam, ext_eta,
+         sure) = bpa_loop_rows(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data,
+                               n_iter_cons, complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta,
+                               mean, it, last, stop_pos, stop_vel, _UNCLIPPED_ROWS[0])
+        if status != LOOP_NEEDS_CLIP:
+            # the last iteration's beliefs (22) as moments: from_information(v_lam, v_eta), the same kernel
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, status == LOOP_CONVERGED, (mean, cov)
+        _learn_unclipped(ext_lam, sure)
+        ext_lam, ext_eta = psd_clip(ext_lam, ext_eta, sure=sure)
+        m_fv_lam, m_fv_eta, in_lam, in_eta, v_lam, v_eta, mean, dpos, dvel = feature_to_vehicle_rows(
+            owner_u, np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u, r_inv, v_lam0, v_eta0, mean)
+        if dpos < params.stop_pos_m and dvel < params.stop_vel_mps:
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, True, None
+        if it == last:
+            return v_lam, v_eta, m_vf_lam, m_vf_eta, it, False, None
+        it += 1
 
 
 def _bpa_iterations_kernels(
@@ -250,6 +320,10 @@ def _bpa_iterations_kernels(
     # the same kernels computed across rows (coloc.kernels.bpa_rows: byte for byte, SIMD)
     v_to_f, f_to_v = ((vehicle_to_feature_rows, feature_to_vehicle_rows) if icp_fused.FUSED
                       else (vehicle_to_feature_kernel, feature_to_vehicle_kernel))
+    if LOOP_KERNEL and icp_fused.FUSED and channel is None and features is None:
+        return _bpa_loop(owner_u, own_lam0, own_eta0, v_lam0, v_eta0, z_u, r_inv, w_indptr, w_indices, w_data,
+                         n_iter_cons, complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean,
+                         params)
     it = 0
     for it in range(1, params.bpa_max_iterations + 1):
         if channel is None and icp_fused.FUSED:  # (19)-(21) below in one call (coloc.kernels.bpa_rows)
@@ -285,7 +359,7 @@ def _bpa_iterations_kernels(
             break
         if channel is not None and channel.exhausted:
             break  # the step's round budget is used up (module docstring)
-    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged
+    return v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, None
 
 
 def bpa_localization(
@@ -352,11 +426,16 @@ def bpa_localization(
     n_iter_cons = int(params.consensus_iterations)
     r_inv = _inv_spd(r_u)
 
-    v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
-    own_lam0, own_eta0 = to_information(own_mean, own_cov)
+    if icp_fused.FUSED:  # both in one call (information_rows: row by row, the same numbers)
+        lam2, eta2 = information_rows(np.concatenate([prior_mean, own_mean]).astype(np.float64, copy=False),
+                                      np.concatenate([prior_cov, own_cov]).astype(np.float64, copy=False))
+        v_lam0, v_eta0, own_lam0, own_eta0 = lam2[:n], eta2[:n], lam2[n:], eta2[n:]
+    else:
+        v_lam0, v_eta0 = to_information(prior_mean, prior_cov)
+        own_lam0, own_eta0 = to_information(own_mean, own_cov)
     channel = None if v2x is None else ChannelRowConsensus(owner_u, fidx, fids.size, adjacency, v2x)
     loop = _bpa_iterations_kernels if BPA_KERNELS else _bpa_iterations_numpy
-    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged = loop(
+    v_lam, v_eta, m_vf_lam, m_vf_eta, it, converged, moments = loop(
         prior_mean, v_lam0, v_eta0, own_lam0, own_eta0, owner_u, z_u, r_u, r_inv, lam_f0_row, eta_f0_row,
         count, complete, (w_indptr, w_indices, w_data), params, channel,
     )
@@ -372,7 +451,7 @@ def bpa_localization(
                                                          np.ascontiguousarray(z_u), 1.0, r_inv)
         else:
             keep_lam, keep_eta = relative_message(own_lam0[owner_u], own_eta0[owner_u], z_u, r_u, r_inv)
-    mean, cov = from_information(v_lam, v_eta)
+    mean, cov = from_information(v_lam, v_eta) if moments is None else moments
     alone = np.bincount(owner_u, minlength=n) == 0
     mean[alone], cov[alone] = prior_mean[alone], prior_cov[alone]
     return BpaResult(mean, cov, used, keep_lam, keep_eta, it, converged, m_vf_lam, m_vf_eta, comm)

@@ -15,10 +15,12 @@ from coloc.kernels import icp_fused
 from coloc.kernels.icp import predict_no_input_kernel, scatter_add
 from coloc.kernels.icp_fused import (
     lookup_kernel,
-    pair_member_kernel,
+    message_round_trip,
+    pair_member_table,
     predict_store_kernel,
     record_kernel,
     track_information_kernel,
+    track_moments_kernel,
 )
 
 # ----------------------------------------------------------------------------- feature tracks
@@ -33,12 +35,36 @@ def feature_track_q(mean: np.ndarray, dt: float, params: IcpParams, klass: np.nd
     v = np.array(mean[:, 2:], dtype=float)
     slow = np.hypot(v[:, 0], v[:, 1]) < params.feature_heading_min_speed
     v[slow] = 0.0
-    q = feature_noise_cov(v, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
+    q = _feature_noise_cov_rows(v, slow, dt, params.feature_sigma_par, params.feature_sigma_perp_value)
     if klass is not None:
         ped = np.asarray(klass) == CLASS_PEDESTRIAN
         if ped.any():
             s = params.pedestrian_sigma_par
             q[ped] = feature_noise_cov(v[ped], dt, s, s / 2)
+    return q
+
+
+_STILL_Q: dict[tuple[float, float, float], np.ndarray] = {}
+
+
+def _feature_noise_cov_rows(v: np.ndarray, slow: np.ndarray, dt: float, s_par: float, s_perp: float) -> np.ndarray:
+    """``feature_noise_cov(v, dt, s_par, s_perp)``. It is computed row by row (elementwise operations
+    and one matrix product per row), and a row with zero velocity (``slow``: set to 0 by the caller)
+    gets the isotropic Q_F whatever its heading: on the fused path those rows take that row as
+    feature_noise_cov computes it for one still row (kept per (dt, s_par, s_perp)), the others are
+    computed as they are."""
+    if not icp_fused.FUSED or not slow.any():
+        return feature_noise_cov(v, dt, s_par, s_perp)
+    key = (float(dt), float(s_par), float(s_perp))
+    still_q = _STILL_Q.get(key)
+    if still_q is None:
+        if len(_STILL_Q) > 64:
+            _STILL_Q.clear()
+        still_q = _STILL_Q[key] = feature_noise_cov(np.zeros((1, 2)), dt, s_par, s_perp)[0]
+    q = np.empty((v.shape[0], 4, 4))
+    q[slow] = still_q
+    if not slow.all():
+        q[~slow] = feature_noise_cov(v[~slow], dt, s_par, s_perp)
     return q
 
 
@@ -150,12 +176,7 @@ class FeatureStore:
             cache = self.__dict__.setdefault("_information_cache", {})
             if exclude is None and params in cache:
                 return tuple(a.copy() for a in cache[params])
-            birth = (birth_information(params)[None] if self.klass is None
-                     else class_birth_information(params, self.klass, self.ids.size))
-            use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
-            ml, me = self._message_information
-            out = track_information_kernel(self.folded_lam, self.folded_eta, birth, self.ids, self.msg_track, ml, me,
-                                           use)
+            out = track_information_kernel(*self._information_args(params, exclude))
             if exclude is None:
                 cache[params] = tuple(a.copy() for a in out)
             return out
@@ -172,6 +193,14 @@ class FeatureStore:
             scatter_add(eta, rows, me[use])
         return symmetrize(lam), eta
 
+    def _information_args(self, params: IcpParams, exclude: np.ndarray | None):
+        """The arguments of :func:`coloc.kernels.icp_fused.track_information_kernel`."""
+        birth = (birth_information(params)[None] if self.klass is None
+                 else class_birth_information(params, self.klass, self.ids.size))
+        use = np.ones(self.msg_track.size, bool) if exclude is None else ~exclude
+        ml, me = self._message_information
+        return self.folded_lam, self.folded_eta, birth, self.ids, self.msg_track, ml, me, use
+
     def moments(self, params: IcpParams) -> tuple[np.ndarray, np.ndarray]:
         """Track means and covariances (every stored track has had at least one message).
 
@@ -181,8 +210,14 @@ class FeatureStore:
             return last[1]
         cache = self.__dict__.setdefault("_moments_cache", {})
         if params not in cache:
+            info = self.__dict__.get("_information_cache", {})
             if self.ids.size == 0:
                 cache[params] = (np.empty((0, 4)), np.empty((0, 4, 4)))
+            elif icp_fused.FUSED and params not in info:
+                # the information and its moments in one call (track_moments_kernel: the same kernels)
+                lam, eta, mean, cov = track_moments_kernel(*self._information_args(params, None))
+                self.__dict__.setdefault("_information_cache", {})[params] = (lam, eta)
+                cache[params] = (mean, cov)
             else:
                 cache[params] = from_information(*self.information(params))
         self.__dict__["_moments_last"] = (params, cache[params])
@@ -195,13 +230,13 @@ class FeatureStore:
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params, self.klass)
         if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.predict_store_kernel)
-            folded_lam, folded_eta, msg_mean, msg_cov = predict_store_kernel(
+            folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta = predict_store_kernel(
                 self.folded_lam, self.folded_eta, np.ascontiguousarray(q), self.lookup(self.msg_track),
                 np.ascontiguousarray(self.msg_mean), np.ascontiguousarray(self.msg_cov), float(dt))
             out = dataclasses.replace(
                 self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
             )
-            return out._with_codes(self._msg_codes)
+            return out._with_codes(self._msg_codes)._with_message_information((msg_lam, msg_eta))
         folded_lam, folded_eta = self.folded_lam.copy(), self.folded_eta.copy()
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
@@ -237,9 +272,14 @@ class FeatureStore:
         last = self.__dict__.get("_replaced_last")
         if last is not None and np.array_equal(last[0], row_feature) and np.array_equal(last[1], row_codes):
             return last[2]
-        km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
-        kr = row_feature * (1 << 32) + row_codes
-        mask = pair_member_kernel(km, np.sort(kr)) if icp_fused.FUSED else np.isin(km, kr)
+        if icp_fused.FUSED:  # the pairs marked in a table (coloc.kernels.icp_fused.pair_member_table), same mask
+            mask = pair_member_table(np.ascontiguousarray(self.msg_track, dtype=np.int64),
+                                     np.ascontiguousarray(self._msg_codes, dtype=np.int64), row_feature,
+                                     np.ascontiguousarray(row_codes, dtype=np.int64))
+        else:
+            km = np.asarray(self.msg_track, dtype=np.int64) * (1 << 32) + self._msg_codes
+            kr = row_feature * (1 << 32) + row_codes
+            mask = np.isin(km, kr)
         self.__dict__["_replaced_last"] = (row_feature.copy(), np.array(row_codes, copy=True), mask)
         return mask
 
@@ -293,9 +333,13 @@ class FeatureStore:
         if row_codes is None:
             row_codes = vehicle_codes(row_vehicle)
         keep = ~self._replaced(row_feature, row_vehicle, row_codes)
-        mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.record_kernel)
-            return self._record_fused(row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, float(t), params)
+            # the messages to moments and back (the kept information) in one call
+            mm, mc, nl, ne = message_round_trip(np.ascontiguousarray(msg_lam, dtype=np.float64),
+                                                np.ascontiguousarray(msg_eta, dtype=np.float64))
+            return self._record_fused(row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, nl, ne, float(t),
+                                      params)
+        mm, mc = from_information(msg_lam, msg_eta) if row_feature.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
         new_ids = np.setdiff1d(np.unique(row_feature), self.ids)
         ids = np.concatenate([self.ids, new_ids])
         order = np.argsort(ids, kind="stable")
@@ -345,14 +389,19 @@ class FeatureStore:
             klass=klass[live] if klass is not None else None,
         )._with_codes(msg_codes[keep_msg])
 
-    def _record_fused(self, row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, t: float,
+    def _record_fused(self, row_feature, row_vehicle, row_codes, row_class, keep, mm, mc, nl, ne, t: float,
                       params: IcpParams) -> "FeatureStore":
         """:meth:`record` by :func:`coloc.kernels.icp_fused.record_kernel` (the numpy code of
         :meth:`record` is the reference)."""
-        ids, last_seen, folded_lam, folded_eta, src, m_src, m_track, m_mean, m_cov, m_time = record_kernel(
+        # The information of the kept messages is what this store computed for them (row by row, the
+        # same kernel), and the step's (nl, ne) = to_information(mm, mc): the kernel gathers both.
+        ml, me = self._message_information
+        (ids, last_seen, folded_lam, folded_eta, src, m_src, m_track, m_mean, m_cov, m_time, k_lam,
+         k_eta) = record_kernel(
             self.ids, self.last_seen, self.folded_lam, self.folded_eta, self.msg_track, self.msg_mean, self.msg_cov,
             self.msg_time, keep, row_feature, np.ascontiguousarray(mm), np.ascontiguousarray(mc), t,
-            t - params.message_memory_s, float(params.feature_drop_after_s),
+            t - params.message_memory_s, float(params.feature_drop_after_s), np.ascontiguousarray(ml),
+            np.ascontiguousarray(me), np.ascontiguousarray(nl), np.ascontiguousarray(ne),
         )
         klass = None
         if row_class is not None or self.klass is not None:
@@ -363,11 +412,7 @@ class FeatureStore:
             klass = np.where(src >= 0, old_k[np.maximum(src, 0)] if old_k.size else 0, new_k).astype(np.int8)
         msg_vehicle = np.concatenate([self.msg_vehicle, np.asarray(row_vehicle, dtype=object)])[m_src]
         codes = np.concatenate([self._msg_codes, np.asarray(row_codes, dtype=np.int64)])[m_src]
-        # The information of the kept messages is what this store computed for them (row by row, the
-        # same kernel): only the step's messages are converted.
-        ml, me = self._message_information
-        nl, ne = to_information(mm, mc)
-        info = (np.concatenate([ml, nl])[m_src], np.concatenate([me, ne])[m_src])
+        info = (k_lam, k_eta)
         return FeatureStore(
             ids=ids, last_seen=last_seen, folded_lam=folded_lam, folded_eta=folded_eta, msg_track=m_track,
             msg_vehicle=msg_vehicle, msg_mean=m_mean, msg_cov=m_cov, msg_time=m_time, klass=klass,

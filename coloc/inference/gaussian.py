@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from coloc.core.models import symmetrize
-from coloc.kernels import icp_fused
+from coloc.kernels import icp_fused, numpy_blas
 from coloc.kernels.bpa_rows import information_rows, inverse_rows
 from coloc.kernels.icp import information_kernel, inverse_spd_kernel, log_gauss_kernel
 from coloc.kernels.icp import surely_above_floor as _surely_above_floor  # noqa: F401 (its home before)
@@ -94,6 +94,24 @@ def relative_message(
     """
     if r_inv is None:
         r_inv = _inv_spd_numpy(r)
+    if icp_fused.FUSED and _blas_shapes(lam, eta, offset, r_inv) and numpy_blas.available():
+        # the same LAPACK / BLAS calls and sums row by row in one numba call (coloc.kernels.numpy_blas)
+        lam_y, eta_y, ok = numpy_blas.relative_message_numpy_blas(lam, eta, offset, r_inv)
+        if ok:
+            return lam_y, eta_y
+    return relative_message_numpy(lam, eta, offset, r_inv)
+
+
+def _blas_shapes(lam, eta, offset, r_inv) -> bool:
+    """Rows of :func:`coloc.kernels.numpy_blas.relative_message_numpy_blas`: C-contiguous float64 (O, 4, 4) / (O, 4)."""
+    o = lam.shape[0] if lam.ndim == 3 else -1
+    return all(a.dtype == np.float64 and a.flags.c_contiguous and a.shape == sh
+               for a, sh in ((lam, (o, 4, 4)), (eta, (o, 4)), (offset, (o, 4)), (r_inv, (o, 4, 4))))
+
+
+def relative_message_numpy(lam: np.ndarray, eta: np.ndarray, offset: np.ndarray, r_inv: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`relative_message` with numpy (the reference of its kernel)."""
     s = lam + r_inv
     s_inv = _inv_spd_numpy(s)
     lam_y = symmetrize(lam @ s_inv @ r_inv)

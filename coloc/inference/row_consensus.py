@@ -134,7 +134,15 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
     # Rows of each group, ascending (counting sort keeps row order).
     g_count, g_rows = rows_by_key(group, n_groups)
     # Degrees, and components by union-find (links never cross groups).
+    # Each row's neighbours, ascending (pairs are visited in row order), in a slot of its group's size.
     deg = np.zeros(o, dtype=np.int64)
+    nb_first = np.empty(o, dtype=np.int64)
+    n_slots = 0
+    for g in range(n_groups):
+        for a in range(g_count[g], g_count[g + 1]):
+            nb_first[g_rows[a]] = n_slots
+            n_slots += g_count[g + 1] - g_count[g] - 1
+    nbrs = np.empty(max(n_slots, 1), dtype=np.int64)
     parent = np.arange(o)
     for g in range(n_groups):
         for a in range(g_count[g], g_count[g + 1]):
@@ -142,6 +150,8 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
             for b in range(a + 1, g_count[g + 1]):
                 s = g_rows[b]
                 if adj[owner[r], owner[s]] and r != s:
+                    nbrs[nb_first[r] + deg[r]] = s
+                    nbrs[nb_first[s] + deg[s]] = r
                     deg[r] += 1
                     deg[s] += 1
                     x, y = r, s
@@ -180,32 +190,32 @@ def _row_consensus_kernel(owner, group, n_groups, adj_indptr, adj_indices, adj_d
     indices = np.empty(indptr[o], dtype=np.int64)
     data = np.empty(indptr[o])
     buf = np.empty(max(1, int(deg.max()) if o else 1))
+    # w_rs = 1 / (1 + max(d_r, d_s)) takes one value per degree: each computed once
+    recip = np.empty(int(deg.max()) + 1 if o else 1)
+    for d in range(recip.size):
+        recip[d] = 1.0 / (1.0 + float(d))
     for r in range(o):
-        g = group[r]
         p0 = indptr[r]
         # off-diagonal weights in column order, summed as numpy's add.reduceat does
         # (first element, then the pairwise sum of the rest): scipy's CSR row sum.
-        nb = 0
-        for a in range(g_count[g], g_count[g + 1]):
-            s = g_rows[a]
-            if s != r and adj[owner[r], owner[s]]:
-                buf[nb] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
-                nb += 1
+        nb = deg[r]
+        for a in range(nb):
+            s = nbrs[nb_first[r] + a]
+            buf[a] = recip[max(deg[r], deg[s])]
         acc = buf[0] + _pairwise_sum(buf, 1, nb - 1) if nb else 0.0
         diag = 1.0 - acc
         q = p0
         placed = False
-        for a in range(g_count[g], g_count[g + 1]):
-            s = g_rows[a]
+        for a in range(nb):
+            s = nbrs[nb_first[r] + a]
             if not placed and s > r:
                 indices[q] = r
                 data[q] = diag
                 q += 1
                 placed = True
-            if s != r and adj[owner[r], owner[s]]:
-                indices[q] = s
-                data[q] = 1.0 / (1.0 + float(max(deg[r], deg[s])))
-                q += 1
+            indices[q] = s
+            data[q] = buf[a]
+            q += 1
         if not placed:
             indices[q] = r
             data[q] = diag

@@ -77,10 +77,16 @@ def _inv4_spd_soa(s, si, acc):
     :func:`coloc.kernels.icp._inv4_spd` in its order: Cholesky, L^-1, L^-T L^-1; rows that are
     not numerically positive definite by :func:`coloc.kernels.icp._inv4_general`."""
     o = s.shape[1]
-    c = np.zeros((16, o))
-    ok = np.ones(o, dtype=np.bool_)
+    _inv4_spd_soa_ws(s, si, acc, np.empty((16, o)), np.empty((16, o)), np.empty(o, dtype=np.bool_))
+
+
+@njit(cache=True)
+def _inv4_spd_soa_ws(s, si, acc, c, li, ok):
+    """:func:`_inv4_spd_soa` with the workspace given: ``c``, ``li`` (16, o) (only their lower
+    triangles are written and read), ``ok`` (o,) bool (reset here)."""
+    o = s.shape[1]
+    ok[:] = True
     cholesky4_soa(s, c, ok, acc)
-    li = np.zeros((16, o))
     for j in range(4):
         cjj, lijj = c[j * 4 + j], li[j * 4 + j]
         for r in range(o):
@@ -144,16 +150,23 @@ def _relative_message_soa(lam, eta, offset, sign, r_inv, out_lam, out_eta):
     Lambda_y = sym(Lambda S^-1 R^-1), eta_y = R^-1 S^-1 eta + Lambda_y sign*offset.
     ``lam``/``r_inv``/``out_lam`` (16, o), ``eta``/``offset``/``out_eta`` (4, o)."""
     o = lam.shape[1]
-    acc = np.empty(o)
-    d = np.empty(o)
-    s = np.empty((16, o))
+    ws = np.empty((5, 16, o))
+    _relative_message_soa_ws(lam, eta, offset, sign, r_inv, out_lam, out_eta, ws, np.empty((2, o)),
+                             np.empty(o, dtype=np.bool_))
+
+
+@njit(cache=True)
+def _relative_message_soa_ws(lam, eta, offset, sign, r_inv, out_lam, out_eta, ws, ws1, ok):
+    """:func:`_relative_message_soa` with the workspace given: ``ws`` (5, 16, o), ``ws1`` (2, o),
+    ``ok`` (o,) bool."""
+    o = lam.shape[1]
+    acc, d = ws1[0], ws1[1]
+    s, s_inv, t = ws[0], ws[1], ws[2]
     for c in range(16):
         sc, lc, rc = s[c], lam[c], r_inv[c]
         for r in range(o):
             sc[r] = lc[r] + rc[r]
-    s_inv = np.empty((16, o))
-    _inv4_spd_soa(s, s_inv, acc)
-    t = np.empty((16, o))
+    _inv4_spd_soa_ws(s, s_inv, acc, ws[3], ws[4], ok)
     _matmul_soa(lam, s_inv, t, acc)
     _matmul_soa(t, r_inv, s, acc)  # s = Lambda S^-1 R^-1 (s reused)
     for i in range(4):
@@ -331,3 +344,200 @@ def predict_no_input_rows(mean, cov, q, dt):
             for b in range(4):
                 p_out[r, a, b] = 0.5 * (u[a * 4 + b, r] + u[b * 4 + a, r])
     return m_out, p_out
+
+
+#: :func:`bpa_loop_rows` status: the stopping rule held / ``it_last`` iterations ran / a row of
+#: the extrinsic information may need the PSD projection (the caller projects and resumes).
+LOOP_CONVERGED, LOOP_MAX_ITERATIONS, LOOP_NEEDS_CLIP = 0, 1, 2
+
+
+@njit(cache=True)
+def _sure_soa(lam, sure, a, l, ok, acc):
+    """:func:`coloc.kernels.icp.surely_above_floor` with floor 0 for every column of ``lam`` (16, o):
+    the same operations per column (scale, shift, symmetrised matrix minus the shift, Cholesky
+    pivots), workspace ``a``, ``l`` (16, o), ``ok`` (o,) bool, ``acc`` (o,). Returns whether all are sure."""
+    o = lam.shape[1]
+    for r in range(o):
+        scale = 0.0
+        for i in range(4):
+            d = abs(lam[i * 4 + i, r])
+            if d > scale:
+                scale = d
+        acc[r] = 0.0 + 1e-8 * scale  # floor + 1e-8 * scale
+        sure[r] = scale > 0.0
+    for i in range(4):
+        for j in range(i + 1):  # the lower triangle is read
+            x, y, dst = lam[i * 4 + j], lam[j * 4 + i], a[i * 4 + j]
+            for r in range(o):
+                dst[r] = 0.5 * (x[r] + y[r])
+        dst = a[i * 4 + i]
+        for r in range(o):
+            dst[r] -= acc[r]
+    ok[:] = True
+    cholesky4_soa(a, l, ok, acc)
+    every = True
+    for r in range(o):
+        sure[r] = sure[r] and ok[r]
+        if not sure[r]:
+            every = False
+    return every
+
+
+@njit(cache=True)
+def _known_unclipped(lam, r, safe):
+    """True when the symmetrised matrix of column ``r`` of ``lam`` (16, o) is bit for bit one of the
+    rows of ``safe`` (W, 16): matrices that numpy's eigh was seen to leave unclipped."""
+    for w in range(safe.shape[0]):
+        same = True
+        for a in range(4):
+            for b in range(4):
+                v = 0.5 * (lam[a * 4 + b, r] + lam[b * 4 + a, r])
+                if np.float64(v).view(np.int64) != np.float64(safe[w, a * 4 + b]).view(np.int64):
+                    same = False
+                    break
+            if not same:
+                break
+        if same:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _vehicle_beliefs_soa(owner, m_l, m_e, v_lam0, v_eta0, prev_mean, in_l, in_e, vl, ve, new_mean, ws, acc, okn):
+    """:func:`coloc.kernels.icp.vehicle_beliefs_kernel` (eq. (22)) with the messages, the sums and the
+    beliefs as (16, .) / (4, .) arrays (``m_l``, ``m_e`` over the rows; ``in_l`` .. ``ve`` over the
+    vehicles, written here): the same operations in the same order per vehicle, the inverse by
+    :func:`_inv4_spd_soa` (that of :func:`coloc.kernels.icp._inv4_spd`). ``ws`` (3, 16, n).
+    Returns (dpos, dvel)."""
+    o = owner.size
+    n = v_lam0.shape[0]
+    in_l[:] = 0.0
+    in_e[:] = 0.0
+    for r in range(o):
+        i = owner[r]
+        for c in range(16):
+            in_l[c, i] += m_l[c, r]
+        for a in range(4):
+            in_e[a, i] += m_e[a, r]
+    for i in range(n):
+        for a in range(4):
+            for b in range(4):
+                s_ab = v_lam0[i, a, b] + in_l[a * 4 + b, i]
+                s_ba = v_lam0[i, b, a] + in_l[b * 4 + a, i]
+                vl[a * 4 + b, i] = 0.5 * (s_ab + s_ba)
+            ve[a, i] = v_eta0[i, a] + in_e[a, i]
+    cov = ws[0]
+    _inv4_spd_soa_ws(vl, cov, acc, ws[1], ws[2], okn)
+    for a in range(4):
+        for i in range(n):
+            acc[i] = 0.0
+        for b in range(4):
+            x, y = cov[a * 4 + b], ve[b]
+            for i in range(n):
+                acc[i] += x[i] * y[i]
+        for i in range(n):
+            new_mean[i, a] = acc[i]
+    dpos, dvel = 0.0, 0.0
+    for i in range(n):
+        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
+        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
+        if dp > dpos or dp != dp:
+            dpos = dp if dp == dp else np.inf
+        if dv > dvel or dv != dv:
+            dvel = dv if dv == dv else np.inf
+    return dpos, dvel
+
+
+@njit(cache=True)
+def bpa_loop_rows(owner, own_lam0, own_eta0, v_lam0, v_eta0, z, r_inv, w_indptr, w_indices, w_data, n_iter_cons,
+                  complete, count, lam_f0_row, eta_f0_row, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, it_first, it_last,
+                  stop_pos, stop_vel, safe):
+    """BPA-L iterations ``it_first``..``it_last`` (19)-(22) in one call, each one exactly
+    :func:`bpa_forward_rows`, the PSD projection of :func:`coloc.inference.gaussian.psd_clip`, then
+    :func:`feature_to_vehicle_rows` and the stopping rule (the operations of those kernels in their
+    order, on rows kept as structure of arrays between them). ``in_lam`` .. ``mean``: the state
+    after iteration ``it_first`` - 1. The projection is known to leave a row unchanged when
+    :func:`coloc.kernels.icp.surely_above_floor` proves it positive definite, or when its
+    symmetrised matrix is bit for bit a row of ``safe`` (W, 16) (numpy's eigh, a deterministic
+    function of the bits, found no eigenvalue below 0 there); otherwise the loop stops before the
+    projection with status :data:`LOOP_NEEDS_CLIP` and the caller projects and finishes the iteration.
+
+    Returns (status, it, m_vf_lam, m_vf_eta, v_lam, v_eta, in_lam, in_eta, m_fv_lam, m_fv_eta, mean, cov,
+    ext_lam, ext_eta, sure): the messages (19) of the last iteration, the beliefs (22) (after
+    iteration ``it``, ``mean`` and ``cov`` = ``v_lam``^-1 as ``from_information`` computes them; with
+    :data:`LOOP_NEEDS_CLIP` those of ``it`` - 1 (``cov`` then meaningless) and ``ext_lam``, ``ext_eta``,
+    ``sure`` of iteration ``it`` before the projection)."""
+    o = owner.size
+    n = v_lam0.shape[0]
+    zs = _soa4(z)
+    rs = _soa16(r_inv)
+    ws = np.empty((5, 16, o))
+    ws1 = np.empty((2, o))
+    okw = np.empty(o, dtype=np.bool_)
+    cav_l, cav_e = np.empty((16, o)), np.empty((4, o))
+    vf_l, vf_e = np.empty((16, o)), np.empty((4, o))
+    ext_l, ext_e = np.empty((16, o)), np.empty((4, o))
+    fv_l = _soa16(m_fv_lam)
+    fv_e = _soa4(m_fv_eta)
+    packed = np.empty((o, 14))
+    sure = np.empty(o, dtype=np.bool_)
+    in_l, in_e = _soa16(in_lam), _soa4(in_eta)  # (22)'s sums and beliefs over the vehicles
+    vl, ve = _soa16(v_lam0), _soa4(v_eta0)
+    mean = np.ascontiguousarray(mean).copy()
+    new_mean = np.empty((n, 4))
+    wsn = np.empty((3, 16, n))
+    accn = np.empty(n)
+    okn = np.empty(n, dtype=np.bool_)
+    status = LOOP_MAX_ITERATIONS
+    it = it_first
+    for it in range(it_first, it_last + 1):
+        # (19): vehicle_to_feature_rows
+        for r in range(o):
+            i = owner[r]
+            for a in range(4):
+                for b in range(4):
+                    cav_l[a * 4 + b, r] = own_lam0[i, a, b] + in_l[a * 4 + b, i] - fv_l[a * 4 + b, r]
+                cav_e[a, r] = own_eta0[i, a] + in_e[a, i] - fv_e[a, r]
+        _relative_message_soa_ws(cav_l, cav_e, zs, 1.0, rs, vf_l, vf_e, ws, ws1, okw)
+        for r in range(o):
+            c = 0
+            for a in range(4):
+                for b in range(a, 4):
+                    packed[r, c] = vf_l[a * 4 + b, r]
+                    c += 1
+                packed[r, 10 + a] = vf_e[a, r]
+        # (20), (21) first half: bpa_forward_rows
+        avg = complete_component_consensus(w_indptr, w_indices, w_data, packed, n_iter_cons, complete)
+        for r in range(o):
+            c = 0
+            for a in range(4):
+                for b in range(a, 4):
+                    v = avg[r, c]
+                    ext_l[a * 4 + b, r] = (lam_f0_row[r, a, b] + count[r] * v) - vf_l[a * 4 + b, r]
+                    if b != a:
+                        ext_l[b * 4 + a, r] = (lam_f0_row[r, b, a] + count[r] * v) - vf_l[b * 4 + a, r]
+                    c += 1
+            for a in range(4):
+                ext_e[a, r] = (eta_f0_row[r, a] + count[r] * avg[r, 10 + a]) - vf_e[a, r]
+        if not _sure_soa(ext_l, sure, ws[0], ws[1], okw, ws1[0]):
+            for r in range(o):
+                if not sure[r] and not _known_unclipped(ext_l, r, safe):
+                    status = LOOP_NEEDS_CLIP
+                    break
+            if status == LOOP_NEEDS_CLIP:
+                break
+        # (21) second half, (22): feature_to_vehicle_rows
+        _relative_message_soa_ws(ext_l, ext_e, zs, -1.0, rs, fv_l, fv_e, ws, ws1, okw)
+        dpos, dvel = _vehicle_beliefs_soa(owner, fv_l, fv_e, v_lam0, v_eta0, mean, in_l, in_e, vl, ve, new_mean, wsn,
+                                          accn, okn)
+        mean, new_mean = new_mean, mean
+        if dpos < stop_pos and dvel < stop_vel:
+            status = LOOP_CONVERGED
+            break
+    if status == LOOP_NEEDS_CLIP:
+        ext_lam, ext_eta = _aos16(ext_l), np.ascontiguousarray(ext_e.T)
+    else:
+        ext_lam, ext_eta = np.empty((0, 4, 4)), np.empty((0, 4))
+    return (status, it, _aos16(vf_l), np.ascontiguousarray(vf_e.T), _aos16(vl), np.ascontiguousarray(ve.T),
+            _aos16(in_l), np.ascontiguousarray(in_e.T), _aos16(fv_l), np.ascontiguousarray(fv_e.T), mean,
+            _aos16(wsn[0]), ext_lam, ext_eta, sure)

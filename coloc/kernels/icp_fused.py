@@ -28,8 +28,8 @@ import numpy as np
 from numba import njit
 
 from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
-from coloc.kernels.icp import rows_by_key
-from coloc.kernels.kalman import gnss_step_kernel
+from coloc.kernels.icp import log_gauss_kernel, rows_by_key
+from coloc.kernels.kalman import gnss_step_rows
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
 FUSED = True
@@ -39,12 +39,14 @@ FUSED = True
 
 
 @njit(cache=True)
-def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range):
+def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range, gate):
     """Every (vehicle i, candidate track k, row l of i) and log N(z_l; m_k - m_i, P_k + P_i + R_l)
     with its squared Mahalanobis distance.
 
     Candidates: hypot(m_i - m_k) <= Rs + 3 sqrt(tr P_i,pos + tr P_k,pos); pairs ordered by
     vehicle, then track, then row (``np.nonzero`` order, rows by a stable sort on the owner).
+    ``gate``: the log-likelihood of a pair with d2 > gate is not computed (0 is returned; the
+    caller gives such a pair weight 0 whatever it is); ``inf``: every pair's.
     Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
     n, nt, o = v_mean.shape[0], t_mean.shape[0], owner.size
     start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
@@ -86,14 +88,42 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
                         s[c * 4 + e, p] = (t_cov[k, c, e] + v_cov[i, c, e]) + r[q, c, e]
                 pv[p], pt[p], pr[p] = i, k, q
                 p += 1
-    log_lik, d2 = _log_gauss4_soa(nu, s)
+    log_lik, d2 = _log_gauss4_soa(nu, s, gate)
     return pv, pt, pr, log_lik, d2
 
 
 @njit(cache=True)
-def _log_gauss4_soa(nu, s):
+def association_log_weights_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range, gate, new_sigma2,
+                                   log_new_const, log_pd):
+    """:func:`association_terms_kernel` and the log of eta(alpha = l) of (13) normalised by the density
+    of a row from an untracked feature, as ``coloc.methods.icp_da_lc.association_weights`` computes it
+    without clutter and field of view (its numpy is the reference): per row
+    log N(z_v + m_i,v; 0, P_i,vv + R_vv + s^2 I) (:func:`coloc.kernels.icp.log_gauss_kernel`) plus
+    ``log_new_const``, then per pair (``log_pd`` + log_lik) - log_new. Returns (pair_vehicle,
+    pair_track, pair_row, log_w, d2)."""
+    pv, pt, pr, log_lik, d2 = association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_range,
+                                                       gate)
+    o = owner.size
+    nu = np.empty((o, 2))
+    s = np.empty((o, 2, 2))
+    for q in range(o):
+        i = owner[q]
+        for a in range(2):
+            nu[q, a] = z[q, 2 + a] + v_mean[i, 2 + a]
+            for b in range(2):  # (P + R) + s^2 I, the identity's zeros added too
+                s[q, a, b] = (v_cov[i, 2 + a, 2 + b] + r[q, 2 + a, 2 + b]) + new_sigma2 * (1.0 if a == b else 0.0)
+    log_v, _ = log_gauss_kernel(nu, s)
+    log_w = np.empty(pr.size)
+    for p in range(pr.size):
+        log_w[p] = (log_pd + log_lik[p]) - (log_new_const + log_v[pr[p]])
+    return pv, pt, pr, log_w, d2
+
+
+@njit(cache=True)
+def _log_gauss4_soa(nu, s, gate=np.inf):
     """:func:`coloc.kernels.icp.log_gauss_kernel` (d = 4) for every column of ``nu`` (4, P) / ``s`` (16, P), each scalar
-    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD."""
+    step one loop over the columns (SIMD; the same operations per column); NaN where S is not PD.
+    Columns whose squared distance is above ``gate`` get log N = 0 (their logarithms are skipped)."""
     p = nu.shape[1]
     l = np.empty((16, p))
     w = np.empty((4, p))
@@ -114,16 +144,34 @@ def _log_gauss4_soa(nu, s):
         for r in range(p):
             wi[r] = acc[r] / lii[r]
             q[r] += wi[r] * wi[r]
-        for r in range(p):
-            logdet[r] += np.log(lii[r])
     log2pi = np.log(2.0 * np.pi)
     log_pdf = np.empty(p)
     for r in range(p):
         if ok[r]:
+            if q[r] > gate:
+                log_pdf[r] = 0.0
+                continue
+            for i in range(4):  # logdet = 0 + log l_00 + ... + log l_33, in this order
+                logdet[r] += np.log(l[i * 4 + i, r])
             log_pdf[r] = -0.5 * (q[r] + 2.0 * logdet[r] + 4 * log2pi)
         else:
             log_pdf[r], q[r] = np.nan, np.nan
     return log_pdf, q
+
+
+@njit(cache=True)
+def lower_bound(a, x):
+    """``np.searchsorted(a, x)`` (side "left") for an ascending int64 ``a`` and a scalar ``x``, by a
+    binary search whose steps are selects rather than branches (no mispredictions on fresh data)."""
+    n = a.size
+    if n == 0:
+        return 0
+    base = 0
+    while n > 1:
+        half = n >> 1
+        base = base + half if a[base + half] < x else base
+        n -= half
+    return base + 1 if a[base] < x else base
 
 
 # ----------------------------------------------------------------------------- (14)-(17)
@@ -131,7 +179,39 @@ def _log_gauss4_soa(nu, s):
 
 @njit(cache=True)
 def _unique_inverse(keys):
-    """Sorted unique values of ``keys`` and the index of every key among them."""
+    """Sorted unique values of ``keys`` and the index of every key among them. Keys within a range
+    of at most 16 per key (feature and track ids, pair keys of a step) by a table over the range,
+    others by a sort."""
+    n = keys.size
+    if n == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    lo, hi = keys[0], keys[0]
+    for a in range(n):
+        lo = min(lo, keys[a])
+        hi = max(hi, keys[a])
+    if hi - lo > 16 * n + 64:
+        return _unique_inverse_sort(keys)
+    slot = np.full(hi - lo + 1, -1, dtype=np.int64)
+    for a in range(n):
+        slot[keys[a] - lo] = 0
+    u = 0
+    for k in range(slot.size):
+        if slot[k] == 0:
+            slot[k] = u
+            u += 1
+    uniq = np.empty(u, dtype=np.int64)
+    for k in range(slot.size):
+        if slot[k] >= 0:
+            uniq[slot[k]] = lo + k
+    inv = np.empty(n, dtype=np.int64)
+    for a in range(n):
+        inv[a] = slot[keys[a] - lo]
+    return uniq, inv
+
+
+@njit(cache=True)
+def _unique_inverse_sort(keys):
+    """:func:`_unique_inverse` by a sort (any range)."""
     srt = np.sort(keys)
     uniq = np.empty(keys.size, dtype=np.int64)
     u = -1
@@ -142,6 +222,51 @@ def _unique_inverse(keys):
     uniq = uniq[: u + 1]
     inv = np.searchsorted(uniq, keys)
     return uniq, inv
+
+
+@njit(cache=True)
+def repeated_pair(owner, feature):
+    """Whether two rows with ``feature`` >= 0 have the same (owner, feature) (the ``np.unique`` test of
+    ``coloc.inference.bpa.validate_association``): rows grouped by feature, each group's owners
+    stamped in a table over the owners."""
+    o = owner.size
+    n_used = 0
+    for q in range(o):
+        if feature[q] >= 0:
+            n_used += 1
+    if n_used < 2:
+        return False
+    rows = np.empty(n_used, dtype=np.int64)
+    j = 0
+    for q in range(o):
+        if feature[q] >= 0:
+            rows[j] = q
+            j += 1
+    fu = np.empty(n_used, dtype=np.int64)
+    lo, hi = owner[rows[0]], owner[rows[0]]
+    for j in range(n_used):
+        fu[j] = feature[rows[j]]
+        lo = min(lo, owner[rows[j]])
+        hi = max(hi, owner[rows[j]])
+    uniq, inv = _unique_inverse(fu)
+    start, order = rows_by_key(inv, uniq.size)
+    if hi - lo > 16 * n_used + 64:  # owners spread out: compare the keys by a sort
+        key = np.empty(n_used, dtype=np.int64)
+        for j in range(n_used):
+            key[j] = inv[j] * (hi - lo + 1) + (owner[rows[j]] - lo)
+        srt = np.sort(key)
+        for j in range(1, n_used):
+            if srt[j] == srt[j - 1]:
+                return True
+        return False
+    stamp = np.full(hi - lo + 1, -1, dtype=np.int64)
+    for g in range(uniq.size):
+        for a in range(start[g], start[g + 1]):
+            v = owner[rows[order[a]]] - lo
+            if stamp[v] == g:
+                return True
+            stamp[v] = g
+    return False
 
 
 def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -277,8 +402,54 @@ def pair_member_kernel(keys, sorted_keys):
     if m == 0:
         return out
     for a in range(keys.size):
-        pos = np.searchsorted(sorted_keys, keys[a])
+        pos = lower_bound(sorted_keys, keys[a])
         out[a] = pos < m and sorted_keys[pos] == keys[a]
+    return out
+
+
+@njit(cache=True)
+def pair_member_table(msg_track, msg_codes, row_track, row_codes):
+    """``np.isin(msg_track * 2^32 + msg_codes, row_track * 2^32 + row_codes)`` (the (track, vehicle)
+    pairs of the messages among the rows'): the rows' pairs marked in a table over their tracks and
+    vehicles; keys outside [0, 2^32) or spread-out ids go to :func:`pair_member_kernel`."""
+    n_m, n_r = msg_track.size, row_track.size
+    out = np.zeros(n_m, dtype=np.bool_)
+    if n_r == 0:
+        return out
+    tlo, thi, clo, chi = row_track[0], row_track[0], row_codes[0], row_codes[0]
+    for q in range(n_r):
+        tlo, thi = min(tlo, row_track[q]), max(thi, row_track[q])
+        clo, chi = min(clo, row_codes[q]), max(chi, row_codes[q])
+    ok = tlo >= 0 and clo >= 0 and chi < (1 << 32) and thi - tlo <= 16 * n_r + 4096 and chi - clo <= 16 * n_r + 4096
+    for q in range(n_m):
+        ok = ok and msg_track[q] >= 0 and 0 <= msg_codes[q] < (1 << 32)
+    if not ok:
+        km = np.empty(n_m, dtype=np.int64)
+        kr = np.empty(n_r, dtype=np.int64)
+        for q in range(n_m):
+            km[q] = msg_track[q] * (1 << 32) + msg_codes[q]
+        for q in range(n_r):
+            kr[q] = row_track[q] * (1 << 32) + row_codes[q]
+        return pair_member_kernel(km, np.sort(kr))
+    ttab = np.full(thi - tlo + 1, -1, dtype=np.int64)
+    vtab = np.full(chi - clo + 1, -1, dtype=np.int64)
+    nt, nv = 0, 0
+    for q in range(n_r):
+        if ttab[row_track[q] - tlo] < 0:
+            ttab[row_track[q] - tlo] = nt
+            nt += 1
+        if vtab[row_codes[q] - clo] < 0:
+            vtab[row_codes[q] - clo] = nv
+            nv += 1
+    mark = np.zeros(nt * nv, dtype=np.bool_)
+    for q in range(n_r):
+        mark[ttab[row_track[q] - tlo] * nv + vtab[row_codes[q] - clo]] = True
+    for q in range(n_m):
+        t, c = msg_track[q], msg_codes[q]
+        if tlo <= t <= thi and clo <= c <= chi:
+            ti, vi = ttab[t - tlo], vtab[c - clo]
+            if ti >= 0 and vi >= 0:
+                out[q] = mark[ti * nv + vi]
     return out
 
 
@@ -290,7 +461,7 @@ def lookup_kernel(ids, feature_ids):
     if m == 0:
         return out
     for a in range(feature_ids.size):
-        pos = np.searchsorted(ids, feature_ids[a])
+        pos = lower_bound(ids, feature_ids[a])
         if pos > m - 1:
             pos = m - 1
         if ids[pos] == feature_ids[a]:
@@ -329,8 +500,17 @@ def track_information_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, 
 
 
 @njit(cache=True)
+def track_moments_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_lam, msg_eta, use):
+    """:func:`track_information_kernel` and the moments of its result (``from_information``:
+    :func:`information_rows`) in one call. Returns (Lambda, eta, mean, cov)."""
+    lam, eta = track_information_kernel(folded_lam, folded_eta, birth_lam, ids, msg_track, msg_lam, msg_eta, use)
+    cov, mean = information_rows(eta, lam)
+    return lam, eta, mean, cov
+
+
+@njit(cache=True)
 def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, msg_cov, msg_time, keep,
-                  row_feature, mm, mc, t, old_before, drop_after):
+                  row_feature, mm, mc, t, old_before, drop_after, msg_lam, msg_eta, ml, me):
     """The latest-message store after a step (``FeatureStore.record``): new tracks for new ids
     (ids stay sorted), last_seen = t for every observed track, the kept old messages then the
     step's (``mm``/``mc``, time t), messages older than ``old_before`` folded into their track in
@@ -338,13 +518,15 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
     with their messages, folded parts symmetrised.
 
     Returns (ids, last_seen, folded_lam, folded_eta, track_src, msg_src, msg_track, msg_mean,
-    msg_cov, msg_time): ``track_src`` >= 0 an old track's row, -1 - r a new track first seen
-    in row r; ``msg_src`` each message's index in [old messages, the step's rows]."""
+    msg_cov, msg_time, msg_lam, msg_eta): ``track_src`` >= 0 an old track's row, -1 - r a new track
+    first seen in row r; ``msg_src`` each message's index in [old messages, the step's rows];
+    ``msg_lam``, ``msg_eta``: the kept messages' information, taken from the old messages'
+    (``msg_lam``, ``msg_eta`` given) and the step's (``ml``, ``me``) by ``msg_src``."""
     n_old, n_msg, o = ids.size, msg_track.size, row_feature.size
     uniq, _ = _unique_inverse(row_feature)
     first = np.full(uniq.size, o, dtype=np.int64)
     for q in range(o):
-        u = np.searchsorted(uniq, row_feature[q])
+        u = lower_bound(uniq, row_feature[q])
         if q < first[u]:
             first[u] = q
     in_old = lookup_kernel(ids, uniq)
@@ -380,7 +562,7 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
         else:
             seen2[k] = t
     for u in range(uniq.size):
-        seen2[np.searchsorted(ids2, uniq[u])] = t
+        seen2[lower_bound(ids2, uniq[u])] = t
     # messages: kept old ones, then the step's; fold the old ones
     m_src = np.empty(n_msg + o, dtype=np.int64)
     m_time = np.empty(n_msg + o)
@@ -409,7 +591,7 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
                     om[j, c] = msg_mean[s, c] if s < n_msg else mm[s - n_msg, c]
                     for e in range(4):
                         oc[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
-                orow[j] = np.searchsorted(ids2, tr)
+                orow[j] = lower_bound(ids2, tr)
                 j += 1
         ol, oe = information_rows(om, oc)  # byte for byte information_kernel
         for j in range(n_fold):
@@ -443,26 +625,30 @@ def record_kernel(ids, last_seen, folded_lam, folded_eta, msg_track, msg_mean, m
     for q in range(m):
         s = m_src[q]
         tr = msg_track[s] if s < n_msg else row_feature[s - n_msg]
-        if not m_time[q] < old_before and live[np.searchsorted(ids2, tr)]:
+        if not m_time[q] < old_before and live[lower_bound(ids2, tr)]:
             n_keep += 1
     k_src = np.empty(n_keep, dtype=np.int64)
     k_track = np.empty(n_keep, dtype=np.int64)
     k_mean = np.empty((n_keep, 4))
     k_cov = np.empty((n_keep, 4, 4))
     k_time = np.empty(n_keep)
+    k_lam = np.empty((n_keep, 4, 4))
+    k_eta = np.empty((n_keep, 4))
     j = 0
     for q in range(m):
         s = m_src[q]
         tr = msg_track[s] if s < n_msg else row_feature[s - n_msg]
-        if m_time[q] < old_before or not live[np.searchsorted(ids2, tr)]:
+        if m_time[q] < old_before or not live[lower_bound(ids2, tr)]:
             continue
         k_src[j], k_track[j], k_time[j] = s, tr, m_time[q]
         for c in range(4):
             k_mean[j, c] = msg_mean[s, c] if s < n_msg else mm[s - n_msg, c]
+            k_eta[j, c] = msg_eta[s, c] if s < n_msg else me[s - n_msg, c]
             for e in range(4):
                 k_cov[j, c, e] = msg_cov[s, c, e] if s < n_msg else mc[s - n_msg, c, e]
+                k_lam[j, c, e] = msg_lam[s, c, e] if s < n_msg else ml[s - n_msg, c, e]
         j += 1
-    return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time
+    return out_ids, out_seen, out_lam, out_eta, out_src, k_src, k_track, k_mean, k_cov, k_time, k_lam, k_eta
 
 
 # ----------------------------------------------------------------------------- (11)
@@ -473,7 +659,8 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
                       s_cross, min_speed):
     """b_i^(0) of (11) for two carried tracks of every vehicle (the belief and the own-sensor one):
     the previous step's rows (``match``) or, where ``fresh``, the fast-start prior, then
-    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (``coloc.core.vehicles.carry_states`` +
+    :func:`coloc.kernels.kalman.gnss_step_kernel` on each (by :func:`coloc.kernels.kalman.gnss_step_rows`;
+    ``coloc.core.vehicles.carry_states`` +
     ``vehicle_prior_beliefs`` twice, the same numbers). Returns (mean_a, cov_a, mean_b, cov_b)."""
     n = match.size
     out = (np.empty((n, 4)), np.empty((n, 4, 4)), np.empty((n, 4)), np.empty((n, 4, 4)))
@@ -493,8 +680,9 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
                     out[1][i, c, e] = cov_a[match[i], c, e]
                     out[3][i, c, e] = cov_b[match[i], c, e]
     predict = ~fresh
-    gnss_step_kernel(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
-    gnss_step_kernel(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    # gnss_step_kernel across the vehicles (coloc.kernels.kalman.gnss_step_rows, the same numbers)
+    gnss_step_rows(out[0], out[1], accel, z, r, predict, dt, s_along, s_cross, min_speed)
+    gnss_step_rows(out[2], out[3], accel, z, r, predict, dt, s_along, s_cross, min_speed)
     return out
 
 
@@ -505,8 +693,8 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
 def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov, dt):
     """Eq. (12) on the track store (``FeatureStore.predict``, the same numbers): every nonzero folded
     part to moments, predicted by model (2) with its track's Q_F, back to information; every stored
-    message predicted with its track's Q_F (``msg_rows``). Returns (folded_lam, folded_eta,
-    msg_mean, msg_cov)."""
+    message predicted with its track's Q_F (``msg_rows``), and its information (:func:`information_rows`,
+    as ``to_information`` gives it). Returns (folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta)."""
     t = folded_lam.shape[0]
     out_lam = folded_lam.copy()
     out_eta = folded_eta.copy()
@@ -540,7 +728,18 @@ def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov,
     for j in range(msg_rows.size):
         mq[j] = q[msg_rows[j]]
     mm, mc = predict_no_input_rows(msg_mean, msg_cov, mq, dt)
-    return out_lam, out_eta, mm, mc
+    ml, me = information_rows(mm, mc)  # the messages' (Lambda, eta): FeatureStore._message_information
+    return out_lam, out_eta, mm, mc, ml, me
+
+
+@njit(cache=True)
+def message_round_trip(msg_lam, msg_eta):
+    """The step's messages (Lambda, eta) to moments and back, as ``FeatureStore.record`` keeps them:
+    (mean, cov) = from_information, then (Lambda', eta') = to_information of those (both
+    :func:`information_rows`). Returns (mean, cov, Lambda', eta')."""
+    cov, mean = information_rows(msg_eta, msg_lam)
+    lam, eta = information_rows(mean, cov)
+    return mean, cov, lam, eta
 
 
 @njit(cache=True)

@@ -146,3 +146,150 @@ def gnss_step_kernel(mean, cov, accel, z, r, predict_mask, dt, s_along, s_cross,
         for a in range(4):
             for b in range(4):
                 cov[i, a, b] = 0.5 * (t2[a, b] + s[a, b] + t2[b, a] + s[b, a])
+
+
+@njit(cache=True)
+def _mm_soa(x, y, out, bt):
+    """out = x @ y (``bt``: x @ y.T) for every column of the (16, n) arrays, entry a*4+b: acc = 0,
+    then += x[i,k] y[k,j] for k = 0..3 (:func:`_mm4`, :func:`_mm4_bt`)."""
+    n = x.shape[1]
+    for i in range(4):
+        for j in range(4):
+            dst = out[i * 4 + j]
+            for v in range(n):
+                dst[v] = 0.0
+            for k in range(4):
+                a = x[i * 4 + k]
+                b = y[j * 4 + k] if bt else y[k * 4 + j]
+                for v in range(n):
+                    dst[v] += a[v] * b[v]
+
+
+@njit(cache=True)
+def gnss_step_rows(mean, cov, accel, z, r, predict_mask, dt, s_along, s_cross, min_speed):
+    """:func:`gnss_step_kernel` (in place), byte for byte, each scalar step of it one loop over the
+    vehicles (the 4x4 entries as (16, n) arrays): the same operations in the same order per
+    vehicle. The prediction is computed for every vehicle and kept where ``predict_mask``."""
+    n = mean.shape[0]
+    h = 0.5 * dt * dt
+    m = np.empty((4, n))
+    p = np.empty((16, n))
+    rr = np.empty((16, n))
+    for v in range(n):
+        for a in range(4):
+            m[a, v] = mean[v, a]
+            for b in range(4):
+                p[a * 4 + b, v] = cov[v, a, b]
+                rr[a * 4 + b, v] = r[v, a, b]
+    # model (1): Q by _driving_q, then m <- A m + B a, P <- A P A^T + Q
+    q = np.empty((16, n))
+    for v in range(n):
+        if not predict_mask[v]:
+            continue
+        vx, vy = m[2, v], m[3, v]
+        speed = np.hypot(vx, vy)
+        if speed < min_speed:
+            c, s, p2, q2 = 1.0, 0.0, s_along * s_along, s_along * s_along
+        else:
+            c, s = vx / speed, vy / speed
+            p2, q2 = s_along * s_along, s_cross * s_cross
+        a00 = c * c * p2 + s * s * q2
+        a11 = s * s * p2 + c * c * q2
+        a01 = c * s * (p2 - q2)
+        q[0, v] = h * h * a00
+        q[1, v] = h * h * a01
+        q[5, v] = h * h * a11
+        q[2, v] = h * dt * a00
+        q[3, v] = h * dt * a01
+        q[6, v] = h * dt * a01
+        q[7, v] = h * dt * a11
+        q[10, v] = dt * dt * a00
+        q[11, v] = dt * dt * a01
+        q[15, v] = dt * dt * a11
+        for i in range(4):
+            for j in range(i):
+                q[i * 4 + j, v] = q[j * 4 + i, v]
+        ax, ay = accel[v, 0], accel[v, 1]
+        m0, m1, m2, m3 = m[0, v], m[1, v], m[2, v], m[3, v]
+        m[0, v], m[1, v], m[2, v], m[3, v] = m0 + dt * m2 + h * ax, m1 + dt * m3 + h * ay, m2 + dt * ax, m3 + dt * ay
+    t1 = np.empty((16, n))
+    for a in range(4):
+        for v in range(n):
+            t1[a * 4 + 0, v] = p[a * 4 + 0, v] + dt * p[a * 4 + 2, v]
+            t1[a * 4 + 1, v] = p[a * 4 + 1, v] + dt * p[a * 4 + 3, v]
+            t1[a * 4 + 2, v] = p[a * 4 + 2, v]
+            t1[a * 4 + 3, v] = p[a * 4 + 3, v]
+    for b in range(4):
+        for v in range(n):
+            if predict_mask[v]:
+                p[0 * 4 + b, v] = t1[0 * 4 + b, v] + dt * t1[2 * 4 + b, v] + q[0 * 4 + b, v]
+                p[1 * 4 + b, v] = t1[1 * 4 + b, v] + dt * t1[3 * 4 + b, v] + q[1 * 4 + b, v]
+                p[2 * 4 + b, v] = t1[2 * 4 + b, v] + q[2 * 4 + b, v]
+                p[3 * 4 + b, v] = t1[3 * 4 + b, v] + q[3 * 4 + b, v]
+    # Kalman update (3): S = P + R, K^T = S^-1 P (_cholesky4_solve_into)
+    s = np.empty((16, n))
+    for e in range(16):
+        for v in range(n):
+            s[e, v] = p[e, v] + rr[e, v]
+    ll = np.empty((16, n))
+    acc = np.empty(n)
+    for i in range(4):
+        for j in range(i + 1):
+            for v in range(n):
+                acc[v] = s[i * 4 + j, v]
+            for k in range(j):
+                for v in range(n):
+                    acc[v] -= ll[i * 4 + k, v] * ll[j * 4 + k, v]
+            if i == j:
+                for v in range(n):
+                    ll[i * 4 + i, v] = np.sqrt(acc[v])
+            else:
+                for v in range(n):
+                    ll[i * 4 + j, v] = acc[v] / ll[j * 4 + j, v]
+    kt = np.empty((16, n))
+    y = np.empty((4, n))
+    for c in range(4):
+        for i in range(4):
+            for v in range(n):
+                acc[v] = p[i * 4 + c, v]
+            for k in range(i):
+                for v in range(n):
+                    acc[v] -= ll[i * 4 + k, v] * y[k, v]
+            for v in range(n):
+                y[i, v] = acc[v] / ll[i * 4 + i, v]
+        for i in range(3, -1, -1):
+            for v in range(n):
+                acc[v] = y[i, v]
+            for k in range(i + 1, 4):
+                for v in range(n):
+                    acc[v] -= ll[k * 4 + i, v] * kt[k * 4 + c, v]
+            for v in range(n):
+                kt[i * 4 + c, v] = acc[v] / ll[i * 4 + i, v]
+    k_ = np.empty((16, n))
+    ik = np.empty((16, n))
+    for a in range(4):
+        for b in range(4):
+            for v in range(n):
+                k_[a * 4 + b, v] = kt[b * 4 + a, v]
+                ik[a * 4 + b, v] = (1.0 if a == b else 0.0) - kt[b * 4 + a, v]
+    innov = np.empty((4, n))
+    for a in range(4):
+        for v in range(n):
+            innov[a, v] = z[v, a] - m[a, v]
+    for a in range(4):
+        for v in range(n):
+            acc[v] = m[a, v]
+        for b in range(4):
+            for v in range(n):
+                acc[v] += k_[a * 4 + b, v] * innov[b, v]
+        for v in range(n):
+            mean[v, a] = acc[v]
+    t2 = np.empty((16, n))
+    _mm_soa(ik, p, t1, False)
+    _mm_soa(t1, ik, t2, True)  # (I-K) P (I-K)^T
+    _mm_soa(k_, rr, t1, False)
+    _mm_soa(t1, k_, s, True)  # K R K^T
+    for a in range(4):
+        for b in range(4):
+            for v in range(n):
+                cov[v, a, b] = 0.5 * (t2[a * 4 + b, v] + s[a * 4 + b, v] + t2[b * 4 + a, v] + s[b * 4 + a, v])

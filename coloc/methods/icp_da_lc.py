@@ -104,7 +104,7 @@ from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
-from coloc.inference.association import association_marginals_batch
+from coloc.inference.association import association_marginals_batch, layout_and_marginals_kernel
 from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore
@@ -113,8 +113,8 @@ from coloc.inference.gaussian import log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import (
-    association_layout_kernel,
     any_pair_within,
+    association_log_weights_kernel,
     association_terms_kernel,
     map_pairing_kernel,
     unique_inverse,
@@ -336,8 +336,18 @@ def association_weights(
     """
     if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused)
         owner = np.asarray(owner, dtype=np.int64)
-        pv, pt, pr, log_lik, d2 = association_terms_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r),
-                                                           float(lc.sensing_range_m))
+        # pairs outside the gate get weight 0 below: their log-likelihoods are not computed
+        gate = _chi2_ppf(lc.gate_probability, 4) if lc.pairing == "gated" else math.inf
+        args = (*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r), float(lc.sensing_range_m), gate)
+        if detection is None and lc.new_feature_density == 0 and lc.clutter_intensity <= 0:
+            # log_w below in the same call (the density of _untracked_feature_log_density per row)
+            log_new_const = math.log(lc.new_feature_rate) - math.log(math.pi * lc.sensing_range_m**2)
+            pv, pt, pr, log_w, d2 = association_log_weights_kernel(
+                *args, float(lc.new_feature_velocity_sigma**2), log_new_const, math.log(lc.detection_probability))
+            if pr.size == 0:
+                return pv, pt, pr, np.empty(0)
+            return pv, pt, pr, _gated_weights(log_w, d2, lc)
+        pv, pt, pr, log_lik, d2 = association_terms_kernel(*args)
         if pr.size == 0:
             return pv, pt, pr, np.empty(0)
         # a row's new-feature density depends on the row alone: once per row, then per pair
@@ -354,10 +364,15 @@ def association_weights(
     else:
         with np.errstate(divide="ignore"):
             log_w = np.log(expected_detection_probability(v_mean[pv], t_mean[pt, :2], detection)) + log_lik - log_new
+    return pv, pt, pr, _gated_weights(log_w, d2, lc)
+
+
+def _gated_weights(log_w: np.ndarray, d2: np.ndarray, lc: LcParams) -> np.ndarray:
+    """exp(log eta), capped, and 0 outside the chi-square gate (``pairing = "gated"``)."""
     w = np.exp(np.minimum(log_w, 600.0))
     if lc.pairing == "gated":
         w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
-    return pv, pt, pr, w
+    return w
 
 
 @dataclass(frozen=True)
@@ -397,12 +412,14 @@ def association_beliefs(
     row_new = np.ones(n_rows)
     if icp_fused.FUSED:  # the layout below in one numba pass (coloc.kernels.icp_fused)
         missed = np.full(weight.size, 1.0 - lc.detection_probability) if missed_weight is None else missed_weight
-        layout = association_layout_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
-                                           int(n_vehicles))
-        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted = layout
+        # the layout and the BP of every problem in one call (association.layout_and_marginals_kernel)
+        out = layout_and_marginals_kernel(*_i64(pair_vehicle, pair_track, pair_row), *_f64(weight, missed),
+                                          int(n_vehicles), int(lc.bp_iterations), float(lc.bp_tol))
+        eta, k_sizes, m_sizes, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, pf, pn, ok = out
         if c_vehicle.size == 0:
             return None
-        pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
+        if not ok:  # not finite or negative: association_marginals_batch raises
+            pf, pn = association_marginals_batch(eta, k_sizes, m_sizes, lc.bp_iterations, lc.bp_tol)
         row_new[rows_sorted] = pn
         return AssociationBeliefs(pf, c_vehicle, c_track, c_start, c_rows, c_row_first, rows_sorted, row_new)
     keep = weight > 0

@@ -300,3 +300,193 @@ def test_predict_no_input_kernel_equals_numpy():
     np.testing.assert_allclose(m, m0, rtol=1e-14, atol=1e-12)
     np.testing.assert_allclose(p, p0, rtol=1e-13, atol=1e-15)
     assert np.array_equal(p, np.swapaxes(p, 1, 2))
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("cons,iters,stop", [(5, 6, 0.1), (2, 8, 0.0), (1, 3, 1e3), (0, 4, 0.1)])
+def test_bpa_loop_kernel_equals_the_per_iteration_kernels(seed, cons, iters, stop, monkeypatch):
+    """coloc.kernels.bpa_rows.bpa_loop_rows (all BPA-L iterations in one call) against one call per
+    iteration (LOOP_KERNEL = False), byte for byte: incomplete row graphs (finite consensus), tracks
+    at the velocity-only prior (rows the PSD projection leaves as they are, learnt into
+    bpa._UNCLIPPED), tracks with an indefinite prior (rows it clips: the loop stops, the caller
+    projects, the loop resumes), with the learnt rows and without."""
+    rng = np.random.default_rng(100 + seed)
+    n, n_feat = 25, 30
+    owner, feat, adj = random_scene(rng, n=n, o=120, n_feat=n_feat, p_edge=0.3 + 0.1 * (seed % 3))
+    o = owner.size
+    x = rng.standard_normal((n, 4)) * [50, 50, 5, 5]
+    xf = rng.standard_normal((n_feat, 4)) * [50, 50, 0, 0]
+    prior_cov = random_spd(rng, n, 1.0) + 4 * np.eye(4)
+    prior_mean = x + rng.standard_normal((n, 4))
+    z = xf[feat] - x[owner] + 0.1 * rng.standard_normal((o, 4))
+    r = random_spd(rng, o, 0.1) + 0.01 * np.eye(4)
+    fids = np.unique(feat)
+    f_lam = np.zeros((fids.size, 4, 4))
+    f_lam[1::3, 2, 2] = f_lam[1::3, 3, 3] = 100.0  # velocity prior only (the birth information)
+    f_lam[::3] = random_spd(rng, f_lam[::3].shape[0], 0.5)
+    f_lam[2::6] = np.diag([1.0, -1e-3, 1.0, 1.0])  # indefinite: rows the projection clips
+    f_eta = np.einsum("kij,kj->ki", f_lam, xf[fids])
+    params = IcpParams(consensus_iterations=cons, bpa_max_iterations=iters, stop_pos_m=stop, stop_vel_mps=stop)
+    args = (prior_mean, prior_cov, prior_mean, prior_cov * 1.5, owner, feat, z, r, adj, f_lam, f_eta, params)
+    clipped = []
+    real_clip = bpa.psd_clip
+
+    def clip(lam, eta, floor=0.0, sure=None):
+        out = real_clip(lam, eta, floor, sure)
+        clipped.append(out[0] is not lam)
+        return out
+
+    monkeypatch.setattr(bpa, "psd_clip", clip)
+    results = []
+    for loop, learnt in [(False, None), (True, False), (True, True)]:
+        monkeypatch.setattr(bpa, "LOOP_KERNEL", loop)
+        if learnt is False:
+            bpa._UNCLIPPED.clear()
+            bpa._UNCLIPPED_ROWS[0] = np.empty((0, 16))
+        clipped.clear()
+        results.append(bpa_localization(*args))
+        assert any(clipped)  # (the loop kernel stopped for the projection and resumed)
+    ref = results[0]
+    for res in results[1:]:
+        assert (res.iterations, res.converged) == (ref.iterations, ref.converged)
+        for field in ("mean", "cov", "msg_lam", "msg_eta", "final_lam", "final_eta"):
+            assert getattr(res, field).tobytes() == getattr(ref, field).tobytes(), field
+
+
+@pytest.mark.parametrize("o", [0, 1, 2, 3, 7, 64, 469])
+def test_relative_message_by_numpy_blas_is_byte_identical_to_numpy(o):
+    """coloc.kernels.numpy_blas (numpy's dgesv / dgemm called row by row from numba, einsum's sums)
+    against the numpy reference, byte for byte: zero (uniform) beliefs, signed zeros, scales from
+    1e-3 to 1e3, runs of rows with the same Lambda and R^-1; a singular S falls back to numpy (which
+    raises)."""
+    from coloc.inference.gaussian import relative_message_numpy
+    from coloc.kernels import numpy_blas
+
+    if not numpy_blas.available():
+        pytest.skip("numpy's OpenBLAS not found: relative_message runs numpy")
+    rng = np.random.default_rng(o)
+    lam = random_spd(rng, o) * (10.0 ** rng.uniform(-3, 3, o))[:, None, None]
+    lam[rng.random(o) < 0.15] = 0.0
+    eta = rng.standard_normal((o, 4)) * 10
+    eta[rng.random(o) < 0.15] = -0.0
+    z = rng.standard_normal((o, 4)) * 50
+    r_inv = symmetrize(np.linalg.inv(random_spd(rng, o, 0.3) + 0.01 * np.eye(4))) if o else np.empty((0, 4, 4))
+    if o > 3:  # runs of rows with the same Lambda and R^-1 (a vehicle's rows; S^-1 reused), one with -0.0
+        rep = np.flatnonzero(rng.random(o) < 0.5)
+        rep = rep[rep > 0]
+        for k in rep:
+            lam[k], r_inv[k] = lam[k - 1], r_inv[k - 1]
+        lam[rep[0]] = np.where(lam[rep[0]] == 0.0, -0.0, lam[rep[0]])
+    for sign in (1.0, -1.0):
+        ly, ey = relative_message_numpy(lam, eta, sign * z, r_inv)
+        lk, ek, ok = numpy_blas.relative_message_numpy_blas(lam, eta, sign * z, r_inv)
+        assert ok and lk.tobytes() == ly.tobytes() and ek.tobytes() == ey.tobytes()
+        lg, eg = relative_message(lam, eta, sign * z, None, r_inv)
+        assert lg.tobytes() == ly.tobytes() and eg.tobytes() == ey.tobytes()
+    if o:
+        bad = lam.copy()
+        bad[0] = -r_inv[0]  # S = 0
+        assert not numpy_blas.relative_message_numpy_blas(bad, eta, z, r_inv)[2]
+        with pytest.raises(np.linalg.LinAlgError):
+            relative_message(bad, eta, z, None, r_inv)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_gnss_step_rows_equals_the_row_kernel(seed):
+    """coloc.kernels.kalman.gnss_step_rows (vehicles as SIMD lanes) against gnss_step_kernel byte for
+    byte: slow vehicles (isotropic Q), vehicles not predicted (fresh), an S that is not positive
+    definite (NaN from the square root, as the row kernel gives)."""
+    from coloc.kernels.kalman import gnss_step_kernel, gnss_step_rows
+
+    rng = np.random.default_rng(seed)
+    n = 70 + seed
+    mean = rng.standard_normal((n, 4)) * [100, 100, 8, 8]
+    mean[:6, 2:] = 0.01 * rng.standard_normal((6, 2))
+    mean[6, 2:] = 0.0
+    cov = random_spd(rng, n, 1.0)
+    accel = rng.standard_normal((n, 2))
+    z = mean + rng.standard_normal((n, 4))
+    r = random_spd(rng, n, 0.5) + np.diag([4.0, 4.0, 0.04, 0.04])
+    r[-1] = -10.0 * np.eye(4)  # S not PD
+    predict = rng.random(n) < 0.8
+    for dt in (0.75, 0.1):
+        a = (mean.copy(), cov.copy())
+        b = (mean.copy(), cov.copy())
+        gnss_step_kernel(a[0], a[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
+        gnss_step_rows(b[0], b[1], accel, z, r, predict, dt, 0.35, 0.1, 0.5)
+        assert a[0].tobytes() == b[0].tobytes() and a[1].tobytes() == b[1].tobytes()
+
+
+def test_unique_inverse_kernel_equals_numpy():
+    """coloc.kernels.icp_fused._unique_inverse (a table over the key range, or a sort) is np.unique."""
+    from coloc.kernels.icp_fused import _unique_inverse, _unique_inverse_sort
+
+    rng = np.random.default_rng(3)
+    cases = [np.empty(0, np.int64), np.array([5]), np.array([-3, -3, 7, -1 << 40]), rng.integers(0, 60, 468),
+             rng.integers(-5, 5, 100), rng.integers(0, 1 << 50, 300), np.arange(1000)[::-1], np.full(50, 9)]
+    for keys in cases:
+        keys = np.asarray(keys, dtype=np.int64)
+        ref_u, ref_i = np.unique(keys, return_inverse=True)
+        for kernel in (_unique_inverse, _unique_inverse_sort):
+            u, i = kernel(keys)
+            assert u.tobytes() == ref_u.astype(np.int64).tobytes() and i.tobytes() == ref_i.astype(np.int64).tobytes()
+
+
+def test_lower_bound_is_searchsorted_left():
+    from coloc.kernels.icp_fused import lower_bound
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 3, 7, 8, 9, 100, 1000):
+        a = np.sort(rng.integers(-50, 50, n)).astype(np.int64)
+        for x in (*range(-52, 53), -(1 << 62), 1 << 62):
+            assert lower_bound(a, x) == np.searchsorted(a, x)
+
+
+@pytest.mark.parametrize("dt", [0.75, 0.1])
+def test_feature_track_q_with_still_rows_shared_equals_feature_noise_cov(dt):
+    """feature_track_q's fused path (the still tracks' Q_F computed once) is feature_noise_cov byte for byte."""
+    from coloc.core.models import feature_noise_cov
+    from coloc.inference.feature_store import _feature_noise_cov_rows
+
+    rng = np.random.default_rng(11)
+    for frac in (0.0, 0.3, 0.9, 1.0):
+        v = rng.standard_normal((40, 2)) * 2.0
+        slow = rng.random(40) < frac
+        v[slow] = 0.0
+        v[:2] = [[1e-300, 0.0], [-3.0, 0.0]]
+        slow[:2] = False
+        for s_par, s_perp in ((0.01, 0.005), (0.3, 0.15)):
+            ref = feature_noise_cov(v, dt, s_par, s_perp)
+            assert _feature_noise_cov_rows(v, slow, dt, s_par, s_perp).tobytes() == ref.tobytes()
+
+
+def test_repeated_pair_is_the_unique_test():
+    from coloc.kernels.icp_fused import repeated_pair
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        o = int(rng.integers(0, 40))
+        owner = rng.integers(0, int(rng.choice([3, 30, 10**9])), o).astype(np.int64)
+        feature = rng.integers(-1, int(rng.choice([2, 20, 10**6])), o).astype(np.int64)
+        used = feature >= 0
+        key = owner[used] * (int(feature.max(initial=0)) + 1) + feature[used]
+        assert repeated_pair(owner, feature) == (np.unique(key).size != key.size)
+
+
+def test_pair_member_table_is_isin_of_the_pair_keys():
+    from coloc.kernels.icp_fused import pair_member_table
+
+    rng = np.random.default_rng(10)
+    for trial in range(300):
+        n_m, n_r = int(rng.integers(0, 60)), int(rng.integers(0, 40))
+        span_t, span_c = int(rng.choice([5, 50, 10**7])), int(rng.choice([5, 300, 10**8]))
+        mt, rt = rng.integers(0, span_t, n_m), rng.integers(0, span_t, n_r)
+        mc, rc = rng.integers(0, span_c, n_m), rng.integers(0, span_c, n_r)
+        if n_m and n_r and trial % 2:
+            k = rng.integers(0, n_r, n_m // 2)
+            mt[: k.size], mc[: k.size] = rt[k], rc[k]
+        if trial % 7 == 0 and n_r:
+            rt[0] = -3  # not a track id: the key path
+        args = [np.asarray(a, dtype=np.int64) for a in (mt, mc, rt, rc)]
+        ref = np.isin(args[0] * (1 << 32) + args[1], args[2] * (1 << 32) + args[3])
+        assert (pair_member_table(*args) == ref).all()
