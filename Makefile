@@ -17,8 +17,8 @@ venv: $(STAMP)
 
 ## make run: the main experiment, one hour of the Turin-like arterial under TLR and VSR, and their comparison report
 run: $(STAMP)
-	$(VENV)/bin/coloc run experiments/arterial_tlr.toml --out $(OUT)/arterial_tlr
-	$(VENV)/bin/coloc run experiments/arterial_vsr.toml --out $(OUT)/arterial_vsr
+	$(VENV)/bin/coloc run experiments/arterial_tlr.toml --out $(OUT)/arterial_tlr --workers 1
+	$(VENV)/bin/coloc run experiments/arterial_vsr.toml --out $(OUT)/arterial_vsr --workers 1
 	$(VENV)/bin/coloc report $(OUT)/arterial_tlr $(OUT)/arterial_vsr --out $(OUT)/compare
 	@echo "Open $(OUT)/compare/report.html (per-run reports: $(OUT)/arterial_tlr/report.html, $(OUT)/arterial_vsr/report.html)"
 

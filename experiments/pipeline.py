@@ -1,4 +1,4 @@
-"""Estimators in worker processes beside the frame source (``coloc run --workers N``).
+"""Estimators in worker processes beside the frame source (``coloc run --workers N``, N >= 1).
 
 A coupled run is open loop: SUMO and the coupler never read an estimate, so frame k + 1 can be
 made while the estimators work on frame k. :class:`EstimatorPool` runs the config's estimators in

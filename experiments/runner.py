@@ -572,19 +572,19 @@ def _pooled_steps(frames, pool, timing: bool):
 
 
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
-                   force: bool = False, workers: int = 1) -> dict:
+                   force: bool = False, workers: int = 0) -> dict:
     """Run one config; returns the summary dict also written to summary.json.
 
     ``out_dir`` must be absent, empty or an earlier run's folder (``force``: anything but a file);
     it is replaced only when the run has finished (:func:`couplers.publish.staged_folder`).
-    ``workers`` > 1 steps the estimators in that many worker processes beside the frame source
+    ``workers`` >= 1 steps the estimators in that many worker processes beside the frame source
     (:mod:`experiments.pipeline`); every file written is the same, byte for byte, except the wall
     and estimator seconds of summary.json.
     """
     out_dir = Path(out_dir)
     source = frame_source(cfg)
     pool = None
-    if workers > 1:
+    if workers >= 1:
         from experiments.pipeline import EstimatorPool
 
         estimators = []
@@ -598,7 +598,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         try:
-            if workers > 1:  # started before SUMO, so that the workers' imports overlap its start-up
+            if workers >= 1:  # started before SUMO, so that the workers' imports overlap its start-up
                 pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
             with source:
                 version = source.sumo_version
@@ -685,6 +685,6 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             from experiments.report import write_run_report
             from experiments.report.parallel import available_workers
 
-            # with --workers, the figures too are drawn in that many processes (at most the cores)
-            write_run_report(tmp, workers=available_workers(workers) if workers > 1 else 1)
+            # with --workers, the figures are drawn in two processes where there are two cores
+            write_run_report(tmp, workers=available_workers(2) if workers >= 1 else 1)
     return summary
