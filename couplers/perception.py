@@ -1147,37 +1147,7 @@ def perceive_reference(
     direction: np.ndarray | None = None,
 ) -> Detections:
     """:func:`perceive` as a sequence of separate kernels with numpy between them (the reference of its
-    fused stages: ``tests/couplers/test_frame_kernels.py`` compares the two)."""
-    return _perceive_steps(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
-                           pair_feature=pair_feature, params=params, noise=noise, occluder_corners=occluder_corners,
-                           observer_occluder=observer_occluder, buildings=buildings, feature_class=feature_class,
-                           direction=direction)
-
-
-def _perceive_steps(
-    *,
-    x_true: np.ndarray,
-    heading: np.ndarray,
-    features_true: np.ndarray,
-    pair_owner: np.ndarray,
-    pair_feature: np.ndarray,
-    params: PerceptionParams,
-    noise: PerceptionNoise,
-    occluder_corners: np.ndarray | None = None,
-    observer_occluder: np.ndarray | None = None,
-    buildings: Buildings | None = None,
-    feature_class: np.ndarray | None = None,
-    direction: np.ndarray | None = None,
-) -> Detections:
-    """The V2F rows of one step (see :func:`perceive`).
-
-    ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
-    ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
-    footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
-    measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
-    (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
-    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
-    """
+    fused stages: ``tests/couplers/test_frame_kernels.py`` compares the two; arguments: see :func:`perceive`)."""
     n = x_true.shape[0]
     xy = x_true[:, :2]
     heading = np.asarray(heading, dtype=float)

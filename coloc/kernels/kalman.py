@@ -8,17 +8,22 @@ from numba import njit
 
 
 @njit(cache=True)
-def _driving_q(vx, vy, dt, s_along, s_cross, min_speed, q):
-    """Q of model (1) oriented by the velocity (isotropic below min_speed), written into q (4,4)."""
+def _driving_acc(vx, vy, s_along, s_cross, min_speed):
+    """The driving acceleration's covariance of model (1) oriented by the velocity (isotropic below
+    min_speed): its entries (a00, a11, a01)."""
     speed = np.hypot(vx, vy)
     if speed < min_speed:
         c, s, p2, q2 = 1.0, 0.0, s_along * s_along, s_along * s_along
     else:
         c, s = vx / speed, vy / speed
         p2, q2 = s_along * s_along, s_cross * s_cross
-    a00 = c * c * p2 + s * s * q2
-    a11 = s * s * p2 + c * c * q2
-    a01 = c * s * (p2 - q2)
+    return c * c * p2 + s * s * q2, s * s * p2 + c * c * q2, c * s * (p2 - q2)
+
+
+@njit(cache=True)
+def _driving_q(vx, vy, dt, s_along, s_cross, min_speed, q):
+    """Q of model (1) oriented by the velocity (isotropic below min_speed), written into q (4,4)."""
+    a00, a11, a01 = _driving_acc(vx, vy, s_along, s_cross, min_speed)
     h = 0.5 * dt * dt
     # B = [h I; dt I]; Q = B Acc B^T.
     q[0, 0] = h * h * a00
@@ -186,16 +191,7 @@ def gnss_step_rows(mean, cov, accel, z, r, predict_mask, dt, s_along, s_cross, m
     for v in range(n):
         if not predict_mask[v]:
             continue
-        vx, vy = m[2, v], m[3, v]
-        speed = np.hypot(vx, vy)
-        if speed < min_speed:
-            c, s, p2, q2 = 1.0, 0.0, s_along * s_along, s_along * s_along
-        else:
-            c, s = vx / speed, vy / speed
-            p2, q2 = s_along * s_along, s_cross * s_cross
-        a00 = c * c * p2 + s * s * q2
-        a11 = s * s * p2 + c * c * q2
-        a01 = c * s * (p2 - q2)
+        a00, a11, a01 = _driving_acc(m[2, v], m[3, v], s_along, s_cross, min_speed)
         q[0, v] = h * h * a00
         q[1, v] = h * h * a01
         q[5, v] = h * h * a11
