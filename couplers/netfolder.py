@@ -144,15 +144,15 @@ class Buildings:
 
     @cached_property
     def cells(self):
-        """Cells near these footprints (:func:`couplers.perception.building_cells`, built on first use)."""
-        from couplers.perception import building_cells  # perception imports this module
+        """Cells near these footprints (:func:`couplers.occlusion.building_cells`, built on first use)."""
+        from couplers.occlusion import building_cells  # occlusion imports this module
 
         return building_cells(self)
 
     @cached_property
     def boxes(self):
-        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.perception.BuildingBoxes`)."""
-        from couplers.perception import BuildingBoxes
+        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.occlusion.BuildingBoxes`)."""
+        from couplers.occlusion import BuildingBoxes
 
         return BuildingBoxes.build(self)
 

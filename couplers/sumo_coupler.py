@@ -18,7 +18,8 @@ from couplers.inertial import InertialProcess
 from couplers.infra import InfraSetup, InfraSynth
 from couplers.netfolder import NetFolder
 from couplers.pedestrians import FeatureRegistry, person_states
-from couplers.perception import Detections, PerceptionNoise, _footprints, perceive, vehicle_footprints
+from couplers.occlusion import _footprints, vehicle_footprints
+from couplers.perception import Detections, PerceptionNoise, perceive
 from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
 from couplers.v2x import V2xChannel

@@ -16,7 +16,7 @@ Model:
   interpolated in the table (``pdr_distance_m``, ``pdr_los``), 0 beyond the last distance; a link
   whose straight segment between the two vehicle positions intersects a building of the net folder's
   ``buildings.geojson`` takes ``pdr_nlos`` instead (one shapely 2 STRtree query for all links of a
-  step, :func:`couplers.perception.occluded_by_buildings`; a net without buildings: every link is
+  step, :func:`couplers.occlusion.occluded_by_buildings`; a net without buildings: every link is
   LOS). The V2V neighbourhood ``neighbors`` keeps its meaning (pairs within ``sensors.v2v_range_m``);
   the channel is a layer on top: each directed entry j -> i of ``neighbors`` gets a delivery
   probability, and every message on it in every round is delivered independently with that
@@ -67,7 +67,8 @@ from coloc.core.v2x import UNLIMITED_ROUNDS, V2xFrame
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
-from couplers.perception import effect_rng, occluded_by_buildings
+from couplers.occlusion import occluded_by_buildings
+from couplers.perception import effect_rng
 
 V2X_STREAM_TAG = 0x5A2
 _EQUIP_PERSON = b"coloc.v2x.equip"  # BLAKE2b personalisation: this hash is the equipment draw only

@@ -26,7 +26,8 @@ from couplers.inertial import (
     white_noise,
 )
 from couplers.netfolder import load_net_folder
-from couplers.perception import _merge_detections, occluded_by_buildings
+from couplers.occlusion import occluded_by_buildings
+from couplers.perception import _merge_detections
 from couplers.rows import shuffle_within_owner
 
 ARTERIAL = Path(__file__).resolve().parents[2] / "sumo_nets" / "arterial"
@@ -189,7 +190,7 @@ def test_inertial_step_equals_the_array_reference():
 
 
 def test_footprints_and_occluder_boxes_equal_the_array_reference():
-    from couplers.perception import OccluderIndex, unit_heading, vehicle_footprints
+    from couplers.occlusion import OccluderIndex, unit_heading, vehicle_footprints
 
     rng = np.random.default_rng(9)
     xy, heading = rng.uniform(-500, 500, (300, 2)), rng.uniform(-4, 4, 300)
@@ -350,7 +351,7 @@ def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
 
 
 def test_building_box_filter_keeps_every_hit_and_drops_most_near_misses():
-    from couplers.perception import _clear_of_buildings, _needs_building_test
+    from couplers.occlusion import _clear_of_buildings, _needs_building_test
 
     blds = load_net_folder(ARTERIAL).buildings
     g, bb = blds.cells, blds.boxes
@@ -400,8 +401,8 @@ def test_occlusion_side_shortcut_gives_the_exact_answers():
     """Footprints (rectangles) and other quads against sight lines in general position and through corners,
     along edges, starting on edges or inside, touching at one point, of zero length: every answer as the exact
     kernel's."""
-    from couplers.perception import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_sided, unit_heading,
-                                     vehicle_footprints)
+    from couplers.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_sided, unit_heading,
+                                    vehicle_footprints)
 
     rng = np.random.default_rng(18)
     for offset in (0.0, 4.0e4):  # coordinates of a small net, and of a large one (more rounding)
@@ -445,8 +446,8 @@ def test_perceive_stages_equal_the_separate_kernels(seed):
     """The fused stages of perceive against perceive_reference (the separate kernels): every array and
     count, and each random stream left in the same state; with and without occluders, buildings, classes,
     the heading vectors, one clutter rate or several, sensors off the heading and behind the bumper."""
-    from couplers.perception import (PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference,
-                                     unit_heading, vehicle_footprints)
+    from couplers.occlusion import unit_heading, vehicle_footprints
+    from couplers.perception import PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference
     from couplers.sensors import features_in_range
     from scipy.spatial import cKDTree
 

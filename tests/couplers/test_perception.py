@@ -17,6 +17,7 @@ from shapely.geometry import LineString, box
 
 from couplers.errors import InputError
 from couplers.netfolder import Buildings, load_net_folder
+from couplers.occlusion import occluded_by_buildings, occluded_by_vehicles, vehicle_footprints
 from couplers.perception import (
     PerceptionNoise,
     PerceptionParams,
@@ -24,12 +25,9 @@ from couplers.perception import (
     clutter_points,
     detection_probability,
     fov_candidates,
-    occluded_by_buildings,
-    occluded_by_vehicles,
     perceive,
     range_sigma,
     sensor_origins,
-    vehicle_footprints,
 )
 from couplers.sensors import SensorParams, features_in_range
 from netfixture import arterial_config

@@ -1,0 +1,459 @@
+"""Occlusion geometry of the realistic perception (issue 21 item 1; :mod:`couplers.perception` uses it,
+:mod:`couplers.v2x` too for the buildings' shadowing of V2V links): vehicle footprints, sight lines
+against footprints and against the net folder's buildings.
+
+* Vehicles: every SUMO vehicle on the road is a length x width rectangle behind its front bumper,
+  along the heading (:func:`vehicle_footprints`). A sight line is tested against the footprints by a
+  numba sort-and-sweep over their x extents (:class:`OccluderIndex`) and exact segment/rectangle tests
+  (edges included), skipped for a footprint that lies wholly to one side of the line
+  (:func:`_occluded_by_quads_sided`).
+* Buildings: the polygons of ``buildings.geojson``; only sight lines that meet a building's bounding box
+  (:func:`_needs_building_test`, boxes listed per 4 m cell, :class:`BuildingBoxes`) go to shapely 2's
+  STRtree ``query(..., predicate="intersects")``, all at once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from numba import njit
+
+from couplers.netfolder import Buildings
+from couplers.zones import CellGrid
+
+
+def unit_heading(heading: np.ndarray) -> np.ndarray:
+    """(N, 2) unit vectors of headings in rad from +x, counter-clockwise."""
+    heading = np.asarray(heading, dtype=float)
+    return np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+
+
+def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray,
+                       direction: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4, 2) corners of the vehicles' rectangles, counter-clockwise.
+
+    SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
+    the heading and ``width`` / 2 to each side. ``direction``: ``unit_heading(heading)`` when the caller has it."""
+    return _footprints(np.ascontiguousarray(xy, dtype=np.float64),
+                       unit_heading(heading) if direction is None else np.ascontiguousarray(direction),
+                       np.asarray(length, dtype=float).reshape(-1), np.asarray(width, dtype=float).reshape(-1))
+
+
+@njit(cache=True)
+def _footprints(xy, u, length, width):
+    """Corners xy -/+ (w/2) n, back +/- (w/2) n with back = xy - length u and n = (-u_y, u_x)."""
+    k = xy.shape[0]
+    out = np.empty((k, 4, 2))
+    for i in range(k):
+        half = 0.5 * width[i]
+        nx, ny = -u[i, 1], u[i, 0]
+        bx, by = xy[i, 0] - length[i] * u[i, 0], xy[i, 1] - length[i] * u[i, 1]
+        out[i, 0, 0], out[i, 0, 1] = xy[i, 0] - half * nx, xy[i, 1] - half * ny
+        out[i, 1, 0], out[i, 1, 1] = xy[i, 0] + half * nx, xy[i, 1] + half * ny
+        out[i, 2, 0], out[i, 2, 1] = bx + half * nx, by + half * ny
+        out[i, 3, 0], out[i, 3, 1] = bx - half * nx, by - half * ny
+    return out
+
+
+@njit(cache=True)
+def _orient(ax, ay, bx, by, cx, cy):
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
+@njit(cache=True)
+def _on_segment(ax, ay, bx, by, cx, cy):
+    # c collinear with a-b: inside its bounding box
+    return min(ax, bx) <= cx <= max(ax, bx) and min(ay, by) <= cy <= max(ay, by)
+
+
+@njit(cache=True)
+def _segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
+    """Closed segments a-b and c-d share a point (touching counts, as shapely's intersects)."""
+    o1 = _orient(ax, ay, bx, by, cx, cy)
+    o2 = _orient(ax, ay, bx, by, dx, dy)
+    o3 = _orient(cx, cy, dx, dy, ax, ay)
+    o4 = _orient(cx, cy, dx, dy, bx, by)
+    if ((o1 > 0 and o2 < 0) or (o1 < 0 and o2 > 0)) and ((o3 > 0 and o4 < 0) or (o3 < 0 and o4 > 0)):
+        return True
+    if o1 == 0 and _on_segment(ax, ay, bx, by, cx, cy):
+        return True
+    if o2 == 0 and _on_segment(ax, ay, bx, by, dx, dy):
+        return True
+    if o3 == 0 and _on_segment(cx, cy, dx, dy, ax, ay):
+        return True
+    if o4 == 0 and _on_segment(cx, cy, dx, dy, bx, by):
+        return True
+    return False
+
+
+@njit(cache=True)
+def _inside_convex(quad, px, py):
+    """Point inside or on a counter-clockwise convex quadrilateral."""
+    for k in range(4):
+        a = quad[k]
+        b = quad[(k + 1) % 4]
+        if _orient(a[0], a[1], b[0], b[1], px, py) < 0:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _segment_hits_quad(quad, ax, ay, bx, by):
+    if _inside_convex(quad, ax, ay) or _inside_convex(quad, bx, by):
+        return True
+    for k in range(4):
+        c = quad[k]
+        d = quad[(k + 1) % 4]
+        if _segments_intersect(ax, ay, bx, by, c[0], c[1], d[0], d[1]):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _occluded_by_quads(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx):
+    """For each segment (M, 4): does it hit a quad other than skip_a / skip_b?  Quads are visited
+    through ``order`` (sorted by bounding-box x minimum) within the segment's x extent."""
+    m = seg.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
+        hi = np.searchsorted(xmin_sorted, sx1, side="right")
+        for r in range(lo, hi):
+            q = order[r]
+            if q == skip_a[i] or q == skip_b[i]:
+                continue
+            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
+                continue
+            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+                out[i] = True
+                break
+    return out
+
+
+#: A sight line passes a footprint for certain when all four corners lie on one side of its line, more than
+#: SIDE_MARGIN_M from it (_occluded_by_quads_sided).
+SIDE_MARGIN_M = 1e-6
+
+
+@njit(cache=True)
+def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
+    """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
+    quad: when all four corners lie on one side of the segment's line by more than SIDE_MARGIN_M (each
+    corner's orientation, as :func:`_orient` computes it, beyond that margin times the segment's length plus
+    1e-12 of its two products, far above their rounding of ~1e-16), the quad misses the segment, and so does
+    the exact test: its proper crossing needs corners on both sides, and the segment's end points lie more
+    than the margin outside a counter-clockwise rectangle, so none of its orientation tests or on-segment
+    tests can tip (their rounding is ~1e-13 m at these coordinates)."""
+    m = seg.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        dx, dy = bx - ax, by - ay
+        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
+        hi = np.searchsorted(xmin_sorted, sx1, side="right")
+        for r in range(lo, hi):
+            q = order[r]
+            if q == skip_a[i] or q == skip_b[i]:
+                continue
+            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
+                continue
+            if rectangle[q]:
+                above = 0
+                below = 0
+                for k in range(4):
+                    p1 = dx * (quads[q, k, 1] - ay)
+                    p2 = dy * (quads[q, k, 0] - ax)
+                    o = p1 - p2  # _orient(ax, ay, bx, by, corner)
+                    bound = side_margin + 1e-12 * (abs(p1) + abs(p2))
+                    if o > bound:
+                        above += 1
+                    elif o < -bound:
+                        below += 1
+                if above == 4 or below == 4:
+                    continue
+            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+                out[i] = True
+                break
+    return out
+
+
+@njit(cache=True)
+def _rectangles(corners):
+    """(K,) bool: quad q is a counter-clockwise rectangle with sides longer than 0.1 m (corners as
+    :func:`_footprints` writes them, right angles within 1e-6), the quads :func:`_occluded_by_quads_sided`
+    may pass by their sides."""
+    k = corners.shape[0]
+    out = np.zeros(k, dtype=np.bool_)
+    for q in range(k):
+        ok = True
+        for c in range(4):
+            ex = corners[q, (c + 1) % 4, 0] - corners[q, c, 0]
+            ey = corners[q, (c + 1) % 4, 1] - corners[q, c, 1]
+            fx = corners[q, (c + 2) % 4, 0] - corners[q, (c + 1) % 4, 0]
+            fy = corners[q, (c + 2) % 4, 1] - corners[q, (c + 1) % 4, 1]
+            le, lf = math.sqrt(ex * ex + ey * ey), math.sqrt(fx * fx + fy * fy)
+            if not (le > 0.1 and lf > 0.1 and abs(ex * fx + ey * fy) <= 1e-6 * le * lf
+                    and ex * fy - ey * fx > 0.0):
+                ok = False
+                break
+        out[q] = ok
+    return out
+
+
+@dataclass(frozen=True)
+class OccluderIndex:
+    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step;
+    ``rectangle`` marks the footprints that are counter-clockwise rectangles (:func:`_rectangles`)."""
+
+    corners: np.ndarray
+    order: np.ndarray
+    xmin_sorted: np.ndarray
+    xmax: np.ndarray
+    ymin: np.ndarray
+    ymax: np.ndarray
+    max_wx: float
+    rectangle: np.ndarray
+
+    @classmethod
+    def build(cls, corners: np.ndarray) -> "OccluderIndex":
+        corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
+        return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
+                   max_wx=max_wx, rectangle=_rectangles(corners))
+
+
+@njit(cache=True)
+def _occluder_boxes(corners):
+    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
+    k = corners.shape[0]
+    xmin = np.empty(k)
+    xmax = np.empty(k)
+    ymin = np.empty(k)
+    ymax = np.empty(k)
+    max_wx = 0.0
+    for q in range(k):
+        xmin[q], xmax[q] = corners[q, 0, 0], corners[q, 0, 0]
+        ymin[q], ymax[q] = corners[q, 0, 1], corners[q, 0, 1]
+        for c in range(1, 4):
+            xmin[q] = min(xmin[q], corners[q, c, 0])
+            xmax[q] = max(xmax[q], corners[q, c, 0])
+            ymin[q] = min(ymin[q], corners[q, c, 1])
+            ymax[q] = max(ymax[q], corners[q, c, 1])
+        wx = xmax[q] - xmin[q]
+        if q == 0 or wx > max_wx:
+            max_wx = wx
+    order = np.argsort(xmin, kind="mergesort")
+    return order, xmin[order], xmax, ymin, ymax, max_wx
+
+
+def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "OccluderIndex | np.ndarray",
+                         observer: np.ndarray, target: np.ndarray | None = None) -> np.ndarray:
+    """(M,) bool: the sight line start[i] -> end[i] crosses a vehicle footprint (``occluders``: an
+    OccluderIndex or corners (K, 4, 2)) other than ``observer[i]`` and ``target[i]`` (-1 when the
+    target is not a vehicle)."""
+    idx = occluders if isinstance(occluders, OccluderIndex) else OccluderIndex.build(occluders)
+    return _segments_occluded_by_vehicles(np.hstack([start, end]), idx, observer, target)
+
+
+def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer: np.ndarray,
+                                   target: np.ndarray | None = None) -> np.ndarray:
+    """:func:`occluded_by_vehicles` of the segments ``seg`` (M, 4): start x, y, end x, y."""
+    m = seg.shape[0]
+    if m == 0 or idx.corners.shape[0] == 0:
+        return np.zeros(m, dtype=bool)
+    skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
+    return _occluded_by_quads_sided(np.ascontiguousarray(seg, dtype=np.float64),
+                                    np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
+                                    idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx, idx.rectangle)
+
+
+BUILDING_CELL_M = 4.0
+
+
+def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> CellGrid:
+    """Cells near a building: ``values`` (bool) marks the cells within one cell of a building's bounding box."""
+    b = shapely.bounds(buildings.polygons)
+    x0, y0 = float(b[:, 0].min()) - 2 * cell_m, float(b[:, 1].min()) - 2 * cell_m  # two free cells around
+    nx = int(math.floor((b[:, 2].max() - x0) / cell_m)) + 3
+    ny = int(math.floor((b[:, 3].max() - y0) / cell_m)) + 3
+    # the lookup's floor((x - x0) / cell), on the boxes' corners, widened by one cell each side
+    ix0 = np.floor((b[:, 0] - x0) / cell_m).astype(np.int64) - 1
+    iy0 = np.floor((b[:, 1] - y0) / cell_m).astype(np.int64) - 1
+    ix1 = np.floor((b[:, 2] - x0) / cell_m).astype(np.int64) + 1
+    iy1 = np.floor((b[:, 3] - y0) / cell_m).astype(np.int64) + 1
+    mark = np.zeros((ny + 1, nx + 1), dtype=np.int64)  # 2-D difference array of the boxes
+    np.add.at(mark, (iy0, ix0), 1)
+    np.add.at(mark, (iy0, ix1 + 1), -1)
+    np.add.at(mark, (iy1 + 1, ix0), -1)
+    np.add.at(mark, (iy1 + 1, ix1 + 1), 1)
+    near = mark.cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0
+    return CellGrid(x0=x0, y0=y0, cell=float(cell_m), values=near)
+
+
+@njit(cache=True)
+def _clear_of_buildings(seg, x0, y0, cell, near):
+    """(M,) bool: segment i certainly misses every building. Samples less than a cell apart along the
+    segment: every point of it lies within half a cell of a sample, so in a cell next to the sample's;
+    a building point on the segment lies in its bounding box's cells, which ``near`` widens by one."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+        if not math.isfinite(length):
+            continue
+        k_max = int(length / cell) + 1
+        clear = True
+        for k in range(k_max + 1):
+            t = k / k_max
+            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
+            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            if 0 <= fx < nx and 0 <= fy < ny and near[int(fy), int(fx)]:
+                clear = False
+                break
+        out[i] = clear
+    return out
+
+
+@dataclass(frozen=True)
+class BuildingBoxes:
+    """The buildings' bounding boxes (B, 4: xmin, ymin, xmax, ymax) and, per cell of ``buildings.cells`` (ny * nx,
+    CSR ``start`` / ``ids``), the buildings whose box widened by one cell covers it: the candidates of the
+    sight lines sampled in that cell (:func:`_needs_building_test`)."""
+
+    boxes: np.ndarray
+    start: np.ndarray
+    ids: np.ndarray
+    margin: float  # widening of the boxes in the segment test, far above its rounding
+
+    @classmethod
+    def build(cls, buildings: Buildings) -> "BuildingBoxes":
+        g = buildings.cells
+        ny, nx = g.values.shape
+        b = np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64)
+        # the cells of building_cells' difference array: floor((x - x0) / cell) of the corners, widened by one
+        ix0 = np.clip(np.floor((b[:, 0] - g.x0) / g.cell).astype(np.int64) - 1, 0, nx - 1)
+        iy0 = np.clip(np.floor((b[:, 1] - g.y0) / g.cell).astype(np.int64) - 1, 0, ny - 1)
+        ix1 = np.clip(np.floor((b[:, 2] - g.x0) / g.cell).astype(np.int64) + 1, 0, nx - 1)
+        iy1 = np.clip(np.floor((b[:, 3] - g.y0) / g.cell).astype(np.int64) + 1, 0, ny - 1)
+        start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
+        margin = max(1e-6, 1e-9 * float(np.abs(b).max(initial=0.0)))
+        return cls(boxes=b, start=start, ids=ids, margin=margin)
+
+
+@njit(cache=True)
+def _cell_lists(ix0, iy0, ix1, iy1, nx, ny):
+    """CSR of the boxes [ix0, ix1] x [iy0, iy1] (cells, inclusive) covering each cell iy * nx + ix."""
+    count = np.zeros(nx * ny + 1, dtype=np.int64)
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                count[iy * nx + ix + 1] += 1
+    for c in range(nx * ny):
+        count[c + 1] += count[c]
+    ids = np.empty(count[nx * ny], dtype=np.int64)
+    fill = count[:-1].copy()
+    for k in range(ix0.size):
+        for iy in range(iy0[k], iy1[k] + 1):
+            for ix in range(ix0[k], ix1[k] + 1):
+                ids[fill[iy * nx + ix]] = k
+                fill[iy * nx + ix] += 1
+    return count, ids
+
+
+@njit(cache=True)
+def _segment_meets_box(ax, ay, bx, by, xmin, ymin, xmax, ymax):
+    """The closed segment a-b meets the closed box (slab clipping of t in [0, 1])."""
+    t0, t1 = 0.0, 1.0
+    for axis in range(2):
+        p0 = ax if axis == 0 else ay
+        d = (bx - ax) if axis == 0 else (by - ay)
+        lo = xmin if axis == 0 else ymin
+        hi = xmax if axis == 0 else ymax
+        if d == 0.0:
+            if p0 < lo or p0 > hi:
+                return False
+            continue
+        ta, tb = (lo - p0) / d, (hi - p0) / d
+        if ta > tb:
+            ta, tb = tb, ta
+        t0, t1 = max(t0, ta), min(t1, tb)
+        if t0 > t1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _needs_building_test(seg, x0, y0, cell, near, start, ids, boxes, margin):
+    """(M,) bool: segment i may meet a building, i.e. it is not certainly clear by :func:`_clear_of_buildings`
+    and it meets the bounding box, widened by ``margin``, of a building listed in one of its sample cells (or
+    it is not finite). The others certainly miss every building (a polygon lies in its box, and a box the
+    segment meets is listed in a sample cell: :func:`_clear_of_buildings`' argument), so only these go to the
+    polygon test."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.bool_)
+    seen = np.full(boxes.shape[0], -1, dtype=np.int64)
+    clear = _clear_of_buildings(seg, x0, y0, cell, near)
+    for i in range(m):
+        if clear[i]:
+            continue
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+        if not math.isfinite(length):
+            out[i] = True
+            continue
+        k_max = int(length / cell) + 1
+        for k in range(k_max + 1):
+            t = k / k_max
+            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
+            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            if not (0 <= fx < nx and 0 <= fy < ny):
+                continue
+            c = int(fy) * nx + int(fx)
+            for q in range(start[c], start[c + 1]):
+                b = ids[q]
+                if seen[b] == i:
+                    continue
+                seen[b] = i
+                if _segment_meets_box(ax, ay, bx, by, boxes[b, 0] - margin, boxes[b, 1] - margin,
+                                      boxes[b, 2] + margin, boxes[b, 3] + margin):
+                    out[i] = True
+                    break
+            if out[i]:
+                break
+    return out
+
+
+def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
+    """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all
+    sight lines that meet a building's bounding box: ``buildings.cells`` and ``buildings.boxes`` clear the
+    others without shapely, :func:`_needs_building_test`)."""
+    return _segments_occluded_by_buildings(np.hstack([start, end]), buildings)
+
+
+def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None) -> np.ndarray:
+    """:func:`occluded_by_buildings` of the segments ``seg`` (M, 4): start x, y, end x, y."""
+    m = seg.shape[0]
+    out = np.zeros(m, dtype=bool)
+    if m == 0 or buildings is None or len(buildings) == 0:
+        return out
+    g, bb = buildings.cells, buildings.boxes
+    seg = np.ascontiguousarray(seg, dtype=np.float64)
+    near = np.flatnonzero(_needs_building_test(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes,
+                                               bb.margin))
+    if near.size:
+        lines = shapely.linestrings(seg[near].reshape(-1, 2, 2))
+        hit = buildings.tree.query(lines, predicate="intersects")
+        out[near[hit[0]]] = True
+    return out
