@@ -33,6 +33,7 @@ from coloc.kernels.icp import (
     _inv4_general,
     complete_component_consensus,
     extrinsic_kernel,
+    largest_shift,
     surely_above_floor,
     vehicle_beliefs_kernel,
 )
@@ -437,15 +438,7 @@ def _vehicle_beliefs_soa(owner, m_l, m_e, v_lam0, v_eta0, prev_mean, in_l, in_e,
                 acc[i] += x[i] * y[i]
         for i in range(n):
             new_mean[i, a] = acc[i]
-    dpos, dvel = 0.0, 0.0
-    for i in range(n):
-        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
-        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
-        if dp > dpos or dp != dp:
-            dpos = dp if dp == dp else np.inf
-        if dv > dvel or dv != dv:
-            dvel = dv if dv == dv else np.inf
-    return dpos, dvel
+    return largest_shift(new_mean, prev_mean)
 
 
 @njit(cache=True)

@@ -470,6 +470,21 @@ def rows_by_key(keys, n_keys):
 
 
 @njit(cache=True)
+def largest_shift(new_mean, prev_mean):
+    """The largest position and velocity change of any vehicle, (dpos, dvel), for the stopping rule of
+    Sec. V-A; a NaN change gives inf ("not converged", as numpy's max of NaN would)."""
+    dpos, dvel = 0.0, 0.0
+    for i in range(new_mean.shape[0]):
+        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
+        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
+        if dp > dpos or dp != dp:
+            dpos = dp if dp == dp else np.inf
+        if dv > dvel or dv != dv:
+            dvel = dv if dv == dv else np.inf
+    return dpos, dvel
+
+
+@njit(cache=True)
 def vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0, prev_mean):
     """Eq. (22): b_i = b_i^(0) prod_k m_{k->i} (information sums in row order), the symmetrised
     Lambda, the means, and the largest position / velocity change from ``prev_mean`` (NaN
@@ -489,7 +504,6 @@ def vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0, prev_mean):
     v_eta = np.empty((n, 4))
     new_mean = np.empty((n, 4))
     s, cov, l, li = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
-    dpos, dvel = 0.0, 0.0
     for i in range(n):
         for a in range(4):
             for b in range(4):
@@ -504,10 +518,5 @@ def vehicle_beliefs_kernel(owner, m_lam, m_eta, v_lam0, v_eta0, prev_mean):
             for b in range(4):
                 acc += cov[a, b] * v_eta[i, b]
             new_mean[i, a] = acc
-        dp = np.hypot(new_mean[i, 0] - prev_mean[i, 0], new_mean[i, 1] - prev_mean[i, 1])
-        dv = np.hypot(new_mean[i, 2] - prev_mean[i, 2], new_mean[i, 3] - prev_mean[i, 3])
-        if dp > dpos or dp != dp:
-            dpos = dp if dp == dp else np.inf
-        if dv > dvel or dv != dv:
-            dvel = dv if dv == dv else np.inf
+    dpos, dvel = largest_shift(new_mean, prev_mean)
     return in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel

@@ -41,6 +41,19 @@ def random_scene(rng, n=30, o=90, n_feat=25, p_edge=0.3):
     return owner, feat, adj
 
 
+def bpa_scene(rng, n, n_feat, p_edge):
+    """A BPA-L problem: :func:`random_scene` with 120 rows, vehicles and features on a 50 m scale,
+    priors around the true vehicles and relative measurements with 0.1 noise. Returns (owner, feat,
+    adj, the true features xf, prior_mean, prior_cov, z)."""
+    owner, feat, adj = random_scene(rng, n=n, o=120, n_feat=n_feat, p_edge=p_edge)
+    x = rng.standard_normal((n, 4)) * [50, 50, 5, 5]
+    xf = rng.standard_normal((n_feat, 4)) * [50, 50, 0, 0]
+    prior_cov = random_spd(rng, n, 1.0) + 4 * np.eye(4)
+    prior_mean = x + rng.standard_normal((n, 4))
+    z = xf[feat] - x[owner] + 0.1 * rng.standard_normal((owner.size, 4))
+    return owner, feat, adj, xf, prior_mean, prior_cov, z
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_row_consensus_weights_equal_scipy_path_bit_for_bit(seed):
     rng = np.random.default_rng(seed)
@@ -167,13 +180,8 @@ def test_iteration_kernels_equal_numpy_steps():
 def test_bpa_with_kernels_equals_numpy_iterations(monkeypatch):
     rng = np.random.default_rng(7)
     n, n_feat = 25, 30
-    owner, feat, adj = random_scene(rng, n=n, o=120, n_feat=n_feat, p_edge=0.4)
+    owner, feat, adj, xf, prior_mean, prior_cov, z = bpa_scene(rng, n, n_feat, p_edge=0.4)
     o = owner.size
-    x = rng.standard_normal((n, 4)) * [50, 50, 5, 5]
-    xf = rng.standard_normal((n_feat, 4)) * [50, 50, 0, 0]
-    prior_cov = random_spd(rng, n, 1.0) + 4 * np.eye(4)
-    prior_mean = x + rng.standard_normal((n, 4))
-    z = xf[feat] - x[owner] + 0.1 * rng.standard_normal((o, 4))
     r = np.broadcast_to(0.01 * np.eye(4), (o, 4, 4)).copy()
     fids = np.unique(feat)
     f_lam = np.zeros((fids.size, 4, 4))
@@ -312,13 +320,8 @@ def test_bpa_loop_kernel_equals_the_per_iteration_kernels(seed, cons, iters, sto
     projects, the loop resumes), with the learnt rows and without."""
     rng = np.random.default_rng(100 + seed)
     n, n_feat = 25, 30
-    owner, feat, adj = random_scene(rng, n=n, o=120, n_feat=n_feat, p_edge=0.3 + 0.1 * (seed % 3))
+    owner, feat, adj, xf, prior_mean, prior_cov, z = bpa_scene(rng, n, n_feat, p_edge=0.3 + 0.1 * (seed % 3))
     o = owner.size
-    x = rng.standard_normal((n, 4)) * [50, 50, 5, 5]
-    xf = rng.standard_normal((n_feat, 4)) * [50, 50, 0, 0]
-    prior_cov = random_spd(rng, n, 1.0) + 4 * np.eye(4)
-    prior_mean = x + rng.standard_normal((n, 4))
-    z = xf[feat] - x[owner] + 0.1 * rng.standard_normal((o, 4))
     r = random_spd(rng, o, 0.1) + 0.01 * np.eye(4)
     fids = np.unique(feat)
     f_lam = np.zeros((fids.size, 4, 4))
