@@ -59,6 +59,8 @@ from numba import njit
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
+from couplers import numba_streams
+from couplers.numba_streams import StreamHandles, stream
 from couplers.perception import effect_rng
 from couplers.zones import CellGrid, _grid_values
 
@@ -195,6 +197,43 @@ def _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, 
 
 
 @njit(cache=True)
+def _episode_draws(h_start, h_duration, h_bias, mean_duration_s, bias_mean_m, p_start, active):
+    """The episode draws of one step for every vehicle, from the streams of the handles ``h_*``
+    (:mod:`couplers.numba_streams`) as :meth:`GnssErrorProcess.step_reference` takes them: start = (u < p_start)
+    and not ``active``, durations Exp(mean_duration_s), magnitudes Exp(bias_mean_m) (none drawn, zeros, for a mean
+    of 0) and angles U(-pi, pi). Returns (start, dur, mag, the angles of the starting vehicles in row order)."""
+    n = p_start.size
+    u = stream(h_start).random(n)
+    dur = stream(h_duration).exponential(mean_duration_s, n)
+    bias = stream(h_bias)
+    mag = bias.exponential(bias_mean_m, n) if bias_mean_m > 0 else np.zeros(n)
+    ang = bias.uniform(-np.pi, np.pi, n)
+    start = np.empty(n, dtype=np.bool_)
+    k = 0
+    for i in range(n):
+        start[i] = u[i] < p_start[i] and not active[i]
+        if start[i]:
+            k += 1
+    ang_start = np.empty(k)
+    k = 0
+    for i in range(n):
+        if start[i]:
+            ang_start[k] = ang[i]
+            k += 1
+    return start, dur, mag, ang_start
+
+
+@njit(cache=True)
+def _carry_with_grid_drawn(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, x0, y0, cell, p_grid,
+                           h_start, h_duration, h_bias, mean_duration_s, bias_mean_m):
+    """:func:`_carry_with_grid` and :func:`_episode_draws`: (u, bias, end, start, dur, mag, starting angles)."""
+    u, bias, end, active, p_start = _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, x0,
+                                                     y0, cell, p_grid)
+    start, dur, mag, ang = _episode_draws(h_start, h_duration, h_bias, mean_duration_s, bias_mean_m, p_start, active)
+    return u, bias, end, start, dur, mag, ang
+
+
+@njit(cache=True)
 def _episodes_and_error(start, mag, cos_a, sin_a, dur, t, bias, end, sigma, u):
     """:func:`_start_episodes` (in place) and the position error :func:`_scaled_plus`."""
     _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end)
@@ -222,6 +261,7 @@ class GnssErrorProcess:
         self.a = gauss_markov_coefficient(self.dt, params.tau_s)
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
+        self.handles = StreamHandles(self, self.STREAMS)  # the same streams drawn in step's kernels
         self.density = (building_density_grid(buildings, params.nlos_density_radius_m)
                         if buildings is not None and len(buildings) else None)
         # The start probability of each density cell, computed once: per step a lookup instead of the rate and
@@ -253,7 +293,38 @@ class GnssErrorProcess:
              zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
         """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws. ``idx``: the row
         of each vehicle among the ``ids`` of the previous call, -1 if new (``match_ids(previous ids, ids)``,
-        which the SUMO coupler has from ``SumoTraffic.step``); None: matched here."""
+        which the SUMO coupler has from ``SumoTraffic.step``); None: matched here. The episode draws are taken
+        in the kernels (:func:`_episode_draws`, :mod:`couplers.numba_streams`); :meth:`step_reference` takes
+        them in numpy."""
+        if not numba_streams.available():
+            return self.step_reference(t, ids, entered, w, sigma_p, zone, xy, idx=idx)
+        if idx is None:
+            idx = match_ids(self._ids, ids)
+        w = np.ascontiguousarray(w, dtype=float)
+        # Carried state; episodes past their end stop (bias 0, end -inf until a new start). Vehicles outside an
+        # episode may start one (draws for every vehicle, so the streams do not depend on who is in one).
+        args = (np.asarray(idx, dtype=np.int64), np.asarray(entered, dtype=bool), w, self._u, self._bias, self._end,
+                self.a, math.sqrt(1.0 - self.a * self.a), float(t))
+        h, p = self.handles, self.params
+        draws = (h["nlos_start"], h["nlos_duration"], h["nlos_bias"], p.nlos_mean_duration_s, p.nlos_bias_mean_m)
+        if self._p_start_grid is not None:  # with the start probability of each vehicle's cell
+            g = self._p_start_grid
+            u, bias, end, start, dur, mag, ang = _carry_with_grid_drawn(
+                *args, np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2)), g.x0, g.y0, g.cell,
+                g.values, *draws)
+        else:
+            u, bias, end, active = _carry(*args)
+            start, dur, mag, ang = _episode_draws(*draws, self.start_probabilities(zone, xy), active)
+        # numpy's cos / sin of the starting vehicles' angles
+        error = _episodes_and_error(start, mag, np.cos(ang), np.sin(ang), dur, float(t), bias, end,
+                                    np.asarray(sigma_p, dtype=float), u)
+        self._ids, self._u, self._bias, self._end = np.asarray(ids, dtype=object), u, bias, end
+        return error
+
+    def step_reference(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
+             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`step` with the episode draws in numpy (the reference of its kernels, and the step where numba's
+        draws differ from numpy's)."""
         n = len(ids)
         if idx is None:
             idx = match_ids(self._ids, ids)

@@ -58,6 +58,8 @@ from numba import njit
 from coloc.core.inertial import ImuFrame, wrap_angle
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
+from couplers import numba_streams
+from couplers.numba_streams import StreamHandles, stream
 from couplers.perception import effect_rng
 
 INERTIAL_STREAM_TAG = 0x1A0
@@ -213,6 +215,24 @@ def _imu_step(idx, fresh, new, dpsi, c, s, accel_net, dt, scale,
     return a_on, a_drift, accel, g_on[:, 0], g_drift[:, 0], yaw_rate[:, 0]
 
 
+@njit(cache=True)
+def _imu_step_drawn(h_a_on, h_g_on, h_a_drift, h_g_drift, h_a_noise, h_g_noise, idx, fresh, new, dpsi, c, s,
+                    accel_net, dt, scale, a_on_prev, a_drift_prev, a_sig, a_b, a_a, g_on_prev, g_drift_prev, g_sig,
+                    g_b, g_a):
+    """:func:`_imu_step` with its standard normal draws taken here from the streams of the handles ``h_*``
+    (:mod:`couplers.numba_streams`), one draw per stream and step as :meth:`InertialProcess.step_reference`
+    takes them: turn-on biases (N, 2) and (N,), drift drivers, white noise."""
+    n = idx.size
+    a_on_new = stream(h_a_on).standard_normal((n, 2))
+    g_on_new = stream(h_g_on).standard_normal(n)
+    w_accel = stream(h_a_drift).standard_normal((n, 2))
+    w_gyro = stream(h_g_drift).standard_normal(n)
+    n_accel = stream(h_a_noise).standard_normal((n, 2))
+    n_gyro = stream(h_g_noise).standard_normal(n)
+    return _imu_step(idx, fresh, new, dpsi, c, s, accel_net, dt, scale, a_on_new, a_on_prev, a_drift_prev, w_accel,
+                     n_accel, a_sig, a_b, a_a, g_on_new, g_on_prev, g_drift_prev, w_gyro, n_gyro, g_sig, g_b, g_a)
+
+
 class InertialProcess:
     """Per-vehicle IMU state (previous heading, biases) across the steps of one run."""
 
@@ -225,6 +245,7 @@ class InertialProcess:
         self.a_gyro = math.exp(-self.dt / params.gyro_bias_tau_s)
         for name in self.STREAMS:
             setattr(self, f"{name}_rng", effect_rng(seed, INERTIAL_STREAM_TAG, name))
+        self.handles = StreamHandles(self, tuple(f"{name}_rng" for name in self.STREAMS))  # drawn in kernels
         self._ids = np.empty(0, dtype=object)
         self._heading = np.empty(0)
         self.accel_turn_on = np.empty((0, 2))  # current vehicles' biases, rows of the last step
@@ -240,31 +261,29 @@ class InertialProcess:
         SUMO coupler has from ``SumoTraffic.step``); None: matched here.
 
         :meth:`step_reference` is the same step in numpy (:func:`true_body_motion`, :func:`_imu_axes`)."""
+        if not numba_streams.available():  # numba's draws differ from numpy's here: the numpy step
+            return self.step_reference(ids, entered, heading, accel_net)
         p, dt = self.params, self.dt
-        n = len(ids)
         if idx is None:
             idx = match_ids(self._ids, ids)
         heading = np.ascontiguousarray(heading, dtype=float)
         fresh, new, dpsi, mid = _turn_angles(np.asarray(idx, dtype=np.int64), np.asarray(entered, dtype=bool),
                                              heading, self._heading)
         c, s = np.cos(mid), np.sin(mid)  # numpy's, as true_body_motion's
+        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter), in the
+        # kernel (couplers.numba_streams); the standard normals are scaled there as turn_on_bias / white_noise
+        # scale them
         rad = math.pi / 180.0
-        # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter); the
-        # standard normals are scaled in the kernel as turn_on_bias / white_noise scale them
         scale = np.array([p.accel_turn_on_sigma, p.gyro_turn_on_sigma * rad, p.accel_noise_density / math.sqrt(dt),
                           (p.gyro_noise_density * rad) / math.sqrt(dt)])
-        a_on_new = self.accel_turn_on_rng.standard_normal((n, 2))
-        g_on_new = self.gyro_turn_on_rng.standard_normal(n)
-        w_accel = self.accel_drift_rng.standard_normal((n, 2))
-        w_gyro = self.gyro_drift_rng.standard_normal(n)
-        n_accel = self.accel_noise_rng.standard_normal((n, 2))
-        n_gyro = self.gyro_noise_rng.standard_normal(n)
         a_sig, g_sig = p.accel_bias_sigma, p.gyro_bias_sigma * rad
-        a_on, a_drift, accel, g_on, g_drift, yaw_rate = _imu_step(
+        h = self.handles
+        a_on, a_drift, accel, g_on, g_drift, yaw_rate = _imu_step_drawn(
+            h["accel_turn_on_rng"], h["gyro_turn_on_rng"], h["accel_drift_rng"], h["gyro_drift_rng"],
+            h["accel_noise_rng"], h["gyro_noise_rng"],
             idx, fresh, new, dpsi, c, s, np.ascontiguousarray(accel_net, dtype=float), dt, scale,
-            a_on_new, self.accel_turn_on, self.accel_drift, w_accel, n_accel, a_sig,
-            a_sig * math.sqrt(1.0 - self.a_accel * self.a_accel), self.a_accel,
-            g_on_new, self.gyro_turn_on, self.gyro_drift, w_gyro, n_gyro, g_sig,
+            self.accel_turn_on, self.accel_drift, a_sig, a_sig * math.sqrt(1.0 - self.a_accel * self.a_accel),
+            self.a_accel, self.gyro_turn_on, self.gyro_drift, g_sig,
             g_sig * math.sqrt(1.0 - self.a_gyro * self.a_gyro), self.a_gyro)
         self._ids, self._heading = np.asarray(ids, dtype=object), heading.copy()
         self.accel_turn_on, self.accel_drift = a_on, a_drift

@@ -144,12 +144,7 @@ SIDE_MARGIN_M = 1e-6
 @njit(cache=True)
 def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
     """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
-    quad: when all four corners lie on one side of the segment's line by more than SIDE_MARGIN_M (each
-    corner's orientation, as :func:`_orient` computes it, beyond that margin times the segment's length plus
-    1e-12 of its two products, far above their rounding of ~1e-16), the quad misses the segment, and so does
-    the exact test: its proper crossing needs corners on both sides, and the segment's end points lie more
-    than the margin outside a counter-clockwise rectangle, so none of its orientation tests or on-segment
-    tests can tip (their rounding is ~1e-13 m at these coordinates)."""
+    quad (:func:`_quad_hides`)."""
     m = seg.shape[0]
     out = np.zeros(m, dtype=np.bool_)
     for i in range(m):
@@ -166,21 +161,121 @@ def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xma
                 continue
             if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
                 continue
-            if rectangle[q]:
-                above = 0
-                below = 0
-                for k in range(4):
-                    p1 = dx * (quads[q, k, 1] - ay)
-                    p2 = dy * (quads[q, k, 0] - ax)
-                    o = p1 - p2  # _orient(ax, ay, bx, by, corner)
-                    bound = side_margin + 1e-12 * (abs(p1) + abs(p2))
-                    if o > bound:
-                        above += 1
-                    elif o < -bound:
-                        below += 1
-                if above == 4 or below == 4:
-                    continue
-            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+            if _quad_hides(quads, q, rectangle[q], ax, ay, bx, by, side_margin):
+                out[i] = True
+                break
+    return out
+
+
+@njit(cache=True)
+def _quad_hides(quads, q, rectangle, ax, ay, bx, by, side_margin):
+    """Segment a-b meets quad q (:func:`_segment_hits_quad`), decided without the exact test when q is a
+    ``rectangle`` whose four corners lie on one side of the segment's line by more than ``side_margin``
+    (SIDE_MARGIN_M times the segment's length): each corner's orientation, as :func:`_orient` computes it,
+    beyond that margin plus 1e-12 of its two products, far above their rounding of ~1e-16. The quad then misses
+    the segment, and so does the exact test: its proper crossing needs corners on both sides, and the segment's
+    end points lie more than the margin outside a counter-clockwise rectangle, so none of its orientation tests
+    or on-segment tests can tip (their rounding is ~1e-13 m at these coordinates)."""
+    if rectangle:
+        dx, dy = bx - ax, by - ay
+        above = 0
+        below = 0
+        for k in range(4):
+            p1 = dx * (quads[q, k, 1] - ay)
+            p2 = dy * (quads[q, k, 0] - ax)
+            o = p1 - p2  # _orient(ax, ay, bx, by, corner)
+            bound = side_margin + 1e-12 * (abs(p1) + abs(p2))
+            if o > bound:
+                above += 1
+            elif o < -bound:
+                below += 1
+        if above == 4 or below == 4:
+            return False
+    return _segment_hits_quad(quads[q], ax, ay, bx, by)
+
+
+#: Width of the x buckets of :func:`_occluder_buckets` (m), widened so that there are at most 4 K + 16 buckets.
+OCCLUDER_BUCKET_M = 8.0
+
+
+@njit(cache=True)
+def _occluder_buckets(corners, width):
+    """The quads' bounding boxes (xmin, xmax, ymin, ymax (K,)), the widest x extent, and the quads listed by
+    the x bucket of their xmin, buckets ``width`` wide (or wider: at most 4 K + 16 buckets) from the smallest
+    xmin: (order (K,), bucket starts (B + 1,), x0, width). A counting sort instead of
+    :func:`_occluder_boxes`' comparison sort; :func:`_occluded_by_quads_bucketed` reads it."""
+    k = corners.shape[0]
+    xmin = np.empty(k)
+    xmax = np.empty(k)
+    ymin = np.empty(k)
+    ymax = np.empty(k)
+    max_wx = 0.0
+    for q in range(k):
+        xmin[q], xmax[q] = corners[q, 0, 0], corners[q, 0, 0]
+        ymin[q], ymax[q] = corners[q, 0, 1], corners[q, 0, 1]
+        for c in range(1, 4):
+            xmin[q] = min(xmin[q], corners[q, c, 0])
+            xmax[q] = max(xmax[q], corners[q, c, 0])
+            ymin[q] = min(ymin[q], corners[q, c, 1])
+            ymax[q] = max(ymax[q], corners[q, c, 1])
+        wx = xmax[q] - xmin[q]
+        if q == 0 or wx > max_wx:
+            max_wx = wx
+    x0 = xmin.min() if k else 0.0
+    span = (xmin.max() - x0) if k else 0.0
+    n_max = 4 * k + 16
+    if not (span / width < n_max - 1):
+        width = span / (n_max - 1) if span > 0.0 else width
+    nb = min(int(span / width) + 1, n_max) if math.isfinite(span) else 1
+    bucket = np.empty(k, dtype=np.int64)
+    start = np.zeros(nb + 1, dtype=np.int64)
+    for q in range(k):
+        b = int((xmin[q] - x0) / width) if math.isfinite(xmin[q]) else 0
+        bucket[q] = min(max(b, 0), nb - 1)
+        start[bucket[q] + 1] += 1
+    for b in range(nb):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    order = np.empty(k, dtype=np.int64)
+    for q in range(k):
+        order[fill[bucket[q]]] = q
+        fill[bucket[q]] += 1
+    return order, start, x0, width, xmin, xmax, ymin, ymax, max_wx
+
+
+@njit(cache=True)
+def _occluded_by_quads_bucketed(seg, skip_a, quads, order, start, x0, width, xmin, xmax, ymin, ymax, max_wx,
+                                rectangle):
+    """:func:`_occluded_by_quads_sided` (the same answers; no second skip) over :func:`_occluder_buckets`: the
+    candidates of a segment are the quads of the buckets its window [x_lo, x_hi] = [min x - max_wx, max x]
+    covers, kept when their xmin lies in the window, as the sorted search keeps them (the bucket of a value is
+    monotone in it, so those buckets hold every quad of the window). A segment with a coordinate that is not
+    finite looks at every quad."""
+    m = seg.shape[0]
+    nb = start.size - 1
+    out = np.zeros(m, dtype=np.bool_)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        dx, dy = bx - ax, by - ay
+        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        x_lo = sx0 - max_wx
+        f0 = math.floor((x_lo - x0) / width)
+        f1 = math.floor((sx1 - x0) / width)
+        if math.isfinite(f0) and math.isfinite(f1):
+            if f1 < 0 or f0 > nb - 1:
+                continue
+            b0, b1 = int(max(f0, 0.0)), int(min(f1, nb - 1.0))
+        else:
+            b0, b1 = 0, nb - 1
+        for r in range(start[b0], start[b1 + 1]):
+            q = order[r]
+            if q == skip_a[i] or xmin[q] < x_lo or xmin[q] > sx1:
+                continue
+            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
+                continue
+            if _quad_hides(quads, q, rectangle[q], ax, ay, bx, by, side_margin):
                 out[i] = True
                 break
     return out
@@ -300,24 +395,34 @@ def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> Cel
 
 
 @njit(cache=True)
+def _sampling(ax, ay, bx, by, x0, y0, cell):
+    """The samples of segment a-b in grid units, less than a cell apart: sample k of 0..k_max lies at
+    (gx + sx k, gy + sy k), i.e. at a + (b - a) k / k_max up to rounding (~1e-12 m). Returns
+    (gx, gy, sx, sy, k_max), k_max = -1 for a segment whose length is not finite."""
+    length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
+    if not math.isfinite(length):
+        return 0.0, 0.0, 0.0, 0.0, -1
+    k_max = int(length / cell) + 1
+    return (ax - x0) / cell, (ay - y0) / cell, (bx - ax) / cell / k_max, (by - ay) / cell / k_max, k_max
+
+
+@njit(cache=True)
 def _clear_of_buildings(seg, x0, y0, cell, near):
     """(M,) bool: segment i certainly misses every building. Samples less than a cell apart along the
-    segment: every point of it lies within half a cell of a sample, so in a cell next to the sample's;
-    a building point on the segment lies in its bounding box's cells, which ``near`` widens by one."""
+    segment (:func:`_sampling`): every point of it lies within half a cell of a sample (plus the samples'
+    rounding, far below a cell), so in a cell next to the sample's cell as computed; a building point on the
+    segment lies in its bounding box's cells, which ``near`` widens by one."""
     m = seg.shape[0]
     ny, nx = near.shape
     out = np.zeros(m, dtype=np.bool_)
     for i in range(m):
-        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
-        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
-        if not math.isfinite(length):
+        gx, gy, sx, sy, k_max = _sampling(seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3], x0, y0, cell)
+        if k_max < 0:
             continue
-        k_max = int(length / cell) + 1
         clear = True
         for k in range(k_max + 1):
-            t = k / k_max
-            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
-            fy = math.floor((ay + (by - ay) * t - y0) / cell)
+            fx = math.floor(gx + sx * k)
+            fy = math.floor(gy + sy * k)
             if 0 <= fx < nx and 0 <= fy < ny and near[int(fy), int(fx)]:
                 clear = False
                 break
@@ -395,30 +500,26 @@ def _segment_meets_box(ax, ay, bx, by, xmin, ymin, xmax, ymax):
 
 @njit(cache=True)
 def _needs_building_test(seg, x0, y0, cell, near, start, ids, boxes, margin):
-    """(M,) bool: segment i may meet a building, i.e. it is not certainly clear by :func:`_clear_of_buildings`
-    and it meets the bounding box, widened by ``margin``, of a building listed in one of its sample cells (or
-    it is not finite). The others certainly miss every building (a polygon lies in its box, and a box the
-    segment meets is listed in a sample cell: :func:`_clear_of_buildings`' argument), so only these go to the
-    polygon test."""
+    """(M,) bool: segment i may meet a building, i.e. one of its sample cells (:func:`_sampling`, those
+    :func:`_clear_of_buildings` looks at) is ``near`` a building and lists a building whose bounding box,
+    widened by ``margin``, the segment meets (or the segment is not finite). The others certainly miss every
+    building (a polygon lies in its box, and a box the segment meets is listed in a sample cell:
+    :func:`_clear_of_buildings`' argument), so only these go to the polygon test. One walk along the segment:
+    the boxes of a sample cell are tested when the walk reaches it."""
     m = seg.shape[0]
     ny, nx = near.shape
     out = np.zeros(m, dtype=np.bool_)
     seen = np.full(boxes.shape[0], -1, dtype=np.int64)
-    clear = _clear_of_buildings(seg, x0, y0, cell, near)
     for i in range(m):
-        if clear[i]:
-            continue
         ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
-        length = math.sqrt((bx - ax) * (bx - ax) + (by - ay) * (by - ay))
-        if not math.isfinite(length):
+        gx, gy, sx, sy, k_max = _sampling(ax, ay, bx, by, x0, y0, cell)
+        if k_max < 0:
             out[i] = True
             continue
-        k_max = int(length / cell) + 1
         for k in range(k_max + 1):
-            t = k / k_max
-            fx = math.floor((ax + (bx - ax) * t - x0) / cell)
-            fy = math.floor((ay + (by - ay) * t - y0) / cell)
-            if not (0 <= fx < nx and 0 <= fy < ny):
+            fx = math.floor(gx + sx * k)
+            fy = math.floor(gy + sy * k)
+            if not (0 <= fx < nx and 0 <= fy < ny) or not near[int(fy), int(fx)]:
                 continue
             c = int(fy) * nx + int(fx)
             for q in range(start[c], start[c + 1]):

@@ -66,11 +66,14 @@ from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
+from couplers.numba_streams import StreamHandles, stream
+from couplers import numba_streams
 from couplers.occlusion import (  # noqa: F401 (unit_heading: also this module's, as before)
     OccluderIndex,
     _needs_building_test,
-    _occluded_by_quads_sided,
-    _occluder_boxes,
+    OCCLUDER_BUCKET_M,
+    _occluded_by_quads_bucketed,
+    _occluder_buckets,
     _rectangles,
     _segments_occluded_by_buildings,
     _segments_occluded_by_vehicles,
@@ -187,6 +190,7 @@ class PerceptionParams:
             full=np.array([s.fov_deg >= 360.0 for s in self.sensors]),
             groups=_mount_groups(a["mount_x_m"]),
             along_heading=tuple(s.yaw_deg == 0.0 for s in self.sensors),
+            along_heading_array=np.array([s.yaw_deg == 0.0 for s in self.sensors]),
             clutter_rate=float(rates[0]) if np.all(rates == rates[0]) else None,
         )
 
@@ -214,6 +218,7 @@ class PerceptionNoise:
     def __init__(self, seed: int):
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, PERCEPTION_STREAM_TAG, name))
+        self.handles = StreamHandles(self, self.STREAMS)  # the same streams drawn in perceive's kernels
 
 
 @dataclass(frozen=True)
@@ -531,11 +536,18 @@ def perceive(
     (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
     (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
 
-    Four numba stages between the random draws, numpy's trigonometry and shapely's building query (the
-    kernels of :func:`perceive_reference`, same operations in the same order, the same draws from each stream
-    in the same order): field of view and clutter geometry; sight lines and their occlusion; detections,
-    merge and rows; the shuffle within each vehicle.
+    Two numba stages around numpy's trigonometry and shapely's building query (the kernels of
+    :func:`perceive_reference`, same operations in the same order, the same draws from each stream in the same
+    order, drawn inside the kernels through :mod:`couplers.numba_streams`): the clutter and candidate draws,
+    field of view, clutter geometry, sight lines and their occlusion (:func:`_sense_stage`); detections,
+    merge, rows and the shuffle within each vehicle (:func:`_rows_stage`). Where numba's draws do not equal
+    numpy's (``numba_streams.available()`` False), :func:`perceive_reference` runs instead.
     """
+    if not numba_streams.available():
+        return perceive_reference(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
+                                  pair_feature=pair_feature, params=params, noise=noise,
+                                  occluder_corners=occluder_corners, observer_occluder=observer_occluder,
+                                  buildings=buildings, feature_class=feature_class, direction=direction)
     n = x_true.shape[0]
     heading = np.asarray(heading, dtype=np.float64)
     a, k = params.arrays, params.kernel_consts
@@ -553,25 +565,8 @@ def perceive(
     pair_owner = np.asarray(pair_owner, dtype=np.int64)
     pair_feature = np.asarray(pair_feature, dtype=np.int64)
 
-    # Clutter draws (own stream, never occluded), as _clutter_polar draws them, then the candidates' draws:
-    # one per candidate, before occlusion (common random numbers across P_D / occlusion settings).
-    rate = k["clutter_rate"]
-    counts = (noise.clutter.poisson(rate, size=(n, n_sensors)) if rate is not None
-              else noise.clutter.poisson(np.broadcast_to(a["clutter_per_scan"], (n, n_sensors)))).ravel()
-    c = int(counts.sum())
-    u_r, u_a = noise.clutter.random(c), noise.clutter.random(c)
-    cw = noise.clutter.standard_normal((c, 4))
-    origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang = _fov_stage(
-        xf, np.ascontiguousarray(direction, dtype=np.float64), a["mount_x_m"], boresight,
-        np.array(k["along_heading"]), ft, pair_owner, pair_feature, a["range_m"], k["cos_half"], k["full"],
-        counts, n_sensors, u_r, u_a, heading, a["yaw_deg"], a["fov_deg"])
-    u = noise.detect.random(pair.size)
-    w = noise.noise.standard_normal((pair.size, 4))
-
-    # Occlusion of each distinct sight line once (sensors on one mount point share their sight lines); the
-    # lines that meet a building's box go to shapely.
     use_vehicles = bool(params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners)
-                        and pair.size)
+                        and pair_owner.size)
     corners = (np.ascontiguousarray(occluder_corners, dtype=np.float64).reshape(-1, 4, 2) if use_vehicles
                else _NO_CORNERS)
     use_buildings = bool(params.occlusion_buildings and buildings is not None and len(buildings))
@@ -580,33 +575,88 @@ def perceive(
         grid = (g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin)
     else:
         grid = _NO_BUILDINGS
-    line_of, clear, seg, need = _occlusion_stage(pair, sensor, k["groups"], pair_owner.size, origins, pair_owner,
-                                                 target, np.asarray(observer_occluder, dtype=np.int64),
-                                                 use_vehicles, corners, use_buildings, *grid)
-    if need.size:
+    h = noise.handles
+    (origins, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang, cw, u, w, line_of, clear, seg,
+     need) = _sense_stage(
+        h["clutter"], h["detect"], h["noise"], a["clutter_per_scan"], xf, np.ascontiguousarray(direction,
+                                                                                                dtype=np.float64),
+        a["mount_x_m"], boresight, k["along_heading_array"], ft, pair_owner, pair_feature, a["range_m"],
+        k["cos_half"], k["full"], heading, a["yaw_deg"], a["fov_deg"], k["groups"],
+        np.asarray(observer_occluder, dtype=np.int64), use_vehicles, corners, use_buildings, *grid)
+    if need.size:  # the sight lines that meet a building's box: shapely's exact test
         lines = shapely.linestrings(seg[need].reshape(-1, 2, 2))
         clear[need[buildings.tree.query(lines, predicate="intersects")[0]]] = False
 
-    # Detection by P_D(d); merge: one row per detected pair, from the detecting sensor with the smallest
-    # sigma_p; detection and clutter rows (numpy's cos / sin of the clutter bearings).
-    (t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, n_det) = _detection_stage(
-        pair, dist, sensor, pair_owner.size, clear, line_of, u, w, pair_owner, pair_feature, ft, xf,
+    # Detection by P_D(d), merge, the detection and clutter rows (numpy's cos / sin of the clutter bearings),
+    # the shuffle within each vehicle.
+    classed = feature_class is not None
+    z, owner, R, feature, sensor_rows, klass, n_fov, n_vis, n_det = _rows_stage(
+        h["shuffle"], pair, dist, sensor, pair_owner.size, clear, line_of, u, w, pair_owner, pair_feature, ft, xf,
         a["range_m"], a["pd_near"], a["pd_far"], a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"], origins,
-        c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang), cw)
-
-    # Detections then clutter, shuffled within each vehicle (one uniform key per row).
-    keys = noise.shuffle.random(t_owner.size + c_owner.size)
-    t_klass = (np.zeros(t_feat.size, dtype=np.int8) if feature_class is None
-               else np.asarray(feature_class, dtype=np.int8)[t_feat])
-    z, owner, R, feature, sensor_rows, klass = _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
-                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+        c_owner, c_sensor, c_dist, np.cos(c_ang), np.sin(c_ang), cw,
+        np.asarray(feature_class, dtype=np.int8) if classed else _NO_CLASSES, classed)
+    c = c_owner.size
     stats = dict(in_fov=n_fov, occluded=n_fov - n_vis, missed=n_vis - n_det, detected=n_det, clutter=c)
     return Detections(z=z, owner=owner, R=R, feature=feature, sensor=sensor_rows, klass=klass, stats=stats)
 
 
 _NO_CORNERS = np.empty((0, 4, 2))
+_NO_CLASSES = np.empty(0, dtype=np.int8)
 _NO_BUILDINGS = (0.0, 0.0, 1.0, np.zeros((1, 1), dtype=np.bool_), np.zeros(2, dtype=np.int64),
                  np.empty(0, dtype=np.int64), np.empty((0, 4)), 0.0)
+
+
+@njit(cache=True)
+def _sense_stage(h_clutter, h_detect, h_noise, clutter_rate, xy, direction, mount_x, boresight, along, features,
+                 pair_owner, pair_feature, range_m, cos_half, full, heading, yaw_deg, fov_deg, groups,
+                 observer_occluder, use_vehicles, corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes,
+                 b_margin):
+    """The clutter draws (Poisson counts per (vehicle, sensor) in that order, then the distance and bearing
+    uniforms and the (C, 4) noise normals, as :func:`_clutter_polar` and :func:`perceive_reference` draw them),
+    :func:`_fov_stage`, the candidates' detection uniforms and (C, 4) noise normals, and
+    :func:`_occlusion_stage`; the draws from the streams of the handles ``h_*`` (:mod:`couplers.numba_streams`)."""
+    n, n_s = xy.shape[0], mount_x.size
+    clutter = stream(h_clutter)
+    counts = np.empty(n * n_s, dtype=np.int64)
+    for i in range(n):
+        for s in range(n_s):
+            counts[i * n_s + s] = clutter.poisson(clutter_rate[s])
+    c = 0
+    for k in range(counts.size):
+        c += counts[k]
+    u_r = clutter.random(c)
+    u_a = clutter.random(c)
+    cw = clutter.standard_normal((c, 4))
+    origins, target, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang = _fov_stage(
+        xy, direction, mount_x, boresight, along, features, pair_owner, pair_feature, range_m, cos_half, full, counts,
+        n_s, u_r, u_a, heading, yaw_deg, fov_deg)
+    u = stream(h_detect).random(pair.size)
+    w = stream(h_noise).standard_normal((pair.size, 4))
+    line_of, clear, seg, need = _occlusion_stage(pair, sensor, groups, pair_owner.size, origins, pair_owner, target,
+                                                 observer_occluder, use_vehicles, corners, use_buildings, x0, y0,
+                                                 cell, near, b_start, b_ids, b_boxes, b_margin)
+    return origins, pair, dist, sensor, c_owner, c_sensor, c_dist, c_ang, cw, u, w, line_of, clear, seg, need
+
+
+@njit(cache=True)
+def _rows_stage(h_shuffle, pair, dist, sensor, n_pairs, clear, line_of, u, w, pair_owner, pair_feature, features,
+                x_true, range_m, pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v, origins, c_owner, c_sensor, c_dist,
+                c_cos, c_sin, cw, feature_class, classed):
+    """:func:`_detection_stage`, one uniform key per row from the shuffle stream of the handle ``h_shuffle``, the
+    class of each detection (``feature_class`` of its feature if ``classed``, else CLASS_STATIC) and
+    :func:`_shuffle_stage`. Returns (z, owner, R, feature, sensor, class, pairs in a field of view, of them
+    visible, detected)."""
+    (t_owner, t_feat, t_sensor, t_sig, t_sv, t_z, c_z, c_sig, c_sv, n_fov, n_vis, n_det) = _detection_stage(
+        pair, dist, sensor, n_pairs, clear, line_of, u, w, pair_owner, pair_feature, features, x_true, range_m,
+        pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v, origins, c_owner, c_sensor, c_dist, c_cos, c_sin, cw)
+    keys = stream(h_shuffle).random(t_owner.size + c_owner.size)
+    t_klass = np.full(t_feat.size, CLASS_STATIC, dtype=np.int8)
+    if classed:
+        for r in range(t_feat.size):
+            t_klass[r] = feature_class[t_feat[r]]
+    z, owner, R, feature, sensor_rows, klass = _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor,
+                                                              c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass)
+    return z, owner, R, feature, sensor_rows, klass, n_fov, n_vis, n_det
 
 
 @njit(cache=True)
@@ -637,7 +687,7 @@ def _fov_stage(xy, direction, mount_x, boresight, along, features, pair_owner, p
 def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
                      corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
     """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
-    footprint other than the observer's hides (:func:`_occluded_by_quads_sided`); of the clear ones, the
+    footprint other than the observer's hides (:func:`_occluded_by_quads_bucketed`); of the clear ones, the
     lines that may meet a building (:func:`_needs_building_test`). Returns (line of each candidate, clear
     (L,), segments (L, 4), the lines for the building query)."""
     line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
@@ -654,9 +704,9 @@ def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target,
         skip_a[r] = observer_occluder[i]
     clear = np.ones(m, dtype=np.bool_)
     if use_vehicles and m > 0 and corners.shape[0] > 0:
-        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
-        hidden = _occluded_by_quads_sided(seg, skip_a, np.full(m, -1, dtype=np.int64), corners, order,
-                                          xmin_sorted, xmax, ymin, ymax, max_wx, _rectangles(corners))
+        order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
+        hidden = _occluded_by_quads_bucketed(seg, skip_a, corners, order, start, x0_b, width, xmin, xmax, ymin, ymax,
+                                             max_wx, _rectangles(corners))
         for r in range(m):
             clear[r] = not hidden[r]
     n_clear = 0

@@ -239,6 +239,9 @@ def test_inertial_step_equals_its_numpy_reference_with_and_without_rows():
         for proc in (fused, fused_rows):
             np.testing.assert_array_equal(proc.accel_bias, ref.accel_bias)
             np.testing.assert_array_equal(proc.gyro_bias, ref.gyro_bias)
+    for name in InertialProcess.STREAMS:  # the kernels' draws left every stream where numpy's leave it
+        want = getattr(ref, f"{name}_rng").random()
+        assert getattr(fused, f"{name}_rng").random() == want == getattr(fused_rows, f"{name}_rng").random()
 
 
 def test_gnss_start_probability_lookup_equals_rate_then_expm1():
@@ -400,9 +403,9 @@ def test_continuity_equals_its_numpy_reference():
 def test_occlusion_side_shortcut_gives_the_exact_answers():
     """Footprints (rectangles) and other quads against sight lines in general position and through corners,
     along edges, starting on edges or inside, touching at one point, of zero length: every answer as the exact
-    kernel's."""
-    from couplers.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_sided, unit_heading,
-                                    vehicle_footprints)
+    kernel's, through the sorted index and through the x buckets."""
+    from couplers.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_bucketed,
+                                    _occluded_by_quads_sided, _occluder_buckets, unit_heading, vehicle_footprints)
 
     rng = np.random.default_rng(18)
     for offset in (0.0, 4.0e4):  # coordinates of a small net, and of a large one (more rounding)
@@ -438,6 +441,21 @@ def test_occlusion_side_shortcut_gives_the_exact_answers():
                 idx.max_wx)
         want = _occluded_by_quads(*args)
         np.testing.assert_array_equal(_occluded_by_quads_sided(*args, idx.rectangle), want)
+        # the x buckets of the perception's stage: every bucket width, including one that the cap on the
+        # number of buckets widens (1e-3 m), and quads far apart (huge spans)
+        for width in (1e-3, 0.7, 8.0, 50.0, 1e4):
+            b = _occluder_buckets(idx.corners, width)
+            np.testing.assert_array_equal(_occluded_by_quads_bucketed(seg, skip_a, idx.corners, *b, idx.rectangle),
+                                          want)
+        far_quads = quads.copy()
+        far_quads[:3] += np.array([1e7, -1e7])
+        far_idx = OccluderIndex.build(far_quads)
+        far_args = (seg, skip_a, skip_b, far_idx.corners, far_idx.order, far_idx.xmin_sorted, far_idx.xmax,
+                    far_idx.ymin, far_idx.ymax, far_idx.max_wx)
+        b = _occluder_buckets(far_idx.corners, 8.0)
+        assert b[1].size <= 4 * len(far_quads) + 17
+        np.testing.assert_array_equal(_occluded_by_quads_bucketed(seg, skip_a, far_idx.corners, *b,
+                                                                  far_idx.rectangle), _occluded_by_quads(*far_args))
         assert 0.05 < want.mean() < 0.95
 
 
