@@ -16,7 +16,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
      --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
      step by step beside the fused path on the same frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
-     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x;
+     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x
+     (--repeat N: N alternating idealised / realistic runs, their medians and every pair's ratio);
      --workers N also times the coupled run with the estimators in N worker processes beside SUMO and the
      coupler, as `coloc run --workers N` runs them (experiments.pipeline): wall time, and the CPU seconds of
      all processes together)
@@ -37,6 +38,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import sumolib
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -137,9 +139,15 @@ def main() -> None:
                          "interleaved step by step with the fused path on the same frames, named <method>[reference]")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="with --realistic: time the idealised and the realistic frames this many times, "
+                         "alternating, and print the medians and every pair's ratio (a shared machine's "
+                         "load drifts over a run)")
     ap.add_argument("--workers", type=int, default=0,
                     help="also time the coupled run with the estimators in this many worker processes")
     args = ap.parse_args()
+    if args.repeat < 1:
+        ap.error("--repeat must be at least 1")
 
     cfg = load_config(
         ROOT / "experiments" / f"arterial_{args.control}.toml",
@@ -159,8 +167,13 @@ def main() -> None:
     warm = dataclasses.replace(scenario, duration_s=min(60.0, scenario.duration_s))
     for sensors in [cfg.sensors] + ([rcfg.sensors] if rcfg else []):  # imports, numba caches: not timed
         time_coupled(warm, sensors, [])
-    coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [], "frames")
-    realistic = time_coupled(scenario, rcfg.sensors, [], "realistic")[0] if rcfg else None
+    pairs = []  # (idealised wall, realistic wall, idealised CPU, realistic CPU) per repetition, alternating
+    for _ in range(args.repeat if rcfg else 1):
+        coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [], "frames")
+        realistic = time_coupled(scenario, rcfg.sensors, [], "realistic")[0] if rcfg else None
+        pairs.append((coupler_only, realistic, CPU["frames"], CPU.get("realistic")))
+    if len(pairs) > 1:  # the medians (and the median of the pairs' ratios below)
+        coupler_only, realistic, CPU["frames"], CPU["realistic"] = (float(np.median(col)) for col in zip(*pairs))
     estimators = build_estimators(cfg)
     if args.pf_kernels:
         pfs = [e for e in estimators if e.name == ICP_DA_PF.name]
@@ -194,6 +207,12 @@ def main() -> None:
     if realistic is not None:
         print(f"  frames, realistic preset {realistic:8.2f} s   ratio to sumo {realistic / sumo_alone:5.2f}, "
               f"to idealised frames {realistic / coupler_only:5.2f}" + cpu("realistic"))
+        if len(pairs) > 1:
+            wall = [r / i for i, r, _, _ in pairs]
+            cpu_r = [r / i for _, _, i, r in pairs]
+            print(f"    {len(pairs)} alternating idealised / realistic runs (medians above): realistic / idealised "
+                  f"wall {' '.join(f'{x:.2f}' for x in wall)} (median {np.median(wall):.2f}), CPU "
+                  f"{' '.join(f'{x:.2f}' for x in cpu_r)} (median {np.median(cpu_r):.2f})")
     print(f"  coupled ({args.methods:>14}) {coupled - reference_s:8.2f} s   ratio to sumo "
           f"{(coupled - reference_s) / sumo_alone:5.2f}" + ("   (the [reference] estimators' time left out)"
                                                             if args.reference else ""))
