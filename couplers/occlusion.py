@@ -200,27 +200,12 @@ OCCLUDER_BUCKET_M = 8.0
 
 @njit(cache=True)
 def _occluder_buckets(corners, width):
-    """The quads' bounding boxes (xmin, xmax, ymin, ymax (K,)), the widest x extent, and the quads listed by
-    the x bucket of their xmin, buckets ``width`` wide (or wider: at most 4 K + 16 buckets) from the smallest
-    xmin: (order (K,), bucket starts (B + 1,), x0, width). A counting sort instead of
+    """The quads listed by the x bucket of their bounding box's xmin, buckets ``width`` wide (or wider: at most
+    4 K + 16 buckets) from the smallest xmin, with the boxes (:func:`_quad_boxes`): (order (K,), bucket starts
+    (B + 1,), x0, width, xmin, xmax, ymin, ymax (K,) each, the widest x extent). A counting sort instead of
     :func:`_occluder_boxes`' comparison sort; :func:`_occluded_by_quads_bucketed` reads it."""
     k = corners.shape[0]
-    xmin = np.empty(k)
-    xmax = np.empty(k)
-    ymin = np.empty(k)
-    ymax = np.empty(k)
-    max_wx = 0.0
-    for q in range(k):
-        xmin[q], xmax[q] = corners[q, 0, 0], corners[q, 0, 0]
-        ymin[q], ymax[q] = corners[q, 0, 1], corners[q, 0, 1]
-        for c in range(1, 4):
-            xmin[q] = min(xmin[q], corners[q, c, 0])
-            xmax[q] = max(xmax[q], corners[q, c, 0])
-            ymin[q] = min(ymin[q], corners[q, c, 1])
-            ymax[q] = max(ymax[q], corners[q, c, 1])
-        wx = xmax[q] - xmin[q]
-        if q == 0 or wx > max_wx:
-            max_wx = wx
+    xmin, xmax, ymin, ymax, max_wx = _quad_boxes(corners)
     x0 = xmin.min() if k else 0.0
     span = (xmin.max() - x0) if k else 0.0
     n_max = 4 * k + 16
@@ -327,8 +312,8 @@ class OccluderIndex:
 
 
 @njit(cache=True)
-def _occluder_boxes(corners):
-    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
+def _quad_boxes(corners):
+    """The quads' bounding boxes (xmin, xmax, ymin, ymax (K,) each) and the widest x extent."""
     k = corners.shape[0]
     xmin = np.empty(k)
     xmax = np.empty(k)
@@ -346,6 +331,13 @@ def _occluder_boxes(corners):
         wx = xmax[q] - xmin[q]
         if q == 0 or wx > max_wx:
             max_wx = wx
+    return xmin, xmax, ymin, ymax, max_wx
+
+
+@njit(cache=True)
+def _occluder_boxes(corners):
+    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
+    xmin, xmax, ymin, ymax, max_wx = _quad_boxes(corners)
     order = np.argsort(xmin, kind="mergesort")
     return order, xmin[order], xmax, ymin, ymax, max_wx
 
