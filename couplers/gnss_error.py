@@ -322,7 +322,7 @@ class GnssErrorProcess:
         return error
 
     def step_reference(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
-             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+                       zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
         """:meth:`step` with the episode draws in numpy (the reference of its kernels, and the step where numba's
         draws differ from numpy's)."""
         n = len(ids)

@@ -48,7 +48,8 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
 Random streams: one ``numpy.random.Generator`` per effect ("detect", "noise", "clutter",
 "shuffle"), each seeded by ``SeedSequence([seed, 0x9E5, crc32(effect name)])``: independent of the
 idealised sensors' streams (couplers.sensors.SensorNoise), so GNSS, prior and inertial noise are the
-same draws with or without ``[perception]``, and adding an effect does not shift the others.
+same draws with or without ``[perception]``, and adding an effect does not shift the others. :func:`perceive`
+draws them inside its kernels (:mod:`couplers.numba_streams`: numpy's numbers, in numpy's order).
 """
 
 from __future__ import annotations
@@ -66,8 +67,8 @@ from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
 from couplers.netfolder import Buildings
-from couplers.numba_streams import StreamHandles, stream
 from couplers import numba_streams
+from couplers.numba_streams import StreamHandles, stream
 from couplers.occlusion import (  # noqa: F401 (unit_heading: also this module's, as before)
     OccluderIndex,
     _needs_building_test,
