@@ -26,6 +26,7 @@ where it stopped: rerun with more ``--seeds``); the table is printed from that f
     python tools/pf_equivalence.py --seeds 10 --null-seeds 10   # and the Monte Carlo floor of the pairing
     python tools/pf_equivalence.py --seeds 0 --arterial-seeds 3 --variants fast_component   # fast kernel and
                                                                 # BPA-L stopped per component ([pf] bpa_stop)
+    python tools/pf_equivalence.py --seeds 0 --arterial-null-seeds 3   # the arterial's Monte Carlo floor
 
 Each record also holds the CPU seconds per step (with ``NUMBA_NUM_THREADS=1`` what one quiet core would
 take), the rows per step and the process's resident memory (every 80 steps and the run's peak).
@@ -218,6 +219,18 @@ def _variant_table(recs: dict, variant: str, nulls: bool = True) -> tuple[list[s
             if rs:
                 lines.append(f"  df = {df} m, {k:>4s}: mean {np.mean([r['step_s_mean'] for r in rs]):.3f} s, "
                              f"worst {max(r['step_s_max'] for r in rs):.3f} s ({len(rs)} runs)" + _cpu(rs))
+    art_null = sorted(s for (c, s, k) in recs if c == "arterial" and k == NULL and ("arterial", s, "tree") in recs)
+    if nulls and art_null:
+        lines.append("")
+        lines.append("arterial TLR, J = 1000, Monte Carlo floor: exact tree with other particle generators against "
+                     "the exact tree (what the 2 % / 0.5-point criterion compares with)")
+        lines.append(f"{'seed':>4} {'RMSE exact':>10} {'RMSE other':>10} {'rel':>7} {'p95 exact':>9} "
+                     f"{'p95 other':>9} {'rel':>7} {'max share diff':>14}")
+        for s in art_null:
+            e, f = recs[("arterial", s, "tree")], recs[("arterial", s, NULL)]
+            dsh = max(abs(x - y) for x, y in zip(f["shares"], e["shares"]))
+            lines.append(f"{s:4d} {e['rmse']:10.3f} {f['rmse']:10.3f} {f['rmse'] / e['rmse'] - 1:+7.2%} "
+                         f"{e['p95']:9.3f} {f['p95']:9.3f} {f['p95'] / e['p95'] - 1:+7.2%} {dsh:14.2f}")
     art = sorted(s for (c, s, k) in recs if c == "arterial" and k == "tree" and ("arterial", s, fast) in recs)
     if art:
         lines.append("")
@@ -250,6 +263,9 @@ def main(argv=None) -> int:
     ap.add_argument("--null-seeds", type=int, default=0,
                     help="single-road seeds (1..N) also run by the exact tree with other particle generators "
                          "(pf seed + 1000): how far two exact runs differ by Monte Carlo alone")
+    ap.add_argument("--arterial-null-seeds", type=int, default=0,
+                    help="arterial TLR seeds (1..N) of the Monte Carlo floor: the exact tree against itself with "
+                         "other particle generators (the 2 %% criterion's own noise)")
     ap.add_argument("--variants", default="fast",
                     help=f"approximations run against the exact tree, comma-separated (of {', '.join(VARIANTS)})")
     ap.add_argument("--arterial-first", action="store_true", help="run the arterial seeds before the single road")
@@ -278,6 +294,9 @@ def main(argv=None) -> int:
         arterial = [("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",
                      {"run.seed": seed, "run.duration_s": args.arterial_duration, **VARIANTS[k]})
                     for seed in range(1, args.arterial_seeds + 1) for k in variants]
+        arterial += [("arterial", seed, k, ROOT / "experiments" / "arterial_tlr.toml",
+                      {"run.seed": seed, "run.duration_s": args.arterial_duration, "pf.kernel": "tree"})
+                     for seed in range(1, args.arterial_null_seeds + 1) for k in ("tree", NULL)]
         todo = arterial + todo if args.arterial_first else todo + arterial
     for case, seed, kernel, config, over in todo:
         if (case, seed, kernel) in recs:

@@ -33,3 +33,13 @@ def test_unknown_variant_is_refused(tmp_path):
     with pytest.raises(SystemExit) as exc:
         pe.main(["--variants", "fgt", "--table-only", "--out", str(tmp_path)])
     assert exc.value.code == 2
+
+
+def test_arterial_floor_table_compares_the_reseeded_tree_with_the_tree():
+    recs = {("arterial", 1, "tree"): _rec("arterial", 1, "tree", 0.0, rmse=1.00),
+            ("arterial", 1, pe.NULL): _rec("arterial", 1, pe.NULL, 0.0, rmse=1.03),
+            ("arterial", 2, pe.NULL): _rec("arterial", 2, pe.NULL, 0.0, rmse=1.0)}  # no tree run: not listed
+    lines, _ = pe.paired_table(recs)
+    i = next(k for k, ln in enumerate(lines) if "Monte Carlo floor" in ln and "arterial" in ln)
+    rows = [ln for ln in lines[i + 2:] if ln.strip()[:1].isdigit()]
+    assert len(rows) == 1 and rows[0].split()[0] == "1" and "+3.00%" in rows[0]
