@@ -142,17 +142,22 @@ SIDE_MARGIN_M = 1e-6
 
 
 @njit(cache=True)
+def _segment_box(seg, i):
+    """Segment i's end points, its x and y extents and its side margin (SIDE_MARGIN_M times its length)."""
+    ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+    dx, dy = bx - ax, by - ay
+    return (ax, ay, bx, by, min(ax, bx), max(ax, bx), min(ay, by), max(ay, by),
+            SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy))
+
+
+@njit(cache=True)
 def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
     """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
     quad (:func:`_quad_hides`)."""
     m = seg.shape[0]
     out = np.zeros(m, dtype=np.bool_)
     for i in range(m):
-        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
-        sx0, sx1 = min(ax, bx), max(ax, bx)
-        sy0, sy1 = min(ay, by), max(ay, by)
-        dx, dy = bx - ax, by - ay
-        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        ax, ay, bx, by, sx0, sx1, sy0, sy1, side_margin = _segment_box(seg, i)
         lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
         hi = np.searchsorted(xmin_sorted, sx1, side="right")
         for r in range(lo, hi):
@@ -240,11 +245,7 @@ def _occluded_by_quads_bucketed(seg, skip_a, quads, order, start, x0, width, xmi
     nb = start.size - 1
     out = np.zeros(m, dtype=np.bool_)
     for i in range(m):
-        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
-        sx0, sx1 = min(ax, bx), max(ax, bx)
-        sy0, sy1 = min(ay, by), max(ay, by)
-        dx, dy = bx - ax, by - ay
-        side_margin = SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy)
+        ax, ay, bx, by, sx0, sx1, sy0, sy1, side_margin = _segment_box(seg, i)
         x_lo = sx0 - max_wx
         f0 = math.floor((x_lo - x0) / width)
         f1 = math.floor((sx1 - x0) / width)
