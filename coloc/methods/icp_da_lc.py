@@ -93,12 +93,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
@@ -109,7 +107,7 @@ from coloc.inference.bpa import bpa_localization, step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore
 from coloc.inference.existence import TrackExistence, birth_existence, existence_update
-from coloc.inference.gaussian import log_gauss, relative_message, to_information
+from coloc.inference.gaussian import chi2_ppf, log_gauss, relative_message, to_information
 from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import (
@@ -248,12 +246,6 @@ def _i64(*arrays):
     return tuple(np.ascontiguousarray(a, dtype=np.int64) for a in arrays)
 
 
-@lru_cache(maxsize=64)
-def _chi2_ppf(p: float, dof: int) -> float:
-    """chi-square quantile, computed once per (p, dof): scipy's ppf costs ~0.1 ms a call."""
-    return float(chi2.ppf(p, dof))
-
-
 def candidate_pairs(
     v_mean: np.ndarray, v_cov: np.ndarray, t_mean: np.ndarray, t_cov: np.ndarray, lc: LcParams
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -337,7 +329,7 @@ def association_weights(
     if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused)
         owner = np.asarray(owner, dtype=np.int64)
         # pairs outside the gate get weight 0 below: their log-likelihoods are not computed
-        gate = _chi2_ppf(lc.gate_probability, 4) if lc.pairing == "gated" else math.inf
+        gate = chi2_ppf(lc.gate_probability, 4) if lc.pairing == "gated" else math.inf
         args = (*_f64(v_mean, v_cov, t_mean, t_cov), owner, *_f64(z, r), float(lc.sensing_range_m), gate)
         if detection is None and lc.new_feature_density == 0 and lc.clutter_intensity <= 0:
             # log_w below in the same call (the density of _untracked_feature_log_density per row)
@@ -371,7 +363,7 @@ def _gated_weights(log_w: np.ndarray, d2: np.ndarray, lc: LcParams) -> np.ndarra
     """exp(log eta), capped, and 0 outside the chi-square gate (``pairing = "gated"``)."""
     w = np.exp(np.minimum(log_w, 600.0))
     if lc.pairing == "gated":
-        w[d2 > _chi2_ppf(lc.gate_probability, 4)] = 0.0
+        w[d2 > chi2_ppf(lc.gate_probability, 4)] = 0.0
     return w
 
 
@@ -594,7 +586,7 @@ def merge_candidates(
     d = mean[a, :2] - mean[b, :2]
     s = cov[a, :2, :2] + cov[b, :2, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
-    ok = d2 <= _chi2_ppf(0.99, 2)
+    ok = d2 <= chi2_ppf(0.99, 2)
     if store.klass is not None:  # a pedestrian track and a landmark track are different objects
         ok &= store.klass[a] == store.klass[b]
     if row_owner.size and ok.any():
@@ -689,13 +681,13 @@ def icp_da_lc_step(
     implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
     implied_cov = own_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
     if row_cls is None:
-        labels = birth_clusters(owner[birth], implied, implied_cov, _chi2_ppf(0.99, 2))
+        labels = birth_clusters(owner[birth], implied, implied_cov, chi2_ppf(0.99, 2))
     else:  # rows of one class only start one track together
         labels = np.empty(birth.size, dtype=np.int64)
         off = 0
         for c in np.unique(row_cls[birth]):
             sub = np.flatnonzero(row_cls[birth] == c)
-            lab = birth_clusters(owner[birth][sub], implied[sub], implied_cov[sub], _chi2_ppf(0.99, 2))
+            lab = birth_clusters(owner[birth][sub], implied[sub], implied_cov[sub], chi2_ppf(0.99, 2))
             labels[sub] = lab + off
             off += int(lab.max()) + 1
     row_track[birth] = next_id + labels
@@ -810,7 +802,7 @@ def own_consistency_reset(
     overconfident by it returns to what its own sensors support. Returns (mean, cov, reset mask)."""
     d = mean[:, :2] - own_mean[:, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(own_cov[:, :2, :2], d[..., None])[..., 0])
-    reset = d2 > _chi2_ppf(gate_probability, 2)
+    reset = d2 > chi2_ppf(gate_probability, 2)
     if not reset.any():
         return mean, cov, reset
     mean, cov = mean.copy(), cov.copy()

@@ -106,7 +106,6 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.special import logsumexp
-from scipy.stats import chi2
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
@@ -116,7 +115,7 @@ from coloc.core.vehicles import fresh_rows, match_ids
 from coloc.inference.comm import PF_BIRTH_WORDS, CommCount, announcements, broadcast_rounds, pf_words
 from coloc.inference.consensus import average_consensus_with_weights, max_consensus, metropolis_weights
 from coloc.inference.existence import TrackExistence, birth_existence
-from coloc.inference.gaussian import log_gauss
+from coloc.inference.gaussian import chi2_ppf, log_gauss
 from coloc.inference.params import IcpParams
 from coloc.inference.particles import (
     gaussian_log_pdf,
@@ -802,7 +801,7 @@ def icp_da_pf_step(
         if pr.size:
             _, d2 = log_gauss(z[pr] - (t_mean[pt] - v_mean[pv]), t_cov[pt] + assoc_cov[pv] + r[pr])
             if lc.pairing == "gated":  # "paper": (25) for every candidate triple, ungated
-                keep = d2 <= chi2.ppf(lc.gate_probability, 4)
+                keep = d2 <= chi2_ppf(lc.gate_probability, 4)
                 pv, pt, pr = pv[keep], pt[keep], pr[keep]
         w = np.zeros(pr.size)
         log_new = np.zeros(0)
@@ -872,7 +871,7 @@ def icp_da_pf_step(
         # Births (LC step 6).
         birth_rows_all = np.flatnonzero((row_track < 0) & (row_new >= lc.birth_probability))
         labels = birth_clusters(owner[birth_rows_all], v_mean[owner[birth_rows_all], :2] + z[birth_rows_all, :2],
-                                assoc_cov[owner[birth_rows_all], :2, :2] + r[birth_rows_all, :2, :2], chi2.ppf(0.99, 2))
+                                assoc_cov[owner[birth_rows_all], :2, :2] + r[birth_rows_all, :2, :2], chi2_ppf(0.99, 2))
         n_born = int(labels.max()) + 1 if labels.size else 0
         birth_ids = next_id + np.arange(n_born, dtype=np.int64)
         birth_rows = np.array([birth_rows_all[np.flatnonzero(labels == c)[0]] for c in range(n_born)], dtype=np.int64)

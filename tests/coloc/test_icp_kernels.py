@@ -8,7 +8,7 @@ from coloc.core.models import symmetrize
 from coloc.inference.bpa import _pack_sym, _unpack_sym, bpa_localization
 import coloc.inference.bpa as bpa
 from coloc.inference.consensus import _average_kernel, metropolis_weights
-from coloc.inference.gaussian import _surely_above_floor, psd_clip, relative_message
+from coloc.inference.gaussian import _surely_above_floor, chi2_ppf, psd_clip, relative_message
 from coloc.inference.params import IcpParams
 from coloc.inference.row_consensus import (
     _pairwise_sum,
@@ -493,3 +493,14 @@ def test_pair_member_table_is_isin_of_the_pair_keys():
         args = [np.asarray(a, dtype=np.int64) for a in (mt, mc, rt, rc)]
         ref = np.isin(args[0] * (1 << 32) + args[1], args[2] * (1 << 32) + args[3])
         assert (pair_member_table(*args) == ref).all()
+
+
+def test_chi2_ppf_is_scipy_stats_bit_for_bit():
+    """The gates' quantile without scipy.stats (issue 24's start-up) is scipy.stats.chi2.ppf's number,
+    bit for bit: the shipped gate probabilities and a grid of others, 1 to 6 degrees of freedom."""
+    from scipy.stats import chi2
+
+    probabilities = np.concatenate([np.linspace(1e-4, 1 - 1e-6, 997), [0.9, 0.95, 0.99, 0.999, 0.9999, 0.999999]])
+    for dof in range(1, 7):
+        for p in probabilities:
+            assert chi2_ppf(float(p), dof) == float(chi2.ppf(p, dof)), (p, dof)
