@@ -110,15 +110,16 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
 
 def time_pooled(scenario: SumoScenario, cfg, workers: int) -> tuple[float, float]:
     """The coupled run of ``cfg.run.methods`` with the estimators in ``workers`` processes
-    (:class:`experiments.pipeline.EstimatorPool`, started inside the timing, as `coloc run` starts it):
+    (:class:`experiments.pipeline.EstimatorPool`, started inside the timing before SUMO, as `coloc run`
+    starts it):
     (wall seconds, CPU seconds of this process and the workers)."""
     from experiments.pipeline import EstimatorPool
 
     t0, c0 = time.perf_counter(), time.process_time() + _children_cpu()
     pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
     try:
-        pool.wait_ready()
-        with SumoCoupler(scenario, cfg.sensors) as coupler:
+        with SumoCoupler(scenario, cfg.sensors) as coupler:  # SUMO starts while the workers import
+            pool.wait_ready()
             for frame in coupler.frames():
                 pool.submit(frame)
         pool.finish()
