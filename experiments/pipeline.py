@@ -11,7 +11,10 @@ Each worker builds its own estimators from the registry's parameters (as the run
 them on the frames it is sent without truth; the known-association bound is sent the true
 association of the rows with it, by the runner, as in the serial loop. At most ``lookahead``
 frames wait for their results, so memory stays bounded. Estimators go to workers round robin in the
-config's order; with more workers than estimators the extra ones are not started.
+config's order; with more workers than estimators the extra ones are not started. Light methods (the
+registry's ``Method.light``: GNSS, whose step costs a sixth of a frame's synthesis) step in the
+runner's process, after the frame has been sent to the workers: shipping them the frame and their
+results back cost more than their step.
 
 What it costs: each frame is pickled once per worker (about 130 kB for the arterial's ~400 rows),
 each result once, and each worker imports the estimators once (in parallel with SUMO's start-up). What
@@ -25,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import socket
 import sys
 import threading
 import time
@@ -61,6 +65,14 @@ def step_comm(est):
     return comm
 
 
+def step_result(est, known: bool, blind: Frame, association) -> StepResult:
+    """Step one estimator on a frame without truth (``known``: the known-association bound, told
+    ``association``, the frame's true association of its rows) and time it."""
+    t0 = time.perf_counter()
+    res = est.step_with_association(blind, association) if known else est.step(blind)
+    return StepResult(est.name, res, step_comm(est), time.perf_counter() - t0)
+
+
 def assign_round_robin(n_methods: int, n_workers: int) -> list[list[int]]:
     """Method indices per worker: method i to worker i mod n (only workers that get a method)."""
     n = max(1, min(int(n_workers), n_methods))
@@ -88,12 +100,7 @@ def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
             if msg is None:
                 break
             blind, association = msg
-            out = []
-            for est, told in zip(estimators, known):
-                t0 = time.perf_counter()
-                res = est.step_with_association(blind, association) if told else est.step(blind)
-                out.append(StepResult(est.name, res, step_comm(est), time.perf_counter() - t0))
-            conn.send(("step", out))
+            conn.send(("step", [step_result(est, told, blind, association) for est, told in zip(estimators, known)]))
         conn.send(("stats", [dict(est.stats) if hasattr(est, "stats") else None for est in estimators]))
         finished = True
     except BaseException:  # noqa: BLE001 - the runner raises it in the main process
@@ -156,17 +163,22 @@ class EstimatorPool:
     """
 
     def __init__(self, methods: list[str], params, n_workers: int, lookahead: int = LOOKAHEAD):
-        from coloc.methods.registry import METHODS
+        from coloc.methods.registry import METHODS, build_method
 
         self.methods = list(methods)
-        self.groups = assign_round_robin(len(self.methods), n_workers)
+        # light methods (the registry's Method.light, GNSS) step here, the others in the workers
+        light = [i for i, m in enumerate(self.methods) if getattr(METHODS.get(m), "light", False)]
+        heavy = [i for i in range(len(self.methods)) if i not in light]
+        self.local = [(i, build_method(self.methods[i], params), METHODS[self.methods[i]].known_association)
+                      for i in light]
+        self.groups = [[heavy[k] for k in g] for g in assign_round_robin(len(heavy), n_workers)] if heavy else []
         self._needs_truth = [any(getattr(METHODS.get(self.methods[i]), "known_association", False) for i in g)
                              for g in self.groups]
         self.lookahead = max(1, int(lookahead))
-        self._pending: deque[Frame] = deque()
+        self._pending: deque[tuple[Frame, list[tuple[int, StepResult]]]] = deque()
         self.stats: dict[str, dict | None] = {}
         ctx = multiprocessing.get_context("spawn")
-        self._conns, self._procs, self._replies = [], [], []
+        self._conns, self._procs, self._replies, self._drains = [], [], [], []
         for group in self.groups:
             parent, child = ctx.Pipe()
             proc = ctx.Process(target=_worker_main, args=(child, self.methods, params, group), daemon=True)
@@ -176,7 +188,9 @@ class EstimatorPool:
             # A thread per worker takes its replies off the pipe as they come: a worker never blocks on
             # a full pipe while the runner is blocked sending it the next frame.
             replies: queue.Queue = queue.Queue()
-            threading.Thread(target=_drain, args=(parent, replies), daemon=True).start()
+            drain = threading.Thread(target=_drain, args=(parent, replies), daemon=True)
+            drain.start()
+            self._drains.append(drain)
             self._conns.append(parent)
             self._procs.append(proc)
             self._replies.append(replies)
@@ -197,8 +211,10 @@ class EstimatorPool:
             self._receive(w, "ready")
 
     def _collect_oldest(self) -> tuple[Frame, list[StepResult]]:
-        frame = self._pending.popleft()
+        frame, local = self._pending.popleft()
         results: list[StepResult | None] = [None] * len(self.methods)
+        for i, res in local:
+            results[i] = res
         for w, group in enumerate(self.groups):
             for i, res in zip(group, self._receive(w, "step")):
                 results[i] = res
@@ -209,7 +225,8 @@ class EstimatorPool:
         association = (np.asarray(frame.truth.v2f_feature) if frame.truth is not None else None)
         for w, conn in enumerate(self._conns):
             conn.send((blind, association if self._needs_truth[w] else None))
-        self._pending.append(frame)
+        # the light methods step while the workers step theirs
+        self._pending.append((frame, [(i, step_result(est, known, blind, association)) for i, est, known in self.local]))
         done = []
         while len(self._pending) > self.lookahead:
             done.append(self._collect_oldest())
@@ -224,11 +241,25 @@ class EstimatorPool:
         for w, group in enumerate(self.groups):
             for i, stats in zip(group, self._receive(w, "stats")):
                 self.stats[self.methods[i]] = stats
+        for i, est, _ in self.local:
+            self.stats[self.methods[i]] = dict(est.stats) if hasattr(est, "stats") else None
         self.close()
         return done
 
     def close(self) -> None:
-        """End the workers (also after an error: nothing is left running)."""
+        """End the workers (also after an error: nothing is left running).
+
+        The connections are shut down before they are closed: a worker still stepping and the thread
+        draining its replies both see the end of the stream (a connection closed under a thread that
+        reads it would raise there instead)."""
+        for conn in self._conns:
+            try:
+                with socket.socket(fileno=os.dup(conn.fileno())) as sock:
+                    sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        for drain in self._drains:
+            drain.join(timeout=5.0)
         for conn in self._conns:
             try:
                 conn.close()
@@ -239,7 +270,7 @@ class EstimatorPool:
             if proc.is_alive():
                 proc.terminate()
                 proc.join()
-        self._conns, self._procs = [], []
+        self._conns, self._procs, self._drains = [], [], []
 
     def __enter__(self) -> "EstimatorPool":
         return self

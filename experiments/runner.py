@@ -53,7 +53,7 @@ from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
-from experiments.pipeline import StepResult, step_comm
+from experiments.pipeline import step_result
 from experiments.scoring import (
     along_cross_errors,
     association_by_group,
@@ -539,13 +539,9 @@ def _serial_steps(frames, estimators: list, timing: bool):
         blind = frame.without_truth()
         results = []
         for est in estimators:
-            t0 = time.perf_counter()
-            if METHODS[est.name].known_association:
-                # The bound is told the true association, by the runner, never from the frame.
-                res = est.step_with_association(blind, frame.truth.v2f_feature)
-            else:
-                res = est.step(blind)
-            results.append(StepResult(est.name, res, step_comm(est), time.perf_counter() - t0))
+            known = METHODS[est.name].known_association
+            # The bound is told the true association, by the runner, never from the frame.
+            results.append(step_result(est, known, blind, frame.truth.v2f_feature if known else None))
         if timing and k == 0:
             _timing_line("first step of the estimators done")
         yield frame, results

@@ -57,6 +57,10 @@ class Method:
     # Handles frame.v2f_class (per-class feature model, class-gated association) or reads no V2F rows:
     # may run with [features] pedestrians.
     feature_classes: bool = False
+    # Its step costs a small fraction of a frame's synthesis: with the estimators in worker processes
+    # (``coloc run --workers N``, experiments.pipeline) it steps in the runner's process beside SUMO,
+    # where sending it the frame and its results back would cost more than its step.
+    light: bool = False
 
     @property
     def runnable(self) -> bool:
@@ -120,7 +124,7 @@ def _fg_topology_new(p: MethodParams):
     return FgTopologyInfra(_infra_params(p))
 
 
-GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True)
+GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True)
 ICP_KNOWN_DA = Method("icp_known_da", "ICP known DA", "black", _icp_known_da, known_association=True,
                       feature_classes=True)
 ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc, feature_classes=True)

@@ -77,6 +77,22 @@ def test_failing_worker_raises_and_ends_every_worker(cross_net, tmp_path):
     assert not any(p.is_alive() for p in pool._procs)
 
 
+def test_light_methods_step_in_the_runners_process(cross_net, tmp_path):
+    """GNSS (Method.light) is stepped beside the frame source; the other methods go to the workers
+    round robin, and a run of light methods alone starts no worker."""
+    cfg_path = tmp_path / "cfg.toml"
+    cfg_path.write_text(CONFIG.format(net=cross_net))
+    params = method_params(load_config(cfg_path, {}))
+    pool = EstimatorPool(["icp_known_da", "gnss", "icp_da_lc"], params, 2)
+    try:
+        assert [i for i, _, _ in pool.local] == [1] and pool.groups == [[0], [2]] and len(pool._procs) == 2
+    finally:
+        pool.close()
+    pool = EstimatorPool(["gnss"], params, 3)
+    assert pool.groups == [] and pool._procs == [] and [i for i, _, _ in pool.local] == [0]
+    pool.close()
+
+
 def test_negative_workers_is_one_clear_line(cross_net, tmp_path):
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(CONFIG.format(net=cross_net))
