@@ -14,13 +14,13 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
      1e-3 fast path side by side, each printed as icp_da_pf[kernel]; "fast+component" also stops BPA-L
      per connected component ([pf] bpa_stop = "component");
      --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
-     step by step beside the fused path on the same frames, and prints fused / reference per method;
+     beside the fused path on the same batches of frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
      same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x
      (--repeat N: N alternating idealised / realistic runs, their medians and every pair's ratio);
-     --workers N also times the coupled run with the estimators in N worker processes beside SUMO and the
-     coupler, as `coloc run --workers N` runs them (experiments.pipeline): wall time, and the CPU seconds of
-     all processes together)
+     --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
+     processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
+     the CPU seconds of all processes together)
 
 Each line also gives the CPU seconds of the work (the process's, or the `sumo` child's for the binary): on
 a shared machine wall times stretch with the load, CPU times much less.
@@ -52,6 +52,7 @@ from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
 from coloc.kernels import icp_fused  # noqa: E402
 from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA, METHODS  # noqa: E402
+from experiments.pipeline import BATCH  # noqa: E402
 from experiments.runner import build_estimators, method_params  # noqa: E402
 
 
@@ -89,19 +90,26 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
                  cpu_key: str = "") -> tuple[float, int, dict]:
     per_method = {e.name: 0.0 for e in estimators}
     steps = 0
+
+    def step(batch):  # each estimator over the batch, as coloc run steps them (experiments.pipeline.BATCH)
+        for est in estimators:
+            icp_fused.FUSED = not est.name.endswith(REFERENCE)  # the numpy reference path of --reference
+            known = METHODS[est.name.split("[")[0]].known_association  # the bound is told the association
+            for blind, association in batch:
+                s = time.perf_counter()
+                est.step_with_association(blind, association) if known else est.step(blind)
+                per_method[est.name] += time.perf_counter() - s
+
     t0, c0 = time.perf_counter(), time.process_time()
     with SumoCoupler(scenario, sensors) as coupler:
+        batch = []
         for frame in coupler.frames():
             steps += 1
-            blind = frame.without_truth()
-            for est in estimators:
-                s = time.perf_counter()
-                icp_fused.FUSED = not est.name.endswith(REFERENCE)  # the numpy reference path of --reference
-                if METHODS[est.name.split("[")[0]].known_association:  # the bound is told the association
-                    est.step_with_association(blind, frame.truth.v2f_feature)
-                else:
-                    est.step(blind)
-                per_method[est.name] += time.perf_counter() - s
+            batch.append((frame.without_truth(), frame.truth.v2f_feature))
+            if len(batch) == BATCH:
+                step(batch)
+                batch = []
+        step(batch)
     icp_fused.FUSED = True
     if cpu_key:
         CPU[cpu_key] = time.process_time() - c0
@@ -137,7 +145,7 @@ def main() -> None:
                     help="comma separated [pf] kernels (e.g. tree,fast,fast+component): one icp_da_pf each")
     ap.add_argument("--reference", action="store_true",
                     help="also run icp_known_da / icp_da_lc on the numpy reference path (icp_fused.FUSED = False), "
-                         "interleaved step by step with the fused path on the same frames, named <method>[reference]")
+                         "beside the fused path on the same batches of frames, named <method>[reference]")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
     ap.add_argument("--repeat", type=int, default=1,
@@ -218,7 +226,7 @@ def main() -> None:
           f"{(coupled - reference_s) / sumo_alone:5.2f}" + ("   (the [reference] estimators' time left out)"
                                                             if args.reference else ""))
     if pooled is not None:
-        print(f"  coupled, estimators in {args.workers} processes {pooled[0]:8.2f} s   ratio to sumo "
+        print(f"  coupled, --workers {args.workers}          {pooled[0]:8.2f} s   ratio to sumo "
               f"{pooled[0] / sumo_alone:5.2f}   | CPU of all processes {pooled[1]:6.2f} s (one process: "
               f"{CPU['coupled']:.2f} s)")
     for name, sec in per_method.items():

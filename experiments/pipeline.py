@@ -42,8 +42,21 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 
-#: frames sent ahead of the oldest result the runner has not taken yet
-LOOKAHEAD = 8
+#: Frames an estimator steps through before the next estimator runs (in the runner's loop and in each
+#: worker), and frames per message to a worker. Stepping one estimator over consecutive frames keeps its
+#: arrays and code, and SUMO's, in the caches: the TLR hour of gnss + icp_known_da + icp_da_lc in one
+#: process took 19.9-20.7 s frame by frame, 17.0-17.4 s in batches of 8 and 15.9-16.3 s in batches of
+#: 32 (docs/performance.md, "Estimators beside the traffic"). Results are the same whatever the batch:
+#: each estimator sees its frames in order.
+BATCH = 32
+
+#: batches sent ahead of the oldest batch whose results the runner has not taken yet
+LOOKAHEAD = 2
+
+#: The frame synthesis (SUMO and the coupler) in units of the registry's ``Method.cost``: on the TLR
+#: hour 3.0 s against icp_known_da's 5.1 s. The runner's process is a slot for the estimators too
+#: (:func:`assign_methods`), loaded with this much.
+FRAME_COST = 0.6
 
 
 @dataclass(frozen=True)
@@ -73,17 +86,51 @@ def step_result(est, known: bool, blind: Frame, association) -> StepResult:
     return StepResult(est.name, res, step_comm(est), time.perf_counter() - t0)
 
 
-def assign_round_robin(n_methods: int, n_workers: int) -> list[list[int]]:
-    """Method indices per worker: method i to worker i mod n (only workers that get a method)."""
-    n = max(1, min(int(n_workers), n_methods))
-    return [list(range(w, n_methods, n)) for w in range(n)]
+def step_batch(estimators: list, known: list[bool], batch: list) -> list[list[StepResult]]:
+    """Step each estimator over ``batch`` ((frame without truth, association) pairs, in step order)
+    before the next one runs (:data:`BATCH`); returns, per frame, its :class:`StepResult` list in
+    ``estimators`` order."""
+    out = [[None] * len(estimators) for _ in batch]
+    for j, (est, told) in enumerate(zip(estimators, known)):
+        for f, (blind, association) in enumerate(batch):
+            out[f][j] = step_result(est, told, blind, association)
+    return out
+
+
+def assign_methods(methods: list[str], n_workers: int) -> tuple[list[int], list[list[int]]]:
+    """Where each method steps with ``n_workers`` worker processes: (indices in the runner's process,
+    indices per worker), each list in config order.
+
+    Light methods (``Method.light``) stay in the runner's process. The others are spread by their
+    ``Method.cost`` over the runner's process, loaded with the frame synthesis (:data:`FRAME_COST`),
+    and the workers: heaviest first, each to the least loaded process (longest processing time
+    first; a tie goes to the earlier process, the runner's first). Only workers that get a method are
+    started, and each of those gets at least the first. On the arterial with one worker: icp_da_lc
+    (1.3) goes to the worker, icp_known_da (1.0) beside SUMO (0.6 + 0.1 for GNSS)."""
+    from coloc.methods.registry import METHODS
+
+    def cost(i: int) -> float:
+        m = METHODS.get(methods[i])
+        return float(m.cost) if m is not None else 1.0
+
+    local = [i for i, m in enumerate(methods) if getattr(METHODS.get(m), "light", False)]
+    heavy = sorted((i for i in range(len(methods)) if i not in local), key=lambda i: (-cost(i), i))
+    n = min(max(int(n_workers), 0), len(heavy))
+    slots: list[list[int]] = [list(local)] + [[] for _ in range(n)]
+    loads = [FRAME_COST + sum(cost(i) for i in local)] + [0.0] * n
+    for k, i in enumerate(heavy):
+        s_min = 1 + k if k < n else min(range(n + 1), key=lambda s: (loads[s], s))
+        slots[s_min].append(i)
+        loads[s_min] += cost(i)
+    return sorted(slots[0]), [sorted(g) for g in slots[1:]]
 
 
 def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
     """Worker process: build the estimators ``indices`` of ``methods`` from ``params`` (the registry's
-    :class:`coloc.methods.registry.MethodParams`), then step them on every frame received until None;
-    reply per frame with their :class:`StepResult` list, at the end with each estimator's ``stats``
-    (infrastructure methods' counters) or None. It imports the registry, not the runner.
+    :class:`coloc.methods.registry.MethodParams`), then step them on every batch of (frame without
+    truth, association) received until None (:func:`step_batch`); reply per batch with the frames'
+    :class:`StepResult` lists, at the end with each estimator's ``stats`` (infrastructure methods'
+    counters) or None. It imports the registry, not the runner.
 
     After its last reply the process ends at once (``os._exit``): everything it had to say is sent,
     and the interpreter's teardown of the estimators and numba took 0.45 s that the runner waited
@@ -99,8 +146,7 @@ def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
             msg = conn.recv()
             if msg is None:
                 break
-            blind, association = msg
-            conn.send(("step", [step_result(est, told, blind, association) for est, told in zip(estimators, known)]))
+            conn.send(("step", step_batch(estimators, known, msg)))
         conn.send(("stats", [dict(est.stats) if hasattr(est, "stats") else None for est in estimators]))
         finished = True
     except BaseException:  # noqa: BLE001 - the runner raises it in the main process
@@ -155,27 +201,31 @@ class EstimatorWorkerError(RuntimeError):
 
 
 class EstimatorPool:
-    """The config's estimators in worker processes; results in step and method order.
+    """The config's estimators in worker processes and beside the frame source; results in step and
+    method order.
 
-    ``submit(frame)`` sends a frame (with truth: the pool strips it, keeping the true association for
-    the known-association bound) and returns the finished steps as (frame, [StepResult, ...]) in order,
-    at most :data:`LOOKAHEAD` frames behind; ``finish()`` returns the rest and ends the workers.
+    ``submit(frame)`` takes a frame (with truth: the pool strips it, keeping the true association for
+    the known-association bound); every :data:`BATCH` frames it sends the batch to the workers and steps
+    the runner's own methods over it (:func:`assign_methods`). It returns the finished steps as
+    (frame, [StepResult, ...]) in order, at most :data:`LOOKAHEAD` batches behind; ``finish()``
+    returns the rest and ends the workers.
     """
 
-    def __init__(self, methods: list[str], params, n_workers: int, lookahead: int = LOOKAHEAD):
+    def __init__(self, methods: list[str], params, n_workers: int, lookahead: int = LOOKAHEAD,
+                 batch: int = BATCH):
         from coloc.methods.registry import METHODS, build_method
 
         self.methods = list(methods)
-        # light methods (the registry's Method.light, GNSS) step here, the others in the workers
-        light = [i for i, m in enumerate(self.methods) if getattr(METHODS.get(m), "light", False)]
-        heavy = [i for i in range(len(self.methods)) if i not in light]
-        self.local = [(i, build_method(self.methods[i], params), METHODS[self.methods[i]].known_association)
-                      for i in light]
-        self.groups = [[heavy[k] for k in g] for g in assign_round_robin(len(heavy), n_workers)] if heavy else []
+        local, self.groups = assign_methods(self.methods, n_workers)
+        self.local = local
+        self._local_estimators = [build_method(self.methods[i], params) for i in local]
+        self._local_known = [METHODS[self.methods[i]].known_association for i in local]
         self._needs_truth = [any(getattr(METHODS.get(self.methods[i]), "known_association", False) for i in g)
                              for g in self.groups]
         self.lookahead = max(1, int(lookahead))
-        self._pending: deque[tuple[Frame, list[tuple[int, StepResult]]]] = deque()
+        self.batch = max(1, int(batch))
+        self._filling: list[Frame] = []  # frames of the batch not sent yet
+        self._pending: deque[tuple[list[Frame], list[list[StepResult]]]] = deque()
         self.stats: dict[str, dict | None] = {}
         ctx = multiprocessing.get_context("spawn")
         self._conns, self._procs, self._replies, self._drains = [], [], [], []
@@ -186,7 +236,7 @@ class EstimatorPool:
                 proc.start()
             child.close()
             # A thread per worker takes its replies off the pipe as they come: a worker never blocks on
-            # a full pipe while the runner is blocked sending it the next frame.
+            # a full pipe while the runner is blocked sending it the next batch.
             replies: queue.Queue = queue.Queue()
             drain = threading.Thread(target=_drain, args=(parent, replies), daemon=True)
             drain.start()
@@ -210,38 +260,48 @@ class EstimatorPool:
         for w in range(len(self._conns)):
             self._receive(w, "ready")
 
-    def _collect_oldest(self) -> tuple[Frame, list[StepResult]]:
-        frame, local = self._pending.popleft()
-        results: list[StepResult | None] = [None] * len(self.methods)
-        for i, res in local:
-            results[i] = res
+    def _dispatch(self) -> None:
+        """Send the filling batch to the workers, then step the runner's methods over it."""
+        frames, self._filling = self._filling, []
+        blind = [f.without_truth() for f in frames]
+        truth = [np.asarray(f.truth.v2f_feature) if f.truth is not None else None for f in frames]
+        for w, conn in enumerate(self._conns):
+            conn.send([(b, a if self._needs_truth[w] else None) for b, a in zip(blind, truth)])
+        self._pending.append((frames, step_batch(self._local_estimators, self._local_known, list(zip(blind, truth)))))
+
+    def _collect_oldest(self) -> list[tuple[Frame, list[StepResult]]]:
+        frames, local = self._pending.popleft()
+        results: list[list[StepResult | None]] = [[None] * len(self.methods) for _ in frames]
+        for f, res in enumerate(local):
+            for i, r in zip(self.local, res):
+                results[f][i] = r
         for w, group in enumerate(self.groups):
-            for i, res in zip(group, self._receive(w, "step")):
-                results[i] = res
-        return frame, results
+            for f, res in enumerate(self._receive(w, "step")):
+                for i, r in zip(group, res):
+                    results[f][i] = r
+        return list(zip(frames, results))
 
     def submit(self, frame: Frame) -> list[tuple[Frame, list[StepResult]]]:
-        blind = frame.without_truth()
-        association = (np.asarray(frame.truth.v2f_feature) if frame.truth is not None else None)
-        for w, conn in enumerate(self._conns):
-            conn.send((blind, association if self._needs_truth[w] else None))
-        # the light methods step while the workers step theirs
-        self._pending.append((frame, [(i, step_result(est, known, blind, association)) for i, est, known in self.local]))
+        self._filling.append(frame)
         done = []
-        while len(self._pending) > self.lookahead:
-            done.append(self._collect_oldest())
+        if len(self._filling) >= self.batch:
+            self._dispatch()
+            while len(self._pending) > self.lookahead:
+                done.extend(self._collect_oldest())
         return done
 
     def finish(self) -> list[tuple[Frame, list[StepResult]]]:
+        if self._filling:
+            self._dispatch()
         done = []
         while self._pending:
-            done.append(self._collect_oldest())
+            done.extend(self._collect_oldest())
         for conn in self._conns:
             conn.send(None)
         for w, group in enumerate(self.groups):
             for i, stats in zip(group, self._receive(w, "stats")):
                 self.stats[self.methods[i]] = stats
-        for i, est, _ in self.local:
+        for i, est in zip(self.local, self._local_estimators):
             self.stats[self.methods[i]] = dict(est.stats) if hasattr(est, "stats") else None
         self.close()
         return done

@@ -53,7 +53,7 @@ from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
-from experiments.pipeline import step_result
+from experiments.pipeline import BATCH, step_batch
 from experiments.scoring import (
     along_cross_errors,
     association_by_group,
@@ -532,19 +532,30 @@ def frame_source(cfg: Config):
 
 
 def _serial_steps(frames, estimators: list, timing: bool):
-    """Step every estimator on every frame in this process: (frame, [StepResult, ...]) per frame."""
+    """Step every estimator on every frame in this process: (frame, [StepResult, ...]) per frame, in
+    step order. Each estimator steps through :data:`experiments.pipeline.BATCH` frames before the next
+    one runs (the same results, fewer cache misses: :func:`experiments.pipeline.step_batch`)."""
+    known = [METHODS[est.name].known_association for est in estimators]
+    batch: list = []
+    first = True
     for k, frame in enumerate(frames):
         if timing and k == 0:
             _timing_line("first frame")
-        blind = frame.without_truth()
-        results = []
-        for est in estimators:
-            known = METHODS[est.name].known_association
-            # The bound is told the true association, by the runner, never from the frame.
-            results.append(step_result(est, known, blind, frame.truth.v2f_feature if known else None))
-        if timing and k == 0:
+        batch.append(frame)
+        if len(batch) < BATCH and not (timing and first):
+            continue
+        yield from _step_frames(batch, estimators, known)
+        if timing and first:
             _timing_line("first step of the estimators done")
-        yield frame, results
+            first = False
+        batch = []
+    yield from _step_frames(batch, estimators, known)
+
+
+def _step_frames(frames: list, estimators: list, known: list[bool]):
+    # The bound is told the true association, by the runner, never from the frame.
+    pairs = [(f.without_truth(), f.truth.v2f_feature if any(known) else None) for f in frames]
+    yield from zip(frames, step_batch(estimators, known, pairs))
 
 
 def _pooled_steps(frames, pool, timing: bool):

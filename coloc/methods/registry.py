@@ -61,6 +61,11 @@ class Method:
     # (``coloc run --workers N``, experiments.pipeline) it steps in the runner's process beside SUMO,
     # where sending it the frame and its results back would cost more than its step.
     light: bool = False
+    # Relative cost of a step (icp_known_da = 1): where it steps with worker processes
+    # (experiments.pipeline.assign_methods). Measured on the TLR hour (bench/coupled_vs_sumo.py):
+    # gnss 0.1 ms, icp_known_da 1.06 ms, icp_da_lc 1.41 ms a step; icp_da_pf 1.5-2 s a step at
+    # J = 1000. Not measured: 1.
+    cost: float = 1.0
 
     @property
     def runnable(self) -> bool:
@@ -124,13 +129,13 @@ def _fg_topology_new(p: MethodParams):
     return FgTopologyInfra(_infra_params(p))
 
 
-GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True)
+GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True, cost=0.1)
 ICP_KNOWN_DA = Method("icp_known_da", "ICP known DA", "black", _icp_known_da, known_association=True,
-                      feature_classes=True)
-ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc, feature_classes=True)
-ICP_DA_PF = Method("icp_da_pf", "ICP-DA-PF", "tab:orange", _icp_da_pf)
+                      feature_classes=True, cost=1.0)
+ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc, feature_classes=True, cost=1.3)
+ICP_DA_PF = Method("icp_da_pf", "ICP-DA-PF", "tab:orange", _icp_da_pf, cost=1500.0)
 ICP_KNOWN_DA_PF = Method("icp_known_da_pf", "ICP-PF known DA", "goldenrod", _icp_known_da_pf,
-                         known_association=True)
+                         known_association=True, cost=1500.0)
 RSU_BP = Method("rsu_bp", "RSU-BP", "tab:purple", _rsu_bp, infrastructure=True)
 SME = Method("sme", "SME", "tab:brown", _sme, infrastructure=True)
 FG_TOPOLOGY_OLD = Method("fg_topology_old", "FG topology (old)", "tab:pink")

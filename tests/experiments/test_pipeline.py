@@ -11,7 +11,7 @@ import pytest
 
 from experiments.cli import main
 from experiments.config import load_config
-from experiments.pipeline import EstimatorPool, EstimatorWorkerError, assign_round_robin
+from experiments.pipeline import EstimatorPool, EstimatorWorkerError, assign_methods
 from experiments.runner import method_params
 
 PROJECT = Path(__file__).resolve().parents[2]
@@ -39,12 +39,18 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_round_robin_assignment():
-    assert assign_round_robin(3, 2) == [[0, 2], [1]]
-    assert assign_round_robin(3, 8) == [[0], [1], [2]]
-    assert assign_round_robin(1, 1) == [[0]]
-    groups = assign_round_robin(7, 3)
-    assert sorted(i for g in groups for i in g) == list(range(7))
+def test_methods_go_where_their_cost_balances():
+    """Light methods stay beside SUMO; the others go heaviest first to the least loaded process, the
+    runner's counting the frame synthesis (FRAME_COST); only workers with a method exist."""
+    methods = ["gnss", "icp_known_da", "icp_da_lc"]
+    assert assign_methods(methods, 1) == ([0, 1], [[2]])  # LC (1.3) in the worker, known DA beside SUMO
+    assert assign_methods(methods, 2) == ([0], [[2], [1]])
+    assert assign_methods(methods, 8) == ([0], [[2], [1]])
+    assert assign_methods(["gnss"], 3) == ([0], [])
+    assert assign_methods(["icp_known_da"], 1) == ([], [[0]])
+    assert assign_methods(["icp_known_da", "icp_da_pf", "icp_da_lc"], 1) == ([0, 2], [[1]])
+    local, groups = assign_methods(["icp_known_da"] * 7, 3)
+    assert sorted(local + [i for g in groups for i in g]) == list(range(7)) and all(groups)
 
 
 @pytest.mark.parametrize("workers", [1, 3])
@@ -78,18 +84,18 @@ def test_failing_worker_raises_and_ends_every_worker(cross_net, tmp_path):
 
 
 def test_light_methods_step_in_the_runners_process(cross_net, tmp_path):
-    """GNSS (Method.light) is stepped beside the frame source; the other methods go to the workers
-    round robin, and a run of light methods alone starts no worker."""
+    """GNSS (Method.light) is stepped beside the frame source, the others in the workers when there are
+    enough of them; a run of light methods alone starts no worker."""
     cfg_path = tmp_path / "cfg.toml"
     cfg_path.write_text(CONFIG.format(net=cross_net))
     params = method_params(load_config(cfg_path, {}))
     pool = EstimatorPool(["icp_known_da", "gnss", "icp_da_lc"], params, 2)
     try:
-        assert [i for i, _, _ in pool.local] == [1] and pool.groups == [[0], [2]] and len(pool._procs) == 2
+        assert pool.local == [1] and pool.groups == [[2], [0]] and len(pool._procs) == 2
     finally:
         pool.close()
     pool = EstimatorPool(["gnss"], params, 3)
-    assert pool.groups == [] and pool._procs == [] and [i for i, _, _ in pool.local] == [0]
+    assert pool.groups == [] and pool._procs == [] and pool.local == [0]
     pool.close()
 
 
