@@ -241,8 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--methods", help="override [run] methods, comma separated (e.g. gnss)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--workers", type=int, default=0,
-                   help="step the estimators in this many worker processes beside SUMO and the coupler "
-                        "(default 0: in this process; 1 is the fastest on 2 cores); the same files, byte for byte")
+                   help="spread the estimators over this process and this many worker processes, by the "
+                        "registry's cost of each (default 0: all in this process; 1 is the fastest on 2 cores); "
+                        "the same files, byte for byte")
     r.set_defaults(func=cmd_run)
 
     sw = sub.add_parser("sweep", help="Monte Carlo / parameter sweep on Dask (resumable)")
