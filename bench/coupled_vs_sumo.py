@@ -105,7 +105,10 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
         batch = []
         for frame in coupler.frames():
             steps += 1
-            batch.append((frame.without_truth(), frame.truth.v2f_feature))
+            item = (frame.without_truth(), frame.truth.v2f_feature)
+            if not estimators:  # the frames alone: nothing to hold
+                continue
+            batch.append(item)
             if len(batch) == BATCH:
                 step(batch)
                 batch = []
