@@ -3,10 +3,11 @@
 against footprints and against the net folder's buildings.
 
 * Vehicles: every SUMO vehicle on the road is a length x width rectangle behind its front bumper,
-  along the heading (:func:`vehicle_footprints`). A sight line is tested against the footprints by a
-  numba sort-and-sweep over their x extents (:class:`OccluderIndex`) and exact segment/rectangle tests
-  (edges included), skipped for a footprint that lies wholly to one side of the line
-  (:func:`_occluded_by_quads_sided`).
+  along the heading (:func:`vehicle_footprints`). A sight line is tested against the footprints listed in
+  x buckets of their bounding boxes (:func:`_occluder_buckets`, :class:`OccluderIndex`) by exact
+  segment/rectangle tests (edges included), skipped for a footprint that lies wholly to one side of the
+  line (:func:`_occluded_by_quads_bucketed`); :func:`_occluded_by_quads` is the plain loop over every
+  footprint they are tested against.
 * Buildings: the polygons of ``buildings.geojson``; only sight lines that meet a building's bounding box
   (:func:`_needs_building_test`, boxes listed per 4 m cell, :class:`BuildingBoxes`) go to shapely 2's
   STRtree ``query(..., predicate="intersects")``, all at once.
@@ -113,31 +114,22 @@ def _segment_hits_quad(quad, ax, ay, bx, by):
 
 
 @njit(cache=True)
-def _occluded_by_quads(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx):
-    """For each segment (M, 4): does it hit a quad other than skip_a / skip_b?  Quads are visited
-    through ``order`` (sorted by bounding-box x minimum) within the segment's x extent."""
+def _occluded_by_quads(seg, skip_a, skip_b, quads):
+    """For each segment (M, 4): does it hit a quad other than skip_a / skip_b? Every quad tested exactly
+    (:func:`_segment_hits_quad`): the reference of :func:`_occluded_by_quads_bucketed`."""
     m = seg.shape[0]
     out = np.zeros(m, dtype=np.bool_)
     for i in range(m):
         ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
-        sx0, sx1 = min(ax, bx), max(ax, bx)
-        sy0, sy1 = min(ay, by), max(ay, by)
-        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
-        hi = np.searchsorted(xmin_sorted, sx1, side="right")
-        for r in range(lo, hi):
-            q = order[r]
-            if q == skip_a[i] or q == skip_b[i]:
-                continue
-            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
-                continue
-            if _segment_hits_quad(quads[q], ax, ay, bx, by):
+        for q in range(quads.shape[0]):
+            if q != skip_a[i] and q != skip_b[i] and _segment_hits_quad(quads[q], ax, ay, bx, by):
                 out[i] = True
                 break
     return out
 
 
 #: A sight line passes a footprint for certain when all four corners lie on one side of its line, more than
-#: SIDE_MARGIN_M from it (_occluded_by_quads_sided).
+#: SIDE_MARGIN_M from it (_quad_hides).
 SIDE_MARGIN_M = 1e-6
 
 
@@ -148,28 +140,6 @@ def _segment_box(seg, i):
     dx, dy = bx - ax, by - ay
     return (ax, ay, bx, by, min(ax, bx), max(ax, bx), min(ay, by), max(ay, by),
             SIDE_MARGIN_M * math.sqrt(dx * dx + dy * dy))
-
-
-@njit(cache=True)
-def _occluded_by_quads_sided(seg, skip_a, skip_b, quads, order, xmin_sorted, xmax, ymin, ymax, max_wx, rectangle):
-    """:func:`_occluded_by_quads` (the same answers) with a shortcut before the exact test of a ``rectangle``
-    quad (:func:`_quad_hides`)."""
-    m = seg.shape[0]
-    out = np.zeros(m, dtype=np.bool_)
-    for i in range(m):
-        ax, ay, bx, by, sx0, sx1, sy0, sy1, side_margin = _segment_box(seg, i)
-        lo = np.searchsorted(xmin_sorted, sx0 - max_wx, side="left")
-        hi = np.searchsorted(xmin_sorted, sx1, side="right")
-        for r in range(lo, hi):
-            q = order[r]
-            if q == skip_a[i] or q == skip_b[i]:
-                continue
-            if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
-                continue
-            if _quad_hides(quads, q, rectangle[q], ax, ay, bx, by, side_margin):
-                out[i] = True
-                break
-    return out
 
 
 @njit(cache=True)
@@ -207,8 +177,8 @@ OCCLUDER_BUCKET_M = 8.0
 def _occluder_buckets(corners, width):
     """The quads listed by the x bucket of their bounding box's xmin, buckets ``width`` wide (or wider: at most
     4 K + 16 buckets) from the smallest xmin, with the boxes (:func:`_quad_boxes`): (order (K,), bucket starts
-    (B + 1,), x0, width, xmin, xmax, ymin, ymax (K,) each, the widest x extent). A counting sort instead of
-    :func:`_occluder_boxes`' comparison sort; :func:`_occluded_by_quads_bucketed` reads it."""
+    (B + 1,), x0, width, xmin, xmax, ymin, ymax (K,) each, the widest x extent). A counting sort: the order is
+    stable within a bucket. :func:`_occluded_by_quads_bucketed` reads it."""
     k = corners.shape[0]
     xmin, xmax, ymin, ymax, max_wx = _quad_boxes(corners)
     x0 = xmin.min() if k else 0.0
@@ -234,13 +204,14 @@ def _occluder_buckets(corners, width):
 
 
 @njit(cache=True)
-def _occluded_by_quads_bucketed(seg, skip_a, quads, order, start, x0, width, xmin, xmax, ymin, ymax, max_wx,
-                                rectangle):
-    """:func:`_occluded_by_quads_sided` (the same answers; no second skip) over :func:`_occluder_buckets`: the
-    candidates of a segment are the quads of the buckets its window [x_lo, x_hi] = [min x - max_wx, max x]
-    covers, kept when their xmin lies in the window, as the sorted search keeps them (the bucket of a value is
-    monotone in it, so those buckets hold every quad of the window). A segment with a coordinate that is not
-    finite looks at every quad."""
+def _occluded_by_quads_bucketed(seg, skip_a, skip_b, quads, order, start, x0, width, xmin, xmax, ymin, ymax,
+                                max_wx, rectangle):
+    """:func:`_occluded_by_quads` (the same answers) over :func:`_occluder_buckets`: the candidates of a
+    segment are the quads of the buckets its window [x_lo, x_hi] = [min x - max_wx, max x] covers, kept when
+    their xmin lies in the window (the bucket of a value is monotone in it, so those buckets hold every quad
+    of the window; a quad outside it cannot meet the segment), then those whose box meets the segment's box,
+    each decided by :func:`_quad_hides` (a shortcut for a ``rectangle`` wholly on one side of the line, then
+    the exact test). A segment with a coordinate that is not finite looks at every quad."""
     m = seg.shape[0]
     nb = start.size - 1
     out = np.zeros(m, dtype=np.bool_)
@@ -257,7 +228,7 @@ def _occluded_by_quads_bucketed(seg, skip_a, quads, order, start, x0, width, xmi
             b0, b1 = 0, nb - 1
         for r in range(start[b0], start[b1 + 1]):
             q = order[r]
-            if q == skip_a[i] or xmin[q] < x_lo or xmin[q] > sx1:
+            if q == skip_a[i] or q == skip_b[i] or xmin[q] < x_lo or xmin[q] > sx1:
                 continue
             if xmax[q] < sx0 or ymax[q] < sy0 or ymin[q] > sy1:
                 continue
@@ -270,8 +241,8 @@ def _occluded_by_quads_bucketed(seg, skip_a, quads, order, start, x0, width, xmi
 @njit(cache=True)
 def _rectangles(corners):
     """(K,) bool: quad q is a counter-clockwise rectangle with sides longer than 0.1 m (corners as
-    :func:`_footprints` writes them, right angles within 1e-6), the quads :func:`_occluded_by_quads_sided`
-    may pass by their sides."""
+    :func:`_footprints` writes them, right angles within 1e-6), the quads :func:`_quad_hides` may pass by
+    their sides."""
     k = corners.shape[0]
     out = np.zeros(k, dtype=np.bool_)
     for q in range(k):
@@ -292,12 +263,16 @@ def _rectangles(corners):
 
 @dataclass(frozen=True)
 class OccluderIndex:
-    """Vehicle footprints (K, 4, 2) sorted by their bounding boxes' x minimum, built once per step;
-    ``rectangle`` marks the footprints that are counter-clockwise rectangles (:func:`_rectangles`)."""
+    """Vehicle footprints (K, 4, 2) listed by the x bucket of their bounding boxes (:func:`_occluder_buckets`,
+    buckets OCCLUDER_BUCKET_M wide), built once per step; ``rectangle`` marks the footprints that are
+    counter-clockwise rectangles (:func:`_rectangles`)."""
 
     corners: np.ndarray
-    order: np.ndarray
-    xmin_sorted: np.ndarray
+    order: np.ndarray  # quad indices, bucket by bucket
+    start: np.ndarray  # (B + 1,) where each bucket's quads begin in ``order``
+    x0: float
+    width: float
+    xmin: np.ndarray  # bounding boxes (K,) each, in quad order
     xmax: np.ndarray
     ymin: np.ndarray
     ymax: np.ndarray
@@ -307,9 +282,14 @@ class OccluderIndex:
     @classmethod
     def build(cls, corners: np.ndarray) -> "OccluderIndex":
         corners = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 4, 2)
-        order, xmin_sorted, xmax, ymin, ymax, max_wx = _occluder_boxes(corners)
-        return cls(corners=corners, order=order, xmin_sorted=xmin_sorted, xmax=xmax, ymin=ymin, ymax=ymax,
-                   max_wx=max_wx, rectangle=_rectangles(corners))
+        order, start, x0, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
+        return cls(corners=corners, order=order, start=start, x0=float(x0), width=float(width), xmin=xmin,
+                   xmax=xmax, ymin=ymin, ymax=ymax, max_wx=float(max_wx), rectangle=_rectangles(corners))
+
+    def buckets(self) -> tuple:
+        """The arguments of :func:`_occluded_by_quads_bucketed` after the skips: quads .. rectangle."""
+        return (self.corners, self.order, self.start, self.x0, self.width, self.xmin, self.xmax, self.ymin,
+                self.ymax, self.max_wx, self.rectangle)
 
 
 @njit(cache=True)
@@ -335,14 +315,6 @@ def _quad_boxes(corners):
     return xmin, xmax, ymin, ymax, max_wx
 
 
-@njit(cache=True)
-def _occluder_boxes(corners):
-    """Bounding boxes of the quads, their stable order by x minimum, and the widest x extent."""
-    xmin, xmax, ymin, ymax, max_wx = _quad_boxes(corners)
-    order = np.argsort(xmin, kind="mergesort")
-    return order, xmin[order], xmax, ymin, ymax, max_wx
-
-
 def occluded_by_vehicles(start: np.ndarray, end: np.ndarray, occluders: "OccluderIndex | np.ndarray",
                          observer: np.ndarray, target: np.ndarray | None = None) -> np.ndarray:
     """(M,) bool: the sight line start[i] -> end[i] crosses a vehicle footprint (``occluders``: an
@@ -359,9 +331,8 @@ def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer
     if m == 0 or idx.corners.shape[0] == 0:
         return np.zeros(m, dtype=bool)
     skip_b = np.full(m, -1, dtype=np.int64) if target is None else np.asarray(target, dtype=np.int64)
-    return _occluded_by_quads_sided(np.ascontiguousarray(seg, dtype=np.float64),
-                                    np.asarray(observer, dtype=np.int64), skip_b, idx.corners, idx.order,
-                                    idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax, idx.max_wx, idx.rectangle)
+    return _occluded_by_quads_bucketed(np.ascontiguousarray(seg, dtype=np.float64),
+                                       np.asarray(observer, dtype=np.int64), skip_b, *idx.buckets())
 
 
 BUILDING_CELL_M = 4.0

@@ -18,8 +18,8 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
   (a length x width rectangle behind the front bumper, along the heading: every vehicle on the road,
   connected or not) or a building polygon (``buildings.geojson`` of the net folder). The observing
   vehicle never occludes its own sight lines, nor does a target that is itself a vehicle. Vehicles:
-  a numba sort-and-sweep over the footprints' x extents plus exact segment/rectangle tests (skipped for a
-  footprint that lies wholly to one side of the line); buildings: a shapely 2 STRtree
+  the footprints listed in x buckets of their bounding boxes plus exact segment/rectangle tests (skipped
+  for a footprint that lies wholly to one side of the line); buildings: a shapely 2 STRtree
   ``query(..., predicate="intersects")`` over the sight lines that meet a building's bounding box, all
   at once (the geometry: :mod:`couplers.occlusion`).
 * Detection: a visible feature at distance d is detected with probability
@@ -706,8 +706,9 @@ def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target,
     clear = np.ones(m, dtype=np.bool_)
     if use_vehicles and m > 0 and corners.shape[0] > 0:
         order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
-        hidden = _occluded_by_quads_bucketed(seg, skip_a, corners, order, start, x0_b, width, xmin, xmax, ymin, ymax,
-                                             max_wx, _rectangles(corners))
+        no_target = np.full(m, -1, dtype=np.int64)  # the targets are features, not footprints
+        hidden = _occluded_by_quads_bucketed(seg, skip_a, no_target, corners, order, start, x0_b, width, xmin, xmax,
+                                             ymin, ymax, max_wx, _rectangles(corners))
         for r in range(m):
             clear[r] = not hidden[r]
     n_clear = 0

@@ -204,13 +204,16 @@ def test_footprints_and_occluder_boxes_equal_the_array_reference():
     corners[:50] = np.round(corners[:50])  # ties in the x minimum: the order stays stable
     idx = OccluderIndex.build(corners)
     xmin, xmax = corners[:, :, 0].min(axis=1), corners[:, :, 0].max(axis=1)
-    order = np.argsort(xmin, kind="stable")
-    np.testing.assert_array_equal(idx.order, order)
-    np.testing.assert_array_equal(idx.xmin_sorted, xmin[order])
+    np.testing.assert_array_equal(idx.xmin, xmin)
     np.testing.assert_array_equal(idx.xmax, xmax)
     np.testing.assert_array_equal(idx.ymin, corners[:, :, 1].min(axis=1))
     np.testing.assert_array_equal(idx.ymax, corners[:, :, 1].max(axis=1))
     assert idx.max_wx == float((xmax - xmin).max())
+    # the buckets: a stable counting sort by the bucket of each xmin
+    bucket = np.minimum(((xmin - idx.x0) / idx.width).astype(np.int64), idx.start.size - 2)
+    assert idx.x0 == xmin.min() and idx.start[0] == 0 and idx.start[-1] == len(corners)
+    np.testing.assert_array_equal(idx.order, np.argsort(bucket, kind="stable"))
+    np.testing.assert_array_equal(np.diff(idx.start), np.bincount(bucket, minlength=idx.start.size - 1))
     assert OccluderIndex.build(np.empty((0, 4, 2))).max_wx == 0.0
 
 
@@ -402,10 +405,10 @@ def test_continuity_equals_its_numpy_reference():
 
 def test_occlusion_side_shortcut_gives_the_exact_answers():
     """Footprints (rectangles) and other quads against sight lines in general position and through corners,
-    along edges, starting on edges or inside, touching at one point, of zero length: every answer as the exact
-    kernel's, through the sorted index and through the x buckets."""
+    along edges, starting on edges or inside, touching at one point, of zero length: every answer of the
+    x buckets and the side shortcut as the plain exact loop's, with one skip or two."""
     from couplers.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_bucketed,
-                                    _occluded_by_quads_sided, _occluder_buckets, unit_heading, vehicle_footprints)
+                                    _occluder_buckets, occluded_by_vehicles, unit_heading, vehicle_footprints)
 
     rng = np.random.default_rng(18)
     for offset in (0.0, 4.0e4):  # coordinates of a small net, and of a large one (more rounding)
@@ -436,27 +439,25 @@ def test_occlusion_side_shortcut_gives_the_exact_answers():
             np.hstack([pick + 1e-7 * (far - pick), far]), np.hstack([far, pick - 1e-7 * (far - pick)]),
         ])
         skip_a = rng.integers(-1, len(quads), len(seg))
-        skip_b = np.full(len(seg), -1, dtype=np.int64)
-        args = (seg, skip_a, skip_b, idx.corners, idx.order, idx.xmin_sorted, idx.xmax, idx.ymin, idx.ymax,
-                idx.max_wx)
-        want = _occluded_by_quads(*args)
-        np.testing.assert_array_equal(_occluded_by_quads_sided(*args, idx.rectangle), want)
-        # the x buckets of the perception's stage: every bucket width, including one that the cap on the
-        # number of buckets widens (1e-3 m), and quads far apart (huge spans)
-        for width in (1e-3, 0.7, 8.0, 50.0, 1e4):
-            b = _occluder_buckets(idx.corners, width)
-            np.testing.assert_array_equal(_occluded_by_quads_bucketed(seg, skip_a, idx.corners, *b, idx.rectangle),
-                                          want)
+        no_b = np.full(len(seg), -1, dtype=np.int64)
+        skip_b = rng.integers(-1, len(quads), len(seg))
+        for b_skip in (no_b, skip_b):
+            want = _occluded_by_quads(seg, skip_a, b_skip, quads)
+            # every bucket width, including one that the cap on the number of buckets widens (1e-3 m)
+            for width in (1e-3, 0.7, 8.0, 50.0, 1e4):
+                b = _occluder_buckets(idx.corners, width)
+                np.testing.assert_array_equal(
+                    _occluded_by_quads_bucketed(seg, skip_a, b_skip, idx.corners, *b, idx.rectangle), want)
+            np.testing.assert_array_equal(occluded_by_vehicles(seg[:, :2], seg[:, 2:], idx, skip_a, b_skip), want)
+            assert 0.05 < want.mean() < 0.95
+        # quads far apart (huge spans)
         far_quads = quads.copy()
         far_quads[:3] += np.array([1e7, -1e7])
-        far_idx = OccluderIndex.build(far_quads)
-        far_args = (seg, skip_a, skip_b, far_idx.corners, far_idx.order, far_idx.xmin_sorted, far_idx.xmax,
-                    far_idx.ymin, far_idx.ymax, far_idx.max_wx)
-        b = _occluder_buckets(far_idx.corners, 8.0)
+        b = _occluder_buckets(far_quads, 8.0)
         assert b[1].size <= 4 * len(far_quads) + 17
-        np.testing.assert_array_equal(_occluded_by_quads_bucketed(seg, skip_a, far_idx.corners, *b,
-                                                                  far_idx.rectangle), _occluded_by_quads(*far_args))
-        assert 0.05 < want.mean() < 0.95
+        np.testing.assert_array_equal(
+            _occluded_by_quads_bucketed(seg, skip_a, skip_b, far_quads, *b, OccluderIndex.build(far_quads).rectangle),
+            _occluded_by_quads(seg, skip_a, skip_b, far_quads))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
