@@ -353,6 +353,7 @@ class EstimateLog:
         if self.infra_parts:
             covered, rsu = (np.concatenate(c) for c in zip(*self.infra_parts))
             infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
+        vid, zone, area = vid.astype(str), zone.astype(str), area.astype(str)  # once for every method
         frames = []
         for method, parts in self.method_parts.items():
             mean, vx_, vy_, _ = (np.concatenate(c) for c in zip(*parts))
@@ -364,14 +365,14 @@ class EstimateLog:
                         "run": run_name,
                         "method": method,
                         "t": t,
-                        "vehicle": vid.astype(str),
+                        "vehicle": vid,
                         "px": mean[:, 0], "py": mean[:, 1], "vx": mean[:, 2], "vy": mean[:, 3],
                         "px_true": x_true[:, 0], "py_true": x_true[:, 1],
                         "vx_true": x_true[:, 2], "vy_true": x_true[:, 3],
                         "err_pos": np.hypot(err[:, 0], err[:, 1]),
                         "err_vel": np.hypot(err[:, 2], err[:, 3]),
                         "err_along": along, "err_cross": cross,
-                        "zone": zone.astype(str), "area": area.astype(str),
+                        "zone": zone, "area": area,
                         "var_px": vx_, "var_py": vy_,
                         **infra_cols,
                     }

@@ -111,7 +111,16 @@ def track_labels(track: np.ndarray, feature: np.ndarray) -> dict[int, int]:
     feature = np.asarray(feature, dtype=np.int64)
     if track.size == 0:
         return {}
-    pairs, counts = np.unique(np.stack([track, feature], axis=1), axis=0, return_counts=True)
+    # The distinct (track, feature) pairs and their counts: one lexsort of the two columns and the runs
+    # of equal pairs (what np.unique(..., axis=0, return_counts=True) gives, in its order; its sort of
+    # the rows as a structured dtype took 1 s for the 1.9M rows of an arterial hour).
+    by_pair = np.lexsort((feature, track))
+    t_s, f_s = track[by_pair], feature[by_pair]
+    first_of_run = np.ones(t_s.size, dtype=bool)
+    first_of_run[1:] = (t_s[1:] != t_s[:-1]) | (f_s[1:] != f_s[:-1])
+    starts = np.flatnonzero(first_of_run)
+    pairs = np.stack([t_s[starts], f_s[starts]], axis=1)
+    counts = np.diff(np.append(starts, t_s.size))
     # Order: track ascending, count descending, feature ascending; the first row per track wins.
     order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
     pairs = pairs[order]

@@ -76,3 +76,21 @@ def test_ghost_tracks_have_no_feature_error(tmp_path):
     scores = log.association_scores()
     table = log.feature_table(["icp_da_lc"], scores)
     assert table["track"].tolist() == [10] and table["err_pos"].tolist() == [0.5]
+
+
+def test_track_labels_equal_the_unique_rows_reference():
+    """The lexsort runs give the labels of np.unique(axis=0)'s counts: most frequent feature per track,
+    ties to the smallest (random pairs with many ties, clutter -1, large ids)."""
+    def reference(track, feature):
+        pairs, counts = np.unique(np.stack([track, feature], axis=1), axis=0, return_counts=True)
+        order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+        pairs = pairs[order]
+        first = np.ones(len(pairs), dtype=bool)
+        first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+        return {int(t): int(f) for t, f in pairs[first]}
+
+    rng = np.random.default_rng(11)
+    for n, n_tracks, n_features in ((1, 1, 1), (50, 5, 3), (20000, 300, 40), (5000, 2000, 5)):
+        track = rng.integers(0, n_tracks, n) * 7919 + 10**9
+        feature = rng.integers(-1, n_features, n)
+        assert track_labels(track, feature) == reference(track, feature)
