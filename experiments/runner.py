@@ -560,23 +560,26 @@ def _step_frames(frames: list, estimators: list, known: list[bool]):
 
 
 def _pooled_steps(frames, pool, timing: bool):
-    """The same as :func:`_serial_steps` with the estimators in ``pool``'s worker processes
-    (:mod:`experiments.pipeline`): the frames are made while the workers step the earlier ones."""
-    k = 0
+    """The same as :func:`_serial_steps` with the estimators spread over this process and ``pool``'s
+    workers (:mod:`experiments.pipeline`): the frames are made while the workers step the earlier
+    ones. With ``timing``, the second line comes when the first batch's results are back (BATCH
+    frames and LOOKAHEAD batches after the first frame), not after the first step."""
     pool.wait_ready()
+    first_frame, first_result = timing, timing
     for frame in frames:
-        if timing and k == 0:
+        if first_frame:
             _timing_line("first frame")
+            first_frame = False
         for done in pool.submit(frame):
             yield done
-            if timing and k == 0:
-                _timing_line("first step of the estimators done")
-            k += 1
+            if first_result:
+                _timing_line("first results of the estimators back")
+                first_result = False
     for done in pool.finish():
         yield done
-        if timing and k == 0:
-            _timing_line("first step of the estimators done")
-        k += 1
+        if first_result:
+            _timing_line("first results of the estimators back")
+            first_result = False
 
 
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,

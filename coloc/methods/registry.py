@@ -62,9 +62,9 @@ class Method:
     # where sending it the frame and its results back would cost more than its step.
     light: bool = False
     # Relative cost of a step (icp_known_da = 1): where it steps with worker processes
-    # (experiments.pipeline.assign_methods). Measured on the TLR hour (bench/coupled_vs_sumo.py):
-    # gnss 0.1 ms, icp_known_da 1.06 ms, icp_da_lc 1.41 ms a step; icp_da_pf 1.5-2 s a step at
-    # J = 1000. Not measured: 1.
+    # (experiments.pipeline.assign_methods). Measured on the TLR hour (bench/coupled_vs_sumo.py,
+    # 2026-11-26): gnss 0.07 ms, icp_known_da 1.04-1.06 ms, icp_da_lc 1.27-1.41 ms a step; icp_da_pf
+    # 1.5-2 s a step at J = 1000. Not measured (the infrastructure methods): 1.
     cost: float = 1.0
 
     @property
