@@ -120,10 +120,9 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
 
 
 def time_pooled(scenario: SumoScenario, cfg, workers: int) -> tuple[float, float]:
-    """The coupled run of ``cfg.run.methods`` with the estimators in ``workers`` processes
-    (:class:`experiments.pipeline.EstimatorPool`, started inside the timing before SUMO, as `coloc run`
-    starts it):
-    (wall seconds, CPU seconds of this process and the workers)."""
+    """The coupled run of ``cfg.run.methods`` with the estimators spread over this process and ``workers``
+    worker processes (:class:`experiments.pipeline.EstimatorPool`, started inside the timing before SUMO,
+    as `coloc run` starts it): (wall seconds, CPU seconds of this process and the workers)."""
     from experiments.pipeline import EstimatorPool
 
     t0, c0 = time.perf_counter(), time.process_time() + _children_cpu()
