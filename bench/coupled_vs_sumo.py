@@ -52,7 +52,7 @@ from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
 from coloc.kernels import icp_fused  # noqa: E402
 from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA, METHODS  # noqa: E402
-from experiments.pipeline import BATCH  # noqa: E402
+from experiments.pipeline import BATCH, step_batch  # noqa: E402
 from experiments.runner import build_estimators, method_params  # noqa: E402
 
 
@@ -91,14 +91,11 @@ def time_coupled(scenario: SumoScenario, sensors: SensorParams, estimators: list
     per_method = {e.name: 0.0 for e in estimators}
     steps = 0
 
-    def step(batch):  # each estimator over the batch, as coloc run steps them (experiments.pipeline.BATCH)
+    def step(batch):  # each estimator over the batch, as coloc run steps them (experiments.pipeline.step_batch)
         for est in estimators:
             icp_fused.FUSED = not est.name.endswith(REFERENCE)  # the numpy reference path of --reference
             known = METHODS[est.name.split("[")[0]].known_association  # the bound is told the association
-            for blind, association in batch:
-                s = time.perf_counter()
-                est.step_with_association(blind, association) if known else est.step(blind)
-                per_method[est.name] += time.perf_counter() - s
+            per_method[est.name] += sum(res[0].seconds for res in step_batch([est], [known], batch))
 
     t0, c0 = time.perf_counter(), time.process_time()
     with SumoCoupler(scenario, sensors) as coupler:
