@@ -5,9 +5,10 @@
 Runs every shipped run config (``experiments/*.toml`` that is not a study) with ``coloc run`` into a
 temporary folder and prints one line per config: the hash of ``estimates.parquet`` (and of
 ``association.parquet`` / ``features.parquet`` where written). ``--quick`` caps the arterial
-configs at 300 simulated seconds; ``--studies`` also runs the study configs of the other source
-papers (their Parquet files are hashed). A PF case (``single_road.toml`` with ``icp_da_pf`` and
-``icp_known_da_pf``) is always included, since no shipped run config names the particle methods.
+configs at 300 simulated seconds, and the configs that run a particle method (``arterial_*_pf.toml``,
+hours of PF) at 60; ``--studies`` also runs the study configs of the other source papers (their
+Parquet files are hashed). A PF case of the single road (``single_road.toml`` with ``icp_da_pf`` and
+``icp_known_da_pf``) is always included.
 
 Run it before and after a change on the same machine and compare the two listings.
 """
@@ -24,6 +25,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 EXTRA = [("single_road_pf", "single_road.toml", ["--methods", "icp_da_pf,icp_known_da_pf"])]
+PARTICLE_METHODS = ("icp_da_pf", "icp_known_da_pf")
+QUICK_S, QUICK_PF_S = 300, 60  # --quick: simulated seconds of the long configs, and of those with a PF
 
 
 def _sha(path: Path) -> str:
@@ -37,15 +40,17 @@ def cases(quick: bool, studies: bool) -> list[tuple[str, str, list[str]]]:
         if "study" in data and not studies:
             continue
         extra = []
-        if quick and "study" not in data and data.get("run", {}).get("duration_s", 0) > 300:
-            extra = ["--duration", "300"]
+        run = data.get("run", {})
+        cap = QUICK_PF_S if set(run.get("methods", ())) & set(PARTICLE_METHODS) else QUICK_S
+        if quick and "study" not in data and run.get("duration_s", 0) > cap:
+            extra = ["--duration", str(cap)]
         out.append((cfg.stem, cfg.name, extra))
     return out + EXTRA
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="arterial configs capped at 300 s")
+    ap.add_argument("--quick", action="store_true", help="arterial configs capped at 300 s, those with a PF at 60 s")
     ap.add_argument("--studies", action="store_true", help="also the study configs (slow)")
     ap.add_argument("--only", nargs="*", help="case names to run (config stems, or single_road_pf)")
     ap.add_argument("--keep", help="write the run folders here instead of a temporary folder")
