@@ -336,6 +336,7 @@ class EstimatorPool:
                 proc.terminate()
                 proc.join()
         self._conns, self._procs, self._drains = [], [], []
+        self._local_estimators = []  # their state is not needed after the loop (the PF's kept matrices: 2 GB)
 
     def __enter__(self) -> "EstimatorPool":
         return self

@@ -208,21 +208,29 @@ def test_particle_known_association_method_is_the_pf_told_the_truth(tmp_path):
     assert len(feats) and (feats["track"] == feats["feature"]).all()
 
 
-def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [0, 1])
+def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch, workers):
     """After the loop the runner holds no estimator while it builds the Parquet tables (the PF's kept kernel
-    matrices are 2 GB on the arterial: the TLR hour peaked at 4.42 GB when they were still held)."""
+    matrices are 2 GB on the arterial: the TLR hour peaked at 4.42 GB when they were still held); with
+    workers, none of those that stepped in the runner's own process."""
     import gc
     import weakref
 
+    import coloc.methods.registry as registry
     import experiments.runner as runner
 
     refs = []
-    build = runner.build_estimators
+    build, build_one = runner.build_estimators, registry.build_method
 
     def recording_build(cfg):
         ests = build(cfg)
         refs.extend(weakref.ref(e) for e in ests)
         return ests
+
+    def recording_build_one(*args, **kwargs):
+        est = build_one(*args, **kwargs)
+        refs.append(weakref.ref(est))
+        return est
 
     alive_at_tables = []
     table = runner.EstimateLog.table
@@ -233,7 +241,9 @@ def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch):
         return table(self, *args, **kwargs)
 
     monkeypatch.setattr(runner, "build_estimators", recording_build)
+    monkeypatch.setattr(registry, "build_method", recording_build_one)
     monkeypatch.setattr(runner.EstimateLog, "table", checking_table)
     cfg = load_config(_cfg(tmp_path, SINGLE.replace('"icp_known_da"]', '"icp_known_da", "icp_da_lc"]')))
-    runner.run_experiment(cfg, tmp_path / "out", progress=False, write_report=False)
-    assert len(refs) == 3 and alive_at_tables == [[False, False, False]]
+    runner.run_experiment(cfg, tmp_path / "out", progress=False, write_report=False, workers=workers)
+    # workers = 1: gnss and icp_known_da step beside the scenario, icp_da_lc in the worker
+    assert len(refs) == (3 if workers == 0 else 2) and alive_at_tables == [[False] * len(refs)]
