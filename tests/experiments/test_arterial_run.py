@@ -1,5 +1,7 @@
-"""`coloc run` on the shipped arterial: a short run always, the full hour of both controls as `slow`."""
+"""`coloc run` on the shipped arterial: a short run always, the PF presets (their tables, 30 s), the full hour of both
+controls as `slow`."""
 
+import dataclasses
 import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -9,6 +11,7 @@ import pandas as pd
 import pytest
 
 from experiments.cli import main
+from experiments.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "experiments"
@@ -47,15 +50,10 @@ def test_short_arterial_run(tmp_path):
     assert summary["methods"]["icp_da_lc"]["features"]["rmse_pos_m"] < 2.0
 
 
-
 @pytest.mark.parametrize("control", ["tlr", "vsr"])
 def test_pf_presets_are_the_paper_configs_with_the_particle_method(control):
     """experiments/arterial_*_pf.toml (issue 26): the paper config of the control with gnss, icp_da_lc and
     icp_da_pf at Jv = Jf = 1000, the fast sums and per-component stopping; every other table the paper's."""
-    import dataclasses
-
-    from experiments.config import load_config
-
     base = load_config(CONFIGS / f"arterial_{control}.toml")
     pf = load_config(CONFIGS / f"arterial_{control}_pf.toml")
     assert pf.run.methods == ("gnss", "icp_da_lc", "icp_da_pf")
@@ -66,7 +64,6 @@ def test_pf_presets_are_the_paper_configs_with_the_particle_method(control):
                   "inertial", "features"):
         assert getattr(pf, table) == getattr(base, table), table
     assert dataclasses.replace(pf.run, name=base.run.name, methods=base.run.methods) == base.run
-
 
 
 def test_pf_preset_runs_beside_lc(tmp_path):
