@@ -83,6 +83,11 @@ def step_comm(est):
     return comm
 
 
+def estimator_stats(est) -> dict | None:
+    """An estimator's end-of-run counters (the infrastructure methods' ``stats``), None if it has none."""
+    return dict(est.stats) if hasattr(est, "stats") else None
+
+
 def step_result(est, known: bool, blind: Frame, association) -> StepResult:
     """Step one estimator on a frame without truth (``known``: the known-association bound, told
     ``association``, the frame's true association of its rows) and time it."""
@@ -152,7 +157,7 @@ def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
             if msg is None:
                 break
             conn.send(("step", step_batch(estimators, known, msg)))
-        conn.send(("stats", [dict(est.stats) if hasattr(est, "stats") else None for est in estimators]))
+        conn.send(("stats", [estimator_stats(est) for est in estimators]))
         finished = True
     except BaseException:  # noqa: BLE001 - the runner raises it in the main process
         try:
@@ -307,7 +312,7 @@ class EstimatorPool:
             for i, stats in zip(group, self._receive(w, "stats")):
                 self.stats[self.methods[i]] = stats
         for i, est in zip(self.local, self._local_estimators):
-            self.stats[self.methods[i]] = dict(est.stats) if hasattr(est, "stats") else None
+            self.stats[self.methods[i]] = estimator_stats(est)
         self.close()
         return done
 
