@@ -26,8 +26,8 @@ from pathlib import Path
 from coloc.methods.registry import ICP_DA_PF, ICP_KNOWN_DA_PF
 
 ROOT = Path(__file__).resolve().parents[1]
-EXTRA = [("single_road_pf", "single_road.toml", ["--methods", "icp_da_pf,icp_known_da_pf"])]
 PARTICLE_METHODS = (ICP_DA_PF.name, ICP_KNOWN_DA_PF.name)
+EXTRA = [("single_road_pf", "single_road.toml", ["--methods", ",".join(PARTICLE_METHODS)])]
 QUICK_S, QUICK_PF_S = 300, 60  # --quick: simulated seconds of the long configs, and of those with a PF
 
 
