@@ -53,7 +53,7 @@ from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
-from experiments.pipeline import BATCH, step_batch
+from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.scoring import (
     along_cross_errors,
     association_by_group,
@@ -630,7 +630,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             if pool is not None:
                 pool.close()
         method_stats = (dict(pool.stats) if pool is not None else
-                        {e.name: dict(e.stats) for e in estimators if hasattr(e, "stats")})
+                        {e.name: stats for e in estimators if (stats := estimator_stats(e)) is not None})
         # The estimators' state is not needed for the files: let it go before the tables are built (the
         # PF's kept kernel matrices are 2 GB; TLR hour with icp_da_pf: peak 4.42 GB with them, the tables
         # add 0.8 GB to the loop's 3.6 GB).
