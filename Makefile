@@ -34,7 +34,7 @@ bench: $(STAMP)
 
 ## make net: rebuild sumo_nets/arterial from its plain XML sources (deterministic)
 net: $(STAMP)
-	$(PY) -m couplers.netbuild sumo_nets/arterial
+	$(PY) -m couplers.net.build sumo_nets/arterial
 
 clean:
 	rm -rf $(VENV) $(OUT)

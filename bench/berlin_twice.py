@@ -31,7 +31,7 @@ import sumolib
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from couplers.netimport.tools import normalise_header  # noqa: E402
+from couplers.net.importer.tools import normalise_header  # noqa: E402
 
 BERLIN = Path(sumo.SUMO_HOME) / "tools" / "game" / "DRT" / "osm.net.xml"
 SEAM_STEP_M = 300.0

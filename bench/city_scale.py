@@ -46,7 +46,7 @@ import sumolib
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from couplers.netfolder import load_net_folder  # noqa: E402
+from couplers.net.folder import load_net_folder  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA, METHODS  # noqa: E402

@@ -44,10 +44,10 @@ import sumolib
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from couplers.netfolder import load_net_folder  # noqa: E402
-from couplers.sensors import SensorParams  # noqa: E402
+from couplers.net.folder import load_net_folder  # noqa: E402
+from couplers.sensing.sensors import SensorParams  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
-from couplers.sumo_traffic import SumoTraffic  # noqa: E402
+from couplers.traffic.sumo import SumoTraffic  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from coloc.kernels.pf import KernelWorkspace  # noqa: E402
 from coloc.kernels import icp_fused  # noqa: E402

@@ -30,9 +30,9 @@ import sumolib
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from couplers.netfolder import load_net_folder  # noqa: E402
-from couplers.netimport import ImportOptions, import_net  # noqa: E402
-from couplers.sumo_traffic import SumoOptions  # noqa: E402
+from couplers.net.folder import load_net_folder  # noqa: E402
+from couplers.net.importer import ImportOptions, import_net  # noqa: E402
+from couplers.traffic.sumo import SumoOptions  # noqa: E402
 
 
 def run_hour(folder: Path, control: str, seed: int, end: float) -> dict:

@@ -3,7 +3,7 @@
 A synthetic straight road (4 lanes, 10 m/s) with N vehicles at a fixed density
 (so the V2V degree and the features per vehicle do not grow with N) and static
 features along both sides, spaced so that each vehicle senses about F of them
-(Rs = 50 m). Measurements come from ``couplers.sensors.synthesize_frame`` as in
+(Rs = 50 m). Measurements come from ``couplers.sensing.sensors.synthesize_frame`` as in
 every run. For each (N, F) the mean wall time per step over the last steps is
 printed per method, with ms per vehicle-step: "linear in vehicles" shows as a
 flat ms/vehicle column down each F block.
@@ -32,7 +32,7 @@ from coloc.methods.gnss import GnssTracker  # noqa: E402
 from coloc.methods.icp_da_lc import IcpDaLc, LcParams  # noqa: E402
 from coloc.methods.icp_known_da import IcpKnownDA  # noqa: E402
 from coloc.methods.registry import METHODS  # noqa: E402
-from couplers.sensors import SensorNoise, SensorParams, synthesize_frame  # noqa: E402
+from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame  # noqa: E402
 
 VEHICLE_SPACING_M = 12.0  # along the road, over 4 lanes: ~3 vehicles per 10 m of road
 RS = 50.0

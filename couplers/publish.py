@@ -1,7 +1,7 @@
 """Where commands write: the ``--out`` rule, and atomic publishing of folders and files.
 
 Every command that writes (``coloc run``, ``coloc sweep``, ``coloc report``, ``coloc net import``,
-``python -m couplers.netbuild``, the studies) goes through this module, so the rule below lives in
+``python -m couplers.net.build``, the studies) goes through this module, so the rule below lives in
 one place:
 
 - **Nothing a user owns is replaced.** An existing ``--out`` is used only when it is empty or was

@@ -3,8 +3,8 @@
 They yield the same :class:`coloc.core.frame.Frame` s as the SUMO coupler, so every
 estimator and report runs on them unchanged. Only the true motion is generated
 here; every measurement (fast-start prior, inertial input, GNSS, V2F, V2V graph,
-row shuffling) comes from :func:`couplers.sensors.synthesize_frame` with a
-:class:`couplers.sensors.SensorNoise` seeded by the same seed.
+row shuffling) comes from :func:`couplers.sensing.sensors.synthesize_frame` with a
+:class:`couplers.sensing.sensors.SensorNoise` seeded by the same seed.
 
 True motion (model (1)), for every vehicle and step::
 
@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
 from coloc.core.models import input_matrix, transition_matrix
-from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
+from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame
 
 KMH = 1.0 / 3.6
 _STREAM_TAG = 0x5CE

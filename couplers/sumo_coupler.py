@@ -11,19 +11,19 @@ from scipy.spatial import cKDTree
 
 from coloc.core.frame import Frame
 from coloc.core.vehicles import match_ids
-from couplers import sumo_traffic
+from couplers.traffic import sumo
 from couplers.errors import InputError
-from couplers.gnss_error import GnssErrorProcess
-from couplers.inertial import InertialProcess
-from couplers.infra import InfraSetup, InfraSynth
-from couplers.netfolder import NetFolder
-from couplers.pedestrians import FeatureRegistry, person_states
-from couplers.occlusion import _footprints, vehicle_footprints
-from couplers.perception import Detections, PerceptionNoise, perceive
-from couplers.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
-from couplers.sumo_traffic import SumoOptions, SumoTraffic, VehicleStates
-from couplers.v2x import V2xChannel
-from couplers.zones import RegionIndex, gnss_sigma_for_zone
+from couplers.sensing.gnss_error import GnssErrorProcess
+from couplers.sensing.inertial import InertialProcess
+from couplers.sensing.infra import InfraSetup, InfraSynth
+from couplers.net.folder import NetFolder
+from couplers.sensing.pedestrians import FeatureRegistry, person_states
+from couplers.sensing.occlusion import _footprints, vehicle_footprints
+from couplers.sensing.perception import Detections, PerceptionNoise, perceive
+from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
+from couplers.traffic.sumo import SumoOptions, SumoTraffic, VehicleStates
+from couplers.sensing.v2x import V2xChannel
+from couplers.net.zones import RegionIndex, gnss_sigma_for_zone
 
 
 @dataclass(frozen=True)
@@ -61,17 +61,17 @@ class SumoCoupler:
     afterwards ``c.traffic.stats.rows`` holds the 5-minute traffic statistics.
 
     With ``sensors.perception`` (the ``[perception]`` table) the V2F rows come from
-    :func:`couplers.perception.perceive`: ``c.last_detections`` holds the step's
-    :class:`couplers.perception.Detections` (with the sensor and class of every row) and
+    :func:`couplers.sensing.perception.perceive`: ``c.last_detections`` holds the step's
+    :class:`couplers.sensing.perception.Detections` (with the sensor and class of every row) and
     ``c.perception_totals`` the counts over the run. With ``sensors.features`` (``[features]
-    pedestrians``) every SUMO person is a moving feature (:mod:`couplers.pedestrians`): the frame
+    pedestrians``) every SUMO person is a moving feature (:mod:`couplers.sensing.pedestrians`): the frame
     carries ``v2f_class`` and the truth keeps stable feature rows (``c.registry``). With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
-    :class:`couplers.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
-    equipped vehicles (:class:`couplers.v2x.V2xChannel`) are in the frames, and each frame carries
+    :class:`couplers.sensing.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
+    equipped vehicles (:class:`couplers.sensing.v2x.V2xChannel`) are in the frames, and each frame carries
     the channel (``frame.v2x``); every SUMO vehicle on the road, equipped or not, still occludes the
     perception's sight lines and counts in the traffic statistics. With ``sensors.inertial``
-    (``[inertial]``) each frame carries the body-frame IMU of :class:`couplers.inertial.InertialProcess`
+    (``[inertial]``) each frame carries the body-frame IMU of :class:`couplers.sensing.inertial.InertialProcess`
     (``frame.imu``) and ``frame.accel`` is NaN (the net-frame input would carry the true heading);
     the IMU draws from streams of its own, so every other measurement is unchanged.
     """
@@ -80,14 +80,14 @@ class SumoCoupler:
         self.scenario = scenario
         self.sensors = sensors
         self.noise = SensorNoise(scenario.seed)
-        # Infrastructure mode (RSUs, radars, odometry): its own random stream (couplers.infra).
+        # Infrastructure mode (RSUs, radars, odometry): its own random stream (couplers.sensing.infra).
         self.infra = InfraSynth(infra, scenario.seed) if infra is not None else None
         self.zones = RegionIndex(scenario.net.zones)
         self.areas = RegionIndex(scenario.net.areas)
         feats = scenario.net.features
         self.features_true = np.hstack([feats.xy, np.zeros_like(feats.xy)])  # static: zero velocity
         self.feature_tree = cKDTree(feats.xy) if len(feats.xy) else None
-        # [features] pedestrians: SUMO persons as moving features (couplers.pedestrians).
+        # [features] pedestrians: SUMO persons as moving features (couplers.sensing.pedestrians).
         self.pedestrians = sensors.features is not None and sensors.features.pedestrians
         if self.pedestrians and scenario.net.persons is None:
             raise InputError(scenario.net.root / "scenario.toml", "files.persons",
@@ -128,7 +128,7 @@ class SumoCoupler:
             x_true = np.hstack([states.xy, states.velocity])
             feats_true, tree, present, klass = self.features_true, self.feature_tree, None, None
             if self.pedestrians:  # static features then the persons walking now (registry rows ``present``)
-                rows = self.registry.update(person_states(sumo_traffic.libsumo.person))
+                rows = self.registry.update(person_states(sumo.libsumo.person))
                 present = np.concatenate([np.arange(self.registry.k0), rows])
                 feats_true, klass = self.registry.states[present], self.registry.klass[present]
                 tree = cKDTree(feats_true[:, :2]) if present.size else None
@@ -177,7 +177,7 @@ class SumoCoupler:
         if idx is None:
             idx = match_ids(self._dim_ids, ids)
         dims, new = _carried_rows(np.asarray(idx, dtype=np.int64), self._dims)
-        veh = sumo_traffic.libsumo.vehicle
+        veh = sumo.libsumo.vehicle
         for i in new.tolist():  # new vehicles only
             dims[i] = (veh.getLength(ids[i]), veh.getWidth(ids[i]))
         self._dim_ids, self._dims = ids, dims
@@ -199,7 +199,7 @@ class SumoCoupler:
     def _perceive(self, road: VehicleStates, states: VehicleStates, x_true: np.ndarray,
                   features_true: np.ndarray, feature_tree, feature_class) -> Detections:
         """V2F rows of the frame's vehicles ``states``; every vehicle on the ``road`` occludes
-        (pedestrians do not: couplers.pedestrians)."""
+        (pedestrians do not: couplers.sensing.pedestrians)."""
         p = self.perception
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
         corners = None

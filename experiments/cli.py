@@ -152,7 +152,7 @@ def _kinds(text: str) -> tuple[str, ...]:
 
 
 def cmd_net_import(args: argparse.Namespace) -> int:
-    from couplers.netimport import ImportOptions, import_net
+    from couplers.net.importer import ImportOptions, import_net
     from experiments.netconfigs import net_configs
 
     out = Path(args.out) if args.out else Path("sumo_nets") / args.name
@@ -192,7 +192,7 @@ def _path(text: str | None) -> Path | None:
 
 
 def cmd_net_check(args: argparse.Namespace) -> int:
-    from couplers.netcheck import check_net_folder
+    from couplers.net.check import check_net_folder
 
     problems, info = check_net_folder(Path(args.dir), max_feature_distance_m=args.max_feature_distance)
     for p in problems:
@@ -214,7 +214,7 @@ class _VersionAction(argparse.Action):
         import importlib.metadata
         import platform
 
-        from couplers.sumo_traffic import sumo_version
+        from couplers.traffic.sumo import sumo_version
 
         try:
             coloc = importlib.metadata.version("coloc")

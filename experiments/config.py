@@ -59,13 +59,13 @@ from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml, seed_problem
-from couplers.gnss_error import GnssErrorParams
-from couplers.inertial import InertialParams
-from couplers.pedestrians import FeaturesParams
-from couplers.perception import PerceptionParams
+from couplers.sensing.gnss_error import GnssErrorParams
+from couplers.sensing.inertial import InertialParams
+from couplers.sensing.pedestrians import FeaturesParams
+from couplers.sensing.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
-from couplers.sensors import SensorParams
-from couplers.v2x import V2xParams
+from couplers.sensing.sensors import SensorParams
+from couplers.sensing.v2x import V2xParams
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -141,7 +141,7 @@ class PfSection:
 @dataclass(frozen=True)
 class InfraSection:
     """Infrastructure mode (optional ``[infra]`` table): RSUs at junctions of the net, their V2I
-    range (= radar range), the radar and odometry noise (couplers.infra) and the settings of the
+    range (= radar range), the radar and odometry noise (couplers.sensing.infra) and the settings of the
     infrastructure methods (coloc.methods.infra.InfraMethodParams). Only for ``scenario.kind = "sumo"``."""
 
     rsu_junctions: tuple[str, ...] = ()
@@ -192,7 +192,7 @@ class Config:
     # [v2x] (issue 22), optional, SUMO only: penetration, packet delivery, round budget; handed to the
     # coupler as sensors.v2x like the sensing tables.
     v2x: V2xParams | None = None
-    # [inertial] (issue 21 item 5), optional, SUMO only: a body-frame IMU per vehicle (couplers.inertial);
+    # [inertial] (issue 21 item 5), optional, SUMO only: a body-frame IMU per vehicle (couplers.sensing.inertial);
     # handed to the coupler as sensors.inertial. Not with [infra] (the infrastructure methods take the
     # net-frame input).
     inertial: InertialParams | None = None
@@ -395,7 +395,7 @@ def _validate_pedestrians(cfg: Config) -> None:
                              f"with [features] pedestrians = true (use {', '.join(ok)})")
     if cfg.infra is not None:
         raise InputError(p, "features.pedestrians", "not supported together with [infra]")
-    from couplers.netfolder import load_net_folder
+    from couplers.net.folder import load_net_folder
 
     if load_net_folder(cfg.scenario.net_dir).persons is None:
         raise InputError(p, "features.pedestrians", f"the net folder {cfg.scenario.net_dir} has no persons file "
@@ -427,8 +427,8 @@ def _validate_infra(cfg: Config) -> None:
     for name, low in (("rsu_bp_particles", 2), ("sme_max_vehicles", 1), ("fg_window_steps", 2)):
         if getattr(inf, name) < low:
             raise InputError(p, f"infra.{name}", f"must be >= {low}")
-    from couplers.infra import junction_positions
-    from couplers.netfolder import load_net_folder
+    from couplers.sensing.infra import junction_positions
+    from couplers.net.folder import load_net_folder
 
     junction_positions(load_net_folder(cfg.scenario.net_dir).net, inf.rsu_junctions, p, "infra.rsu_junctions")
 

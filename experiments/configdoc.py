@@ -59,13 +59,13 @@ TABLE_DOCS: dict[str, str] = {
     "pf": "ICP-DA-PF (`icp_da_pf`, `icp_known_da_pf`): particle counts, the pair-sum kernel and the "
           "departures from the paper's literal recursion. Its generators are seeded with `run.seed`.",
     "report": "The per-run HTML report.",
-    "perception": "Realistic perception (optional table, SUMO only; `couplers/perception.py`): sensors with "
+    "perception": "Realistic perception (optional table, SUMO only; `couplers/sensing/perception.py`): sensors with "
                   "a field of view and range relative to the heading, detection probability falling with "
                   "distance, range-dependent noise, Poisson clutter over the field of view, occlusion by "
                   "every SUMO vehicle and by the net folder's buildings. Absent: the paper's idealised V2F "
                   "sensing (every feature within `sensors.v2f_range_m`), exactly as before. Each effect "
                   "draws from its own seeded stream.",
-    "features": "Moving features from SUMO (optional table, SUMO only; `couplers/pedestrians.py`): with "
+    "features": "Moving features from SUMO (optional table, SUMO only; `couplers/sensing/pedestrians.py`): with "
                 "`pedestrians = true` every SUMO person of the net folder's persons file (`[files] persons`, e.g. "
                 "`sumo_nets/arterial_ped`) is a feature of model (2), measured by the same V2F path as the "
                 "static landmarks, and every V2F row carries a class label (`Frame.v2f_class`: 0 static, 1 "
@@ -73,11 +73,11 @@ TABLE_DOCS: dict[str, str] = {
                 "and a row is only associated with tracks of its class. Methods: `gnss`, `icp_known_da`, "
                 "`icp_da_lc` (others are refused). Absent or false: no classes, exactly as before.",
     "perception.sensors": "One sensor of `[perception]` (repeat the table for each sensor). Defaults and "
-                          "their sources (datasheet, peer simulator): `couplers/perception.py`.",
-    "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/gnss_error.py`): first-order "
+                          "their sources (datasheet, peer simulator): `couplers/sensing/perception.py`.",
+    "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/sensing/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
                   "bias episodes. The estimators keep the nominal zone covariance a receiver reports.",
-    "inertial": "Realistic inertial input (optional table, SUMO only; `couplers/inertial.py`): a body-frame IMU "
+    "inertial": "Realistic inertial input (optional table, SUMO only; `couplers/sensing/inertial.py`): a body-frame IMU "
                 "per vehicle, longitudinal and lateral acceleration and yaw rate over the step, each with white "
                 "noise, a turn-on bias drawn when the vehicle enters and a first-order Gauss-Markov drift. The "
                 "estimators rotate the body-frame acceleration into the net frame by their own estimated heading "
@@ -86,7 +86,7 @@ TABLE_DOCS: dict[str, str] = {
                 "`sensors.accel_sigma` noise, exactly as before. Not with `[infra]`. Defaults: the IMU defaults "
                 "(ADIS16448) of the RotorS / PX4 SITL Gazebo IMU plugin; each effect draws from its own seeded "
                 "stream.",
-    "v2x": "Realistic V2X (optional table, SUMO only; `couplers/v2x.py`): a share of equipped vehicles "
+    "v2x": "Realistic V2X (optional table, SUMO only; `couplers/sensing/v2x.py`): a share of equipped vehicles "
            "(the others are not estimated, send nothing and are not in the V2V graph, but stay in the traffic "
            "statistics and still occlude sight lines), a packet delivery ratio by link distance with a separate "
            "curve for links through a building of the net folder's `buildings.geojson` (no buildings: every "
@@ -97,7 +97,7 @@ TABLE_DOCS: dict[str, str] = {
            "(2019) Table 6.2.1-1 (V2V urban pathloss, LOS and NLOS, with their 3 / 4 dB shadowing) with a "
            "23 dBm transmitter, 3 dBi antennas, the -82 dBm sensitivity of IEEE 802.11-2016 Table 17-18 (10 "
            "MHz, 6 Mb/s) and Rayleigh fading per packet; no interference or congestion (derivation: "
-           "`couplers/v2x.py`). Absent: every vehicle connected over perfect links, exactly as before. Not "
+           "`couplers/sensing/v2x.py`). Absent: every vehicle connected over perfect links, exactly as before. Not "
            "for the controlled scenarios, nor together with `[infra]`.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "

@@ -17,7 +17,7 @@ errors of such methods compare each track with its label's true feature; for
 the known-association bound the track ids are the true feature indices.
 
 Infrastructure mode (config ``[infra]``): the coupler adds ``frame.infra`` (RSUs, radar,
-odometry; couplers.infra); estimates.parquet gains ``covered`` (the vehicle is within V2I
+odometry; couplers.sensing.infra); estimates.parquet gains ``covered`` (the vehicle is within V2I
 range of an RSU, from the frame, the same for every method) and ``rsu`` (the lowest-index
 RSU covering it, "" when none), and summary.json gains ``within_rsu_coverage``: per method
 RMSE / p95 / n on the covered vehicle-steps, overall and per area, the method's counters
@@ -45,10 +45,10 @@ from coloc.inference.params import IcpParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
-from couplers.infra import InfraSetup, junction_positions
-from couplers.netcheck import require_usable_net_folder
-from couplers.netfolder import load_net_folder
-from couplers.perception import detection_model
+from couplers.sensing.infra import InfraSetup, junction_positions
+from couplers.net.check import require_usable_net_folder
+from couplers.net.folder import load_net_folder
+from couplers.sensing.perception import detection_model
 from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
@@ -319,7 +319,7 @@ class EstimateLog:
                 if ids.size == 0:
                     continue
                 if truth_xy.shape[0] and feat.max() >= truth_xy.shape[0]:
-                    # SUMO pedestrians: a label registered after this step (couplers.pedestrians)
+                    # SUMO pedestrians: a label registered after this step (couplers.sensing.pedestrians)
                     ok = feat < truth_xy.shape[0]
                     ids, xy, feat = ids[ok], xy[ok], feat[ok]
                 if not np.isfinite(truth_xy[feat]).all():

@@ -2,11 +2,11 @@
 need (truth scrambled, vehicles removed, added or reordered).
 
 * :func:`road_frames`: vehicles driving east on one lane by model (1), static features on both
-  sides, measurements by ``couplers.sensors`` (seeded); with ``inertial`` the body-frame IMU of
-  ``couplers.inertial`` (``frame.imu``, ``frame.accel`` NaN) as the SUMO coupler makes it.
+  sides, measurements by ``couplers.sensing.sensors`` (seeded); with ``inertial`` the body-frame IMU of
+  ``couplers.sensing.inertial`` (``frame.imu``, ``frame.accel`` NaN) as the SUMO coupler makes it.
 * :func:`infra_frames`: vehicles along the x axis (two lanes, both directions) through the range
   of one or two road-side units, static features along the road; measurements from the coupler's
-  own synthesis (``couplers.sensors.synthesize_frame``, ``couplers.infra.InfraSynth``).
+  own synthesis (``couplers.sensing.sensors.synthesize_frame``, ``couplers.sensing.infra.InfraSynth``).
 * :func:`scrambled`, :func:`select_vehicles`: edits of a frame.
 """
 
@@ -20,9 +20,9 @@ from scipy.spatial import cKDTree
 from coloc.core.frame import Frame
 from coloc.core.inertial import ImuFrame
 from coloc.core.models import input_matrix, transition_matrix
-from couplers.inertial import InertialParams, InertialProcess
-from couplers.infra import InfraSetup, InfraSynth
-from couplers.sensors import SensorNoise, SensorParams, synthesize_frame
+from couplers.sensing.inertial import InertialParams, InertialProcess
+from couplers.sensing.infra import InfraSetup, InfraSynth
+from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame
 
 
 def road_frames(seed=1, n=5, steps=15, n_feat=4, v2f_range=30.0, v2v_range=250.0, gnss_sp=8.0, gnss_sv=0.2,

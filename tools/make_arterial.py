@@ -4,7 +4,7 @@
 Deterministic: running it twice writes identical files. It writes the plain
 netconvert sources, the netconvert configuration, the demand, zones, areas,
 features and scenario description, then builds ``tlr.net.xml`` with
-:func:`couplers.netbuild.build_net`.
+:func:`couplers.net.build.build_net`.
 
 Design (all coordinates plain Cartesian metres, arterial on y = 0):
 
@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from couplers.netbuild import CONFIG_NAME, NET_NAME, build_net  # noqa: E402
-from couplers.netfolder import NET_CRS as CRS  # noqa: E402
+from couplers.net.build import CONFIG_NAME, NET_NAME, build_net  # noqa: E402
+from couplers.net.folder import NET_CRS as CRS  # noqa: E402
 
 # --------------------------------------------------------------------------
 # Geometry
@@ -746,7 +746,7 @@ Written by this project (`tools/make_arterial.py`, deterministic; no imported
 data) to imitate the Turin arterial of Brambilla et al., Sec. VI. Plain
 Cartesian metres, arterial on y = 0; no geo projection.
 
-Rebuild the net from its plain sources: `python -m couplers.netbuild sumo_nets/arterial`
+Rebuild the net from its plain sources: `python -m couplers.net.build sumo_nets/arterial`
 (`make net`); regenerate everything: `python tools/make_arterial.py`.
 
 ## Geometry

@@ -41,7 +41,7 @@ for p in (ROOT, ROOT / "tools"):
         sys.path.insert(0, str(p))
 
 import make_arterial as ma  # noqa: E402
-from couplers.netbuild import CONFIG_NAME, NET_NAME, build_net  # noqa: E402
+from couplers.net.build import CONFIG_NAME, NET_NAME, build_net  # noqa: E402
 
 # --------------------------------------------------------------------------
 # Pedestrian infrastructure (netconvert options)
@@ -268,7 +268,7 @@ for `[features] pedestrians = true` (SUMO persons as moving features).
 Buildings (`buildings.geojson`): the arterial's plots (`tools/make_arterial.py`), trimmed off
 this net's lanes, sidewalks and crossings the same way.
 
-Rebuild the net: `python -m couplers.netbuild sumo_nets/arterial_ped`;
+Rebuild the net: `python -m couplers.net.build sumo_nets/arterial_ped`;
 regenerate everything: `python tools/make_arterial_ped.py`.
 
 ## Pedestrian infrastructure

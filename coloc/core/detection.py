@@ -5,7 +5,7 @@ where the features are. :class:`DetectionModel` holds that datasheet as arrays o
 :func:`expected_detection_probability` gives, for a vehicle's *estimated* position and velocity
 and a track's *predicted* position, the probability that at least one sensor detects the track,
 P_D = 1 - prod_s (1 - P_D,s(d_s) [track in the field of view of s]), with the same geometry as the
-coupler's perception model (couplers.perception: a sector of opening fov_deg and radius range_m
+coupler's perception model (couplers.sensing.perception: a sector of opening fov_deg and radius range_m
 around the heading turned by yaw_deg, from the mount point mount_x_m along the heading; P_D,s
 linear in distance from pd_near at 0 m to pd_far at the range). Occlusion is not predicted (the
 vehicle does not know every occluder: unequipped vehicles, buildings); ``visibility`` is the share

@@ -30,7 +30,7 @@ class Truth:
     area: np.ndarray  # (N,) str, analysis area of each vehicle
     heading: np.ndarray | None = None  # (N,) true heading, rad from +x (defined when stopped too)
     feature_ids: np.ndarray | None = None  # (K,) str, stable feature names
-    # Class of each feature (0 static landmark, 1 pedestrian; couplers.pedestrians); None: all static.
+    # Class of each feature (0 static landmark, 1 pedestrian; couplers.sensing.pedestrians); None: all static.
     # With SUMO pedestrians, rows K0.. are persons by first appearance (NaN state once they have left).
     feature_class: np.ndarray | None = None  # (K,) int8
     # Infrastructure mode only: row (into the frame's vehicles) of each radar detection.
@@ -112,7 +112,7 @@ class Frame:
     # ``accel`` is the net-frame input of model (1).
     imu: ImuFrame | None = None
     # Class label of each V2F row as the sensor's classifier reports it (``[features] pedestrians``):
-    # 0 = static landmark, 1 = pedestrian (couplers.perception CLASS_*); a false detection is reported
+    # 0 = static landmark, 1 = pedestrian (couplers.sensing.perception CLASS_*); a false detection is reported
     # as static (it is drawn as a static object). None (pedestrians off): every row is a static landmark,
     # and estimators run exactly as without classes.
     v2f_class: np.ndarray | None = None  # (O,) int8

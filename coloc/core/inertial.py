@@ -21,7 +21,7 @@ the kept headings are a small per-vehicle memory the estimator carries between s
 of its vehicle rows.
 
 Discretisation: the coupler defines ``accel_body`` as the change of the velocity vector over the step
-rotated into the body frame at the mid-step heading (couplers/inertial.py), so R(psi_mid) inverts it
+rotated into the body frame at the mid-step heading (couplers/sensing/inertial.py), so R(psi_mid) inverts it
 exactly when psi_0 and r are true. Against a continuous IMU in a steady turn at yaw rate w and speed
 v (lateral specific force v w), the step's mean net-frame acceleration |dv| / Ts = 2 v sin(w Ts / 2) / Ts
 is smaller by the relative amount 1 - sinc(w Ts / 2) <= (w Ts)^2 / 24: 0.2 % for a 90 deg turn in 5 s

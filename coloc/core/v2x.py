@@ -2,7 +2,7 @@
 asymmetric V2V links within a budget of broadcast rounds (issue 22; docs/architecture.md "The frame
 contract").
 
-The coupler (``couplers/v2x.py``, the ``[v2x]`` config table) decides the channel; this module only
+The coupler (``couplers/sensing/v2x.py``, the ``[v2x]`` config table) decides the channel; this module only
 carries it and realises it, so that every estimator sees the *same* packets arrive in the same round
 and no estimator seeds anything itself.
 

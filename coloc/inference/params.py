@@ -10,7 +10,7 @@ from coloc.core.models import MotionParams
 FEATURE_MESSAGES = ("bpa", "own")
 #: Default sv_par (m/s per step) of model (2) for pedestrian tracks (measured; see :class:`IcpParams`).
 PEDESTRIAN_SIGMA_PAR = 0.05
-#: Class codes of feature tracks (the frame's ``v2f_class``; couplers.perception CLASS_*).
+#: Class codes of feature tracks (the frame's ``v2f_class``; couplers.sensing.perception CLASS_*).
 CLASS_STATIC, CLASS_PEDESTRIAN = 0, 1
 #: What the BPA-L stopping rule tests (see :class:`IcpParams`).
 STOP_RULES = ("vehicles", "vehicles_and_features")

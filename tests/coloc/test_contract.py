@@ -164,7 +164,7 @@ ROAD_METHODS = [m for m in RUNNABLE if not METHODS[m].infrastructure]
 def test_inertial_input_contract(name):
     """With the body-frame IMU (``[inertial]``; ``frame.accel`` NaN): truth-blind to the byte, vehicles
     entering, leaving and coming back in another row order, covariances SPD and every output finite."""
-    from couplers.inertial import InertialParams
+    from couplers.sensing.inertial import InertialParams
 
     rng = np.random.default_rng(7)
     frames = road_frames(steps=9, spacing=40.0, v2v_range=25.0, inertial=InertialParams())

@@ -1,11 +1,11 @@
 """The detection model an estimator expects (coloc.core.detection) against the coupler's perception
-geometry (couplers.perception): same field of view, range and detection profile."""
+geometry (couplers.sensing.perception): same field of view, range and detection profile."""
 
 import numpy as np
 import pytest
 
 from coloc.core.detection import expected_detection_probability
-from couplers.perception import (
+from couplers.sensing.perception import (
     DEFAULT_SENSORS,
     PerceptionParams,
     SensorSpec,

@@ -1,7 +1,7 @@
 """ICP with known association: Gaussian BPA-L (19)-(22) with consensus vs a centralized joint KF.
 
 Synthetic scenes: :func:`scenes.road_frames` (vehicles driving east on one lane by model (1),
-static features on both sides, measurements by ``couplers.sensors``, seeded).
+static features on both sides, measurements by ``couplers.sensing.sensors``, seeded).
 """
 
 from dataclasses import replace

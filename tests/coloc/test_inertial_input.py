@@ -12,7 +12,7 @@ from coloc.core.inertial import ImuFrame, estimator_input, net_frame_input, rota
 from coloc.core.models import MotionParams
 from coloc.core.vehicles import match_ids
 from coloc.methods.gnss import GnssTracker
-from couplers.inertial import InertialParams, true_body_motion
+from couplers.sensing.inertial import InertialParams, true_body_motion
 from scenes import road_frames
 
 PERFECT = InertialParams(accel_noise_density=0.0, accel_bias_sigma=0.0, accel_turn_on_sigma=0.0,

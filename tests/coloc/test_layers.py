@@ -134,7 +134,7 @@ def test_a_kernel_importing_upwards_is_caught(tmp_path, monkeypatch, source, exp
 
 #: Where a method's name may also be written: the studies name their own methods (study kinds),
 #: and the coupler's seeded noise stream of the GNSS fixes is called "gnss" (not the method).
-NAME_ELSEWHERE = {("couplers/sensors.py", "gnss")}
+NAME_ELSEWHERE = {("couplers/sensing/sensors.py", "gnss")}
 
 
 def test_method_names_are_written_only_in_the_registry():

@@ -10,7 +10,7 @@ import pytest
 from coloc.inference.params import IcpParams
 from coloc.methods.gnss import GnssTracker
 from coloc.methods.icp_da_pf import IcpDaPf, PfParams
-from couplers.inertial import InertialParams
+from couplers.sensing.inertial import InertialParams
 from scenes import road_frames
 from tests.coloc.test_icp_known_da import MOTION  # sigma_along = sigma_cross = 0.08 m/s^2
 

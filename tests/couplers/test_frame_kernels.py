@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import shapely
 
-from couplers.zones import CellGrid
-from couplers.gnss_error import (
+from couplers.net.zones import CellGrid
+from couplers.sensing.gnss_error import (
     GnssErrorParams,
     GnssErrorProcess,
     episode_start_probability,
     gauss_markov_step,
 )
-from couplers.inertial import (
+from couplers.sensing.inertial import (
     InertialParams,
     InertialProcess,
     gauss_markov_bias,
@@ -25,10 +25,10 @@ from couplers.inertial import (
     turn_on_bias,
     white_noise,
 )
-from couplers.netfolder import load_net_folder
-from couplers.occlusion import occluded_by_buildings
-from couplers.perception import _merge_detections
-from couplers.rows import shuffle_within_owner
+from couplers.net.folder import load_net_folder
+from couplers.sensing.occlusion import occluded_by_buildings
+from couplers.sensing.perception import _merge_detections
+from couplers.sensing.rows import shuffle_within_owner
 
 ARTERIAL = Path(__file__).resolve().parents[2] / "sumo_nets" / "arterial"
 
@@ -190,7 +190,7 @@ def test_inertial_step_equals_the_array_reference():
 
 
 def test_footprints_and_occluder_boxes_equal_the_array_reference():
-    from couplers.occlusion import OccluderIndex, unit_heading, vehicle_footprints
+    from couplers.sensing.occlusion import OccluderIndex, unit_heading, vehicle_footprints
 
     rng = np.random.default_rng(9)
     xy, heading = rng.uniform(-500, 500, (300, 2)), rng.uniform(-4, 4, 300)
@@ -262,7 +262,7 @@ def test_gnss_start_probability_lookup_equals_rate_then_expm1():
 
 
 def test_fov_with_the_heading_vectors_equals_fov_all():
-    from couplers.perception import PerceptionParams, SensorSpec, _fov_all, _fov_params, unit_heading
+    from couplers.sensing.perception import PerceptionParams, SensorSpec, _fov_all, _fov_params, unit_heading
 
     rng = np.random.default_rng(12)
     params = PerceptionParams(sensors=(SensorSpec(), SensorSpec(name="s", fov_deg=360.0, range_m=30.0),
@@ -282,7 +282,7 @@ def test_fov_with_the_heading_vectors_equals_fov_all():
 
 @pytest.mark.parametrize("rates", [(1.0, 1.0), (0.3, 2.0), (0.0, 0.0), (12.0, 12.0)])
 def test_clutter_draws_equal_the_broadcast_poisson(rates):
-    from couplers.perception import PerceptionParams, SensorSpec, _clutter_polar
+    from couplers.sensing.perception import PerceptionParams, SensorSpec, _clutter_polar
 
     params = PerceptionParams(sensors=(SensorSpec(clutter_per_scan=rates[0]),
                                        SensorSpec(name="s", fov_deg=360.0, range_m=30.0, clutter_per_scan=rates[1])))
@@ -302,7 +302,7 @@ def test_clutter_draws_equal_the_broadcast_poisson(rates):
 
 def test_shuffled_rows_and_pair_counts_equal_the_concatenate_reference():
     from coloc.core.models import gnss_cov
-    from couplers.perception import _pair_counts, _shuffled_rows
+    from couplers.sensing.perception import _pair_counts, _shuffled_rows
 
     rng = np.random.default_rng(14)
     for d, c in [(0, 0), (0, 5), (7, 0), (300, 120)]:
@@ -332,7 +332,7 @@ def test_shuffled_rows_and_pair_counts_equal_the_concatenate_reference():
 
 
 def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
-    from couplers.sensors import (_gnss_rows, _gnss_rows_reference, _prior_rows, _prior_rows_reference, _v2f_rows,
+    from couplers.sensing.sensors import (_gnss_rows, _gnss_rows_reference, _prior_rows, _prior_rows_reference, _v2f_rows,
                                   _v2f_rows_reference)
 
     rng = np.random.default_rng(15)
@@ -357,7 +357,7 @@ def test_prior_gnss_and_v2f_rows_equal_their_numpy_references():
 
 
 def test_building_box_filter_keeps_every_hit_and_drops_most_near_misses():
-    from couplers.occlusion import _clear_of_buildings, _needs_building_test
+    from couplers.sensing.occlusion import _clear_of_buildings, _needs_building_test
 
     blds = load_net_folder(ARTERIAL).buildings
     g, bb = blds.cells, blds.boxes
@@ -386,7 +386,7 @@ def test_building_box_filter_keeps_every_hit_and_drops_most_near_misses():
 
 
 def test_continuity_equals_its_numpy_reference():
-    from couplers.sumo_traffic import _continuity, _continuity_reference
+    from couplers.traffic.sumo import _continuity, _continuity_reference
 
     rng = np.random.default_rng(17)
     for n, m in [(0, 0), (0, 5), (4, 0), (150, 140)]:
@@ -407,7 +407,7 @@ def test_occlusion_side_shortcut_gives_the_exact_answers():
     """Footprints (rectangles) and other quads against sight lines in general position and through corners,
     along edges, starting on edges or inside, touching at one point, of zero length: every answer of the
     x buckets and the side shortcut as the plain exact loop's, with one skip or two."""
-    from couplers.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_bucketed,
+    from couplers.sensing.occlusion import (OccluderIndex, _occluded_by_quads, _occluded_by_quads_bucketed,
                                     _occluder_buckets, occluded_by_vehicles, unit_heading, vehicle_footprints)
 
     rng = np.random.default_rng(18)
@@ -465,9 +465,9 @@ def test_perceive_stages_equal_the_separate_kernels(seed):
     """The fused stages of perceive against perceive_reference (the separate kernels): every array and
     count, and each random stream left in the same state; with and without occluders, buildings, classes,
     the heading vectors, one clutter rate or several, sensors off the heading and behind the bumper."""
-    from couplers.occlusion import unit_heading, vehicle_footprints
-    from couplers.perception import PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference
-    from couplers.sensors import features_in_range
+    from couplers.sensing.occlusion import unit_heading, vehicle_footprints
+    from couplers.sensing.perception import PerceptionNoise, PerceptionParams, SensorSpec, perceive, perceive_reference
+    from couplers.sensing.sensors import features_in_range
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(seed)
@@ -507,7 +507,7 @@ def test_perceive_stages_equal_the_separate_kernels(seed):
 def test_fov_select_at_the_range_equals_the_square_root_test():
     """Targets at the range to the last bits (where the squared-distance shortcut must not decide): the
     candidates of _fov_select are those of the distance test d = sqrt(dx^2 + dy^2) <= range."""
-    from couplers.perception import _fov_select
+    from couplers.sensing.perception import _fov_select
 
     rng = np.random.default_rng(20)
     n, m = 50, 20000

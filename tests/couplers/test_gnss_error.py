@@ -1,4 +1,4 @@
-"""Realistic GNSS error (couplers.gnss_error, issue 21 item 4): Gauss-Markov statistics per zone,
+"""Realistic GNSS error (couplers.sensing.gnss_error, issue 21 item 4): Gauss-Markov statistics per zone,
 white noise at tau = 0, NLOS episodes, building density, bad parameters, and the coupler."""
 
 import math
@@ -8,15 +8,15 @@ import pytest
 from shapely.geometry import box
 
 from couplers.errors import InputError
-from couplers.gnss_error import (
+from couplers.sensing.gnss_error import (
     GnssErrorParams,
     GnssErrorProcess,
     building_density_grid,
     episode_start_probability,
     gauss_markov_coefficient,
 )
-from couplers.netfolder import Buildings, load_net_folder
-from couplers.sensors import SensorParams
+from couplers.net.folder import Buildings, load_net_folder
+from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 
 NO_NLOS = dict(nlos_zones=(), nlos_rate_per_min=())
@@ -178,7 +178,7 @@ def test_coupler_tau_zero_equals_idealised_frames_and_keeps_nominal_R(cross_net)
 @pytest.mark.parametrize("with_buildings", [False, True])
 @pytest.mark.parametrize("bias_mean_m", [10.0, 0.0])
 def test_step_kernels_equal_the_numpy_reference(with_buildings, bias_mean_m):
-    """GnssErrorProcess.step (episode draws in numba, couplers.numba_streams) against step_reference (numpy
+    """GnssErrorProcess.step (episode draws in numba, couplers.sensing.streams) against step_reference (numpy
     draws), byte for byte, with vehicles entering and leaving, episodes starting and ending, with the start
     probability per zone and per building-density cell; every stream left in the same state."""
     blds = Buildings.from_polygons([box(0, 0, 200, 200), box(300, 0, 340, 80)]) if with_buildings else None

@@ -1,4 +1,4 @@
-"""Realistic inertial input (couplers.inertial, issue 21 item 5): the body-frame IMU against the
+"""Realistic inertial input (couplers.sensing.inertial, issue 21 item 5): the body-frame IMU against the
 net-frame input, its discretisation in turns, the bias statistics, seeding, and the coupler (other
 streams untouched)."""
 
@@ -10,9 +10,9 @@ from scipy import stats
 
 from coloc.core.inertial import rotate, wrap_angle
 from couplers.errors import InputError
-from couplers.inertial import InertialParams, InertialProcess, gauss_markov_bias, true_body_motion
-from couplers.netfolder import load_net_folder
-from couplers.sensors import SensorParams
+from couplers.sensing.inertial import InertialParams, InertialProcess, gauss_markov_bias, true_body_motion
+from couplers.net.folder import load_net_folder
+from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 
 PERFECT = InertialParams(accel_noise_density=0.0, accel_bias_sigma=0.0, accel_turn_on_sigma=0.0,

@@ -1,12 +1,12 @@
-"""Infrastructure mode on the coupler side: RSU links, radar detections, odometry (couplers.infra)."""
+"""Infrastructure mode on the coupler side: RSU links, radar detections, odometry (couplers.sensing.infra)."""
 
 import numpy as np
 import pytest
 
 from couplers.errors import InputError
-from couplers.infra import InfraSetup, InfraSynth, junction_positions
-from couplers.netfolder import load_net_folder
-from couplers.sensors import SensorParams
+from couplers.sensing.infra import InfraSetup, InfraSynth, junction_positions
+from couplers.net.folder import load_net_folder
+from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 
 SETUP = InfraSetup(rsu_ids=("A", "B"), rsu_xy=np.array([[0.0, 0.0], [100.0, 0.0]]), range_m=60.0,

@@ -1,4 +1,4 @@
-"""SUMO pedestrians as moving features (couplers.pedestrians, [features] pedestrians) on sumo_nets/arterial_ped."""
+"""SUMO pedestrians as moving features (couplers.sensing.pedestrians, [features] pedestrians) on sumo_nets/arterial_ped."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from couplers.errors import InputError
-from couplers.netfolder import load_net_folder
-from couplers.pedestrians import CLASS_PEDESTRIAN, CLASS_STATIC, FeatureRegistry, FeaturesParams, PersonStates
-from couplers.perception import PerceptionParams
-from couplers.sensors import SensorParams
+from couplers.net.folder import load_net_folder
+from couplers.sensing.pedestrians import CLASS_PEDESTRIAN, CLASS_STATIC, FeatureRegistry, FeaturesParams, PersonStates
+from couplers.sensing.perception import PerceptionParams
+from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 
 ROOT = Path(__file__).resolve().parents[2]

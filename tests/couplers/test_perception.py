@@ -1,4 +1,4 @@
-"""Realistic perception (couplers.perception, issue 21 item 1) against brute-force references and its
+"""Realistic perception (couplers.sensing.perception, issue 21 item 1) against brute-force references and its
 configured statistics; buildings.geojson in a net folder; the [perception] table end to end."""
 
 import json
@@ -16,9 +16,9 @@ from shapely.affinity import rotate, translate
 from shapely.geometry import LineString, box
 
 from couplers.errors import InputError
-from couplers.netfolder import Buildings, load_net_folder
-from couplers.occlusion import occluded_by_buildings, occluded_by_vehicles, vehicle_footprints
-from couplers.perception import (
+from couplers.net.folder import Buildings, load_net_folder
+from couplers.sensing.occlusion import occluded_by_buildings, occluded_by_vehicles, vehicle_footprints
+from couplers.sensing.perception import (
     PerceptionNoise,
     PerceptionParams,
     SensorSpec,
@@ -29,7 +29,7 @@ from couplers.perception import (
     range_sigma,
     sensor_origins,
 )
-from couplers.sensors import SensorParams, features_in_range
+from couplers.sensing.sensors import SensorParams, features_in_range
 from netfixture import arterial_config
 
 ROOT = Path(__file__).resolve().parents[2]

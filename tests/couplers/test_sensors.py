@@ -5,7 +5,7 @@ import pytest
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from couplers.sensors import SensorNoise, SensorParams, features_in_range, neighbor_graph, synthesize_frame
+from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, neighbor_graph, synthesize_frame
 
 
 def scene(seed=0, n=60, k=40, extent=600.0):
@@ -153,7 +153,7 @@ def test_features_in_range_equals_the_kd_tree_pairs():
 
 
 def test_neighbor_graph_is_the_matrix_scipys_constructor_builds():
-    from couplers.sensors import _CSR_MAXPRINT, _csr_checked, _radius_graph_csr
+    from couplers.sensing.sensors import _CSR_MAXPRINT, _csr_checked, _radius_graph_csr
 
     assert _CSR_MAXPRINT is not None  # the fast path is on with this scipy
     rng = np.random.default_rng(3)

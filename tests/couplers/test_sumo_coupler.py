@@ -4,10 +4,10 @@ import libsumo
 import numpy as np
 import pytest
 
-from couplers.netfolder import load_net_folder
-from couplers.sensors import SensorParams
+from couplers.net.folder import load_net_folder
+from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
-from couplers.sumo_traffic import SumoOptions, SumoTraffic
+from couplers.traffic.sumo import SumoOptions, SumoTraffic
 
 
 def test_frames_match_sumo_state(cross_net):

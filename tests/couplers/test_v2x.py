@@ -1,4 +1,4 @@
-"""Realistic V2X, coupler side (couplers.v2x, coloc.core.v2x; issue 22 item 1): penetration against the
+"""Realistic V2X, coupler side (couplers.sensing.v2x, coloc.core.v2x; issue 22 item 1): penetration against the
 configured rate and nested across rates, delivery ratio per distance against the configured curve,
 the NLOS curve exactly for links through buildings, directed losses, determinism, the [v2x] table,
 and the coupler with and without it."""
@@ -16,10 +16,10 @@ from shapely.geometry import LineString, box
 
 from coloc.core.v2x import V2xFrame, deliveries, directed_links, round_deliveries
 from couplers.errors import InputError
-from couplers.netfolder import Buildings, load_net_folder
-from couplers.perception import PerceptionParams, SensorSpec
-from couplers.sensors import SensorParams, neighbor_graph
-from couplers.v2x import (
+from couplers.net.folder import Buildings, load_net_folder
+from couplers.sensing.perception import PerceptionParams, SensorSpec
+from couplers.sensing.sensors import SensorParams, neighbor_graph
+from couplers.sensing.v2x import (
     DEFAULT_PDR_DISTANCE_M,
     DEFAULT_PDR_LOS,
     DEFAULT_PDR_NLOS,
@@ -315,7 +315,7 @@ def _same_frame(a, b):
 def test_full_penetration_changes_nothing_but_adds_the_channel(cross_net):
     """[v2x] at penetration 1: every other field of every frame identical to a run without the table
     (new streams only), with [perception] and [gnss_error] too."""
-    from couplers.gnss_error import GnssErrorParams
+    from couplers.sensing.gnss_error import GnssErrorParams
 
     net = load_net_folder(cross_net)
     base = SensorParams(perception=PerceptionParams(), gnss_error=GnssErrorParams())

@@ -8,8 +8,8 @@ import pytest
 import shapely
 from shapely.geometry import MultiPolygon, Polygon
 
-from couplers.netfolder import Region, load_net_folder
-from couplers.zones import RegionIndex, gnss_sigma_for_zone, region_raster
+from couplers.net.folder import Region, load_net_folder
+from couplers.net.zones import RegionIndex, gnss_sigma_for_zone, region_raster
 
 ARTERIAL = Path(__file__).resolve().parents[2] / "sumo_nets" / "arterial"
 
@@ -109,7 +109,7 @@ def test_names_and_sigmas_follow_the_labels():
 
 def test_fine_cells_of_the_border_cells_give_the_polygon_test():
     """Points on the edges of the fine cells (REFINE per raster cell) and near the borders: same labels."""
-    from couplers.zones import REFINE
+    from couplers.net.zones import REFINE
 
     rng = np.random.default_rng(12)
     net = load_net_folder(ARTERIAL)

@@ -818,7 +818,7 @@ def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
 
 def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):
     """--rebuild-signals: netconvert's static programs replace the game net's 1000 s phases."""
-    from couplers.netimport.geometry import implausible_signal_programs
+    from couplers.net.importer.geometry import implausible_signal_programs
 
     net = SUMO_GAMES / "bs3d" / "bs.net.xml"
     assert len(implausible_signal_programs(net)) == 4

@@ -15,7 +15,7 @@ sumolib = pytest.importorskip("sumolib")
 shapely_geometry = pytest.importorskip("shapely.geometry")
 from shapely.geometry import LineString, Point, shape  # noqa: E402
 
-from couplers.netbuild import CONFIG_NAME, NET_NAME, NetBuildError, build_net  # noqa: E402
+from couplers.net.build import CONFIG_NAME, NET_NAME, NetBuildError, build_net  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 FOLDER = ROOT / "sumo_nets" / "arterial"
@@ -298,7 +298,7 @@ def test_full_hour_tlr_queues_more_than_vsr(tmp_path):
 # --------------------------------------------------------------------------
 
 def test_buildings_keep_off_lanes_and_features(net_internal):
-    from couplers.netfolder import load_net_folder
+    from couplers.net.folder import load_net_folder
 
     folder = load_net_folder(FOLDER)
     b = folder.buildings
@@ -318,12 +318,12 @@ def test_buildings_keep_off_lanes_and_features(net_internal):
 
 def test_buildings_denser_and_taller_where_gnss_is_class_c():
     """Plan-area fraction within 50 m of the arterial's axis (the NLOS GNSS density of
-    couplers.gnss_error) and mean height, by the GNSS class of the zone strip."""
+    couplers.sensing.gnss_error) and mean height, by the GNSS class of the zone strip."""
     import numpy as np
 
-    from couplers.gnss_error import building_density_grid
-    from couplers.netfolder import load_net_folder
-    from couplers.zones import RegionIndex
+    from couplers.sensing.gnss_error import building_density_grid
+    from couplers.net.folder import load_net_folder
+    from couplers.net.zones import RegionIndex
 
     folder = load_net_folder(FOLDER)
     grid = building_density_grid(folder.buildings, 50.0)

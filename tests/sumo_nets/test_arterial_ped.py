@@ -13,9 +13,9 @@ import pytest
 
 sumolib = pytest.importorskip("sumolib")
 
-from couplers.netbuild import NET_NAME, build_net  # noqa: E402
-from couplers.netcheck import check_net_folder  # noqa: E402
-from couplers.netfolder import load_net_folder  # noqa: E402
+from couplers.net.build import NET_NAME, build_net  # noqa: E402
+from couplers.net.check import check_net_folder  # noqa: E402
+from couplers.net.folder import load_net_folder  # noqa: E402
 from tests.scriptload import load_script  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,10 +10,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from couplers.netfolder import NET_CRS_NAME
+from couplers.net.folder import NET_CRS_NAME
 
 if TYPE_CHECKING:
-    from couplers.netimport import ImportOptions, _Report
+    from couplers.net.importer import ImportOptions, _Report
 
 # --------------------------------------------------------------------------
 # scenario.toml

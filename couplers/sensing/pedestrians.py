@@ -12,14 +12,14 @@ view, P_D and occlusion when present). Positions and velocities come from libsum
   (the true association, and the track id of the known-association methods) is stable. A person
   that has left (arrived) keeps its row with NaN state; it is never measured again.
 * Class: ``truth.feature_class`` (K,) and ``Frame.v2f_class`` (O,) int8, ``CLASS_STATIC`` (0) or
-  ``CLASS_PEDESTRIAN`` (1) (couplers.perception); a false detection (clutter) is reported as static:
+  ``CLASS_PEDESTRIAN`` (1) (couplers.sensing.perception); a false detection (clutter) is reported as static:
   the perception model draws it as a static object (relative velocity -v_vehicle), so a classifier
   would label it as what it looks like.
 * Pedestrians do not occlude (they are thin and the sensors of the project see over them: a
   simplification, stated in docs/architecture.md); they are not V2V nodes and have no GNSS.
 
 Cost: libsumo has no batch getter for persons; three plain getters per person and step
-(``getPosition``, ``getSpeed``, ``getAngle``), as for the vehicles (couplers.sumo_traffic). Measured
+(``getPosition``, ``getSpeed``, ``getAngle``), as for the vehicles (couplers.traffic.sumo). Measured
 on arterial_ped (about 65 persons walking): see docs/validation/realistic_sensing.md "SUMO pedestrians".
 """
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coloc.core.vehicles import match_ids
-from couplers.perception import CLASS_PEDESTRIAN, CLASS_STATIC
+from couplers.sensing.perception import CLASS_PEDESTRIAN, CLASS_STATIC
 
 __all__ = ["FeaturesParams", "PersonStates", "person_states", "FeatureRegistry", "CLASS_STATIC",
            "CLASS_PEDESTRIAN"]

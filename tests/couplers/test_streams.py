@@ -1,4 +1,4 @@
-"""numpy Generators drawn inside numba kernels (couplers.numba_streams): the same numbers in the same order
+"""numpy Generators drawn inside numba kernels (couplers.sensing.streams): the same numbers in the same order
 as numpy, the Generator's state in step with them, handles per process, and the realistic frames with the
 kernels' draws equal to the frames with numpy's."""
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from numba import njit
 
-from couplers import numba_streams
-from couplers.numba_streams import StreamHandles, handle, stream
+from couplers.sensing import streams
+from couplers.sensing.streams import StreamHandles, handle, stream
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,7 +27,7 @@ def _mixed(h, n, lam):
 
 def test_this_installation_draws_as_numpy():
     """The self-test passes here, so the coupler's kernels draw (the fast path is on, as the benchmarks assume)."""
-    assert numba_streams.available()
+    assert streams.available()
 
 
 @pytest.mark.parametrize("seed", [0, 11, 2026])
@@ -69,12 +69,12 @@ def test_handles_are_per_generator_and_recomputed_after_unpickling():
 def test_realistic_frames_equal_with_numpy_draws(monkeypatch):
     """90 s of experiments/arterial_tlr_realistic.toml (perception with occlusion by vehicles and buildings,
     correlated GNSS error with NLOS episodes, the body-frame IMU): every frame array byte for byte the same
-    with the kernels' draws and with the numpy reference paths (numba_streams.available() False)."""
+    with the kernels' draws and with the numpy reference paths (streams.available() False)."""
     from experiments.config import load_config
     from experiments.runner import frame_source
 
     def frames(fast: bool) -> list:
-        monkeypatch.setattr(numba_streams, "available", lambda: fast)
+        monkeypatch.setattr(streams, "available", lambda: fast)
         cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
                           {"run.duration_s": 90.0, "run.methods": ["gnss"]})
         with frame_source(cfg) as src:

@@ -19,7 +19,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from couplers.netfolder import Region
+from couplers.net.folder import Region
 
 RASTER_CELL_M = 5.0  # cell side; coarser when the regions' extent would need more than RASTER_MAX_CELLS
 # A cell that a border crosses is split into REFINE x REFINE cells, classified when a point first falls in one

@@ -18,13 +18,13 @@ import shapely
 from shapely.geometry import box, mapping
 
 from couplers.errors import InputError
-from couplers.georef import GeoRef, check_lonlat, conversion_note, crs_kind, geojson_to_net_xy
-from couplers.netfolder import NET_CRS as CRS
-from couplers.netfolder import regions_from_doc
-from couplers.netimport.geometry import _fmt
+from couplers.net.georef import GeoRef, check_lonlat, conversion_note, crs_kind, geojson_to_net_xy
+from couplers.net.folder import NET_CRS as CRS
+from couplers.net.folder import regions_from_doc
+from couplers.net.importer.geometry import _fmt
 
 if TYPE_CHECKING:
-    from couplers.netimport import _Report
+    from couplers.net.importer import _Report
 
 # GNSS classes (docs/architecture.md "Models and default parameters", Brambilla Sec. VI): zone -> (sigma_p m, sigma_v m/s).
 ZONE_PARAMS = {"A": (3.0, 0.1), "B": (8.0, 0.17), "C": (15.0, 0.45)}

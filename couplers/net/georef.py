@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from couplers.errors import InputError
-from couplers.netfolder import NET_CRS, NET_CRS_NAME
+from couplers.net.folder import NET_CRS, NET_CRS_NAME
 
 # crs names read as WGS84 lon/lat; a document without a crs member is lon/lat too (RFC 7946)
 WGS84_CRS_NAMES = ("urn:ogc:def:crs:OGC:1.3:CRS84", "EPSG:4326", "urn:ogc:def:crs:EPSG::4326")

@@ -21,8 +21,8 @@ import shapely
 from shapely.geometry import LineString
 
 from couplers.errors import InputError
-from couplers.netfolder import lane_shape_points, load_net_folder
-from couplers.netimport.demand import route_problems
+from couplers.net.folder import lane_shape_points, load_net_folder
+from couplers.net.importer.demand import route_problems
 
 
 def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[list[str], str]:

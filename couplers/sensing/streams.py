@@ -1,6 +1,6 @@
 """numpy Generators drawn from inside numba kernels, the same numbers in the same order (issue 21's frames).
 
-Every effect of the coupler has its own ``numpy.random.Generator`` (``couplers.perception.effect_rng``). A
+Every effect of the coupler has its own ``numpy.random.Generator`` (``couplers.sensing.perception.effect_rng``). A
 kernel that needs the draws of an effect could take the Generator itself as an argument, but numba unboxes
 a Generator through ctypes at every call (about 5 us here), more than most draws cost. :func:`handle` reads,
 once, the addresses numba's own unboxing reads (the bit generator's state and its ``next_uint64`` /

@@ -26,7 +26,7 @@ Model, per vehicle i and step k (Ts = the step), :class:`coloc.core.inertial.Imu
 
 Random streams: one ``numpy.random.Generator`` per effect, ``SeedSequence([seed, 0x1A0, crc32(effect
 name)])`` for "accel_noise", "accel_drift", "accel_turn_on", "gyro_noise", "gyro_drift",
-"gyro_turn_on": independent of every other stream (couplers.sensors.SensorNoise, [perception],
+"gyro_turn_on": independent of every other stream (couplers.sensing.sensors.SensorNoise, [perception],
 [gnss_error], [v2x]), so GNSS, V2F and prior draws are the same with or without ``[inertial]``. Each
 draws for every vehicle of the frame at every step (turn-on draws too, used only for those that
 enter), so a stream does not depend on who entered.
@@ -58,9 +58,9 @@ from numba import njit
 from coloc.core.inertial import ImuFrame, wrap_angle
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers import numba_streams
-from couplers.numba_streams import StreamHandles, stream
-from couplers.perception import effect_rng
+from couplers.sensing import streams
+from couplers.sensing.streams import StreamHandles, stream
+from couplers.sensing.perception import effect_rng
 
 INERTIAL_STREAM_TAG = 0x1A0
 
@@ -220,7 +220,7 @@ def _imu_step_drawn(h_a_on, h_g_on, h_a_drift, h_g_drift, h_a_noise, h_g_noise, 
                     accel_net, dt, scale, a_on_prev, a_drift_prev, a_sig, a_b, a_a, g_on_prev, g_drift_prev, g_sig,
                     g_b, g_a):
     """:func:`_imu_step` with its standard normal draws taken here from the streams of the handles ``h_*``
-    (:mod:`couplers.numba_streams`), one draw per stream and step as :meth:`InertialProcess.step_reference`
+    (:mod:`couplers.sensing.streams`), one draw per stream and step as :meth:`InertialProcess.step_reference`
     takes them: turn-on biases (N, 2) and (N,), drift drivers, white noise."""
     n = idx.size
     a_on_new = stream(h_a_on).standard_normal((n, 2))
@@ -261,7 +261,7 @@ class InertialProcess:
         SUMO coupler has from ``SumoTraffic.step``); None: matched here.
 
         :meth:`step_reference` is the same step in numpy (:func:`true_body_motion`, :func:`_imu_axes`)."""
-        if not numba_streams.available():  # numba's draws differ from numpy's here: the numpy step
+        if not streams.available():  # numba's draws differ from numpy's here: the numpy step
             return self.step_reference(ids, entered, heading, accel_net)
         p, dt = self.params, self.dt
         if idx is None:
@@ -271,7 +271,7 @@ class InertialProcess:
                                              heading, self._heading)
         c, s = np.cos(mid), np.sin(mid)  # numpy's, as true_body_motion's
         # every stream draws for every vehicle (turn-on biases too, used only by the vehicles that enter), in the
-        # kernel (couplers.numba_streams); the standard normals are scaled there as turn_on_bias / white_noise
+        # kernel (couplers.sensing.streams); the standard normals are scaled there as turn_on_bias / white_noise
         # scale them
         rad = math.pi / 180.0
         scale = np.array([p.accel_turn_on_sigma, p.gyro_turn_on_sigma * rad, p.accel_noise_density / math.sqrt(dt),

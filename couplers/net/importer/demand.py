@@ -17,11 +17,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from couplers.errors import InputError
-from couplers.netimport.geometry import _fmt
-from couplers.netimport.tools import _run, _sumo_home
+from couplers.net.importer.geometry import _fmt
+from couplers.net.importer.tools import _run, _sumo_home
 
 if TYPE_CHECKING:
-    from couplers.netimport import ImportOptions, _Report
+    from couplers.net.importer import ImportOptions, _Report
 
 # The shipped arterial (sumo_nets/arterial), measured from its files; a test
 # checks these against the folder. Demand is scaled so that an imported net
@@ -208,7 +208,7 @@ def gridlock_trial(net_path: Path, routes_path: Path, tls_off: bool, seed: int, 
     vehicles in the net halting over the last CALIB_WINDOW checks after the first CALIB_WARMUP_S, or an insertion backlog above CALIB_BACKLOG of
     the vehicles departed (entries blocked).
     """
-    from couplers.sumo_traffic import SumoOptions, libsumo  # noqa: PLC0415
+    from couplers.traffic.sumo import SumoOptions, libsumo  # noqa: PLC0415
 
     options = SumoOptions(net=net_path, routes=routes_path, seed=seed, end=end, tls_off=tls_off)
     libsumo.start(options.command())
@@ -322,7 +322,7 @@ def _write_demand(opts: ImportOptions, net, net_path: Path, work: Path, lane_km:
 
     calibrate = opts.calibrate
     if calibrate:
-        from couplers.sumo_traffic import libsumo  # noqa: PLC0415
+        from couplers.traffic.sumo import libsumo  # noqa: PLC0415
 
         if libsumo is None:
             calibrate = False

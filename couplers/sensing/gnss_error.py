@@ -9,7 +9,7 @@ Position error of vehicle i at step k (net x/y, per axis):
   u_k = a u_{k-1} + sqrt(1 - a^2) w_k, a = exp(-Ts / tau_s), w_k ~ N(0, I2). A vehicle that enters
   (or re-enters after a teleport) starts stationary, u = w. ``tau_s = 0`` gives a = 0, u_k = w_k:
   today's white noise exactly, since w_k is the draw the idealised coupler uses (the position
-  columns of the GNSS stream of couplers.sensors.SensorNoise).
+  columns of the GNSS stream of couplers.sensing.sensors.SensorNoise).
 * Zone changes: the state is kept normalised (u), so the error is rescaled by the ratio of the new
   zone's sigma_p to the old one's at the step the vehicle crosses; the stationary standard deviation
   is the zone's sigma_p at every step, and the correlation of u is unbroken.
@@ -44,7 +44,7 @@ Default sources:
   Environment"). Start rates (zone C 1 / min, zone B 0.25 / min, A none) and the mean duration
   (10 s) are assumptions: no measured rate of episodes was found; with them a vehicle in zone C is
   biased ~14 % of the time. Density rate 3 / min per unit plan-area fraction: 1 / min at 0.30, the
-  built-up fraction from which ``coloc net import`` classes a cell C (couplers.netimport).
+  built-up fraction from which ``coloc net import`` classes a cell C (couplers.net.importer).
 """
 
 from __future__ import annotations
@@ -58,11 +58,11 @@ from numba import njit
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.netfolder import Buildings
-from couplers import numba_streams
-from couplers.numba_streams import StreamHandles, stream
-from couplers.perception import effect_rng
-from couplers.zones import CellGrid, _grid_values
+from couplers.net.folder import Buildings
+from couplers.sensing import streams
+from couplers.sensing.streams import StreamHandles, stream
+from couplers.sensing.perception import effect_rng
+from couplers.net.zones import CellGrid, _grid_values
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
 
@@ -190,7 +190,7 @@ def _start_episodes(start, mag, cos_a, sin_a, dur, t, bias, end):
 
 @njit(cache=True)
 def _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, x0, y0, cell, p_grid):
-    """:func:`_carry` and the start probability of each vehicle's cell (:func:`couplers.zones._grid_values`
+    """:func:`_carry` and the start probability of each vehicle's cell (:func:`couplers.net.zones._grid_values`
     of the per-cell probabilities)."""
     u, bias, end, active = _carry(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t)
     return u, bias, end, active, _grid_values(xy, x0, y0, cell, p_grid)
@@ -199,7 +199,7 @@ def _carry_with_grid(idx, entered, w, u_prev, bias_prev, end_prev, a, b, t, xy, 
 @njit(cache=True)
 def _episode_draws(h_start, h_duration, h_bias, mean_duration_s, bias_mean_m, p_start, active):
     """The episode draws of one step for every vehicle, from the streams of the handles ``h_*``
-    (:mod:`couplers.numba_streams`) as :meth:`GnssErrorProcess.step_reference` takes them: start = (u < p_start)
+    (:mod:`couplers.sensing.streams`) as :meth:`GnssErrorProcess.step_reference` takes them: start = (u < p_start)
     and not ``active``, durations Exp(mean_duration_s), magnitudes Exp(bias_mean_m) (none drawn, zeros, for a mean
     of 0) and angles U(-pi, pi). Returns (start, dur, mag, the angles of the starting vehicles in row order)."""
     n = p_start.size
@@ -294,9 +294,9 @@ class GnssErrorProcess:
         """(N, 2) position error of this step; ``w`` (N, 2) the standard normal driving draws. ``idx``: the row
         of each vehicle among the ``ids`` of the previous call, -1 if new (``match_ids(previous ids, ids)``,
         which the SUMO coupler has from ``SumoTraffic.step``); None: matched here. The episode draws are taken
-        in the kernels (:func:`_episode_draws`, :mod:`couplers.numba_streams`); :meth:`step_reference` takes
+        in the kernels (:func:`_episode_draws`, :mod:`couplers.sensing.streams`); :meth:`step_reference` takes
         them in numpy."""
-        if not numba_streams.available():
+        if not streams.available():
             return self.step_reference(t, ids, entered, w, sigma_p, zone, xy, idx=idx)
         if idx is None:
             idx = match_ids(self._ids, ids)

@@ -1,6 +1,6 @@
 """A net folder (docs/architecture.md "A net folder"): scenario.toml, the net, demand, zones, areas, features.
 
-Parsing only; geometry lookups are in ``couplers.zones``.
+Parsing only; geometry lookups are in ``couplers.net.zones``.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ class NetFolder:
     scenario: dict
     buildings: "Buildings | None" = None  # buildings.geojson, optional (occlusion, NLOS GNSS)
     # [files] persons: a SUMO route file of persons (walkers), optional; loaded beside the vehicle
-    # routes, and what ``[features] pedestrians = true`` needs (couplers.pedestrians).
+    # routes, and what ``[features] pedestrians = true`` needs (couplers.sensing.pedestrians).
     persons: Path | None = None
 
 
@@ -144,15 +144,15 @@ class Buildings:
 
     @cached_property
     def cells(self):
-        """Cells near these footprints (:func:`couplers.occlusion.building_cells`, built on first use)."""
-        from couplers.occlusion import building_cells  # occlusion imports this module
+        """Cells near these footprints (:func:`couplers.sensing.occlusion.building_cells`, built on first use)."""
+        from couplers.sensing.occlusion import building_cells  # occlusion imports this module
 
         return building_cells(self)
 
     @cached_property
     def boxes(self):
-        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.occlusion.BuildingBoxes`)."""
-        from couplers.occlusion import BuildingBoxes
+        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.sensing.occlusion.BuildingBoxes`)."""
+        from couplers.sensing.occlusion import BuildingBoxes
 
         return BuildingBoxes.build(self)
 

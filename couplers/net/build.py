@@ -8,7 +8,7 @@ writes ``tlr.net.xml`` so that two builds on any machine, from any working
 directory, give identical bytes: netconvert's header comment (date, version
 banner, option dump with paths) is replaced by a fixed comment.
 
-Run as ``python -m couplers.netbuild sumo_nets/arterial``.
+Run as ``python -m couplers.net.build sumo_nets/arterial``.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def _normalise(text: str) -> str:
     if not m:
         raise NetBuildError(f"{NET_NAME}: unexpected netconvert output header")
     fixed = (
-        f"<!-- built by couplers.netbuild from {CONFIG_NAME} in this folder "
+        f"<!-- built by couplers.net.build from {CONFIG_NAME} in this folder "
         "(netconvert header with date and paths removed for reproducibility) -->\n\n"
     )
     return m.group(1) + fixed + text[m.end():]
@@ -103,7 +103,7 @@ def build_net(folder: Path | str, *, output_name: str = NET_NAME) -> Path:
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
-        print("usage: python -m couplers.netbuild NET_FOLDER", file=sys.stderr)
+        print("usage: python -m couplers.net.build NET_FOLDER", file=sys.stderr)
         return 2
     try:
         out = build_net(Path(args[0]))

@@ -21,7 +21,7 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
   the footprints listed in x buckets of their bounding boxes plus exact segment/rectangle tests (skipped
   for a footprint that lies wholly to one side of the line); buildings: a shapely 2 STRtree
   ``query(..., predicate="intersects")`` over the sight lines that meet a building's bounding box, all
-  at once (the geometry: :mod:`couplers.occlusion`).
+  at once (the geometry: :mod:`couplers.sensing.occlusion`).
 * Detection: a visible feature at distance d is detected with probability
   P_D(d) = pd_near + (pd_far - pd_near) d / range_m, linear in d from ``pd_near`` at 0 m to
   ``pd_far`` at the range. Eclipse MOSAIC's perception error models decide detection by distance
@@ -47,9 +47,9 @@ Model, per step, for every vehicle i and every sensor s of :class:`PerceptionPar
 
 Random streams: one ``numpy.random.Generator`` per effect ("detect", "noise", "clutter",
 "shuffle"), each seeded by ``SeedSequence([seed, 0x9E5, crc32(effect name)])``: independent of the
-idealised sensors' streams (couplers.sensors.SensorNoise), so GNSS, prior and inertial noise are the
+idealised sensors' streams (couplers.sensing.sensors.SensorNoise), so GNSS, prior and inertial noise are the
 same draws with or without ``[perception]``, and adding an effect does not shift the others. :func:`perceive`
-draws them inside its kernels (:mod:`couplers.numba_streams`: numpy's numbers, in numpy's order).
+draws them inside its kernels (:mod:`couplers.sensing.streams`: numpy's numbers, in numpy's order).
 """
 
 from __future__ import annotations
@@ -66,10 +66,10 @@ from numba import njit
 from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
-from couplers.netfolder import Buildings
-from couplers import numba_streams
-from couplers.numba_streams import StreamHandles, stream
-from couplers.occlusion import (  # noqa: F401 (unit_heading: also this module's, as before)
+from couplers.net.folder import Buildings
+from couplers.sensing import streams
+from couplers.sensing.streams import StreamHandles, stream
+from couplers.sensing.occlusion import (  # noqa: F401 (unit_heading: also this module's, as before)
     OccluderIndex,
     _needs_building_test,
     OCCLUDER_BUCKET_M,
@@ -80,12 +80,12 @@ from couplers.occlusion import (  # noqa: F401 (unit_heading: also this module's
     _segments_occluded_by_vehicles,
     unit_heading,
 )
-from couplers.rows import _order_by_owner_then_key, shuffle_within_owner
-from couplers.zones import CellGrid
+from couplers.sensing.rows import _order_by_owner_then_key, shuffle_within_owner
+from couplers.net.zones import CellGrid
 
 PERCEPTION_STREAM_TAG = 0x9E5
 #: Class of a detection (``Frame.v2f_class``): static landmark, or a SUMO pedestrian
-#: (couplers.pedestrians). A false detection carries the class the sensor reports for it, a static
+#: (couplers.sensing.pedestrians). A false detection carries the class the sensor reports for it, a static
 #: object (it is drawn as one: relative velocity -v_vehicle).
 CLASS_STATIC = 0
 CLASS_PEDESTRIAN = 1
@@ -531,7 +531,7 @@ def perceive(
     """The V2F rows of one step.
 
     ``pair_owner`` / ``pair_feature``: candidate (vehicle, feature) pairs covering every pair within
-    ``params.max_reach_m`` (couplers.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
+    ``params.max_reach_m`` (couplers.sensing.sensors.features_in_range). ``occluder_corners`` (K, 4, 2):
     footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
     measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
     (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
@@ -539,12 +539,12 @@ def perceive(
 
     Two numba stages around numpy's trigonometry and shapely's building query (the kernels of
     :func:`perceive_reference`, same operations in the same order, the same draws from each stream in the same
-    order, drawn inside the kernels through :mod:`couplers.numba_streams`): the clutter and candidate draws,
+    order, drawn inside the kernels through :mod:`couplers.sensing.streams`): the clutter and candidate draws,
     field of view, clutter geometry, sight lines and their occlusion (:func:`_sense_stage`); detections,
     merge, rows and the shuffle within each vehicle (:func:`_rows_stage`). Where numba's draws do not equal
-    numpy's (``numba_streams.available()`` False), :func:`perceive_reference` runs instead.
+    numpy's (``streams.available()`` False), :func:`perceive_reference` runs instead.
     """
-    if not numba_streams.available():
+    if not streams.available():
         return perceive_reference(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
                                   pair_feature=pair_feature, params=params, noise=noise,
                                   occluder_corners=occluder_corners, observer_occluder=observer_occluder,
@@ -615,7 +615,7 @@ def _sense_stage(h_clutter, h_detect, h_noise, clutter_rate, xy, direction, moun
     """The clutter draws (Poisson counts per (vehicle, sensor) in that order, then the distance and bearing
     uniforms and the (C, 4) noise normals, as :func:`_clutter_polar` and :func:`perceive_reference` draw them),
     :func:`_fov_stage`, the candidates' detection uniforms and (C, 4) noise normals, and
-    :func:`_occlusion_stage`; the draws from the streams of the handles ``h_*`` (:mod:`couplers.numba_streams`)."""
+    :func:`_occlusion_stage`; the draws from the streams of the handles ``h_*`` (:mod:`couplers.sensing.streams`)."""
     n, n_s = xy.shape[0], mount_x.size
     clutter = stream(h_clutter)
     counts = np.empty(n * n_s, dtype=np.int64)
@@ -749,7 +749,7 @@ def _detection_stage(pair, dist, sensor, n_pairs, clear, line_of, u, w, pair_own
 
 @njit(cache=True)
 def _shuffle_stage(keys, t_z, c_z, t_owner, c_owner, t_feat, t_sensor, c_sensor, t_sig, c_sig, t_sv, c_sv, t_klass):
-    """:func:`couplers.rows.shuffle_within_owner` of the detections then the clutter rows with the uniform
+    """:func:`couplers.sensing.rows.shuffle_within_owner` of the detections then the clutter rows with the uniform
     ``keys``, and the rows in that order (:func:`_shuffled_rows`)."""
     owner = np.empty(t_owner.size + c_owner.size, dtype=np.int64)
     owner[:t_owner.size] = t_owner

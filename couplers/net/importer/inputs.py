@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from couplers.errors import InputError
-from couplers.netimport.tools import _binary, _run, _sumo_home, normalise_header
+from couplers.net.importer.tools import _binary, _run, _sumo_home, normalise_header
 
 if TYPE_CHECKING:
-    from couplers.netimport import ImportOptions, _Report
+    from couplers.net.importer import ImportOptions, _Report
 
 # OSM highway values netconvert's osmNetconvert typemap opens to passenger cars.
 CAR_HIGHWAYS = frozenset({

@@ -16,13 +16,13 @@ from scipy.spatial import cKDTree
 from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from coloc.kernels.icp import rows_by_key
-from couplers.gnss_error import GnssErrorParams, GnssErrorProcess
+from couplers.sensing.gnss_error import GnssErrorParams, GnssErrorProcess
 from coloc.core.inertial import ImuFrame
-from couplers.inertial import InertialParams
-from couplers.pedestrians import FeaturesParams
-from couplers.perception import Detections, PerceptionParams
-from couplers.rows import shuffle_within_owner
-from couplers.v2x import V2xParams
+from couplers.sensing.inertial import InertialParams
+from couplers.sensing.pedestrians import FeaturesParams
+from couplers.sensing.perception import Detections, PerceptionParams
+from couplers.sensing.rows import shuffle_within_owner
+from couplers.sensing.v2x import V2xParams
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class SensorParams:
     gnss_error: GnssErrorParams | None = None
     v2x: V2xParams | None = None
     inertial: InertialParams | None = None
-    # [features] (issue 21 item 3): SUMO pedestrians as moving features (couplers.pedestrians).
+    # [features] (issue 21 item 3): SUMO pedestrians as moving features (couplers.sensing.pedestrians).
     features: "FeaturesParams | None" = None
 
 
@@ -328,11 +328,11 @@ def synthesize_frame(
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
-    ``detections`` (couplers.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
+    ``detections`` (couplers.sensing.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
     replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
     standard normal draws (both None: the paper's idealisation, byte for byte as before). ``prev_row``: the
     row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
-    matches the ids itself). ``imu`` (``couplers.inertial.InertialProcess``): the frame carries it and
+    matches the ids itself). ``imu`` (``couplers.sensing.inertial.InertialProcess``): the frame carries it and
     ``accel`` is NaN (the net-frame input would carry the true heading)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)

@@ -1,5 +1,5 @@
-"""Occlusion geometry of the realistic perception (issue 21 item 1; :mod:`couplers.perception` uses it,
-:mod:`couplers.v2x` too for the buildings' shadowing of V2V links): vehicle footprints, sight lines
+"""Occlusion geometry of the realistic perception (issue 21 item 1; :mod:`couplers.sensing.perception` uses it,
+:mod:`couplers.sensing.v2x` too for the buildings' shadowing of V2V links): vehicle footprints, sight lines
 against footprints and against the net folder's buildings.
 
 * Vehicles: every SUMO vehicle on the road is a length x width rectangle behind its front bumper,
@@ -22,8 +22,8 @@ import numpy as np
 import shapely
 from numba import njit
 
-from couplers.netfolder import Buildings
-from couplers.zones import CellGrid
+from couplers.net.folder import Buildings
+from couplers.net.zones import CellGrid
 
 
 def unit_heading(heading: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ Model:
   interpolated in the table (``pdr_distance_m``, ``pdr_los``), 0 beyond the last distance; a link
   whose straight segment between the two vehicle positions intersects a building of the net folder's
   ``buildings.geojson`` takes ``pdr_nlos`` instead (one shapely 2 STRtree query for all links of a
-  step, :func:`couplers.occlusion.occluded_by_buildings`; a net without buildings: every link is
+  step, :func:`couplers.sensing.occlusion.occluded_by_buildings`; a net without buildings: every link is
   LOS). The V2V neighbourhood ``neighbors`` keeps its meaning (pairs within ``sensors.v2v_range_m``);
   the channel is a layer on top: each directed entry j -> i of ``neighbors`` gets a delivery
   probability, and every message on it in every round is delivered independently with that
@@ -32,7 +32,7 @@ the round budget, a per-step seed); estimators realise round r with
 
 Random streams: equipment is the keyed hash above (no generator); the per-step channel seeds come
 from their own generator ``SeedSequence([seed, 0x5A2, crc32("rounds")])`` (as the perception's
-effects, couplers.perception.effect_rng), one 63-bit integer per step. GNSS, prior, inertial, V2F and
+effects, couplers.sensing.perception.effect_rng), one 63-bit integer per step. GNSS, prior, inertial, V2F and
 perception streams are untouched: with every vehicle equipped the frame's other fields are identical
 to a run without ``[v2x]``.
 
@@ -66,9 +66,9 @@ import scipy.sparse as sp
 from coloc.core.v2x import UNLIMITED_ROUNDS, V2xFrame
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.netfolder import Buildings
-from couplers.occlusion import occluded_by_buildings
-from couplers.perception import effect_rng
+from couplers.net.folder import Buildings
+from couplers.sensing.occlusion import occluded_by_buildings
+from couplers.sensing.perception import effect_rng
 
 V2X_STREAM_TAG = 0x5A2
 _EQUIP_PERSON = b"coloc.v2x.equip"  # BLAKE2b personalisation: this hash is the equipment draw only

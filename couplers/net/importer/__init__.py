@@ -33,7 +33,7 @@ folder holds (docs/architecture.md "A net folder"), and says what it could not d
   user's GeoJSON. The user's GeoJSON is net x/y metres (crs
   ``urn:coloc:sumo-net-xy``) or WGS84 lon/lat (RFC 7946: no crs member, or
   CRS84 / EPSG:4326), converted with the net's own projection
-  (:mod:`couplers.georef`); the folder always holds net x/y.
+  (:mod:`couplers.net.georef`); the folder always holds net x/y.
 
 Everything is built in a temporary folder next to the output and renamed into
 place only when complete; bad input raises :class:`InputError` naming the
@@ -56,10 +56,10 @@ import shapely
 from shapely.geometry import LineString
 
 from couplers.errors import InputError, seed_problem
-from couplers.georef import geojson_to_net_xy, read_georef
-from couplers.netfolder import lane_shape_points, read_regions
-from couplers.netimport.demand import _user_routes, _write_demand
-from couplers.netimport.features import (
+from couplers.net.georef import geojson_to_net_xy, read_georef
+from couplers.net.folder import lane_shape_points, read_regions
+from couplers.net.importer.demand import _user_routes, _write_demand
+from couplers.net.importer.features import (
     FEATURE_KINDS,
     FEATURE_MIN_SPACING_M,
     _additional_stops,
@@ -67,9 +67,9 @@ from couplers.netimport.features import (
     _select_features,
     _write_features,
 )
-from couplers.netimport.geometry import _drivable_edges, implausible_signal_programs
-from couplers.netimport.inputs import _check_net_xml, _netconvert, scan_osm
-from couplers.netimport.regions import (
+from couplers.net.importer.geometry import _drivable_edges, implausible_signal_programs
+from couplers.net.importer.inputs import _check_net_xml, _netconvert, scan_osm
+from couplers.net.importer.regions import (
     _default_areas,
     _default_zones,
     _read_user_geojson,
@@ -77,8 +77,8 @@ from couplers.netimport.regions import (
     _write_buildings,
     _zones_from_buildings,
 )
-from couplers.netimport.scenario import _write_scenario
-from couplers.netimport.tools import _binary, _run, _sumo_home
+from couplers.net.importer.scenario import _write_scenario
+from couplers.net.importer.tools import _binary, _run, _sumo_home
 from couplers.publish import check_target, make_dirs, remove_created, staged_folder, write_file_atomic
 
 SIGNAL_MODES = ("check", "rebuild", "keep")

@@ -16,12 +16,12 @@ import pytest
 sumolib = pytest.importorskip("sumolib")
 
 from couplers.errors import InputError  # noqa: E402
-from couplers.netcheck import check_net_folder  # noqa: E402
-from couplers.netfolder import load_net_folder  # noqa: E402
-from couplers.netimport import ImportOptions, import_net  # noqa: E402
-from couplers.netimport.demand import ARTERIAL_LANE_KM, ARTERIAL_MEAN_ROUTE_M, VTYPE, falling_profile_bins  # noqa: E402
-from couplers.netimport.geometry import _drivable_edges  # noqa: E402
-from couplers.zones import RegionIndex  # noqa: E402
+from couplers.net.check import check_net_folder  # noqa: E402
+from couplers.net.folder import load_net_folder  # noqa: E402
+from couplers.net.importer import ImportOptions, import_net  # noqa: E402
+from couplers.net.importer.demand import ARTERIAL_LANE_KM, ARTERIAL_MEAN_ROUTE_M, VTYPE, falling_profile_bins  # noqa: E402
+from couplers.net.importer.geometry import _drivable_edges  # noqa: E402
+from couplers.net.zones import RegionIndex  # noqa: E402
 from osmfixture import DLAT, DLON, LAT0, LON0, _nid, write_osm_grid  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -301,7 +301,7 @@ def _to_lonlat(doc: dict, net, crs: str | None) -> dict:
 
 def test_lonlat_to_net_xy_matches_sumolib(imported):
     """The vectorised conversion is sumolib's convertLonLat2XY (projection, then netOffset added) to < 1 mm."""
-    from couplers.georef import lonlat_to_xy, read_georef
+    from couplers.net.georef import lonlat_to_xy, read_georef
 
     out, _ = imported
     net = sumolib.net.readNet(str(out / "tlr.net.xml"))

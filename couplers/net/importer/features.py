@@ -11,7 +11,7 @@ import shapely
 import shapely.ops
 
 from couplers.errors import InputError
-from couplers.netimport.geometry import FEATURE_SIDE_M, _fmt, _roadside
+from couplers.net.importer.geometry import FEATURE_SIDE_M, _fmt, _roadside
 
 FEATURE_KINDS = ("traffic_light", "bus_stop", "parking", "sign")
 FEATURE_COLORS = {"bus_stop": "0,0,255", "traffic_light": "255,0,0", "sign": "255,165,0", "parking": "0,160,0"}

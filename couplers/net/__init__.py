@@ -1,0 +1,1 @@
+"""The net folder and its import: net, routes, zones, areas, buildings and georeference."""

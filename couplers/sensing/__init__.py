@@ -1,0 +1,1 @@
+"""The sensor models: what each vehicle and road-side unit measures of the true states."""

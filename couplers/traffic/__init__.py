@@ -1,0 +1,1 @@
+"""The traffic simulation: SUMO through libsumo."""
