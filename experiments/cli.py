@@ -98,7 +98,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from experiments.sweep import SweepFailed, run_sweep
+    from experiments.sweep.run import SweepFailed, run_sweep
 
     if args.workers is not None and args.workers < 1:
         raise InputError(None, "--workers", "must be >= 1")
@@ -127,7 +127,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     dirs = [Path(d) for d in args.dirs]
     if len(dirs) == 1 and args.out is None and (dirs[0] / "sweep.toml").is_file():
-        from experiments.sweep_report import write_sweep_report
+        from experiments.sweep.report import write_sweep_report
 
         for name in ("sweep.parquet", "curves.parquet"):
             if not (dirs[0] / name).is_file():

@@ -13,7 +13,7 @@ import pytest
 from couplers.errors import InputError
 from couplers.publish import MARKER
 from experiments.cli import main
-from experiments.sweep import expand_runs, load_sweep
+from experiments.sweep.run import expand_runs, load_sweep
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -171,7 +171,7 @@ def tiny(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("tiny")
     spec = write_sweep(tmp)
     out = tmp / "out"
-    from experiments.sweep import run_sweep
+    from experiments.sweep.run import run_sweep
 
     res = run_sweep(spec, out, workers=2, progress=False)  # raises with the failing run's message, if any
     assert (res.n_runs, res.computed, res.present) == (4, 4, 0)
@@ -243,7 +243,7 @@ def test_sweep_on_a_running_scheduler_gives_the_same_files(tiny, tmp_path):
 
 
 def test_unreachable_scheduler_is_an_input_error(tmp_path):
-    from experiments.sweep import run_sweep
+    from experiments.sweep.run import run_sweep
 
     spec = write_sweep(tmp_path)
     with pytest.raises(InputError) as err:
@@ -308,7 +308,7 @@ sigma_cross = 0.1
     spec = tmp_path / "sweep.toml"
     spec.write_text(SWEEP.format(seeds="[1, 2]", more="", grid='"scenario.control" = ["tlr", "vsr"]'))
     out = tmp_path / "out"
-    from experiments.sweep import run_sweep
+    from experiments.sweep.run import run_sweep
 
     assert run_sweep(spec, out, workers=2, progress=False).computed == 4
     table = pd.read_parquet(out / "sweep.parquet")
@@ -370,7 +370,7 @@ def test_infra_sweep_runs_and_reports_within_coverage(cross_net, tmp_path):
     range, and sweep.parquet has the within-coverage columns (more covered vehicle-steps at 120 m)."""
     import tomllib
 
-    from experiments.sweep import run_sweep
+    from experiments.sweep.run import run_sweep
 
     spec = write_infra_sweep(tmp_path, cross_net)
     out = tmp_path / "out"

@@ -13,8 +13,8 @@ import pytest
 import scipy.sparse as sp
 
 from couplers.errors import InputError
-from experiments.sweep import expand_runs, load_sweep, run_sweep
-from experiments.sweep_zones import ERR_BIN_M, p95_from_histogram, zone_partials
+from experiments.sweep.run import expand_runs, load_sweep, run_sweep
+from experiments.sweep.zones import ERR_BIN_M, p95_from_histogram, zone_partials
 
 PROJECT = Path(__file__).resolve().parents[2]
 

@@ -13,7 +13,7 @@ penetration study), and the V2V degree distribution.
 * ``v2v_degree.png``: the mean V2V degree, its 10 / 50 / 90 % quantiles and the share of isolated
   vehicle-steps against the first swept key.
 
-All from ``zones.parquet``, ``v2v.parquet`` and ``curves.parquet`` (experiments.sweep_zones).
+All from ``zones.parquet``, ``v2v.parquet`` and ``curves.parquet`` (experiments.sweep.zones).
 """
 
 from __future__ import annotations

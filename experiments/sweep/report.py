@@ -235,8 +235,8 @@ def _read_optional(path: Path) -> pd.DataFrame | None:
 
 
 def _study_blocks(curves, zones, v2v, spec, grid_keys, figdir, runs_text, seed_text, what) -> list[str]:
-    """Figures of a one-factor-at-a-time sweep (experiments.sweep_study_report)."""
-    from experiments.sweep_study_report import fig_factor_association, fig_factor_gap, fig_factors
+    """Figures of a one-factor-at-a-time sweep (experiments.sweep.study_report)."""
+    from experiments.sweep.study_report import fig_factor_association, fig_factor_gap, fig_factors
 
     blocks = []
     lines = "one line per method" + (" and value of " + ", ".join(_esc(_key_label(k)) for k in grid_keys)
@@ -273,7 +273,7 @@ def _study_blocks(curves, zones, v2v, spec, grid_keys, figdir, runs_text, seed_t
 
 def _zone_blocks(zones, v2v, keys, figdir, runs_text, seed_text, what) -> list[str]:
     """Gain over GNSS by zone and the V2V degree against the first swept key (the penetration study)."""
-    from experiments.sweep_study_report import control_difference_table, fig_degree, fig_gain, table_html
+    from experiments.sweep.study_report import control_difference_table, fig_degree, fig_gain, table_html
 
     blocks = []
     first = keys[0]

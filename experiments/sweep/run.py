@@ -51,7 +51,7 @@ sweep (sorted rows, no timestamps):
   ``association`` (correct / wrong / discarded percentages of all V2F rows,
   Figs. 9 and 11), ``overall`` and ``feature_overall`` (pooled RMSE).
   RMSE = sqrt(mean of the squared error over all runs and vehicles).
-* ``DIR/report.html`` with ``DIR/figures/*.png`` (:mod:`experiments.sweep_report`).
+* ``DIR/report.html`` with ``DIR/figures/*.png`` (:mod:`experiments.sweep.report`).
 """
 
 from __future__ import annotations
@@ -82,9 +82,9 @@ import pandas as pd
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
-from experiments.sweep_factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
+from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
     split_overrides, variants
-from experiments.sweep_zones import aggregate_zones, degree_partial, zone_partials
+from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
@@ -109,7 +109,7 @@ class SweepSpec:
     grid: tuple[tuple[str, tuple], ...]  # (dotted key, values) in file order
     fixed: tuple[tuple[str, object], ...]  # [sweep.set]
     distance_bin_m: float
-    factors: tuple[Factor, ...] = ()  # [sweep.factors]: one factor at a time (experiments.sweep_factors)
+    factors: tuple[Factor, ...] = ()  # [sweep.factors]: one factor at a time (experiments.sweep.factors)
 
     @property
     def grid_keys(self) -> list[str]:
@@ -778,7 +778,7 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
         write_parquet(df, buf)
         write_file_atomic(out / name, buf.getvalue())
     if write_report:
-        from experiments.sweep_report import write_sweep_report
+        from experiments.sweep.report import write_sweep_report
 
         write_sweep_report(out)
     return SweepResult(out, len(runs), computed, present, [], time.perf_counter() - t0, workers)
