@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ import shapely
 from shapely.geometry import shape
 
 from couplers.errors import InputError, read_toml
+from couplers.net.buildings import Buildings
 
 REQUIRED_FILES = ("net", "routes", "zones", "areas", "features")
 BUILDINGS_FILE = "buildings.geojson"  # optional
@@ -122,39 +122,6 @@ def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Reg
 def read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]:
     """GNSS zones (``key="zone"``, with sigma_p/sigma_v) or analysis areas (``key="area"``) of a GeoJSON file."""
     return _read_regions(Path(path), key, with_sigmas)
-
-
-@dataclass(frozen=True)
-class Buildings:
-    """Building footprints of a net folder (net x/y) with their STRtree, for sight-line queries."""
-
-    polygons: np.ndarray  # (B,) shapely Polygons / MultiPolygons
-    heights: np.ndarray  # (B,) m, NaN where the file gives none
-    tree: shapely.STRtree
-
-    @classmethod
-    def from_polygons(cls, polygons, heights=None) -> "Buildings":
-        polys = np.empty(len(polygons), dtype=object)
-        polys[:] = list(polygons)
-        h = np.full(polys.size, np.nan) if heights is None else np.asarray(heights, dtype=float)
-        return cls(polygons=polys, heights=h, tree=shapely.STRtree(polys))
-
-    def __len__(self) -> int:
-        return int(self.polygons.size)
-
-    @cached_property
-    def cells(self):
-        """Cells near these footprints (:func:`couplers.sensing.occlusion.building_cells`, built on first use)."""
-        from couplers.sensing.occlusion import building_cells  # occlusion imports this module
-
-        return building_cells(self)
-
-    @cached_property
-    def boxes(self):
-        """Bounding boxes listed per cell of :attr:`cells` (:class:`couplers.sensing.occlusion.BuildingBoxes`)."""
-        from couplers.sensing.occlusion import BuildingBoxes
-
-        return BuildingBoxes.build(self)
 
 
 def read_buildings(path: str | Path) -> Buildings:

@@ -14,12 +14,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
 from numba import njit
 
-from couplers.net.folder import Region
+if TYPE_CHECKING:  # annotations only: the net folder imports this module through its buildings
+    from couplers.net.folder import Region
 
 RASTER_CELL_M = 5.0  # cell side; coarser when the regions' extent would need more than RASTER_MAX_CELLS
 # A cell that a border crosses is split into REFINE x REFINE cells, classified when a point first falls in one

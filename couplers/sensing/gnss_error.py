@@ -58,7 +58,7 @@ from numba import njit
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.net.folder import Buildings
+from couplers.net.buildings import Buildings
 from couplers.sensing import streams
 from couplers.sensing.streams import StreamHandles, stream
 from couplers.sensing.perception import effect_rng

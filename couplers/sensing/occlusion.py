@@ -9,7 +9,7 @@ against footprints and against the net folder's buildings.
   line (:func:`_occluded_by_quads_bucketed`); :func:`_occluded_by_quads` is the plain loop over every
   footprint they are tested against.
 * Buildings: the polygons of ``buildings.geojson``; only sight lines that meet a building's bounding box
-  (:func:`_needs_building_test`, boxes listed per 4 m cell, :class:`BuildingBoxes`) go to shapely 2's
+  (:func:`_needs_building_test`, boxes listed per 4 m cell, :class:`couplers.net.buildings.BuildingBoxes`) go to shapely 2's
   STRtree ``query(..., predicate="intersects")``, all at once.
 """
 
@@ -22,8 +22,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from couplers.net.folder import Buildings
-from couplers.net.zones import CellGrid
+from couplers.net.buildings import Buildings
 
 
 def unit_heading(heading: np.ndarray) -> np.ndarray:
@@ -335,29 +334,6 @@ def _segments_occluded_by_vehicles(seg: np.ndarray, idx: OccluderIndex, observer
                                        np.asarray(observer, dtype=np.int64), skip_b, *idx.buckets())
 
 
-BUILDING_CELL_M = 4.0
-
-
-def building_cells(buildings: Buildings, cell_m: float = BUILDING_CELL_M) -> CellGrid:
-    """Cells near a building: ``values`` (bool) marks the cells within one cell of a building's bounding box."""
-    b = shapely.bounds(buildings.polygons)
-    x0, y0 = float(b[:, 0].min()) - 2 * cell_m, float(b[:, 1].min()) - 2 * cell_m  # two free cells around
-    nx = int(math.floor((b[:, 2].max() - x0) / cell_m)) + 3
-    ny = int(math.floor((b[:, 3].max() - y0) / cell_m)) + 3
-    # the lookup's floor((x - x0) / cell), on the boxes' corners, widened by one cell each side
-    ix0 = np.floor((b[:, 0] - x0) / cell_m).astype(np.int64) - 1
-    iy0 = np.floor((b[:, 1] - y0) / cell_m).astype(np.int64) - 1
-    ix1 = np.floor((b[:, 2] - x0) / cell_m).astype(np.int64) + 1
-    iy1 = np.floor((b[:, 3] - y0) / cell_m).astype(np.int64) + 1
-    mark = np.zeros((ny + 1, nx + 1), dtype=np.int64)  # 2-D difference array of the boxes
-    np.add.at(mark, (iy0, ix0), 1)
-    np.add.at(mark, (iy0, ix1 + 1), -1)
-    np.add.at(mark, (iy1 + 1, ix0), -1)
-    np.add.at(mark, (iy1 + 1, ix1 + 1), 1)
-    near = mark.cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0
-    return CellGrid(x0=x0, y0=y0, cell=float(cell_m), values=near)
-
-
 @njit(cache=True)
 def _sampling(ax, ay, bx, by, x0, y0, cell):
     """The samples of segment a-b in grid units, less than a cell apart: sample k of 0..k_max lies at
@@ -392,52 +368,6 @@ def _clear_of_buildings(seg, x0, y0, cell, near):
                 break
         out[i] = clear
     return out
-
-
-@dataclass(frozen=True)
-class BuildingBoxes:
-    """The buildings' bounding boxes (B, 4: xmin, ymin, xmax, ymax) and, per cell of ``buildings.cells`` (ny * nx,
-    CSR ``start`` / ``ids``), the buildings whose box widened by one cell covers it: the candidates of the
-    sight lines sampled in that cell (:func:`_needs_building_test`)."""
-
-    boxes: np.ndarray
-    start: np.ndarray
-    ids: np.ndarray
-    margin: float  # widening of the boxes in the segment test, far above its rounding
-
-    @classmethod
-    def build(cls, buildings: Buildings) -> "BuildingBoxes":
-        g = buildings.cells
-        ny, nx = g.values.shape
-        b = np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64)
-        # the cells of building_cells' difference array: floor((x - x0) / cell) of the corners, widened by one
-        ix0 = np.clip(np.floor((b[:, 0] - g.x0) / g.cell).astype(np.int64) - 1, 0, nx - 1)
-        iy0 = np.clip(np.floor((b[:, 1] - g.y0) / g.cell).astype(np.int64) - 1, 0, ny - 1)
-        ix1 = np.clip(np.floor((b[:, 2] - g.x0) / g.cell).astype(np.int64) + 1, 0, nx - 1)
-        iy1 = np.clip(np.floor((b[:, 3] - g.y0) / g.cell).astype(np.int64) + 1, 0, ny - 1)
-        start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
-        margin = max(1e-6, 1e-9 * float(np.abs(b).max(initial=0.0)))
-        return cls(boxes=b, start=start, ids=ids, margin=margin)
-
-
-@njit(cache=True)
-def _cell_lists(ix0, iy0, ix1, iy1, nx, ny):
-    """CSR of the boxes [ix0, ix1] x [iy0, iy1] (cells, inclusive) covering each cell iy * nx + ix."""
-    count = np.zeros(nx * ny + 1, dtype=np.int64)
-    for k in range(ix0.size):
-        for iy in range(iy0[k], iy1[k] + 1):
-            for ix in range(ix0[k], ix1[k] + 1):
-                count[iy * nx + ix + 1] += 1
-    for c in range(nx * ny):
-        count[c + 1] += count[c]
-    ids = np.empty(count[nx * ny], dtype=np.int64)
-    fill = count[:-1].copy()
-    for k in range(ix0.size):
-        for iy in range(iy0[k], iy1[k] + 1):
-            for ix in range(ix0[k], ix1[k] + 1):
-                ids[fill[iy * nx + ix]] = k
-                fill[iy * nx + ix] += 1
-    return count, ids
 
 
 @njit(cache=True)

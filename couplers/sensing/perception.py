@@ -66,7 +66,7 @@ from numba import njit
 from coloc.core.detection import DetectionModel
 from coloc.core.models import gnss_cov
 from couplers.errors import InputError
-from couplers.net.folder import Buildings
+from couplers.net.buildings import Buildings
 from couplers.sensing import streams
 from couplers.sensing.streams import StreamHandles, stream
 from couplers.sensing.occlusion import (  # noqa: F401 (unit_heading: also this module's, as before)

@@ -66,7 +66,7 @@ import scipy.sparse as sp
 from coloc.core.v2x import UNLIMITED_ROUNDS, V2xFrame
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.net.folder import Buildings
+from couplers.net.buildings import Buildings
 from couplers.sensing.occlusion import occluded_by_buildings
 from couplers.sensing.perception import effect_rng
 

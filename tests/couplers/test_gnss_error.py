@@ -15,7 +15,8 @@ from couplers.sensing.gnss_error import (
     episode_start_probability,
     gauss_markov_coefficient,
 )
-from couplers.net.folder import Buildings, load_net_folder
+from couplers.net.buildings import Buildings
+from couplers.net.folder import load_net_folder
 from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 

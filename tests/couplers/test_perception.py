@@ -16,7 +16,8 @@ from shapely.affinity import rotate, translate
 from shapely.geometry import LineString, box
 
 from couplers.errors import InputError
-from couplers.net.folder import Buildings, load_net_folder
+from couplers.net.buildings import Buildings
+from couplers.net.folder import load_net_folder
 from couplers.sensing.occlusion import occluded_by_buildings, occluded_by_vehicles, vehicle_footprints
 from couplers.sensing.perception import (
     PerceptionNoise,

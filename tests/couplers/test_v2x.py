@@ -16,7 +16,8 @@ from shapely.geometry import LineString, box
 
 from coloc.core.v2x import V2xFrame, deliveries, directed_links, round_deliveries
 from couplers.errors import InputError
-from couplers.net.folder import Buildings, load_net_folder
+from couplers.net.buildings import Buildings
+from couplers.net.folder import load_net_folder
 from couplers.sensing.perception import PerceptionParams, SensorSpec
 from couplers.sensing.sensors import SensorParams, neighbor_graph
 from couplers.sensing.v2x import (
