@@ -1,7 +1,9 @@
 """Experiment configs: TOML, validated on load, saved fully resolved next to results.
 
 Every table maps onto a frozen dataclass; unknown keys and wrong types are
-errors naming the file and the dotted field.
+errors naming the file and the dotted field. A config may inherit another with
+a top-level ``extends = "other.toml"`` (:mod:`experiments.config_extends`: tables
+merged, arrays and scalars replaced); the saved config is the merged one.
 
 Scenario kinds (``[scenario] kind``):
 
