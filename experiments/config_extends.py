@@ -95,6 +95,8 @@ def resolve_extends(data: dict, path: str | Path) -> ConfigData:
             raise InputError(file, KEY, f"no config file at {parent}")
         seen.append(parent)
         layers.append((parent, read_toml(parent, "config file")))
+        if "study" in layers[-1][1]:  # experiments/studies: their own schemas, not merged
+            raise InputError(file, KEY, f"{parent_ref} is a study config: only run configs can be extended")
     merged: dict = {}
     origins: dict[tuple[str, ...], Path] = {}
     for i, (file, own) in enumerate(reversed(layers)):

@@ -170,6 +170,10 @@ def test_missing_or_bad_parent_refused(tmp_path, capsys):
     with pytest.raises(InputError) as exc:
         load_config(tmp_path / "d.toml")
     assert (Path(exc.value.path).name, exc.value.field) == ("d.toml", "extends")
+    _write(tmp_path / "f.toml", f'extends = "{(CONFIGS / "sme.toml").as_posix()}"\n')  # a study config
+    with pytest.raises(InputError) as exc:
+        load_config(tmp_path / "f.toml")
+    assert (Path(exc.value.path).name, exc.value.field) == ("f.toml", "extends") and "study" in exc.value.message
     # a parent that is not TOML names the parent
     _write(tmp_path / "broken.toml", "[run\n")
     _write(tmp_path / "e.toml", 'extends = "broken.toml"\n')
