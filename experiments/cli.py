@@ -153,7 +153,7 @@ def _kinds(text: str) -> tuple[str, ...]:
 
 def cmd_net_import(args: argparse.Namespace) -> int:
     from couplers.net.importer import ImportOptions, import_net
-    from experiments.netconfigs import net_configs
+    from experiments.netconfigs import config_names, net_configs
 
     out = Path(args.out) if args.out else Path("sumo_nets") / args.name
     experiments_dir = Path(args.experiments_dir)
@@ -170,8 +170,8 @@ def cmd_net_import(args: argparse.Namespace) -> int:
     )
     source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
     if not args.force:  # refuse before the (possibly long) import, not after it
-        for control in ("tlr", "vsr"):
-            cfg = experiments_dir / f"{args.name}_{control}.toml"
+        for cfg_name in config_names(args.name):
+            cfg = experiments_dir / cfg_name
             if cfg.exists():
                 raise InputError(cfg, None, "already exists (pass --force to replace it)")
 
@@ -181,8 +181,8 @@ def cmd_net_import(args: argparse.Namespace) -> int:
     res = import_net(opts, finalize=configs)
     for line in res.lines:
         print(line)
-    print(f"wrote {out} in {res.seconds:.1f} s, and {experiments_dir}/{args.name}_tlr.toml, "
-          f"{experiments_dir}/{args.name}_vsr.toml")
+    written = ", ".join(f"{experiments_dir}/{n}" for n in config_names(args.name))
+    print(f"wrote {out} in {res.seconds:.1f} s, and {written}")
     print(f"next: coloc net check {out}; coloc run {experiments_dir}/{args.name}_tlr.toml --out results/{args.name}_tlr")
     return 0
 
@@ -273,7 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
     ni.add_argument("--name", required=True, help="name of the net folder and of the configs")
     ni.add_argument("--out", help="net folder to write (default: sumo_nets/NAME)")
     ni.add_argument("--experiments-dir", default="experiments",
-                    help="where NAME_tlr.toml and NAME_vsr.toml go (default: experiments)")
+                    help="where NAME_tlr.toml, NAME_vsr.toml and their _realistic variants go "
+                         "(default: experiments)")
     ni.add_argument("--seed", type=int, default=1, help="seed of trips, route choice and feature choice (default 1)")
     ni.add_argument("--features", type=int, default=64, help="number of features (default 64, the paper's)")
     ni.add_argument("--feature-kinds", default="traffic_light,bus_stop,parking,sign",

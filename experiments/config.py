@@ -1,7 +1,9 @@
 """Experiment configs: TOML, validated on load, saved fully resolved next to results.
 
 Every table maps onto a frozen dataclass; unknown keys and wrong types are
-errors naming the file and the dotted field.
+errors naming the file and the dotted field. A config may inherit another with
+a top-level ``extends = "other.toml"`` (:mod:`experiments.config_extends`: tables
+merged, arrays and scalars replaced); the saved config is the merged one.
 
 Scenario kinds (``[scenario] kind``):
 
@@ -66,6 +68,8 @@ from couplers.sensing.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensing.sensors import SensorParams
 from couplers.sensing.v2x import V2xParams
+from experiments.config_extends import KEY as EXTENDS
+from experiments.config_extends import chain_text, origin_of, resolve_extends
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -492,6 +496,22 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
 
 
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
+    """The validated config of the tables ``data`` read from ``path`` (its ``extends`` chain merged in first,
+    :mod:`experiments.config_extends`); an error about an inherited key names the file that wrote it."""
+    if EXTENDS in data:
+        data = resolve_extends(data, path)
+    try:
+        return _config_from_dict(data, path, overrides)
+    except InputError as exc:
+        origin = origin_of(data, exc.field)
+        if (origin is None or exc.path is None or Path(exc.path).resolve() != Path(path).resolve()
+                or origin.resolve() == Path(path).resolve() or exc.field.split("[")[0] in (overrides or {})):
+            raise
+        raise InputError(origin, exc.field, exc.message) from None
+
+
+def _config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
+    chain = chain_text(data)
     # A saved (resolved) config carries its provenance; it is informative, not input.
     data = {k: v for k, v in data.items() if k != "provenance"}
     unknown = sorted(set(data) - set(SECTIONS) - set(OPTIONAL_SECTIONS))
@@ -550,6 +570,8 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
         derived = lc.new_feature_rate / (math.pi * lc.sensing_range_m**2)
         notes.append(("lc.new_feature_density", f"0: derived, new_feature_rate / (pi Rs^2) = {derived:.3g} per m^2 "
                       "times the velocity density of an untracked feature (coloc.methods.icp_da_lc, step 3)"))
+    if chain is not None:
+        notes.append((EXTENDS, chain))
     cfg = Config(path=path.resolve(), notes=tuple(notes), **sections)
     _validate(cfg)
     return cfg
@@ -639,7 +661,10 @@ def config_to_toml(cfg: Config, provenance: dict[str, str | int | float]) -> str
     values carry a comment naming their source (``cfg.notes``).
     """
     notes = dict(cfg.notes)
-    lines = [f"# Resolved from {cfg.path}", ""]
+    lines = [f"# Resolved from {cfg.path}"]
+    if EXTENDS in notes:  # the inheritance chain it was merged from (the config itself first)
+        lines.append(f"# Extends: {notes[EXTENDS]}")
+    lines.append("")
     for name in written_sections(cfg):
         lines.append(f"[{name}]" + (f"  # {notes[name]}" if name in notes else ""))
         for f in dataclasses.fields(getattr(cfg, name)):

@@ -150,7 +150,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
     },
     "scenario": {
         "kind": ("", "Frame source, one of: " + ", ".join(f"`{k}`" for k in SCENARIO_KINDS) + "."),
-        "net_dir": ("", "Net folder (relative to the config file); required for `kind = \"sumo\"`."),
+        "net_dir": ("", "Net folder (relative to the config file that writes it, also a parent of `extends`); "
+                        "required for `kind = \"sumo\"`."),
         "control": ("", "Traffic control of a SUMO run: `\"tlr\"` (traffic lights) or `\"vsr\"` (every signal "
                         "off, gap acceptance), as the net folder's `scenario.toml` defines them."),
         "step_s": ("s", "Simulation and estimation step Ts (the arterial: 0.75 s). Derived from the scenario "
@@ -509,6 +510,21 @@ def render() -> str:
         "Tables: " + ", ".join(f"`[{t}]`" for t in schema() if "." not in t) + " ("
         + " and ".join(f"`[{t}]`" for t in SCENARIO_TABLES) + " only with their `scenario.kind`; "
         + ", ".join(f"`[{t}]`" for t in OPTIONAL_SECTIONS) + " optional).",
+        "",
+        "## Inheritance: `extends`",
+        "",
+        "A run config may start with `extends = \"other.toml\"` (top level, before any table): the other "
+        "config, a path relative to the file that names it, is read first and this file's tables are laid "
+        "over it (`experiments/config_extends.py`). Tables merge key by key, recursively (the overlay's "
+        "value wins); arrays, arrays of tables such as `[[perception.sensors]]` included, and scalars are "
+        "replaced whole. Chains are allowed (a extends b extends c); a cycle or a missing parent is refused "
+        "with one line naming the file and `extends`. `scenario.net_dir` stays relative to the file that "
+        "writes it, also when that file is a parent in another folder. An error about an inherited key names "
+        "the file that wrote the key. A sweep's `base` may be such a config. The saved `config.toml` is fully "
+        "resolved (no `extends`; a comment lists the chain) and loads on its own. The arterial presets "
+        "(`experiments/arterial_*_{pf,infra,realistic}.toml`, `arterial_vsr.toml`, `arterial_v2x.toml`, "
+        "`arterial_ped_*.toml`) and the configs `coloc net import` writes are overlays of "
+        "`experiments/arterial_tlr.toml` this way. Study configs do not take `extends`.",
         "",
     ]
     for table, cls in schema().items():

@@ -1,47 +1,68 @@
-"""Experiment configs for an imported net: the arterial's TLR/VSR configs pointed at another net folder.
+"""Experiment configs for an imported net: overlays of the arterial's shipped configs on another net folder.
 
-Every estimator and sensor parameter is the shipped arterial's (the paper's
-Sec. VI set-up, ``experiments/arterial_{tlr,vsr}.toml``); only the run name,
-the net folder, the control and the report's along/cross-track area change.
+Each generated ``<name>_<control>.toml`` says ``extends = ".../arterial_<control>.toml"`` (the paper's
+Sec. VI set-up, :mod:`experiments.config_extends`) and sets only the run name, the net folder and the
+report's along/cross-track area; ``<name>_<control>_realistic.toml`` does the same over
+``arterial_<control>_realistic.toml`` (realistic sensing). Every estimator and sensor parameter is
+thereby the shipped arterial's, also after the arterial's configs change.
+
+Paths: ``extends`` is relative to the written file when the experiments folder lies inside this checkout
+(the two then move together, e.g. the default ``experiments/``), and absolute otherwise (a folder
+elsewhere, e.g. a scratch folder, keeps working wherever it is copied to, as long as the checkout stays
+where it is). ``net_dir`` is relative to the written file, as in the shipped configs.
 """
 
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 CONTROLS = ("tlr", "vsr")
+#: (file-name suffix, shipped config it extends, what it is), per control.
+VARIANTS = (("", "arterial_{control}.toml", "paper Sec. VI set-up"),
+            ("_realistic", "arterial_{control}_realistic.toml", "realistic sensing, the arterial's calibrations"))
 
 
-def _replace_once(text: str, pattern: str, repl: str, template: Path) -> str:
-    new, n = re.subn(pattern, repl, text, count=1, flags=re.MULTILINE)
-    if n != 1:  # the template changed shape: fail loudly rather than write a wrong config
-        raise RuntimeError(f"{template}: pattern {pattern!r} not found")
-    return new
+def _quoted(text: str) -> str:
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def config_names(name: str) -> list[str]:
+    """The file names ``net_configs`` writes for the net ``name``."""
+    return [f"{name}_{control}{suffix}.toml" for suffix, _, _ in VARIANTS for control in CONTROLS]
+
+
+def _parent_ref(parent: Path, experiments_dir: Path) -> str:
+    inside = experiments_dir.resolve().is_relative_to(HERE.parent)
+    return Path(os.path.relpath(parent, experiments_dir.resolve())).as_posix() if inside else parent.as_posix()
 
 
 def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Path, track_area: str,
-                    source: str) -> str:
-    """The text of ``<experiments_dir>/<name>_<control>.toml`` for the net folder ``net_dir``."""
-    template = HERE / f"arterial_{control}.toml"
-    text = template.read_text()
-    rel = os.path.relpath(Path(net_dir).resolve(), Path(experiments_dir).resolve())
+                    source: str, suffix: str = "") -> str:
+    """The text of ``<experiments_dir>/<name>_<control><suffix>.toml`` for the net folder ``net_dir``."""
+    _, template, what = next(v for v in VARIANTS if v[0] == suffix)
+    parent = HERE / template.format(control=control)
+    run_name = f"{name}_{control}{suffix}"
+    rel_net = Path(os.path.relpath(Path(net_dir).resolve(), Path(experiments_dir).resolve())).as_posix()
     label = "TLR control" if control == "tlr" else "VSR control (every signal switched off)"
-    # header: the first comment block of the template
-    body = re.sub(r"\A(#[^\n]*\n)+", "", text)
-    header = (f"# {name}: imported by `coloc net import` from {source}, {label}.\n"
-              f"# Parameters as experiments/arterial_{control}.toml (paper Sec. VI set-up).\n"
-              f"# `coloc run {Path(experiments_dir).name}/{name}_{control}.toml --out results/{name}_{control}`\n")
-    body = _replace_once(body, r'^name = "[^"]*"', f'name = "{name}_{control}"', template)
-    body = _replace_once(body, r'^net_dir = "[^"]*"', f'net_dir = "{Path(rel).as_posix()}"', template)
-    body = _replace_once(body, r'^track_areas = \[[^\]]*\][^\n]*',
-                         f'track_areas = ["{track_area}"]      # the area holding the most road length', template)
-    return header + body
+    return (f"# {name}: imported by `coloc net import` from {source}, {label}.\n"
+            f"# Parameters as experiments/{parent.name}, which this file extends ({what}).\n"
+            f"# `coloc run {Path(experiments_dir).name}/{run_name}.toml --out results/{run_name}`\n"
+            f"extends = {_quoted(_parent_ref(parent, Path(experiments_dir)))}\n"
+            "\n"
+            "[run]\n"
+            f"name = {_quoted(run_name)}\n"
+            "\n"
+            "[scenario]\n"
+            f"net_dir = {_quoted(rel_net)}   # relative to this file\n"
+            "\n"
+            "[report]\n"
+            f"track_areas = [{_quoted(track_area)}]      # the area holding the most road length\n")
 
 
 def net_configs(name: str, net_dir: Path, experiments_dir: Path, track_area: str, source: str) -> dict[Path, str]:
     experiments_dir = Path(experiments_dir)
-    return {experiments_dir / f"{name}_{c}.toml": net_config_text(name, c, net_dir, experiments_dir, track_area, source)
-            for c in CONTROLS}
+    return {experiments_dir / f"{name}_{c}{suffix}.toml":
+            net_config_text(name, c, net_dir, experiments_dir, track_area, source, suffix)
+            for suffix, _, _ in VARIANTS for c in CONTROLS}

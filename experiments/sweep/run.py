@@ -82,6 +82,7 @@ import pandas as pd
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+from experiments.config_extends import read_config_data
 from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
     split_overrides, variants
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
@@ -254,7 +255,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
 
 
 def _load_base(spec: SweepSpec) -> dict:
-    return read_toml(spec.base, "config file")
+    return read_config_data(spec.base)
 
 
 def _config(spec: SweepSpec, base_data: dict, overrides: dict, where: str, swept_key: str | None = None,
@@ -320,7 +321,7 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
             where = f"sweep.factors.{variant.factor}"
             if variant.base is not None:
                 cspec = dataclasses.replace(spec, base=variant.base)
-                data = bases.setdefault(variant.base, read_toml(variant.base, "config file"))
+                data = bases.setdefault(variant.base, read_config_data(variant.base))
             data, extra = split_overrides(data, variant.overrides, spec.path, where)
             text = ", ".join(x for x in (text, f"{variant.factor} = {variant.level}") if x)
         cfg = _config(cspec, data, {**fixed, **extra, **dict(params)}, where, context=f"with {text}: ")

@@ -1,7 +1,6 @@
-"""`coloc run` on the shipped arterial: a short run always, the PF presets (their tables, 30 s), the full hour of both
-controls as `slow`."""
+"""`coloc run` on the shipped arterial: a short run always, the PF preset (30 s), the full hour of both controls as
+`slow`. That the presets are the paper config plus their own tables: tests/experiments/test_config_extends.py."""
 
-import dataclasses
 import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -11,7 +10,6 @@ import pandas as pd
 import pytest
 
 from experiments.cli import main
-from experiments.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "experiments"
@@ -48,22 +46,6 @@ def test_short_arterial_run(tmp_path):
     assert rmse["icp_known_da"] < 0.6 * rmse["gnss"] and rmse["icp_da_lc"] < 0.6 * rmse["gnss"], rmse
     assert summary["association"]["icp_da_lc"]["correct_pct"] > 95.0
     assert summary["methods"]["icp_da_lc"]["features"]["rmse_pos_m"] < 2.0
-
-
-@pytest.mark.parametrize("control", ["tlr", "vsr"])
-def test_pf_presets_are_the_paper_configs_with_the_particle_method(control):
-    """experiments/arterial_*_pf.toml (issue 26): the paper config of the control with gnss, icp_da_lc and
-    icp_da_pf at Jv = Jf = 1000, the fast sums and per-component stopping; every other table the paper's."""
-    base = load_config(CONFIGS / f"arterial_{control}.toml")
-    pf = load_config(CONFIGS / f"arterial_{control}_pf.toml")
-    assert pf.run.methods == ("gnss", "icp_da_lc", "icp_da_pf")
-    assert (pf.pf.vehicle_particles, pf.pf.feature_particles, pf.pf.kernel, pf.pf.bpa_stop) == (1000, 1000, "fast",
-                                                                                                "component")
-    assert dataclasses.replace(pf.pf, kernel=base.pf.kernel, bpa_stop=base.pf.bpa_stop) == base.pf
-    for table in ("scenario", "sensors", "motion", "icp", "lc", "report", "infra", "perception", "gnss_error", "v2x",
-                  "inertial", "features"):
-        assert getattr(pf, table) == getattr(base, table), table
-    assert dataclasses.replace(pf.run, name=base.run.name, methods=base.run.methods) == base.run
 
 
 def test_pf_preset_runs_beside_lc(tmp_path):

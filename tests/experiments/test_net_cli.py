@@ -39,6 +39,13 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
         # everything else is the arterial's Sec. VI set-up
         art = load_config(PROJECT / "experiments" / f"arterial_{control}.toml")
         assert (cfg.sensors, cfg.motion, cfg.icp, cfg.lc) == (art.sensors, art.motion, art.icp, art.lc)
+        # the realistic counterpart: the arterial's realistic preset on this net
+        real = load_config(exps / f"grid_{control}_realistic.toml")
+        art = load_config(PROJECT / "experiments" / f"arterial_{control}_realistic.toml")
+        assert (real.run.name, Path(real.scenario.net_dir), real.report.track_areas) == (
+            f"grid_{control}_realistic", out.resolve(), cfg.report.track_areas)
+        assert (real.perception, real.gnss_error, real.inertial, real.lc) == (art.perception, art.gnss_error,
+                                                                               art.inertial, art.lc)
     assert main(["net", "check", str(out)]) == 0
     assert "ok (" in capsys.readouterr().out
     # a second import without --force refuses and changes nothing
