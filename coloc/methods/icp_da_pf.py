@@ -118,7 +118,9 @@ from coloc.inference.existence import TrackExistence, birth_existence
 from coloc.inference.gaussian import chi2_ppf, log_gauss
 from coloc.inference.params import IcpParams
 from coloc.inference.particles import (
+    entity_rng,
     gaussian_log_pdf,
+    gnss_log_likelihood,
     kernel_density,
     normalize_log,
     predict_track_particles,
@@ -153,8 +155,6 @@ RECURSIONS = ("latest_message", "paper")
 PF_KERNELS = KERNELS + (FAST,)  # the exact tree (reference), brute force, the 1e-3 approximation
 BANDWIDTHS = ("prior", "shrunk", "none")
 BPA_STOPS = ("net", "component")  # PfParams.bpa_stop
-_PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
-            "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
 
 
 @dataclass(frozen=True)
@@ -275,23 +275,11 @@ class PfParams:
             raise ValueError("min_association_belief must be in [0, 1)")
 
 
-# ----------------------------------------------------------------------------- particle utilities
-
-
-def entity_rng(seed: int, purpose: str, entity: int, step: int) -> np.random.Generator:
-    """The synchronized generator of one entity (vehicle or track) for one purpose and step."""
-    return np.random.default_rng([int(seed) & 0xFFFFFFFF, _PURPOSE[purpose], int(entity) & 0xFFFFFFFF,
-                                  int(step) & 0xFFFFFFFF])
+# ----------------------------------------------------------------------------- synchronized generators
 
 
 def _vehicle_entity(vehicle_id) -> int:
     return zlib.crc32(str(vehicle_id).encode())
-
-
-def gnss_log_likelihood(particles: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """log N(z_i; s_i^(v), R_i) of (23) for (N, J, 4) particles."""
-    lp, _ = log_gauss(z[:, None, :] - particles, np.broadcast_to(r[:, None], particles.shape + (4,)))
-    return lp
 
 
 # ----------------------------------------------------------------------------- BPA-L on particles
