@@ -7,7 +7,8 @@ Modules: :mod:`~coloc.inference.params` (:class:`IcpParams`), :mod:`~coloc.infer
 :mod:`~coloc.inference.feature_store` (feature tracks), :mod:`~coloc.inference.bpa` (the BPA-L
 loop), :mod:`~coloc.inference.association` (BPA-DA), :mod:`~coloc.inference.consensus` (average
 and max consensus), :mod:`~coloc.inference.particles` (resampling, weighted moments, kernel
-density), :mod:`~coloc.inference.topology` (Zhang's and Gulati's pseudo-measurement). They import
+density), :mod:`~coloc.inference.particle_bp` (ICP-DA-PF's particle BPA-L and :class:`PfParams`),
+:mod:`~coloc.inference.topology` (Zhang's and Gulati's pseudo-measurement). They import
 :mod:`coloc.kernels` and :mod:`coloc.core`, never a method.
 
 The Gaussian ICP

@@ -1,7 +1,10 @@
-"""Parameters of the Gaussian ICP (BPA-L with consensus) shared by the ICP estimators."""
+"""Parameters of the ICP estimators: the Gaussian ICP (BPA-L with consensus) shared by all of them,
+:class:`IcpParams`, and what ICP-DA-LC adds (also read by ICP-DA-PF): the association (13)-(17),
+the MAP pairing (30), track births, merging and existence, :class:`LcParams`."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from coloc.core.models import MotionParams
@@ -141,3 +144,113 @@ class IcpParams:
         return self.feature_sigma_par / 2 if self.feature_sigma_perp is None else self.feature_sigma_perp
 
 
+#: MAP pairing rules of (30) (:class:`LcParams`): ours and the paper's literal one.
+PAIRING_RULES = ("gated", "paper")
+
+
+@dataclass(frozen=True)
+class LcParams:
+    """Parameters of ICP-DA-LC that the paper leaves open (plus eta_TH of (30)); the steps named
+    below are those of :mod:`coloc.methods.icp_da_lc`.
+
+    * ``eta_threshold``: eta_TH of (30); a track k is detected by vehicle i iff
+      b_ik(alpha = 0) < eta_TH (1 = pair every gated measurement, 0.5 = drop
+      ambiguous ones; the paper's two settings).
+    * ``detection_probability``: P_D of a track inside the sensing range, which
+      sets the missed-detection weight eta(alpha = 0) = 1 - P_D of (13).
+    * ``gate_probability``: chi-square gate on the 4-D V2F innovation; outside
+      it eta(alpha = l) = 0.
+    * ``new_feature_velocity_sigma``: velocity spread (m/s) of an untracked
+      feature, in the density of a measurement from a new feature.
+    * ``birth_probability``: a measurement that no track took starts a track
+      when its probability of coming from no track is at least this.
+    * ``merge_gate_m``: two tracks closer than this (and within the 99 %
+      position gate of each other) are merged.
+    * ``sensing_range_m``: the vehicle's own V2F range Rs (candidate tracks are
+      those predicted within Rs plus a 3-sigma margin).
+    * ``new_feature_rate``: mu_new, expected number of untracked features in
+      a vehicle's view (weight of the "new feature" hypothesis).
+    * ``new_feature_density``: mu_new f_new(z) as one constant (per m^2 per
+      (m/s)^2) in place of the derived density (:mod:`coloc.methods.icp_da_lc`, step 3);
+      0 (default) = derived from ``new_feature_rate``, ``sensing_range_m``
+      and ``new_feature_velocity_sigma``; 1 = no normalisation, eta as (13)
+      reads.
+    * ``pairing``: the MAP rule (30) (:mod:`coloc.methods.icp_da_lc`, step 5): "gated"
+      (ours) or "paper" (literal: ungated, threshold at every eta_TH, a row
+      may be taken by several tracks).
+    * ``clutter_intensity``: lambda_c, false detections per m^2 per scan that
+      the estimator expects (a sensor's false alarms, looking like static
+      objects); 0 (default) = no clutter, the paper's model. It joins the
+      new-feature density in the normaliser of eta (step 3); telling a
+      clutter-born track from a feature is left to the confirmation (step 9).
+    * ``sensor_fov``: P_D per (vehicle, track) from the vehicles' sensors
+      (field of view around the estimated heading, range, detection profile:
+      :mod:`coloc.core.detection`), given to :class:`IcpDaLc` as
+      ``detection`` by whoever builds it (``coloc run``: from
+      ``[perception]``); a track outside every field of view is not expected
+      to be detected. Off: ``detection_probability`` within the range.
+      ``visibility``: the share of in-view tracks the estimator expects not
+      to be occluded (it cannot predict every occluder); it scales the
+      sensors' P_D (1, default: no occlusion expected).
+    * ``track_existence``: carry an existence probability r with every track
+      (step 9); off (default): every track exists (r = 1, the paper's tracks).
+      ``survival_probability``: r is multiplied by it every step;
+      ``confirm_existence``: a track localizes vehicles only while r is at
+      least this; ``drop_existence``: a track is dropped when r falls below.
+    * ``own_consistency_gate``: step 10, a chi-square probability (2 dof):
+      a vehicle whose cooperative position estimate lies outside this gate
+      of its own-sensor (GNSS + inertial) track is reset to that track; 0
+      (default) = never (the paper).
+    * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
+    """
+
+    eta_threshold: float = 0.5
+    detection_probability: float = 0.95
+    gate_probability: float = 0.9999
+    new_feature_velocity_sigma: float = 1.0
+    birth_probability: float = 0.5
+    merge_gate_m: float = 2.0
+    sensing_range_m: float = 50.0
+    new_feature_rate: float = 1.0
+    new_feature_density: float = 0.0
+    pairing: str = "gated"
+    clutter_intensity: float = 0.0
+    sensor_fov: bool = False
+    visibility: float = 1.0
+    track_existence: bool = False
+    survival_probability: float = 0.999
+    confirm_existence: float = 0.9
+    drop_existence: float = 0.01
+    own_consistency_gate: float = 0.0
+    bp_iterations: int = 50
+    bp_tol: float = 1e-6
+
+    def __post_init__(self):
+        if not 0.0 <= self.eta_threshold <= 1.0:
+            raise ValueError("eta_threshold must be in [0, 1]")
+        if not 0.0 < self.detection_probability < 1.0:
+            raise ValueError("detection_probability must be in (0, 1)")
+        if not 0.0 < self.gate_probability < 1.0:
+            raise ValueError("gate_probability must be in (0, 1)")
+        if not 0.0 < self.birth_probability <= 1.0:
+            raise ValueError("birth_probability must be in (0, 1]")
+        if self.new_feature_velocity_sigma <= 0 or self.merge_gate_m < 0 or self.sensing_range_m <= 0:
+            raise ValueError("new_feature_velocity_sigma and sensing_range_m must be positive, merge_gate_m >= 0")
+        if not self.new_feature_rate > 0:
+            raise ValueError("new_feature_rate must be positive")
+        if not (self.new_feature_density >= 0 and math.isfinite(self.new_feature_density)):
+            raise ValueError("new_feature_density must be >= 0 (0: derived from new_feature_rate)")
+        if self.pairing not in PAIRING_RULES:
+            raise ValueError(f"pairing must be one of {PAIRING_RULES}")
+        if not (self.clutter_intensity >= 0 and math.isfinite(self.clutter_intensity)):
+            raise ValueError("clutter_intensity must be >= 0 (false detections per m^2 per scan)")
+        if not 0.0 < self.survival_probability <= 1.0:
+            raise ValueError("survival_probability must be in (0, 1]")
+        if not 0.0 < self.visibility <= 1.0:
+            raise ValueError("visibility must be in (0, 1] (1: no occlusion expected)")
+        if not 0.0 <= self.own_consistency_gate < 1.0:
+            raise ValueError("own_consistency_gate must be in [0, 1) (0: off)")
+        if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
+            raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
+        if self.bp_iterations < 1 or self.bp_tol <= 0:
+            raise ValueError("bp_iterations must be >= 1 and bp_tol > 0")

@@ -2,6 +2,10 @@
 :mod:`coloc.methods.rsu_bp`): log-domain weights, weighted moments, systematic resampling, kernel
 density (Silverman's bandwidth, Liu-West shrinkage) and the particle prediction by models (1), (2).
 
+ICP-DA-PF's pieces (Brambilla et al. Sec. IV-C): the synchronized generator of an entity (vehicle
+or track) for one purpose and step, :func:`entity_rng`, and the GNSS weights of b_i^(0) in (23),
+:func:`gnss_log_likelihood`.
+
 Where the two estimators' contracts differ (resampling tie rule, moments of normalised or any
 log-weights) both variants live here under their own names; each caller keeps its numbers.
 """
@@ -183,3 +187,21 @@ def weighted_moments_normalized(particles: np.ndarray, log_w: np.ndarray) -> tup
     d = particles - mean
     cov = (d * w[:, None]).T @ d
     return mean, 0.5 * (cov + cov.T)
+
+
+# The synchronized generators of ICP-DA-PF: one purpose code per kind of draw (seeded with the
+# purpose, the entity and the step, see :func:`entity_rng`).
+_PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
+            "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
+
+
+def entity_rng(seed: int, purpose: str, entity: int, step: int) -> np.random.Generator:
+    """The synchronized generator of one entity (vehicle or track) for one purpose and step."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, _PURPOSE[purpose], int(entity) & 0xFFFFFFFF,
+                                  int(step) & 0xFFFFFFFF])
+
+
+def gnss_log_likelihood(particles: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """log N(z_i; s_i^(v), R_i) of (23) for (N, J, 4) particles."""
+    lp, _ = log_gauss(z[:, None, :] - particles, np.broadcast_to(r[:, None], particles.shape + (4,)))
+    return lp
