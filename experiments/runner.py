@@ -457,6 +457,7 @@ class _SumoSource:
             step_length=cfg.scenario.step_s,
             duration_s=cfg.run.duration_s,
             ballistic=cfg.scenario.ballistic,
+            begin_s=cfg.scenario.begin_s or 0.0,
         )
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)
@@ -582,6 +583,26 @@ def _pooled_steps(frames, pool, timing: bool):
             first_result = False
 
 
+def _empty_run(cfg: Config) -> InputError:
+    """The error of a run without vehicles: for a SUMO run, where the demand's departures are against the
+    simulated window (a demand on its own clock run from 0 is the usual cause), else "run longer"."""
+    msg = f"no vehicle was in the network in the {cfg.run.duration_s:g} s simulated: nothing to estimate; run longer"
+    if cfg.scenario.kind != "sumo":
+        return InputError(cfg.path, "run.duration_s", msg)
+    from couplers.netimport.sumocfg import clock, demand_departures
+
+    begin = cfg.scenario.begin_s or 0.0
+    end = begin + cfg.run.duration_s
+    dep = demand_departures(load_net_folder(cfg.net_dir).route_files)
+    window = f"[{begin:g}, {end:g}] s ({clock(begin)}-{clock(end)})"
+    if dep.first is not None and dep.first >= end:
+        return InputError(cfg.path, "scenario.begin_s", f"no vehicle in the simulated window {window}: the demand "
+                          f"departs from {dep.first:g} s ({clock(dep.first)}) on; set [scenario] begin_s = "
+                          f"{dep.first:g} (a .sumocfg imported with coloc net import --sumocfg keeps its clock)")
+    return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the simulated window {window}: "
+                      "nothing to estimate; run longer")
+
+
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
                    force: bool = False, workers: int = 0) -> dict:
     """Run one config; returns the summary dict also written to summary.json.
@@ -639,8 +660,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
         if estimates.empty:  # nothing to score: say so rather than write an empty run
-            raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
-                                                         "simulated: nothing to estimate; run longer")
+            raise _empty_run(cfg)
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
             provenance = {"sumo_version": version, **provenance}
