@@ -147,7 +147,7 @@ def test_net_check_says_begin_against_demand(imported, capsys, tmp_path):
     # a begin after the last departure, and an unknown [sumo] key, are problems
     import shutil
 
-    for name, old, new, want in (("late", "begin = 25200.0", "begin = 30000.0", "after the demand's last departure"),
+    for name, old, new, want in (("late", "begin = 25200.0", "begin = 28000.0", "after the demand's last departure"),
                                  ("typo", "begin = 25200.0", "begin = 25200.0\nbegn = 1.0", "sumo.begn: unknown key")):
         bad = tmp_path / name
         shutil.copytree(out, bad)
@@ -200,11 +200,23 @@ def test_routes_take_gz_and_several_files(scen, tmp_path, capsys):
     assert "begin" not in scen_toml["sumo"]  # no clock of its own: as before, from 0
     assert main(["net", "check", str(out)]) == 0
     assert "91 vehicles/flows/trips" in capsys.readouterr().out
-    out2 = tmp_path / "net2"  # comma-separated, the gzipped file alone
+    out2 = tmp_path / "net2"  # comma-separated, in one option
     assert main(["net", "import", "--net", str(base / "net" / "cross.net.xml"), "--routes",
-                 f"{base / 'routes' / 'b.rou.xml.gz'}", "--name", "gz", "--out", str(out2),
-                 "--experiments-dir", str(tmp_path / "exps2")]) == 0
-    assert tomllib.loads((out2 / "scenario.toml").read_text())["files"]["routes"] == "demand_1.rou.xml.gz"
+                 f"{base / 'routes' / 'a.rou.xml'},{base / 'routes' / 'b.rou.xml.gz'}", "--name", "two",
+                 "--out", str(out2), "--experiments-dir", str(tmp_path / "exps2")]) == 0
+    assert (out2 / "demand_2.rou.xml.gz").read_bytes() == (out / "demand_2.rou.xml.gz").read_bytes()
+    # b alone uses a's routes: refused, naming the file and the vehicle
+    assert main(["net", "import", "--net", str(base / "net" / "cross.net.xml"), "--routes",
+                 str(base / "routes" / "b.rou.xml.gz"), "--name", "b", "--out", str(tmp_path / "net3"),
+                 "--experiments-dir", str(tmp_path / "exps3")]) == 2
+    assert "b.rou.xml.gz: vehicle 'b0': route 'ew' is not defined" in capsys.readouterr().err
+    one = tmp_path / "a.rou.xml.gz"  # one gzipped file
+    one.write_bytes(gzip.compress((base / "routes" / "a.rou.xml").read_bytes(), mtime=0))
+    out4 = tmp_path / "net4"
+    assert main(["net", "import", "--net", str(base / "net" / "cross.net.xml"), "--routes", str(one), "--name", "gz",
+                 "--out", str(out4), "--experiments-dir", str(tmp_path / "exps4")]) == 0
+    assert tomllib.loads((out4 / "scenario.toml").read_text())["files"]["routes"] == "demand_1.rou.xml.gz"
+    assert main(["net", "check", str(out4)]) == 0
 
 
 # --------------------------------------------------------------------------- the clock of a run
