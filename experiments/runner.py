@@ -48,6 +48,7 @@ from couplers.errors import InputError
 from couplers.infra import InfraSetup, junction_positions
 from couplers.netcheck import require_usable_net_folder
 from couplers.netfolder import load_net_folder
+from couplers.netimport.sumocfg import clock
 from couplers.perception import detection_model
 from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
@@ -503,10 +504,10 @@ def _timing_line(what: str) -> None:
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
 
 
-def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
+def progress_frames(frames, n_steps: int, name: str, progress: bool | None, begin: float = 0.0):
     """The frames, with progress on stderr: ``progress`` True, or None on a terminal, a tqdm bar with
     an ETA; None elsewhere (logs of sweeps and CI), one line per :data:`PROGRESS_LINE_S` simulated
-    seconds; False nothing."""
+    seconds (counted from ``begin``, the run's begin on the scenario's clock); False nothing."""
     tty = sys.stderr.isatty()
     if progress is False:
         yield from frames
@@ -520,11 +521,12 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
     next_line = PROGRESS_LINE_S
     for k, frame in enumerate(frames, start=1):
         yield frame
-        if frame.t + 1e-9 >= next_line:
+        if frame.t - begin + 1e-9 >= next_line:
             next_line += PROGRESS_LINE_S
             elapsed = time.perf_counter() - t0
             left = elapsed * max(n_steps - k, 0) / k
-            print(f"{name}: {frame.t:.0f} s simulated, step {k} of {n_steps} ({100.0 * k / max(n_steps, 1):.0f} %), "
+            at = f" (to {clock(frame.t)})" if begin else ""
+            print(f"{name}: {frame.t - begin:.0f} s simulated{at}, step {k} of {n_steps} ({100.0 * k / max(n_steps, 1):.0f} %), "
                   f"{elapsed:.0f} s elapsed, about {left:.0f} s left", file=sys.stderr, flush=True)
 
 
@@ -589,7 +591,7 @@ def _empty_run(cfg: Config) -> InputError:
     msg = f"no vehicle was in the network in the {cfg.run.duration_s:g} s simulated: nothing to estimate; run longer"
     if cfg.scenario.kind != "sumo":
         return InputError(cfg.path, "run.duration_s", msg)
-    from couplers.netimport.sumocfg import clock, demand_departures
+    from couplers.netimport.sumocfg import demand_departures
 
     begin = cfg.scenario.begin_s or 0.0
     end = begin + cfg.run.duration_s
@@ -634,7 +636,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
             with source:
                 version = source.sumo_version
-                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
+                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress,
+                                         cfg.scenario.begin_s or 0.0)
                 steps = _serial_steps(frames, estimators, timing) if pool is None else _pooled_steps(frames, pool,
                                                                                                      timing)
                 for frame, results in steps:
