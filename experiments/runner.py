@@ -595,12 +595,16 @@ def _empty_run(cfg: Config) -> InputError:
 
     begin = cfg.scenario.begin_s or 0.0
     end = begin + cfg.run.duration_s
-    dep = demand_departures(load_net_folder(cfg.net_dir).route_files)
+    folder = load_net_folder(cfg.net_dir)
+    dep = demand_departures(folder.route_files)
     window = f"[{begin:g}, {end:g}] s ({clock(begin)}-{clock(end)})"
     if dep.first is not None and dep.first >= end:
+        own = folder.clock.begin if folder.clock.begin and folder.clock.begin != begin else None
+        fix = (f"set [scenario] begin_s = {own:g} (the net folder's [sumo] begin) or leave it out" if own is not None
+               else f"set [scenario] begin_s = {dep.first:g} (a .sumocfg imported with coloc net import --sumocfg "
+                    "keeps its clock)")
         return InputError(cfg.path, "scenario.begin_s", f"no vehicle in the simulated window {window}: the demand "
-                          f"departs from {dep.first:g} s ({clock(dep.first)}) on; set [scenario] begin_s = "
-                          f"{dep.first:g} (a .sumocfg imported with coloc net import --sumocfg keeps its clock)")
+                          f"departs from {dep.first:g} s ({clock(dep.first)}) on; {fix}")
     return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the simulated window {window}: "
                       "nothing to estimate; run longer")
 

@@ -311,3 +311,17 @@ def test_run_from_the_begin_matches_sumo(scen, imported, tmp_path):
     assert len(early) == 35 and not early & ids  # departing before 07:00: dropped, by SUMO and by the run
     assert traffic["interval_start_s"].iloc[0] == BEGIN
     assert summary["traffic"]["mean_vehicles"] == pytest.approx(sumo.mean(), rel=1e-12)
+
+
+def test_empty_window_says_where_the_demand_is(imported, tmp_path, capsys):
+    """The defect this replaces: a run from 0 of a demand on its own clock said "run longer"."""
+    _, exps, _ = imported
+    cfg = tmp_path / "from0.toml"
+    text = (exps / "lust_tlr.toml").read_text().replace('net_dir = "../net"', f'net_dir = "{exps.parent / "net"}"')
+    cfg.write_text(text.replace("begin_s = 25200.0", "begin_s = 0.0"))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "run"), "--duration", "30", "--methods", "gnss",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scenario.begin_s: no vehicle in the simulated window [0, 30] s (00:00-00:00:30)" in err[0]
+    assert "the demand departs from 25000 s (06:56:40) on; set [scenario] begin_s = 25200" in err[0]
+    assert "run longer" not in err[0] and not (tmp_path / "run").exists()
