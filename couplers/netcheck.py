@@ -86,6 +86,10 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
     rproblems, n = routes_problems(net, folder.route_files)
     problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes.parent)) else p for p in rproblems]
     clock_info, clock_problem = _clock_check(folder, root)
+    if folder.additional:
+        from couplers.netimport.sumocfg import program_problems  # noqa: PLC0415
+
+        problems += program_problems(net, folder.additional)
     problems += clock_problem
     persons = ""
     if folder.persons is not None:

@@ -59,6 +59,8 @@ class NetFolder:
     persons: Path | None = None
     # [files] routes may list several route files (plain or gzipped): ``routes`` is the first, these the others
     more_routes: tuple[Path, ...] = ()
+    # [files] additional: SUMO additional files loaded into every run (an imported .sumocfg's signal programs)
+    additional: tuple[Path, ...] = ()
     clock: "SumoClock" = None  # type: ignore[assignment]  # [sumo]; set by load_net_folder
 
     @property
@@ -281,6 +283,14 @@ def load_net_folder(root: str | Path) -> NetFolder:
             raise InputError(scen_path, f"files.{key}", f"file {p} not found")
         paths[key] = p
     clock = read_sumo_clock(scen, scen_path)
+    aval = files.get("additional", [])
+    aval = [aval] if isinstance(aval, str) else aval
+    if not isinstance(aval, list) or not all(isinstance(v, str) for v in aval):
+        raise InputError(scen_path, "files.additional", "not a string or list of strings")
+    additional = tuple(root / v for v in aval)
+    for i, a in enumerate(additional):
+        if not a.is_file():
+            raise InputError(scen_path, f"files.additional[{i}]", f"file {a} not found")
     # buildings.geojson is optional: [files] buildings names it (it must then exist), else the
     # folder's buildings.geojson is read when present.
     bval = files.get("buildings")
@@ -315,6 +325,7 @@ def load_net_folder(root: str | Path) -> NetFolder:
         buildings=buildings,
         persons=persons.resolve() if persons is not None else None,
         more_routes=tuple(more_routes),
+        additional=additional,
         clock=clock,
     )
 

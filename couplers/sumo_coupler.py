@@ -53,6 +53,7 @@ class SumoScenario:
             lanechange_duration=self.lanechange_duration,
             extra_routes=(*self.net.more_routes, *((self.net.persons,) if self.net.persons is not None else ())),
             begin=self.begin_s,
+            additional=self.net.additional,
         )
 
 

@@ -53,6 +53,7 @@ class SumoOptions:
     # The scenario's begin on its own clock (s, SUMO's --begin): the run simulates [begin, end]; SUMO drops
     # vehicles departing before it when it loads the routes. 0: not passed (SUMO's default).
     begin: float = 0.0
+    additional: tuple[Path, ...] = ()  # SUMO additional files (a net folder's [files] additional)
 
     def command(self) -> list[str]:
         cmd = [
@@ -70,6 +71,8 @@ class SumoOptions:
             "--step-method.ballistic", "true" if self.ballistic else "false",
             "--lanechange.duration", repr(self.lanechange_duration),
         ]
+        if self.additional:
+            cmd += ["--additional-files", ",".join(str(a) for a in self.additional)]
         if self.tls_off:
             cmd += ["--tls.all-off", "true"]
         return cmd + list(self.extra_args)

@@ -50,10 +50,16 @@ def build_sumocfg_scenario(folder: Path, *, begin: float = BEGIN, end: float | N
     with gzip.open(folder / "routes" / "b.rou.xml.gz", "wt") as fh:
         fh.write("\n".join(b) + "\n")
     (folder / "add").mkdir(exist_ok=True)
+    # the scenario's own signal program for C: the net's phases with the east-west green cut to 20 s and the
+    # north-south green 60 s (a calibrated program; SUMO runs the program loaded last)
+    net_text = (folder / "net" / "cross.net.xml").read_text()
+    states = [line.split('state="')[1].split('"')[0] for line in net_text.splitlines() if "<phase " in line]
+    phases = "".join(f'        <phase duration="{d}" state="{st}"/>\n' for d, st in zip((20, 3, 60, 3), states))
     (folder / "add" / "stops.add.xml").write_text(
         "<additional>\n"
         '    <busStop id="bs_w" lane="WC_0" startPos="150" endPos="170"/>\n'
         '    <inductionLoop id="det_e" lane="CE_0" pos="50" period="60" file="det.xml"/>\n'
+        f'    <tlLogic id="C" type="static" programID="cfg" offset="0">\n{phases}    </tlLogic>\n'
         "</additional>\n")
     opts = {"net-file": "net/cross.net.xml", "route-files": "routes/a.rou.xml, routes/b.rou.xml.gz",
             "additional-files": "add/stops.add.xml", "begin": f"{begin:g}", "step-length": "0.75",

@@ -21,7 +21,8 @@ folder holds (docs/architecture.md "A net folder"), and says what it could not d
   randomTrips (fringe factor, seeded) routed by duarouter, every route checked
   against the net; or the user's route files (plain or gzipped, several), checked the same way
   and copied as given; a ``.sumocfg``'s begin becomes the folder's ``[sumo] begin`` (the clock of
-  its runs), and the departures before it, which SUMO drops, are counted and reported;
+  its runs), and the departures before it, which SUMO drops, are counted and reported; its additional
+  files' signal programs are loaded into every run (``signals.add.xml``, ``[files] additional``);
 * features: traffic-light poles at the stop lines of signalised junctions,
   bus stops (OSM stop positions / ``busStop`` additionals), car parks (OSM
   ``amenity=parking`` / ``parkingArea`` additionals) and signs at the minor
@@ -411,7 +412,7 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     else:
         _write_demand(opts, net, net_path, work, lane_km, report)
     if opts.sumocfg is not None:
-        _sumocfg_report(opts, report)
+        _sumocfg_extras(opts, net, work, report)
 
     _write_scenario(work, opts, report, route_names)
     for leftover in work.glob(".*"):
@@ -432,9 +433,10 @@ def _from_sumocfg(opts: ImportOptions) -> ImportOptions:
                                step_length=cfg.step_length, ignored_options=cfg.ignored)
 
 
-def _sumocfg_report(opts: ImportOptions, report: "_Report") -> None:
-    """What the import took from the .sumocfg, and what it left out (never silently)."""
-    from couplers.netimport.sumocfg import clock  # noqa: PLC0415
+def _sumocfg_extras(opts: ImportOptions, net, work: Path, report: "_Report") -> None:
+    """The .sumocfg's signal programs (``signals.add.xml``, loaded into the runs), what the import took from
+    the configuration, and what it left out (never silently)."""
+    from couplers.netimport.sumocfg import SIGNAL_TAGS, clock, program_problems, signal_programs  # noqa: PLC0415
 
     begin = opts.begin_s or 0.0
     report.derived["sumocfg"] = {
@@ -448,10 +450,23 @@ def _sumocfg_report(opts: ImportOptions, report: "_Report") -> None:
                         + (f", step {opts.step_length:g} s" if opts.step_length is not None else "")
                         + "; runs simulate from this begin ([sumo] begin, [scenario] begin_s)")
     if opts.additional_files:
-        report.not_derived.append(
-            "additional files in the run: " + ", ".join(p.name for p in opts.additional_files)
-            + " are read for feature places (busStop, parkingArea) only; their detectors, signal programs and "
-              "other elements are not loaded into coloc's runs (the net's own signal programs apply)")
+        names = ", ".join(p.name for p in opts.additional_files)
+        text, programs, others = signal_programs(opts.additional_files, f"{opts.sumocfg.name} ({names})")
+        if text is not None:
+            bad = program_problems(net, opts.additional_files)
+            if bad:
+                raise InputError(opts.sumocfg, "additional-files", bad[0].split(": ", 1)[1]
+                                 + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+            (work / "signals.add.xml").write_text(text, encoding="utf-8")
+            report.derived["signal_programs"] = {"file": "signals.add.xml", "programs": programs}
+            report.lines.append(f"signals: {len(programs)} signal program(s) of {names} loaded into every run "
+                                f"(signals.add.xml; SUMO runs the last one loaded for each light, as with the "
+                                f".sumocfg); VSR still switches every signal off")
+        if others:
+            what = ", ".join(f"{n} {tag}" for tag, n in sorted(others.items()))
+            report.not_derived.append(
+                f"additional elements in the runs: {what} of {names} are not loaded into coloc's runs (only "
+                f"{', '.join(SIGNAL_TAGS)} are; busStop and parkingArea are feature places)")
     if opts.ignored_options:
         report.not_derived.append(f"options of {opts.sumocfg.name} coloc does not apply: "
                                   + ", ".join(opts.ignored_options))

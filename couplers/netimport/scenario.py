@@ -105,6 +105,7 @@ def _write_scenario(work: Path, opts: ImportOptions, report: _Report, route_name
         'areas = "areas.geojson"',
         'features = "features.add.xml"',
         *(['buildings = "buildings.geojson"'] if (work / "buildings.geojson").is_file() else []),
+        *(['additional = "signals.add.xml"'] if (work / "signals.add.xml").is_file() else []),
         "",
         "[controls]",
         "tlr = { tls_off = false }",

@@ -252,3 +252,58 @@ def _departures(key: tuple) -> Departures:
     lasts = ([departs[-1]] if departs else []) + ([max(ends)] if ends else [])
     return Departures(first=min(firsts) if firsts else None, last=max(lasts) if lasts else None,
                       vehicles=len(departs), flows=len(begins), early=tuple(departs), flow_begins=tuple(begins))
+
+
+# Elements of additional files that set the signal programs (loaded into coloc's runs); the others
+# (detectors, stops, rerouters, ...) are not.
+SIGNAL_TAGS = ("tlLogic", "WAUT", "wautJunction")
+
+
+def signal_programs(paths, source: str) -> tuple[str | None, list[str], dict[str, int]]:
+    """The signal programs of additional files as one additional file's text (None: there are none), the
+    programs (``tlLogic 'ID' program 'P'``) and the counts of every other top-level element, by tag."""
+    kept: list[ET.Element] = []
+    programs: list[str] = []
+    others: dict[str, int] = {}
+    for path in paths:
+        try:
+            with _open(path) as fh:
+                root = ET.parse(fh).getroot()
+        except (ET.ParseError, EOFError, OSError) as exc:
+            raise InputError(path, None, f"not valid XML ({exc})") from None
+        for el in root:
+            if not isinstance(el.tag, str):
+                continue  # a comment
+            if el.tag in SIGNAL_TAGS:
+                kept.append(el)
+                if el.tag == "tlLogic":
+                    programs.append(f"tlLogic {el.get('id')!r} program {el.get('programID')!r}")
+            else:
+                others[el.tag] = others.get(el.tag, 0) + 1
+    if not kept:
+        return None, programs, others
+    note = (f"the signal programs ({', '.join(SIGNAL_TAGS)}) of {source}, as given; loaded into every run as a "
+            "SUMO additional file").replace("--", "-")  # an XML comment may not hold "--"
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>', f"<!-- {note} -->", "<additional>"]
+    for el in kept:
+        el.tail = None
+        ET.indent(el, space="    ", level=1)
+        lines.append("    " + ET.tostring(el, encoding="unicode").rstrip())
+    lines.append("</additional>")
+    return "\n".join(lines) + "\n", programs, others
+
+
+def program_problems(net, paths) -> list[str]:
+    """Signal programs of additional files for traffic lights the net does not have (SUMO would not load)."""
+    ids = {tls.getID() for tls in net.getTrafficLights()}
+    out = []
+    for path in paths:
+        try:
+            with _open(path) as fh:
+                root = ET.parse(fh).getroot()
+        except (ET.ParseError, EOFError, OSError) as exc:
+            return [f"{path}: not valid XML ({exc})"]
+        for el in root.iter("tlLogic"):
+            if el.get("id") not in ids:
+                out.append(f"{path}: tlLogic {el.get('id')!r}: the net has no traffic light of that id")
+    return out

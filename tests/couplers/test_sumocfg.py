@@ -125,9 +125,20 @@ def test_import_keeps_files_and_clock(scen, imported):
     assert "dropped by SUMO" in demand["before_begin"]["handled"]
     assert "35 of 90 vehicles/trips depart before it" in text and "SUMO drops" in text
     assert "begin 25200 s (07:00)" in text
-    # the additional file's bus stop is a feature place; its detector is said not to be loaded
+    # the additional file's bus stop is a feature place, its signal program is loaded into every run, its
+    # detector is said not to be
     assert scen_toml["derived"]["features"]["bus_stop"] == 1
-    assert any("stops.add.xml" in x and "not loaded" in x for x in scen_toml["not_derived"]["items"])
+    assert scen_toml["files"]["additional"] == "signals.add.xml"
+    assert scen_toml["derived"]["signal_programs"]["programs"] == ["tlLogic 'C' program 'cfg'"]
+    assert 'programID="cfg"' in (out / "signals.add.xml").read_text()
+    assert any("1 inductionLoop of stops.add.xml are not loaded" in x for x in scen_toml["not_derived"]["items"])
+    from couplers.netfolder import load_net_folder
+    from couplers.sumo_coupler import SumoScenario
+
+    folder = load_net_folder(out)
+    cmd = SumoScenario(net=folder, control="tlr", seed=1, begin_s=BEGIN, duration_s=60.0).sumo_options().command()
+    assert cmd[cmd.index("--additional-files") + 1] == str(out / "signals.add.xml")
+    assert cmd[cmd.index("--route-files") + 1].endswith("demand_1.rou.xml," + str(out / "demand_2.rou.xml.gz"))
     assert any("time-to-teleport" in x for x in scen_toml["not_derived"]["items"])
     # the options of the generated demand are not recorded (they were not used)
     assert "demand_veh_per_h" not in scen_toml["import"] and "calibration_s" not in scen_toml["import"]
@@ -310,6 +321,18 @@ def test_run_from_the_begin_matches_sumo(scen, imported, tmp_path):
                                                                        if d < BEGIN}
     assert len(early) == 35 and not early & ids  # departing before 07:00: dropped, by SUMO and by the run
     assert traffic["interval_start_s"].iloc[0] == BEGIN
+    # the scenario's signal program ran (north-south green 60 s): without it, SUMO gives other counts
+    libsumo.start(["sumo", "-n", str(out / "tlr.net.xml"), "-r", f"{out / 'demand_1.rou.xml'},"
+                   f"{out / 'demand_2.rou.xml.gz'}", *extra])
+    try:
+        assert libsumo.trafficlight.getProgram("C") == "0"
+        plain = []
+        while libsumo.simulation.getTime() < BEGIN + 240.0 - 1e-9:
+            libsumo.simulationStep()
+            plain.append(libsumo.vehicle.getIDCount())
+    finally:
+        libsumo.close()
+    assert plain != sumo.tolist()
     assert summary["traffic"]["mean_vehicles"] == pytest.approx(sumo.mean(), rel=1e-12)
 
 
