@@ -139,6 +139,13 @@ def test_import_keeps_files_and_clock(scen, imported):
     cmd = SumoScenario(net=folder, control="tlr", seed=1, begin_s=BEGIN, duration_s=60.0).sumo_options().command()
     assert cmd[cmd.index("--additional-files") + 1] == str(out / "signals.add.xml")
     assert cmd[cmd.index("--route-files") + 1].endswith("demand_1.rou.xml," + str(out / "demand_2.rou.xml.gz"))
+    for control, program in (("tlr", "cfg"), ("vsr", "off")):  # VSR: every signal off, the scenario's too
+        libsumo.start(SumoScenario(net=folder, control=control, seed=1, begin_s=BEGIN, duration_s=60.0)
+                      .sumo_options().command())
+        try:
+            assert libsumo.trafficlight.getProgram("C") == program
+        finally:
+            libsumo.close()
     assert any("time-to-teleport" in x for x in scen_toml["not_derived"]["items"])
     # the options of the generated demand are not recorded (they were not used)
     assert "demand_veh_per_h" not in scen_toml["import"] and "calibration_s" not in scen_toml["import"]
