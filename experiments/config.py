@@ -536,7 +536,8 @@ def _check_begin_against_demand(cfg: Config) -> None:
     dep = demand_departures(folder.route_files)
     if dep.last is not None and begin > dep.last:
         raise InputError(cfg.path, "scenario.begin_s", f"{begin:g} s ({clock(begin)}) is after the last departure "
-                         f"of the demand of {folder.root.name} ({dep.last:g} s, {clock(dep.last)}): nothing would drive")
+                         f"of the demand of {folder.root.name} ({dep.last:g} s, {clock(dep.last)}): "
+                         "nothing would drive")
 
 
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:

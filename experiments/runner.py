@@ -526,7 +526,8 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None, begi
             elapsed = time.perf_counter() - t0
             left = elapsed * max(n_steps - k, 0) / k
             at = f" (to {clock(frame.t)})" if begin else ""
-            print(f"{name}: {frame.t - begin:.0f} s simulated{at}, step {k} of {n_steps} ({100.0 * k / max(n_steps, 1):.0f} %), "
+            print(f"{name}: {frame.t - begin:.0f} s simulated{at}, step {k} of {n_steps} "
+                  f"({100.0 * k / max(n_steps, 1):.0f} %), "
                   f"{elapsed:.0f} s elapsed, about {left:.0f} s left", file=sys.stderr, flush=True)
 
 

@@ -209,8 +209,8 @@ def test_refusals_one_line_exit_2_nothing_written(scen, tmp_path, capsys):
 def test_routes_take_gz_and_several_files(scen, tmp_path, capsys):
     base = scen.parent
     out = tmp_path / "net"
-    rc = main(["net", "import", "--net", str(base / "net" / "cross.net.xml"), "--routes", str(base / "routes" / "a.rou.xml"),
-               "--routes", str(base / "routes" / "b.rou.xml.gz"), "--name", "two", "--out", str(out),
+    rc = main(["net", "import", "--net", str(base / "net" / "cross.net.xml"),
+               "--routes", str(base / "routes" / "a.rou.xml"), "--routes", str(base / "routes" / "b.rou.xml.gz"), "--name", "two", "--out", str(out),
                "--experiments-dir", str(tmp_path / "exps")])
     assert rc == 0
     scen_toml = tomllib.loads((out / "scenario.toml").read_text())
