@@ -35,6 +35,7 @@ class SumoScenario:
     duration_s: float = 3600.0
     ballistic: bool = True
     lanechange_duration: float = 3.0
+    begin_s: float = 0.0  # the scenario's clock: the run simulates [begin_s, begin_s + duration_s]
 
     def sumo_options(self) -> SumoOptions:
         if self.control not in self.net.tls_off:
@@ -46,11 +47,13 @@ class SumoScenario:
             routes=self.net.routes,
             seed=self.seed,
             step_length=self.step_length,
-            end=self.duration_s,
+            end=self.begin_s + self.duration_s,
             tls_off=self.net.tls_off[self.control],
             ballistic=self.ballistic,
             lanechange_duration=self.lanechange_duration,
-            extra_routes=(self.net.persons,) if self.net.persons is not None else (),
+            extra_routes=(*self.net.more_routes, *((self.net.persons,) if self.net.persons is not None else ())),
+            begin=self.begin_s,
+            additional=self.net.additional,
         )
 
 

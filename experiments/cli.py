@@ -157,18 +157,28 @@ def cmd_net_import(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out else Path("sumo_nets") / args.name
     experiments_dir = Path(args.experiments_dir)
+    routes = _route_paths(args.routes)
+    if routes or args.sumocfg:  # the options that shape the generated demand: refused, not recorded unused
+        given = "--sumocfg" if args.sumocfg else "--routes"
+        for flag, val in (("--demand", args.demand), ("--duration", args.duration)):
+            if val is not None:
+                raise InputError(None, flag, f"not with {given}: it shapes the generated demand, and the demand is "
+                                             f"{'the scenario' if args.sumocfg else 'your route file'}'s"
+                                             + (" (its begin/end come from the configuration)" if args.sumocfg else ""))
+    demand = args.demand if args.demand is not None else (2800.0, 1800.0)
     opts = ImportOptions(
         name=args.name, out=out, net=_path(args.net), osm=_path(args.osm), seed=args.seed,
         feature_count=args.features, feature_kinds=_kinds(args.feature_kinds), guess_signals=args.guess_signals,
-        zones=_path(args.zones), areas=_path(args.areas), routes=_path(args.routes),
-        additional=_path(args.additional), demand_start_vph=args.demand[0], demand_end_vph=args.demand[1],
-        demand_scale=args.demand_scale, fringe_factor=args.fringe_factor, duration_s=args.duration,
+        zones=_path(args.zones), areas=_path(args.areas), routes=(routes[0] if len(routes) == 1 else routes) or None,
+        additional=_path(args.additional), demand_start_vph=demand[0], demand_end_vph=demand[1],
+        demand_scale=args.demand_scale, fringe_factor=args.fringe_factor,
+        duration_s=args.duration if args.duration is not None else 3600.0, sumocfg=_path(args.sumocfg),
         zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, calibration_s=args.calibration_s,
         max_density_scale=args.max_density_scale,
         signals="rebuild" if args.rebuild_signals else "keep" if args.keep_signals else "check",
         force=args.force,
     )
-    source = (opts.osm or opts.net).name if (opts.osm or opts.net) else "?"
+    source = (opts.sumocfg or opts.osm or opts.net).name if (opts.sumocfg or opts.osm or opts.net) else "?"
     if not args.force:  # refuse before the (possibly long) import, not after it
         for cfg_name in config_names(args.name):
             cfg = experiments_dir / cfg_name
@@ -176,7 +186,8 @@ def cmd_net_import(args: argparse.Namespace) -> int:
                 raise InputError(cfg, None, "already exists (pass --force to replace it)")
 
     def configs(result):
-        return net_configs(args.name, out, experiments_dir, result.track_area, source)
+        return net_configs(args.name, out, experiments_dir, result.track_area, source,
+                           clock=result.summary["derived"].get("sumocfg"))
 
     res = import_net(opts, finalize=configs)
     for line in res.lines:
@@ -189,6 +200,11 @@ def cmd_net_import(args: argparse.Namespace) -> int:
 
 def _path(text: str | None) -> Path | None:
     return None if text is None else Path(text)
+
+
+def _route_paths(values: list[str] | None) -> tuple[Path, ...]:
+    """``--routes`` given once or more, each one file or a comma-separated list."""
+    return tuple(Path(x.strip()) for v in values or () for x in v.split(",") if x.strip())
 
 
 def cmd_net_check(args: argparse.Namespace) -> int:
@@ -266,10 +282,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     net = sub.add_parser("net", help="plug-in nets: import a SUMO net or an OSM extract, check a net folder")
     nsub = net.add_subparsers(dest="net_command", required=True)
-    ni = nsub.add_parser("import", help="build a net folder and TLR/VSR configs from a .net.xml or .osm[.gz]")
+    ni = nsub.add_parser("import", help="build a net folder and TLR/VSR configs from a .net.xml, .osm[.gz] or "
+                                        ".sumocfg")
     src = ni.add_mutually_exclusive_group(required=True)
     src.add_argument("--net", help="a SUMO net (FILE.net.xml)")
     src.add_argument("--osm", help="an OpenStreetMap extract (FILE.osm or FILE.osm.gz)")
+    src.add_argument("--sumocfg", help="a SUMO scenario (FILE.sumocfg): its net, route files, additional files and "
+                                       "its clock (begin/end/step-length), kept by the runs")
     ni.add_argument("--name", required=True, help="name of the net folder and of the configs")
     ni.add_argument("--out", help="net folder to write (default: sumo_nets/NAME)")
     ni.add_argument("--experiments-dir", default="experiments",
@@ -292,15 +311,18 @@ def build_parser() -> argparse.ArgumentParser:
                                     "default: from building density, else a default layout")
     ni.add_argument("--areas", help="analysis areas GeoJSON, WGS84 lon/lat or net x/y (as --zones); "
                                     "default: a 3 x 2 grid")
-    ni.add_argument("--routes", help="your own SUMO route file (instead of the generated demand)")
+    ni.add_argument("--routes", action="append",
+                    help="your own SUMO route file(s) instead of the generated demand (plain or .gz; repeat the "
+                         "option or separate files by commas)")
     ni.add_argument("--additional", help="busStop / parkingArea additionals for a --net input (feature places)")
-    ni.add_argument("--demand", type=float, nargs=2, default=(2800.0, 1800.0), metavar=("START", "END"),
-                    help="falling profile on the arterial, veh/h at the start and end of the hour (default 2800 1800)")
+    ni.add_argument("--demand", type=float, nargs=2, metavar=("START", "END"),
+                    help="falling profile on the arterial, veh/h at the start and end of the hour (default 2800 1800; "
+                         "generated demand only)")
     ni.add_argument("--demand-scale", type=float, default=1.0,
                     help="multiplies the demand after scaling it to the net's size (default 1)")
     ni.add_argument("--fringe-factor", type=float, default=10.0,
                     help="randomTrips --fringe-factor: weight of trips entering/leaving at the net's edge (default 10)")
-    ni.add_argument("--duration", type=float, default=3600.0, help="demand duration, s (default 3600)")
+    ni.add_argument("--duration", type=float, help="generated demand's duration, s (default 3600)")
     ni.add_argument("--max-density-scale", type=float, default=4.0,
                     help="cap of the density match, as a multiple of the arterial's demand (default 4)")
     ni.add_argument("--no-calibrate", action="store_true",

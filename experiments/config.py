@@ -74,7 +74,7 @@ from experiments.config_extends import chain_text, origin_of, resolve_extends
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
-SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic")
+SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic", "begin_s")
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,9 @@ class ScenarioSection:
     control: str = "tlr"
     step_s: float = 0.75
     ballistic: bool = True
+    # The scenario's begin on its own clock (s, e.g. 25200 = 07:00): the run simulates
+    # [begin_s, begin_s + run.duration_s]. Not given: the net folder's [sumo] begin (0 without one).
+    begin_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -383,6 +386,7 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.net_dir", "required for a SUMO scenario")
         if not (Path(cfg.scenario.net_dir) / "scenario.toml").is_file():
             raise InputError(p, "scenario.net_dir", f"no net folder (scenario.toml) at {cfg.scenario.net_dir}")
+        _check_begin_against_demand(cfg)
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
 
@@ -495,6 +499,51 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
     return notes
 
 
+def _net_folder_clock(sections: dict, data: dict, path: Path) -> list[tuple[str, str]]:
+    """``scenario.begin_s`` / ``scenario.step_s`` / ``run.duration_s`` not given: the net folder's ``[sumo]``
+    begin / step_length / end - begin (:class:`couplers.net.folder.SumoClock`); returns the notes."""
+    from couplers.net.folder import read_sumo_clock
+
+    scen = sections["scenario"]
+    given_scen, given_run = data.get("scenario", {}), data.get("run", {})
+    if scen.begin_s is not None and not (scen.begin_s >= 0 and math.isfinite(scen.begin_s)):
+        raise InputError(path, "scenario.begin_s", "must be a finite time >= 0 s")
+    toml = Path(scen.net_dir) / "scenario.toml" if scen.net_dir else None
+    if toml is None or not toml.is_file():  # reported by _validate
+        return []
+    clock = read_sumo_clock(read_toml(toml), toml)
+    notes = []
+    if "begin_s" not in given_scen:
+        sections["scenario"] = dataclasses.replace(sections["scenario"], begin_s=clock.begin)
+        if clock.begin:
+            notes.append(("scenario.begin_s", "= the net folder's [sumo] begin"))
+    if "step_s" not in given_scen and clock.step_length is not None and clock.step_length != scen.step_s:
+        sections["scenario"] = dataclasses.replace(sections["scenario"], step_s=clock.step_length)
+        notes.append(("scenario.step_s", "= the net folder's [sumo] step_length"))
+    begin = sections["scenario"].begin_s
+    if "duration_s" not in given_run and clock.end is not None and clock.end > begin \
+            and clock.end - begin != sections["run"].duration_s:
+        sections["run"] = dataclasses.replace(sections["run"], duration_s=clock.end - begin)
+        notes.append(("run.duration_s", "= the net folder's [sumo] end - scenario.begin_s"))
+    return notes
+
+
+def _check_begin_against_demand(cfg: Config) -> None:
+    """A begin after the demand's last departure is refused (nothing would drive); begin 0 is not checked."""
+    begin = cfg.scenario.begin_s
+    if not begin:
+        return
+    from couplers.net.folder import load_net_folder
+    from couplers.net.importer.sumocfg import clock, demand_departures
+
+    folder = load_net_folder(cfg.scenario.net_dir)
+    dep = demand_departures(folder.route_files)
+    if dep.last is not None and begin > dep.last:
+        raise InputError(cfg.path, "scenario.begin_s", f"{begin:g} s ({clock(begin)}) is after the last departure "
+                         f"of the demand of {folder.root.name} ({dep.last:g} s, {clock(dep.last)}): "
+                         "nothing would drive")
+
+
 def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:
     """The validated config of the tables ``data`` read from ``path`` (its ``extends`` chain merged in first,
     :mod:`experiments.config_extends`); an error about an inherited key names the file that wrote it."""
@@ -546,6 +595,7 @@ def _config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> 
         for name in SCENARIO_TABLES:
             if name in data:
                 raise InputError(path, name, f"table given but scenario.kind is {scen.kind!r}")
+        notes += _net_folder_clock(sections, data, path)
     if not sections["sensors"].v2f_range_m > 0:  # before it becomes lc.sensing_range_m below
         where = f"{scen.kind}.v2f_range_m" if scen.kind in SCENARIO_TABLES else "sensors.v2f_range_m"
         raise InputError(path, where, "must be positive (the V2F sensing range Rs, m)")

@@ -158,6 +158,13 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                         "table for the controlled scenarios."),
         "ballistic": ("", "SUMO's ballistic position update (`--step-method.ballistic`), so SUMO's kinematics "
                           "match model (1) with piecewise-constant acceleration."),
+        "begin_s": ("s", "Begin of a SUMO run on the scenario's own clock (seconds since midnight, e.g. 25200 = "
+                         "07:00; SUMO's `--begin`): the run simulates [begin_s, begin_s + run.duration_s], SUMO "
+                         "drops vehicles departing before it, and estimates' `t` and the reports' time axes are "
+                         "on that clock. >= 0; a begin after the demand's last departure is refused. Not set: the "
+                         "net folder's `[sumo] begin` (0 without one; `coloc net import --sumocfg` writes the "
+                         "scenario's). The folder's `[sumo] step_length` and `end` likewise give `step_s` and "
+                         "`run.duration_s` (= end - begin) when they are not set."),
     },
     "single_road": {
         **_SCENARIO_COMMON,

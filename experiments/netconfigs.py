@@ -39,13 +39,15 @@ def _parent_ref(parent: Path, experiments_dir: Path) -> str:
 
 
 def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Path, track_area: str,
-                    source: str, suffix: str = "") -> str:
-    """The text of ``<experiments_dir>/<name>_<control><suffix>.toml`` for the net folder ``net_dir``."""
+                    source: str, suffix: str = "", clock: dict | None = None) -> str:
+    """The text of ``<experiments_dir>/<name>_<control><suffix>.toml`` for the net folder ``net_dir``; ``clock``
+    (a .sumocfg's begin_s, end_s, step_length_s): the run keeps the scenario's clock (:func:`_clock_lines`)."""
     _, template, what = next(v for v in VARIANTS if v[0] == suffix)
     parent = HERE / template.format(control=control)
     run_name = f"{name}_{control}{suffix}"
     rel_net = Path(os.path.relpath(Path(net_dir).resolve(), Path(experiments_dir).resolve())).as_posix()
     label = "TLR control" if control == "tlr" else "VSR control (every signal switched off)"
+    run_clock, scenario_clock = _clock_lines(clock) if clock is not None else ("", "")
     return (f"# {name}: imported by `coloc net import` from {source}, {label}.\n"
             f"# Parameters as experiments/{parent.name}, which this file extends ({what}).\n"
             f"# `coloc run {Path(experiments_dir).name}/{run_name}.toml --out results/{run_name}`\n"
@@ -53,16 +55,36 @@ def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Pat
             "\n"
             "[run]\n"
             f"name = {_quoted(run_name)}\n"
+            + run_clock +
             "\n"
             "[scenario]\n"
             f"net_dir = {_quoted(rel_net)}   # relative to this file\n"
+            + scenario_clock +
             "\n"
             "[report]\n"
             f"track_areas = [{_quoted(track_area)}]      # the area holding the most road length\n")
 
 
-def net_configs(name: str, net_dir: Path, experiments_dir: Path, track_area: str, source: str) -> dict[Path, str]:
+def _clock_lines(clock: dict) -> tuple[str, str]:
+    """The [run] and [scenario] lines that keep a .sumocfg's clock: ``duration_s`` one hour from begin, or up
+    to the scenario's end when that is sooner; ``begin_s``; ``step_s`` when the scenario sets its step."""
+    from couplers.net.importer.sumocfg import clock as clock_text  # noqa: PLC0415
+
+    begin = float(clock.get("begin_s") or 0.0)
+    end = clock.get("end_s")
+    duration, why = (float(end - begin), "to the scenario's end") if end is not None and end - begin < 3600.0 else \
+        (3600.0, "one hour from the scenario's begin")
+    run = f"duration_s = {duration!r}          # {why}\n"
+    scenario = f"begin_s = {begin!r}                # the scenario's begin ({clock_text(begin)})\n"
+    step = clock.get("step_length_s")
+    if step is not None:
+        scenario += f"step_s = {float(step)!r}                      # the scenario's step-length\n"
+    return run, scenario
+
+
+def net_configs(name: str, net_dir: Path, experiments_dir: Path, track_area: str, source: str,
+                clock: dict | None = None) -> dict[Path, str]:
     experiments_dir = Path(experiments_dir)
     return {experiments_dir / f"{name}_{c}{suffix}.toml":
-            net_config_text(name, c, net_dir, experiments_dir, track_area, source, suffix)
+            net_config_text(name, c, net_dir, experiments_dir, track_area, source, suffix, clock)
             for suffix, _, _ in VARIANTS for c in CONTROLS}

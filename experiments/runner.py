@@ -48,6 +48,7 @@ from couplers.errors import InputError
 from couplers.sensing.infra import InfraSetup, junction_positions
 from couplers.net.check import require_usable_net_folder
 from couplers.net.folder import load_net_folder
+from couplers.net.importer.sumocfg import clock
 from couplers.sensing.perception import detection_model
 from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
@@ -457,6 +458,7 @@ class _SumoSource:
             step_length=cfg.scenario.step_s,
             duration_s=cfg.run.duration_s,
             ballistic=cfg.scenario.ballistic,
+            begin_s=cfg.scenario.begin_s or 0.0,
         )
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)
@@ -502,10 +504,10 @@ def _timing_line(what: str) -> None:
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
 
 
-def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
+def progress_frames(frames, n_steps: int, name: str, progress: bool | None, begin: float = 0.0):
     """The frames, with progress on stderr: ``progress`` True, or None on a terminal, a tqdm bar with
     an ETA; None elsewhere (logs of sweeps and CI), one line per :data:`PROGRESS_LINE_S` simulated
-    seconds; False nothing."""
+    seconds (counted from ``begin``, the run's begin on the scenario's clock); False nothing."""
     tty = sys.stderr.isatty()
     if progress is False:
         yield from frames
@@ -519,11 +521,13 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None):
     next_line = PROGRESS_LINE_S
     for k, frame in enumerate(frames, start=1):
         yield frame
-        if frame.t + 1e-9 >= next_line:
+        if frame.t - begin + 1e-9 >= next_line:
             next_line += PROGRESS_LINE_S
             elapsed = time.perf_counter() - t0
             left = elapsed * max(n_steps - k, 0) / k
-            print(f"{name}: {frame.t:.0f} s simulated, step {k} of {n_steps} ({100.0 * k / max(n_steps, 1):.0f} %), "
+            at = f" (to {clock(frame.t)})" if begin else ""
+            print(f"{name}: {frame.t - begin:.0f} s simulated{at}, step {k} of {n_steps} "
+                  f"({100.0 * k / max(n_steps, 1):.0f} %), "
                   f"{elapsed:.0f} s elapsed, about {left:.0f} s left", file=sys.stderr, flush=True)
 
 
@@ -582,6 +586,30 @@ def _pooled_steps(frames, pool, timing: bool):
             first_result = False
 
 
+def _empty_run(cfg: Config) -> InputError:
+    """The error of a run without vehicles: for a SUMO run, where the demand's departures are against the
+    simulated window (a demand on its own clock run from 0 is the usual cause), else "run longer"."""
+    msg = f"no vehicle was in the network in the {cfg.run.duration_s:g} s simulated: nothing to estimate; run longer"
+    if cfg.scenario.kind != "sumo":
+        return InputError(cfg.path, "run.duration_s", msg)
+    from couplers.net.importer.sumocfg import demand_departures
+
+    begin = cfg.scenario.begin_s or 0.0
+    end = begin + cfg.run.duration_s
+    folder = load_net_folder(cfg.net_dir)
+    dep = demand_departures(folder.route_files)
+    window = f"[{begin:g}, {end:g}] s ({clock(begin)}-{clock(end)})"
+    if dep.first is not None and dep.first >= end:
+        own = folder.clock.begin if folder.clock.begin and folder.clock.begin != begin else None
+        fix = (f"set [scenario] begin_s = {own:g} (the net folder's [sumo] begin) or leave it out" if own is not None
+               else f"set [scenario] begin_s = {dep.first:g} (a .sumocfg imported with coloc net import --sumocfg "
+                    "keeps its clock)")
+        return InputError(cfg.path, "scenario.begin_s", f"no vehicle in the simulated window {window}: the demand "
+                          f"departs from {dep.first:g} s ({clock(dep.first)}) on; {fix}")
+    return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the simulated window {window}: "
+                      "nothing to estimate; run longer")
+
+
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
                    force: bool = False, workers: int = 0) -> dict:
     """Run one config; returns the summary dict also written to summary.json.
@@ -613,7 +641,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
             with source:
                 version = source.sumo_version
-                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
+                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress,
+                                         cfg.scenario.begin_s or 0.0)
                 steps = _serial_steps(frames, estimators, timing) if pool is None else _pooled_steps(frames, pool,
                                                                                                      timing)
                 for frame, results in steps:
@@ -639,8 +668,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
         if estimates.empty:  # nothing to score: say so rather than write an empty run
-            raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
-                                                         "simulated: nothing to estimate; run longer")
+            raise _empty_run(cfg)
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
             provenance = {"sumo_version": version, **provenance}

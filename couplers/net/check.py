@@ -8,7 +8,8 @@ every lane shape point of the net; every feature lies within a given distance of
 drivable lane; the optional ``buildings.geojson`` covers no lane shape point of a drivable
 lane and holds no feature (a feature inside a building could never be seen); every
 vehicle, flow or trip of the demand has a route whose edges exist in the net and follow
-each other.
+each other; the folder's ``[sumo] begin`` (its clock, :class:`couplers.net.folder.SumoClock`) is not after the
+demand's last departure (vehicles departing before it are counted: SUMO drops them).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from shapely.geometry import LineString
 
 from couplers.errors import InputError
 from couplers.net.folder import lane_shape_points, load_net_folder
-from couplers.net.importer.demand import route_problems
+from couplers.net.importer.demand import routes_problems
 
 
 def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[list[str], str]:
@@ -82,8 +83,14 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
 
     problems += _building_problems(folder, root, xy, owners, drivable)
 
-    rproblems, n = route_problems(net, folder.routes)
-    problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes)) else p for p in rproblems]
+    rproblems, n = routes_problems(net, folder.route_files)
+    problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes.parent)) else p for p in rproblems]
+    clock_info, clock_problem = _clock_check(folder, root)
+    if folder.additional:
+        from couplers.net.importer.sumocfg import program_problems  # noqa: PLC0415
+
+        problems += program_problems(net, folder.additional)
+    problems += clock_problem
     persons = ""
     if folder.persons is not None:
         pproblems, npf = person_problems(net, folder.persons)
@@ -94,7 +101,31 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
             f"{len(folder.areas)} areas{persons}")
     if folder.buildings is not None:
         info += f", {len(folder.buildings)} buildings"
-    return problems, info
+    return problems, info + clock_info
+
+
+def _clock_check(folder, root: Path) -> tuple[str, list[str]]:
+    """(info clause, problems) of the folder's begin against the demand's departures; shipped folders
+    (begin 0, [sumo] without begin) are not read for it."""
+    from couplers.net.importer.sumocfg import clock, demand_departures  # noqa: PLC0415
+
+    begin = folder.clock.begin
+    if "begin" not in folder.scenario.get("sumo", {}):
+        return "", []
+    try:
+        dep = demand_departures(folder.route_files)
+    except InputError as exc:
+        return "", [exc.describe()]
+    where = root / "scenario.toml"
+    info = f"; begin {begin:g} s ({clock(begin)})"
+    if dep.first is None:
+        return info, []
+    info += f", departures {dep.first:g} s ({clock(dep.first)}) to {dep.last:g} s ({clock(dep.last)})"
+    if begin > dep.last:
+        return info, [f"{where}: sumo.begin: {begin:g} s ({clock(begin)}) is after the demand's last departure "
+                      f"({dep.last:g} s, {clock(dep.last)}): a run from it would have no vehicle"]
+    early = dep.describe_before(begin)
+    return info + (f"; {early}" if early else ""), []
 
 
 def _building_problems(folder, root: Path, xy: np.ndarray, owners: list[str], drivable) -> list[str]:

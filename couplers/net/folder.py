@@ -6,6 +6,7 @@ Parsing only; geometry lookups are in ``couplers.net.zones``.
 from __future__ import annotations
 
 import json
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +57,57 @@ class NetFolder:
     # [files] persons: a SUMO route file of persons (walkers), optional; loaded beside the vehicle
     # routes, and what ``[features] pedestrians = true`` needs (couplers.sensing.pedestrians).
     persons: Path | None = None
+    # [files] routes may list several route files (plain or gzipped): ``routes`` is the first, these the others
+    more_routes: tuple[Path, ...] = ()
+    # [files] additional: SUMO additional files loaded into every run (an imported .sumocfg's signal programs)
+    additional: tuple[Path, ...] = ()
+    clock: "SumoClock" = None  # type: ignore[assignment]  # [sumo]; set by load_net_folder
+
+    @property
+    def route_files(self) -> tuple[Path, ...]:
+        """Every route file of the demand, in the order SUMO loads them."""
+        return (self.routes, *self.more_routes)
+
+
+@dataclass(frozen=True)
+class SumoClock:
+    """A net folder's ``[sumo]`` table: the scenario's own clock (s).
+
+    ``begin`` (default 0): when its runs start (``--begin``; SUMO drops vehicles departing before it);
+    ``end``: the scenario's end; ``step_length``: the step it was built for. A config's
+    ``[scenario] begin_s``, ``[scenario] step_s`` and ``[run] duration_s`` (= end - begin) default to them."""
+
+    begin: float = 0.0
+    end: float | None = None
+    step_length: float | None = None
+
+
+SUMO_KEYS = ("begin", "end", "step_length")
+
+
+def read_sumo_clock(scen: dict, path: Path) -> SumoClock:
+    """The ``[sumo]`` table of a scenario.toml (``path`` names it in errors); unknown keys are refused."""
+    table = scen.get("sumo", {})
+    if not isinstance(table, dict):
+        raise InputError(path, "sumo", "expected a table")
+    unknown = sorted(set(table) - set(SUMO_KEYS))
+    if unknown:
+        raise InputError(path, f"sumo.{unknown[0]}", f"unknown key (known: {', '.join(SUMO_KEYS)})")
+    vals = {}
+    for key in SUMO_KEYS:
+        v = table.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise InputError(path, f"sumo.{key}", f"expected a finite number of seconds, got {v!r}")
+        vals[key] = float(v)
+    if vals.get("begin", 0.0) < 0:
+        raise InputError(path, "sumo.begin", "must be >= 0")
+    if "step_length" in vals and not vals["step_length"] > 0:
+        raise InputError(path, "sumo.step_length", "must be positive")
+    if "end" in vals and not vals["end"] > vals.get("begin", 0.0):
+        raise InputError(path, "sumo.end", f"must be after begin ({vals.get('begin', 0.0):g} s)")
+    return SumoClock(**vals)
 
 
 def _load_geojson(path: Path):
@@ -181,14 +233,31 @@ def load_net_folder(root: str | Path) -> NetFolder:
     if not isinstance(files, dict):
         raise InputError(scen_path, "files", "missing table")
     paths = {}
+    more_routes = []
     for key in REQUIRED_FILES:
         val = files.get(key)
+        if key == "routes" and isinstance(val, list) and val and all(isinstance(v, str) for v in val):
+            val, *more = val  # several route files, loaded in this order
+            for i, m in enumerate(more, 1):
+                if not (root / m).is_file():
+                    raise InputError(scen_path, f"files.routes[{i}]", f"file {root / m} not found")
+                more_routes.append(root / m)
         if not isinstance(val, str):
-            raise InputError(scen_path, f"files.{key}", "missing or not a string")
+            raise InputError(scen_path, f"files.{key}", "missing or not a string"
+                             + (" or list of strings" if key == "routes" else ""))
         p = root / val
         if not p.is_file():
             raise InputError(scen_path, f"files.{key}", f"file {p} not found")
         paths[key] = p
+    clock = read_sumo_clock(scen, scen_path)
+    aval = files.get("additional", [])
+    aval = [aval] if isinstance(aval, str) else aval
+    if not isinstance(aval, list) or not all(isinstance(v, str) for v in aval):
+        raise InputError(scen_path, "files.additional", "not a string or list of strings")
+    additional = tuple(root / v for v in aval)
+    for i, a in enumerate(additional):
+        if not a.is_file():
+            raise InputError(scen_path, f"files.additional[{i}]", f"file {a} not found")
     # buildings.geojson is optional: [files] buildings names it (it must then exist), else the
     # folder's buildings.geojson is read when present.
     bval = files.get("buildings")
@@ -222,6 +291,9 @@ def load_net_folder(root: str | Path) -> NetFolder:
         scenario=scen,
         buildings=buildings,
         persons=persons.resolve() if persons is not None else None,
+        more_routes=tuple(more_routes),
+        additional=additional,
+        clock=clock,
     )
 
 

@@ -48,8 +48,12 @@ class SumoOptions:
     # 0.27 m rms with jumps, 0.08 m with 3 s manoeuvres).
     lanechange_duration: float = 3.0
     extra_args: tuple[str, ...] = ()
-    # Further route files loaded after ``routes`` (a net folder's persons file, [files] persons).
+    # Further route files loaded after ``routes`` (a net folder's further route files and persons file).
     extra_routes: tuple[Path, ...] = ()
+    # The scenario's begin on its own clock (s, SUMO's --begin): the run simulates [begin, end]; SUMO drops
+    # vehicles departing before it when it loads the routes. 0: not passed (SUMO's default).
+    begin: float = 0.0
+    additional: tuple[Path, ...] = ()  # SUMO additional files (a net folder's [files] additional)
 
     def command(self) -> list[str]:
         cmd = [
@@ -58,6 +62,7 @@ class SumoOptions:
             "--route-files", ",".join(str(r) for r in (self.routes, *self.extra_routes)),
             "--step-length", repr(self.step_length),
             "--seed", str(int(self.seed)),
+            *(("--begin", repr(self.begin)) if self.begin else ()),
             "--end", repr(self.end),
             "--no-step-log", "true",
             "--no-warnings", "true",
@@ -66,6 +71,8 @@ class SumoOptions:
             "--step-method.ballistic", "true" if self.ballistic else "false",
             "--lanechange.duration", repr(self.lanechange_duration),
         ]
+        if self.additional:
+            cmd += ["--additional-files", ",".join(str(a) for a in self.additional)]
         if self.tls_off:
             cmd += ["--tls.all-off", "true"]
         return cmd + list(self.extra_args)
@@ -93,6 +100,7 @@ class TrafficStats:
 
     step_length: float
     interval_s: float = STAT_INTERVAL_S
+    origin: float = 0.0  # intervals are counted from here (the run's begin), s
     rows: list[dict] = field(default_factory=list)
     _acc: dict = field(default_factory=dict)
 
@@ -100,7 +108,7 @@ class TrafficStats:
         self._acc = dict(start=start, steps=0, vehicles=0, halting=0, arrived=0, dist_m=0.0, teleports=0)
 
     def add(self, t: float, n: int, halting: int, arrived: int, dist_m: float, teleports: int) -> None:
-        start = math.floor((t - 1e-9) / self.interval_s) * self.interval_s
+        start = self.origin + math.floor((t - self.origin - 1e-9) / self.interval_s) * self.interval_s
         if not self._acc:
             self._reset(start)
         elif start != self._acc["start"]:
@@ -146,7 +154,7 @@ class SumoTraffic:
 
     def __init__(self, options: SumoOptions):
         self.options = options
-        self.stats = TrafficStats(step_length=options.step_length)
+        self.stats = TrafficStats(step_length=options.step_length, origin=options.begin)
         self._prev_ids = np.empty(0, dtype=object)
         self._prev_xy = np.empty((0, 2))
         self._prev_vel = np.empty((0, 2))

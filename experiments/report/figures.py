@@ -133,6 +133,24 @@ def _empty_axis(ax, text: str) -> None:
     ax.set_yticks([])
 
 
+def _time_axis(ax, runs: list[_Run]) -> None:
+    """The x label of a time axis (x in minutes of the run's clock): minutes from 0 for runs that begin at 0
+    (every shipped scenario), clock time of day (hh:mm, minutes since midnight) when a run begins on a
+    scenario's own clock ([scenario] begin_s > 0, e.g. 07:00)."""
+    if not any(r.begin_s for r in runs):
+        ax.set_xlabel("time [min]")
+        return
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    def hhmm(x, _pos):
+        m = int(round(x))
+        return f"{m // 60 % 24:02d}:{m % 60:02d}"
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=8, steps=[1, 2, 5, 10]))
+    ax.xaxis.set_major_formatter(FuncFormatter(hhmm))
+    ax.set_xlabel("time of day [hh:mm] (the scenario's clock)")
+
+
 def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = None) -> str:
     width = min(_choose_bin(r.estimates["t"].to_numpy(dtype=float), RMSE_BIN_S)
                 for r in runs if r.estimates is not None)
@@ -164,7 +182,7 @@ def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = 
                           ms=3, lw=1.4, label=f"features, {method_label(m)}{suffix}")
     ax_p.set_ylabel("position RMSE [m]")
     ax_v.set_ylabel("velocity RMSE [m/s]")
-    ax_v.set_xlabel("time [min]")
+    _time_axis(ax_v, runs)
     ax_p.set_title(f"(a) position RMSE per {width / 60:g}-min bin")
     ax_v.set_title(f"(b) velocity RMSE per {width / 60:g}-min bin")
     for ax in (ax_p, ax_v):
@@ -234,7 +252,7 @@ def _fig_track(run: _Run, area: str, path: Path) -> float:
     ax_c.set_title(f"cross-track RMSE, area {area} ({width:g} s bins)")
     ax_a.set_ylabel("along-track RMSE [m]")
     ax_c.set_ylabel("cross-track RMSE [m]")
-    ax_c.set_xlabel("time [min]")
+    _time_axis(ax_c, [run])
     _save(fig, path)
     return width
 
@@ -270,8 +288,8 @@ def _fig_traffic(runs: list[_Run], path: Path) -> None:
         ax.set_ylim(bottom=0)
     if multi and axes[0].get_legend_handles_labels()[0]:
         axes[0].legend(loc="best")
-    axes[2].set_xlabel("time [min]")
-    axes[3].set_xlabel("time [min]")
+    _time_axis(axes[2], runs)
+    _time_axis(axes[3], runs)
     _save(fig, path)
 
 

@@ -68,6 +68,12 @@ class _Run:
         return self.summary.get("seed", s) if s is None else s
 
     @property
+    def begin_s(self) -> float:
+        """The run's begin on the scenario's clock ([scenario] begin_s; 0 for runs without one)."""
+        val = self.config.get("scenario", {}).get("begin_s", 0.0)
+        return float(val) if isinstance(val, (int, float)) and not isinstance(val, bool) else 0.0
+
+    @property
     def control(self) -> str:
         return str(self.config.get("scenario", {}).get("control", "") or "")
 

@@ -1,6 +1,7 @@
-"""Import a user's SUMO net or OpenStreetMap extract as a net folder (``coloc net import``).
+"""Import a user's SUMO net, SUMO scenario or OpenStreetMap extract as a net folder (``coloc net import``).
 
-From one ``.net.xml`` or ``.osm[.gz]`` file this derives everything a net
+From one ``.net.xml`` or ``.osm[.gz]`` file, or a ``.sumocfg`` (its net, route files, additional
+files and clock: :mod:`couplers.net.importer.sumocfg`), this derives everything a net
 folder holds (docs/architecture.md "A net folder"), and says what it could not derive:
 
 * the net: netconvert with the options SUMO recommends for OSM imports (the
@@ -18,7 +19,10 @@ folder holds (docs/architecture.md "A net folder"), and says what it could not d
   (:func:`gridlock_trial`; real city nets jam long before the arterial's
   density because of their many unsignalised junctions); routes from
   randomTrips (fringe factor, seeded) routed by duarouter, every route checked
-  against the net; or the user's route file, checked the same way;
+  against the net; or the user's route files (plain or gzipped, several), checked the same way
+  and copied as given; a ``.sumocfg``'s begin becomes the folder's ``[sumo] begin`` (the clock of
+  its runs), and the departures before it, which SUMO drops, are counted and reported; its additional
+  files' signal programs are loaded into every run (``signals.add.xml``, ``[files] additional``);
 * features: traffic-light poles at the stop lines of signalised junctions,
   bus stops (OSM stop positions / ``busStop`` additionals), car parks (OSM
   ``amenity=parking`` / ``parkingArea`` additionals) and signs at the minor
@@ -98,8 +102,14 @@ class ImportOptions:
     guess_signals: bool = False
     zones: Path | None = None
     areas: Path | None = None
-    routes: Path | None = None
-    additional: Path | None = None  # busStop / parkingArea elements for a .net.xml input
+    routes: Path | tuple[Path, ...] | None = None  # the user's route files (one or several, plain or gzipped)
+    additional: Path | tuple[Path, ...] | None = None  # busStop / parkingArea elements for a .net.xml input
+    # A SUMO configuration: its net, route files, additional files and clock (begin_s, end_s, step_length)
+    sumocfg: Path | None = None
+    begin_s: float | None = None  # the scenario's begin on its own clock (s); None: 0, the generated demand's
+    end_s: float | None = None
+    step_length: float | None = None
+    ignored_options: tuple[str, ...] = ()  # options of the .sumocfg coloc does not apply
     demand_start_vph: float = 2800.0
     demand_end_vph: float = 1800.0
     demand_scale: float = 1.0  # multiplies the density-matching scale
@@ -121,6 +131,22 @@ class ImportOptions:
     @property
     def source(self) -> Path:
         return self.osm if self.osm is not None else self.net  # type: ignore[return-value]
+
+    @property
+    def route_files(self) -> tuple[Path, ...]:
+        return _paths(self.routes)
+
+    @property
+    def additional_files(self) -> tuple[Path, ...]:
+        return _paths(self.additional)
+
+
+def _paths(value) -> tuple[Path, ...]:
+    if value is None:
+        return ()
+    if isinstance(value, (str, Path)):
+        return (Path(value),)
+    return tuple(Path(v) for v in value)
 
 
 @dataclass(frozen=True)
@@ -146,14 +172,24 @@ class _Report:
 # --------------------------------------------------------------------------
 
 def _validate_options(opts: ImportOptions) -> None:
+    from couplers.net.importer.sumocfg import is_sumocfg  # noqa: PLC0415
+
     if (opts.net is None) == (opts.osm is None):
-        raise InputError(None, "--net/--osm", "give exactly one of --net FILE.net.xml or --osm FILE.osm[.gz]")
+        raise InputError(None, "--net/--osm/--sumocfg", "give exactly one of --net FILE.net.xml, --osm "
+                                                        "FILE.osm[.gz] or --sumocfg FILE.sumocfg")
+    for flag, paths in (("--net", _paths(opts.net)), ("--osm", _paths(opts.osm)), ("--routes", opts.route_files)):
+        for p in paths:
+            if p.is_file() and is_sumocfg(p):
+                raise InputError(p, flag, "a SUMO configuration (.sumocfg): import it with --sumocfg FILE, which "
+                                          "reads its net, route files, additional files and begin/end")
     if not re.fullmatch(r"[A-Za-z0-9_-]+", opts.name):
         raise InputError(None, "--name", f"{opts.name!r}: use letters, digits, '_' and '-' only")
     for key in ("net", "osm", "zones", "areas", "routes", "additional"):
-        p = getattr(opts, key)
-        if p is not None and not Path(p).is_file():
-            raise InputError(p, None, "file not found")
+        for p in _paths(getattr(opts, key)):
+            if not p.is_file():
+                raise InputError(p, None, "file not found")
+    if opts.begin_s is not None and not (opts.begin_s >= 0 and math.isfinite(opts.begin_s)):
+        raise InputError(opts.sumocfg, "begin", "must be a finite time >= 0 s")
     if opts.feature_count < 0:
         raise InputError(None, "--features", "must be >= 0")
     bad = [k for k in opts.feature_kinds if k not in FEATURE_KINDS]
@@ -188,6 +224,11 @@ def import_net(opts: ImportOptions,
     """
     t0 = time.perf_counter()
     opts = dataclasses.replace(opts, out=Path(opts.out))
+    if opts.sumocfg is not None:
+        if opts.net is not None or opts.osm is not None:
+            raise InputError(None, "--net/--osm/--sumocfg", "give exactly one of --net FILE.net.xml, --osm "
+                                                            "FILE.osm[.gz] or --sumocfg FILE.sumocfg")
+        opts = _from_sumocfg(opts)
     _validate_options(opts)
     report = _Report()
     osm_counts = scan_osm(opts.osm) if opts.osm is not None else None
@@ -321,8 +362,8 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     stops: dict = {"bus_stop": [], "parking": []}
     if opts.osm is not None:
         stops = _additional_stops(work / ".stops.add.xml", net, opts.osm)
-    if opts.additional is not None:
-        more = _additional_stops(opts.additional, net, opts.additional)
+    for add in opts.additional_files:
+        more = _additional_stops(add, net, add)
         for k in stops:
             stops[k] += more[k]
     (work / ".stops.add.xml").unlink(missing_ok=True)
@@ -365,15 +406,70 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     report.derived["track_area"] = track_area
 
     # demand
+    route_names = ["demand.rou.xml"]
     if opts.routes is not None:
-        _user_routes(opts, net, work, report)
+        route_names = _user_routes(opts, net, work, report)
     else:
         _write_demand(opts, net, net_path, work, lane_km, report)
+    if opts.sumocfg is not None:
+        _sumocfg_extras(opts, net, work, report)
 
-    _write_scenario(work, opts, report)
+    _write_scenario(work, opts, report, route_names)
     for leftover in work.glob(".*"):
         leftover.unlink()
     return track_area
+
+
+def _from_sumocfg(opts: ImportOptions) -> ImportOptions:
+    """The options with what the .sumocfg names: net, route files, additional files, clock."""
+    from couplers.net.importer.sumocfg import read_sumocfg  # noqa: PLC0415
+
+    if opts.routes is not None or opts.additional is not None:
+        raise InputError(opts.sumocfg, "--routes/--additional", "not with --sumocfg: the configuration names the "
+                                                                 "route and additional files")
+    cfg = read_sumocfg(opts.sumocfg)
+    return dataclasses.replace(opts, net=cfg.net, routes=cfg.routes, additional=cfg.additional or None,
+                               begin_s=cfg.begin if cfg.begin is not None else 0.0, end_s=cfg.end,
+                               step_length=cfg.step_length, ignored_options=cfg.ignored)
+
+
+def _sumocfg_extras(opts: ImportOptions, net, work: Path, report: "_Report") -> None:
+    """The .sumocfg's signal programs (``signals.add.xml``, loaded into the runs), what the import took from
+    the configuration, and what it left out (never silently)."""
+    from couplers.net.importer.sumocfg import SIGNAL_TAGS, clock, program_problems, signal_programs  # noqa: PLC0415
+
+    begin = opts.begin_s or 0.0
+    report.derived["sumocfg"] = {
+        "file": opts.sumocfg.name, "net": opts.net.name, "route_files": [p.name for p in opts.route_files],
+        "additional_files": [p.name for p in opts.additional_files], "begin_s": begin,
+        **({"end_s": opts.end_s} if opts.end_s is not None else {}),
+        **({"step_length_s": opts.step_length} if opts.step_length is not None else {}),
+    }
+    end = f" to {opts.end_s:g} s ({clock(opts.end_s)})" if opts.end_s is not None else " (no end given)"
+    report.lines.append(f"scenario: {opts.sumocfg.name}: begin {begin:g} s ({clock(begin)}){end}"
+                        + (f", step {opts.step_length:g} s" if opts.step_length is not None else "")
+                        + "; runs simulate from this begin ([sumo] begin, [scenario] begin_s)")
+    if opts.additional_files:
+        names = ", ".join(p.name for p in opts.additional_files)
+        text, programs, others = signal_programs(opts.additional_files, f"{opts.sumocfg.name} ({names})")
+        if text is not None:
+            bad = program_problems(net, opts.additional_files)
+            if bad:
+                raise InputError(opts.sumocfg, "additional-files", bad[0].split(": ", 1)[1]
+                                 + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+            (work / "signals.add.xml").write_text(text, encoding="utf-8")
+            report.derived["signal_programs"] = {"file": "signals.add.xml", "programs": programs}
+            report.lines.append(f"signals: {len(programs)} signal program(s) of {names} loaded into every run "
+                                f"(signals.add.xml; SUMO runs the last one loaded for each light, as with the "
+                                f".sumocfg); VSR still switches every signal off")
+        if others:
+            what = ", ".join(f"{n} {tag}" for tag, n in sorted(others.items()))
+            report.not_derived.append(
+                f"additional elements in the runs: {what} of {names} are not loaded into coloc's runs (only "
+                f"{', '.join(SIGNAL_TAGS)} are; busStop and parkingArea are feature places)")
+    if opts.ignored_options:
+        report.not_derived.append(f"options of {opts.sumocfg.name} coloc does not apply: "
+                                  + ", ".join(opts.ignored_options))
 
 
 _NUMBER = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(m|metres|meters)?\s*$")

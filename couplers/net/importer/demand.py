@@ -73,21 +73,33 @@ def falling_profile_bins(start_vph: float, end_vph: float, duration_s: float) ->
     return out
 
 
-def route_problems(net, routes_path: Path, limit: int = 20) -> tuple[list[str], int]:
-    """Problems of a route file against a net (unknown edges, disconnected routes, unroutable trips).
+def route_problems(net, routes_path: Path, limit: int = 20,
+                   named: dict[str, list[str]] | None = None) -> tuple[list[str], int]:
+    """Problems of a route file (plain or gzipped) against a net (unknown edges, disconnected routes,
+    unroutable trips). ``named``: the named routes of route files loaded before this one (SUMO's ids are
+    shared by all route files of a run); this file's are added to it.
 
     Returns (problems, number of vehicles/flows/trips checked).
     """
+    from couplers.net.importer.sumocfg import _open  # noqa: PLC0415
+
     problems: list[str] = []
     try:
-        root = ET.parse(routes_path).getroot()
+        with _open(routes_path) as fh:
+            root = ET.parse(fh).getroot()
     except FileNotFoundError:
         return [f"{routes_path}: file not found"], 0
-    except ET.ParseError as exc:
+    except (ET.ParseError, EOFError, OSError) as exc:
         return [f"{routes_path}: not valid XML ({exc})"], 0
-    named: dict[str, list[str]] = {}
+    if root.tag in ("configuration", "sumoConfiguration"):
+        return [f"{routes_path}: a SUMO configuration, not a route file: import it with --sumocfg"], 0
+    named = {} if named is None else named
     for r in root.findall("route"):
         named[r.get("id", "")] = r.get("edges", "").split()
+    for dist in root.findall("routeDistribution"):  # a vehicle's route="dist": checked on its first route
+        inner = [r.get("edges", "").split() for r in dist.findall("route") if r.get("edges")]
+        if inner:
+            named[dist.get("id", "")] = inner[0]
     checked_routes: dict[tuple[str, ...], str | None] = {}
     checked_pairs: dict[tuple[str, str], bool] = {}
 
@@ -385,14 +397,71 @@ def route_problems_for_pool(net, pool: list[list[str]]) -> tuple[str | None, int
     return None, len(pool)
 
 
-def _user_routes(opts: ImportOptions, net, work: Path, report: _Report) -> None:
-    src = opts.routes
-    problems, n = route_problems(net, src)
-    if problems:
-        first = problems[0].split(": ", 1)[1] if ": " in problems[0] else problems[0]
-        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise InputError(src, None, first + more)
-    shutil.copyfile(src, work / "demand.rou.xml")
-    report.derived["demand"] = {"source": src.name, "vehicles_flows_trips": n}
-    report.not_derived.append("demand from the falling profile: the user's route file is used as given")
-    report.lines.append(f"demand: user's route file {src.name} ({n} vehicles/flows/trips, all routable)")
+def routes_problems(net, paths, limit: int = 20) -> tuple[list[str], int]:
+    """:func:`route_problems` of several route files loaded together (named routes shared, in order)."""
+    problems: list[str] = []
+    named: dict[str, list[str]] = {}
+    total = 0
+    for path in paths:
+        more, n = route_problems(net, Path(path), limit, named)
+        problems += more
+        total += n
+    return problems, total
+
+
+def folder_route_names(paths) -> list[str]:
+    """The names of the user's route files in the net folder: one plain file is ``demand.rou.xml`` (as
+    always); several, or a gzipped one, ``demand_1.rou.xml[.gz]``, ... in the order SUMO loads them."""
+    from couplers.net.importer.sumocfg import is_gzip  # noqa: PLC0415
+
+    paths = [Path(p) for p in paths]
+    if len(paths) == 1 and not is_gzip(paths[0]):
+        return ["demand.rou.xml"]
+    return [f"demand_{i}.rou.xml" + (".gz" if is_gzip(p) else "") for i, p in enumerate(paths, 1)]
+
+
+def _user_routes(opts: ImportOptions, net, work: Path, report: _Report) -> list[str]:
+    """Check and copy the user's route files (byte for byte) into the folder; returns their names there."""
+    from couplers.net.importer.sumocfg import clock, demand_departures  # noqa: PLC0415
+
+    srcs = list(opts.route_files)
+    per_file = []
+    named: dict[str, list[str]] = {}
+    for src in srcs:
+        problems, n = route_problems(net, src, named=named)
+        if problems:
+            first = problems[0].split(": ", 1)[1] if ": " in problems[0] else problems[0]
+            more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+            raise InputError(src, None, first + more)
+        per_file.append(n)
+    names = folder_route_names(srcs)
+    for src, name in zip(srcs, names):
+        shutil.copyfile(src, work / name)
+    n = sum(per_file)
+    label = srcs[0].name if len(srcs) == 1 else ", ".join(s.name for s in srcs)
+    report.derived["demand"] = {"source": label, "vehicles_flows_trips": n}
+    if len(srcs) > 1:
+        report.derived["demand"]["files"] = {name: src.name for src, name in zip(srcs, names)}
+    report.not_derived.append("demand from the falling profile: the user's route file"
+                              + ("s are" if len(srcs) > 1 else " is") + " used as given")
+    report.lines.append(f"demand: user's route file{'s' if len(srcs) > 1 else ''} {label} ({n} vehicles/flows/trips, "
+                        "all routable)")
+    begin = opts.begin_s
+    if begin is not None:
+        dep = demand_departures(srcs)
+        if dep.last is not None and begin > dep.last:
+            raise InputError(opts.sumocfg or srcs[0], "begin",
+                             f"{begin:g} s ({clock(begin)}) is after the last departure of the demand "
+                             f"({dep.last:g} s, {clock(dep.last)}): nothing would drive")
+        nv, nf = dep.before(begin)
+        report.derived["demand"].update(
+            first_departure_s=dep.first, last_departure_s=dep.last,
+            before_begin={"vehicles_trips": nv, "flows": nf,
+                          "handled": "dropped by SUMO when it loads the routes (depart < begin), as with the "
+                                     "scenario's own configuration; the folder keeps the files as given"})
+        if dep.first is not None:
+            report.lines.append(f"  departures {dep.first:g} s ({clock(dep.first)}) to {dep.last:g} s "
+                                f"({clock(dep.last)}); begin {begin:g} s ({clock(begin)})")
+        if nv or nf:
+            report.lines.append(f"  before begin: {dep.describe_before(begin)}")
+    return names
