@@ -66,6 +66,7 @@ from couplers.perception import PerceptionParams
 from couplers.scenarios import CrossroadParams, SingleRoadParams
 from couplers.sensors import SensorParams
 from couplers.v2x import V2xParams
+from experiments.ranges import check_ranges_of
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -311,7 +312,7 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise InputError(path, f"{name}.{key}", "required key missing")
     try:
-        return cls(**kwargs)
+        obj = cls(**kwargs)
     except InputError as exc:  # a dataclass validating itself names the field it refuses
         if exc.path is not None:
             raise
@@ -324,6 +325,13 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
             except (ValueError, TypeError):
                 raise InputError(path, f"{name}.{key}", str(exc)) from None
         raise InputError(path, name, str(exc)) from None
+    except ArithmeticError:  # a value far out of its range broke the dataclass's own checks
+        check_ranges_of(kwargs, name, path)
+        raise
+    # The physical range of every number (experiments.ranges), after the dataclass's own checks, whose
+    # messages are the more specific ones.
+    check_ranges_of(obj, name, path)
+    return obj
 
 
 def _validate(cfg: Config) -> None:
