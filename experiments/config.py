@@ -297,7 +297,9 @@ def _check_value(value, annotation, where: str, path: Path):
     raise TypeError(f"unsupported annotation {annotation} for {where}")
 
 
-def section_from_table(cls: type, table: dict, name: str, path: Path):
+def section_from_table(cls: type, table: dict, name: str, path: Path, ranges: dict | None = None):
+    """A section dataclass from a TOML table; numbers checked against ``ranges`` (default: the run config's,
+    :data:`experiments.ranges.RANGES`)."""
     if not isinstance(table, dict):
         raise InputError(path, name, "expected a table")
     hints = typing.get_type_hints(cls)
@@ -326,11 +328,11 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
                 raise InputError(path, f"{name}.{key}", str(exc)) from None
         raise InputError(path, name, str(exc)) from None
     except ArithmeticError:  # a value far out of its range broke the dataclass's own checks
-        check_ranges_of(kwargs, name, path)
+        check_ranges_of(kwargs, name, path, ranges)
         raise
     # The physical range of every number (experiments.ranges), after the dataclass's own checks, whose
     # messages are the more specific ones.
-    check_ranges_of(obj, name, path)
+    check_ranges_of(obj, name, path, ranges)
     return obj
 
 

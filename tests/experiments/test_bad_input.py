@@ -709,6 +709,20 @@ def run_net_scenario_value_nan(tmp, net, run):
     return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("sme.toml", "study.runs", "1000000000000 is outside [1, 100000]")
+def run_study_runs_huge(tmp, net, run):
+    path = tmp / "sme.toml"
+    path.write_text((PROJECT / "experiments" / "sme.toml").read_text().replace("runs = 200", "runs = 1000000000000"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("rsu_bp.toml", "study.scenario.gnss_var[1]", "1e+300 m^2 is outside")
+def run_study_variance_infinite(tmp, net, run):
+    path = tmp / "rsu_bp.toml"
+    path.write_text((PROJECT / "experiments" / "rsu_bp.toml").read_text().replace("[0.01, 15.0]", "[0.01, 1e300]"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 # ----------------------------------------------------------------------------- coloc report
 
 
@@ -908,7 +922,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 117
+    assert len(CASES) >= 119
 
 
 # ----------------------------------------------------------------------------- what --out may replace

@@ -188,3 +188,54 @@ def test_a_sweep_run_with_non_finite_estimates_fails_instead_of_writing_rows(tmp
     res = execute_run(cfg, str(tmp_path / "r"), 10.0)
     assert res["status"] == "error" and "non-finite estimate" in res["error"], res
     assert not (tmp_path / "r").exists()
+
+
+def _has_number(v) -> bool:
+    if isinstance(v, (list, tuple)):
+        return any(_has_number(x) for x in v)
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _study_numeric_keys() -> dict[str, list[tuple[str, object]]]:
+    """study kind -> (dotted key, default) of every number its config accepts."""
+    from coloc.methods.rsu_bp import RsuBpParams
+    from couplers.frohle_scenario import FrohleScenarioParams
+    from experiments.studies import fg_topology, rsu_bp, sme
+
+    out = {"rsu_bp": [(k, d) for k, _, d in numeric_fields({
+        "study": rsu_bp.StudySection, "study.scenario": FrohleScenarioParams, "study.filter": RsuBpParams,
+        "study.sweep": rsu_bp.SweepSection})]}
+    for name, mod in (("sme", sme), ("fg_topology", fg_topology)):
+        out[name] = [(f"{t}.{k}", key.default) for t, keys in mod.SPEC.items() for k, key in keys.items()
+                     if key.kind in ("int", "float", "ints", "floats") or _has_number(key.default)]
+    return out
+
+
+def test_every_numeric_key_of_every_study_has_a_range_and_its_default_is_inside():
+    keys = _study_numeric_keys()
+    assert set(keys) == set(ranges.STUDY_RANGES)
+    for kind, pairs in keys.items():
+        table = ranges.STUDY_RANGES[kind]
+        missing = [k for k, _ in pairs if k not in table]
+        assert missing == [], f"{kind}: numeric keys without a range: {missing}"
+        assert sorted(table) == sorted(k for k, _ in pairs), kind
+        for k, default in pairs:
+            ranges.check_nested(default, k, Path(f"{kind}.toml"), table)
+
+
+def test_shipped_study_configs_load_and_a_study_value_out_of_range_is_refused(tmp_path):
+    from experiments.studies import fg_topology, rsu_bp, sme
+    from experiments.studies.study_config import resolve
+
+    rsu = read_toml(PROJECT / "experiments" / "rsu_bp.toml")
+    rsu_bp.load_study(rsu, PROJECT / "experiments" / "rsu_bp.toml")
+    for name, mod in (("sme", sme), ("fg_topology", fg_topology)):
+        resolve(read_toml(PROJECT / "experiments" / f"{name}.toml"), PROJECT / "experiments" / f"{name}.toml",
+                mod.SPEC, ranges.STUDY_RANGES[name])
+    bad = {**rsu, "study": {**rsu["study"], "filter": {**rsu["study"]["filter"], "n_particles": 10**12}}}
+    with pytest.raises(InputError, match=r"study.filter.n_particles: 1000000000000 is outside \[2, 1000000\]"):
+        rsu_bp.load_study(bad, tmp_path / "r.toml")
+    data = read_toml(PROJECT / "experiments" / "sme.toml")
+    data["scenario"]["sensor_poses"][1][0] = float("1e300")
+    with pytest.raises(InputError, match=r"scenario.sensor_poses\[1\]\[0\]: 1e\+300 m, m, deg is outside"):
+        resolve(data, tmp_path / "s.toml", sme.SPEC, ranges.STUDY_RANGES["sme"])
