@@ -81,12 +81,14 @@ ACCEL = Range(0.0, 50.0, "m/s^2", "5 g: beyond what a road vehicle's acceleratio
 PROB = Range(0.0, 1.0, NO_UNIT, "a probability")
 DURATION = Range(0.0, WEEK_S, "s", "at most 7 days")
 POS_DURATION = Range(0.0, WEEK_S, "s", "positive, at most 7 days", low_open=True)
-STEP = Range(0.0, 60.0, "s", "a step above a minute is no longer traffic", low_open=True)
+STEP = Range(0.001, 60.0, "s", "SUMO's time resolution is 1 ms; a step above a minute is no longer traffic")
 SENSE_RANGE = Range(0.0, 1e4, "m", "10 km, beyond any on-board sensor or V2X link", low_open=True, inf_ok=True)
 LINK_RANGE = Range(0.0, 1e5, "m", "100 km, beyond any radio link", inf_ok=True)
 LENGTH = Range(0.0, 1e5, "m", "100 km: a road or area of a city scenario", low_open=True)
 OFFSET = Range(-1e3, 1e3, "m", "a lateral offset within 1 km of the road axis")
 GAIN_1_S = Range(0.0, 100.0, "1/s", "a controller gain above 100/s is faster than any vehicle responds")
+PARTICLES_MAX = 100_000
+PARTICLES_WHY = "10x the largest preset; the particle clouds and pair kernels must fit in 24 GB"
 ITER = Range(0, 100_000, NO_UNIT, "1e5 iterations per step already take hours per step")
 SPEED = Range(0.0, 100.0, "m/s", "360 km/h, above any road speed")
 CORRELATION = Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days")
@@ -135,7 +137,7 @@ RANGES: dict[str, Range] = {
     "crossroad.feature_disc_radius_m": Range(0.0, 1e5, "m", "100 km: a city scenario"),
     "crossroad.sidewalk_offset_m": OFFSET,
     "crossroad.feature_speed_mps": SPEED,
-    "crossroad.area_ring_m": LENGTH,
+    "crossroad.area_ring_m": Range(1.0, 1e5, "m", "analysis rings of at least 1 m (a report row each) within 100 km"),
     "crossroad.max_duration_s": POS_DURATION,
     "crossroad.centre": Range(-1e7, 1e7, "m", "net coordinates within 10,000 km (projected map scale)"),
     **{f"sensors.{k}": r for k, r in _SENSING.items()},
@@ -169,10 +171,11 @@ RANGES: dict[str, Range] = {
     "lc.own_consistency_gate": PROB,
     "lc.bp_iterations": ITER,
     "lc.bp_tol": Range(0.0, 1.0, NO_UNIT, "a change of beliefs (probabilities)"),
-    # 1e6 particles: 32 bytes of state each, per vehicle and track, and the kernel sums over pairs of
-    # them; the shipped presets use at most 10000, and 1e6 already takes hours per step.
-    "pf.vehicle_particles": Range(1, 1_000_000, NO_UNIT, "memory and time of the pair sums on a 24 GB machine"),
-    "pf.feature_particles": Range(1, 1_000_000, NO_UNIT, "memory and time of the pair sums on a 24 GB machine"),
+    # 1e5 particles, ten times the largest preset (10000): the arterial's ~200 vehicles hold 0.64 GB a copy
+    # of their states (4 doubles a particle), a step keeps several copies besides the pair kernels, which
+    # grow faster, within the 24 GB of the reference machine.
+    "pf.vehicle_particles": Range(1, PARTICLES_MAX, NO_UNIT, PARTICLES_WHY),
+    "pf.feature_particles": Range(1, PARTICLES_MAX, NO_UNIT, PARTICLES_WHY),
     "pf.kernel_rel_tol": Range(0.0, 1.0, NO_UNIT, "a relative error"),
     "pf.kernel_cache_mb": Range(0.0, 24_576.0, "MB", "the 24 GB of the reference machine"),
     "pf.min_association_belief": PROB,
@@ -182,7 +185,7 @@ RANGES: dict[str, Range] = {
     "infra.radar_sigma_m": SIGMA_M,
     "infra.radar_pose_offset_sigma_m": SIGMA_M,
     "infra.odom_sigma_m": SIGMA_M,
-    "infra.rsu_bp_particles": Range(2, 1_000_000, NO_UNIT, "memory and time of the particle clouds"),
+    "infra.rsu_bp_particles": Range(2, PARTICLES_MAX, NO_UNIT, PARTICLES_WHY),
     "infra.rsu_bp_detection_prob": PROB,
     "infra.rsu_bp_feature_drop_s": DURATION,
     "infra.sme_max_vehicles": Range(1, 10_000, NO_UNIT, "vehicles in one RSU's range"),
@@ -242,7 +245,7 @@ STUDY_RANGES: dict[str, dict[str, Range]] = {
         "study.scenario.v2f_var": VAR_M2,
         "study.scenario.n_features": Range(0, 10_000, NO_UNIT, "features around one RSU"),
         "study.scenario.init_var": VAR_M2,
-        "study.filter.n_particles": Range(2, 1_000_000, NO_UNIT, "memory and time of the particle clouds"),
+        "study.filter.n_particles": Range(2, PARTICLES_MAX, NO_UNIT, PARTICLES_WHY),
         "study.filter.da_iterations": ITER,
         "study.filter.correction_iterations": ITER,
         "study.filter.dt": STEP,

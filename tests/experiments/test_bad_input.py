@@ -622,7 +622,7 @@ def run_consensus_iterations_huge(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_known_da", "--quiet"], None
 
 
-@case("cfg.toml", "pf.vehicle_particles", "1000000000000 is outside [1, 1000000]", "24 GB")
+@case("cfg.toml", "pf.vehicle_particles", "1000000000000 is outside [1, 100000]", "24 GB")
 def run_particles_huge(tmp, net, run):
     cfg = _config(tmp, net, "[pf]\nvehicle_particles = 1000000000000\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_pf", "--quiet"], None
@@ -835,7 +835,7 @@ def sweep_grid_value_out_of_range_dry_run(tmp, net, run):
     return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
 
 
-@case("sweep.toml", "sweep.set.pf.feature_particles", "is outside [1, 1000000]")
+@case("sweep.toml", "sweep.set.pf.feature_particles", "is outside [1, 100000]")
 def sweep_set_value_out_of_range(tmp, net, run):
     path = _sweep(tmp, net)
     path.write_text(path.read_text() + '\n[sweep.set]\n"pf.feature_particles" = 1000000000000\n')
