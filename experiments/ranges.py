@@ -294,6 +294,22 @@ STUDY_RANGES: dict[str, dict[str, Range]] = {
     },
 }
 
+#: Numeric command-line options: (command function, argparse dest) -> range (``--seed`` and ``run --duration``
+#: go through the config's ranges). Checked by experiments.cli before the command starts.
+OPTION_RANGES: dict[tuple[str, str], Range] = {
+    ("cmd_run", "workers"): Range(0, 64, NO_UNIT, "estimator worker processes: at most one per method"),
+    ("cmd_sweep", "workers"): WORKERS,
+    ("cmd_net_import", "features"): Range(0, 100_000, NO_UNIT, "landmarks of a city"),
+    ("cmd_net_import", "demand"): Range(0.0, 1e5, "veh/h", "beyond the capacity of any city net"),
+    ("cmd_net_import", "demand_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),
+    ("cmd_net_import", "fringe_factor"): Range(0.0, 1e6, NO_UNIT, "randomTrips' weight of the fringe edges"),
+    ("cmd_net_import", "duration"): POS_DURATION,
+    ("cmd_net_import", "max_density_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),
+    ("cmd_net_import", "calibration_s"): POS_DURATION,
+    ("cmd_net_import", "zone_cell"): Range(1.0, 1e5, "m", "a cell between 1 m and 100 km"),
+    ("cmd_net_check", "max_feature_distance"): Range(0.0, 1e4, "m", "10 km, beyond any on-board sensor"),
+}
+
 _INDEX = re.compile(r"\[\d+\]")
 
 
@@ -333,3 +349,16 @@ def check_nested(value, where: str, path: Path | None, table: dict[str, Range] |
             check_nested(v, f"{where}[{i}]", path, table)
     else:
         check_range(value, where, path, table)
+
+
+def check_options(command: str, args) -> None:
+    """The numeric options of ``command`` (an argparse namespace ``args``) in :data:`OPTION_RANGES`; errors name
+    the option (``--zone-cell``)."""
+    for (cmd, dest), r in OPTION_RANGES.items():
+        value = getattr(args, dest, None) if cmd == command else None
+        if value is None:
+            continue
+        option = "--" + dest.replace("_", "-")
+        for i, v in enumerate(value if isinstance(value, (tuple, list)) else (value,)):
+            where = f"{option}[{i}]" if isinstance(value, (tuple, list)) else option
+            check_range(v, where, None, {range_key(where): r})

@@ -888,6 +888,28 @@ def net_import_degenerate_signal_programs(tmp, net, run):
             "--out", str(tmp / "bs"), "--experiments-dir", str(tmp / "exps"), "--no-calibrate"], None
 
 
+@case("--max-feature-distance", "nan m is outside [0, 10000] m")
+def net_check_max_feature_distance_nan(tmp, net, run):
+    return ["net", "check", str(net), "--max-feature-distance", "nan"], None
+
+
+@case("--demand[1]", "inf veh/h is outside")
+def net_import_demand_infinite(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--demand", "100", "inf"], None
+
+
+@case("--zone-cell", "1e-09 m is outside [1, 100000] m")
+def net_import_zone_cell_tiny(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--zone-cell", "1e-9"], None
+
+
+@case("--workers", "100000 is outside [1, 1024]")
+def sweep_workers_huge(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "100000", "--dry-run"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -922,7 +944,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 119
+    assert len(CASES) >= 123
 
 
 # ----------------------------------------------------------------------------- what --out may replace

@@ -239,3 +239,25 @@ def test_shipped_study_configs_load_and_a_study_value_out_of_range_is_refused(tm
     data["scenario"]["sensor_poses"][1][0] = float("1e300")
     with pytest.raises(InputError, match=r"scenario.sensor_poses\[1\]\[0\]: 1e\+300 m, m, deg is outside"):
         resolve(data, tmp_path / "s.toml", sme.SPEC, ranges.STUDY_RANGES["sme"])
+
+
+def test_every_numeric_command_line_option_has_a_range():
+    """Options typed int or float, except --seed (seed_problem) and run --duration (run.duration_s)."""
+    import argparse
+
+    from experiments.cli import build_parser
+
+    found = set()
+
+    def walk(parser):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    walk(sub)
+            elif action.type in (int, float) and action.dest != "seed":
+                func = parser.get_default("func")
+                if not (func.__name__ == "cmd_run" and action.dest == "duration"):
+                    found.add((func.__name__, action.dest))
+
+    walk(build_parser())
+    assert found and found == set(ranges.OPTION_RANGES), found ^ set(ranges.OPTION_RANGES)
