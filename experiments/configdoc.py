@@ -514,8 +514,8 @@ def render() -> str:
         "dimensionless; strings, booleans and lists of names have none. Numbers in parentheses such "
         "as (13) are equations of Brambilla et al. The study configs of the other papers "
         "(`experiments/rsu_bp.toml`, `sme.toml`, `fg_topology.toml`, with a `[study]` table) have "
-        "their own schemas in `experiments/studies/` and their own ranges (`STUDY_RANGES` in "
-        "`experiments/ranges.py`) and are not covered here.",
+        "their own schemas and ranges in `experiments/studies/` (`ranges.py` there) and are not "
+        "covered here.",
         "",
         "Tables: " + ", ".join(f"`[{t}]`" for t in schema() if "." not in t) + " ("
         + " and ".join(f"`[{t}]`" for t in SCENARIO_TABLES) + " only with their `scenario.kind`; "

@@ -41,8 +41,8 @@ import pandas as pd
 from coloc.methods.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_localize, kf_gps_odom, run_rmse
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
-from experiments.ranges import STUDY_RANGES
 from experiments.runner import write_parquet
+from experiments.studies.ranges import STUDY_RANGES
 from experiments.studies.study_config import (
     Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )

@@ -36,8 +36,8 @@ from coloc.methods.rsu_bp import RsuBpParams, cv_kalman_filter, rsu_bp_filter
 from couplers.errors import InputError, seed_problem
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
 from experiments.config import _toml_value, section_from_table
-from experiments.ranges import STUDY_RANGES
 from experiments.scoring import score_association
+from experiments.studies.ranges import STUDY_RANGES
 
 METHODS = ("rsu_bp", "gnss_kf")
 METHOD_LABELS = {"rsu_bp": "RSU BP (Fröhle et al.)", "gnss_kf": "GNSS-only Kalman filter"}

@@ -37,8 +37,8 @@ import pandas as pd
 from coloc.methods.sme import SmeFilter, SmeParams, cv_process_cov, cv_transition
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
-from experiments.ranges import STUDY_RANGES
 from experiments.runner import write_parquet
+from experiments.studies.ranges import STUDY_RANGES
 from experiments.studies.study_config import (
     Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )

@@ -16,6 +16,7 @@ from couplers.errors import InputError, read_toml
 from experiments import configdoc, ranges
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, config_from_dict, load_config
 from experiments.studies import is_study
+from experiments.studies import ranges as study_ranges
 
 PROJECT = Path(__file__).resolve().parents[2]
 
@@ -213,9 +214,9 @@ def _study_numeric_keys() -> dict[str, list[tuple[str, object]]]:
 
 def test_every_numeric_key_of_every_study_has_a_range_and_its_default_is_inside():
     keys = _study_numeric_keys()
-    assert set(keys) == set(ranges.STUDY_RANGES)
+    assert set(keys) == set(study_ranges.STUDY_RANGES)
     for kind, pairs in keys.items():
-        table = ranges.STUDY_RANGES[kind]
+        table = study_ranges.STUDY_RANGES[kind]
         missing = [k for k, _ in pairs if k not in table]
         assert missing == [], f"{kind}: numeric keys without a range: {missing}"
         assert sorted(table) == sorted(k for k, _ in pairs), kind
@@ -231,14 +232,14 @@ def test_shipped_study_configs_load_and_a_study_value_out_of_range_is_refused(tm
     rsu_bp.load_study(rsu, PROJECT / "experiments" / "rsu_bp.toml")
     for name, mod in (("sme", sme), ("fg_topology", fg_topology)):
         resolve(read_toml(PROJECT / "experiments" / f"{name}.toml"), PROJECT / "experiments" / f"{name}.toml",
-                mod.SPEC, ranges.STUDY_RANGES[name])
+                mod.SPEC, study_ranges.STUDY_RANGES[name])
     bad = {**rsu, "study": {**rsu["study"], "filter": {**rsu["study"]["filter"], "n_particles": 10**12}}}
     with pytest.raises(InputError, match=r"study.filter.n_particles: 1000000000000 is outside \[2, 100000\]"):
         rsu_bp.load_study(bad, tmp_path / "r.toml")
     data = read_toml(PROJECT / "experiments" / "sme.toml")
     data["scenario"]["sensor_poses"][1][0] = float("1e300")
     with pytest.raises(InputError, match=r"scenario.sensor_poses\[1\]\[0\]: 1e\+300 m, m, deg is outside"):
-        resolve(data, tmp_path / "s.toml", sme.SPEC, ranges.STUDY_RANGES["sme"])
+        resolve(data, tmp_path / "s.toml", sme.SPEC, study_ranges.STUDY_RANGES["sme"])
 
 
 def test_every_numeric_command_line_option_has_a_range():
