@@ -84,7 +84,7 @@ def _convert(value, kind: str, path: Path, field: str):
 def resolve(data: dict, path: Path, spec: dict[str, dict[str, Key]], ranges: dict | None = None
             ) -> dict[str, dict[str, Any]]:
     """Defaults filled, every key checked; unknown tables and keys are errors. ``ranges``: the study's
-    physical ranges (:data:`experiments.ranges.STUDY_RANGES`), every number checked against them."""
+    physical ranges (:data:`experiments.studies.ranges.STUDY_RANGES`), every number checked against them."""
     for name in data:
         if name not in spec:
             raise InputError(path, name, f"unknown table (allowed: {', '.join(spec)})")
