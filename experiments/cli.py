@@ -358,6 +358,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:  # not the main thread (an embedding program): leave SIGTERM as it is
         previous = None
     try:
+        from experiments.ranges import check_options
+
+        check_options(args.func.__name__, args)  # numeric options in their ranges (experiments/ranges.py)
         return args.func(args)
     except InputError as exc:
         print(f"coloc: error: {exc.describe()}", file=sys.stderr)

@@ -70,6 +70,7 @@ from couplers.sensing.sensors import SensorParams
 from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
 from experiments.config_extends import chain_text, origin_of, resolve_extends
+from experiments.ranges import check_ranges_of
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -303,7 +304,9 @@ def _check_value(value, annotation, where: str, path: Path):
     raise TypeError(f"unsupported annotation {annotation} for {where}")
 
 
-def section_from_table(cls: type, table: dict, name: str, path: Path):
+def section_from_table(cls: type, table: dict, name: str, path: Path, ranges: dict | None = None):
+    """A section dataclass from a TOML table; numbers checked against ``ranges`` (default: the run config's,
+    :data:`experiments.ranges.RANGES`)."""
     if not isinstance(table, dict):
         raise InputError(path, name, "expected a table")
     hints = typing.get_type_hints(cls)
@@ -318,7 +321,7 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise InputError(path, f"{name}.{key}", "required key missing")
     try:
-        return cls(**kwargs)
+        obj = cls(**kwargs)
     except InputError as exc:  # a dataclass validating itself names the field it refuses
         if exc.path is not None:
             raise
@@ -331,6 +334,13 @@ def section_from_table(cls: type, table: dict, name: str, path: Path):
             except (ValueError, TypeError):
                 raise InputError(path, f"{name}.{key}", str(exc)) from None
         raise InputError(path, name, str(exc)) from None
+    except ArithmeticError:  # a value far out of its range broke the dataclass's own checks
+        check_ranges_of(kwargs, name, path, ranges)
+        raise
+    # The physical range of every number (experiments.ranges), after the dataclass's own checks, whose
+    # messages are the more specific ones.
+    check_ranges_of(obj, name, path, ranges)
+    return obj
 
 
 def _validate(cfg: Config) -> None:

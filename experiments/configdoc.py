@@ -24,6 +24,7 @@ from pathlib import Path
 
 from coloc.methods.registry import METHODS, runnable_methods
 from experiments.config import OPTIONAL_SECTIONS, SCENARIO_KINDS, SCENARIO_TABLES, SECTIONS, _toml_value
+from experiments.ranges import RANGES
 
 INFRA_METHODS = tuple(m for m in runnable_methods() if METHODS[m].infrastructure)
 
@@ -437,7 +438,8 @@ def undocumented() -> list[str]:
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             unit, meaning = KEY_DOCS.get(table, {}).get(f.name, ("", ""))
-            if not meaning.strip() or (_numeric(hints[f.name]) and not unit):
+            numeric = _numeric(hints[f.name])
+            if not meaning.strip() or (numeric and not unit) or (numeric and f"{table}.{f.name}" not in RANGES):
                 missing.append(f"{table}.{f.name}")
     return missing
 
@@ -507,12 +509,21 @@ def render() -> str:
         "resolved (every default spelled out, derived values with a comment saying where they come "
         "from) as `config.toml` in its output folder.",
         "",
+        "Every number has a physical range (column range, in the key's unit; `(` and `)` exclude the "
+        "bound, `or inf` accepts TOML `inf` meaning \"always in range\"; a list's range holds for each "
+        "element), from `experiments/ranges.py`, where each range says where its bounds come from. A "
+        "value outside it, NaN or an infinity is refused on load, also when a sweep or a command-line "
+        "option sets it and under `coloc sweep --dry-run`. The ranges are generous (every shipped "
+        "config and sweep is well inside); the dataclasses' own checks may refuse more (e.g. a "
+        "positive value where the range starts at 0).",
+        "",
         "Any key can be overridden by a sweep (`\"table.key\" = [...]` in `[sweep.grid]` or "
         "`[sweep.set]`), see [outputs.md](outputs.md) for what a sweep writes. Units: `1` is "
         "dimensionless; strings, booleans and lists of names have none. Numbers in parentheses such "
         "as (13) are equations of Brambilla et al. The study configs of the other papers "
         "(`experiments/rsu_bp.toml`, `sme.toml`, `fg_topology.toml`, with a `[study]` table) have "
-        "their own schemas in `experiments/studies/` and are not covered here.",
+        "their own schemas and ranges in `experiments/studies/` (`ranges.py` there) and are not "
+        "covered here.",
         "",
         "Tables: " + ", ".join(f"`[{t}]`" for t in schema() if "." not in t) + " ("
         + " and ".join(f"`[{t}]`" for t in SCENARIO_TABLES) + " only with their `scenario.kind`; "
@@ -538,10 +549,14 @@ def render() -> str:
         hints = typing.get_type_hints(cls)
         heading = f"[[{table}]]" if "." in table else f"[{table}]"
         out += [f"## {heading}", "", TABLE_DOCS[table], "",
-                "| key | type | unit | default | meaning |", "|---|---|---|---|---|"]
+                "| key | type | unit | range | default | meaning |", "|---|---|---|---|---|---|"]
         for f in dataclasses.fields(cls):
             unit, meaning = KEY_DOCS[table][f.name]
-            out.append(f"| `{f.name}` | {_type_name(hints[f.name])} | {_cell(unit) or '-'} | "
+            r = RANGES.get(f"{table}.{f.name}")
+            bounds = r.bounds() if r is not None else "-"
+            if r is not None:
+                meaning = f"{meaning} Range: {r.why}."
+            out.append(f"| `{f.name}` | {_type_name(hints[f.name])} | {_cell(unit) or '-'} | {_cell(bounds)} | "
                        f"{_cell(_default(f))} | {_cell(meaning)} |")
         out.append("")
     return "\n".join(out)

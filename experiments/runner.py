@@ -608,6 +608,20 @@ def _empty_run(cfg: Config) -> InputError:
                           f"departs from {dep.first:g} s ({clock(dep.first)}) on; {fix}")
     return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the simulated window {window}: "
                       "nothing to estimate; run longer")
+def check_finite_estimate(cfg: Config, method: str, frame: Frame, est: StepEstimate) -> None:
+    """Refuse a NaN or infinite estimate mean or covariance (and so the whole run: nothing is published),
+    naming the method, the step and the vehicle. A finite config within its ranges (experiments.ranges)
+    keeps the estimators finite; this is the net under that."""
+    ok_mean = np.isfinite(est.mean).all(axis=tuple(range(1, est.mean.ndim)))
+    ok_cov = np.isfinite(est.cov).all(axis=tuple(range(1, est.cov.ndim)))
+    bad = np.flatnonzero(~(ok_mean & ok_cov))
+    if bad.size:
+        i = int(bad[0])
+        what = "mean" if not ok_mean[i] else "covariance"
+        vid = frame.vehicle_ids[i] if i < len(frame.vehicle_ids) else i
+        raise InputError(cfg.path, None, f"method {method}: non-finite estimate {what} at step t = {frame.t:g} s "
+                                         f"(vehicle {vid}, {bad.size} of {len(ok_mean)} vehicles): nothing was "
+                                         "written; a config value at the edge of its range?")
 
 
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
@@ -652,6 +666,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                         seconds[r.name] += r.seconds
                         if r.sent is not None:
                             comm[r.name].add(r.sent)
+                        check_finite_estimate(cfg, r.name, frame, r.estimate)
                         log.add(r.name, r.estimate)
                         log.add_association(r.name, frame, r.estimate)
                         log.add_features(r.name, frame, r.estimate)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,7 @@ import numpy as np
 import shapely
 from shapely.geometry import shape
 
+from couplers.net import ranges
 from couplers.errors import InputError, read_toml
 from couplers.net.buildings import Buildings
 
@@ -136,12 +138,16 @@ def _read_regions(path: Path, key: str, with_sigmas: bool) -> tuple[Region, ...]
 
 def _polygon_of(feat, path: Path, i: int) -> shapely.Geometry:
     """The valid, non-empty (Multi)Polygon of GeoJSON feature ``i``, prepared; else an InputError."""
-    try:
-        poly = shape(feat["geometry"])
-    except Exception as exc:  # shapely raises several types on malformed geometry
-        raise InputError(path, f"features[{i}].geometry", f"not a valid geometry ({exc})") from None
-    if poly.geom_type not in ("Polygon", "MultiPolygon") or not poly.is_valid or poly.area <= 0:
-        raise InputError(path, f"features[{i}].geometry", "expected a valid, non-empty Polygon or MultiPolygon")
+    # shapely warns (RuntimeWarning, its own validity notes) on degenerate input: the one error line says it all
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            poly = shape(feat["geometry"])
+        except Exception as exc:  # shapely raises several types on malformed geometry
+            raise InputError(path, f"features[{i}].geometry", f"not a valid geometry ({exc})") from None
+        ranges.check_coordinates(shapely.get_coordinates(poly), path, f"features[{i}].geometry")
+        if poly.geom_type not in ("Polygon", "MultiPolygon") or not poly.is_valid or poly.area <= 0:
+            raise InputError(path, f"features[{i}].geometry", "expected a valid, non-empty Polygon or MultiPolygon")
     shapely.prepare(poly)
     return poly
 
@@ -166,6 +172,7 @@ def regions_from_doc(data, path: Path, key: str, with_sigmas: bool) -> tuple[Reg
                 val = props.get(fld)
                 if not isinstance(val, (int, float)) or isinstance(val, bool) or not val > 0:
                     raise InputError(path, f"features[{i}].properties.{fld}", "missing or not a positive number")
+                ranges.check_zone_sigma(val, path, f"features[{i}].properties.{fld}", fld)
             sp, sv = float(props["sigma_p"]), float(props["sigma_v"])
         regions.append(Region(name=name, polygon=poly, sigma_p=sp, sigma_v=sv))
     return tuple(regions)
@@ -212,6 +219,7 @@ def _read_features(path: Path) -> Features:
             x, y = float(poi.attrib["x"]), float(poi.attrib["y"])
         except (KeyError, ValueError):
             raise InputError(path, f"poi[{i}].x/y", "missing or not a number (lane-relative POIs are not supported)") from None
+        ranges.check_coordinates(np.array([x, y]), path, f"poi[{i}].x/y")
         ids.append(poi.attrib.get("id", f"poi{i}"))
         kinds.append(poi.attrib.get("type", ""))
         xy.append((x, y))
@@ -279,7 +287,7 @@ def load_net_folder(root: str | Path) -> NetFolder:
         if not isinstance(spec, dict) or not isinstance(spec.get("tls_off"), bool):
             raise InputError(scen_path, f"controls.{name}.tls_off", "missing or not a boolean")
         tls_off[name] = spec["tls_off"]
-    return NetFolder(
+    folder = NetFolder(
         root=root.resolve(),
         name=str(scen.get("name", root.name)),
         net=paths["net"],
@@ -295,6 +303,8 @@ def load_net_folder(root: str | Path) -> NetFolder:
         additional=additional,
         clock=clock,
     )
+    ranges.check_net_folder_numbers(folder, scen_path, files)  # near the net, finite demand (couplers.net.ranges)
+    return folder
 
 
 def lane_shape_points(net_path: Path) -> tuple[np.ndarray, list[str]]:

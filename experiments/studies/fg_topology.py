@@ -42,6 +42,7 @@ from coloc.methods.fg_topology import TOPOLOGY_NOISES, FgTopologyParams, fg_loca
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
 from experiments.runner import write_parquet
+from experiments.studies.ranges import STUDY_RANGES
 from experiments.studies.study_config import (
     Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )
@@ -188,7 +189,7 @@ def _chunks(vehicles, runs, seed, methods, scenario, params, example_run, worker
 def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, force: bool = False) -> dict:
     if seed is not None:  # --seed: checked like the file's own seed
         data = {**data, "study": {**data.get("study", {}), "seed": seed}}
-    cfg = resolve(data, path, SPEC)
+    cfg = resolve(data, path, SPEC, STUDY_RANGES["fg_topology"])
     st, sc = cfg["study"], cfg["scenario"]
     if sc["speed_max"] < sc["speed_min"]:
         raise InputError(path, "scenario.speed_max", "must be >= scenario.speed_min")

@@ -37,6 +37,7 @@ from couplers.errors import InputError, seed_problem
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
 from experiments.config import _toml_value, section_from_table
 from experiments.scoring import score_association
+from experiments.studies.ranges import STUDY_RANGES
 
 METHODS = ("rsu_bp", "gnss_kf")
 METHOD_LABELS = {"rsu_bp": "RSU BP (Fröhle et al.)", "gnss_kf": "GNSS-only Kalman filter"}
@@ -103,10 +104,11 @@ def load_study(data: dict, path: Path, seed: int | None = None) -> RsuBpStudy:
         subs[name] = sub
     if seed is not None:
         table["seed"] = seed
-    study = section_from_table(StudySection, table, "study", path)
-    scenario = section_from_table(FrohleScenarioParams, subs["scenario"], "study.scenario", path)
-    filt = section_from_table(RsuBpParams, subs["filter"], "study.filter", path)
-    sweep = section_from_table(SweepSection, subs["sweep"], "study.sweep", path)
+    r = STUDY_RANGES["rsu_bp"]
+    study = section_from_table(StudySection, table, "study", path, r)
+    scenario = section_from_table(FrohleScenarioParams, subs["scenario"], "study.scenario", path, r)
+    filt = section_from_table(RsuBpParams, subs["filter"], "study.filter", path, r)
+    sweep = section_from_table(SweepSection, subs["sweep"], "study.sweep", path, r)
     if abs(filt.dt - scenario.dt) > 1e-12:
         raise InputError(path, "study.filter.dt", f"must equal study.scenario.dt = {scenario.dt!r}")
     if len(scenario.gnss_var) < 1:

@@ -38,6 +38,7 @@ from coloc.methods.sme import SmeFilter, SmeParams, cv_process_cov, cv_transitio
 from couplers.errors import InputError, seed_problem
 from couplers.publish import staged_folder
 from experiments.runner import write_parquet
+from experiments.studies.ranges import STUDY_RANGES
 from experiments.studies.study_config import (
     Key, at_least, git_revision, non_negative, one_of, positive, resolve, resolved_toml,
 )
@@ -166,7 +167,7 @@ def step_errors(est: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndar
 def run(data: dict, path: Path, out: Path, seed: int | None, progress: bool, force: bool = False) -> dict:
     if seed is not None:  # --seed: checked like the file's own seed
         data = {**data, "study": {**data.get("study", {}), "seed": seed}}
-    cfg = resolve(data, path, SPEC)
+    cfg = resolve(data, path, SPEC, STUDY_RANGES["sme"])
     st, sc, se = cfg["study"], cfg["scenario"], cfg["sensors"]
     if st["example_run"] >= st["runs"]:
         raise InputError(path, "study.example_run", f"must be < study.runs ({st['runs']})")

@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from couplers.errors import InputError
 from experiments.config import _toml_value
+from experiments.ranges import check_nested
 from experiments.runner import git_revision
 
 
@@ -80,8 +81,10 @@ def _convert(value, kind: str, path: Path, field: str):
     raise ValueError(kind)
 
 
-def resolve(data: dict, path: Path, spec: dict[str, dict[str, Key]]) -> dict[str, dict[str, Any]]:
-    """Defaults filled, every key checked; unknown tables and keys are errors."""
+def resolve(data: dict, path: Path, spec: dict[str, dict[str, Key]], ranges: dict | None = None
+            ) -> dict[str, dict[str, Any]]:
+    """Defaults filled, every key checked; unknown tables and keys are errors. ``ranges``: the study's
+    physical ranges (:data:`experiments.studies.ranges.STUDY_RANGES`), every number checked against them."""
     for name in data:
         if name not in spec:
             raise InputError(path, name, f"unknown table (allowed: {', '.join(spec)})")
@@ -101,6 +104,8 @@ def resolve(data: dict, path: Path, spec: dict[str, dict[str, Key]]) -> dict[str
                 msg = k.check(value)
                 if msg:
                     raise InputError(path, field, msg)
+            if ranges is not None:
+                check_nested(value, field, path, ranges)
             resolved[key] = value
         out[name] = resolved
     return out

@@ -556,6 +556,173 @@ def run_study_seed_too_large(tmp, net, run):
             "--quiet"], None
 
 
+# ----------------------------------------------------------------------------- coloc run: numbers out of range
+
+
+def _zones_sigma(tmp: Path, net: Path, value: str) -> Path:
+    copy = _net_copy(tmp, net)
+    zones = copy / "zones.geojson"
+    zones.write_text(zones.read_text().replace('"sigma_p": 3.0', f'"sigma_p": {value}', 1))
+    return copy
+
+
+@case("zones.geojson", "features[0].properties.sigma_p", "inf m is outside (0, 1000] m")
+def run_zones_sigma_infinity(tmp, net, run):
+    return ["run", str(_config(tmp, _zones_sigma(tmp, net, "Infinity"))), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("zones.geojson", "features[0].properties.sigma_p", "1e+308 m is outside (0, 1000] m")
+def run_zones_sigma_huge(tmp, net, run):
+    return ["run", str(_config(tmp, _zones_sigma(tmp, net, "1e308"))), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("zones.geojson", "features[0].properties.sigma_v", "not a positive number")
+def run_zones_sigma_v_nan(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    zones = copy / "zones.geojson"
+    zones.write_text(zones.read_text().replace('"sigma_v": 0.1', '"sigma_v": NaN', 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("zones.geojson", "features[0].geometry", "not finite")
+def run_zones_vertex_nan(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    zones = copy / "zones.geojson"
+    zones.write_text(zones.read_text().replace("[0, -500], [0, 500]", "[0, -500], [NaN, 500]", 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "motion.sigma_along", "1e+308 m/s^2 is outside [0, 50] m/s^2")
+def run_motion_sigma_huge(tmp, net, run):
+    return ["run", str(_config(tmp, net, "[motion]\nsigma_along = 1e308\n")), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.nlos_bias_mean_m", "1e+308 m is outside [0, 1000] m")
+def run_gnss_error_bias_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nnlos_bias_mean_m = 1e308\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "inertial.accel_turn_on_sigma", "1e+308 m/s^2 is outside [0, 50] m/s^2")
+def run_inertial_turn_on_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[inertial]\naccel_turn_on_sigma = 1e308\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "lc.bp_iterations", "100000000000000000000 is outside [0, 100000]")
+def run_iterations_beyond_int64(tmp, net, run):
+    # TOML integers are 64-bit; Python's reader takes 1e20 as an int all the same: refused by its range.
+    cfg = _config(tmp, net, "[lc]\nbp_iterations = 100000000000000000000\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "icp.consensus_iterations", "is outside [0, 100000]")
+def run_consensus_iterations_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[icp]\nconsensus_iterations = 1000000000\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_known_da", "--quiet"], None
+
+
+@case("cfg.toml", "pf.vehicle_particles", "1000000000000 is outside [1, 100000]", "24 GB")
+def run_particles_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[pf]\nvehicle_particles = 1000000000000\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_pf", "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[0].range_m", "1e+200 m is outside [0, 10000] m")
+def run_perception_range_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nrange_m = 1e200\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "sensors.v2f_range_m", "1e+200 m is outside")
+def run_v2f_range_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[sensors]\nv2f_range_m = 1e200\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[0].clutter_per_scan", "1e+06 is outside [0, 1000]")
+def run_perception_clutter_huge(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nclutter_per_scan = 1e6\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "run.duration_s", "is outside [0, 604800] s")
+def run_duration_beyond_a_week(tmp, net, run):
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "o"), "--duration", "1e9", "--quiet"], None
+
+
+@case("cr.toml", "crossroad.centre[0]", "is outside [-1e+07, 1e+07] m")
+def run_crossroad_centre_far_away(tmp, net, run):
+    text = (PROJECT / "experiments" / "crossroad.toml").read_text()
+    path = tmp / "cr.toml"
+    path.write_text(text.replace("centre = [0.0, 0.0]", "centre = [1e12, 0.0]"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("features.add.xml", "poi[0].x/y", "not finite")
+def run_feature_coordinate_nan(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    feats = copy / "features.add.xml"
+    feats.write_text(feats.read_text().replace('x="-350.0"', 'x="nan"', 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("features.add.xml", "poi[0].x/y", "outside the net's boundary")
+def run_feature_millions_of_metres_away(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    feats = copy / "features.add.xml"
+    feats.write_text(feats.read_text().replace('x="-350.0"', 'x="-3500000.0"', 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("demand.rou.xml", "flow[0].begin", "nan s is outside")
+def run_route_depart_nan(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    routes = copy / "demand.rou.xml"
+    routes.write_text(routes.read_text().replace('begin="0"', 'begin="nan"', 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("demand.rou.xml", "vehicle[0].depart", "-5 s is outside")
+def run_route_depart_negative(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    routes = copy / "demand.rou.xml"
+    routes.write_text(routes.read_text().replace("</routes>", '<vehicle id="v" route="we" depart="-5"/></routes>'))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("walkers.rou.xml", "personFlow[0].departPos", "inf m is outside")
+def run_person_position_infinite(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    (copy / "walkers.rou.xml").write_text('<routes><personFlow id="p" begin="0" end="60" period="10" '
+                                          'departPos="inf"><walk edges="WC CE"/></personFlow></routes>\n')
+    scen = copy / "scenario.toml"
+    scen.write_text(scen.read_text().replace("[files]\n", "[files]\npersons = \"walkers.rou.xml\"\n", 1))
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("scenario.toml", "sumo.step_length", "not a finite number")
+def run_net_scenario_value_nan(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    scen = copy / "scenario.toml"
+    scen.write_text(scen.read_text() + "[sumo]\nstep_length = nan\n")
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sme.toml", "study.runs", "1000000000000 is outside [1, 100000]")
+def run_study_runs_huge(tmp, net, run):
+    path = tmp / "sme.toml"
+    path.write_text((PROJECT / "experiments" / "sme.toml").read_text().replace("runs = 200", "runs = 1000000000000"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("rsu_bp.toml", "study.scenario.gnss_var[1]", "1e+300 m^2 is outside")
+def run_study_variance_infinite(tmp, net, run):
+    path = tmp / "rsu_bp.toml"
+    path.write_text((PROJECT / "experiments" / "rsu_bp.toml").read_text().replace("[0.01, 15.0]", "[0.01, 1e300]"))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 # ----------------------------------------------------------------------------- coloc report
 
 
@@ -661,6 +828,20 @@ def sweep_seed_list_too_large(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net, f"[1, {2**31}]")), "--out", str(tmp / "o"), "--dry-run"], None
 
 
+@case("sweep.toml", "sweep.grid.motion.sigma_along[1]", "1e+308 m/s^2 is outside [0, 50] m/s^2")
+def sweep_grid_value_out_of_range_dry_run(tmp, net, run):
+    path = _sweep(tmp, net)
+    path.write_text(path.read_text() + '\n[sweep.grid]\n"motion.sigma_along" = [0.35, 1e308]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+@case("sweep.toml", "sweep.set.pf.feature_particles", "is outside [1, 100000]")
+def sweep_set_value_out_of_range(tmp, net, run):
+    path = _sweep(tmp, net)
+    path.write_text(path.read_text() + '\n[sweep.set]\n"pf.feature_particles" = 1000000000000\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--quiet", "--workers", "1"], None
+
+
 @case("--workers", "must be >= 1")
 def sweep_no_workers(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "0"], None
@@ -707,6 +888,28 @@ def net_import_degenerate_signal_programs(tmp, net, run):
             "--out", str(tmp / "bs"), "--experiments-dir", str(tmp / "exps"), "--no-calibrate"], None
 
 
+@case("--max-feature-distance", "nan m is outside [0, 10000] m")
+def net_check_max_feature_distance_nan(tmp, net, run):
+    return ["net", "check", str(net), "--max-feature-distance", "nan"], None
+
+
+@case("--demand[1]", "inf veh/h is outside")
+def net_import_demand_infinite(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--demand", "100", "inf"], None
+
+
+@case("--zone-cell", "1e-09 m is outside [1, 100000] m")
+def net_import_zone_cell_tiny(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--zone-cell", "1e-9"], None
+
+
+@case("--workers", "100000 is outside [1, 1024]")
+def sweep_workers_huge(tmp, net, run):
+    return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "100000", "--dry-run"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -741,7 +944,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 89
+    assert len(CASES) >= 123
 
 
 # ----------------------------------------------------------------------------- what --out may replace
