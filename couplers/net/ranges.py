@@ -1,6 +1,6 @@
 """Physical ranges of the numbers a net folder's files hold, checked when the folder is loaded.
 
-:func:`couplers.netfolder.load_net_folder` (and with it ``coloc net check`` and ``coloc run``)
+:func:`couplers.net.folder.load_net_folder` (and with it ``coloc net check`` and ``coloc run``)
 refuses, with one line naming the file and the field:
 
 * a GNSS zone's ``sigma_p`` / ``sigma_v`` outside :data:`ZONE_SIGMA` (NaN and infinities included:
@@ -172,7 +172,7 @@ def check_toml_finite(data, path: Path, prefix: str = "") -> None:
 
 
 def check_net_folder_numbers(folder, scen_path: Path, files: dict) -> None:
-    """The numbers of a loaded :class:`couplers.netfolder.NetFolder` that need the net or other files:
+    """The numbers of a loaded :class:`couplers.net.folder.NetFolder` that need the net or other files:
     features, zones, areas and buildings near the net's boundary, the demand's and persons' numbers and
     scenario.toml's."""
     import shapely  # noqa: PLC0415

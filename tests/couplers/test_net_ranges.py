@@ -11,8 +11,8 @@ import pytest
 
 from couplers.net import ranges
 from couplers.errors import InputError
-from couplers.netcheck import check_net_folder
-from couplers.netfolder import load_net_folder
+from couplers.net.check import check_net_folder
+from couplers.net.folder import load_net_folder
 
 PROJECT = Path(__file__).resolve().parents[2]
 

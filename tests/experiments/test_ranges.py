@@ -181,7 +181,7 @@ def test_a_run_with_non_finite_estimates_publishes_nothing(tmp_path, monkeypatch
 
 
 def test_a_sweep_run_with_non_finite_estimates_fails_instead_of_writing_rows(tmp_path, monkeypatch):
-    from experiments.sweep import execute_run
+    from experiments.sweep.run import execute_run
 
     _nan_after(monkeypatch, 2.0)
     cfg = load_config(PROJECT / "experiments" / "single_road.toml",
