@@ -41,7 +41,7 @@ CASES = [
     ("demand.rou.xml", 'begin="0"', 'begin="nan"', "demand.rou.xml: flow[0].begin: nan s is outside"),
     ("demand.rou.xml", 'period="6"', 'period="-inf"', "demand.rou.xml: flow[0].period: -inf s is outside"),
     ("demand.rou.xml", 'maxSpeed="15"', 'maxSpeed="1e9"', "demand.rou.xml: vType[0].maxSpeed: 1e9 m/s is outside"),
-    ("scenario.toml", "[controls]", "[sumo]\nend = inf\n[controls]", "scenario.toml: sumo.end: inf is not a finite"),
+    ("scenario.toml", "[controls]", "[sumo]\nend = inf\n[controls]", "scenario.toml: sumo.end: expected a finite number"),
 ]
 
 

@@ -262,7 +262,7 @@ def test_config_begin_s_validated(imported, tmp_path):
     base = {"run": {"name": "r", "methods": ["gnss"]}, "scenario": {"net_dir": str(out)}}
     cfg = config_from_dict(base, tmp_path / "c.toml")
     assert cfg.scenario.begin_s == BEGIN and cfg.run.duration_s == END - BEGIN  # the folder's [sumo]
-    for val, want in ((-1.0, "must be a finite time >= 0"), (26000.0, "after the last departure of the demand")):
+    for val, want in ((-1.0, "must be >= 0"), (26000.0, "after the last departure of the demand")):
         with pytest.raises(InputError) as err:
             config_from_dict({**base, "scenario": {"net_dir": str(out), "begin_s": val}}, tmp_path / "c.toml")
         assert err.value.field == "scenario.begin_s" and want in err.value.message
