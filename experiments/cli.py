@@ -116,7 +116,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 0
     where = (f"scheduler {args.scheduler}" if args.scheduler else f"{res.workers} local workers"
              if res.computed else "this process (nothing to compute)")
-    print(f"{res.n_runs} runs ({res.computed} computed, {res.present} already present) in {res.seconds:.1f} s on {where}")
+    if res.workers_asked is not None and res.computed and not args.scheduler:
+        where += f" (--workers {res.workers_asked} capped: at most the runs to compute and the usable cores)"
+    again = f", {res.recomputed} of them again after their inputs changed" if res.recomputed else ""
+    print(f"{res.n_runs} runs ({res.computed} computed{again}, {res.present} already present) in {res.seconds:.1f} s "
+          f"on {where}")
     print(f"wrote {res.out}/sweep.parquet, {res.out}/curves.parquet, {res.out}/report.html")
     return 0
 
@@ -252,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "absent, empty or this sweep's")
     sw.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
     sw.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
-    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4))")
+    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4)); at most the runs still to "
+                                          "compute and the usable cores")
     sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=cmd_sweep)
