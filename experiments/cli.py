@@ -15,6 +15,7 @@ from pathlib import Path
 from couplers.errors import InputError
 
 EXIT_INPUT = 2
+EXIT_FAILED = 1  # the command failed for another reason than its input (an estimator worker's error)
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 
@@ -331,6 +332,19 @@ def _stop_code(exc: BaseException) -> int:
     return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
+def _worker_failed(exc: Exception) -> int:
+    """An estimator worker's failure (``run --workers``): one line, its traceback only with ``COLOC_DEBUG``
+    set (a value other than 0); any other exception is raised on, with its traceback."""
+    from experiments.pipeline import EstimatorWorkerError
+
+    if not isinstance(exc, EstimatorWorkerError):
+        raise exc
+    print(f"coloc: error: {exc}", file=sys.stderr)
+    if os.environ.get("COLOC_DEBUG", "") not in ("", "0") and exc.worker_traceback:
+        print(exc.worker_traceback.rstrip(), file=sys.stderr)
+    return EXIT_FAILED
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     global _MAIN_PID
@@ -351,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"coloc: {_stopped(exc)}; nothing was written", file=sys.stderr)
         return _stop_code(exc)
+    except Exception as exc:
+        return _worker_failed(exc)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
