@@ -126,6 +126,35 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+RUN_FILES = ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml")
+
+
+def _check_run_folder(d: Path) -> None:
+    """A folder ``coloc report`` can read as a run: say what it is instead when it is not one."""
+    from couplers.publish import output_kind
+
+    if not d.exists():
+        raise InputError(d, None, "no such folder")
+    if not d.is_dir():
+        raise InputError(d, None, "is a file, not a run output folder")
+    missing = [name for name in RUN_FILES if not (d / name).is_file()]
+    if not missing:
+        return
+    kind = output_kind(d)
+    if kind not in (None, "run"):
+        raise InputError(d, None, f"holds a coloc {kind} output, not a run output"
+                                  + (" (give a sweep folder alone, without --out)" if kind == "sweep" else ""))
+    if len(missing) == len(RUN_FILES):
+        inside = sorted(p.name for p in d.iterdir() if p.is_dir() and (p / "summary.json").is_file())
+        if inside:  # e.g. a sweep's runs/ folder
+            raise InputError(d, None, f"holds no run output itself but {len(inside)} run folder(s) in it "
+                                      f"(e.g. {inside[0]}): give those")
+        raise InputError(d, None, f"holds no coloc run output (none of {', '.join(RUN_FILES)}): "
+                                  "give the --out folder of a `coloc run`")
+    raise InputError(d / missing[0], None, "missing: the run folder is incomplete"
+                                           + (f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else ""))
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from experiments.report import write_comparison_report, write_run_report
     from experiments.report.parallel import available_workers
@@ -140,9 +169,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"wrote {write_sweep_report(dirs[0])}")
         return 0
     for d in dirs:
-        for name in ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml"):
-            if not (d / name).is_file():
-                raise InputError(d / name, None, "not found: is this a `coloc run` output folder?")
+        _check_run_folder(d)
     if len(dirs) == 1 and args.out is None:
         path = write_run_report(dirs[0], workers=available_workers())
     else:
@@ -332,13 +359,14 @@ def _stop_code(exc: BaseException) -> int:
     return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
-def _worker_failed(exc: Exception) -> int:
-    """An estimator worker's failure (``run --workers``): one line, its traceback only with ``COLOC_DEBUG``
-    set (a value other than 0); any other exception is raised on, with its traceback."""
-    from experiments.pipeline import EstimatorWorkerError
+def _from_a_worker(exc: Exception) -> bool:
+    """An estimator worker's failure (``run --workers``); any other exception keeps its traceback."""
+    pipeline = sys.modules.get("experiments.pipeline")  # not imported: no worker ran
+    return pipeline is not None and isinstance(exc, pipeline.EstimatorWorkerError)
 
-    if not isinstance(exc, EstimatorWorkerError):
-        raise exc
+
+def _worker_failed(exc: Exception) -> int:
+    """One line for an estimator worker's failure; its traceback only with ``COLOC_DEBUG`` set (not 0)."""
     print(f"coloc: error: {exc}", file=sys.stderr)
     if os.environ.get("COLOC_DEBUG", "") not in ("", "0") and exc.worker_traceback:
         print(exc.worker_traceback.rstrip(), file=sys.stderr)
@@ -366,6 +394,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"coloc: {_stopped(exc)}; nothing was written", file=sys.stderr)
         return _stop_code(exc)
     except Exception as exc:
+        if not _from_a_worker(exc):
+            raise
         return _worker_failed(exc)
     finally:
         if previous is not None:

@@ -582,6 +582,18 @@ def _pooled_steps(frames, pool, timing: bool):
             first_result = False
 
 
+def _nothing_to_estimate(cfg: Config, traffic) -> InputError:
+    """Why a run has no estimate: no vehicle in the network, or ([v2x]) vehicles but none equipped."""
+    drove = traffic is not None and "vehicle_seconds" in traffic and float(traffic["vehicle_seconds"].sum()) > 0
+    if drove and cfg.v2x is not None:
+        return InputError(cfg.path, "v2x.penetration_rate",
+                          f"vehicles were in the network but none of them was equipped with V2X in the "
+                          f"{cfg.run.duration_s:g} s simulated (penetration_rate = {cfg.v2x.penetration_rate:g}): "
+                          "nothing to estimate; raise v2x.penetration_rate or run longer")
+    return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
+                                                  "simulated: nothing to estimate; run longer")
+
+
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
                    force: bool = False, workers: int = 0) -> dict:
     """Run one config; returns the summary dict also written to summary.json.
@@ -639,8 +651,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
         if estimates.empty:  # nothing to score: say so rather than write an empty run
-            raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
-                                                         "simulated: nothing to estimate; run longer")
+            raise _nothing_to_estimate(cfg, traffic)
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
             provenance = {"sumo_version": version, **provenance}

@@ -153,7 +153,7 @@ def _validate_options(opts: ImportOptions) -> None:
     for key in ("net", "osm", "zones", "areas", "routes", "additional"):
         p = getattr(opts, key)
         if p is not None and not Path(p).is_file():
-            raise InputError(p, None, "file not found")
+            raise InputError(p, None, "is a folder, not a file" if Path(p).is_dir() else "file not found")
     if opts.feature_count < 0:
         raise InputError(None, "--features", "must be >= 0")
     bad = [k for k in opts.feature_kinds if k not in FEATURE_KINDS]

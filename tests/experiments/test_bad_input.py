@@ -595,7 +595,7 @@ def report_corrupt_config(tmp, net, run):
     return ["report", str(dst)], None
 
 
-@case("summary.json", "not found")
+@case("mywork", "holds no coloc run output", "summary.json")
 def report_not_a_run_folder(tmp, net, run):
     return ["report", str(_user_folder(tmp))], None
 
