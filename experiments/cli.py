@@ -284,8 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "absent, empty or this sweep's")
     sw.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
     sw.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
-    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4)); at most the runs still to "
-                                          "compute and the usable cores")
+    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4)); at most the runs "
+                                                "still to compute and the usable cores")
     sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=cmd_sweep)
