@@ -506,8 +506,12 @@ def _check_inputs(out: Path, inputs: dict, runs: list[SweepRun], force: bool) ->
         configs_changed = any(not any(Path(p).is_relative_to(d) for d in net_dirs) for p in changed)
         return redo, ("base_config_sha256",) if configs_changed else ()
     first = next(iter(changed))
-    state = ("was removed" if new_files.get(first) is None and first in old_files else
-             "is new" if first not in old_files else "changed")
+    if first not in old_files:
+        state = "is new"
+    elif new_files.get(first) is None:
+        state = "is no longer read by the runs" if Path(first).exists() else "was removed"
+    else:
+        state = "changed"
     others = f" (and {len(changed) - 1} other file(s))" if len(changed) > 1 else ""
     raise InputError(first, None,
                      f"{state} since the sweep in {out} started{others}: {len(redo)} finished run(s) read the old "
@@ -840,7 +844,9 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
         raise InputError(None, "--workers", "must be >= 1")
     spec_text = resolved_spec_toml(spec, base_cfg, len(runs))
     inputs = sweep_inputs(spec, runs, config_files)
-    redo, ignore = _check_inputs(out, inputs, runs, force)  # before the spec: it names the changed file
+    if (out / "sweep.toml").exists():  # another sweep, then the same one on changed files (named by the file)
+        _check_spec(out, spec_text, spec.path, ("base_config_sha256",))
+    redo, ignore = _check_inputs(out, inputs, runs, force)
     if (out / "sweep.toml").exists():
         _check_spec(out, spec_text, spec.path, ignore)  # refuse a different sweep before starting anything
     need = [r for r in runs if r.run_id in redo or not run_complete(out / RUNS_DIR / r.run_id)]
