@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import tomllib
 from pathlib import Path
 
@@ -34,12 +36,31 @@ class InputError(Exception):
         return ": ".join(parts + [self.message])
 
 
+#: The TOML files :func:`read_toml` read while :func:`recording_reads` is active (None: not recording).
+_READS: contextvars.ContextVar[list[Path] | None] = contextvars.ContextVar("coloc_toml_reads", default=None)
+
+
+@contextlib.contextmanager
+def recording_reads():
+    """Collect the resolved path of every TOML file :func:`read_toml` reads inside the block (a sweep
+    records the configs it was started with, ``extends`` chains included)."""
+    reads: list[Path] = []
+    token = _READS.set(reads)
+    try:
+        yield reads
+    finally:
+        _READS.reset(token)
+
+
 def read_toml(path: str | Path, kind: str = "file") -> dict:
     """Parse a TOML file; a missing file, a directory or broken TOML is an :class:`InputError`.
 
     ``kind`` names the file in the messages ("config file", "sweep file", ...).
     """
     path = Path(path)
+    reads = _READS.get()
+    if reads is not None:
+        reads.append(path.resolve())
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)

@@ -15,6 +15,7 @@ from pathlib import Path
 from couplers.errors import InputError
 
 EXIT_INPUT = 2
+EXIT_FAILED = 1  # the command failed for another reason than its input (an estimator worker's error)
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 
@@ -116,9 +117,42 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 0
     where = (f"scheduler {args.scheduler}" if args.scheduler else f"{res.workers} local workers"
              if res.computed else "this process (nothing to compute)")
-    print(f"{res.n_runs} runs ({res.computed} computed, {res.present} already present) in {res.seconds:.1f} s on {where}")
+    if res.workers_asked is not None and res.computed and not args.scheduler:
+        where += f" (--workers {res.workers_asked} capped: at most the runs to compute and the usable cores)"
+    again = f", {res.recomputed} of them again after their inputs changed" if res.recomputed else ""
+    print(f"{res.n_runs} runs ({res.computed} computed{again}, {res.present} already present) in {res.seconds:.1f} s "
+          f"on {where}")
     print(f"wrote {res.out}/sweep.parquet, {res.out}/curves.parquet, {res.out}/report.html")
     return 0
+
+
+RUN_FILES = ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml")
+
+
+def _check_run_folder(d: Path) -> None:
+    """A folder ``coloc report`` can read as a run: say what it is instead when it is not one."""
+    from couplers.publish import output_kind
+
+    if not d.exists():
+        raise InputError(d, None, "no such folder")
+    if not d.is_dir():
+        raise InputError(d, None, "is a file, not a run output folder")
+    missing = [name for name in RUN_FILES if not (d / name).is_file()]
+    if not missing:
+        return
+    kind = output_kind(d)
+    if kind not in (None, "run"):
+        raise InputError(d, None, f"holds a coloc {kind} output, not a run output"
+                                  + (" (give a sweep folder alone, without --out)" if kind == "sweep" else ""))
+    if len(missing) == len(RUN_FILES):
+        inside = sorted(p.name for p in d.iterdir() if p.is_dir() and (p / "summary.json").is_file())
+        if inside:  # e.g. a sweep's runs/ folder
+            raise InputError(d, None, f"holds no run output itself but {len(inside)} run folder(s) in it "
+                                      f"(e.g. {inside[0]}): give those")
+        raise InputError(d, None, f"holds no coloc run output (none of {', '.join(RUN_FILES)}): "
+                                  "give the --out folder of a `coloc run`")
+    raise InputError(d / missing[0], None, "missing: the run folder is incomplete"
+                                           + (f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else ""))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -135,9 +169,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"wrote {write_sweep_report(dirs[0])}")
         return 0
     for d in dirs:
-        for name in ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml"):
-            if not (d / name).is_file():
-                raise InputError(d / name, None, "not found: is this a `coloc run` output folder?")
+        _check_run_folder(d)
     if len(dirs) == 1 and args.out is None:
         path = write_run_report(dirs[0], workers=available_workers())
     else:
@@ -268,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "absent, empty or this sweep's")
     sw.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
     sw.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
-    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4))")
+    sw.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4)); at most the runs "
+                                                "still to compute and the usable cores")
     sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=cmd_sweep)
@@ -349,6 +382,20 @@ def _stop_code(exc: BaseException) -> int:
     return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
+def _from_a_worker(exc: Exception) -> bool:
+    """An estimator worker's failure (``run --workers``); any other exception keeps its traceback."""
+    pipeline = sys.modules.get("experiments.pipeline")  # not imported: no worker ran
+    return pipeline is not None and isinstance(exc, pipeline.EstimatorWorkerError)
+
+
+def _worker_failed(exc: Exception) -> int:
+    """One line for an estimator worker's failure; its traceback only with ``COLOC_DEBUG`` set (not 0)."""
+    print(f"coloc: error: {exc}", file=sys.stderr)
+    if os.environ.get("COLOC_DEBUG", "") not in ("", "0") and exc.worker_traceback:
+        print(exc.worker_traceback.rstrip(), file=sys.stderr)
+    return EXIT_FAILED
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     global _MAIN_PID
@@ -372,6 +419,10 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"coloc: {_stopped(exc)}; nothing was written", file=sys.stderr)
         return _stop_code(exc)
+    except Exception as exc:
+        if not _from_a_worker(exc):
+            raise
+        return _worker_failed(exc)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -159,9 +159,9 @@ def _worker_main(conn, methods: list[str], params, indices: list[int]) -> None:
             conn.send(("step", step_batch(estimators, known, msg)))
         conn.send(("stats", [estimator_stats(est) for est in estimators]))
         finished = True
-    except BaseException:  # noqa: BLE001 - the runner raises it in the main process
+    except BaseException as exc:  # noqa: BLE001 - the runner raises it in the main process
         try:
-            conn.send(("error", traceback.format_exc()))
+            conn.send(("error", worker_error(exc)))
         except (BrokenPipeError, OSError):
             pass
     finally:
@@ -207,7 +207,37 @@ def _drain(conn, replies: queue.Queue) -> None:
 
 
 class EstimatorWorkerError(RuntimeError):
-    """An estimator failed in its worker process (the message carries the worker's traceback)."""
+    """An estimator failed in its worker process: one line naming the worker, its methods and the
+    error's type and message; the worker's traceback in ``worker_traceback`` (the command line prints
+    it only with ``COLOC_DEBUG`` set)."""
+
+    def __init__(self, message: str, worker_traceback: str | None = None):
+        super().__init__(message)
+        self.worker_traceback = worker_traceback
+
+
+def worker_error(exc: BaseException) -> dict:
+    """What a worker sends back about an exception: plain values (any exception, libsumo's too, and
+    without the classes of the worker's modules); an :class:`couplers.errors.InputError` keeps its
+    file, field and message."""
+    from couplers.errors import InputError
+
+    text = " ".join(str(exc).split())  # one line
+    out = {"type": type(exc).__name__, "message": text, "traceback": traceback.format_exc()}
+    if isinstance(exc, InputError):
+        out["input"] = (exc.path, exc.field, exc.message)
+    return out
+
+
+def raise_worker_error(where: str, payload) -> None:
+    """Raise in the runner what a worker reported (:func:`worker_error`): the InputError as it was,
+    anything else as an :class:`EstimatorWorkerError` of one line."""
+    from couplers.errors import InputError
+
+    if payload.get("input") is not None:
+        raise InputError(*payload["input"])
+    text = f"{payload['type']}: {payload['message']}" if payload["message"] else payload["type"]
+    raise EstimatorWorkerError(f"{where} failed: {text}", payload.get("traceback"))
 
 
 class EstimatorPool:
@@ -255,16 +285,35 @@ class EstimatorPool:
             self._procs.append(proc)
             self._replies.append(replies)
 
+    def _where(self, w: int) -> str:
+        return f"estimator worker {w} ({', '.join(self.methods[i] for i in self.groups[w])})"
+
     def _receive(self, w: int, kind: str):
         tag, payload = self._replies[w].get()
         if tag == "eof":
-            raise EstimatorWorkerError(f"estimator worker {w} ({', '.join(self.methods[i] for i in self.groups[w])}) "
-                                       "ended without a reply")
+            code = self._procs[w].exitcode if w < len(self._procs) else None
+            ended = f" (exit code {code})" if code is not None else ""
+            raise EstimatorWorkerError(f"{self._where(w)} ended without a reply{ended}")
         if tag == "error":
-            raise EstimatorWorkerError(f"estimator worker {w} failed:\n{payload}")
+            raise_worker_error(self._where(w), payload)
         if tag != kind:
-            raise EstimatorWorkerError(f"estimator worker {w}: expected {kind!r}, got {tag!r}")
+            raise EstimatorWorkerError(f"{self._where(w)}: expected {kind!r}, got {tag!r}")
         return payload
+
+    def _send(self, w: int, msg) -> None:
+        """Send to worker ``w``; a worker that is gone (it failed and ended) is reported by its own
+        error, which its drain thread has or is about to have (not as the runner's broken pipe)."""
+        try:
+            self._conns[w].send(msg)
+        except OSError:  # BrokenPipeError, ConnectionResetError: the worker has ended
+            while True:  # its error, or the end of its pipe, comes from the drain thread after its last results
+                try:
+                    tag, payload = self._replies[w].get(timeout=30.0)
+                except queue.Empty:
+                    raise EstimatorWorkerError(f"{self._where(w)} stopped reading and sent no reply") from None
+                if tag in ("error", "eof"):
+                    self._replies[w].put((tag, payload))
+                    self._receive(w, "error")  # raises
 
     def wait_ready(self) -> None:
         for w in range(len(self._conns)):
@@ -275,8 +324,8 @@ class EstimatorPool:
         frames, self._filling = self._filling, []
         blind = [f.without_truth() for f in frames]
         truth = [np.asarray(f.truth.v2f_feature) if f.truth is not None else None for f in frames]
-        for w, conn in enumerate(self._conns):
-            conn.send([(b, a if self._needs_truth[w] else None) for b, a in zip(blind, truth)])
+        for w in range(len(self._conns)):
+            self._send(w, [(b, a if self._needs_truth[w] else None) for b, a in zip(blind, truth)])
         self._pending.append((frames, step_batch(self._local_estimators, self._local_known, list(zip(blind, truth)))))
 
     def _collect_oldest(self) -> list[tuple[Frame, list[StepResult]]]:
@@ -306,8 +355,8 @@ class EstimatorPool:
         done = []
         while self._pending:
             done.extend(self._collect_oldest())
-        for conn in self._conns:
-            conn.send(None)
+        for w in range(len(self._conns)):
+            self._send(w, None)
         for w, group in enumerate(self.groups):
             for i, stats in zip(group, self._receive(w, "stats")):
                 self.stats[self.methods[i]] = stats

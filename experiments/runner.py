@@ -608,6 +608,8 @@ def _empty_run(cfg: Config) -> InputError:
                           f"departs from {dep.first:g} s ({clock(dep.first)}) on; {fix}")
     return InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the simulated window {window}: "
                       "nothing to estimate; run longer")
+
+
 def check_finite_estimate(cfg: Config, method: str, frame: Frame, est: StepEstimate) -> None:
     """Refuse a NaN or infinite estimate mean or covariance (and so the whole run: nothing is published),
     naming the method, the step and the vehicle. A finite config within its ranges (experiments.ranges)
@@ -622,6 +624,17 @@ def check_finite_estimate(cfg: Config, method: str, frame: Frame, est: StepEstim
         raise InputError(cfg.path, None, f"method {method}: non-finite estimate {what} at step t = {frame.t:g} s "
                                          f"(vehicle {vid}, {bad.size} of {len(ok_mean)} vehicles): nothing was "
                                          "written; a config value at the edge of its range?")
+
+
+def _nothing_to_estimate(cfg: Config, traffic) -> InputError:
+    """Why a run has no estimate: no vehicle in the network, or ([v2x]) vehicles but none equipped."""
+    drove = traffic is not None and "vehicle_seconds" in traffic and float(traffic["vehicle_seconds"].sum()) > 0
+    if drove and cfg.v2x is not None:
+        return InputError(cfg.path, "v2x.penetration_rate",
+                          f"vehicles were in the network but none of them was equipped with V2X in the "
+                          f"{cfg.run.duration_s:g} s simulated (penetration_rate = {cfg.v2x.penetration_rate:g}): "
+                          "nothing to estimate; raise v2x.penetration_rate or run longer")
+    return _empty_run(cfg)
 
 
 def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, write_report: bool = True,
@@ -683,7 +696,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         traffic = source.traffic_table()
         estimates = log.table(cfg.run.name)
         if estimates.empty:  # nothing to score: say so rather than write an empty run
-            raise _empty_run(cfg)
+            raise _nothing_to_estimate(cfg, traffic)
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
             provenance = {"sumo_version": version, **provenance}

@@ -235,7 +235,10 @@ def load_net_folder(root: str | Path) -> NetFolder:
     root = Path(root)
     scen_path = root / "scenario.toml"
     if not root.is_dir():
-        raise InputError(root, None, "net folder not found")
+        raise InputError(root, None, "is a file, not a net folder (a folder with a scenario.toml)"
+                         if root.exists() else "net folder not found")
+    if not scen_path.exists():
+        raise InputError(root, None, "is not a net folder: it has no scenario.toml")
     scen = read_toml(scen_path)
     files = scen.get("files")
     if not isinstance(files, dict):

@@ -22,8 +22,27 @@ from experiments.report.styles import order_methods
 _EST_COLS = ["method", "t", "err_pos", "err_vel", "err_along", "err_cross", "zone", "area"]
 
 
+#: Columns a report cannot do without, per file of a run folder (the others it reads are optional:
+#: written by later versions, or only in some scenarios).
+REQUIRED_COLUMNS = {
+    "estimates.parquet": ("method", "t", "err_pos"),
+    "features.parquet": ("method", "t", "err_pos"),
+    "traffic.parquet": ("interval_start_s",),
+    "association.parquet": ("method",),
+}
+
+
+def require_columns(path: Path, names, required) -> None:
+    """An :class:`InputError` naming ``path`` and every column of ``required`` that ``names`` lacks."""
+    missing = [c for c in required if c not in set(names)]
+    if missing:
+        raise InputError(path, None, f"missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)}: "
+                                     "not the file coloc writes there (from another tool, or edited?)")
+
+
 def _read_parquet(path: Path, wanted: list[str]) -> pd.DataFrame | None:
-    """Read the wanted columns that exist; None when the file is absent."""
+    """Read the wanted columns that exist; None when the file is absent. The file's
+    :data:`REQUIRED_COLUMNS` must be there."""
     if not path.exists():
         return None
     import pyarrow as pa
@@ -31,6 +50,7 @@ def _read_parquet(path: Path, wanted: list[str]) -> pd.DataFrame | None:
 
     try:
         names = set(pq.read_schema(path).names)
+        require_columns(path, names, [c for c in REQUIRED_COLUMNS.get(path.name, ()) if c in wanted])
         cols = [c for c in wanted if c in names]
         cat_cols = [c for c in ("method", "zone", "area", "run") if c in cols]
         # Label columns are read dictionary-encoded (-> pandas categoricals): millions of rows

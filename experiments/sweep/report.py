@@ -29,6 +29,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from couplers.errors import InputError  # noqa: E402
 from experiments.report.figures import _new_fig, _save  # noqa: E402
 from experiments.report.html import _esc, _figure_html, _fmt, _method_cell, _page, _table  # noqa: E402
 from experiments.report.output import _atomic_publish  # noqa: E402
@@ -224,10 +225,25 @@ def _summary_rows(curves: pd.DataFrame, keys: list[str]) -> tuple[list[str], lis
     return header, rows
 
 
-def _read_optional(path: Path) -> pd.DataFrame | None:
+def _read_checked(path: Path, required) -> pd.DataFrame:
+    """A sweep output table; one with other columns (another tool's, an edited one) is an InputError
+    naming the file and the missing columns."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from experiments.report.load import require_columns
+
+    try:
+        require_columns(path, pq.read_schema(path).names, required)
+        return pd.read_parquet(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]})") from None
+
+
+def _read_optional(path: Path, required=()) -> pd.DataFrame | None:
     if not path.exists():
         return None
-    df = pd.read_parquet(path)
+    df = _read_checked(path, required)
     for c in ("method", "zone", "factor", "level"):
         if c in df.columns:
             df[c] = df[c].astype(str)
@@ -314,10 +330,13 @@ def write_sweep_report(out: Path) -> Path:
     grid_keys = list((spec.get("grid") or {}).keys())
     factors = bool(spec.get("factors"))
     keys = grid_keys + (["factor", "level"] if factors else [])
-    curves = pd.read_parquet(out / "curves.parquet")
+    curves = _read_checked(out / "curves.parquet", ["curve", *keys, "method", "x", "n_runs", "n_samples",
+                                                    "rmse_pos_m", "rmse_vel_mps", "correct_pct", "wrong_pct",
+                                                    "discarded_pct"])
     curves["method"] = curves["method"].astype(str)
-    zones = _read_optional(out / "zones.parquet")
-    v2v = _read_optional(out / "v2v.parquet")
+    zones = _read_optional(out / "zones.parquet", [*keys, "method", "zone", "n_runs", "n_samples", "rmse_pos_m",
+                                                   "p95_pos_m"])
+    v2v = _read_optional(out / "v2v.parquet", [*keys, "n_runs", "degree", "vehicle_steps"])
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
     seeds = spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""

@@ -33,8 +33,11 @@ Resumable: a run folder appears complete or not at all (atomic rename), so a
 restart computes only the missing runs and removes the hidden partial folders
 a killed run left behind. The resolved sweep (including a hash of the resolved
 base config) is stored in ``DIR/sweep.toml``; a restart with a different sweep
-into the same DIR is refused. A lock file keeps two sweeps from writing into
-one DIR at once.
+into the same DIR is refused. The files the runs read (every config TOML loaded, ``extends``
+chains included, and every file of each run's net folder) are stored with their sha256 in
+``DIR/inputs.json``: a restart after one of them changed is refused, naming the file, while a
+finished run was made with the old one; ``--force`` then recomputes those runs (only the runs that
+read the changed file). A lock file keeps two sweeps from writing into one DIR at once.
 
 Outputs, computed from the run files only and byte-identical for the same
 sweep (sorted rows, no timestamps):
@@ -79,7 +82,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
+from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
 from couplers.publish import check_target, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
@@ -392,14 +395,18 @@ def _acquire_lock(out: Path, spec_path: Path):
     return fh
 
 
-def _check_spec(out: Path, text: str, spec_path: Path) -> None:
-    """Refuse a sweep that resolves differently from the one stored in ``out/sweep.toml``."""
+def _check_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:
+    """Refuse a sweep that resolves differently from the one stored in ``out/sweep.toml`` (``ignore``:
+    keys of [sweep] left out of the comparison)."""
     target = out / "sweep.toml"
     try:
         old = tomllib.loads(target.read_text())
     except tomllib.TOMLDecodeError:
         old = {}
     new = tomllib.loads(text)
+    for d in (old, new):
+        for key in ignore:
+            d.get("sweep", {}).pop(key, None)
     if old != new:
         diff = _first_difference(new, old) or "sweep"
         raise InputError(spec_path, diff,
@@ -407,14 +414,125 @@ def _check_spec(out: Path, text: str, spec_path: Path) -> None:
                          "use another --out folder, or remove that one to start over")
 
 
-def _check_or_write_spec(out: Path, text: str, spec_path: Path) -> None:
+def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:
     target = out / "sweep.toml"
     if target.exists():
-        _check_spec(out, text, spec_path)
+        _check_spec(out, text, spec_path, ignore)
+        if ignore and target.read_text() != text:  # --force over changed configs: the sweep as resolved now
+            write_file_atomic(target, text)
         return
     if (out / RUNS_DIR).exists():
         raise InputError(spec_path, None, f"{out / RUNS_DIR} exists without {target}: not a sweep folder of this sweep")
     write_file_atomic(target, text)
+
+
+INPUTS_FILE = "inputs.json"
+
+
+def _sha256(path: Path) -> str | None:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    except FileNotFoundError:
+        return None
+    return h.hexdigest()
+
+
+def _net_files(net_dir: Path) -> list[Path]:
+    """Every file of a net folder (hidden ones, e.g. an editor's swap files, left out)."""
+    return sorted(p.resolve() for p in net_dir.rglob("*")
+                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(net_dir).parts))
+
+
+def sweep_inputs(spec: SweepSpec, runs: list[SweepRun], config_files: list[Path]) -> dict:
+    """What ``DIR/inputs.json`` holds: the sha256 of every file the runs read, and per run the files it
+    read. ``config_files``: the TOML files read while the configs were loaded (bases, ``extends``
+    chains, net folders' scenario.toml); a factor's own base counts only for that factor's runs. The
+    sweep file itself is checked by its resolved values (``DIR/sweep.toml``), not by its bytes."""
+    own_bases = {Path(lv.base).resolve() for f in spec.factors for lv in f.levels if lv.base is not None}
+    net_dirs = {Path(r.cfg.scenario.net_dir) for r in runs if r.cfg.scenario.net_dir}
+    # a net folder's files count for the runs on that net only
+    shared = sorted({Path(p) for p in config_files if not any(Path(p).is_relative_to(d) for d in net_dirs)}
+                    - (own_bases - {spec.base}) - {spec.path})
+    nets: dict[str, list[Path]] = {}
+    per_run: dict[str, list[str]] = {}
+    for run in runs:
+        files = set(shared)
+        if run.variant is not None and run.variant.base is not None:
+            files.add(Path(run.variant.base).resolve())
+        net_dir = run.cfg.scenario.net_dir
+        if net_dir and Path(net_dir).is_dir():
+            files.update(nets.setdefault(net_dir, _net_files(Path(net_dir))))
+        per_run[run.run_id] = sorted(str(p) for p in files)
+    hashes = {p: _sha256(Path(p)) for p in sorted({p for ps in per_run.values() for p in ps})}
+    return {"files": hashes, "runs": per_run}
+
+
+def _inputs_text(inputs: dict) -> str:
+    return json.dumps(inputs, indent=1, sort_keys=True) + "\n"
+
+
+def _check_inputs(out: Path, inputs: dict, runs: list[SweepRun], force: bool) -> tuple[frozenset[str], tuple[str, ...]]:
+    """Compare the inputs with those a resumed sweep was started with (``out/inputs.json``).
+
+    Returns the finished runs to recompute (``force`` only) and the sweep.toml keys to leave out of its
+    check (the resolved base config's hash, when a config file changed and ``force`` recomputes its
+    runs). Without ``force``, a changed, removed or added file read by a finished run is an InputError
+    naming the file. A folder without inputs.json (written before it existed) is not checked."""
+    try:
+        old = json.loads((out / INPUTS_FILE).read_text())
+        old_files, old_runs = dict(old["files"]), dict(old["runs"])
+    except FileNotFoundError:
+        return frozenset(), ()
+    except (ValueError, KeyError, TypeError):
+        raise InputError(out / INPUTS_FILE, None, "not the record of a sweep's inputs (damaged): remove the "
+                                                  "sweep folder to start over") from None
+    new_files = inputs["files"]
+    changed: dict[str, list[str]] = {}  # file -> finished runs made with its old version
+    for run in runs:
+        if run.run_id not in old_runs or not run_complete(out / RUNS_DIR / run.run_id):
+            continue  # computed with the inputs of now
+        before = {p: old_files.get(p) for p in old_runs[run.run_id]}
+        now = {p: new_files.get(p) for p in inputs["runs"][run.run_id]}
+        for p in sorted(set(before) | set(now)):
+            if before.get(p) != now.get(p):
+                changed.setdefault(p, []).append(run.run_id)
+    if not changed:
+        return frozenset(), ()
+    redo = frozenset(r for ids in changed.values() for r in ids)
+    if force:
+        net_dirs = {r.cfg.scenario.net_dir for r in runs if r.cfg.scenario.net_dir}
+        configs_changed = any(not any(Path(p).is_relative_to(d) for d in net_dirs) for p in changed)
+        return redo, ("base_config_sha256",) if configs_changed else ()
+    first = next(iter(changed))
+    if first not in old_files:
+        state = "is new"
+    elif new_files.get(first) is None:
+        state = "is no longer read by the runs" if Path(first).exists() else "was removed"
+    else:
+        state = "changed"
+    others = f" (and {len(changed) - 1} other file(s))" if len(changed) > 1 else ""
+    raise InputError(first, None,
+                     f"{state} since the sweep in {out} started{others}: {len(redo)} finished run(s) read the old "
+                     f"inputs (e.g. {min(redo)}); restore it, pass --force to recompute those runs, or use another "
+                     "--out folder")
+
+
+def _restart_changed(out: Path, inputs: dict, redo: frozenset[str]) -> None:
+    """Remove the finished runs to recompute (through a hidden name, so a kill leaves a leftover that
+    :func:`clean_leftovers` removes, never a half-removed run), then record the inputs of now."""
+    for run_id in sorted(redo):
+        run_dir = out / RUNS_DIR / run_id
+        if run_dir.exists():
+            hidden = run_dir.with_name(f".{run_id}.old-{os.getpid()}")
+            os.replace(run_dir, hidden)
+            shutil.rmtree(hidden)
+    text = _inputs_text(inputs)
+    target = out / INPUTS_FILE
+    if not target.is_file() or target.read_text() != text:
+        write_file_atomic(target, text)
 
 
 def clean_leftovers(out: Path) -> list[Path]:
@@ -649,6 +767,8 @@ class SweepResult:
     seconds: float
     workers: int
     dry_run: bool = False
+    recomputed: int = 0  # finished runs computed again (--force) because a file they read changed
+    workers_asked: int | None = None  # --workers when it was capped (:func:`cap_workers`), else None
 
 
 class SweepFailed(Exception):
@@ -661,6 +781,22 @@ def default_workers() -> int:
     except AttributeError:  # pragma: no cover - not Linux
         ncpu = os.cpu_count() or 1
     return max(1, min(ncpu, 4))
+
+
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def cap_workers(asked: int, to_compute: int) -> int:
+    """Local worker processes worth starting: at most the runs still to compute (a worker computes one
+    run at a time, one more would only start and idle) and at most the usable cores (each worker is one
+    single-threaded process: more than the cores only share them, each with its own SUMO and imports,
+    and 100 workers starting at once on 2 cores time out connecting to the scheduler); at least 1."""
+    return max(1, min(asked, to_compute, usable_cores()))
 
 
 class _DaskClient:
@@ -697,19 +833,29 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
     """Run (or resume) a sweep; returns counts. Raises InputError on bad input, SweepFailed on failed runs."""
     t0 = time.perf_counter()
     spec = load_sweep(spec_path)
-    base_cfg, runs = expand_runs(spec)
+    with recording_reads() as config_files:
+        base_cfg, runs = expand_runs(spec)
     out = Path(out)
     # An empty folder or a sweep folder (``force``: any folder; never a file). Checked for --dry-run too.
     check_target(out, ("sweep",), force=force, replaces_folder=False)
-    workers = workers or default_workers()
+    told, workers = workers, workers or default_workers()
     if dry_run:
         return SweepResult(out, len(runs), 0, 0, [], time.perf_counter() - t0, workers, dry_run=True)
     if workers < 1:
         raise InputError(None, "--workers", "must be >= 1")
     spec_text = resolved_spec_toml(spec, base_cfg, len(runs))
+    inputs = sweep_inputs(spec, runs, config_files)
+    if (out / "sweep.toml").exists():  # another sweep, then the same one on changed files (named by the file)
+        _check_spec(out, spec_text, spec.path, ("base_config_sha256",))
+    redo, ignore = _check_inputs(out, inputs, runs, force)
     if (out / "sweep.toml").exists():
-        _check_spec(out, spec_text, spec.path)  # refuse a different sweep before starting anything
-    need = [r for r in runs if not run_complete(out / RUNS_DIR / r.run_id)]
+        _check_spec(out, spec_text, spec.path, ignore)  # refuse a different sweep before starting anything
+    need = [r for r in runs if r.run_id in redo or not run_complete(out / RUNS_DIR / r.run_id)]
+    asked, workers = workers, workers if scheduler else cap_workers(workers, len(need))
+    capped = told is not None and workers != asked and bool(need)  # a default is capped silently
+    if capped and progress:
+        print(f"{spec.name}: {workers} local worker(s), not {asked}: {len(need)} run(s) to compute on "
+              f"{usable_cores()} usable core(s)", file=sys.stderr)
     # Nothing to compute (e.g. rebuilding the outputs): the runs are read here, no cluster needed.
     # Otherwise the cluster is started (or the scheduler reached) before anything is written.
     with (_DaskClient(scheduler, workers, connect_timeout) if need else contextlib.nullcontext()) as client:
@@ -717,7 +863,10 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
         mark(out, "sweep")
         lock = _acquire_lock(out, spec.path)
         try:
-            return _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0)
+            _check_or_write_spec(out, spec_text, spec.path, ignore)
+            _restart_changed(out, inputs, redo)
+            res = _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0)
+            return dataclasses.replace(res, recomputed=len(redo), workers_asked=asked if capped else None)
         finally:
             lock.close()
 

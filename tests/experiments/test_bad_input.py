@@ -443,6 +443,13 @@ def run_net_folder_persons_file_missing(tmp, net, run):
     return ["run", str(_config(tmp, dst)), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "v2x.penetration_rate", "none of them was equipped")
+def run_v2x_no_vehicle_equipped(tmp, net, run):
+    # vehicles drive through the cross in the 30 s, but at 0.1 % penetration none has a V2X unit
+    cfg = _config(tmp, net, "[v2x]\npenetration_rate = 0.001\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "v2x.penetration_rate", "(0, 1]")
 def run_v2x_penetration_zero(tmp, net, run):
     cfg = _config(tmp, net, "[v2x]\npenetration_rate = 0.0\n")
@@ -762,9 +769,91 @@ def report_corrupt_config(tmp, net, run):
     return ["report", str(dst)], None
 
 
-@case("summary.json", "not found")
+@case("mywork", "holds no coloc run output", "summary.json")
 def report_not_a_run_folder(tmp, net, run):
     return ["report", str(_user_folder(tmp))], None
+
+
+def _drop_columns(path: Path, *names: str) -> None:
+    import pyarrow.parquet as pq
+
+    pq.write_table(pq.read_table(path).drop(list(names)), path)
+
+
+@case("estimates.parquet", "missing column err_pos")
+def report_estimates_column_removed(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    _drop_columns(dst / "estimates.parquet", "err_pos")
+    return ["report", str(dst)], None
+
+
+@case("estimates.parquet", "missing columns method, t, err_pos")
+def report_estimates_of_another_tool(tmp, net, run):
+    import pandas as pd
+
+    dst = _run_copy(tmp, run)
+    pd.DataFrame({"time": [0.0, 0.1], "x": [1.0, 2.0]}).to_parquet(dst / "estimates.parquet")
+    return ["report", str(dst)], None
+
+
+@case("traffic.parquet", "missing column interval_start_s")
+def report_traffic_column_removed(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    _drop_columns(dst / "traffic.parquet", "interval_start_s")
+    return ["report", str(dst)], None
+
+
+@case("estimates.parquet", "missing column t")
+def report_compare_estimates_column_removed(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    _drop_columns(dst / "estimates.parquet", "t")
+    other = tmp / "run2"
+    shutil.copytree(run, other)
+    return ["report", str(other), str(dst), "--out", str(tmp / "cmp")], None
+
+
+@case("curves.parquet", "missing column rmse_pos_m")
+def report_sweep_curves_column_removed(tmp, net, run):
+    import pandas as pd
+
+    d = tmp / "sw"
+    d.mkdir()
+    (d / "sweep.toml").write_text('[sweep]\nname = "s"\nseeds = [1]\nmethods = ["gnss"]\n')
+    pd.DataFrame({"run_id": ["seed=1"]}).to_parquet(d / "sweep.parquet")
+    pd.DataFrame({"curve": ["overall"], "method": ["gnss"], "x": [float("nan")], "n_runs": [1], "n_samples": [3],
+                  "rmse_vel_mps": [0.1], "correct_pct": [float("nan")], "wrong_pct": [float("nan")],
+                  "discarded_pct": [float("nan")]}).to_parquet(d / "curves.parquet")
+    return ["report", str(d)], None
+
+
+@case("notes.txt", "is a file, not a run output folder")
+def report_a_file(tmp, net, run):
+    return ["report", str(_file(tmp))], None
+
+
+@case("runs", "2 run folder(s) in it", "give those")
+def report_a_folder_of_runs(tmp, net, run):
+    d = tmp / "runs"
+    d.mkdir()
+    for name in ("seed=1", "seed=2"):
+        shutil.copytree(run, d / name)
+    return ["report", str(d)], None
+
+
+@case("sw", "holds a coloc sweep output, not a run output")
+def report_a_sweep_beside_a_run(tmp, net, run):
+    d = tmp / "sw"
+    d.mkdir()
+    (d / MARKER).write_text('{"kind": "sweep"}\n')
+    (d / "sweep.toml").write_text("[sweep]\n")
+    return ["report", str(d), str(_run_copy(tmp, run)), "--out", str(tmp / "cmp")], None
+
+
+@case("run", "summary.json", "missing: the run folder is incomplete")
+def report_an_incomplete_run(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "summary.json").unlink()
+    return ["report", str(dst)], None
 
 
 @case("mywork", "--out", "was not written by coloc")
@@ -847,6 +936,53 @@ def sweep_no_workers(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "0"], None
 
 
+def _started_sweep(tmp: Path, net: Path) -> tuple[Path, Path]:
+    """A sweep on a copy of the net whose first run finished before it was killed (its folder as the
+    sweep leaves it; the run's files are not read by the check)."""
+    from couplers.errors import recording_reads
+    from couplers.publish import mark
+    from experiments.sweep.run import INPUTS_FILE, _inputs_text, expand_runs, load_sweep, resolved_spec_toml, \
+        sweep_inputs
+
+    mine = _net_copy(tmp, net)
+    _config(tmp, mine)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]"))
+    spec = load_sweep(path)
+    with recording_reads() as configs:
+        base, runs = expand_runs(spec)
+    out = tmp / "o"
+    (out / "runs" / runs[0].run_id).mkdir(parents=True)
+    mark(out, "sweep")
+    (out / "sweep.toml").write_text(resolved_spec_toml(spec, base, len(runs)))
+    (out / INPUTS_FILE).write_text(_inputs_text(sweep_inputs(spec, runs, configs)))
+    (out / "runs" / runs[0].run_id / "summary.json").write_text("{}\n")
+    return path, mine
+
+
+@case("net/zones.geojson", "changed since the sweep", "seed=1", "--force")
+def sweep_resumed_onto_a_changed_net(tmp, net, run):
+    path, mine = _started_sweep(tmp, net)
+    zones = mine / "zones.geojson"
+    zones.write_text(zones.read_text().replace('"sigma_p": 3.0', '"sigma_p": 30.0'))
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--quiet", "--workers", "1"], None
+
+
+@case("net/cross.nod.xml", "was removed since the sweep", "--force")
+def sweep_resumed_onto_a_net_without_a_file(tmp, net, run):
+    path, mine = _started_sweep(tmp, net)
+    (mine / "cross.nod.xml").unlink()  # netconvert's input, not read by a run: still a file of the net folder
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "changed since the sweep", "--force")
+def sweep_resumed_onto_a_changed_config(tmp, net, run):
+    path, mine = _started_sweep(tmp, net)
+    cfg = tmp / "cfg.toml"
+    cfg.write_text(cfg.read_text() + "\n[motion]\nsigma_along = 0.6\n")
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 # ----------------------------------------------------------------------------- coloc net import
 
 
@@ -879,6 +1015,12 @@ def net_import_config_exists(tmp, net, run):
     (tmp / "exps").mkdir()
     (tmp / "exps" / "x_tlr.toml").write_text("# mine\n")
     return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps")], None
+
+
+@case("cross", "is a folder, not a file")
+def net_import_net_is_a_folder(tmp, net, run):
+    return ["net", "import", "--net", str(net), "--name", "x", "--out", str(tmp / "x"),
             "--experiments-dir", str(tmp / "exps")], None
 
 

@@ -187,7 +187,7 @@ def _validate_options(opts: ImportOptions) -> None:
     for key in ("net", "osm", "zones", "areas", "routes", "additional"):
         for p in _paths(getattr(opts, key)):
             if not p.is_file():
-                raise InputError(p, None, "file not found")
+                raise InputError(p, None, "is a folder, not a file" if p.is_dir() else "file not found")
     if opts.begin_s is not None and not (opts.begin_s >= 0 and math.isfinite(opts.begin_s)):
         raise InputError(opts.sumocfg, "begin", "must be a finite time >= 0 s")
     if opts.feature_count < 0:
