@@ -708,7 +708,7 @@ def run_person_position_infinite(tmp, net, run):
     return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("scenario.toml", "sumo.step_length", "not a finite number")
+@case("scenario.toml", "sumo.step_length", "expected a finite number")
 def run_net_scenario_value_nan(tmp, net, run):
     copy = _net_copy(tmp, net)
     scen = copy / "scenario.toml"
