@@ -33,7 +33,7 @@ Resumable: a run folder appears complete or not at all (atomic rename), so a
 restart computes only the missing runs and removes the hidden partial folders
 a killed run left behind. The resolved sweep (including a hash of the resolved
 base config) is stored in ``DIR/sweep.toml``; a restart with a different sweep
-into the same DIR is refused. A lock file keeps two sweeps from writing into
+into the same DIR is refused. A lock (``.DIR.lock`` beside DIR) keeps two commands from writing into
 one DIR at once.
 
 Outputs, computed from the run files only and byte-identical for the same
@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import io
 import itertools
@@ -80,7 +79,7 @@ import numpy as np
 import pandas as pd
 
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
-from couplers.publish import check_target, make_folder, mark, write_file_atomic
+from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.sweep_factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
     split_overrides, variants
@@ -382,13 +381,7 @@ def _first_difference(a: dict, b: dict, prefix: str = "") -> str | None:
 
 
 def _acquire_lock(out: Path, spec_path: Path):
-    fh = open(out / ".coloc-sweep.lock", "a+")
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        fh.close()
-        raise InputError(spec_path, None, f"another coloc sweep is writing into {out}") from None
-    return fh
+    return lock_output(out)  # the lock of every coloc output (couplers.publish)
 
 
 def _check_spec(out: Path, text: str, spec_path: Path) -> None:
