@@ -549,6 +549,19 @@ def write_file_atomic(target: Path, data: bytes | str) -> None:
         raise
 
 
+def write_file_keeping(target: Path, data: bytes | str) -> Path | None:
+    """Write a single-file output (an import's experiment config) that ``--force`` allowed over an
+    existing file: a file with other content is kept as ``NAME.before-coloc`` first (returned), so
+    not even ``--force`` deletes it; a link is written through."""
+    target = Path(os.path.realpath(target))
+    raw = data.encode() if isinstance(data, str) else data
+    kept = None
+    if target.is_file() and target.read_bytes() != raw:
+        kept = _aside(target)
+    write_file_atomic(target, raw)
+    return kept
+
+
 def make_folder(path: Path, named: Path | None = None, field: str | None = "--out") -> list[Path]:
     """:func:`make_dirs`, with a refusal of the file system (read-only, no such place) as an
     :class:`InputError` naming ``named`` (default ``path``) and ``field``."""
