@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import json
 import os
@@ -76,6 +77,18 @@ def sha256_file(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=256)
+def _sha256_of(path: str, ino: int, size: int, mtime_ns: int) -> str:
+    return sha256_file(Path(path))
+
+
+def _digest(path: Path) -> str:
+    """:func:`sha256_file`, computed once per file version (a rerun checks a large estimates.parquet
+    several times: owned?, its previous hash, ...)."""
+    st = os.stat(path)
+    return _sha256_of(str(path), st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def read_manifest(folder: Path) -> dict | None:
@@ -114,7 +127,7 @@ def _owned(folder: Path, rel: str, manifest: dict | None) -> bool:
     if p.is_symlink() or not p.is_file():
         return False
     hashes = {manifest["files"].get(rel), manifest["replaced"].get(rel)} - {None}
-    return bool(hashes) and sha256_file(p) in hashes
+    return bool(hashes) and _digest(p) in hashes
 
 
 def _write_manifest(folder: Path, kind: str | None, files: dict[str, str], replaced: dict | None = None) -> None:
@@ -410,12 +423,12 @@ def publish_tree(staging: Path, out: Path, kind: str | None, part: tuple[str, ..
         bad = in_way()
     listed = sorted((old["files"] | old["replaced"]).keys()) if old else []
     # coloc's earlier files of this part that the new output does not have: deleted below
-    drop = {rel: sha256_file(out / rel) for rel in listed
+    drop = {rel: _digest(out / rel) for rel in listed
             if in_part(rel) and rel not in new and _owned(out, rel, old)}
     # the rest of the output (a run's files under a rewritten report): listed as they were
     carry = {rel: h for rel, h in (old["files"].items() if old else ()) if not in_part(rel) and rel not in new}
     # files about to be replaced (coloc's, or in_way() would have refused): their old content is coloc's too
-    previous = {rel: sha256_file(out / rel) for rel in new if (out / rel).is_file()}
+    previous = {rel: _digest(out / rel) for rel in new if (out / rel).is_file()}
     kind = kind if kind is not None else (old["kind"] if old else None)
     # From here until the last manifest, the incomplete one lists every file involved, old and new.
     _write_manifest(out, kind, carry | drop | new, previous)
