@@ -1,24 +1,53 @@
-"""Where commands write: the ``--out`` rule, and atomic publishing of folders and files.
+"""Where commands write: the ``--out`` rule, the output lock, and publishing of folders and files.
 
 Every command that writes (``coloc run``, ``coloc sweep``, ``coloc report``, ``coloc net import``,
 ``python -m couplers.net.build``, the studies) goes through this module, so the rule below lives in
 one place:
 
-- **Nothing a user owns is replaced.** An existing ``--out`` is used only when it is empty or was
-  written by coloc as the same kind of output (a marker file :data:`MARKER` names the kind; folders
-  written before the marker existed are recognised by their files). Anything else is refused with
-  one line naming the folder, unless the user passes ``--force``.
-- **A file never becomes a folder**, not even with ``--force``; and the folder a command runs in
-  (or one holding it) is never renamed away under it.
-- **Nothing is half-written.** A folder is built in a hidden sibling ``.NAME.partial-PID`` and
-  renamed into place only when complete; on any error, Ctrl-C or SIGTERM the partial folder is
-  removed. Partial folders left by a killed process (SIGKILL) are removed by the next command that
+- **coloc replaces or deletes only files it can prove it wrote.** Every output folder holds a
+  manifest, the hidden file :data:`MARKER`: ``{"kind": ..., "files": {relpath: sha256}}``. A file
+  is coloc's when the manifest lists it and its content still has that hash; nothing else is
+  (never judged by names: a folder holding ``summary.json`` and ``config.toml`` is not thereby a
+  run). Publishing over an earlier output replaces and deletes only coloc's files; anything else
+  (a user's ``notes.md``, a figure of their own, a file they edited, an unknown folder) is kept in
+  place and the new output is merged around it.
+- **What is in the way is refused, or with ``--force`` kept aside, never deleted.** A non-empty
+  folder without a manifest (or with one of another kind, or with a manifest of an older coloc
+  that lists no files) is refused with one line naming it; ``--force`` writes into it. A file the
+  new output must occupy that is not coloc's is refused with one line naming it; with ``--force``
+  it is renamed to ``NAME.before-coloc`` (``-2``, ``-3``, ... if taken). So not even ``--force``
+  deletes a byte coloc did not write.
+- **A file never becomes a folder**, not even with ``--force``; the folder a command runs in (or
+  one holding it) is never renamed away under it.
+- **A symbolic link is never renamed or replaced.** An ``--out`` that is a link is refused, naming
+  where it points; with ``--force`` coloc writes through it into the folder it points to.
+- **One writer per output.** A command holds ``.NAME.lock`` (``fcntl.flock``) in the parent of
+  the output for as long as it writes there; a second command writing to the same place is
+  refused with one line. The lock file is removed when released.
+- **Nothing half-written, as far as the file system allows.** Everything is built in a hidden
+  staging folder first (``.NAME.partial-PID`` beside a folder output, ``.coloc-staging-PID`` inside
+  a folder whose part is rewritten, e.g. a run's report) and removed on any error, Ctrl-C or
+  SIGTERM. Then:
+
+  * an absent or empty ``--out``: the staging folder, manifest included, is renamed into place in
+    one :func:`os.rename`, so a reader sees nothing or the complete output;
+  * an existing output: members are renamed into place one file at a time (each rename atomic, so
+    no file is ever seen half-written), between a manifest marked ``"complete": false`` that lists
+    the old and the new hashes of every file involved and the final manifest, written last. A
+    reader may meanwhile see a mix of old and new files; a process killed there leaves the
+    incomplete manifest, from which the next writer still knows every coloc file and cleans them.
+
+  Leftovers of a killed process (SIGKILL: ``.NAME.partial-PID``, ``.NAME.old-PID``,
+  ``.coloc-staging-PID``, an older coloc's ``.report-tmp-*``) are removed by the next command that
   writes to the same place, once that process is gone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import functools
+import hashlib
 import json
 import os
 import shutil
@@ -29,38 +58,109 @@ from typing import Callable, Iterator
 from couplers.errors import InputError
 
 MARKER = ".coloc-output"
-KINDS = ("run", "sweep", "report")  # "run": every `coloc run` output, studies included
-
-# Files by which folders written before the marker are recognised, per kind (any one tuple whole).
-_LEGACY = {
-    "run": (("summary.json", "config.toml", "estimates.parquet"),  # a run
-            ("summary.json", "config.toml", "results.parquet")),  # a study
-    "sweep": (("sweep.toml",),),
-}
-_REPORT_ENTRIES = {"report.html", "figures", MARKER}
+# "run": every `coloc run` output, studies included; "net": a `coloc net import` folder
+KINDS = ("run", "sweep", "report", "net")
+ASIDE = ".before-coloc"  # suffix of a file kept aside by --force
 _STAGING = (".partial-", ".old-")
+_INNER_STAGING = ".coloc-staging-"
+_FORCE_HINT = "choose another folder, or pass --force to write into it (nothing in it is deleted)"
+
+
+# --------------------------------------------------------------------------- #
+# The manifest
+# --------------------------------------------------------------------------- #
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=256)
+def _sha256_of(path: str, ino: int, size: int, mtime_ns: int) -> str:
+    return sha256_file(Path(path))
+
+
+def _digest(path: Path) -> str:
+    """:func:`sha256_file`, computed once per file version (a rerun checks a large estimates.parquet
+    several times: owned?, its previous hash, ...)."""
+    st = os.stat(path)
+    return _sha256_of(str(path), st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def read_manifest(folder: Path) -> dict | None:
+    """The manifest of ``folder``: ``{"kind", "files", "replaced", "legacy"}``, or None (no readable marker).
+
+    ``legacy``: a marker of an older coloc that names the kind but lists no files. ``replaced``:
+    the previous hashes of files an interrupted publish was replacing (their old and new content
+    are both coloc's)."""
+    try:
+        data = json.loads((Path(folder) / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    files, replaced = data.get("files"), data.get("replaced") or {}
+    legacy = files is None
+    if not isinstance(files, dict):
+        files = {}
+    if not isinstance(replaced, dict):
+        replaced = {}
+    kind = data.get("kind")
+    return {"kind": kind if kind in KINDS else None, "files": files, "replaced": replaced, "legacy": legacy}
 
 
 def output_kind(path: Path) -> str | None:
-    """The kind of coloc output ``path`` holds (``"run"``, ``"sweep"``, ...), or None."""
-    path = Path(path)
-    marker = path / MARKER
-    if marker.is_file():
-        try:
-            kind = json.loads(marker.read_text()).get("kind")
-        except (OSError, ValueError, AttributeError):
-            return None
-        return kind if kind in KINDS else None
-    for kind, alternatives in _LEGACY.items():
-        if any(all((path / n).is_file() for n in names) for names in alternatives):
-            return kind
-    try:
-        entries = {p.name for p in path.iterdir()}
-    except OSError:
-        return None
-    if "report.html" in entries and entries <= _REPORT_ENTRIES:
-        return "report"
-    return None
+    """The kind of coloc output ``path`` holds (``"run"``, ``"sweep"``, ...) by its manifest, or None."""
+    m = read_manifest(path)
+    return None if m is None else m["kind"]
+
+
+def _owned(folder: Path, rel: str, manifest: dict | None) -> bool:
+    """Whether ``folder/rel`` is a regular file coloc wrote: listed in the manifest with its current hash."""
+    if manifest is None:
+        return False
+    p = folder / rel
+    if p.is_symlink() or not p.is_file():
+        return False
+    hashes = {manifest["files"].get(rel), manifest["replaced"].get(rel)} - {None}
+    return bool(hashes) and _digest(p) in hashes
+
+
+def _write_manifest(folder: Path, kind: str | None, files: dict[str, str], replaced: dict | None = None) -> None:
+    data: dict = {"kind": kind, "files": dict(sorted(files.items()))}
+    if replaced is not None:
+        data = {"kind": kind, "complete": False, "files": data["files"], "replaced": dict(sorted(replaced.items()))}
+    write_file_atomic(Path(folder) / MARKER, json.dumps(data, indent=1) + "\n")
+
+
+def _tree(root: Path) -> tuple[dict[str, Path], list[str]]:
+    """Files (relative POSIX path -> path) and folders under ``root``, the manifest and staging excluded."""
+    files, dirs = {}, []
+    for here, subdirs, names in os.walk(root):
+        rel_here = Path(here).relative_to(root)
+        subdirs[:] = sorted(d for d in subdirs if not (here == str(root) and d.startswith(_INNER_STAGING)))
+        for d in subdirs:
+            dirs.append((rel_here / d).as_posix())
+        for n in sorted(names):
+            if here == str(root) and n == MARKER:
+                continue
+            files[(rel_here / n).as_posix()] = Path(here) / n
+    return files, dirs
+
+
+def mark(folder: Path, kind: str) -> None:
+    """Give a folder a command writes into in place (a sweep) a manifest of ``kind``, if it has none."""
+    if not (Path(folder) / MARKER).is_file():
+        _write_manifest(Path(folder), kind, {})
+
+
+# --------------------------------------------------------------------------- #
+# The --out rule
+# --------------------------------------------------------------------------- #
 
 
 def _is_empty_dir(path: Path) -> bool:
@@ -79,18 +179,29 @@ def _holds_cwd(path: Path) -> bool:
     return target == cwd or target in cwd.parents
 
 
+def _through_link(out: Path, field: str | None, force: bool) -> Path:
+    """``out``, or with ``force`` the folder a symbolic link ``out`` points to (refused without ``force``)."""
+    if not out.is_symlink():
+        return out
+    if not out.exists():
+        raise InputError(out, field, "is a broken symbolic link: choose another name")
+    if not force:
+        raise InputError(out, field, f"is a symbolic link to {os.readlink(out)}: choose another name, or pass "
+                                     "--force to write through it (the link is kept)")
+    return Path(os.path.realpath(out))
+
+
 def check_target(out: Path, kinds: tuple[str, ...], force: bool = False, field: str | None = "--out",
                  replaces_folder: bool = True, file: bool = False) -> None:
     """Raise :class:`InputError` unless a command may write an output of one of ``kinds`` at ``out``.
 
     ``kinds`` empty: only an absent or empty folder (``force``: any folder).
-    ``replaces_folder``: the command renames a new folder over ``out`` (a run, an import), rather
+    ``replaces_folder``: the command publishes a new folder at ``out`` (a run, an import), rather
     than writing files into it (a sweep, a comparison report).
     ``file``: ``out`` is a file the command writes (absent, or any file with ``force``; never a folder).
+    Files in the way inside an accepted folder are checked when publishing (:func:`publish_tree`).
     """
-    out = Path(out)
-    if out.is_symlink() and not out.exists():
-        raise InputError(out, field, "is a broken symbolic link: choose another name")
+    out = _through_link(Path(out), field, force)
     if file:
         if out.is_dir():
             raise InputError(out, field, "is a folder, not a file: choose another name")
@@ -104,26 +215,88 @@ def check_target(out: Path, kinds: tuple[str, ...], force: bool = False, field: 
                                      "below it (a finished output is renamed into place)")
     if not out.exists() or force or _is_empty_dir(out):
         return
-    found = output_kind(out)
-    if found in kinds:
-        return
     if not kinds:
-        what = "already exists"
-    elif found:
-        what = f"holds a coloc {found} output, not a {' or '.join(kinds)} output"
+        raise InputError(out, field, f"already exists: {_FORCE_HINT}")
+    m = read_manifest(out)
+    if m is None:
+        what = f"exists and was not written by coloc (it has no {MARKER})"
+    elif m["kind"] not in kinds:
+        what = f"holds a coloc {m['kind'] or 'unknown'} output, not a {' or '.join(kinds)} output"
+    elif m["legacy"]:
+        what = f"was written by an older coloc whose {MARKER} lists no files, so its files cannot be told from yours"
     else:
-        what = "exists and was not written by coloc"
-    raise InputError(out, field, f"{what}: choose another folder, or pass --force to replace what is there")
+        return
+    raise InputError(out, field, f"{what}: {_FORCE_HINT}")
 
 
-def _write_marker(folder: Path, kind: str) -> None:
-    (folder / MARKER).write_text(json.dumps({"kind": kind}) + "\n")
+# --------------------------------------------------------------------------- #
+# The lock
+# --------------------------------------------------------------------------- #
+
+_HELD: dict[str, list] = {}  # lock path -> [fd, depth]: a command re-entering its own lock (a sweep's report)
 
 
-def mark(folder: Path, kind: str) -> None:
-    """Mark a folder a command writes into in place (a sweep) as a coloc output of ``kind``."""
-    if not (Path(folder) / MARKER).is_file():
-        _write_marker(Path(folder), kind)
+class OutputLock:
+    """``.NAME.lock`` in the parent of an output, held with ``fcntl.flock`` until :meth:`close`."""
+
+    def __init__(self, out: Path, field: str | None = "--out", named: Path | None = None):
+        real = Path(os.path.realpath(out))
+        self.path = real.parent / f".{real.name}.lock"
+        self._key = str(self.path)
+        if self._key in _HELD:
+            _HELD[self._key][1] += 1
+            return
+        named = named or Path(out)
+        created = make_folder(real.parent, named, field)
+        while True:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+            except OSError as exc:
+                remove_created(created)
+                raise InputError(named, field, f"cannot be created ({exc.strerror or exc})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise InputError(named, field, "another coloc command is writing there (it holds "
+                                               f"{self.path}): wait for it, or choose another folder") from None
+            try:  # the holder before may have removed the file between our open and flock: lock the new one
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        _HELD[self._key] = [fd, 1]
+
+    def close(self) -> None:
+        held = _HELD.get(self._key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] == 0:
+            del _HELD[self._key]
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)  # before unlocking: a waiter then locks a fresh file (see above)
+            os.close(held[0])
+
+    def __enter__(self) -> "OutputLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def lock_output(out: Path, field: str | None = "--out", named: Path | None = None) -> OutputLock:
+    """Lock the output ``out`` for this process (refused with :class:`InputError` if another holds it)."""
+    return OutputLock(out, field, named)
+
+
+# --------------------------------------------------------------------------- #
+# Leftovers
+# --------------------------------------------------------------------------- #
 
 
 def _pid_alive(pid: int) -> bool:
@@ -136,29 +309,59 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _stale(name: str) -> bool:
+    pid = name.rsplit("-", 1)[-1]
+    return pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid))
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        p.unlink(missing_ok=True)
+
+
 def remove_stale(parent: Path, name: str) -> list[Path]:
     """Remove ``.NAME.partial-PID`` / ``.NAME.old-PID`` entries in ``parent`` of processes that are gone.
 
-    An ``.old-`` folder whose ``NAME`` is missing (a process killed between its two renames) is the
-    previous output: it is put back, not removed.
+    An ``.old-`` folder whose ``NAME`` is missing (an older coloc killed between its two renames) is
+    the previous output: it is put back, not removed.
     """
     removed = []
     if not parent.is_dir():
         return removed
     for tag in _STAGING:
         for p in sorted(parent.glob(f".{name}{tag}*")):
-            pid = p.name.rsplit("-", 1)[-1]
-            if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
+            if not _stale(p.name):
                 continue
             if tag == ".old-" and not (parent / name).exists():
                 os.replace(p, parent / name)
                 continue
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
+            _remove(p)
             removed.append(p)
     return removed
+
+
+def remove_stale_inside(folder: Path) -> list[Path]:
+    """Remove staging folders a killed command left inside ``folder`` (the caller holds its lock).
+
+    ``.coloc-staging-PID`` of a process that is gone; ``.report-tmp-*`` / ``.report-old-*`` of an
+    older coloc (they carry no PID; under the lock no coloc of this version writes them)."""
+    removed = []
+    try:
+        entries = sorted(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for p in entries:
+        if (p.name.startswith(_INNER_STAGING) and _stale(p.name)) or p.name.startswith((".report-tmp-", ".report-old-")):
+            _remove(p)
+            removed.append(p)
+    return removed
+
+
+# --------------------------------------------------------------------------- #
+# Publishing
+# --------------------------------------------------------------------------- #
 
 
 def _umask() -> int:
@@ -167,81 +370,181 @@ def _umask() -> int:
     return mask
 
 
+def _aside(p: Path) -> Path:
+    """Rename ``p`` (a file, folder or link in the way) to a free ``NAME.before-coloc[-k]`` beside it."""
+    k = 1
+    while True:
+        dest = p.with_name(p.name + ASIDE + (f"-{k}" if k > 1 else ""))
+        if not dest.exists() and not dest.is_symlink():
+            os.rename(p, dest)
+            return dest
+        k += 1
+
+
+def publish_tree(staging: Path, out: Path, kind: str | None, part: tuple[str, ...] | None = None,
+                 force: bool = False, field: str | None = "--out") -> list[Path]:
+    """Move the files under ``staging`` into the existing folder ``out``, one rename each; returns
+    what ``force`` kept aside.
+
+    ``part``: the top-level names of ``out`` this output rewrites (a report: ``figures``,
+    ``report.html``); coloc files listed in the manifest under those names and absent from the
+    new output are deleted, the rest of the manifest is carried over. None: the whole output.
+    ``kind``: the manifest's kind (None: keep the existing one).
+    """
+    old = read_manifest(out)
+    new_files, new_dirs = _tree(staging)
+    new = {rel: sha256_file(p) for rel, p in new_files.items()}
+
+    def in_part(rel: str) -> bool:
+        return part is None or rel.split("/", 1)[0] in part
+
+    def in_way() -> list[str]:
+        """Paths the new output must occupy that hold something not coloc's (a folder, a link, a user file)."""
+        bad = []
+        for rel in new_dirs:
+            p = out / rel
+            if p.is_symlink() or (p.exists() and not p.is_dir()):
+                bad.append(rel)
+        for rel in new:
+            p = out / rel
+            if (p.is_symlink() or p.exists()) and not _owned(out, rel, old):
+                bad.append(rel)
+        return bad
+
+    kept = []
+    bad = in_way()
+    if bad and not force:
+        raise InputError(out / bad[0], field, f"is in the way and coloc cannot prove it wrote it (not in {MARKER}, "
+                                              f"or changed since): move it away, or pass --force to keep it as "
+                                              f"{Path(bad[0]).name}{ASIDE}")
+    while bad:  # shortest first: a file in the place of a folder goes aside with whatever would go in it
+        rel = min(bad, key=lambda r: (r.count("/"), r))
+        kept.append(_aside(out / rel))
+        bad = in_way()
+    listed = sorted((old["files"] | old["replaced"]).keys()) if old else []
+    # coloc's earlier files of this part that the new output does not have: deleted below
+    drop = {rel: _digest(out / rel) for rel in listed
+            if in_part(rel) and rel not in new and _owned(out, rel, old)}
+    # the rest of the output (a run's files under a rewritten report): listed as they were
+    carry = {rel: h for rel, h in (old["files"].items() if old else ()) if not in_part(rel) and rel not in new}
+    # files about to be replaced (coloc's, or in_way() would have refused): their old content is coloc's too
+    previous = {rel: _digest(out / rel) for rel in new if (out / rel).is_file()}
+    kind = kind if kind is not None else (old["kind"] if old else None)
+    # From here until the last manifest, the incomplete one lists every file involved, old and new.
+    _write_manifest(out, kind, carry | drop | new, previous)
+    for rel in new_dirs:
+        (out / rel).mkdir(exist_ok=True)
+    for rel, src in new_files.items():
+        os.replace(src, out / rel)
+    for rel, digest in drop.items():
+        p = out / rel
+        if _owned(out, rel, {"files": {rel: digest}, "replaced": {}}):
+            p.unlink()
+        for d in p.parents:  # folders emptied by the deletion (coloc's: a user's file keeps its folder)
+            if d == out or out not in d.parents:
+                break
+            try:
+                d.rmdir()
+            except OSError:
+                break
+    _write_manifest(out, kind, carry | new)
+    return kept
+
+
+def _publish_new(tmp: Path, out: Path, kind: str | None, force: bool, field: str | None,
+                 replace: tuple[str, ...]) -> None:
+    """Publish the complete staging folder ``tmp`` at ``out``: one rename onto an absent or empty
+    folder, else member by member (:func:`publish_tree`)."""
+    if not out.is_symlink() and (not out.exists() or _is_empty_dir(out)):
+        files, _ = _tree(tmp)
+        _write_manifest(tmp, kind, {rel: sha256_file(p) for rel, p in files.items()})
+        os.chmod(tmp, 0o777 & ~_umask())  # an ordinary folder, as mkdir would make it
+        try:
+            os.rename(tmp, out)  # onto an absent or empty folder: atomic
+            return
+        except OSError:
+            if not out.is_dir():  # not "a file appeared there since", nor "not empty any more"
+                raise
+        (tmp / MARKER).unlink()
+    check_target(out, replace, force=force, field=field, replaces_folder=False)  # may have changed meanwhile
+    publish_tree(tmp, out, kind, None, force, field)
+
+
 @contextlib.contextmanager
 def staged_folder(out: Path, kind: str | None, force: bool = False, field: str | None = "--out",
                   replace: tuple[str, ...] | None = None) -> Iterator[Path]:
-    """``with staged_folder(out, "run") as tmp:`` write into ``tmp``; it replaces ``out`` only on success.
+    """``with staged_folder(out, "run") as tmp:`` write into ``tmp``; it is published at ``out`` on success.
 
-    ``kind`` is written into the :data:`MARKER` file of the new folder; None writes no marker (a net
-    folder: users keep it with their data, and it is only ever replaced with ``force``).
-
+    ``kind`` is written into the manifest (None: ``"net"``, a net folder, replaced only with ``force``).
     ``out`` is checked first (:func:`check_target`: an output of ``replace``, by default ``(kind,)``,
-    is replaced without ``force``; ``()``: only an absent or empty folder); the hidden staging folder sits beside it (same
-    file system, so the final rename is atomic) and is removed on any exception, including
-    KeyboardInterrupt and the SIGTERM the command line turns into one.
+    is written over without ``force``; ``()``: only an absent or empty folder) and locked for the
+    whole block; the hidden staging folder sits beside it (same file system, so renames are atomic)
+    and is removed on any exception, including KeyboardInterrupt and the SIGTERM the command line
+    turns into one.
     """
-    out = Path(out)
+    named = Path(out)
     replace = ((kind,) if kind else ()) if replace is None else replace
-    check_target(out, replace, force=force, field=field)
+    kind = kind or "net"
+    check_target(named, replace, force=force, field=field)
+    out = _through_link(named, field, force)
     parent = out.parent
-    created = make_folder(parent, out, field)
-    remove_stale(parent, out.name)
+    created = make_folder(parent, named, field)
+    try:
+        lock = lock_output(out, field, named)
+    except BaseException:
+        remove_created(created)
+        raise
     tmp = parent / f".{out.name}.partial-{os.getpid()}"
     try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir()
-    except OSError as exc:
-        remove_created(created)
-        raise InputError(out, field, f"cannot be created ({exc.strerror or exc})") from None
-    try:
-        yield tmp
-        if kind is not None:
-            _write_marker(tmp, kind)
-        os.chmod(tmp, 0o777 & ~_umask())  # an ordinary folder, as mkdir would make it
-        check_target(out, replace, force=force, field=field)  # the place may have changed meanwhile
-        old = None
-        if out.exists():
-            old = parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
+        remove_stale(parent, out.name)
+        if out.is_dir():
+            remove_stale_inside(out)
         try:
-            os.replace(tmp, out)
-        except BaseException:
-            if old is not None:  # put the previous output back
-                os.replace(old, out)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+            if tmp.exists():
+                shutil.rmtree(tmp)
+            tmp.mkdir()
+        except OSError as exc:
+            raise InputError(named, field, f"cannot be created ({exc.strerror or exc})") from None
+        yield tmp
+        _publish_new(tmp, out, kind, force, field, replace)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         remove_created(created)
         raise
-
-
-def publish_members(target_dir: Path, build: Callable[[Path], None], names: tuple[str, ...]) -> None:
-    """Build ``names`` (files or folders) in a staging folder inside ``target_dir``, then move each into place.
-
-    Used to rewrite part of an existing output (a report's ``report.html`` and ``figures/`` in a
-    run folder). The entries are replaced in the given order with :func:`os.replace`, so a reader
-    sees the old or the new entry, never a half-written one; the last name should be the one a
-    reader opens (``report.html``).
-    """
-    target_dir = Path(target_dir)
-    make_folder(target_dir)
-    tmp = Path(tempfile.mkdtemp(prefix=".report-tmp-", dir=target_dir))
-    old = None
-    try:
-        build(tmp)
-        for name in names:
-            dest = target_dir / name
-            if (tmp / name).is_dir() and dest.exists():
-                old = old or Path(tempfile.mkdtemp(prefix=".report-old-", dir=target_dir))
-                os.replace(dest, old / name)
-            os.replace(tmp / name, dest)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        lock.close()
+
+
+def publish_members(target_dir: Path, build: Callable[[Path], None], names: tuple[str, ...],
+                    kind: str | None = None, force: bool = False, field: str | None = None) -> list[Path]:
+    """Build ``names`` (files or folders) in a staging folder inside ``target_dir``, then move them into place.
+
+    Used to rewrite part of an output (a report's ``report.html`` and ``figures/`` in a run folder,
+    a sweep folder or a comparison folder): coloc's earlier files under ``names`` are replaced or
+    deleted, anything else is kept (:func:`publish_tree`); ``figures`` before ``report.html``, so the
+    page a reader opens comes last. ``kind``: the manifest's kind if the folder has none yet.
+    ``target_dir`` is locked meanwhile. Returns what ``force`` kept aside.
+    """
+    target_dir = Path(os.path.realpath(target_dir))
+    created = make_folder(target_dir, None, field)
+    with lock_output(target_dir, field):
+        remove_stale_inside(target_dir)
+        tmp = target_dir / f"{_INNER_STAGING}{os.getpid()}"
+        try:
+            if tmp.exists():
+                shutil.rmtree(tmp)
+            tmp.mkdir()
+            build(tmp)
+            m = read_manifest(target_dir)
+            return publish_tree(tmp, target_dir, kind if m is None or m["kind"] is None else None,
+                                tuple(names), force, field)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            remove_created(created)
+            raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_file_atomic(target: Path, data: bytes | str) -> None:
@@ -257,6 +560,19 @@ def write_file_atomic(target: Path, data: bytes | str) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_file_keeping(target: Path, data: bytes | str) -> Path | None:
+    """Write a single-file output (an import's experiment config) that ``--force`` allowed over an
+    existing file: a file with other content is kept as ``NAME.before-coloc`` first (returned), so
+    not even ``--force`` deletes it; a link is written through."""
+    target = Path(os.path.realpath(target))
+    raw = data.encode() if isinstance(data, str) else data
+    kept = None
+    if target.is_file() and target.read_bytes() != raw:
+        kept = _aside(target)
+    write_file_atomic(target, raw)
+    return kept
 
 
 def make_folder(path: Path, named: Path | None = None, field: str | None = "--out") -> list[Path]:

@@ -171,7 +171,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     for d in dirs:
         _check_run_folder(d)
     if len(dirs) == 1 and args.out is None:
-        path = write_run_report(dirs[0], workers=available_workers())
+        path = write_run_report(dirs[0], workers=available_workers(), force=args.force)
     else:
         out = Path(args.out) if args.out else dirs[0].parent / "compare"
         path = write_comparison_report(dirs, out, force=args.force, workers=available_workers())
@@ -281,9 +281,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="one run of an experiment config")
     r.add_argument("config", help="experiment TOML, e.g. experiments/arterial_tlr.toml")
-    r.add_argument("--out", required=True, help="output folder: absent, empty or an earlier run's (replaced "
-                                                "atomically when the run finishes)")
-    r.add_argument("--force", action="store_true", help="replace --out even if coloc did not write it (never a file)")
+    r.add_argument("--out", required=True, help="output folder: absent, empty or an earlier run's (coloc's files "
+                                                "replaced when the run finishes; other files kept)")
+    r.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it, or "
+                                                        "through a symbolic link (nothing is deleted: files in the "
+                                                        "way are kept as NAME.before-coloc; never a file)")
     r.add_argument("--seed", type=int, help="override [run] seed")
     r.add_argument("--duration", type=float, help="override [run] duration_s (simulated seconds)")
     r.add_argument("--methods", help="override [run] methods, comma separated (e.g. gnss)")
@@ -310,7 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("dirs", nargs="+", help="run output folders (or one sweep folder)")
     rep.add_argument("--out", help="comparison output folder (default: <first>/../compare): absent, empty or "
                                    "an earlier comparison's")
-    rep.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
+    rep.add_argument("--force", action="store_true", help="write into --out (or a run folder) even if coloc did not "
+                                                          "write it; files in the way are kept as NAME.before-coloc")
     rep.set_defaults(func=cmd_report)
 
     net = sub.add_parser("net", help="plug-in nets: import a SUMO net or an OSM extract, check a net folder")

@@ -8,7 +8,7 @@ from typing import Callable
 
 import matplotlib
 
-from couplers.publish import check_target, mark
+from couplers.publish import check_target
 from experiments.report.figures import _fig_rmse_time, _fig_traffic
 from experiments.report.html import (
     _esc,
@@ -95,9 +95,7 @@ def write_comparison_report(run_dirs: list[Path], out_dir: Path, *,
             blocks = run_jobs(figure_jobs(tmp / "figures"), workers)
         (tmp / "report.html").write_text(_comparison_html(runs, out_dir, blocks), encoding="utf-8")
 
-    page = _atomic_publish(out_dir, build)
-    mark(out_dir, "report")
-    return page
+    return _atomic_publish(out_dir, build, kind="report", force=force, field="--out")
 
 
 def _ls_name(k: int) -> str:

@@ -40,12 +40,13 @@ from experiments.report.styles import _RC
 # --------------------------------------------------------------------------- #
 
 
-def write_run_report(run_dir: Path, *, workers: int = 1) -> Path:
+def write_run_report(run_dir: Path, *, workers: int = 1, force: bool = False) -> Path:
     """Write ``run_dir/figures/*.png`` and ``run_dir/report.html`` from the run's files.
 
     ``workers``: processes drawing the figures (:func:`experiments.report.parallel.run_jobs`; the
     same bytes with any number). ``coloc report`` uses two when it may run on two cores; the default
-    draws in this process (e.g. at the end of ``coloc run``, possibly inside a sweep's worker)."""
+    draws in this process (e.g. at the end of ``coloc run``, possibly inside a sweep's worker).
+    ``force``: a file in the way that coloc did not write is kept aside rather than refused."""
     run_dir = Path(run_dir)
     run = _load_run(run_dir)
 
@@ -55,7 +56,7 @@ def write_run_report(run_dir: Path, *, workers: int = 1) -> Path:
             figs = _run_figures(run, figdir, workers)
         (tmp / "report.html").write_text(_run_html(run, figs), encoding="utf-8")
 
-    return _atomic_publish(run_dir, build)
+    return _atomic_publish(run_dir, build, kind="run", force=force)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,8 @@ into the same DIR is refused. The files the runs read (every config TOML loaded,
 chains included, and every file of each run's net folder) are stored with their sha256 in
 ``DIR/inputs.json``: a restart after one of them changed is refused, naming the file, while a
 finished run was made with the old one; ``--force`` then recomputes those runs (only the runs that
-read the changed file). A lock file keeps two sweeps from writing into one DIR at once.
+read the changed file). A lock (``.DIR.lock`` beside DIR) keeps two commands from writing into
+one DIR at once.
 
 Outputs, computed from the run files only and byte-identical for the same
 sweep (sorted rows, no timestamps):
@@ -61,7 +62,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import io
 import itertools
@@ -83,7 +83,7 @@ import numpy as np
 import pandas as pd
 
 from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
-from couplers.publish import check_target, make_folder, mark, write_file_atomic
+from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
 from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
@@ -386,13 +386,7 @@ def _first_difference(a: dict, b: dict, prefix: str = "") -> str | None:
 
 
 def _acquire_lock(out: Path, spec_path: Path):
-    fh = open(out / ".coloc-sweep.lock", "a+")
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        fh.close()
-        raise InputError(spec_path, None, f"another coloc sweep is writing into {out}") from None
-    return fh
+    return lock_output(out)  # the lock of every coloc output (couplers.publish)
 
 
 def _check_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:

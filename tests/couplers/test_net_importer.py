@@ -21,6 +21,7 @@ from couplers.net.folder import load_net_folder  # noqa: E402
 from couplers.net.importer import ImportOptions, import_net  # noqa: E402
 from couplers.net.importer.demand import ARTERIAL_LANE_KM, ARTERIAL_MEAN_ROUTE_M, VTYPE, falling_profile_bins  # noqa: E402
 from couplers.net.importer.geometry import _drivable_edges  # noqa: E402
+from couplers.publish import MARKER  # noqa: E402
 from couplers.net.zones import RegionIndex  # noqa: E402
 from osmfixture import DLAT, DLON, LAT0, LON0, _nid, write_osm_grid  # noqa: E402
 
@@ -53,7 +54,7 @@ def _no_leftovers(parent: Path) -> list[str]:
 
 def test_osm_import_writes_a_loadable_net_folder(imported):
     out, res = imported
-    assert sorted(p.name for p in out.iterdir()) == sorted(FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted((*FILES, MARKER))  # MARKER: the manifest
     folder = load_net_folder(out)
     assert folder.tls_off == {"tlr": False, "vsr": True}
     net = sumolib.net.readNet(str(folder.net))

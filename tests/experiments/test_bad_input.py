@@ -143,7 +143,66 @@ def run_out_sweep_folder(tmp, net, run):
     d.mkdir()
     (d / "sweep.toml").write_text("[sweep]\n")
     (d / "runs").mkdir()
+    (d / MARKER).write_text('{"kind": "sweep", "files": {}}\n')
     return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
+
+
+@case("p", "--out", "was not written by coloc", "--force")
+def run_out_has_a_runs_file_names(tmp, net, run):
+    """A run's file names do not make a folder a run (only its manifest does)."""
+    d = tmp / "p"
+    (d / "data").mkdir(parents=True)
+    (d / "summary.json").write_text("{}\n")
+    (d / "config.toml").write_text("x = 1\n")
+    (d / "estimates.parquet").write_text("PAR1\n")
+    (d / "thesis.tex").write_text("chapter 1\n")
+    return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
+
+
+@case("run", "--out", "older coloc", "--force")
+def run_out_marker_without_file_list(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / MARKER).write_text('{"kind": "run"}\n')
+    return ["run", str(_config(tmp, net)), "--out", str(dst), "--quiet"], None
+
+
+@case("run", "--out", "holds a coloc report output")
+def run_out_comparison_folder(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / MARKER).write_text('{"kind": "report", "files": {}}\n')
+    return ["run", str(_config(tmp, net)), "--out", str(dst), "--quiet"], None
+
+
+@case("report.html", "--out", "cannot prove it wrote it", "--force")
+def run_out_file_edited_by_the_user(tmp, net, run):
+    """Refused when the run is published (the run's files are known only then): nothing is left behind."""
+    dst = _run_copy(tmp, run)
+    with open(dst / "report.html", "a") as fh:
+        fh.write("<!-- mine -->\n")
+    return ["run", str(_config(tmp, net)), "--out", str(dst), "--quiet"], None
+
+
+@case("figures", "--out", "cannot prove it wrote it")
+def run_out_file_where_a_folder_goes(tmp, net, run):
+    d = tmp / "o"
+    d.mkdir()
+    (d / MARKER).write_text('{"kind": "run", "files": {}}\n')
+    (d / "figures").write_text("not a folder\n")
+    return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
+
+
+@case("link", "--out", "symbolic link to", "--force")
+def run_out_symbolic_link_to_a_run(tmp, net, run):
+    _run_copy(tmp, run)
+    (tmp / "link").symlink_to("run")
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "link"), "--quiet"], None
+
+
+@case("link", "--out", "symbolic link to", "--force")
+def run_out_symbolic_link_to_an_empty_folder(tmp, net, run):
+    (tmp / "empty").mkdir()
+    (tmp / "link").symlink_to("empty")
+    return ["run", str(_config(tmp, net)), "--out", str(tmp / "link"), "--quiet"], None
 
 
 @case("broken", "--out", "broken symbolic link")
@@ -861,6 +920,32 @@ def report_out_user_folder(tmp, net, run):
     return ["report", str(_run_copy(tmp, run)), "--out", str(_user_folder(tmp))], None
 
 
+@case("compare", "--out", "was not written by coloc", "--force")
+def report_default_out_user_folder(tmp, net, run):
+    """``coloc report A B`` writes ``A/../compare`` by default: a user's folder of that name is not taken."""
+    a = _run_copy(tmp, run)
+    b = tmp / "run2"
+    shutil.copytree(run, b)
+    (tmp / "compare" / "figures").mkdir(parents=True)
+    (tmp / "compare" / "report.html").write_text("<p>mine</p>\n")
+    (tmp / "compare" / "figures" / "my_plot.png").write_bytes(b"my plot")
+    return ["report", str(a), str(b)], None
+
+
+@case("link", "--out", "symbolic link to", "--force")
+def report_out_symbolic_link(tmp, net, run):
+    (tmp / "cmp").mkdir()
+    (tmp / "link").symlink_to("cmp")
+    return ["report", str(_run_copy(tmp, run)), "--out", str(tmp / "link")], None
+
+
+@case("traffic.png", "cannot prove it wrote it", "--force")
+def report_figure_edited_by_the_user(tmp, net, run):
+    dst = _run_copy(tmp, run)
+    (dst / "figures" / "traffic.png").write_bytes(b"my own traffic figure")
+    return ["report", str(dst)], None
+
+
 @case("notes.txt", "--out", "is a file")
 def report_out_file(tmp, net, run):
     return ["report", str(_run_copy(tmp, run)), "--out", str(_file(tmp)), "--force"], None
@@ -1092,23 +1177,28 @@ def test_corpus_size():
 # ----------------------------------------------------------------------------- what --out may replace
 
 
-def test_run_replaces_an_earlier_run_and_a_legacy_run_folder(cross_net, tmp_path, run_dir):
+def test_run_replaces_an_earlier_run_and_force_adopts_a_folder_without_manifest(cross_net, tmp_path, run_dir):
+    """An earlier run (its manifest lists its files) is replaced without --force; a folder without a
+    manifest (e.g. written before manifests existed) only with --force, its files kept aside."""
     cfg = _config(tmp_path, cross_net)
-    legacy = _run_copy(tmp_path, run_dir)
-    (legacy / MARKER).unlink()  # written before the marker existed: recognised by its files
-    assert main(["run", str(cfg), "--out", str(legacy), "--quiet", "--seed", "2"]) == 0
-    assert json.loads((legacy / "summary.json").read_text())["seed"] == 2
-    assert json.loads((legacy / MARKER).read_text()) == {"kind": "run"}
-    assert main(["run", str(cfg), "--out", str(legacy), "--quiet", "--seed", "3"]) == 0
-    assert json.loads((legacy / "summary.json").read_text())["seed"] == 3
+    earlier = _run_copy(tmp_path, run_dir)
+    assert main(["run", str(cfg), "--out", str(earlier), "--quiet", "--seed", "2"]) == 0
+    assert json.loads((earlier / "summary.json").read_text())["seed"] == 2
+    assert json.loads((earlier / MARKER).read_text())["kind"] == "run"
+    old = (earlier / "summary.json").read_bytes()
+    (earlier / MARKER).unlink()
+    assert main(["run", str(cfg), "--out", str(earlier), "--quiet", "--seed", "3", "--force"]) == 0
+    assert json.loads((earlier / "summary.json").read_text())["seed"] == 3
+    assert (earlier / "summary.json.before-coloc").read_bytes() == old
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
-def test_force_replaces_a_user_folder_but_an_empty_folder_needs_no_force(cross_net, tmp_path):
+def test_force_writes_into_a_user_folder_without_deleting_but_an_empty_folder_needs_no_force(cross_net, tmp_path):
     cfg = _config(tmp_path, cross_net)
     mine = _user_folder(tmp_path)
     assert main(["run", str(cfg), "--out", str(mine), "--quiet", "--force"]) == 0
-    assert not (mine / "thesis.tex").exists() and (mine / "summary.json").is_file()
+    assert (mine / "thesis.tex").read_text() == "chapter 1\n" and (mine / "sub" / "data.csv").is_file()
+    assert (mine / "summary.json").is_file()
     (tmp_path / "empty").mkdir()
     assert main(["run", str(cfg), "--out", str(tmp_path / "empty"), "--quiet"]) == 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -18,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from couplers.publish import MARKER  # noqa: E402
 from experiments import report  # noqa: E402
 from experiments.report import styles  # noqa: E402
 
@@ -198,7 +200,8 @@ def test_run_report_without_net_and_features(tmp_path):
     d = _make_run(tmp_path, "ctl", "tlr", 2, None, with_features=False)
     (d / "association.parquet").unlink()
     (d / "figures").mkdir()
-    (d / "figures" / "stale.png").write_bytes(b"x")  # a previous report's leftovers are replaced
+    (d / "figures" / "stale.png").write_bytes(b"x")  # a previous report's figure (its manifest lists it) goes
+    (d / MARKER).write_text(json.dumps({"kind": "run", "files": {"figures/stale.png": hashlib.sha256(b"x").hexdigest()}}))
     page = report.write_run_report(d).read_text(encoding="utf-8")
     srcs = _img_srcs(page)
     assert "figures/map.png" not in srcs

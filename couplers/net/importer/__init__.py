@@ -83,7 +83,7 @@ from couplers.net.importer.regions import (
 )
 from couplers.net.importer.scenario import _write_scenario
 from couplers.net.importer.tools import _binary, _run, _sumo_home
-from couplers.publish import check_target, make_dirs, remove_created, staged_folder, write_file_atomic
+from couplers.publish import check_target, make_dirs, remove_created, staged_folder, write_file_atomic, write_file_keeping
 
 SIGNAL_MODES = ("check", "rebuild", "keep")
 
@@ -246,7 +246,8 @@ def import_net(opts: ImportOptions,
     extra: dict[Path, str] = {}
     created: list[Path] = []
     try:
-        # an existing --out is replaced only with --force (a net folder is the user's, imported or not)
+        # an existing --out is written into only with --force (a net folder is the user's, imported or
+        # not); files coloc did not write are kept (couplers.publish)
         with staged_folder(opts.out, None, force=opts.force) as work:
             track_area = _build_folder(work, opts, report, osm_counts, user_geo, t0)
             seconds = time.perf_counter() - t0
@@ -261,7 +262,7 @@ def import_net(opts: ImportOptions,
                 extra[dest] = text
         # the folder is in place; then the extra files
         for dest, text in extra.items():
-            write_file_atomic(dest, text)
+            write_file_keeping(dest, text)
         return result
     except BaseException:
         remove_created(created)
