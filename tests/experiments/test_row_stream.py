@@ -165,18 +165,26 @@ def test_files_do_not_depend_on_the_flush_size(tmp_path, monkeypatch, cross_cfg)
     assert all(h == hashes[0] for h in hashes) and all(b == blocks[0] for b in blocks)
 
 
-def test_short_arterial_summary_equals_the_whole_tables(tmp_path, monkeypatch):
-    """60 s of the TLR arterial (SUMO; GNSS zones and areas, V2F clutter), flushed every 500 rows:
-    estimates / association / features bytes and the summary blocks equal the whole-table path."""
-
-    cfg = load_config(PROJECT / "experiments" / "arterial_tlr.toml", {"run.duration_s": 60.0})
+@pytest.mark.parametrize("config, seconds", [
+    ("arterial_tlr.toml", 60.0),  # GNSS zones and areas, V2F clutter
+    ("arterial_tlr_infra.toml", 30.0),  # covered / rsu columns, summary["within_rsu_coverage"]
+    ("arterial_ped_tlr.toml", 30.0),  # pedestrian features: appear, move and leave
+])
+def test_short_arterial_runs_equal_the_whole_tables(tmp_path, monkeypatch, config, seconds):
+    """Shipped SUMO configs, flushed every 300 rows: estimates / association / features bytes and the
+    summary blocks equal the whole-table path."""
+    cfg = load_config(PROJECT / "experiments" / config, {"run.duration_s": seconds})
     ref = []
-    summary = _run(cfg, tmp_path / "out", 500, monkeypatch, ref)
+    summary = _run(cfg, tmp_path / "out", 300, monkeypatch, ref)
     files, blocks = _whole_table_outputs(ref[0], cfg)
+    assert "estimates.parquet" in files
+    for name in FILES:
+        assert (tmp_path / "out" / name).exists() == (name in files), name
     for name, data in files.items():
         assert (tmp_path / "out" / name).read_bytes() == data, name
     assert _summary_blocks(summary) == blocks
-    assert len(blocks["methods"]["icp_da_lc"]["by_zone"]) > 1 and blocks["association"]["icp_da_lc"]["by_zone"]
+    assert len(next(iter(blocks["methods"].values()))["by_area"]) > 1
+    assert ("within_rsu_coverage" in blocks) == ("infra" in config)
 
 
 def test_pair_counts_merged_per_flush_give_the_labels_of_the_whole_run():
