@@ -10,8 +10,11 @@ The published files are the bytes the whole-table writer gave (``pq.write_table`
 table; :class:`EstimateLog` of :mod:`experiments.runner` is that in-memory path, kept as the
 reference of the tests): the same rows in the same order (method by method, each in step order),
 the same schema, and row groups of :data:`ROW_GROUP` rows. Parquet pages do not depend on how the
-rows of a row group were chunked in memory (checked with pyarrow 23), only the row group
-boundaries do, so the files are written through a buffer of one row group.
+rows of a row group were split in memory once each column is one contiguous array (a float
+column's dictionary outgrows its 1 MB limit and the writer falls back to plain encoding at a point
+that depends on the chunks; checked with pyarrow 23), so the files are written through a buffer of
+one row group, made contiguous before it is written (two row groups in memory for that moment,
+about 2 x 220 MB of estimates rows).
 
 The summary blocks are computed from the spill files, equal to the whole-table ones (the same
 numpy reductions over the same arrays, in the same order):
@@ -59,6 +62,8 @@ FLUSH_ROWS = 1 << 16
 # Rows per row group of the published files: pq.write_table's default (1024 * 1024), the layout the
 # files had when they were written from the whole table.
 ROW_GROUP = 1 << 20
+# The options of experiments.runner.write_parquet (the defaults of pq.write_table otherwise).
+PARQUET_OPTIONS = {"compression": "zstd", "write_statistics": True}
 
 ESTIMATE_EXTRA = ("nees",)  # spilled beside the estimates.parquet columns, for the summary only
 FEATURE_COLUMNS = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
@@ -135,12 +140,17 @@ class RowGroupWriter:
         import pyarrow.parquet as pq
 
         buffered = pa.concat_tables(self._parts)
-        if self._writer is None:
-            self._writer = pq.ParquetWriter(str(self.path), buffered.schema, compression="zstd", write_statistics=True)
-        self._writer.write_table(buffered.slice(0, n), row_group_size=ROW_GROUP)
+        # One contiguous array per column, as the whole table had: where a column's dictionary outgrows
+        # its limit (float columns), the writer falls back to plain encoding at a point that depends
+        # on the chunks it is given.
+        head = buffered.slice(0, n).combine_chunks()
         rest = buffered.slice(n)
         self._parts = [rest] if rest.num_rows else []
         self._buffered = rest.num_rows
+        del buffered
+        if self._writer is None:
+            self._writer = pq.ParquetWriter(str(self.path), head.schema, **PARQUET_OPTIONS)
+        self._writer.write_table(head, row_group_size=ROW_GROUP)
 
     def close(self) -> None:
         if self._buffered:
