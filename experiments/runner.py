@@ -605,63 +605,60 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
     else:
         estimators = build_estimators(cfg)
     with staged_folder(out_dir, "run", force=force) as tmp:
-        methods = list(cfg.run.methods)
         # the rows go to spill files in the staging folder as the run goes (experiments.rowstream)
-        log = StreamLog(tmp / ".rows", cfg.run.name, methods)
+        log = StreamLog(tmp / ".rows", cfg.run.name, list(cfg.run.methods))
         seconds = {m: 0.0 for m in cfg.run.methods}
         comm = {m: CommTally() for m in cfg.run.methods}
         v2v = V2vTally()
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         try:
-            try:
-                if workers >= 1:  # started before SUMO, so that the workers' imports overlap its start-up
-                    pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
-                with source:
-                    version = source.sumo_version
-                    frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
-                    steps = _serial_steps(frames, estimators, timing) if pool is None else _pooled_steps(frames, pool,
-                                                                                                         timing)
-                    for frame, results in steps:
-                        log.add_truth(frame)
-                        v2v.add(frame)
-                        for r in results:
-                            seconds[r.name] += r.seconds
-                            if r.sent is not None:
-                                comm[r.name].add(r.sent)
-                            log.add(r.name, r.estimate)
-                            log.add_association(r.name, frame, r.estimate)
-                            log.add_features(r.name, frame, r.estimate)
-                    log.flush()
-            finally:
-                if pool is not None:
-                    pool.close()
-            method_stats = (dict(pool.stats) if pool is not None else
-                            {e.name: stats for e in estimators if (stats := estimator_stats(e)) is not None})
-            # The estimators' state is not needed for the files: let it go before the files are written (the
-            # PF's kept kernel matrices are 2 GB).
-            estimators.clear()
-            wall = time.perf_counter() - t_start
-            traffic = source.traffic_table()
-            if log.rows == 0:  # nothing to score: say so rather than write an empty run
-                raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the "
-                                                             f"{cfg.run.duration_s:g} s simulated: nothing to "
-                                                             "estimate; run longer")
-            provenance = {"git": git_revision(), "config_source": str(cfg.path)}
-            if version is not None:
-                provenance = {"sumo_version": version, **provenance}
-            else:
-                provenance["frames"] = f"couplers.scenarios ({cfg.scenario.kind}), no SUMO"
-            scores = log.association_scores()
-            (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
-            blocks = log.write_estimates(tmp / "estimates.parquet")
-            write_parquet(traffic, tmp / "traffic.parquet")
-            # Correct / wrong / discarded V2F rows per method and step, for methods that pair
-            # measurements with tracks; a GNSS-only run writes the schema with no rows.
-            write_parquet(association_table(methods, scores), tmp / "association.parquet")
-            feature_blocks = log.write_features(tmp / "features.parquet", scores, KNOWN_ASSOCIATION_METHODS)
+            if workers >= 1:  # started before SUMO, so that the workers' imports overlap its start-up
+                pool = EstimatorPool(cfg.run.methods, method_params(cfg), workers)
+            with source:
+                version = source.sumo_version
+                frames = progress_frames(source.frames(), source.n_steps, cfg.run.name, progress)
+                steps = _serial_steps(frames, estimators, timing) if pool is None else _pooled_steps(frames, pool,
+                                                                                                     timing)
+                for frame, results in steps:
+                    log.add_truth(frame)
+                    v2v.add(frame)
+                    for r in results:
+                        seconds[r.name] += r.seconds
+                        if r.sent is not None:
+                            comm[r.name].add(r.sent)
+                        log.add(r.name, r.estimate)
+                        log.add_association(r.name, frame, r.estimate)
+                        log.add_features(r.name, frame, r.estimate)
+                log.flush()
         finally:
-            log.discard()
+            if pool is not None:
+                pool.close()
+        method_stats = (dict(pool.stats) if pool is not None else
+                        {e.name: stats for e in estimators if (stats := estimator_stats(e)) is not None})
+        # The estimators' state is not needed for the files: let it go before the files are written (the
+        # PF's kept kernel matrices are 2 GB).
+        estimators.clear()
+        wall = time.perf_counter() - t_start
+        traffic = source.traffic_table()
+        if log.rows == 0:  # nothing to score: say so rather than write an empty run
+            raise InputError(cfg.path, "run.duration_s", f"no vehicle was in the network in the {cfg.run.duration_s:g} s "
+                                                         "simulated: nothing to estimate; run longer")
+        provenance = {"git": git_revision(), "config_source": str(cfg.path)}
+        if version is not None:
+            provenance = {"sumo_version": version, **provenance}
+        else:
+            provenance["frames"] = f"couplers.scenarios ({cfg.scenario.kind}), no SUMO"
+        methods = list(cfg.run.methods)
+        scores = log.association_scores()
+        (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
+        blocks = log.write_estimates(tmp / "estimates.parquet")
+        write_parquet(traffic, tmp / "traffic.parquet")
+        # Correct / wrong / discarded V2F rows per method and step, for methods that pair
+        # measurements with tracks; a GNSS-only run writes the schema with no rows.
+        write_parquet(association_table(methods, scores), tmp / "association.parquet")
+        feature_blocks = log.write_features(tmp / "features.parquet", scores, KNOWN_ASSOCIATION_METHODS)
+        log.discard()  # the spill files (on an error, staged_folder removes them with the staging folder)
         summary = {
             "config": str(cfg.path),
             "seed": cfg.run.seed,
