@@ -21,9 +21,9 @@ numpy reductions over the same arrays, in the same order):
 
 * per method, after the loop: err_pos, err_vel, err_along, err_cross (float64), the position NEES
   (float64, computed per flush: the covariance term ``cov[0, 1]`` is not in estimates.parquet),
-  zone and area codes (int32), and under ``[infra]`` covered (bool) and rsu codes (int32): 57 bytes
-  per row of one method (66 with ``[infra]``) while its summary is computed; RMSE and percentiles
-  need the samples;
+  zone and area codes (int32), and under ``[infra]`` covered (bool) and rsu codes (int32): 48 bytes
+  per row of one method (53 with ``[infra]``), about twice that while pandas groups them, while its
+  summary is computed; RMSE and percentiles need the samples;
 * association: the (track, true feature) pair counts are summed per flush (the track labels come
   from the counts only), then the spilled V2F rows are scored batch by batch: per step counts (24
   bytes per step and method) and per-zone counts;
