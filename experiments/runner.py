@@ -55,14 +55,10 @@ from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
 from experiments.pipeline import BATCH, estimator_stats, step_batch
+from experiments.rowstream import StreamLog
 from experiments.scoring import (
     along_cross_errors,
-    association_by_group,
     association_summary,
-    coverage_summary,
-    feature_summary,
-    method_summary,
-    nees_summary,
     score_association,
     traffic_summary,
 )
@@ -204,7 +200,8 @@ def git_revision() -> str:
 
 @dataclass
 class EstimateLog:
-    """Per-step rows of one run, kept as arrays and concatenated once at the end."""
+    """Per-step rows of one run, kept as arrays and concatenated once at the end: the in-memory
+    reference of :class:`experiments.rowstream.StreamLog`, which the runner uses (tests)."""
 
     truth_parts: list = field(default_factory=list)
     method_parts: dict = field(default_factory=dict)
@@ -274,18 +271,7 @@ class EstimateLog:
         return out
 
     def association_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
-        import pandas as pd
-
-        table = empty_association_table()
-        parts = []
-        for m in methods:
-            if m in scores:
-                t, counts, _ = scores[m]
-                parts.append(pd.DataFrame({"method": m, "t": t, "correct": counts[:, 0],
-                                           "wrong": counts[:, 1], "discarded": counts[:, 2]}))
-        if not parts:
-            return table
-        return pd.concat(parts, ignore_index=True).astype(table.dtypes.to_dict())
+        return association_table(methods, scores)
 
     def feature_table(self, methods: list[str], scores: dict) -> pd.DataFrame:
         """Feature errors: known-association tracks are true feature indices; other tracks are
@@ -380,6 +366,23 @@ class EstimateLog:
                 )
             )
         return pd.concat(frames, ignore_index=True)
+
+
+def association_table(methods: list[str], scores: dict) -> pd.DataFrame:
+    """association.parquet: per method and step (method -> (t, counts, labels) of
+    :meth:`EstimateLog.association_scores`), the correct / wrong / discarded V2F rows."""
+    import pandas as pd
+
+    table = empty_association_table()
+    parts = []
+    for m in methods:
+        if m in scores:
+            t, counts, _ = scores[m]
+            parts.append(pd.DataFrame({"method": m, "t": t, "correct": counts[:, 0],
+                                       "wrong": counts[:, 1], "discarded": counts[:, 2]}))
+    if not parts:
+        return table
+    return pd.concat(parts, ignore_index=True).astype(table.dtypes.to_dict())
 
 
 def empty_association_table() -> pd.DataFrame:
@@ -657,7 +660,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
     else:
         estimators = build_estimators(cfg)
     with staged_folder(out_dir, "run", force=force) as tmp:
-        log = EstimateLog()
+        # the rows go to spill files in the staging folder as the run goes (experiments.rowstream)
+        log = StreamLog(tmp / ".rows", cfg.run.name, list(cfg.run.methods))
         seconds = {m: 0.0 for m in cfg.run.methods}
         comm = {m: CommTally() for m in cfg.run.methods}
         v2v = V2vTally()
@@ -683,19 +687,18 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                         log.add(r.name, r.estimate)
                         log.add_association(r.name, frame, r.estimate)
                         log.add_features(r.name, frame, r.estimate)
+                log.flush()
         finally:
             if pool is not None:
                 pool.close()
         method_stats = (dict(pool.stats) if pool is not None else
                         {e.name: stats for e in estimators if (stats := estimator_stats(e)) is not None})
-        # The estimators' state is not needed for the files: let it go before the tables are built (the
-        # PF's kept kernel matrices are 2 GB; TLR hour with icp_da_pf: peak 4.42 GB with them, the tables
-        # add 0.8 GB to the loop's 3.6 GB).
+        # The estimators' state is not needed for the files: let it go before the files are written (the
+        # PF's kept kernel matrices are 2 GB).
         estimators.clear()
         wall = time.perf_counter() - t_start
         traffic = source.traffic_table()
-        estimates = log.table(cfg.run.name)
-        if estimates.empty:  # nothing to score: say so rather than write an empty run
+        if log.rows == 0:  # nothing to score: say so rather than write an empty run
             raise _nothing_to_estimate(cfg, traffic)
         provenance = {"git": git_revision(), "config_source": str(cfg.path)}
         if version is not None:
@@ -705,14 +708,13 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         methods = list(cfg.run.methods)
         scores = log.association_scores()
         (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
-        write_parquet(estimates, tmp / "estimates.parquet")
+        blocks = log.write_estimates(tmp / "estimates.parquet")
         write_parquet(traffic, tmp / "traffic.parquet")
         # Correct / wrong / discarded V2F rows per method and step, for methods that pair
         # measurements with tracks; a GNSS-only run writes the schema with no rows.
-        write_parquet(log.association_table(methods, scores), tmp / "association.parquet")
-        features = log.feature_table(methods, scores)
-        if len(features):
-            write_parquet(features, tmp / "features.parquet")
+        write_parquet(association_table(methods, scores), tmp / "association.parquet")
+        feature_blocks = log.write_features(tmp / "features.parquet", scores, KNOWN_ASSOCIATION_METHODS)
+        log.discard()  # the spill files (on an error, staged_folder removes them with the staging folder)
         summary = {
             "config": str(cfg.path),
             "seed": cfg.run.seed,
@@ -725,28 +727,24 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "wall_seconds": wall,
         }
         for method in methods:
-            rows = estimates[estimates["method"] == method]
-            block = method_summary(rows)
-            block["nees_pos"] = nees_summary(log.position_nees(method), rows["zone"].to_numpy())
+            block = blocks[method]
             block["seconds"] = seconds[method]
             if comm[method].steps:
                 block["comm"] = comm[method].summary()
-            feat = features[features["method"] == method]["err_pos"].to_numpy()
-            if feat.size:
-                block["features"] = feature_summary(feat)
+            if method in feature_blocks:
+                block["features"] = feature_blocks[method]
             summary["methods"][method] = block
             if method in scores:
                 summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
-                summary["association"][method]["by_zone"] = association_by_group(
-                    [(a, f) for _, a, f in log.assoc_parts[method]], log.assoc_zone_parts[method], scores[method][2])
+                summary["association"][method]["by_zone"] = log.association_by_zone[method]
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
             # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).
-            vehicle_steps = sum(len(p[1]) for p in log.truth_parts)
+            vehicle_steps = log.vehicle_steps
             summary["perception"] = {"totals": dict(totals),
                                      "per_vehicle_step": {k: v / vehicle_steps for k, v in totals.items()}}
-        if log.infra_parts:
-            cov_summary = coverage_summary(estimates, methods)
+        if log.infra:
+            cov_summary = blocks["_coverage"]
             for name, stats in method_stats.items():
                 if stats is not None and name in cov_summary["methods"]:
                     cov_summary["methods"][name]["stats"] = stats

@@ -210,7 +210,7 @@ def test_particle_known_association_method_is_the_pf_told_the_truth(tmp_path):
 
 @pytest.mark.parametrize("workers", [0, 1])
 def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch, workers):
-    """After the loop the runner holds no estimator while it builds the Parquet tables (the PF's kept kernel
+    """After the loop the runner holds no estimator while it writes the Parquet files (the PF's kept kernel
     matrices are 2 GB on the arterial: the TLR hour peaked at 4.42 GB when they were still held); with
     workers, none of those that stepped in the runner's own process."""
     import gc
@@ -233,7 +233,7 @@ def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch, work
         return est
 
     alive_at_tables = []
-    table = runner.EstimateLog.table
+    table = runner.StreamLog.write_estimates
 
     def checking_table(self, *args, **kwargs):
         gc.collect()
@@ -242,7 +242,7 @@ def test_the_estimators_are_let_go_before_the_tables(tmp_path, monkeypatch, work
 
     monkeypatch.setattr(runner, "build_estimators", recording_build)
     monkeypatch.setattr(registry, "build_method", recording_build_one)
-    monkeypatch.setattr(runner.EstimateLog, "table", checking_table)
+    monkeypatch.setattr(runner.StreamLog, "write_estimates", checking_table)
     cfg = load_config(_cfg(tmp_path, SINGLE.replace('"icp_known_da"]', '"icp_known_da", "icp_da_lc"]')))
     runner.run_experiment(cfg, tmp_path / "out", progress=False, write_report=False, workers=workers)
     # workers = 1: gnss and icp_known_da step beside the scenario, icp_da_lc in the worker

@@ -1,0 +1,493 @@
+"""A run's rows streamed to disk as the run goes: estimates, association and feature rows.
+
+The runner hands every step's truth and estimates to :class:`StreamLog`; every ``flush_rows`` buffered
+rows (and at the end) they go to spill files in a folder of the run's staging folder, one Arrow IPC
+stream per method and kind, as record batches. Memory in the loop is one flush of rows, whatever
+the run's length. After the loop, :meth:`StreamLog.finish` reads the spill files back batch by
+batch and writes the published files, then removes the spill folder.
+
+The published files are the bytes the whole-table writer gave (``pq.write_table`` of the concatenated
+table; :class:`EstimateLog` of :mod:`experiments.runner` is that in-memory path, kept as the
+reference of the tests): the same rows in the same order (method by method, each in step order),
+the same schema, and row groups of :data:`ROW_GROUP` rows. Parquet pages do not depend on how the
+rows of a row group were split in memory once each column is one contiguous array (a float
+column's dictionary outgrows its 1 MB limit and the writer falls back to plain encoding at a point
+that depends on the chunks; checked with pyarrow 23), so the files are written through a buffer of
+one row group, made contiguous before it is written (two row groups in memory for that moment,
+about 2 x 220 MB of estimates rows).
+
+The summary blocks are computed from the spill files, equal to the whole-table ones (the same
+numpy reductions over the same arrays, in the same order):
+
+* per method, after the loop: err_pos, err_vel, err_along, err_cross (float64), the position NEES
+  (float64, computed per flush: the covariance term ``cov[0, 1]`` is not in estimates.parquet),
+  zone and area codes (int32), and under ``[infra]`` covered (bool) and rsu codes (int32): 48 bytes
+  per row of one method (53 with ``[infra]``), about twice that while pandas groups them, while its
+  summary is computed; RMSE and percentiles need the samples;
+* association: the (track, true feature) pair counts are summed per flush (the track labels come
+  from the counts only), then the spilled V2F rows are scored batch by batch: per step counts (24
+  bytes per step and method) and per-zone counts;
+* feature errors: the spilled track rows are scored batch by batch with the labels; their err_pos
+  (8 bytes per row of one method) is kept for the method's summary. The true feature positions are
+  kept in memory only when they change (static landmarks: once; moving or appearing features: one
+  copy per step, as before).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from coloc.core.frame import Frame, StepEstimate
+from experiments.scoring import (
+    _correct_rows,
+    along_cross_errors,
+    association_summary,
+    coverage_summary,
+    feature_summary,
+    method_summary,
+    nees_summary,
+)
+
+if TYPE_CHECKING:
+    import pandas as pd
+    import pyarrow as pa
+
+# Vehicle-steps, V2F rows and feature-track rows buffered before they go to the spill files
+# (64 Ki rows: about 14 MB of estimates rows per method).
+FLUSH_ROWS = 1 << 16
+# Rows per row group of the published files: pq.write_table's default (1024 * 1024), the layout the
+# files had when they were written from the whole table.
+ROW_GROUP = 1 << 20
+# The options of experiments.runner.write_parquet (the defaults of pq.write_table otherwise).
+PARQUET_OPTIONS = {"compression": "zstd", "write_statistics": True}
+
+ESTIMATE_EXTRA = ("nees",)  # spilled beside the estimates.parquet columns, for the summary only
+FEATURE_COLUMNS = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
+
+
+def _arrow_table(df: pd.DataFrame) -> pa.Table:
+    """The Arrow table :func:`experiments.runner.write_parquet` makes of a frame."""
+    import pyarrow as pa
+
+    return pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
+
+
+class _Spill:
+    """One Arrow IPC stream file (lz4 frames), appended to as the run goes and read back batch by batch."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.rows = 0
+        self._sink = None
+        self._writer = None
+
+    def write(self, table: pa.Table) -> None:
+        import pyarrow as pa
+
+        if table.num_rows == 0:
+            return
+        if self._writer is None:
+            self._sink = pa.OSFile(str(self.path), "wb")
+            self._writer = pa.ipc.new_stream(self._sink, table.schema,
+                                             options=pa.ipc.IpcWriteOptions(compression="lz4"))
+        self._writer.write_table(table)
+        self.rows += table.num_rows
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._sink.close()
+            self._writer = self._sink = None
+
+    def batches(self):
+        """The record batches written, in order (none if nothing was written)."""
+        import pyarrow as pa
+
+        self.close()
+        if not self.path.exists():
+            return
+        with pa.OSFile(str(self.path), "rb") as f:
+            yield from pa.ipc.open_stream(f)
+
+
+class RowGroupWriter:
+    """A Parquet file written as :func:`experiments.runner.write_parquet` writes a whole table (zstd,
+    statistics, row groups of :data:`ROW_GROUP` rows), from tables appended in row order; holds at
+    most one row group and one appended table. Nothing is written when no row comes."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.rows = 0
+        self._parts: list = []
+        self._buffered = 0
+        self._writer = None
+
+    def append(self, table: pa.Table) -> None:
+        if table.num_rows == 0:
+            return
+        self._parts.append(table)
+        self._buffered += table.num_rows
+        self.rows += table.num_rows
+        while self._buffered >= ROW_GROUP:
+            self._write(ROW_GROUP)
+
+    def _write(self, n: int) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        buffered = pa.concat_tables(self._parts)
+        # One contiguous array per column, as the whole table had: where a column's dictionary outgrows
+        # its limit (float columns), the writer falls back to plain encoding at a point that depends
+        # on the chunks it is given.
+        head = buffered.slice(0, n).combine_chunks()
+        rest = buffered.slice(n)
+        self._parts = [rest] if rest.num_rows else []
+        self._buffered = rest.num_rows
+        del buffered
+        if self._writer is None:
+            self._writer = pq.ParquetWriter(str(self.path), head.schema, **PARQUET_OPTIONS)
+        self._writer.write_table(head, row_group_size=ROW_GROUP)
+
+    def close(self) -> None:
+        if self._buffered:
+            self._write(self._buffered)
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
+class _Codes:
+    """Small integer codes of a few distinct strings (GNSS zones, areas, RSU ids), in first-seen order."""
+
+    def __init__(self):
+        self.names: list[str] = []
+        self._index: dict[str, int] = {}
+
+    def encode(self, values) -> np.ndarray:
+        values = np.asarray(values).astype(str)
+        if values.size == 0:
+            return np.empty(0, dtype=np.int32)
+        uniq, inv = np.unique(values, return_inverse=True)
+        codes = np.array([self._index.setdefault(u, len(self._index)) for u in uniq.tolist()], dtype=np.int32)
+        self.names = list(self._index)
+        return codes[inv.reshape(-1)]
+
+    def categorical(self, codes: np.ndarray):
+        """``codes`` as a pandas Categorical whose categories are sorted, so that a sorted groupby
+        visits the groups in the order of the strings."""
+        import pandas as pd
+
+        order = sorted(range(len(self.names)), key=lambda i: self.names[i])
+        rank = np.empty(len(order), dtype=np.int32)
+        rank[order] = np.arange(len(order), dtype=np.int32)
+        return pd.Categorical.from_codes(rank[codes] if codes.size else codes, [self.names[i] for i in order])
+
+
+def _merge_pair_counts(acc: tuple[np.ndarray, np.ndarray], track: np.ndarray, feature: np.ndarray):
+    """(pairs (P, 2), counts (P,)) of distinct (track, feature) pairs, with ``track``/``feature`` rows added."""
+    pairs = np.concatenate([acc[0], np.stack([track, feature], axis=1)])
+    counts = np.concatenate([acc[1], np.ones(track.size, dtype=np.int64)])
+    if pairs.shape[0] == 0:
+        return acc
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    pairs, counts = pairs[order], counts[order]
+    first = np.ones(pairs.shape[0], dtype=bool)
+    first[1:] = (pairs[1:, 0] != pairs[:-1, 0]) | (pairs[1:, 1] != pairs[:-1, 1])
+    starts = np.flatnonzero(first)
+    return pairs[starts], np.add.reduceat(counts, starts)
+
+
+def _labels(pairs: np.ndarray, counts: np.ndarray) -> dict[int, int]:
+    """The track labels of :func:`experiments.scoring.track_labels` from the pair counts: most
+    frequent feature per track, ties to the smallest."""
+    if pairs.shape[0] == 0:
+        return {}
+    order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+    pairs = pairs[order]
+    first = np.ones(len(pairs), dtype=bool)
+    first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+    return {int(t): int(f) for t, f in pairs[first]}
+
+
+class StreamLog:
+    """Per-step rows of one run, streamed to spill files in ``folder`` (created; removed by
+    :meth:`finish` or :meth:`discard`). ``methods``: the order of the methods in the files."""
+
+    def __init__(self, folder: Path, run_name: str, methods: list[str], flush_rows: int | None = None):
+        self.folder = Path(folder)
+        self.folder.mkdir()
+        self.run_name = run_name
+        self.methods = list(methods)
+        self.flush_rows = FLUSH_ROWS if flush_rows is None else int(flush_rows)
+        self.vehicle_steps = 0
+        self.infra = False
+        self.zones, self.areas, self.rsus = _Codes(), _Codes(), _Codes()
+        self._truth: list = []
+        self._infra: list = []
+        self._est: dict[str, list] = {}
+        self._assoc: dict[str, list] = {}
+        self._tracks: dict[str, list] = {}
+        self._buffered = 0
+        self._est_spill: dict[str, _Spill] = {}
+        self._assoc_spill: dict[str, _Spill] = {}
+        self._track_spill: dict[str, _Spill] = {}
+        # association: per method, t of every step with a V2F pairing and the (track, feature) pair counts
+        self._assoc_t: dict[str, list] = {}
+        self._pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        # true feature positions (K, 2), a new copy only when they change
+        self._feature_truth: list[np.ndarray] = []
+
+    # ----------------------------------------------------------------- the loop
+    def add_truth(self, frame: Frame) -> None:
+        if self._buffered >= self.flush_rows:
+            self.flush()
+        tr = frame.truth
+        self._truth.append((np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone,
+                            tr.area))
+        self._buffered += frame.n_vehicles
+        self.vehicle_steps += frame.n_vehicles
+        if frame.infra is not None:
+            from coloc.methods.infra import home_rsu
+
+            self.infra = True
+            home = home_rsu(frame.infra.v2i) if frame.n_vehicles else np.empty(0, dtype=np.int64)
+            names = np.append(frame.infra.rsu_ids.astype(str), "")[home]
+            self._infra.append((home >= 0, names))
+
+    def add(self, method: str, est: StepEstimate) -> None:
+        self._est.setdefault(method, []).append((est.mean, est.cov[:, 0, 0], est.cov[:, 1, 1], est.cov[:, 0, 1]))
+
+    def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
+        """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
+        if est.v2f_assignment is None:
+            return
+        assign = np.asarray(est.v2f_assignment, dtype=np.int64)
+        truth = np.asarray(frame.truth.v2f_feature, dtype=np.int64)
+        if assign.shape != truth.shape:
+            raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
+        steps = self._assoc_t.setdefault(method, [])
+        zone = np.asarray(frame.truth.zone)[np.asarray(frame.v2f_owner)]
+        self._assoc.setdefault(method, []).append((len(steps), assign, truth, zone))
+        steps.append(frame.t)
+        self._buffered += assign.size
+
+    def add_features(self, method: str, frame: Frame, est: StepEstimate) -> None:
+        """Feature-track estimates; scored against the truth once the track labels are known."""
+        if est.feature_mean is None or est.feature_track_ids is None or est.feature_mean.shape[0] == 0:
+            return
+        ids = np.asarray(est.feature_track_ids, dtype=np.int64)
+        truth_xy = frame.truth.features_true[:, :2]
+        last = self._feature_truth[-1] if self._feature_truth else None
+        if last is None or last.shape != truth_xy.shape or not np.array_equal(last, truth_xy, equal_nan=True):
+            self._feature_truth.append(truth_xy.copy())
+        self._tracks.setdefault(method, []).append(
+            (frame.t, ids, est.feature_mean[:, :2].copy(), len(self._feature_truth) - 1))
+        self._buffered += ids.size
+
+    def flush(self) -> None:
+        """Write the buffered steps to the spill files."""
+        import pandas as pd
+        import pyarrow as pa
+
+        if self._truth:
+            t, vid, x_true, heading, zone, area = (np.concatenate(c) for c in zip(*self._truth))
+            infra_cols = {}
+            if self._infra:
+                covered, rsu = (np.concatenate(c) for c in zip(*self._infra))
+                infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
+            vid, zone, area = vid.astype(str), zone.astype(str), area.astype(str)  # once for every method
+            for method, parts in self._est.items():
+                mean, vx_, vy_, cxy = (np.concatenate(c) for c in zip(*parts))
+                err = mean - x_true
+                along, cross = along_cross_errors(err[:, :2], heading)
+                df = pd.DataFrame(
+                    {
+                        "run": self.run_name,
+                        "method": method,
+                        "t": t,
+                        "vehicle": vid,
+                        "px": mean[:, 0], "py": mean[:, 1], "vx": mean[:, 2], "vy": mean[:, 3],
+                        "px_true": x_true[:, 0], "py_true": x_true[:, 1],
+                        "vx_true": x_true[:, 2], "vy_true": x_true[:, 3],
+                        "err_pos": np.hypot(err[:, 0], err[:, 1]),
+                        "err_vel": np.hypot(err[:, 2], err[:, 3]),
+                        "err_along": along, "err_cross": cross,
+                        "zone": zone, "area": area,
+                        "var_px": vx_, "var_py": vy_,
+                        **infra_cols,
+                    }
+                )
+                # 2-D position NEES e^T P^-1 e (EstimateLog.position_nees, the same expression)
+                ex, ey = err[:, 0], err[:, 1]
+                det = vx_ * vy_ - cxy * cxy
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    df["nees"] = (vy_ * ex * ex - 2.0 * cxy * ex * ey + vx_ * ey * ey) / det
+                self._spill(self._est_spill, "estimates", method).write(_arrow_table(df))
+        for method, parts in self._assoc.items():
+            step = np.concatenate([np.full(a.size, s, dtype=np.int64) for s, a, _, _ in parts])
+            assign = np.concatenate([a for _, a, _, _ in parts])
+            truth = np.concatenate([f for _, _, f, _ in parts])
+            zone = self.zones.encode(np.concatenate([z.astype(str) for _, _, _, z in parts]))
+            kept = assign >= 0
+            acc = self._pairs.get(method, (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.int64)))
+            self._pairs[method] = _merge_pair_counts(acc, assign[kept], truth[kept])
+            self._spill(self._assoc_spill, "association", method).write(
+                pa.table({"step": step, "assign": assign, "truth": truth, "zone": zone}))
+        for method, parts in self._tracks.items():
+            self._spill(self._track_spill, "tracks", method).write(pa.table({
+                "t": np.concatenate([np.full(ids.size, t) for t, ids, _, _ in parts]),
+                "track": np.concatenate([ids for _, ids, _, _ in parts]),
+                "x": np.concatenate([xy[:, 0] for _, _, xy, _ in parts]),
+                "y": np.concatenate([xy[:, 1] for _, _, xy, _ in parts]),
+                "truth": np.concatenate([np.full(ids.size, v, dtype=np.int64) for _, ids, _, v in parts]),
+            }))
+        self._truth, self._infra, self._est, self._assoc, self._tracks = [], [], {}, {}, {}
+        self._buffered = 0
+
+    def _spill(self, spills: dict, kind: str, method: str) -> _Spill:
+        if method not in spills:
+            spills[method] = _Spill(self.folder / f"{kind}-{len(spills)}.arrows")
+        return spills[method]
+
+    # ----------------------------------------------------------------- after the loop
+    @property
+    def rows(self) -> int:
+        """Estimates rows spilled (all methods)."""
+        return sum(s.rows for s in self._est_spill.values())
+
+    def association_scores(self) -> dict[str, tuple[np.ndarray, np.ndarray, dict[int, int]]]:
+        """method -> (t (S,), counts (S, 3) [correct, wrong, discarded], track labels), as
+        :meth:`experiments.runner.EstimateLog.association_scores`; with :attr:`association_by_zone`."""
+        out = {}
+        self.association_by_zone = {}
+        for method, steps in self._assoc_t.items():
+            pairs = self._pairs.get(method, (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.int64)))
+            labels = _labels(*pairs)
+            n = len(steps)
+            counts = np.zeros((n, 3), dtype=np.int64)
+            by_zone = np.zeros((len(self.zones.names), 3), dtype=np.int64)
+            for batch in self._assoc_spill[method].batches() if method in self._assoc_spill else ():
+                step, assign, truth, zone = (batch.column(c).to_numpy() for c in ("step", "assign", "truth", "zone"))
+                correct = _correct_rows(assign, truth, labels)
+                kept = assign >= 0
+                for j, sel in enumerate((correct, kept & ~correct, ~kept)):
+                    counts[:, j] += np.bincount(step[sel], minlength=n)
+                    by_zone[:, j] += np.bincount(zone[sel], minlength=len(self.zones.names))
+            out[method] = (np.array(steps, dtype=float), counts, labels)
+            seen = by_zone.sum(axis=1) > 0
+            self.association_by_zone[method] = {
+                self.zones.names[i]: association_summary(*by_zone[i].tolist())
+                for i in sorted(np.flatnonzero(seen).tolist(), key=lambda i: self.zones.names[i])}
+        return out
+
+    def write_estimates(self, path: Path) -> dict:
+        """Write estimates.parquet; returns per method its summary blocks (method_summary with
+        ``nees_pos``) and, under ``[infra]``, summary["within_rsu_coverage"] as ``"_coverage"``."""
+        import pandas as pd
+        import pyarrow as pa
+
+        out = RowGroupWriter(path)
+        blocks: dict = {}
+        coverage = {"methods": {}, "rsu_vehicle_steps": {}}
+        cols = ("err_pos", "err_vel", "err_along", "err_cross", "nees")
+        for method in self.methods:
+            if method not in self._est_spill:
+                continue
+            kept: dict[str, list] = {c: [] for c in (*cols, "zone", "area", "covered", "rsu")}
+            for batch in self._est_spill[method].batches():
+                names = [c for c in batch.schema.names if c not in ESTIMATE_EXTRA]
+                out.append(pa.Table.from_batches([batch.select(names)]))
+                for c in cols:
+                    kept[c].append(batch.column(c).to_numpy())
+                kept["zone"].append(self.zones.encode(batch.column("zone").to_numpy(zero_copy_only=False)))
+                kept["area"].append(self.areas.encode(batch.column("area").to_numpy(zero_copy_only=False)))
+                if self.infra:
+                    kept["covered"].append(batch.column("covered").to_numpy(zero_copy_only=False))
+                    kept["rsu"].append(self.rsus.encode(batch.column("rsu").to_numpy(zero_copy_only=False)))
+            arrays = {c: np.concatenate(v) for c, v in kept.items() if v}
+            zone = self.zones.categorical(arrays.pop("zone"))
+            df = pd.DataFrame({"err_pos": arrays["err_pos"], "err_vel": arrays["err_vel"],
+                               "err_along": arrays["err_along"], "err_cross": arrays["err_cross"],
+                               "zone": zone, "area": self.areas.categorical(arrays.pop("area"))})
+            block = method_summary(df)
+            block["nees_pos"] = nees_summary(arrays["nees"], zone)
+            blocks[method] = block
+            if self.infra:
+                df["method"] = pd.Categorical.from_codes(np.zeros(len(df), dtype=np.int8), [method])
+                df["covered"] = arrays["covered"]
+                df["rsu"] = self.rsus.categorical(arrays["rsu"])
+                cov = coverage_summary(df, [method])
+                coverage["methods"][method] = cov["methods"][method]
+                if method == self.methods[0]:
+                    coverage["rsu_vehicle_steps"] = cov["rsu_vehicle_steps"]
+            del df, arrays, kept
+        out.close()
+        if self.infra:
+            blocks["_coverage"] = coverage
+        return blocks
+
+    def write_features(self, path: Path, scores: dict, known: frozenset) -> dict[str, dict]:
+        """Write features.parquet (not written when there is no row; the rules of
+        :meth:`experiments.runner.EstimateLog.feature_table`); returns method -> summary["features"]."""
+        import pandas as pd
+
+        out = RowGroupWriter(path)
+        blocks = {}
+        sizes = np.array([v.shape[0] for v in self._feature_truth], dtype=np.int64)
+        for m in self.methods:
+            if m not in self._track_spill:
+                continue
+            if m in known:
+                label_of = None
+            elif m in scores:
+                labels = scores[m][2]
+                keys = np.array(sorted(labels), dtype=np.int64)
+                vals = np.array([labels[k] for k in keys], dtype=np.int64)
+                label_of = (keys, vals)
+                if keys.size == 0:
+                    continue
+            else:
+                continue  # tracks without any pairing cannot be scored
+            errs = []
+            for batch in self._track_spill[m].batches():
+                t, ids, x, y, version = (batch.column(c).to_numpy() for c in ("t", "track", "x", "y", "truth"))
+                if label_of is None:
+                    feat = ids
+                    ok = np.ones(ids.size, dtype=bool)
+                else:
+                    keys, vals = label_of
+                    pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
+                    ok = (keys[pos] == ids) & (vals[pos] >= 0)
+                    feat = np.where(ok, vals[pos], 0)
+                # SUMO pedestrians: a label registered after this step (couplers.sensing.pedestrians)
+                ok &= feat < sizes[version]
+                tx = np.full((ids.size, 2), np.nan)
+                for v in np.unique(version[ok]).tolist():
+                    sel = ok & (version == v)
+                    tx[sel] = self._feature_truth[v][feat[sel]]
+                # SUMO pedestrians: a person that has left (NaN state) has no error to score
+                ok &= np.isfinite(tx).all(axis=1)
+                if not ok.any():
+                    continue
+                ex, ey = x[ok] - tx[ok, 0], y[ok] - tx[ok, 1]
+                err = np.hypot(ex, ey)
+                errs.append(err)
+                out.append(_arrow_table(pd.DataFrame({
+                    "method": np.full(err.size, m, dtype=object), "t": t[ok], "track": ids[ok], "feature": feat[ok],
+                    "err_pos": err}).astype(FEATURE_COLUMNS)))
+            if errs:
+                blocks[m] = feature_summary(np.concatenate(errs))
+        out.close()
+        return blocks
+
+    def discard(self) -> None:
+        """Close and remove the spill files."""
+        for spills in (self._est_spill, self._assoc_spill, self._track_spill):
+            for s in spills.values():
+                s.close()
+        shutil.rmtree(self.folder, ignore_errors=True)
+
