@@ -16,6 +16,7 @@ Run it before and after a change on the same machine and compare the two listing
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import subprocess
 import sys
@@ -24,6 +25,7 @@ import tomllib
 from pathlib import Path
 
 from coloc.methods.registry import ICP_DA_PF, ICP_KNOWN_DA_PF
+from experiments.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 PARTICLE_METHODS = (ICP_DA_PF.name, ICP_KNOWN_DA_PF.name)
@@ -42,7 +44,10 @@ def cases(quick: bool, studies: bool) -> list[tuple[str, str, list[str]]]:
         if "study" in data and not studies:
             continue
         extra = []
-        run = data.get("run", {})
+        # the resolved [run] table of the SUMO configs: an overlay (``extends``) inherits its duration and methods
+        resolved = None if "study" in data else load_config(cfg)
+        run = dataclasses.asdict(resolved.run) if resolved is not None and resolved.scenario.kind == "sumo" else \
+            data.get("run", {})
         cap = QUICK_PF_S if set(run.get("methods", ())) & set(PARTICLE_METHODS) else QUICK_S
         if quick and "study" not in data and run.get("duration_s", 0) > cap:
             extra = ["--duration", str(cap)]
