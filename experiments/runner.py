@@ -481,6 +481,10 @@ class _SumoSource:
 
         return pd.DataFrame(self.coupler.traffic.stats.rows)
 
+    def traffic_losses(self) -> dict:
+        """Vehicles never inserted, dropped at load, teleported or in collisions, and the gridlock verdict."""
+        return self.coupler.traffic.losses()
+
 
 def seconds_since_process_start() -> float | None:
     """Wall seconds since this process started (Linux ``/proc``; None elsewhere)."""
@@ -692,7 +696,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "git": provenance["git"],
             "methods": {},
             "association": {},
-            "traffic": traffic_summary(traffic) if version is not None else None,
+            "traffic": {**traffic_summary(traffic), **source.traffic_losses()} if version is not None else None,
             "v2v": v2v.summary(),
             "wall_seconds": wall,
         }
