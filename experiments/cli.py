@@ -66,6 +66,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.methods is not None:
         overrides["run.methods"] = _methods(args.methods)
     cfg = load_config(args.config, overrides)
+    if not args.quiet:
+        from experiments.warm import cold_cache_note
+
+        note = cold_cache_note()
+        if note is not None:
+            print(note + "...", file=sys.stderr, flush=True)
     summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force,
                              workers=args.workers)
     for method, block in summary["methods"].items():

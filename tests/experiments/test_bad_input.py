@@ -320,6 +320,23 @@ def run_route_over_unknown_edge(tmp, net, run):
     return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
 
 
+UNSORTED = """<routes>
+  <vType id="car"/>
+  <route id="we" edges="WC CE"/>
+  <vehicle id="late" type="car" route="we" depart="100"/>
+  <vehicle id="early" type="car" route="we" depart="5"/>
+  <vehicle id="v2" type="car" route="we" depart="8"/>
+</routes>
+"""
+
+
+@case("demand.rou.xml", "depart", "not sorted by departure", "'early'", "'late'")
+def run_routes_not_sorted(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    (copy / "demand.rou.xml").write_text(UNSORTED)
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("features.add.xml", "from the nearest drivable lane")
 def run_feature_far_from_roads(tmp, net, run):
     copy = _net_copy(tmp, net)
@@ -707,6 +724,13 @@ def net_import_degenerate_signal_programs(tmp, net, run):
             "--out", str(tmp / "bs"), "--experiments-dir", str(tmp / "exps"), "--no-calibrate"], None
 
 
+@case("unsorted.rou.xml", "depart", "not sorted by departure", "'early'", "--sort-routes")
+def net_import_routes_not_sorted(tmp, net, run):
+    (tmp / "unsorted.rou.xml").write_text(UNSORTED)
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--routes", str(tmp / "unsorted.rou.xml"),
+            "--name", "x", "--out", str(tmp / "x"), "--experiments-dir", str(tmp / "exps")], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -741,7 +765,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 89
+    assert len(CASES) >= 91
 
 
 # ----------------------------------------------------------------------------- what --out may replace

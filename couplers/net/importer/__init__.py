@@ -403,7 +403,7 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     if "area" in user_geo:
         _user_geojson(user_geo["area"], work / "areas.geojson", georef, lane_xy, opts.source.name, report)
     else:
-        _default_areas(work / "areas.geojson", lane_xy, report)
+        _default_areas(work / "areas.geojson", lane_xy, report, lane_lines)
     areas = read_regions(work / "areas.geojson", "area", False)
     track_area = _busiest_area(areas, lane_lines)
     report.derived["track_area"] = track_area
