@@ -107,7 +107,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def traffic_losses_line(tr: dict) -> str:
     """The run line of the demand's vehicles: inserted, never inserted, dropped by SUMO at load, teleported,
-    in collisions, and JAMMED by the import's gridlock rule (couplers.traffic.jam)."""
+    in collisions, and JAMMED by the import's gridlock rule (couplers.net.gridlock)."""
     text = (f"{tr['inserted']} inserted, {tr['never_inserted']} never inserted (still waiting at the end), "
             f"{tr['dropped_at_load']} dropped by SUMO at load, {tr['teleports']} teleports, "
             f"{tr['collisions']} in collisions")

@@ -19,7 +19,7 @@ from numba import njit
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
-from couplers.traffic import jam
+from couplers.net import gridlock as jam
 
 try:  # imported lazily by callers that only need the pure parts of couplers
     import libsumo
@@ -234,7 +234,7 @@ class SumoTraffic:
         files by SUMO, including vehicles read ahead that depart after the end), inserted (departed), never
         inserted (due by the end but still waiting to enter), dropped at load (SUMO warnings: unsorted route
         file, no route), teleports, vehicles in collisions, and the gridlock rule's verdict
-        (:mod:`couplers.traffic.jam`)."""
+        (:mod:`couplers.net.gridlock`)."""
         dropped = {k: len(v) for k, v in self.lost_at_load.items()}
         due = self.departed + self.never_inserted
         verdict = self.jam.verdict(self.teleports, due)

@@ -224,3 +224,38 @@ def test_cdf_panels_show_the_sample_count(monkeypatch, tmp_path):
     figures._fig_cdf(run, "zone", tmp_path / "cdf.png", "zone")
     titles = [ax.get_title() for ax in drawn["fig"].axes if ax.get_visible()]
     assert titles == ["zone A (n = 300, 75.0% of samples)", "zone B (n = 100, 25.0% of samples)"]
+
+
+def test_cold_numba_cache_is_announced(tmp_path, monkeypatch):
+    from experiments.warm import CORE, cold_cache_note, kernel_index_files
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "empty"))
+    note = cold_cache_note()
+    assert note is not None and note.startswith("coloc: compiling numba kernels (first run after install")
+    files = kernel_index_files(None, CORE)
+    assert len(files) >= 10 and all(str(f).startswith(str(tmp_path / "empty")) for f in files)
+    for f in files:  # numba's index files in place: warm
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(b"")
+    assert cold_cache_note() is None
+
+
+def test_eta_is_timed_after_the_first_batches(monkeypatch, capsys):
+    """The progress line's ETA leaves out the first steps (numba compiles there on a cold cache)."""
+    from types import SimpleNamespace
+
+    from experiments import runner
+
+    clock = {"t": 0.0}
+    monkeypatch.setattr(runner.time, "perf_counter", lambda: clock["t"])
+    monkeypatch.setattr(runner.sys.stderr, "isatty", lambda: False, raising=False)
+
+    def frames():
+        for k in range(1, 801):
+            clock["t"] += 100.0 if k == 1 else 0.1  # 100 s of compilation in the first step
+            yield SimpleNamespace(t=k * 0.75)
+
+    list(runner.progress_frames(frames(), 800, "r", None))
+    line = capsys.readouterr().err.strip().splitlines()[0]
+    # step 400 of 800: 400 steps left at 0.1 s each = 40 s, not (100 + 40) s
+    assert "step 400 of 800" in line and "about 40 s left" in line, line

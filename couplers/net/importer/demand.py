@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from couplers.errors import InputError
-from couplers.traffic import jam
+from couplers.net import gridlock as jam
 from couplers.net.importer.geometry import _fmt
 from couplers.net.importer.tools import _run, _sumo_home
 
@@ -48,7 +48,7 @@ BIN_S = 300.0
 # ran the 2000-junction synthetic hour in 5.7 s against 107 s, but on the Berlin extract it
 # passed x 0.864 of the arterial's demand, where the microscopic VSR hour jams at t = 1110 s
 # (the microscopic calibration ends at x 0.311), so it cannot stand in for the runs it calibrates.
-# The rule's numbers live in couplers.traffic.jam (a run line judges a run by the same rule).
+# The rule's numbers live in couplers.net.gridlock (a run line judges a run by the same rule).
 CALIB_WARMUP_S = jam.WARMUP_S
 CALIB_WINDOW = jam.WINDOW  # checks (30 s apart) averaged for the halting share
 CALIB_HALTING_SHARE = jam.HALTING_SHARE

@@ -1,4 +1,4 @@
-"""The gridlock rule, shared by the import's gridlock trials and the runs (a run line flags a jammed run).
+"""The gridlock rule of `coloc net import`'s trials, which a run applies too (its run line flags a jammed run).
 
 Gridlock signs, checked every CHECK_S simulated seconds (measured on a Berlin extract, see
 :func:`couplers.net.importer.demand.gridlock_trial`): teleports (vehicles stuck for SUMO's 300 s) of
