@@ -288,7 +288,11 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
     parts.append("<h2>Traffic summary</h2>")
     if traffic:
         lab = {"mean_vehicles": "mean vehicles in network", "exit_flow_vph": "exit flow [veh/h]",
-               "mean_queue": "mean queue [halting veh]", "stop_time_s_per_km": "stop time [s/km]"}
+               "mean_queue": "mean queue [halting veh]", "stop_time_s_per_km": "stop time [s/km]",
+               "loaded": "vehicles loaded by SUMO (incl. read ahead)", "inserted": "vehicles inserted",
+               "never_inserted": "vehicles never inserted (waiting at the end)",
+               "dropped_at_load": "vehicles dropped by SUMO at load", "collisions": "vehicles in collisions",
+               "jammed": "jammed (the import's gridlock rule)", "jam_verdict": "gridlock rule verdict"}
         keys = [k for k in lab if k in traffic] + sorted(k for k in traffic if k not in lab)
         parts.append(_table(["quantity", "value"],
                             [[_esc(lab.get(k, k)), _fmt(traffic[k], 2)] for k in keys]))

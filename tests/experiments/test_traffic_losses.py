@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pytest
 
 from couplers.net.check import check_net_folder
 from couplers.net.importer.sumocfg import first_unsorted, sorted_routes_text
