@@ -208,9 +208,10 @@ class SumoTraffic:
         if self._running:
             try:
                 self.never_inserted = len(libsumo.simulation.getPendingVehicles())
-            finally:
-                libsumo.close()
-                self._running = False
+            except Exception:  # noqa: BLE001 - a simulation that failed: the failure is what gets reported
+                pass
+            libsumo.close()
+            self._running = False
         self._read_log()
         self.stats.flush()
 
