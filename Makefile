@@ -11,6 +11,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m experiments.warm  # compiles the numba kernels once per install (minutes; says so)
 	touch $(STAMP)
 
 venv: $(STAMP)

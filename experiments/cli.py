@@ -67,6 +67,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.methods is not None:
         overrides["run.methods"] = _methods(args.methods)
     cfg = load_config(args.config, overrides)
+    if not args.quiet:
+        from experiments.warm import cold_cache_note
+
+        note = cold_cache_note()
+        if note is not None:
+            print(note + "...", file=sys.stderr, flush=True)
     summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force,
                              workers=args.workers)
     for method, block in summary["methods"].items():
@@ -94,8 +100,28 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"mean queue {tr['mean_queue']:.1f}, stop time {tr['stop_time_s_per_km']:.1f} s/km, "
             f"teleports {tr['teleports']}"
         )
+        if "inserted" in tr:
+            print(f"{'vehicles':>14}: {traffic_losses_line(tr)}")
     print(f"wrote {args.out}/report.html")
     return 0
+
+
+def traffic_losses_line(tr: dict) -> str:
+    """The run line of the demand's vehicles: inserted, never inserted, dropped by SUMO at load, teleported,
+    in collisions, and JAMMED by the import's gridlock rule (couplers.net.gridlock)."""
+    text = (f"{tr['inserted']} inserted, {tr['never_inserted']} never inserted (still waiting at the end), "
+            f"{tr['dropped_at_load']} dropped by SUMO at load, {tr['teleports']} teleports, "
+            f"{tr['collisions']} in collisions")
+    if tr["dropped_at_load"]:
+        why = []
+        if tr.get("dropped_unsorted"):
+            why.append(f"{tr['dropped_unsorted']} because a route file is not sorted by departure")
+        if tr.get("dropped_no_route"):
+            why.append(f"{tr['dropped_no_route']} without a route")
+        text += f" [{'; '.join(why)}; first: {tr.get('first_dropped', '?')}]"
+    if tr.get("jammed"):
+        text += f"; JAMMED by the gridlock rule: {tr['jam_verdict']}"
+    return text
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -208,7 +234,7 @@ def cmd_net_import(args: argparse.Namespace) -> int:
         zone_cell_m=args.zone_cell, calibrate=not args.no_calibrate, calibration_s=args.calibration_s,
         max_density_scale=args.max_density_scale,
         signals="rebuild" if args.rebuild_signals else "keep" if args.keep_signals else "check",
-        force=args.force,
+        sort_routes=args.sort_routes, force=args.force,
     )
     source = (opts.sumocfg or opts.osm or opts.net).name if (opts.sumocfg or opts.osm or opts.net) else "?"
     if not args.force:  # refuse before the (possibly long) import, not after it
@@ -350,6 +376,9 @@ def build_parser() -> argparse.ArgumentParser:
     ni.add_argument("--routes", action="append",
                     help="your own SUMO route file(s) instead of the generated demand (plain or .gz; repeat the "
                          "option or separate files by commas)")
+    ni.add_argument("--sort-routes", action="store_true",
+                    help="sort the vehicles of your route files by departure in the folder's copy (default: a file "
+                         "not sorted by departure is refused, SUMO would drop the vehicles out of order)")
     ni.add_argument("--additional", help="busStop / parkingArea additionals for a --net input (feature places)")
     ni.add_argument("--demand", type=float, nargs=2, metavar=("START", "END"),
                     help="falling profile on the arterial, veh/h at the start and end of the hour (default 2800 1800; "
@@ -363,7 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="cap of the density match, as a multiple of the arterial's demand (default 4)")
     ni.add_argument("--no-calibrate", action="store_true",
                     help="keep the density-matched demand (default: scale it down by 0.6 until it runs "
-                         "without gridlock under VSR and TLR)")
+                         "without gridlock under VSR and TLR); with --routes/--sumocfg, skip the gridlock trial "
+                         "of your demand (which is reported, never rescaled)")
     ni.add_argument("--calibration-s", type=float,
                     help="simulated seconds of each gridlock trial (default: the whole demand, --duration)")
     ni.add_argument("--zone-cell", type=float, default=200.0, help="cell size of building-density zones, m")

@@ -484,6 +484,10 @@ class _SumoSource:
 
         return pd.DataFrame(self.coupler.traffic.stats.rows)
 
+    def traffic_losses(self) -> dict:
+        """Vehicles never inserted, dropped at load, teleported or in collisions, and the gridlock verdict."""
+        return self.coupler.traffic.losses()
+
 
 def seconds_since_process_start() -> float | None:
     """Wall seconds since this process started (Linux ``/proc``; None elsewhere)."""
@@ -505,6 +509,7 @@ def _timing_line(what: str) -> None:
 
 
 PROGRESS_LINE_S = 300.0  # simulated seconds between two progress lines when stderr is not a terminal
+ETA_FROM_STEP = 2 * BATCH  # steps before the ETA is timed: the estimators' first batches (numba compiles)
 
 
 def progress_frames(frames, n_steps: int, name: str, progress: bool | None, begin: float = 0.0):
@@ -515,19 +520,27 @@ def progress_frames(frames, n_steps: int, name: str, progress: bool | None, begi
     if progress is False:
         yield from frames
         return
+    # The first ETA_FROM_STEP steps carry numba's compilation on a cold cache (minutes, once per install,
+    # experiments.warm): the ETA is timed over the steps after them.
+    skip = min(ETA_FROM_STEP, n_steps // 4)
     if progress or tty:
         from tqdm import tqdm
 
-        yield from tqdm(frames, total=n_steps, desc=name, unit="step", mininterval=1.0)
+        frames = iter(frames)
+        for _, frame in zip(range(skip), frames):
+            yield frame
+        yield from tqdm(frames, total=n_steps, initial=skip, desc=name, unit="step", mininterval=1.0)
         return
-    t0 = time.perf_counter()
+    t0 = t_eta = time.perf_counter()
     next_line = PROGRESS_LINE_S
     for k, frame in enumerate(frames, start=1):
         yield frame
+        if k == skip:
+            t_eta = time.perf_counter()
         if frame.t - begin + 1e-9 >= next_line:
             next_line += PROGRESS_LINE_S
             elapsed = time.perf_counter() - t0
-            left = elapsed * max(n_steps - k, 0) / k
+            left = (time.perf_counter() - t_eta) * max(n_steps - k, 0) / max(k - skip, 1)
             at = f" (to {clock(frame.t)})" if begin else ""
             print(f"{name}: {frame.t - begin:.0f} s simulated{at}, step {k} of {n_steps} "
                   f"({100.0 * k / max(n_steps, 1):.0f} %), "
@@ -722,10 +735,14 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "git": provenance["git"],
             "methods": {},
             "association": {},
-            "traffic": traffic_summary(traffic) if version is not None else None,
+            "traffic": {**traffic_summary(traffic), **source.traffic_losses()} if version is not None else None,
             "v2v": v2v.summary(),
             "wall_seconds": wall,
         }
+        if version is not None:  # zones / areas that are a default layout, not derived from data (net import)
+            from couplers.net.placeholders import folder_placeholders
+
+            summary["placeholders"] = folder_placeholders(cfg.net_dir)
         for method in methods:
             block = blocks[method]
             block["seconds"] = seconds[method]

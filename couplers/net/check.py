@@ -84,6 +84,16 @@ def check_net_folder(root: Path, max_feature_distance_m: float = 30.0) -> tuple[
     problems += _building_problems(folder, root, xy, owners, drivable)
 
     rproblems, n = routes_problems(net, folder.route_files)
+    from couplers.net.importer.sumocfg import first_unsorted  # noqa: PLC0415
+
+    for path in folder.route_files:
+        try:
+            why = first_unsorted(path)
+        except InputError as exc:
+            why, rproblems = None, rproblems + [exc.describe()]
+        if why is not None:
+            rproblems.append(f"{path}: depart: not sorted by departure: {why} (sort it, or re-import with "
+                             "--sort-routes)")
     problems += [f"{folder.routes.parent / p}" if not p.startswith(str(folder.routes.parent)) else p for p in rproblems]
     clock_info, clock_problem = _clock_check(folder, root)
     if folder.additional:

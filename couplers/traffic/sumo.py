@@ -8,6 +8,9 @@ subscriptions on these machines, so they are used here.
 from __future__ import annotations
 
 import math
+import os
+import re
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +19,7 @@ from numba import njit
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
+from couplers.net import gridlock as jam
 
 try:  # imported lazily by callers that only need the pure parts of couplers
     import libsumo
@@ -28,6 +32,13 @@ _GETTERS = (tuple(getattr(_swig, f"vehicle_{g}") for g in ("getPosition", "getSp
             if all(hasattr(_swig, f"vehicle_{g}") for g in ("getPosition", "getSpeed", "getAngle")) else None)
 
 HALT_SPEED = 0.1  # m/s, SUMO's own halting threshold
+# SUMO warnings (its error log) that mean a vehicle of the demand is dropped before it ever drives: an
+# unsorted route file (SUMO ignores every vehicle departing before one read earlier in the same file) and a
+# trip without a route. Message texts of SUMO 1.2x (MSRouteHandler, MSInsertionControl).
+LOST_WARNINGS = {
+    "unsorted": re.compile(r"Route file should be sorted by departure time, ignoring '([^']*)'"),
+    "no_route": re.compile(r"No route for vehicle '([^']*)' found"),
+}
 STAT_INTERVAL_S = 300.0  # 5-minute aggregation (Brambilla Figs. 13-15)
 
 
@@ -163,23 +174,80 @@ class SumoTraffic:
         self.teleports = 0
         self.sumo_version = ""
         self._running = False
+        # Vehicles of the demand over the run (losses()): counted with libsumo's per-step counters, a few
+        # calls per step beside the three getters per vehicle.
+        self.loaded = 0
+        self.departed = 0
+        self.collisions = 0
+        self.never_inserted = 0
+        self.lost_at_load: dict[str, list[str]] = {k: [] for k in LOST_WARNINGS}
+        self.jam = jam.JamWatch(options.begin)
+        self._every = max(1, int(round(jam.CHECK_S / options.step_length)))
+        self._steps = 0
+        self._log: Path | None = None
 
     def __enter__(self) -> "SumoTraffic":
         if libsumo is None:
             raise InputError(None, "libsumo", "the libsumo package is not installed (pip install libsumo)")
+        # SUMO's warnings go to a temporary error log (not the console: --no-warnings stays), read at the end
+        # for the vehicles SUMO dropped (LOST_WARNINGS).
+        fd, name = tempfile.mkstemp(prefix="coloc-sumo-", suffix=".log")
+        os.close(fd)
+        self._log = Path(name)
         try:
-            libsumo.start(self.options.command())
+            libsumo.start(self.options.command() + ["--error-log", name])
         except Exception as exc:  # libsumo raises its own (unpicklable) exception types
+            self._log.unlink(missing_ok=True)
             raise InputError(self.options.net, None, f"SUMO could not load the scenario: {exc}") from None
         self._running = True
         self.sumo_version = str(libsumo.getVersion()[1])
+        self.loaded = int(libsumo.simulation.getLoadedNumber())  # the vehicles loaded when SUMO starts
         return self
 
     def __exit__(self, *exc) -> None:
         if self._running:
+            try:
+                self.never_inserted = len(libsumo.simulation.getPendingVehicles())
+            except Exception:  # noqa: BLE001 - a simulation that failed: the failure is what gets reported
+                pass
             libsumo.close()
             self._running = False
+        self._read_log()
         self.stats.flush()
+
+    def _read_log(self) -> None:
+        if self._log is None:
+            return
+        try:
+            with open(self._log, encoding="utf-8", errors="replace") as fh:
+                for line in fh:
+                    for kind, pattern in LOST_WARNINGS.items():
+                        m = pattern.search(line)
+                        if m:
+                            self.lost_at_load[kind].append(m.group(1))
+        except OSError:
+            pass
+        self._log.unlink(missing_ok=True)
+        self._log = None
+
+    def losses(self) -> dict:
+        """The demand's vehicles over the run, for summary.json's ``traffic`` block: loaded (read from the route
+        files by SUMO, including vehicles read ahead that depart after the end), inserted (departed), never
+        inserted (due by the end but still waiting to enter), dropped at load (SUMO warnings: unsorted route
+        file, no route), teleports, vehicles in collisions, and the gridlock rule's verdict
+        (:mod:`couplers.net.gridlock`)."""
+        dropped = {k: len(v) for k, v in self.lost_at_load.items()}
+        due = self.departed + self.never_inserted
+        verdict = self.jam.verdict(self.teleports, due)
+        out = {"loaded": self.loaded, "inserted": self.departed, "never_inserted": self.never_inserted,
+               "dropped_at_load": sum(dropped.values()), "dropped_unsorted": dropped["unsorted"],
+               "dropped_no_route": dropped["no_route"], "collisions": self.collisions,
+               "jammed": bool(verdict), "jam_verdict": verdict or "no gridlock",
+               "max_halting_share": round(self.jam.worst_share, 3), "max_backlog": self.jam.worst_backlog}
+        first = next((f"{k} {v[0]!r}" for k, v in self.lost_at_load.items() if v), None)
+        if first is not None:
+            out["first_dropped"] = first
+        return out
 
     @property
     def time(self) -> float:
@@ -231,6 +299,12 @@ class SumoTraffic:
         arrived = sim.getArrivedNumber()
         halting = int(np.count_nonzero(speed < HALT_SPEED))
         self.stats.add(t, n, halting, arrived, float(speed.sum() * dt), len(starting))
+        self.loaded += sim.getLoadedNumber()
+        self.departed += sim.getDepartedNumber()
+        self.collisions += sim.getCollidingVehiclesNumber()
+        self._steps += 1
+        if self._steps % self._every == 0:
+            self.jam.check(t, halting, n, len(sim.getPendingVehicles()), self.departed)
         self._prev_ids, self._prev_xy, self._prev_vel = ids_arr, xy, velocity
         return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered,
                              direction=direction, prev_row=idx)

@@ -12,6 +12,7 @@ import matplotlib
 from experiments.report.figures import (
     _fig_cdf,
     _fig_map,
+    run_placeholders,
     _fig_rmse_time,
     _fig_track,
     _fig_traffic,
@@ -86,6 +87,7 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
     figure's drawing time (its panels; a CDF panel has a legend and 1001-point curves)."""
     jobs: list[tuple[float, Callable[[], _Drawn]]] = []
     what = _what_was_run(run)
+    stand_in = run_placeholders(run)  # zones / areas that are a default layout, not derived from data
     est = run.estimates
     has_est = est is not None and len(est) > 0
 
@@ -123,7 +125,8 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
                 f"static features as red triangles. {counts['lanes']} lanes, {counts['zones']} "
                 f"zone polygons, {counts['areas']} areas, {counts['features']} features"
                 + (f", {counts['buildings']} building footprints (dark grey)" if counts["buildings"] else "") + ". "
-                "Coordinates are SUMO net metres, equal aspect.", what=what),))
+                "Coordinates are SUMO net metres, equal aspect."
+                + "".join(f" The {k} are {_esc(v)}." for k, v in stand_in.items()), what=what),))
         jobs.append((2.0, map_))
 
     if not has_est:
@@ -151,8 +154,11 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
                 "Empirical CDF of the Euclidean position error of all (vehicle, time) samples "
                 "whose true position lies in the area, one subplot per area and one line per "
                 "method (drawn from 1001 exact quantiles). The dot and dotted line mark the 95th "
-                "percentile, also given in the legend. How to read: a curve further left is "
-                "better; compare p95 between methods within one area.", what=what),))
+                "percentile, also given in the legend; each panel's title gives its sample count n and "
+                "its share of all samples. How to read: a curve further left is "
+                "better; compare p95 between methods within one area."
+                + (" The areas are a default grid over the net's bounding box, not derived from data: "
+                   "they split the net by position only." if "areas" in stand_in else ""), what=what),))
         jobs.append((_cdf_weight(est, "area"), cdf_area))
     if "zone" in est.columns:
         def cdf_zone() -> _Drawn:
@@ -162,8 +168,13 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
                 "cdf_zone.png", "Position error CDF per GNSS zone",
                 "Same as the per-area CDF, but grouping samples by the GNSS zone of the vehicle's "
                 "true position (zones differ in GNSS σp and σv). The dot marks the 95th "
-                "percentile. How to read: GNSS degrades from open-sky to built-up zones; a "
-                "cooperative method should flatten that difference.", what=what),))
+                "percentile; each panel's title gives its sample count n and its share of all samples. "
+                + ("How to read: the zones are a default layout (concentric rectangles over the net's "
+                   "bounding box, worst class in the centre), not derived from buildings: the panels show "
+                   "how each method copes with the zone's GNSS σp, not where this city's GNSS degrades; a "
+                   "cooperative method should flatten the difference." if "zones" in stand_in else
+                   "How to read: GNSS degrades from open-sky to built-up zones; a "
+                   "cooperative method should flatten that difference."), what=what),))
         jobs.append((_cdf_weight(est, "zone"), cdf_zone))
     rep = run.config.get("report") or {}
     areas = [str(a) for a in (rep.get("track_areas") or [rep.get("track_area", "5")])]
@@ -278,7 +289,11 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
     parts.append("<h2>Traffic summary</h2>")
     if traffic:
         lab = {"mean_vehicles": "mean vehicles in network", "exit_flow_vph": "exit flow [veh/h]",
-               "mean_queue": "mean queue [halting veh]", "stop_time_s_per_km": "stop time [s/km]"}
+               "mean_queue": "mean queue [halting veh]", "stop_time_s_per_km": "stop time [s/km]",
+               "loaded": "vehicles loaded by SUMO (incl. read ahead)", "inserted": "vehicles inserted",
+               "never_inserted": "vehicles never inserted (waiting at the end)",
+               "dropped_at_load": "vehicles dropped by SUMO at load", "collisions": "vehicles in collisions",
+               "jammed": "jammed (the import's gridlock rule)", "jam_verdict": "gridlock rule verdict"}
         keys = [k for k in lab if k in traffic] + sorted(k for k in traffic if k not in lab)
         parts.append(_table(["quantity", "value"],
                             [[_esc(lab.get(k, k)), _fmt(traffic[k], 2)] for k in keys]))

@@ -379,6 +379,23 @@ def run_route_over_unknown_edge(tmp, net, run):
     return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
 
 
+UNSORTED = """<routes>
+  <vType id="car"/>
+  <route id="we" edges="WC CE"/>
+  <vehicle id="late" type="car" route="we" depart="100"/>
+  <vehicle id="early" type="car" route="we" depart="5"/>
+  <vehicle id="v2" type="car" route="we" depart="8"/>
+</routes>
+"""
+
+
+@case("demand.rou.xml", "depart", "not sorted by departure", "'early'", "'late'")
+def run_routes_not_sorted(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    (copy / "demand.rou.xml").write_text(UNSORTED)
+    return ["run", str(_config(tmp, copy)), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("features.add.xml", "from the nearest drivable lane")
 def run_feature_far_from_roads(tmp, net, run):
     copy = _net_copy(tmp, net)
@@ -1135,6 +1152,11 @@ def net_import_zone_cell_tiny(tmp, net, run):
 @case("--workers", "100000 is outside [1, 1024]")
 def sweep_workers_huge(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "100000", "--dry-run"], None
+@case("unsorted.rou.xml", "depart", "not sorted by departure", "'early'", "--sort-routes")
+def net_import_routes_not_sorted(tmp, net, run):
+    (tmp / "unsorted.rou.xml").write_text(UNSORTED)
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--routes", str(tmp / "unsorted.rou.xml"),
+            "--name", "x", "--out", str(tmp / "x"), "--experiments-dir", str(tmp / "exps")], None
 
 
 def _snapshot(root: Path) -> dict[str, str]:
@@ -1171,7 +1193,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 147
+    assert len(CASES) >= 149
 
 
 # ----------------------------------------------------------------------------- what --out may replace

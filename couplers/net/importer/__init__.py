@@ -62,7 +62,7 @@ from shapely.geometry import LineString
 from couplers.errors import InputError, seed_problem
 from couplers.net.georef import geojson_to_net_xy, read_georef
 from couplers.net.folder import lane_shape_points, read_regions
-from couplers.net.importer.demand import _user_routes, _write_demand
+from couplers.net.importer.demand import _user_routes, _write_demand, user_demand_trial
 from couplers.net.importer.features import (
     FEATURE_KINDS,
     FEATURE_MIN_SPACING_M,
@@ -126,6 +126,9 @@ class ImportOptions:
     # Implausible signal programs (implausible_signal_programs): "check" refuses the import and
     # names them, "rebuild" has netconvert rebuild every program (--tls.rebuild), "keep" imports them.
     signals: str = "check"
+    # The user's route files not sorted by departure are refused (SUMO drops every vehicle departing before
+    # one above it); True: the folder's copy holds them sorted, and the import says so.
+    sort_routes: bool = False
     force: bool = False
 
     @property
@@ -401,7 +404,7 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     if "area" in user_geo:
         _user_geojson(user_geo["area"], work / "areas.geojson", georef, lane_xy, opts.source.name, report)
     else:
-        _default_areas(work / "areas.geojson", lane_xy, report)
+        _default_areas(work / "areas.geojson", lane_xy, report, lane_lines)
     areas = read_regions(work / "areas.geojson", "area", False)
     track_area = _busiest_area(areas, lane_lines)
     report.derived["track_area"] = track_area
@@ -414,6 +417,8 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
         _write_demand(opts, net, net_path, work, lane_km, report)
     if opts.sumocfg is not None:
         _sumocfg_extras(opts, net, work, report)
+    if opts.routes is not None:  # after the .sumocfg's signal programs, which the trial loads as the runs do
+        user_demand_trial(opts, work, route_names, report)
 
     _write_scenario(work, opts, report, route_names)
     for leftover in work.glob(".*"):

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from couplers.errors import InputError
+from couplers.net import gridlock as jam
 from couplers.net.importer.geometry import _fmt
 from couplers.net.importer.tools import _run, _sumo_home
 
@@ -47,13 +48,14 @@ BIN_S = 300.0
 # ran the 2000-junction synthetic hour in 5.7 s against 107 s, but on the Berlin extract it
 # passed x 0.864 of the arterial's demand, where the microscopic VSR hour jams at t = 1110 s
 # (the microscopic calibration ends at x 0.311), so it cannot stand in for the runs it calibrates.
-CALIB_WARMUP_S = 300.0
-CALIB_WINDOW = 4  # checks (30 s apart) averaged for the halting share
-CALIB_HALTING_SHARE = 0.5
-CALIB_BACKLOG = 0.05
-CALIB_BACKLOG_MIN = 20
-CALIB_TELEPORTS = 0.01
-CALIB_TELEPORTS_MIN = 3
+# The rule's numbers live in couplers.net.gridlock (a run line judges a run by the same rule).
+CALIB_WARMUP_S = jam.WARMUP_S
+CALIB_WINDOW = jam.WINDOW  # checks (30 s apart) averaged for the halting share
+CALIB_HALTING_SHARE = jam.HALTING_SHARE
+CALIB_BACKLOG = jam.BACKLOG
+CALIB_BACKLOG_MIN = jam.BACKLOG_MIN
+CALIB_TELEPORTS = jam.TELEPORTS
+CALIB_TELEPORTS_MIN = jam.TELEPORTS_MIN
 CALIB_FACTOR = 0.6
 CALIB_MAX_TRIALS = 8
 
@@ -211,18 +213,20 @@ def _demand_text(opts: ImportOptions, pool: list[list[str]], counts: list[int], 
 
 
 def gridlock_trial(net_path: Path, routes_path: Path, tls_off: bool, seed: int, end: float,
-                   vehicles: int) -> dict:
+                   vehicles: int, begin: float = 0.0, extra_routes: tuple = (), additional: tuple = ()) -> dict:
     """Run the demand with libsumo (the options of ``coloc run``) until ``end``; stop at the first sign of gridlock.
 
     Gridlock signs, checked every 30 simulated seconds: teleports (vehicles stuck for
     SUMO's 300 s) of more than CALIB_TELEPORTS of the ``vehicles`` due before ``end``
     (a few happen at odd junctions of real nets at any demand), more than CALIB_HALTING_SHARE of the
     vehicles in the net halting over the last CALIB_WINDOW checks after the first CALIB_WARMUP_S, or an insertion backlog above CALIB_BACKLOG of
-    the vehicles departed (entries blocked).
+    the vehicles departed (entries blocked). ``begin``, ``extra_routes``, ``additional``: a user's scenario's
+    clock (the warm-up counts from ``begin``), further route files and signal programs, as its runs load them.
     """
     from couplers.traffic.sumo import SumoOptions, libsumo  # noqa: PLC0415
 
-    options = SumoOptions(net=net_path, routes=routes_path, seed=seed, end=end, tls_off=tls_off)
+    options = SumoOptions(net=net_path, routes=routes_path, seed=seed, end=end, tls_off=tls_off, begin=begin,
+                          extra_routes=tuple(extra_routes), additional=tuple(additional))
     libsumo.start(options.command())
     sim = libsumo.simulation
     try:
@@ -248,10 +252,10 @@ def gridlock_trial(net_path: Path, routes_path: Path, tls_off: bool, seed: int, 
             del window[:-CALIB_WINDOW]
             share = sum(h for h, _ in window) / max(1, sum(m for _, m in window))
             backlog = len(sim.getPendingVehicles())
-            if t >= CALIB_WARMUP_S:
+            if t - begin >= CALIB_WARMUP_S:
                 worst_share = max(worst_share, share)
             worst_backlog = max(worst_backlog, backlog)
-            if t >= CALIB_WARMUP_S and share > CALIB_HALTING_SHARE:
+            if t - begin >= CALIB_WARMUP_S and share > CALIB_HALTING_SHARE:
                 verdict = f"{share:.0%} of {n} vehicles halting over the {CALIB_WINDOW * 30 // 60} min to t = {t:.0f} s"
                 break
             if backlog > max(CALIB_BACKLOG_MIN, CALIB_BACKLOG * departed):
@@ -268,7 +272,8 @@ def _gridlock_trial_job(args: tuple) -> dict:
     return gridlock_trial(*args)
 
 
-def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: float, vehicles: int) -> dict:
+def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: float, vehicles: int,
+                            *more) -> dict:
     """The VSR and the TLR gridlock trial of one demand, side by side in two processes (libsumo is one
     simulation per process).
 
@@ -278,8 +283,8 @@ def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: f
     """
     import multiprocessing  # noqa: PLC0415
 
-    jobs = {"vsr": (net_path, routes_path, True, seed, end, vehicles),
-            "tlr": (net_path, routes_path, False, seed, end, vehicles)}
+    jobs = {"vsr": (net_path, routes_path, True, seed, end, vehicles, *more),
+            "tlr": (net_path, routes_path, False, seed, end, vehicles, *more)}
     # "fork": the children need nothing re-imported (spawn would re-run a caller's unguarded
     # script); libsumo is only started inside them. Without fork, one after the other.
     if "fork" not in multiprocessing.get_all_start_methods():
@@ -422,9 +427,22 @@ def folder_route_names(paths) -> list[str]:
 
 def _user_routes(opts: ImportOptions, net, work: Path, report: _Report) -> list[str]:
     """Check and copy the user's route files (byte for byte) into the folder; returns their names there."""
-    from couplers.net.importer.sumocfg import clock, demand_departures  # noqa: PLC0415
+    from couplers.net.importer.sumocfg import (  # noqa: PLC0415
+        clock,
+        demand_departures,
+        first_unsorted,
+        sorted_routes_text,
+    )
 
     srcs = list(opts.route_files)
+    unsorted = {}
+    for src in srcs:
+        why = first_unsorted(src)
+        if why is not None and not opts.sort_routes:
+            raise InputError(src, "depart", f"not sorted by departure: {why} (pass --sort-routes to import a copy "
+                                            "sorted by departure)")
+        if why is not None:
+            unsorted[src] = why
     per_file = []
     named: dict[str, list[str]] = {}
     for src in srcs:
@@ -436,7 +454,20 @@ def _user_routes(opts: ImportOptions, net, work: Path, report: _Report) -> list[
         per_file.append(n)
     names = folder_route_names(srcs)
     for src, name in zip(srcs, names):
-        shutil.copyfile(src, work / name)
+        if src in unsorted:
+            text, moved = sorted_routes_text(src)
+            data = text.encode("utf-8")
+            if name.endswith(".gz"):
+                import gzip  # noqa: PLC0415
+
+                data = gzip.compress(data, mtime=0)  # mtime 0: the same input gives the same bytes
+            (work / name).write_bytes(data)
+            report.derived.setdefault("routes_sorted", {})[name] = (f"{src.name} sorted by departure (--sort-routes): "
+                                                                    f"{moved} elements moved; was: {unsorted[src]}")
+            report.lines.append(f"  {src.name}: not sorted by departure; the folder's {name} holds it sorted "
+                                f"({moved} vehicles/trips/flows moved, --sort-routes)")
+        else:
+            shutil.copyfile(src, work / name)
     n = sum(per_file)
     label = srcs[0].name if len(srcs) == 1 else ", ".join(s.name for s in srcs)
     report.derived["demand"] = {"source": label, "vehicles_flows_trips": n}
@@ -465,3 +496,42 @@ def _user_routes(opts: ImportOptions, net, work: Path, report: _Report) -> list[
         if nv or nf:
             report.lines.append(f"  before begin: {dep.describe_before(begin)}")
     return names
+
+
+def user_demand_trial(opts: ImportOptions, work: Path, names: list[str], report: _Report) -> None:
+    """The gridlock trial of the user's demand under VSR and TLR (the rule of :func:`gridlock_trial`), from
+    the scenario's begin over ``calibration_s`` (default: ``duration_s``, what a run simulates by default),
+    reported in the output lines and ``[derived.demand_gridlock_trial]``. A user's demand is never rescaled:
+    it is the researcher's scenario; a jammed demand is reported (and its runs flagged by the run line).
+    ``--no-calibrate`` skips the trial."""
+    from couplers.net.importer.sumocfg import demand_departures  # noqa: PLC0415
+    from couplers.traffic.sumo import libsumo  # noqa: PLC0415
+
+    if not opts.calibrate:
+        report.not_derived.append("gridlock trial of the user's demand: skipped (--no-calibrate)")
+        return
+    if libsumo is None:
+        report.not_derived.append("gridlock trial of the user's demand: libsumo is not installed")
+        return
+    begin = opts.begin_s or 0.0
+    span = min(opts.calibration_s or opts.duration_s, opts.duration_s)
+    end = begin + span if opts.end_s is None else min(begin + span, opts.end_s)
+    dep = demand_departures([work / n for n in names])
+    due = dep.before(end)[0] - dep.before(begin)[0]
+    paths = [work / n for n in names]
+    additional = (work / "signals.add.xml",) if (work / "signals.add.xml").is_file() else ()
+    out = gridlock_trials_vsr_tlr(work / "tlr.net.xml", paths[0], opts.seed, end, due, begin, tuple(paths[1:]),
+                                  additional)
+    ok = all(out.get(c, {}).get("ok") for c in ("vsr", "tlr"))
+    verdicts = "; ".join(f"{c.upper()} {out[c]['verdict']}" for c in ("vsr", "tlr") if c in out)
+    report.derived["demand_gridlock_trial"] = {
+        "rule": f"{_fmt(begin)} s to {_fmt(end)} s under VSR then TLR: {jam.rule_text()}",
+        "ok": ok, "rescaled": False,
+        **{c: {k: out[c][k] for k in ("verdict", "teleports", "simulated_s", "max_halting_share", "max_backlog")}
+           for c in ("vsr", "tlr") if c in out},
+    }
+    report.lines.append(f"  gridlock trial of the demand ({_fmt(end - begin)} s from begin): {verdicts}; "
+                        + ("no gridlock" if ok else "JAMMED") + " (a user's demand is never rescaled)")
+    if not ok:
+        report.not_derived.append(f"a gridlock-free demand: the user's demand jams in the trial ({verdicts}); it "
+                                  "is kept as given, and runs of it are flagged JAMMED in their run line")

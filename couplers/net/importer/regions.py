@@ -129,22 +129,35 @@ def _default_zones(path: Path, lane_xy: np.ndarray, report: _Report) -> None:
     report.lines.append("zones: default layout (no buildings): C centre, B ring, A outskirts")
 
 
-def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report) -> None:
+def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report, lane_lines: list | None = None) -> None:
+    """A 3 x 2 (or 2 x 3) grid over the lanes' bounding box, numbered from the south-west; cells no drivable
+    lane crosses (``lane_lines``) are dropped and listed as not derived (the others keep their numbers)."""
     x0, y0, x1, y1, _, _ = _grid_bbox(lane_xy, 1.0)
     wide = (x1 - x0) >= (y1 - y0)
     ncol, nrow = (3, 2) if wide else (2, 3)
     xs = np.linspace(x0, x1, ncol + 1).round(2)
     ys = np.linspace(y0, y1, nrow + 1).round(2)
     feats = []
+    empty = []
     k = 1
     for j in range(nrow):
         for i in range(ncol):
-            feats.append({"type": "Feature", "properties": {"area": str(k)},
-                          "geometry": mapping(box(xs[i], ys[j], xs[i + 1], ys[j + 1]))})
+            cell = box(xs[i], ys[j], xs[i + 1], ys[j + 1])
+            if lane_lines is not None and not any(cell.intersects(line) for line in lane_lines):
+                empty.append(str(k))
+            else:
+                feats.append({"type": "Feature", "properties": {"area": str(k)}, "geometry": mapping(cell)})
             k += 1
     _write_geojson(path, feats)
-    report.derived["areas"] = f"default partition: {ncol} x {nrow} grid over the net, numbered from the south-west"
-    report.lines.append(f"areas: default {ncol} x {nrow} grid (1..{ncol * nrow})")
+    kept = ", ".join(f["properties"]["area"] for f in feats)
+    report.derived["areas"] = (f"default partition: {ncol} x {nrow} grid over the net, numbered from the south-west"
+                               + (f"; cells without a road dropped: {', '.join(empty)}" if empty else ""))
+    report.not_derived.append(f"analysis areas from data: a default {ncol} x {nrow} grid over the net's bounding box "
+                              "(pass --areas with your own GeoJSON)")
+    if empty:
+        report.not_derived.append(f"areas {', '.join(empty)} of the default grid: no road crosses them (dropped)")
+    report.lines.append(f"areas: default {ncol} x {nrow} grid ({kept})"
+                        + (f"; {', '.join(empty)} dropped (no road)" if empty else ""))
 
 
 @dataclass(frozen=True)
