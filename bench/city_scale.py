@@ -1,6 +1,6 @@
 """Benchmark: per-vehicle-step cost of frames and estimators on a city, from 100 to about 2700 vehicles.
 
-Issue 24 item 4. Builds, deterministically and from files this project ships or generates:
+Builds, deterministically and from files this project ships or generates:
 
 1. the doubled Berlin net (``bench/berlin_twice.py``: the eclipse-sumo wheel's Berlin OSM net twice,
    2066 junctions, 185 lane-km, 42 traffic lights);
@@ -20,7 +20,8 @@ links, the V2F rows and the wall time of the frame and of each method. Printed: 
 the net, the cost per vehicle-step (microseconds) of frames, gnss, icp_known_da and icp_da_lc, with the
 mean V2V degree and V2F rows per vehicle beside them (the jam packs the net, so the degree grows with
 N: a change in cost can be read against it); the ratio of icp_da_lc's cost per
-vehicle-step at ~3000 vehicles to its cost at ~300 (issue target: at most 1.5); and the `sumo` binary
+vehicle-step at ~3000 vehicles to its cost at ~300 (target: at most 1.5, i.e. the per-vehicle cost
+stays nearly flat as the city fills); and the `sumo` binary
 alone on the same net and routes against the coupled run with gnss + icp_da_lc (target: at most 10x).
 
     python bench/city_scale.py [--work /tmp/coloc_city] [--duration 900] [--seed 1]

@@ -5,8 +5,8 @@ Prints the wall time of
   2. libsumo stepping with the per-vehicle getters only (the floor of any coupler),
   3. libsumo stepping + the coupler producing frames (no estimator),
   4. the coupled run with the chosen estimators (frames + estimators, no files),
-and their ratios to 1. Targets: coupled GNSS run within 2x of SUMO alone (issue 2);
-coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
+and their ratios to 1. Targets: coupled GNSS run within 2x of SUMO alone;
+coupled gnss + icp_known_da + icp_da_lc within 3x.
 
     python bench/coupled_vs_sumo.py [--duration 3600] [--control tlr] [--methods gnss,icp_known_da,icp_da_lc]
     (ICP-DA-PF: --methods gnss,icp_da_pf --duration 300; [pf] particle counts from the arterial config;
@@ -16,7 +16,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x (issue 3).
      --reference also runs icp_known_da / icp_da_lc on the numpy reference path of coloc/kernels/icp_fused.py,
      beside the fused path on the same batches of frames, and prints fused / reference per method;
      --realistic also times the frames of experiments/arterial_<control>_realistic.toml's sensing on the
-     same traffic and prints them against the idealised frames: issue 21's target is at most 1.5x
+     same traffic and prints them against the idealised frames: the target for the realistic frames is at most 1.5x
+     the idealised ones
      (--repeat N: N alternating idealised / realistic runs, their medians and every pair's ratio);
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and

@@ -11,7 +11,7 @@ CPU time (user + system; on a busy machine wall times stretch, CPU times much le
      ``--compare RUN_DIR2`` as well (e.g. the VSR hour): ``coloc report RUN_DIR RUN_DIR2 --out ...``,
      the comparison ``make run`` writes (on copies that already have their run reports);
 and which of the heavy optional libraries (gtsam, dask, matplotlib, ...) the run path imported.
-Issue 24's targets: first step within 2 s of process start on a warm numba cache; the hour's
+Start-up targets: first step within 2 s of process start on a warm numba cache; the hour's
 report within 3 s. Run once before, to warm the numba cache (``coloc run`` of any config).
 
     python bench/startup.py [--config experiments/arterial_tlr.toml] [--repeat 5] [--report /tmp/tlr_hour

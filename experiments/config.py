@@ -32,7 +32,7 @@ Scenario kinds (``[scenario] kind``):
 ``[lc]`` holds the ICP-DA-LC parameters (the fields of
 :class:`coloc.methods.icp_da_lc.LcParams`); ``lc.sensing_range_m`` defaults to the V2F
 range ``sensors.v2f_range_m`` in force (for a scenario kind, the scenario's).
-``[infra]`` (optional, SUMO only) switches on the infrastructure mode (issue 5 part 4):
+``[infra]`` (optional, SUMO only) switches on the infrastructure mode:
 road-side units at the junctions ``rsu_junctions`` of the net (checked against the net
 file), V2I range = radar range ``rsu_range_m``, radar and odometry noise, and the settings
 of the methods ``rsu_bp``, ``sme`` and ``fg_topology_new``, which need it. It is not one of
@@ -193,18 +193,18 @@ class Config:
     crossroad: CrossroadParams = field(default_factory=CrossroadParams)
     report: ReportSection = field(default_factory=ReportSection)
     infra: InfraSection | None = None  # [infra], optional; not in SECTIONS (written only when given)
-    # [perception] / [gnss_error] (issue 21), optional, SUMO only; also handed to the coupler as
+    # [perception] / [gnss_error] (realistic sensing), optional, SUMO only; also handed to the coupler as
     # sensors.perception / sensors.gnss_error (the runner passes [sensors] to the coupler).
     perception: PerceptionParams | None = None
     gnss_error: GnssErrorParams | None = None
-    # [v2x] (issue 22), optional, SUMO only: penetration, packet delivery, round budget; handed to the
+    # [v2x] (realistic V2X), optional, SUMO only: penetration, packet delivery, round budget; handed to the
     # coupler as sensors.v2x like the sensing tables.
     v2x: V2xParams | None = None
-    # [inertial] (issue 21 item 5), optional, SUMO only: a body-frame IMU per vehicle (couplers.sensing.inertial);
+    # [inertial], optional, SUMO only: a body-frame IMU per vehicle (couplers.sensing.inertial);
     # handed to the coupler as sensors.inertial. Not with [infra] (the infrastructure methods take the
     # net-frame input).
     inertial: InertialParams | None = None
-    # [features] (issue 21 item 3), optional, SUMO only: SUMO pedestrians as moving features; handed to
+    # [features], optional, SUMO only: SUMO pedestrians as moving features; handed to
     # the coupler as sensors.features.
     features: FeaturesParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
@@ -243,7 +243,7 @@ SECTIONS: dict[str, type] = {
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
                                       "inertial": InertialParams, "features": FeaturesParams}
-#: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
+#: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")
 

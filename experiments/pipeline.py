@@ -179,7 +179,7 @@ def _parent_main_not_imported():
     multiprocessing's spawn start method runs the parent's main script in every child (as
     ``__mp_main__``) so that functions defined there can be targets. The workers' target lives in
     this module and the methods in the registry, so that import only costs time: for ``coloc`` and
-    the benches it is everything the runner imports (0.3-1 s a worker, issue 24). While a worker
+    the benches it is everything the runner imports (0.3-1 s a worker, measured by ``bench/startup.py``). While a worker
     starts, ``__main__`` is an empty module: the child then imports only this module and what
     unpickling its arguments needs."""
     main = sys.modules.get("__main__")

@@ -364,7 +364,7 @@ def write_features(out: Path) -> dict:
 
 
 # --------------------------------------------------------------------------
-# Buildings (issue 21 item 2): street-fronting blocks, denser and taller where GNSS is class C
+# Buildings (the occluders of the realistic perception): street-fronting blocks, denser and taller where GNSS is class C
 # --------------------------------------------------------------------------
 # Urban blocks fill the land between the roads up to BUILDING_BAND_M from the arterial. Facades stand
 # ARTERIAL_FACADE_M from the arterial's axis (a 40 m street: 2 x 6.4 m of lanes plus sidewalks, the

@@ -20,7 +20,7 @@ and compares what a user sees:
 Every finished run is appended to ``<out>/runs.jsonl`` (so an interrupted or extended study resumes
 where it stopped: rerun with more ``--seeds``); the table is printed from that file.
 
-    python tools/pf_equivalence.py --seeds 50                   # the issue's study (about 2 x 100 runs)
+    python tools/pf_equivalence.py --seeds 50                   # the full study (about 2 x 100 runs)
     python tools/pf_equivalence.py --seeds 10 --arterial-seeds 1
     python tools/pf_equivalence.py --table-only                 # print the table of what is recorded
     python tools/pf_equivalence.py --seeds 10 --null-seeds 10   # and the Monte Carlo floor of the pairing
@@ -258,7 +258,7 @@ def _variant_table(recs: dict, variant: str, nulls: bool = True) -> tuple[list[s
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=50, help="single-road seeds per df (1..N)")
-    ap.add_argument("--arterial-seeds", type=int, default=0, help="arterial TLR seeds (1..N); the issue asks for 3")
+    ap.add_argument("--arterial-seeds", type=int, default=0, help="arterial TLR seeds (1..N); the study uses 3")
     ap.add_argument("--arterial-duration", type=float, default=300.0)
     ap.add_argument("--null-seeds", type=int, default=0,
                     help="single-road seeds (1..N) also run by the exact tree with other particle generators "

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Every number of README.md at a git revision, found again in docs/ or the current README.
 
-The README's measurements moved to docs/ (issue 27). This lists each number the README had
+The README's measurements moved to docs/. This lists each number the README had
 at REV and looks for it, as a whole number token, in ``docs/**/*.md`` and ``README.md`` of
 the working tree; it reports the numbers found nowhere, with the old README line they were
 on. ``--counts`` also reports numbers that now occur fewer times than they did in the old

@@ -1,4 +1,4 @@
-"""Body-frame inertial input (issue 21 item 5, opt-in ``[inertial]``): what an on-board IMU gives, and
+"""Body-frame inertial input (opt-in ``[inertial]``): what an on-board IMU gives, and
 how an estimator turns it into the net-frame input a_{t-1} of model (1) with its *own* heading.
 
 The frame carries, per vehicle, :class:`ImuFrame` (``Frame.imu``):

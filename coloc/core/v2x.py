@@ -1,5 +1,5 @@
 """The V2X channel of one frame (``Frame.v2x``): what estimators need to exchange messages over lossy,
-asymmetric V2V links within a budget of broadcast rounds (issue 22; docs/architecture.md "The frame
+asymmetric V2V links within a budget of broadcast rounds (docs/architecture.md "The frame
 contract").
 
 The coupler (``couplers/sensing/v2x.py``, the ``[v2x]`` config table) decides the channel; this module only

@@ -1,4 +1,4 @@
-"""Communication accounting (issue 22 item 3): the V2V messages and bytes a method sends per vehicle
+"""Communication accounting: the V2V messages and bytes a method sends per vehicle
 and step, from what its code actually exchanges.
 
 Every number on the air is counted as one 8-byte word (:data:`WORD_BYTES`): floats, and also the

@@ -136,6 +136,16 @@ def _as_2d(values: np.ndarray, n: int) -> np.ndarray:
     return np.ascontiguousarray(x.reshape(n, int(np.prod(x.shape[1:], dtype=np.int64))))
 
 
+def _rounds_input(values: np.ndarray, n: int, iterations: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """What every consensus starts from: ``values`` as an array, the same as (n, d) float64 rows, and
+    whether the rounds have nothing to do (no vehicle, no value or no round: the values are returned)."""
+    if iterations < 0:
+        raise ValueError("iterations must be >= 0")
+    values = np.asarray(values)
+    x = _as_2d(values, n)
+    return values, x, n == 0 or x.shape[1] == 0 or iterations == 0
+
+
 def average_consensus(
     values: np.ndarray,
     adjacency: sp.spmatrix,
@@ -154,10 +164,8 @@ def average_consensus(
     if iterations < 0:
         raise ValueError("iterations must be >= 0")
     A = restrict_adjacency(adjacency, participants)
-    n = A.shape[0]
-    values = np.asarray(values)
-    x = _as_2d(values, n)
-    if n == 0 or x.shape[1] == 0 or iterations == 0:
+    values, x, idle = _rounds_input(values, A.shape[0], iterations)
+    if idle:
         return x.reshape(values.shape).copy()
     return average_consensus_with_weights(values, metropolis_weights(A), iterations)
 
@@ -166,12 +174,8 @@ def average_consensus_with_weights(values: np.ndarray, weights: sp.csr_matrix, i
     """:func:`average_consensus` with the weight matrix already built (e.g. by
     :func:`metropolis_weights`), for callers that run several consensus on the
     same graph (BPA-L iterations within one time step)."""
-    if iterations < 0:
-        raise ValueError("iterations must be >= 0")
-    n = weights.shape[0]
-    values = np.asarray(values)
-    x = _as_2d(values, n)
-    if n == 0 or x.shape[1] == 0 or iterations == 0:
+    values, x, idle = _rounds_input(values, weights.shape[0], iterations)
+    if idle:
         return x.reshape(values.shape).copy()
     out = _average_kernel(
         weights.indptr.astype(np.int64), weights.indices.astype(np.int64), weights.data, x, int(iterations)
@@ -196,10 +200,8 @@ def max_consensus(
     if iterations < 0:
         raise ValueError("iterations must be >= 0")
     A = restrict_adjacency(adjacency, participants)
-    n = A.shape[0]
-    values = np.asarray(values)
-    x = _as_2d(values, n)
-    if n == 0 or x.shape[1] == 0 or iterations == 0:
+    values, x, idle = _rounds_input(values, A.shape[0], iterations)
+    if idle:
         return x.reshape(values.shape).copy()
     out = _max_kernel(A.indptr.astype(np.int64), A.indices.astype(np.int64), x, int(iterations))
     return out.reshape(values.shape)

@@ -5,7 +5,7 @@ that the compiler cannot vectorise. Here every 4x4 entry is a contiguous array o
 each scalar operation of the row-by-row code becomes one loop over all rows: the same IEEE
 operations in the same order for every row (no reassociation, no fused multiply-add), so the
 results are **byte for byte** those of the row kernels, and the loops run on SIMD lanes
-(issue 24 item 1; ~4x on 400 rows). Tests compare the two.
+(~4x on 400 rows, docs/performance.md). Tests compare the two.
 
 Equation -> function (Brambilla et al.):
 

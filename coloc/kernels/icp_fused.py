@@ -1,4 +1,4 @@
-"""Fused numba passes for the per-step bookkeeping of the Gaussian ICP family (issue 24 item 1).
+"""Fused numba passes for the per-step bookkeeping of the Gaussian ICP family.
 
 Each kernel replaces a chain of batched numpy calls (``unique``, ``isin``, ``lexsort``, fancy
 indexing, ``ufunc.at``) of :mod:`coloc.methods.icp_da_lc` and

@@ -1,6 +1,6 @@
 """numpy's own LAPACK and BLAS called from numba: :func:`relative_message_numpy_blas` is
 :func:`coloc.inference.gaussian.relative_message` (np.linalg.inv, stacked ``@``, ``einsum``)
-row by row in one call, byte for byte (issue 24).
+row by row in one call, byte for byte.
 
 numpy computes ``np.linalg.inv`` with LAPACK ``dgesv`` (A copied to column-major order, B the
 identity) and a stacked ``a @ b`` of 4x4 float64 matrices with one CBLAS ``dgemm`` per matrix

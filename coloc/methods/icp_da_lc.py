@@ -51,7 +51,7 @@ Per time step, with no knowledge of which feature produced a V2F row:
    99 % chi-square gate (2 dof) of their summed position covariances, and
    that no vehicle observed both at this step, are merged into the older id;
    tracks nobody observed for ``feature_drop_after_s`` are dropped;
-9. track existence (issue 21; ``track_existence``, off by default): every
+9. track existence (realistic sensing; ``track_existence``, off by default): every
    track carries the probability r that it is a real object, as in
    belief-propagation multitarget tracking (Meyer et al., "Message passing
    algorithms for scalable multitarget tracking", Proc. IEEE 106(2), 2018):
@@ -72,13 +72,13 @@ Per time step, with no knowledge of which feature produced a V2F row:
    per detection; clutter, drawn anew every scan, loses (1 - P_D) per miss.
    Without clutter in the model every birth has r = 1 (up to 1e-12) and
    nothing changes but the missed-detection decay;
-10. own-sensor consistency (issue 21; ``own_consistency_gate``, off by
+10. own-sensor consistency (realistic sensing; ``own_consistency_gate``, off by
    default): a vehicle whose cooperative position leaves the chi-square gate
    of its own-sensor track is reset to that track (:func:`own_consistency_reset`),
    an innovation-based fault check in the spirit of receiver autonomous
    integrity monitoring. It bounds what a wrong pairing can do to a vehicle.
 
-11. classes (issue 21 item 3; frames with ``v2f_class``, ``[features] pedestrians``): the
+11. classes (frames with ``v2f_class``, ``[features] pedestrians``): the
    classifier's label of a row is known, so in step 3 a row is a candidate of tracks of its own
    class only (eta(alpha = l) = 0 otherwise), step 6 clusters births per class and a new track
    takes its rows' class, step 8 merges only tracks of one class; model (2) of a track uses its

@@ -48,7 +48,7 @@ particles. Per time step:
    taken in closed form (``track_flat`` of :func:`coloc.inference.particle_bp.pf_bpa_localization`).
    Merging: LC's rule on the particle moments, the older track kept; dropping
    after ``feature_drop_after_s``.
-8. under clutter and missed detections (issue 21), LC's steps 3 and 9 on the particle moments:
+8. under clutter and missed detections (realistic sensing), LC's steps 3 and 9 on the particle moments:
    with ``detection`` (``lc.sensor_fov``, the ``[perception]`` sensors) P_D is per (vehicle, track)
    pair at the moments, 0 outside every field of view, in eta (25) and in the terms of (18); with
    ``lc.track_existence`` every track carries an existence probability r

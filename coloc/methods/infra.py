@@ -1,5 +1,5 @@
 """Infrastructure-mode estimators: ``rsu_bp``, ``sme`` and ``fg_topology_new`` run online at
-road-side units (RSUs) on the vehicles within their range (issue 5 part 4).
+road-side units (RSUs) on the vehicles within their range.
 
 Each method reads ``frame.infra`` (:class:`coloc.core.frame.InfraFrame`): the V2I links, the RSU
 positions and the unlabelled radar detections in the radar's unknown frame, plus the vehicles'

@@ -112,14 +112,19 @@ def read_sumo_clock(scen: dict, path: Path) -> SumoClock:
     return SumoClock(**vals)
 
 
-def _load_geojson(path: Path):
-    """Parse a net folder's GeoJSON file and check its crs member (net x/y only)."""
+def read_json(path: Path):
+    """A JSON file parsed, or one line naming it: not found, or not valid JSON (and where)."""
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(path, None, "file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"not valid JSON ({exc})") from None
+
+
+def _load_geojson(path: Path):
+    """Parse a net folder's GeoJSON file and check its crs member (net x/y only)."""
+    data = read_json(path)
     if isinstance(data, dict) and data.get("crs") is not None:
         crs = data["crs"]
         name = crs.get("properties", {}).get("name") if isinstance(crs, dict) and isinstance(

@@ -1,4 +1,4 @@
-"""Realistic inertial input (issue 21 item 5): a body-frame IMU per vehicle, opt-in through the
+"""Realistic inertial input: a body-frame IMU per vehicle, opt-in through the
 ``[inertial]`` config table. Without it the frame's ``accel`` is the true net-frame change of velocity
 plus white noise (a perfect heading), exactly as before.
 

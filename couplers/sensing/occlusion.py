@@ -1,4 +1,4 @@
-"""Occlusion geometry of the realistic perception (issue 21 item 1; :mod:`couplers.sensing.perception` uses it,
+"""Occlusion geometry of the realistic perception (:mod:`couplers.sensing.perception` uses it,
 :mod:`couplers.sensing.v2x` too for the buildings' shadowing of V2V links): vehicle footprints, sight lines
 against footprints and against the net folder's buildings.
 

@@ -1,4 +1,4 @@
-"""SUMO pedestrians as moving features (issue 21 item 3; the ``[features]`` config table).
+"""SUMO pedestrians as moving features (the ``[features]`` config table).
 
 With ``[features] pedestrians = true`` every SUMO person walking in the net is a feature of model (2)
 of Brambilla et al.: a point x_F = [px, py, vx, vy] that vehicles measure with model (4), exactly as

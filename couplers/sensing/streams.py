@@ -1,4 +1,4 @@
-"""numpy Generators drawn from inside numba kernels, the same numbers in the same order (issue 21's frames).
+"""numpy Generators drawn from inside numba kernels, the same numbers in the same order (the realistic frames).
 
 Every effect of the coupler has its own ``numpy.random.Generator`` (``couplers.sensing.perception.effect_rng``). A
 kernel that needs the draws of an effect could take the Generator itself as an argument, but numba unboxes

@@ -1,4 +1,4 @@
-"""Realistic V2X (issue 22 item 1): market penetration, packet delivery by distance with a separate
+"""Realistic V2X: market penetration, packet delivery by distance with a separate
 curve through buildings, and a budget of broadcast rounds per step. Opt-in through the ``[v2x]``
 config table (SUMO scenarios only); without it the coupler builds frames exactly as before.
 

@@ -348,31 +348,23 @@ def write_report(run_dir: Path) -> None:
               "fg_gps_odom": "tab:gray"}
     vehicles = [int(n) for n in summary["table"]]
 
-    fig = _new_fig(4.2 * len(vehicles), 3.4)
-    axes = fig.subplots(1, len(vehicles), squeeze=False)[0]
-    for ax, n in zip(axes, vehicles):
-        for m in methods:
-            c = curves[(curves.vehicles == n) & (curves.method == m)]
-            ax.plot(c.t, c.rmse_cumulative_m, color=colors[m], label=m)
-        ax.set_title(f"{n} vehicles")
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("combined RMSE (21) up to t [m]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    _save(fig, figs / "rmse_time.png")
+    def curves_by_vehicle_count(column: str, ylabel: str, name: str, **line) -> None:
+        """One panel per vehicle count: ``column`` of curves.parquet over t, one line per method."""
+        fig = _new_fig(4.2 * len(vehicles), 3.4)
+        axes = fig.subplots(1, len(vehicles), squeeze=False)[0]
+        for ax, n in zip(axes, vehicles):
+            for m in methods:
+                c = curves[(curves.vehicles == n) & (curves.method == m)]
+                ax.plot(c.t, c[column], color=colors[m], label=m, **line)
+            ax.set_title(f"{n} vehicles")
+            ax.set_xlabel("t [s]")
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=8)
+        _save(fig, figs / name)
 
-    fig = _new_fig(4.2 * len(vehicles), 3.4)
-    axes = fig.subplots(1, len(vehicles), squeeze=False)[0]
-    for ax, n in zip(axes, vehicles):
-        for m in methods:
-            c = curves[(curves.vehicles == n) & (curves.method == m)]
-            ax.plot(c.t, c.rmse_step_m, color=colors[m], label=m, lw=0.8)
-        ax.set_title(f"{n} vehicles")
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("total-system error at t, RMS over runs [m]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    _save(fig, figs / "rmse_step.png")
+    curves_by_vehicle_count("rmse_cumulative_m", "combined RMSE (21) up to t [m]", "rmse_time.png")
+    curves_by_vehicle_count("rmse_step_m", "total-system error at t, RMS over runs [m]", "rmse_step.png", lw=0.8)
 
     if example is not None:
         fig = _new_fig(4.2 * len(vehicles), 4.0)

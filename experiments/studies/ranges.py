@@ -15,6 +15,7 @@ SEED = RANGES["run.seed"]
 RUNS = Range(1, 100_000, NO_UNIT, "Monte Carlo runs: 1e5 already take days")
 STEPS = Range(1, 1_000_000, NO_UNIT, "steps of one run")
 VAR_M2 = Range(0.0, 1e6, "m^2", "a variance of (1 km)^2", low_open=True)
+INTENSITY = Range(0.0, 1e4, "m^2/s^3", "a white-acceleration intensity of (100 m/s^2)^2 s", low_open=True)
 COUNT_RUNS = Range(0, 100_000, NO_UNIT, "Monte Carlo runs: 1e5 already take days")
 STUDY_RANGES: dict[str, dict[str, Range]] = {
     "rsu_bp": {
@@ -24,8 +25,7 @@ STUDY_RANGES: dict[str, dict[str, Range]] = {
         "study.init_spread": Range(1.0, 1e6, NO_UNIT, "a factor on a covariance"),
         "study.scenario.n_steps": STEPS,
         "study.scenario.dt": STEP,
-        "study.scenario.process_intensity": Range(0.0, 1e4, "m^2/s^3", "a white-acceleration intensity of "
-                                                  "(100 m/s^2)^2 s", low_open=True),
+        "study.scenario.process_intensity": INTENSITY,
         "study.scenario.gnss_var": VAR_M2,
         "study.scenario.v2f_var": VAR_M2,
         "study.scenario.n_features": Range(0, 10_000, NO_UNIT, "features around one RSU"),
@@ -34,8 +34,7 @@ STUDY_RANGES: dict[str, dict[str, Range]] = {
         "study.filter.da_iterations": ITER,
         "study.filter.correction_iterations": ITER,
         "study.filter.dt": STEP,
-        "study.filter.process_intensity": Range(0.0, 1e4, "m^2/s^3", "a white-acceleration intensity of "
-                                                "(100 m/s^2)^2 s", low_open=True),
+        "study.filter.process_intensity": INTENSITY,
         "study.filter.vehicle_init_velocity_std": SIGMA_MPS,
         "study.filter.feature_init_velocity_std": SIGMA_MPS,
         "study.sweep.v2f_var": VAR_M2,

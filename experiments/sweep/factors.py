@@ -1,7 +1,7 @@
 """One factor at a time around a preset: the ``[sweep.factors]`` table of a sweep file.
 
 A full product of the realistic-sensing factors (detection probability x clutter x occlusion x GNSS
-correlation x pedestrians x eta_TH x control) would be days of CPU; the study the issue asks for
+correlation x pedestrians x eta_TH x control) would be days of CPU; the study
 varies one factor at a time around the base config (the *preset*) and keeps the rest at their
 preset values::
 

@@ -1,4 +1,4 @@
-"""Gaussian BPA-L over the lossy V2X channel (issue 22 item 2) and the communication counts (item 3).
+"""Gaussian BPA-L over the lossy V2X channel and the communication counts.
 
 The consensus of (20) runs as running-sum ratio consensus on the V2V links each round delivered
 (coloc.inference.row_consensus.ChannelRowConsensus), rounds counted over the step within

@@ -496,7 +496,7 @@ def test_pair_member_table_is_isin_of_the_pair_keys():
 
 
 def test_chi2_ppf_is_scipy_stats_bit_for_bit():
-    """The gates' quantile without scipy.stats (issue 24's start-up) is scipy.stats.chi2.ppf's number,
+    """The gates' quantile without scipy.stats (start-up time) is scipy.stats.chi2.ppf's number,
     bit for bit: the shipped gate probabilities and a grid of others, 1 to 6 degrees of freedom."""
     from scipy.stats import chi2
 

@@ -1,4 +1,4 @@
-"""The estimators' side of the inertial input (coloc.core.inertial, issue 21 item 5): rotation by the
+"""The estimators' side of the inertial input (coloc.core.inertial): rotation by the
 estimated heading, the heading memory below the speed threshold, new vehicles, the unchanged path
 without an IMU, and the trackers fed by the IMU."""
 

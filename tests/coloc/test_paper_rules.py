@@ -1,4 +1,4 @@
-"""The paper's literal rules as switches (issue 25): each changes what it should and nothing else.
+"""The paper's literal rules as switches: each changes what it should and nothing else.
 
 * ``[lc] pairing = "paper"``: (30)-(31) as written (no gate, threshold at every eta_TH, a row may
   be taken by several tracks);

@@ -1,4 +1,4 @@
-"""ICP-DA-PF under clutter (issue 21 item 6): track existence and per-pair P_D, as ICP-DA-LC's steps 3
+"""ICP-DA-PF under clutter: track existence and per-pair P_D, as ICP-DA-LC's steps 3
 and 9 (coloc.methods.icp_da_pf, ``existence`` / ``detection`` of icp_da_pf_step)."""
 
 from dataclasses import replace

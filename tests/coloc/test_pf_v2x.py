@@ -1,4 +1,4 @@
-"""ICP-DA-PF over the lossy V2X channel (issue 22 item 2): the average consensus of (28) as running-sum
+"""ICP-DA-PF over the lossy V2X channel: the average consensus of (28) as running-sum
 ratio consensus and the max consensus of (29) as lossy max consensus on the rounds the channel
 delivers, within the step's round budget (coloc.methods.icp_da_pf.pf_bpa_localization)."""
 

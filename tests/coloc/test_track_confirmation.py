@@ -1,4 +1,4 @@
-"""ICP-DA-LC under clutter (issue 21, estimator side): the clutter intensity in the normaliser of
+"""ICP-DA-LC under clutter (estimator side of realistic sensing): the clutter intensity in the normaliser of
 eta (13) and the tracks' existence probability (module docstring of coloc.methods.icp_da_lc,
 step 9)."""
 

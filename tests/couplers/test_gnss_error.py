@@ -1,4 +1,4 @@
-"""Realistic GNSS error (couplers.sensing.gnss_error, issue 21 item 4): Gauss-Markov statistics per zone,
+"""Realistic GNSS error (couplers.sensing.gnss_error): Gauss-Markov statistics per zone,
 white noise at tau = 0, NLOS episodes, building density, bad parameters, and the coupler."""
 
 import math

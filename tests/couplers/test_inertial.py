@@ -1,4 +1,4 @@
-"""Realistic inertial input (couplers.sensing.inertial, issue 21 item 5): the body-frame IMU against the
+"""Realistic inertial input (couplers.sensing.inertial): the body-frame IMU against the
 net-frame input, its discretisation in turns, the bias statistics, seeding, and the coupler (other
 streams untouched)."""
 

@@ -1,4 +1,4 @@
-"""Realistic perception (couplers.sensing.perception, issue 21 item 1) against brute-force references and its
+"""Realistic perception (couplers.sensing.perception) against brute-force references and its
 configured statistics; buildings.geojson in a net folder; the [perception] table end to end."""
 
 import json

@@ -1,4 +1,4 @@
-"""Realistic V2X, coupler side (couplers.sensing.v2x, coloc.core.v2x; issue 22 item 1): penetration against the
+"""Realistic V2X, coupler side (couplers.sensing.v2x, coloc.core.v2x): penetration against the
 configured rate and nested across rates, delivery ratio per distance against the configured curve,
 the NLOS curve exactly for links through buildings, directed losses, determinism, the [v2x] table,
 and the coupler with and without it."""

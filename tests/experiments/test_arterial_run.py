@@ -69,9 +69,9 @@ def rmse_per_interval(est: pd.DataFrame, method: str, width_s: float = 300.0) ->
 
 @pytest.mark.slow
 def test_full_hour_tlr_vs_vsr(tmp_path):
-    """Issue 2's claims on the full hour: TLR holds more vehicles and longer queues than VSR,
+    """The paper's traffic claims on the full hour: TLR holds more vehicles and longer queues than VSR,
     both exit flows follow the demand profile, GNSS error orders by zone (C worst, A best).
-    Issue 3's: ICP-DA-LC beats GNSS in every 5-minute interval in both controls, with a larger
+    and its cooperative claim: ICP-DA-LC beats GNSS in every 5-minute interval in both controls, with a larger
     gain in TLR, and brings the built-up zone's 95th percentile to about a metre."""
     summaries, traffic, gains = {}, {}, {}
     for control in ("tlr", "vsr"):

@@ -1,6 +1,6 @@
 """What `coloc` imports before it works: heavy libraries only for the configs and commands that use them.
 
-Issue 24 (start-up): the command line imports no estimator library; ``coloc run`` reaches its first
+Start-up: the command line imports no estimator library; ``coloc run`` reaches its first
 simulation step without gtsam, dask, matplotlib, pandas, pyarrow or tqdm, and without the modules
 of methods the config does not run. Each check runs in a fresh interpreter (``sys.modules`` of
 this one holds whatever other tests imported). How long start-up takes is measured by

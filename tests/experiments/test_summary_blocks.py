@@ -1,4 +1,4 @@
-"""summary.json blocks of issue 21 item 9: the mean 2-D position NEES (a consistent Gaussian gives 2) and the
+"""summary.json blocks of realistic sensing: the mean 2-D position NEES (a consistent Gaussian gives 2) and the
 association shares per GNSS zone (they add up to the run's)."""
 
 import numpy as np

@@ -294,7 +294,7 @@ def test_full_hour_tlr_queues_more_than_vsr(tmp_path):
 
 
 # --------------------------------------------------------------------------
-# buildings (issue 21 item 2)
+# buildings (the occluders of the realistic perception)
 # --------------------------------------------------------------------------
 
 def test_buildings_keep_off_lanes_and_features(net_internal):

@@ -20,7 +20,7 @@ from shapely.geometry import box, mapping
 from couplers.errors import InputError
 from couplers.net.georef import GeoRef, check_lonlat, conversion_note, crs_kind, geojson_to_net_xy
 from couplers.net.folder import NET_CRS as CRS
-from couplers.net.folder import regions_from_doc
+from couplers.net.folder import read_json, regions_from_doc
 from couplers.net.importer.geometry import _fmt
 
 if TYPE_CHECKING:
@@ -174,12 +174,7 @@ class _UserGeoJSON:
 
 def _read_user_geojson(src: Path, key: str, with_sigmas: bool) -> _UserGeoJSON:
     """The user's zones/areas GeoJSON: a known CRS, valid polygons, plausible lon/lat (before any conversion)."""
-    try:
-        doc = json.loads(src.read_text())
-    except FileNotFoundError:
-        raise InputError(src, None, "file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(src, None, f"not valid JSON ({exc})") from None
+    doc = read_json(src)
     if not isinstance(doc, dict):
         raise InputError(src, None, "expected a GeoJSON FeatureCollection (a JSON object)")
     crs, how = crs_kind(doc, src)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from couplers.net.folder import NET_CRS_NAME
+from couplers.publish import sha256_file
 
 if TYPE_CHECKING:
     from couplers.net.importer import ImportOptions, _Report
@@ -39,14 +39,6 @@ def _key(k: str) -> str:
     return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _write_scenario(work: Path, opts: ImportOptions, report: _Report, route_names: list[str] | None = None) -> None:
     src = opts.source
     route_names = route_names or ["demand.rou.xml"]
@@ -60,19 +52,19 @@ def _write_scenario(work: Path, opts: ImportOptions, report: _Report, route_name
     else:
         licence = "as the source net's licence (unknown to coloc): check it before sharing this folder"
         kind = "SUMO net"
-    digest = _sha256(src)
+    digest = sha256_file(src)
     inputs = {"source": src.name, "source_sha256": digest}
     if opts.sumocfg is not None:
         inputs["sumocfg"] = opts.sumocfg.name
-        inputs["sumocfg_sha256"] = _sha256(opts.sumocfg)
+        inputs["sumocfg_sha256"] = sha256_file(opts.sumocfg)
     for key in ("zones", "areas", "routes", "additional"):
         p = getattr(opts, key)
         if isinstance(p, (tuple, list)):  # several files: lists of names and digests
             inputs[key] = [x.name for x in p]
-            inputs[key + "_sha256"] = [_sha256(x) for x in p]
+            inputs[key + "_sha256"] = [sha256_file(x) for x in p]
         elif p is not None:
             inputs[key] = p.name
-            inputs[key + "_sha256"] = _sha256(p)
+            inputs[key + "_sha256"] = sha256_file(p)
     # [sumo]: the scenario's clock; begin only for a scenario with its own (a .sumocfg), so that other
     # imports write what they always did
     begin = [f"begin = {_toml(float(opts.begin_s))}"] if opts.begin_s is not None else []
