@@ -3,7 +3,7 @@
 Imports libsumo, sumolib, shapely and numpy; produces ``coloc.core.frame.Frame``
 objects, the only thing that crosses into the estimators.
 
-Rooms, by what they model (imports run one way, down this list; tests/couplers/test_layers.py):
+Rooms, by what they model (imports run one way, down this list; tests/couplers/test_couplers_layers.py):
 
 * ``couplers.net``: the net folder and its import (net, routes, zones, areas, buildings, georef);
 * ``couplers.traffic``: the traffic simulation (SUMO through libsumo);
