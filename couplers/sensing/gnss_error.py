@@ -1,5 +1,6 @@
-"""Realistic GNSS position error (issue 21 item 4): first-order Gauss-Markov error per vehicle plus
-NLOS / multipath bias episodes. Opt-in through the ``[gnss_error]`` config table.
+"""Realistic GNSS position error: first-order Gauss-Markov error per vehicle plus
+NLOS / multipath bias episodes (``model = "per_vehicle"``, the default), or errors that nearby vehicles
+share (``model = "field"``, at the end). Opt-in through the ``[gnss_error]`` config table.
 
 Position error of vehicle i at step k (net x/y, per axis):
 
@@ -45,6 +46,58 @@ Default sources:
   (10 s) are assumptions: no measured rate of episodes was found; with them a vehicle in zone C is
   biased ~14 % of the time. Density rate 3 / min per unit plan-area fraction: 1 / min at 0.30, the
   built-up fraction from which ``coloc net import`` classes a cell C (couplers.net.importer).
+
+``model = "field"`` (:class:`FieldErrorProcess`): errors that nearby receivers share. Per axis,
+
+    e_i = sigma_p(zone_i) (sqrt(s) c + sqrt(1 - s) (sqrt(f) F(p_i) + sqrt(1 - f) u_i)) + b_cell(p_i)
+
+* c: the common part, one unit Gauss-Markov process per axis for the whole net (``common_tau_s``),
+  ``s = common_share`` of the variance. Atmosphere, broadcast orbit and satellite clock errors are
+  nearly the same for receivers tens of kilometres apart (that is why differential GNSS works; NovAtel
+  OEM4 Family Installation and Operation User Manual, Appendix C "GPS Overview": "errors ... highly
+  correlated for adjacent receivers ... up to tens of kilometers"). In the single-frequency L1 C/A
+  range error budget without SA (Parkinson and Spilker, "Global Positioning System: Theory and
+  Applications" vol. I, 1996, ch. 11, the "standard error model": ephemeris 2.1, satellite clock 2.1,
+  ionosphere 4.0, troposphere 0.7, multipath 1.4, receiver 0.5 m, UERE 5.3 m) these common terms
+  are 5.0 m of the 5.3 m, 92 % of the variance, in the open. In urban canyons multipath and NLOS
+  grow and receivers a street apart track different satellites, so the common share falls; the
+  preset's 0.5 is our assumption between the two. The common part is scaled by the zone's sigma
+  like the rest: the same range errors map into larger position errors under the poorer geometry
+  of a canyon (position error = DOP x range error), so two vehicles in one zone share it exactly and
+  vehicles of different zones share it in proportion to their sigmas. ``common_tau_s`` 600 s is an
+  assumption: the common terms change with satellite elevation over tens of minutes (a stationary
+  receiver's horizontal error keeps a slow component over the 70 minutes D. L. Wilson plots for a
+  Garmin 12XL, http://www.erols.com/dlwilson/gpscorr.htm, beside the ~1 min one ``tau_s`` models).
+* F: a unit random field over the net, ``f = field_share`` of the rest: multipath and masking that
+  receivers on the same street see alike. Exponential covariance exp(-d / ``field_corr_length_m``)
+  from ``field_features`` random Fourier features (Rahimi and Recht, "Random features for large-scale
+  kernel machines", NIPS 2007; the 2-D exponential kernel's spectral density is a Student t with one
+  degree of freedom), their coefficients Gauss-Markov in time (``field_tau_s``: the pattern at a
+  fixed place changes as the satellites move). The variance at every point is exactly 1 whatever
+  the number of features; the correlation of two points d apart, for the drawn frequencies, is the
+  mean of cos(omega . d) (:func:`field_correlation`), whose expectation is exp(-d / L). 50 m (a
+  street block) and 300 s are assumptions: no published correlation length of two vehicles'
+  position errors on one street was found.
+* u_i: the receiver's own part (noise, its own multipath), a unit process correlated over distance
+  travelled and time: a_i = exp(-d_i / ``local_corr_length_m`` - Ts / ``tau_s``), d_i the distance the
+  vehicle moved this step. A standing receiver keeps it for tau_s (30 s: the stationary receivers
+  above), a moving one loses it over 20 m (assumption: code multipath of a moving antenna varies
+  within metres, P. D. Groves, "Principles of GNSS, Inertial, and Multisensor Integrated Navigation
+  Systems", 2nd ed. 2013, ch. 9, smoothed by the receiver's own filter). It is driven by the same
+  standard normal draws as the per-vehicle model's state.
+* b_cell: NLOS bias episodes of square cells of ``nlos_cell_m``: each cell a vehicle has visited runs
+  its own episodes (start probability 1 - exp(-lambda Ts) per step outside one, lambda of the zone of
+  the first vehicle seen in it or of the building density at its centre, durations and biases as
+  above); every vehicle in the cell while an episode lasts gets its bias. The episode parameters are
+  the per-vehicle model's; 50 m is our assumption (a street block).
+* Each vehicle's error outside episodes has the zone's variance sigma_p^2 per axis. Two receivers d
+  apart in one zone, outside episodes, correlate by s + (1 - s) f exp(-d / L) in expectation
+  (:func:`expected_correlation`).
+* Streams: "common" (c), "field_features" (the frequencies), "field" (the coefficients),
+  "nlos_cell_start", "nlos_cell_duration", "nlos_cell_bias", each ``SeedSequence([seed, 0x6E5,
+  crc32(name)])``; u's draws are the idealised GNSS stream's, as above.
+* Calibration and measured statistics: docs/validation/realistic_sensing.md, "GNSS error model and
+  its calibration".
 """
 
 from __future__ import annotations
