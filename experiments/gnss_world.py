@@ -5,9 +5,10 @@ position, before any estimator) by GNSS zone, and the correlation of two receive
 separation. This is the world's side (docs/outputs.md), never an estimator's input.
 
 Correlation per separation bin and axis: over every pair of vehicles (i, j) present at the same step with
-separation in the bin, the Pearson correlation of the pairs' error components taken in both orders (so the
-order of a pair does not matter): rho = (mean(e_i e_j) - m^2) / (mean(e^2) - m^2), m the mean component over
-both members of the pairs. Steps with more than :data:`MAX_VEHICLES` vehicles use every k-th row (k the
+separation in the bin, rho = mean(e_i e_j) / mean((e_i^2 + e_j^2) / 2), the correlation about zero (an
+error's expected value is zero) of the pairs' error components, symmetric in the order of a pair. Not about
+the sample mean: a common error that stays nearly constant through a run (a slow common part) is error the
+receivers share, and subtracting the run's mean would remove it. Steps with more than :data:`MAX_VEHICLES` vehicles use every k-th row (k the
 smallest giving at most that many), which keeps the pair count per step below ~MAX_VEHICLES^2 / 2.
 """
 
@@ -71,8 +72,7 @@ class GnssWorldTally:
                 if n == 0:
                     block[axis] = None
                     continue
-                m = s[3 + k] / (2 * n)
-                var = s[5 + k] / (2 * n) - m * m
-                block[axis] = float((s[1 + k] / n - m * m) / var) if var > 0 else None
+                power = s[5 + k] / (2 * n)
+                block[axis] = float((s[1 + k] / n) / power) if power > 0 else None
             corr[f"{lo:g}-{hi:g}m"] = block
         return {"receiver_error_by_zone": by_zone, "error_correlation_by_separation": corr}

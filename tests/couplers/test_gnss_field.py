@@ -84,7 +84,7 @@ def _ensemble(params, seeds, steps, separations, dt=0.75, speed=10.0):
 
 
 def _pair_correlation(a: np.ndarray, b: np.ndarray) -> float:
-    """Pearson correlation of the pairs taken in both orders (experiments.gnss_world's estimator)."""
+    """Pearson correlation of the pairs taken in both orders (over an ensemble of seeds, whose mean is ~0)."""
     a, b = a.ravel(), b.ravel()
     m = (a.sum() + b.sum()) / (2 * a.size)
     var = (a @ a + b @ b) / (2 * a.size) - m * m
