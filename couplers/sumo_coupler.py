@@ -13,7 +13,7 @@ from coloc.core.frame import Frame
 from coloc.core.vehicles import match_ids
 from couplers.traffic import sumo
 from couplers.errors import InputError
-from couplers.sensing.gnss_error import GnssErrorProcess
+from couplers.sensing.gnss_error import gnss_error_process
 from couplers.sensing.inertial import InertialProcess
 from couplers.sensing.infra import InfraSetup, InfraSynth
 from couplers.net.folder import NetFolder
@@ -36,6 +36,9 @@ class SumoScenario:
     ballistic: bool = True
     lanechange_duration: float = 3.0
     begin_s: float = 0.0  # the scenario's clock: the run simulates [begin_s, begin_s + duration_s]
+    # The prior of an entering vehicle: "fast_start" (N(truth, 2 m), the paper's) or "gnss_fix" (its
+    # receiver's fix of that step; couplers.sensing.sensors.synthesize_frame).
+    start: str = "fast_start"
 
     def sumo_options(self) -> SumoOptions:
         if self.control not in self.net.tls_off:
@@ -70,7 +73,7 @@ class SumoCoupler:
     pedestrians``) every SUMO person is a moving feature (:mod:`couplers.sensing.pedestrians`): the frame
     carries ``v2f_class`` and the truth keeps stable feature rows (``c.registry``). With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
-    :class:`couplers.sensing.gnss_error.GnssErrorProcess`'s. With ``sensors.v2x`` (``[v2x]``) only the
+    :class:`couplers.sensing.gnss_error.GnssErrorProcess`'s (``model = "field"``: ``FieldErrorProcess``'s). With ``sensors.v2x`` (``[v2x]``) only the
     equipped vehicles (:class:`couplers.sensing.v2x.V2xChannel`) are in the frames, and each frame carries
     the channel (``frame.v2x``); every SUMO vehicle on the road, equipped or not, still occludes the
     perception's sight lines and counts in the traffic statistics. With ``sensors.inertial``
@@ -102,7 +105,7 @@ class SumoCoupler:
         self.perception_noise = PerceptionNoise(scenario.seed) if self.perception is not None else None
         self.last_detections: Detections | None = None
         self.perception_totals: dict[str, int] = {}
-        self.gnss_error = (GnssErrorProcess(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
+        self.gnss_error = (gnss_error_process(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
         self.v2x = V2xChannel(sensors.v2x, scenario.seed, buildings) if sensors.v2x is not None else None
         self.inertial = (InertialProcess(sensors.inertial, scenario.seed, scenario.step_length)
@@ -164,6 +167,7 @@ class SumoCoupler:
                 gnss_error=self.gnss_error,
                 prev_row=prev_row,
                 imu=imu,
+                start=self.scenario.start,
             )
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)

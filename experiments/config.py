@@ -65,7 +65,7 @@ from couplers.sensing.gnss_error import GnssErrorParams
 from couplers.sensing.inertial import InertialParams
 from couplers.sensing.pedestrians import FeaturesParams
 from couplers.sensing.perception import PerceptionParams
-from couplers.scenarios import CrossroadParams, SingleRoadParams
+from couplers.scenarios import STARTS, CrossroadParams, SingleRoadParams
 from couplers.sensing.sensors import SensorParams
 from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
@@ -75,7 +75,7 @@ from experiments.ranges import check_ranges_of
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
-SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic", "begin_s")
+SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic", "begin_s", "start")
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,10 @@ class ScenarioSection:
     # The scenario's begin on its own clock (s, e.g. 25200 = 07:00): the run simulates
     # [begin_s, begin_s + run.duration_s]. Not given: the net folder's [sumo] begin (0 without one).
     begin_s: float | None = None
+    # The prior of an entering vehicle (SUMO scenarios; the controlled ones have [single_road] / [crossroad]
+    # start): "fast_start" (N(truth, sensors.prior_sigma_p/v), the paper's) or "gnss_fix" (its receiver's fix
+    # of that step, error included, with the covariance the receiver reports).
+    start: str = "fast_start"
 
 
 @dataclass(frozen=True)
@@ -397,6 +401,8 @@ def _validate(cfg: Config) -> None:
         if not (Path(cfg.scenario.net_dir) / "scenario.toml").is_file():
             raise InputError(p, "scenario.net_dir", f"no net folder (scenario.toml) at {cfg.scenario.net_dir}")
         _check_begin_against_demand(cfg)
+        if cfg.scenario.start not in STARTS:
+            raise InputError(p, "scenario.start", f"unknown value {cfg.scenario.start!r} (available: {', '.join(STARTS)})")
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
 
@@ -462,7 +468,8 @@ def _derive_from_scenario(sections: dict, data: dict, path: Path) -> list[tuple[
     notes: list[tuple[str, str]] = []
     for key in SUMO_ONLY_KEYS:
         if key in data.get("scenario", {}):
-            raise InputError(path, f"scenario.{key}", f"only for scenario.kind = \"sumo\" (this is {kind!r})")
+            also = f"; set {kind}.start instead" if key == "start" else ""
+            raise InputError(path, f"scenario.{key}", f"only for scenario.kind = \"sumo\" (this is {kind!r}){also}")
     for other in SCENARIO_TABLES:
         if other != kind and other in data:
             raise InputError(path, other, f"table given but scenario.kind is {kind!r}")

@@ -77,7 +77,8 @@ TABLE_DOCS: dict[str, str] = {
                           "their sources (datasheet, peer simulator): `couplers/sensing/perception.py`.",
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/sensing/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
-                  "bias episodes. The estimators keep the nominal zone covariance a receiver reports.",
+                  "bias episodes (`model = \"per_vehicle\"`), or errors nearby vehicles share (`model = \"field\"`). "
+                  "The estimators keep the nominal zone covariance a receiver reports.",
     "inertial": "Realistic inertial input (optional table, SUMO only; `couplers/sensing/inertial.py`): a body-frame IMU "
                 "per vehicle, longitudinal and lateral acceleration and yaw rate over the step, each with white "
                 "noise, a turn-on bias drawn when the vehicle enters and a first-order Gauss-Markov drift. The "
@@ -166,6 +167,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                          "net folder's `[sumo] begin` (0 without one; `coloc net import --sumocfg` writes the "
                          "scenario's). The folder's `[sumo] step_length` and `end` likewise give `step_s` and "
                          "`run.duration_s` (= end - begin) when they are not set."),
+        "start": ("", "SUMO only: the prior of an entering (or teleported) vehicle. `\"fast_start\"`: N(truth, "
+                      "`sensors.prior_sigma_p/v`), the paper's; `\"gnss_fix\"`: its receiver's fix of that step and "
+                      "the covariance the receiver reports (nothing of its truth)."),
     },
     "single_road": {
         **_SCENARIO_COMMON,
@@ -277,6 +281,21 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "nlos_density_radius_m": ("m", "Radius of the built-up fraction around the vehicle."),
         "nlos_mean_duration_s": ("s", "Mean episode duration (exponential)."),
         "nlos_bias_mean_m": ("m", "Mean bias magnitude of an episode (exponential, uniform direction)."),
+        "model": ("", "`\"per_vehicle\"`: each vehicle's error on its own (the keys above); `\"field\"`: errors "
+                      "nearby vehicles share: a common part, a spatial field and the receiver's own part, NLOS "
+                      "episodes per cell (the keys below; docs/validation/realistic_sensing.md)."),
+        "common_share": (NO_UNIT, "field: share in [0, 1] of each receiver's error variance common to every vehicle "
+                             "(atmosphere, orbit, clock)."),
+        "common_tau_s": ("s", "field: correlation time of the common part; 0 = white."),
+        "field_share": (NO_UNIT, "field: share in [0, 1] of the non-common variance in the spatial field that nearby "
+                            "receivers share; the rest is the receiver's own part."),
+        "field_corr_length_m": ("m", "field: correlation length of the spatial field (exponential covariance)."),
+        "field_tau_s": ("s", "field: correlation time of the spatial field at a fixed place; 0 = white."),
+        "field_features": (NO_UNIT, "field: random Fourier features of the spatial field (1 to 4096)."),
+        "local_corr_length_m": ("m", "field: distance travelled over which the receiver's own part decorrelates "
+                                     "(standing still it keeps it, up to `tau_s`, its time floor)."),
+        "nlos_cell_m": ("m", "field: side of the square cells NLOS episodes belong to; every vehicle in a cell "
+                             "shares its episode."),
     },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),

@@ -54,6 +54,7 @@ from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
+from experiments.gnss_world import GnssWorldTally
 from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.rowstream import StreamLog
 from experiments.scoring import (
@@ -462,6 +463,7 @@ class _SumoSource:
             duration_s=cfg.run.duration_s,
             ballistic=cfg.scenario.ballistic,
             begin_s=cfg.scenario.begin_s or 0.0,
+            start=cfg.scenario.start,
         )
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)
@@ -678,6 +680,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         seconds = {m: 0.0 for m in cfg.run.methods}
         comm = {m: CommTally() for m in cfg.run.methods}
         v2v = V2vTally()
+        # [gnss_error]: the raw receiver errors, scored from truth (experiments.gnss_world)
+        gnss_world = GnssWorldTally() if cfg.gnss_error is not None else None
         t_start = time.perf_counter()
         timing = os.environ.get("COLOC_TIMING", "") not in ("", "0")
         try:
@@ -692,6 +696,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 for frame, results in steps:
                     log.add_truth(frame)
                     v2v.add(frame)
+                    if gnss_world is not None:
+                        gnss_world.add(frame)
                     for r in results:
                         seconds[r.name] += r.seconds
                         if r.sent is not None:
@@ -754,6 +760,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             if method in scores:
                 summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
                 summary["association"][method]["by_zone"] = log.association_by_zone[method]
+        if gnss_world is not None:
+            summary["gnss_world"] = gnss_world.summary()
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
             # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).

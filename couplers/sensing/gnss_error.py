@@ -1,5 +1,6 @@
-"""Realistic GNSS position error (issue 21 item 4): first-order Gauss-Markov error per vehicle plus
-NLOS / multipath bias episodes. Opt-in through the ``[gnss_error]`` config table.
+"""Realistic GNSS position error: first-order Gauss-Markov error per vehicle plus
+NLOS / multipath bias episodes (``model = "per_vehicle"``, the default), or errors that nearby vehicles
+share (``model = "field"``, at the end). Opt-in through the ``[gnss_error]`` config table.
 
 Position error of vehicle i at step k (net x/y, per axis):
 
@@ -45,6 +46,58 @@ Default sources:
   (10 s) are assumptions: no measured rate of episodes was found; with them a vehicle in zone C is
   biased ~14 % of the time. Density rate 3 / min per unit plan-area fraction: 1 / min at 0.30, the
   built-up fraction from which ``coloc net import`` classes a cell C (couplers.net.importer).
+
+``model = "field"`` (:class:`FieldErrorProcess`): errors that nearby receivers share. Per axis,
+
+    e_i = sigma_p(zone_i) (sqrt(s) c + sqrt(1 - s) (sqrt(f) F(p_i) + sqrt(1 - f) u_i)) + b_cell(p_i)
+
+* c: the common part, one unit Gauss-Markov process per axis for the whole net (``common_tau_s``),
+  ``s = common_share`` of the variance. Atmosphere, broadcast orbit and satellite clock errors are
+  nearly the same for receivers tens of kilometres apart (that is why differential GNSS works; NovAtel
+  OEM4 Family Installation and Operation User Manual, Appendix C "GPS Overview": "errors ... highly
+  correlated for adjacent receivers ... up to tens of kilometers"). In the single-frequency L1 C/A
+  range error budget without SA (Parkinson and Spilker, "Global Positioning System: Theory and
+  Applications" vol. I, 1996, ch. 11, the "standard error model": ephemeris 2.1, satellite clock 2.1,
+  ionosphere 4.0, troposphere 0.7, multipath 1.4, receiver 0.5 m, UERE 5.3 m) these common terms
+  are 5.0 m of the 5.3 m, 92 % of the variance, in the open. In urban canyons multipath and NLOS
+  grow and receivers a street apart track different satellites, so the common share falls; the
+  preset's 0.5 is our assumption between the two. The common part is scaled by the zone's sigma
+  like the rest: the same range errors map into larger position errors under the poorer geometry
+  of a canyon (position error = DOP x range error), so two vehicles in one zone share it exactly and
+  vehicles of different zones share it in proportion to their sigmas. ``common_tau_s`` 600 s is an
+  assumption: the common terms change with satellite elevation over tens of minutes (a stationary
+  receiver's horizontal error keeps a slow component over the 70 minutes D. L. Wilson plots for a
+  Garmin 12XL, http://www.erols.com/dlwilson/gpscorr.htm, beside the ~1 min one ``tau_s`` models).
+* F: a unit random field over the net, ``f = field_share`` of the rest: multipath and masking that
+  receivers on the same street see alike. Exponential covariance exp(-d / ``field_corr_length_m``)
+  from ``field_features`` random Fourier features (Rahimi and Recht, "Random features for large-scale
+  kernel machines", NIPS 2007; the 2-D exponential kernel's spectral density is a Student t with one
+  degree of freedom), their coefficients Gauss-Markov in time (``field_tau_s``: the pattern at a
+  fixed place changes as the satellites move). The variance at every point is exactly 1 whatever
+  the number of features; the correlation of two points d apart, for the drawn frequencies, is the
+  mean of cos(omega . d) (:func:`field_correlation`), whose expectation is exp(-d / L). 50 m (a
+  street block) and 300 s are assumptions: no published correlation length of two vehicles'
+  position errors on one street was found.
+* u_i: the receiver's own part (noise, its own multipath), a unit process correlated over distance
+  travelled and time: a_i = exp(-d_i / ``local_corr_length_m`` - Ts / ``tau_s``), d_i the distance the
+  vehicle moved this step. A standing receiver keeps it for tau_s (30 s: the stationary receivers
+  above), a moving one loses it over 20 m (assumption: code multipath of a moving antenna varies
+  within metres, P. D. Groves, "Principles of GNSS, Inertial, and Multisensor Integrated Navigation
+  Systems", 2nd ed. 2013, ch. 9, smoothed by the receiver's own filter). It is driven by the same
+  standard normal draws as the per-vehicle model's state.
+* b_cell: NLOS bias episodes of square cells of ``nlos_cell_m``: each cell a vehicle has visited runs
+  its own episodes (start probability 1 - exp(-lambda Ts) per step outside one, lambda of the zone of
+  the first vehicle seen in it or of the building density at its centre, durations and biases as
+  above); every vehicle in the cell while an episode lasts gets its bias. The episode parameters are
+  the per-vehicle model's; 50 m is our assumption (a street block).
+* Each vehicle's error outside episodes has the zone's variance sigma_p^2 per axis. Two receivers d
+  apart in one zone, outside episodes, correlate by s + (1 - s) f exp(-d / L) in expectation
+  (:func:`expected_correlation`).
+* Streams: "common" (c), "field_features" (the frequencies), "field" (the coefficients),
+  "nlos_cell_start", "nlos_cell_duration", "nlos_cell_bias", each ``SeedSequence([seed, 0x6E5,
+  crc32(name)])``; u's draws are the idealised GNSS stream's, as above.
+* Calibration and measured statistics: docs/validation/realistic_sensing.md, "GNSS error model and
+  its calibration".
 """
 
 from __future__ import annotations
@@ -65,6 +118,8 @@ from couplers.sensing.perception import effect_rng
 from couplers.net.zones import CellGrid, _grid_values
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
+#: The ``[gnss_error] model`` values: each vehicle's error on its own, or the shared field.
+GNSS_MODELS = ("per_vehicle", "field")
 
 
 @dataclass(frozen=True)
@@ -78,11 +133,37 @@ class GnssErrorParams:
     nlos_density_radius_m: float = 50.0
     nlos_mean_duration_s: float = 10.0
     nlos_bias_mean_m: float = 10.0
+    # "per_vehicle" (the model above, each vehicle on its own) or "field" (FieldErrorProcess: a common part,
+    # a spatial field and the receiver's own part; NLOS episodes per cell). The keys below are the field
+    # model's; "per_vehicle" does not read them. Sources and assumptions: module docstring, "field".
+    model: str = "per_vehicle"
+    common_share: float = 0.5
+    common_tau_s: float = 600.0
+    field_share: float = 0.5
+    field_corr_length_m: float = 50.0
+    field_tau_s: float = 300.0
+    field_features: int = 64
+    local_corr_length_m: float = 20.0
+    nlos_cell_m: float = 50.0
 
     def __post_init__(self):
         def finite(v):
             return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
+        if self.model not in GNSS_MODELS:
+            raise InputError(None, "model", f"unknown model {self.model!r} (available: {', '.join(GNSS_MODELS)})")
+        for key in ("common_share", "field_share"):
+            if not (finite(getattr(self, key)) and 0.0 <= getattr(self, key) <= 1.0):
+                raise InputError(None, key, f"must be in [0, 1], got {getattr(self, key)!r}")
+        for key in ("common_tau_s", "field_tau_s"):
+            if not (finite(getattr(self, key)) and getattr(self, key) >= 0):
+                raise InputError(None, key, f"must be >= 0 and finite (0 = white), got {getattr(self, key)!r}")
+        for key in ("field_corr_length_m", "local_corr_length_m", "nlos_cell_m"):
+            if not (finite(getattr(self, key)) and getattr(self, key) > 0):
+                raise InputError(None, key, f"must be positive and finite, got {getattr(self, key)!r}")
+        if isinstance(self.field_features, bool) or not isinstance(self.field_features, int) \
+                or not 1 <= self.field_features <= 4096:
+            raise InputError(None, "field_features", f"must be an integer in [1, 4096], got {self.field_features!r}")
         if not (finite(self.tau_s) and self.tau_s >= 0):
             raise InputError(None, "tau_s", f"must be >= 0 and finite (0 = white noise), got {self.tau_s!r}")
         if len(self.nlos_zones) != len(self.nlos_rate_per_min):
@@ -355,3 +436,155 @@ class GnssErrorProcess:
     def in_episode(self) -> np.ndarray:
         """(N,) bool for the vehicles of the last step: inside a bias episode."""
         return np.any(self._bias != 0.0, axis=1)
+
+
+# --- the "field" model ---------------------------------------------------------------------------------------
+
+
+def exponential_kernel_frequencies(rng: np.random.Generator, m: int, length_m: float) -> np.ndarray:
+    """(m, 2) random Fourier frequencies (rad/m) of the 2-D exponential covariance exp(-d / length_m): its
+    spectral density is the bivariate Student t with one degree of freedom and scale 1 / length_m, drawn as
+    z / (length_m |g|) with z ~ N(0, I2), g ~ N(0, 1). ``mean(cos(omega . d))`` over the frequencies tends
+    to exp(-|d| / length_m)."""
+    z = rng.standard_normal((m, 2))
+    g = rng.standard_normal(m)
+    return z / (length_m * np.maximum(np.abs(g), 1e-300))[:, None]
+
+
+def field_correlation(omega: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Correlation of the unit field between two points ``d`` (..., 2) apart, for the drawn frequencies:
+    mean over features of cos(omega . d) (exactly, not its expectation exp(-|d| / L))."""
+    return np.cos(np.asarray(d, dtype=float) @ omega.T).mean(axis=-1)
+
+
+def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
+    """Expected correlation (per axis) of two receivers' errors ``d`` m apart, same zone, outside NLOS
+    episodes, own parts independent: common_share + (1 - common_share) field_share exp(-d / L)."""
+    s, f = params.common_share, params.field_share
+    return s + (1.0 - s) * f * np.exp(-np.asarray(d, dtype=float) / params.field_corr_length_m)
+
+
+class FieldErrorProcess:
+    """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
+
+    Per axis, e_i = sigma_p(zone_i) (sqrt(s) c + sqrt(1 - s) (sqrt(f) F(p_i) + sqrt(1 - f) u_i)) + b_cell(p_i):
+    c the common unit Gauss-Markov process (``common_tau_s``), F a unit random field over the net (random
+    Fourier features of the exponential covariance, ``field_corr_length_m``, coefficients Gauss-Markov in
+    time with ``field_tau_s``), u_i the receiver's own unit process, correlated over distance travelled and
+    time (a = exp(-d_i / local_corr_length_m - Ts / tau_s)), b the bias of an NLOS episode of the vehicle's
+    cell (``nlos_cell_m``), shared by every vehicle in that cell while it lasts. Each vehicle's error has
+    the zone's variance sigma_p^2 per axis outside episodes. Same interface as :class:`GnssErrorProcess`."""
+
+    STREAMS = ("common", "field_features", "field", "nlos_cell_start", "nlos_cell_duration", "nlos_cell_bias")
+
+    def __init__(self, params: GnssErrorParams, seed: int, dt: float, buildings: Buildings | None = None):
+        self.params = p = params
+        self.dt = float(dt)
+        for name in self.STREAMS:
+            setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
+        self.a_common = gauss_markov_coefficient(self.dt, p.common_tau_s)
+        self.a_field = gauss_markov_coefficient(self.dt, p.field_tau_s)
+        self.omega = exponential_kernel_frequencies(self.field_features, p.field_features, p.field_corr_length_m)
+        self.c = self.common.standard_normal(2)  # stationary from the start
+        self.coef = self.field.standard_normal((2, p.field_features, 2))  # (cos/sin, feature, axis)
+        self.density = (building_density_grid(buildings, p.nlos_density_radius_m)
+                        if buildings is not None and len(buildings) else None)
+        self._ids = np.empty(0, dtype=object)
+        self._xy = np.empty((0, 2))
+        self._u = np.empty((0, 2))
+        self._bias_now = np.empty((0, 2))
+        # NLOS cells, created at their first visit and evolved every step from then on
+        self._cells: dict[tuple[int, int], int] = {}
+        self._cell_p = np.empty(0)  # start probability per step
+        self._cell_end = np.empty(0)  # episode end (s), -inf outside one
+        self._cell_bias = np.empty((0, 2))
+
+    def field_at(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) unit field F at the points ``xy`` with the current coefficients (one column per axis)."""
+        phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ self.omega.T  # (N, M)
+        return (np.cos(phase) @ self.coef[0] + np.sin(phase) @ self.coef[1]) / math.sqrt(self.omega.shape[0])
+
+    def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
+        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it)."""
+        p, cells = self.params, self._cells
+        keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
+        rows = np.empty(len(keys), dtype=np.int64)
+        new_p = []
+        for i, key in enumerate(map(tuple, keys.tolist())):
+            r = cells.get(key)
+            if r is None:
+                r = cells[key] = len(cells)
+                if self.density is not None:
+                    centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
+                    rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
+                else:
+                    rate = float(zone_rates(p, np.asarray(zone, dtype=object).reshape(-1)[i:i + 1])[0])
+                new_p.append(float(episode_start_probability(rate, self.dt)))
+            rows[i] = r
+        if new_p:
+            k = len(new_p)
+            self._cell_p = np.concatenate([self._cell_p, new_p])
+            self._cell_end = np.concatenate([self._cell_end, np.full(k, -np.inf)])
+            self._cell_bias = np.concatenate([self._cell_bias, np.zeros((k, 2))])
+        return rows
+
+    def _step_cells(self, t: float) -> None:
+        """Episodes of every known cell: those past their end stop; a cell outside one starts one with its
+        probability (draws for every cell, so the streams do not depend on which cells are in one)."""
+        p, k = self.params, self._cell_p.size
+        active = self._cell_end > t + 1e-9
+        self._cell_bias[~active] = 0.0
+        self._cell_end[~active] = -np.inf
+        start = (self.nlos_cell_start.random(k) < self._cell_p) & ~active
+        dur = self.nlos_cell_duration.exponential(p.nlos_mean_duration_s, size=k)
+        mag = self.nlos_cell_bias.exponential(p.nlos_bias_mean_m, size=k) if p.nlos_bias_mean_m > 0 else np.zeros(k)
+        ang = self.nlos_cell_bias.uniform(-np.pi, np.pi, size=k)
+        self._cell_end[start] = t + dur[start]
+        self._cell_bias[start] = np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)[start]
+
+    def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
+             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) position error of this step (see :meth:`GnssErrorProcess.step`; ``w`` drives the receivers'
+        own parts)."""
+        p = self.params
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        w = np.asarray(w, dtype=float).reshape(-1, 2)
+        if idx is None:
+            idx = match_ids(self._ids, ids)
+        idx = np.asarray(idx, dtype=np.int64)
+        # common part and field coefficients: one Gauss-Markov step each
+        b_c = math.sqrt(1.0 - self.a_common ** 2)
+        self.c = self.a_common * self.c + b_c * self.common.standard_normal(2)
+        b_f = math.sqrt(1.0 - self.a_field ** 2)
+        self.coef = self.a_field * self.coef + b_f * self.field.standard_normal(self.coef.shape)
+        # own part: correlated over the distance travelled this step and over time (tau_s)
+        carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
+        u = w.copy()
+        if carried.any():
+            prev = idx[carried]
+            d = np.hypot(*(xy[carried] - self._xy[prev]).T)
+            expo = d / p.local_corr_length_m + (self.dt / p.tau_s if p.tau_s > 0 else np.inf)
+            a = np.exp(-expo)[:, None]
+            u[carried] = a * self._u[prev] + np.sqrt(1.0 - a * a) * w[carried]
+        rows = self._cell_rows(zone, xy)
+        self._step_cells(float(t))
+        bias = self._cell_bias[rows]
+        s, f = p.common_share, p.field_share
+        local = math.sqrt(f) * self.field_at(xy) + math.sqrt(1.0 - f) * u
+        unit = math.sqrt(s) * self.c[None, :] + math.sqrt(1.0 - s) * local
+        error = np.asarray(sigma_p, dtype=float)[:, None] * unit + bias
+        self._ids, self._xy, self._u, self._bias_now = np.asarray(ids, dtype=object), xy, u, bias
+        return error
+
+    @property
+    def in_episode(self) -> np.ndarray:
+        """(N,) bool for the vehicles of the last step: inside a bias episode of their cell."""
+        return np.any(self._bias_now != 0.0, axis=1)
+
+
+def gnss_error_process(params: GnssErrorParams, seed: int, dt: float, buildings: Buildings | None = None):
+    """The process of ``params.model``: :class:`GnssErrorProcess` ("per_vehicle") or
+    :class:`FieldErrorProcess` ("field")."""
+    cls = FieldErrorProcess if params.model == "field" else GnssErrorProcess
+    return cls(params, seed, dt, buildings)

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from coloc.core.frame import Frame, Truth
 from coloc.core.models import gnss_cov
 from coloc.kernels.icp import rows_by_key
-from couplers.sensing.gnss_error import GnssErrorParams, GnssErrorProcess
+from couplers.sensing.gnss_error import FieldErrorProcess, GnssErrorParams, GnssErrorProcess
 from coloc.core.inertial import ImuFrame
 from couplers.sensing.inertial import InertialParams
 from couplers.sensing.pedestrians import FeaturesParams
@@ -322,9 +322,10 @@ def synthesize_frame(
     area: np.ndarray,
     feature_ids: np.ndarray | None = None,
     detections: Detections | None = None,
-    gnss_error: GnssErrorProcess | None = None,
+    gnss_error: GnssErrorProcess | FieldErrorProcess | None = None,
     prev_row: np.ndarray | None = None,
     imu: ImuFrame | None = None,
+    start: str = "fast_start",
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
@@ -333,14 +334,18 @@ def synthesize_frame(
     standard normal draws (both None: the paper's idealisation, byte for byte as before). ``prev_row``: the
     row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
     matches the ids itself). ``imu`` (``couplers.sensing.inertial.InertialProcess``): the frame carries it and
-    ``accel`` is NaN (the net-frame input would carry the true heading)."""
+    ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
+    prior N(x_true, diag(sp^2, sp^2, sv^2, sv^2)) for entering vehicles) or "gnss_fix" (an entering vehicle's
+    prior is its receiver's fix of this step, ``gnss_z`` and ``gnss_R``: nothing of its truth; the estimators
+    then update that prior with the same fix once more at entry)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
     xf = np.ascontiguousarray(x_true, dtype=np.float64)  # the kernels' view of x_true (the truth keeps the input)
     # Fast-start prior for vehicles entering now: N(x_true, diag(sp^2, sp^2, sv^2, sv^2)).
     k = int(np.count_nonzero(entered))
-    w = noise.prior.standard_normal((k, 4)) if k else np.empty((0, 4))
+    gnss_fix = start == "gnss_fix"
+    w = noise.prior.standard_normal((k, 4)) if k and not gnss_fix else np.zeros((k, 4))
     prior_z, prior_R = _prior_rows(entered, xf, w,
                                    np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2))
 
@@ -355,6 +360,8 @@ def synthesize_frame(
     if gnss_error is not None:
         gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
                                                         x_true[:, :2], idx=prev_row)
+    if gnss_fix:  # the receiver's first fix, its error included, and the covariance it reports
+        prior_z[entered], prior_R[entered] = gnss_z[entered], gnss_R[entered]
 
     if detections is not None:
         v2f_z, owner, v2f_R, feat = detections.z, detections.owner, detections.R, detections.feature

@@ -431,6 +431,43 @@ def run_gnss_error_negative_tau(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_error.common_share", "[0, 1]")
+def run_gnss_error_share_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'field'\ncommon_share = 1.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.field_share", "[0, 1]")
+def run_gnss_error_negative_share(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'field'\nfield_share = -0.1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.local_corr_length_m", "positive")
+def run_gnss_error_negative_correlation_length(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'field'\nlocal_corr_length_m = -20.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.field_corr_length_m", "positive")
+def run_gnss_error_zero_field_length(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'field'\nfield_corr_length_m = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.model", "per_vehicle")
+def run_gnss_error_unknown_model(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "scenario.start", "gnss_fix")
+def run_unknown_start(tmp, net, run):
+    path = tmp / "cfg.toml"
+    path.write_text(CONFIG.format(net=net, extra="").replace('control = "tlr"', 'control = "tlr"\nstart = "truth"'))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "inertial.accel_noise_density", ">= 0")
 def run_inertial_negative_noise(tmp, net, run):
     cfg = _config(tmp, net, "[inertial]\naccel_noise_density = -0.004\n")
