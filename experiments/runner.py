@@ -157,9 +157,20 @@ def method_params(cfg: Config) -> MethodParams:
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
-        detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
-                   if cfg.perception is not None and cfg.lc.sensor_fov else None),
+        detection=estimator_detection_model(cfg),
     )
+
+
+def estimator_detection_model(cfg: Config):
+    """The estimators' DetectionModel (``lc.sensor_fov``): from ``[estimator_sensors]``, their own table, when
+    the config has one, else from the ``[perception]`` sensors (None without either or without sensor_fov)."""
+    if not cfg.lc.sensor_fov:
+        return None
+    if cfg.estimator_sensors is not None:
+        return cfg.estimator_sensors.detection_model(cfg.motion.heading_min_speed, cfg.lc.visibility)
+    if cfg.perception is not None:
+        return detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
+    return None
 
 
 def infra_method_params(cfg: Config) -> InfraMethodParams:
@@ -202,6 +213,24 @@ def git_revision() -> str:
         return "unknown"
 
 
+#: summary.json ``detections`` keys: what each V2F row truly is (couplers.sensing.road_users KIND_*).
+DETECTION_KINDS = ("landmark", "clutter", "persistent_clutter", "vehicle", "pedestrian")
+
+
+def detection_kinds(truth) -> np.ndarray:
+    """Counts of one frame's V2F rows by kind, from the truth: ``v2f_kind`` when the coupler set it, else
+    a row of a feature is a landmark (a pedestrian where ``feature_class`` says so) and -1 clutter."""
+    if truth.v2f_kind is not None:
+        return np.bincount(np.asarray(truth.v2f_kind, dtype=np.int64), minlength=len(DETECTION_KINDS))
+    feat = np.asarray(truth.v2f_feature, dtype=np.int64)
+    out = np.zeros(len(DETECTION_KINDS), dtype=np.int64)
+    real = feat[feat >= 0]
+    out[1] = feat.size - real.size
+    ped = int(np.count_nonzero(np.asarray(truth.feature_class)[real] == 1)) if truth.feature_class is not None else 0
+    out[0], out[4] = real.size - ped, ped
+    return out
+
+
 @dataclass
 class EstimateLog:
     """Per-step rows of one run, kept as arrays and concatenated once at the end."""
@@ -217,9 +246,12 @@ class EstimateLog:
     track_parts: dict = field(default_factory=dict)
     # Infrastructure mode: per step (covered (N,), home RSU id (N,) str, "" when not covered).
     infra_parts: list = field(default_factory=list)
+    # V2F rows by what they truly are (couplers.sensing.road_users KIND_NAMES order), summed over the run.
+    kind_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(DETECTION_KINDS), dtype=np.int64))
 
     def add_truth(self, frame: Frame) -> None:
         tr = frame.truth
+        self.kind_counts += detection_kinds(tr)
         self.truth_parts.append(
             (np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone, tr.area)
         )
@@ -711,6 +743,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
                 summary["association"][method]["by_zone"] = association_by_group(
                     [(a, f) for _, a, f in log.assoc_parts[method]], log.assoc_zone_parts[method], scores[method][2])
+        summary["detections"] = dict(zip(DETECTION_KINDS, (int(c) for c in log.kind_counts)))
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
             # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).

@@ -167,13 +167,31 @@ class PerceptionParams:
     sensors: tuple[SensorSpec, ...] = DEFAULT_SENSORS
     occlusion_vehicles: bool = True
     occlusion_buildings: bool = True  # uses the net folder's buildings.geojson when it has one
+    # Other road users, persistent false alarms and the classifier's error (couplers.sensing.road_users,
+    # where each is described; all off by default).
+    road_users: bool = False
+    persistent_clutter_per_km: float = 0.0
+    persistent_clutter_pd: float = 0.9  # assumption: a guard rail / pole / parked car is a strong reflector
+    class_error: float = 0.0  # idealisation: a perfect object classifier
 
     def __post_init__(self):
         if not isinstance(self.sensors, tuple) or not self.sensors:
             raise InputError(None, "sensors", "at least one sensor is needed")
+        if not (_finite(self.persistent_clutter_per_km) and self.persistent_clutter_per_km >= 0):
+            raise InputError(None, "persistent_clutter_per_km",
+                             f"must be >= 0 and finite, got {self.persistent_clutter_per_km!r}")
+        for key in ("persistent_clutter_pd", "class_error"):
+            val = getattr(self, key)
+            if not (_finite(val) and 0.0 <= val <= 1.0):
+                raise InputError(None, key, f"must be a probability in [0, 1], got {val!r}")
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InputError(None, "sensors", f"sensor names must be unique, got {names}")
+
+    @property
+    def extended(self) -> bool:
+        """Other road users, persistent clutter or a classifier error are on (couplers.sensing.road_users)."""
+        return self.road_users or self.persistent_clutter_per_km > 0 or self.class_error > 0
 
     @cached_property
     def arrays(self) -> dict[str, np.ndarray]:
@@ -240,6 +258,8 @@ class Detections:
     # Counts of this step (truth-side diagnostics): (vehicle, feature) pairs inside at least one
     # field of view, of those hidden from every sensor by occlusion, visible but missed, detected.
     stats: dict = field(default_factory=dict)
+    # (O,) int8, what each row truly is (couplers.sensing.road_users KIND_*); None: not computed.
+    kind: np.ndarray | None = None
 
 
 # --- geometry -------------------------------------------------------------------------------------
