@@ -30,9 +30,10 @@ OVERLAYS = {
     "arterial_vsr_infra.toml": ("arterial_tlr_infra.toml", {"run.name", "scenario.control"}),
     "arterial_v2x.toml": ("arterial_tlr.toml", {"run.name", "v2x"}),
     "arterial_tlr_realistic.toml": ("arterial_tlr.toml", {
-        "run.name", "lc.clutter_intensity", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
+        "run.name", "lc.clutter_intensity", "lc.sensing_range_m", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
-        "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial"}),
+        "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
+        "estimator_sensors"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
