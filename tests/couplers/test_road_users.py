@@ -120,3 +120,42 @@ def test_bad_values_refused(key, value):
     with pytest.raises(InputError) as exc:
         PerceptionParams(**{key: value})
     assert exc.value.field == key
+
+
+def test_coupler_reports_road_users_and_fixed_persistent_clutter(cross_net):
+    """SUMO run on the cross net: vehicle rows are other vehicles' footprint centres (never the observer's own),
+    class vehicle, not a feature; persistent rows lie at the run's fixed sites, class static; landmark and
+    clutter rows are the perception's."""
+    from couplers.net.folder import load_net_folder
+    from couplers.sensing.road_users import KIND_LANDMARK, KIND_PERSISTENT_CLUTTER, KIND_VEHICLE
+    from couplers.sensing.sensors import SensorParams
+    from couplers.sumo_coupler import SumoCoupler, SumoScenario
+
+    spec = SensorSpec(name="s", fov_deg=360.0, range_m=40.0, pd_near=1.0, pd_far=1.0, clutter_per_scan=0.5,
+                      sigma_p_m=0.01, sigma_growth=0.0, sigma_v_mps=0.01)
+    perception = PerceptionParams(sensors=(spec,), occlusion_vehicles=False, road_users=True,
+                                  persistent_clutter_per_km=20.0, persistent_clutter_pd=1.0)
+    kinds, sites = np.zeros(5, dtype=np.int64), None
+    with SumoCoupler(SumoScenario(net=load_net_folder(cross_net), control="tlr", seed=2, duration_s=60.0),
+                     SensorParams(perception=perception)) as c:
+        for fr in c.frames():
+            if sites is None and c.persistent_sites is not None:
+                sites = c.persistent_sites.copy()
+            kind = fr.truth.v2f_kind
+            assert kind.shape == fr.truth.v2f_feature.shape == fr.v2f_class.shape
+            kinds += np.bincount(kind, minlength=5)
+            assert np.all((fr.truth.v2f_feature >= 0) == (kind == KIND_LANDMARK))
+            assert np.all((fr.v2f_class == CLASS_VEHICLE) == (kind == KIND_VEHICLE))
+            pos = fr.truth.x_true[fr.v2f_owner, :2] + fr.v2f_z[:, :2]
+            veh = kind == KIND_VEHICLE
+            if veh.any():
+                own = np.hypot(*(pos[veh] - fr.truth.x_true[fr.v2f_owner[veh], :2]).T)
+                assert own.min() > 1.0  # another vehicle's centre, never the observer's own
+                d = np.hypot(*(pos[veh][:, None] - fr.truth.x_true[None, :, :2]).transpose(2, 0, 1))
+                assert np.all(d.min(axis=1) < 10.0)
+            per = kind == KIND_PERSISTENT_CLUTTER
+            if per.any():
+                assert np.array_equal(c.persistent_sites, sites)
+                d = np.hypot(*(pos[per][:, None] - sites[None]).transpose(2, 0, 1))
+                assert np.all(d.min(axis=1) < 0.1) and np.all(fr.v2f_class[per] == 0)
+    assert kinds[KIND_VEHICLE] > 0 and kinds[KIND_PERSISTENT_CLUTTER] > 0 and kinds[KIND_LANDMARK] > 0
