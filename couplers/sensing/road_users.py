@@ -36,12 +36,14 @@ switching these keys on keeps every landmark and clutter draw.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from couplers.sensing.occlusion import OccluderIndex, _segments_occluded_by_buildings, _segments_occluded_by_vehicles
+from couplers.sensing.perception import _fov_params, effect_rng
 from couplers.sensing.perception_kernels import CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _sight_lines
 from couplers.sensing.rows import shuffle_within_owner
-from couplers.sensing.streams import StreamHandles  # noqa: F401 (the perception's streams; these are numpy's)
 
 #: Class the classifier reports for a vehicle (``Frame.v2f_class``; 0 static, 1 pedestrian).
 CLASS_VEHICLE = 2
@@ -64,8 +66,6 @@ class RoadUserNoise:
     STREAMS = ("sites", "detect", "noise", "class", "shuffle")
 
     def __init__(self, seed: int):
-        from couplers.sensing.perception import effect_rng
-
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, ROAD_USER_STREAM_TAG, name))
 
@@ -108,8 +108,6 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     the sensor's P_D(d) or, where ``target_pd`` >= 0, once per (vehicle, target) with that probability;
     one row per detected pair (the detecting sensor of smallest sigma_p, ties: the first listed).
     Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v)."""
-    from couplers.sensing.perception import _fov_params
-
     a, k = params.arrays, params.kernel_consts
     xy = np.ascontiguousarray(x_true[:, :2], dtype=np.float64)
     origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]
@@ -176,13 +174,8 @@ def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarr
 
 def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float):
     """The perception's rows ``det`` (:class:`couplers.sensing.perception.Detections`) and the ``extra`` rows
-    ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each vehicle, classes as the
-    classifier reports them (``extra``'s class and kind: arrays per row); returns a Detections with ``kind``
-    (truth) set."""
-    from dataclasses import replace
-
-    from couplers.sensing.perception import Detections  # noqa: F401
-
+    ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each
+    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set."""
     owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64)
     z = np.concatenate([det.z] + [e[1] for e in extra])
     R_extra = []
