@@ -93,3 +93,17 @@ def test_estimators_read_estimator_sensors_not_perception():
     # without [estimator_sensors]: the [perception] sensors as before
     plain = config_from_dict(arterial_config(_perception(60.0, 150.0, 0.5)), Path("/x/cfg.toml"))
     assert estimator_detection_model(plain).range_m == (150.0,)
+
+
+def test_detections_by_kind_from_the_truth():
+    """summary.json ``detections``: Truth.v2f_kind when set, else features (pedestrians by class) and clutter."""
+    from coloc.core.frame import Truth
+    from experiments.runner import DETECTION_KINDS, detection_kinds
+
+    base = dict(x_true=np.zeros((1, 4)), features_true=np.zeros((3, 4)), zone=np.array(["A"]),
+                area=np.array(["a"]))
+    t = Truth(v2f_feature=np.array([0, -1, 2, -1, 1]), feature_class=np.array([0, 0, 1], np.int8), **base)
+    assert dict(zip(DETECTION_KINDS, detection_kinds(t).tolist())) == {
+        "landmark": 2, "clutter": 2, "persistent_clutter": 0, "vehicle": 0, "pedestrian": 1}
+    t = Truth(v2f_feature=np.array([0, -1, -1, -1]), v2f_kind=np.array([0, 3, 2, 3], np.int8), **base)
+    assert detection_kinds(t).tolist() == [1, 0, 1, 2, 0]
