@@ -20,6 +20,7 @@ from couplers.net.folder import NetFolder
 from couplers.sensing.pedestrians import FeatureRegistry, person_states
 from couplers.sensing.occlusion import _footprints, vehicle_footprints
 from couplers.sensing.perception import Detections, PerceptionNoise, perceive
+from couplers.sensing import road_users as ru
 from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.traffic.sumo import SumoOptions, SumoTraffic, VehicleStates
 from couplers.sensing.v2x import V2xChannel
@@ -104,6 +105,10 @@ class SumoCoupler:
         self.perception = sensors.perception
         self.perception_noise = PerceptionNoise(scenario.seed) if self.perception is not None else None
         self.last_detections: Detections | None = None
+        # Other road users / persistent clutter / classifier error (couplers.sensing.road_users), opt-in.
+        self.road_noise = (ru.RoadUserNoise(scenario.seed) if self.perception is not None and self.perception.extended
+                           else None)
+        self.persistent_sites: np.ndarray | None = None  # drawn at the first step (SUMO's lanes)
         self.perception_totals: dict[str, int] = {}
         self.gnss_error = (gnss_error_process(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
@@ -171,6 +176,8 @@ class SumoCoupler:
             )
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)
+            if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
+                frame = replace(frame, v2f_class=detections.klass, truth=replace(frame.truth, v2f_kind=detections.kind))
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.infra is not None:
@@ -209,9 +216,10 @@ class SumoCoupler:
         (pedestrians do not: couplers.sensing.pedestrians)."""
         p = self.perception
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
-        corners = None
-        if p.occlusion_vehicles:
+        corners, dims = None, None
+        if p.occlusion_vehicles or p.road_users:
             dims = self._vehicle_dims(road.ids, road.prev_row)
+        if p.occlusion_vehicles:
             corners = (_footprints(road.xy, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
                        else vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1]))
         det = perceive(
@@ -223,8 +231,72 @@ class SumoCoupler:
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
+        if p.extended:
+            det = self._with_road_users(det, road, states, x_true, corners, dims, feature_class)
         self.last_detections = det
         return det
+
+    def _road_lanes(self) -> list:
+        """(shape, width) of the rightmost lane open to cars of every non-internal edge, by edge id."""
+        edge, lane = sumo.libsumo.edge, sumo.libsumo.lane
+        out = []
+        for e in sorted(edge.getIDList()):
+            if e.startswith(":"):
+                continue
+            for i in range(edge.getLaneNumber(e)):
+                lid = f"{e}_{i}"
+                allowed = lane.getAllowed(lid)
+                if allowed and "passenger" not in allowed:
+                    continue
+                out.append((np.array(lane.getShape(lid), dtype=float), float(lane.getWidth(lid))))
+                break
+        return out
+
+    def _with_road_users(self, det: Detections, road: VehicleStates, states: VehicleStates, x_true: np.ndarray,
+                         corners, dims, feature_class) -> Detections:
+        """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users)."""
+        p = self.perception
+        det = replace(det, kind=ru.row_kinds(det.feature, feature_class))
+        parts = []  # (targets (M, 4), P_D (-1: the sensor's), footprint row, class, kind)
+        if p.road_users:
+            direction = road.direction if road.direction is not None else ru_unit(road.heading)
+            centre = road.xy - 0.5 * dims[:, :1] * direction
+            m = len(road.ids)
+            parts.append((np.hstack([centre, road.velocity]), np.full(m, -1.0), np.arange(m),
+                          np.full(m, ru.CLASS_VEHICLE), np.full(m, ru.KIND_VEHICLE)))
+            if not self.pedestrians and self.scenario.net.persons is not None:
+                ps = person_states(sumo.libsumo.person)
+                q = len(ps.ids)
+                parts.append((np.hstack([ps.xy, ps.velocity]), np.full(q, -1.0), np.full(q, -1),
+                              np.full(q, ru.CLASS_PEDESTRIAN), np.full(q, ru.KIND_PEDESTRIAN)))
+        if p.persistent_clutter_per_km > 0:
+            if self.persistent_sites is None:
+                self.persistent_sites = ru.persistent_clutter_sites(self._road_lanes(), p.persistent_clutter_per_km,
+                                                                    self.road_noise.sites)
+            s = self.persistent_sites.shape[0]
+            parts.append((np.hstack([self.persistent_sites, np.zeros((s, 2))]), np.full(s, p.persistent_clutter_pd),
+                          np.full(s, -1), np.full(s, ru.CLASS_STATIC), np.full(s, ru.KIND_PERSISTENT_CLUTTER)))
+        extra = []
+        if parts:
+            targets, pd, occ, klass, kind = (np.concatenate(c) for c in zip(*parts))
+            observer = np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids)
+            tree = cKDTree(targets[:, :2]) if len(targets) else None
+            owner, tgt = features_in_range(states.xy, tree, p.max_reach_m)
+            keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])  # a vehicle never sees itself
+            owner, tgt = owner[keep], tgt[keep]
+            direction = states.direction if states.direction is not None else ru_unit(states.heading)
+            r_owner, r_tgt, r_sensor, z, sp, sv = ru.perceive_targets(
+                x_true=x_true, direction=direction, heading=states.heading, targets=targets, target_pd=pd,
+                target_occluder=occ.astype(np.int64), pair_owner=owner, pair_target=tgt, params=p,
+                noise=self.road_noise, occluder_corners=corners, observer_occluder=observer,
+                buildings=self.scenario.net.buildings)
+            extra.append((r_owner, z, sp, sv, r_sensor, klass[r_tgt], kind[r_tgt]))
+        return ru.merged_rows(det, extra, self.road_noise, p.class_error)
+
+
+def ru_unit(heading: np.ndarray) -> np.ndarray:
+    """(N, 2) unit vectors of the headings."""
+    return np.stack([np.cos(heading), np.sin(heading)], axis=1).reshape(-1, 2)
 
 
 @njit(cache=True)

@@ -66,6 +66,7 @@ from couplers.sensing.inertial import InertialParams
 from couplers.sensing.pedestrians import FeaturesParams
 from couplers.sensing.perception import PerceptionParams
 from couplers.scenarios import STARTS, CrossroadParams, SingleRoadParams
+from experiments.estimator_sensors import EstimatorSensors
 from couplers.sensing.sensors import SensorParams
 from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
@@ -211,6 +212,9 @@ class Config:
     # [features], optional, SUMO only: SUMO pedestrians as moving features; handed to
     # the coupler as sensors.features.
     features: FeaturesParams | None = None
+    # [estimator_sensors], optional: the estimators' own sensor model (experiments.estimator_sensors); not
+    # handed to the coupler.
+    estimator_sensors: EstimatorSensors | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -246,7 +250,8 @@ SECTIONS: dict[str, type] = {
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
-                                      "inertial": InertialParams, "features": FeaturesParams}
+                                      "inertial": InertialParams, "features": FeaturesParams,
+                                      "estimator_sensors": EstimatorSensors}
 #: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")
@@ -632,6 +637,7 @@ def _config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> 
         if name in data:
             sections[name] = section_from_table(cls, data[name], name, path)
     notes += _attach_sensing(sections, path, data.get("lc", {}))
+    notes += _attach_estimator_sensors(sections, path, data.get("lc", {}))
     lc = sections["lc"]
     if lc.new_feature_density == 0:
         derived = lc.new_feature_rate / (math.pi * lc.sensing_range_m**2)
@@ -647,7 +653,7 @@ def _config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> 
 def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[str, str]]:
     """Hand [perception] / [gnss_error] / [v2x] / [inertial] to the coupler inside [sensors] (SUMO scenarios only).
     With [perception], ``lc.sensing_range_m`` (not given in ``lc_given``) becomes the sensors' reach."""
-    if sections["lc"].sensor_fov and sections.get("perception") is None:
+    if sections["lc"].sensor_fov and sections.get("perception") is None and sections.get("estimator_sensors") is None:
         raise InputError(path, "lc.sensor_fov", "needs a [perception] table (the sensors whose field of view "
                                                 "the estimator expects)")
     given = {name: sections[name] for name in SENSING_SECTIONS if sections.get(name) is not None}
@@ -676,6 +682,26 @@ def _attach_sensing(sections: dict, path: Path, lc_given: dict) -> list[tuple[st
             reach = given["perception"].max_reach_m
             sections["lc"] = dataclasses.replace(sections["lc"], sensing_range_m=reach)
             notes.append(("lc.sensing_range_m", "= the [perception] sensors' largest reach (range + mount offset)"))
+    return notes
+
+
+def _attach_estimator_sensors(sections: dict, path: Path, lc_given: dict) -> list[tuple[str, str]]:
+    """With [estimator_sensors]: ``lc.clutter_intensity`` and ``lc.sensing_range_m`` (when not given) from it."""
+    est = sections.get("estimator_sensors")
+    if est is None:
+        return []
+    if sections["scenario"].kind != "sumo":
+        raise InputError(path, "estimator_sensors", "needs scenario.kind = \"sumo\" (the estimators' model of "
+                                                    "the [perception] sensors)")
+    notes, lc = [], sections["lc"]
+    if "clutter_intensity" not in lc_given:
+        lc = dataclasses.replace(lc, clutter_intensity=est.clutter_intensity())
+        notes.append(("lc.clutter_intensity", "= the [estimator_sensors]' clutter per scan over the union of their "
+                      f"fields of view ({est.coverage_area_m2:.0f} m^2)"))
+    if "sensing_range_m" not in lc_given:
+        lc = dataclasses.replace(lc, sensing_range_m=est.max_reach_m)
+        notes.append(("lc.sensing_range_m", "= the [estimator_sensors]' largest reach (range + mount offset)"))
+    sections["lc"] = lc
     return notes
 
 

@@ -75,6 +75,15 @@ TABLE_DOCS: dict[str, str] = {
                 "`icp_da_lc` (others are refused). Absent or false: no classes, exactly as before.",
     "perception.sensors": "One sensor of `[perception]` (repeat the table for each sensor). Defaults and "
                           "their sources (datasheet, peer simulator): `couplers/sensing/perception.py`.",
+    "estimator_sensors": "The estimators' own sensor model (optional table, SUMO only; "
+                         "`experiments/estimator_sensors.py`): datasheet values the estimators use instead of "
+                         "the world's `[perception]` sensors: the detection model of `lc.sensor_fov`, "
+                         "`lc.clutter_intensity` (when not given: the sensors' false alarms per scan over the "
+                         "union of their fields of view) and `lc.sensing_range_m` (when not given: their largest "
+                         "reach). Absent: the estimators take these from `[perception]`, exactly as before.",
+    "estimator_sensors.sensors": "One sensor of `[estimator_sensors]`, with the keys of a "
+                                 "`[[perception.sensors]]` table (the datasheet's values; the noise keys are "
+                                 "recorded, the estimators read each row's covariance from the frame).",
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/sensing/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
                   "bias episodes (`model = \"per_vehicle\"`), or errors nearby vehicles share (`model = \"field\"`). "
@@ -208,6 +217,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "features": ("", "Not a key of the file (refused there): carries the `[features]` table to the "
                          "coupler."),
     },
+    "estimator_sensors": {
+        "sensors": ("", "One `[[estimator_sensors.sensors]]` table per sensor (required)."),
+    },
     "inertial": {
         "accel_noise_density": ("m/s^2/sqrt(Hz)", "Accelerometer white-noise density per axis (longitudinal, "
                                                   "lateral); the step's mean has std density / sqrt(Ts). "
@@ -254,6 +266,17 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                    "length and width), connected or not."),
         "occlusion_buildings": ("", "Sight lines blocked by the net folder's `buildings.geojson` (when it has "
                                     "one)."),
+        "road_users": ("", "Every other SUMO vehicle (equipped or not) and every SUMO person (when the net has "
+                           "persons and `[features] pedestrians` is off) in view and not occluded is detected "
+                           "with the sensor's P_D and noise, class vehicle (2) or pedestrian (1); the estimators "
+                           "drop vehicle-class rows (`couplers/sensing/road_users.py`)."),
+        "persistent_clutter_per_km": ("1/km", "False-alarm sources tied to places, per km of each directed road "
+                                              "edge, drawn once per run beside its rightmost lane; reported as "
+                                              "static objects. 0: none."),
+        "persistent_clutter_pd": (NO_UNIT, "Probability that a persistent false-alarm source in view and not "
+                                           "occluded is reported in a scan (default 0.9, an assumption)."),
+        "class_error": (NO_UNIT, "Probability that the classifier reports one of the other two classes "
+                                 "(default 0: a perfect classifier, an idealisation)."),
     },
     "perception.sensors": {
         "name": ("", "Name of the sensor (the row's sensor in the detections)."),
@@ -420,6 +443,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "fg_window_steps": (NO_UNIT, "Window of `fg_topology_new`'s fixed-lag smoother."),
     },
 }
+
+
+# [[estimator_sensors.sensors]] has the keys of [[perception.sensors]].
+KEY_DOCS["estimator_sensors.sensors"] = dict(KEY_DOCS["perception.sensors"])
 
 
 def schema() -> dict[str, type]:

@@ -231,7 +231,13 @@ RANGES: dict[str, Range] = {
     "inertial.gyro_bias_sigma": Range(0.0, 360.0, "deg/s", "a turn a second"),
     "inertial.gyro_bias_tau_s": CORRELATION,
     "inertial.gyro_turn_on_sigma": Range(0.0, 360.0, "deg/s", "a turn a second"),
+    "perception.persistent_clutter_per_km": Range(0.0, 1e4, "1/km", "a false-alarm source every 10 cm of road"),
+    "perception.persistent_clutter_pd": PROB,
+    "perception.class_error": PROB,
 }
+# [estimator_sensors]: the estimators' own datasheet table has the keys (and so the ranges) of the world's sensors.
+RANGES.update({"estimator_sensors.sensors." + k[len("perception.sensors."):]: r for k, r in list(RANGES.items())
+               if k.startswith("perception.sensors.")})
 
 WORKERS = Range(1, 1024, NO_UNIT, "worker processes of one machine")
 

@@ -43,6 +43,8 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from experiments.scoring import (
+    DETECTION_KINDS,
+    detection_kinds,
     _correct_rows,
     along_cross_errors,
     association_summary,
@@ -224,6 +226,8 @@ class StreamLog:
         self.methods = list(methods)
         self.flush_rows = FLUSH_ROWS if flush_rows is None else int(flush_rows)
         self.vehicle_steps = 0
+        # V2F rows by what they truly are (experiments.runner DETECTION_KINDS order), summed over the run
+        self.kind_counts = np.zeros(len(DETECTION_KINDS), dtype=np.int64)
         self.infra = False
         self.zones, self.areas, self.rsus = _Codes(), _Codes(), _Codes()
         self._truth: list = []
@@ -246,6 +250,7 @@ class StreamLog:
         if self._buffered >= self.flush_rows:
             self.flush()
         tr = frame.truth
+        self.kind_counts += detection_kinds(tr)
         self._truth.append((np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone,
                             tr.area))
         self._buffered += frame.n_vehicles

@@ -58,6 +58,8 @@ from experiments.gnss_world import GnssWorldTally
 from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.rowstream import StreamLog
 from experiments.scoring import (
+    DETECTION_KINDS,
+    detection_kinds,
     along_cross_errors,
     association_summary,
     score_association,
@@ -154,9 +156,20 @@ def method_params(cfg: Config) -> MethodParams:
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
-        detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
-                   if cfg.perception is not None and cfg.lc.sensor_fov else None),
+        detection=estimator_detection_model(cfg),
     )
+
+
+def estimator_detection_model(cfg: Config):
+    """The estimators' DetectionModel (``lc.sensor_fov``): from ``[estimator_sensors]``, their own table, when
+    the config has one, else from the ``[perception]`` sensors (None without either or without sensor_fov)."""
+    if not cfg.lc.sensor_fov:
+        return None
+    if cfg.estimator_sensors is not None:
+        return cfg.estimator_sensors.detection_model(cfg.motion.heading_min_speed, cfg.lc.visibility)
+    if cfg.perception is not None:
+        return detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
+    return None
 
 
 def infra_method_params(cfg: Config) -> InfraMethodParams:
@@ -215,9 +228,12 @@ class EstimateLog:
     track_parts: dict = field(default_factory=dict)
     # Infrastructure mode: per step (covered (N,), home RSU id (N,) str, "" when not covered).
     infra_parts: list = field(default_factory=list)
+    # V2F rows by what they truly are (couplers.sensing.road_users KIND_NAMES order), summed over the run.
+    kind_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(DETECTION_KINDS), dtype=np.int64))
 
     def add_truth(self, frame: Frame) -> None:
         tr = frame.truth
+        self.kind_counts += detection_kinds(tr)
         self.truth_parts.append(
             (np.full(frame.n_vehicles, frame.t), frame.vehicle_ids, tr.x_true, tr.heading, tr.zone, tr.area)
         )
@@ -762,6 +778,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 summary["association"][method]["by_zone"] = log.association_by_zone[method]
         if gnss_world is not None:
             summary["gnss_world"] = gnss_world.summary()
+        summary["detections"] = dict(zip(DETECTION_KINDS, (int(c) for c in log.kind_counts)))
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
             # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).

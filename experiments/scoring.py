@@ -220,3 +220,21 @@ def coverage_summary(est: pd.DataFrame, methods: list[str]) -> dict:
     for name, g in first.groupby("rsu", sort=True, observed=True):
         out["rsu_vehicle_steps"][str(name)] = int(len(g))
     return _nan_to_none(out)
+
+
+#: summary.json ``detections`` keys: what each V2F row truly is (couplers.sensing.road_users KIND_*).
+DETECTION_KINDS = ("landmark", "clutter", "persistent_clutter", "vehicle", "pedestrian")
+
+
+def detection_kinds(truth) -> np.ndarray:
+    """Counts of one frame's V2F rows by kind, from the truth: ``v2f_kind`` when the coupler set it, else
+    a row of a feature is a landmark (a pedestrian where ``feature_class`` says so) and -1 clutter."""
+    if truth.v2f_kind is not None:
+        return np.bincount(np.asarray(truth.v2f_kind, dtype=np.int64), minlength=len(DETECTION_KINDS))
+    feat = np.asarray(truth.v2f_feature, dtype=np.int64)
+    out = np.zeros(len(DETECTION_KINDS), dtype=np.int64)
+    real = feat[feat >= 0]
+    out[1] = feat.size - real.size
+    ped = int(np.count_nonzero(np.asarray(truth.feature_class)[real] == 1)) if truth.feature_class is not None else 0
+    out[0], out[4] = real.size - ped, ped
+    return out

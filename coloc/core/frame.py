@@ -33,6 +33,10 @@ class Truth:
     # Class of each feature (0 static landmark, 1 pedestrian; couplers.sensing.pedestrians); None: all static.
     # With SUMO pedestrians, rows K0.. are persons by first appearance (NaN state once they have left).
     feature_class: np.ndarray | None = None  # (K,) int8
+    # What each V2F row truly is, with [perception] road_users / persistent clutter / class_error
+    # (couplers.sensing.road_users KIND_*: 0 landmark, 1 clutter, 2 persistent clutter, 3 vehicle,
+    # 4 pedestrian); None: a row with v2f_feature >= 0 is a feature, -1 clutter.
+    v2f_kind: np.ndarray | None = None  # (O,) int8
     # Infrastructure mode only: row (into the frame's vehicles) of each radar detection.
     radar_vehicle: np.ndarray | None = None  # (P,) int
 
@@ -112,7 +116,8 @@ class Frame:
     # ``accel`` is the net-frame input of model (1).
     imu: ImuFrame | None = None
     # Class label of each V2F row as the sensor's classifier reports it (``[features] pedestrians``):
-    # 0 = static landmark, 1 = pedestrian (couplers.sensing.perception CLASS_*); a false detection is reported
+    # 0 = static landmark, 1 = pedestrian, 2 = vehicle (couplers.sensing.perception CLASS_*; vehicles:
+    # [perception] road_users, couplers.sensing.road_users); a false detection is reported
     # as static (it is drawn as a static object). None (pedestrians off): every row is a static landmark,
     # and estimators run exactly as without classes.
     v2f_class: np.ndarray | None = None  # (O,) int8

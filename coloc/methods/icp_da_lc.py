@@ -103,6 +103,7 @@ from scipy.spatial import cKDTree
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch, layout_and_marginals_kernel
@@ -717,10 +718,12 @@ class IcpDaLc:
 
     def step(self, frame: Frame) -> StepEstimate:
         existence = self.last.existence if self.last is not None else None
+        n_rows = frame.v2f_z.shape[0]
+        frame, kept = without_vehicle_rows(frame)  # vehicle-class rows are not landmarks (coloc.core.vehicle_rows)
         self.state, self.next_id, self.last = icp_da_lc_step(
             self.state, self.next_id, frame, self.params, self.lc, existence, self.detection
         )
-        est = self.state.estimate(self.last.row_track, self.params)
+        est = self.state.estimate(expand_rows(self.last.row_track, kept, n_rows), self.params)
         if self.last.existence is None:
             return est
         # Only confirmed tracks are features of the estimate (step 9).

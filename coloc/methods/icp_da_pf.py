@@ -111,6 +111,7 @@ from scipy.special import logsumexp
 
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import fresh_rows, match_ids
 from coloc.inference.comm import CommCount
@@ -598,10 +599,14 @@ class IcpDaPf:
 
     def step(self, frame: Frame) -> StepEstimate:
         existence = self.last.existence if self.last is not None else None
+        n_rows = frame.v2f_z.shape[0]
+        frame, kept = without_vehicle_rows(frame)  # vehicle-class rows are not landmarks (coloc.core.vehicle_rows)
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
                                                                    self.lc, self.pf, workspace=self.workspace,
                                                                    existence=existence, detection=self.detection)
-        return est
+        if kept is None:
+            return est
+        return replace(est, v2f_assignment=expand_rows(est.v2f_assignment, kept, n_rows))
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         """Known-DA variant (``icp_known_da_pf``; tests: PF against the Kalman bound)."""

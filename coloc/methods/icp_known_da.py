@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
+from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import carry_states, fresh_rows, match_ids
 from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
@@ -191,6 +192,11 @@ class IcpKnownDA:
     last_comm: CommCount | None = None  # what the vehicles sent in the last step
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
-        res, self.state = icp_known_da_step(self.state, frame, v2f_feature, self.params)
+        # Vehicle-class rows are not landmarks (coloc.core.vehicle_rows): dropped, as clutter rows are.
+        n_rows = frame.v2f_z.shape[0]
+        frame, kept = without_vehicle_rows(frame)
+        assoc = np.asarray(v2f_feature)[kept] if kept is not None else v2f_feature
+        res, self.state = icp_known_da_step(self.state, frame, assoc, self.params)
         self.last_iterations, self.last_converged, self.last_comm = res.iterations, res.converged, res.comm
-        return self.state.estimate(v2f_feature, self.params)
+        return self.state.estimate(expand_rows(np.asarray(assoc, dtype=np.int64), kept, n_rows)
+                                   if kept is not None else v2f_feature, self.params)

@@ -145,10 +145,12 @@ class SensorSpec:
 
 
 #: Default sensor set.
-#: * front radar, 120 deg / 80 m: the near-range beam of an automotive long-range radar (Continental
-#:   ARS 408-21 datasheet: near range +-60 deg to 70 m, far range +-9 deg to 250 m; the issue's
-#:   example); accuracy near range 0.1 m in distance and ~0.3 deg at boresight, i.e. ~0.4 m across
-#:   the beam at 70-80 m, hence sigma_p 0.1 m at 0 m growing 4x to the range (sigma_growth 3);
+#: * front radar, 120 deg / 80 m: wider and longer than the near-range beam of an automotive long-range
+#:   radar (Continental ARS 408-21 datasheet: near range to 70 m within +-45 deg and only to 20 m at
+#:   +-60 deg, far range +-9 deg to 250 m; experiments/arterial_tlr_realistic.toml uses 90 deg / 70 m);
+#:   kept as the default so that configs without sensor tables keep their results. Accuracy near
+#:   range 0.1 m in distance and ~0.3 deg at boresight, i.e. ~0.4 m across the beam at 70-80 m, hence
+#:   sigma_p 0.1 m at 0 m growing 4x to the range (sigma_growth 3);
 #: * surround, 360 deg / 30 m: short-range corner sensors seen as one surround field (assumption;
 #:   the issue's "360 deg short-range sensor"), same noise model.
 #: pd_near / pd_far 0.95 / 0.7 (assumption, inside the issue's study range P_D in {1, 0.9, 0.7});
@@ -167,13 +169,31 @@ class PerceptionParams:
     sensors: tuple[SensorSpec, ...] = DEFAULT_SENSORS
     occlusion_vehicles: bool = True
     occlusion_buildings: bool = True  # uses the net folder's buildings.geojson when it has one
+    # Other road users, persistent false alarms and the classifier's error (couplers.sensing.road_users,
+    # where each is described; all off by default).
+    road_users: bool = False
+    persistent_clutter_per_km: float = 0.0
+    persistent_clutter_pd: float = 0.9  # assumption: a guard rail / pole / parked car is a strong reflector
+    class_error: float = 0.0  # idealisation: a perfect object classifier
 
     def __post_init__(self):
         if not isinstance(self.sensors, tuple) or not self.sensors:
             raise InputError(None, "sensors", "at least one sensor is needed")
+        if not (_finite(self.persistent_clutter_per_km) and self.persistent_clutter_per_km >= 0):
+            raise InputError(None, "persistent_clutter_per_km",
+                             f"must be >= 0 and finite, got {self.persistent_clutter_per_km!r}")
+        for key in ("persistent_clutter_pd", "class_error"):
+            val = getattr(self, key)
+            if not (_finite(val) and 0.0 <= val <= 1.0):
+                raise InputError(None, key, f"must be a probability in [0, 1], got {val!r}")
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InputError(None, "sensors", f"sensor names must be unique, got {names}")
+
+    @property
+    def extended(self) -> bool:
+        """Other road users, persistent clutter or a classifier error are on (couplers.sensing.road_users)."""
+        return self.road_users or self.persistent_clutter_per_km > 0 or self.class_error > 0
 
     @cached_property
     def arrays(self) -> dict[str, np.ndarray]:
@@ -240,6 +260,8 @@ class Detections:
     # Counts of this step (truth-side diagnostics): (vehicle, feature) pairs inside at least one
     # field of view, of those hidden from every sensor by occlusion, visible but missed, detected.
     stats: dict = field(default_factory=dict)
+    # (O,) int8, what each row truly is (couplers.sensing.road_users KIND_*); None: not computed.
+    kind: np.ndarray | None = None
 
 
 # --- geometry -------------------------------------------------------------------------------------

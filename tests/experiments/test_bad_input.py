@@ -419,6 +419,42 @@ def run_perception_probability_out_of_range(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "perception.persistent_clutter_pd")
+def run_perception_persistent_pd_out_of_range(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\npersistent_clutter_per_km = 5.0\npersistent_clutter_pd = 1.2\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.persistent_clutter_per_km")
+def run_perception_negative_persistent_density(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\npersistent_clutter_per_km = -2.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.class_error")
+def run_perception_class_error_out_of_range(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\nclass_error = 2.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.road_users")
+def run_perception_road_users_not_bool(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\nroad_users = 1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "estimator_sensors.sensors[0].range_m")
+def run_estimator_sensors_bad_range(tmp, net, run):
+    cfg = _config(tmp, net, "[estimator_sensors]\n[[estimator_sensors.sensors]]\nrange_m = -5.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "estimator_sensors.sensors")
+def run_estimator_sensors_without_sensors(tmp, net, run):
+    cfg = _config(tmp, net, "[estimator_sensors]\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "perception.sensors[0].clutter_per_scan")
 def run_perception_negative_clutter(tmp, net, run):
     cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nclutter_per_scan = -1.0\n")

@@ -1,0 +1,199 @@
+"""Other road users and persistent false alarms in the simulated perception (opt-in, ``[perception]``
+keys ``road_users``, ``persistent_clutter_per_km``, ``persistent_clutter_pd``, ``class_error``).
+
+A real radar reports every object in view, not only the landmarks of the feature set:
+
+* Other road users (``road_users = true``): every SUMO vehicle on the road (equipped or not) and, when
+  the scenario has persons and ``[features] pedestrians`` is off (then they are features already),
+  every SUMO person. A target inside a sensor's field of view whose sight line no other vehicle
+  footprint (nor a building) crosses is detected with that sensor's P_D(d) and range noise
+  (:mod:`couplers.sensing.perception`); a vehicle target never occludes its own sight line and an
+  observer never sees itself. The reported point of a vehicle is the centre of its footprint
+  (length x width behind the front bumper); its relative velocity is the true relative velocity +
+  noise. Class: ``CLASS_VEHICLE`` (2) or ``CLASS_PEDESTRIAN`` (1).
+* Persistent clutter (``persistent_clutter_per_km`` > 0): false-alarm sources tied to places (guard
+  rails, poles, parked cars and multipath ghosts that are not in the feature set). Drawn once per run
+  (:func:`persistent_clutter_sites`): a Poisson number of sites per km of road (each directed edge's
+  rightmost vehicle lane), uniform along the lane, beside it (half the lane width plus U(0.5, 3) m to
+  the right of the direction of travel). A site in view and not occluded is detected with the
+  constant probability ``persistent_clutter_pd`` (one draw per (vehicle, site, scan), whichever sensors
+  see it; the row's noise is that of the sensor of smallest sigma). Reported as static objects
+  (``CLASS_STATIC``): to the classifier they look exactly like landmarks.
+* Classifier error (``class_error``): each row's class (landmarks, clutter and the rows above) is
+  replaced with that probability by one of the other two classes, uniformly. Default 0: an
+  idealisation (a perfect object classifier; no per-class confusion matrix of a production radar
+  was found to cite).
+
+Truth (scoring only): ``Truth.v2f_kind`` per row, :data:`KIND_LANDMARK` .. :data:`KIND_PEDESTRIAN`;
+``Truth.v2f_feature`` is -1 for every row that is not a feature (the known-association reference
+drops those rows as it drops clutter).
+
+Random streams, each its own (``effect_rng`` with tag :data:`ROAD_USER_STREAM_TAG`): "sites" (the
+persistent sites), "detect", "noise", "class" and "shuffle" (the rows of the step, perception's and
+these, shuffled again within each vehicle). The perception's own streams are drawn as before, so
+switching these keys on keeps every landmark and clutter draw.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from couplers.sensing.occlusion import OccluderIndex, _segments_occluded_by_buildings, _segments_occluded_by_vehicles
+from couplers.sensing.perception import _fov_params, effect_rng
+from couplers.sensing.perception_kernels import CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _sight_lines
+from couplers.sensing.rows import shuffle_within_owner
+
+#: Class the classifier reports for a vehicle (``Frame.v2f_class``; 0 static, 1 pedestrian).
+CLASS_VEHICLE = 2
+N_CLASSES = 3
+
+#: What a V2F row truly is (``Truth.v2f_kind``).
+KIND_LANDMARK = 0
+KIND_CLUTTER = 1
+KIND_PERSISTENT_CLUTTER = 2
+KIND_VEHICLE = 3
+KIND_PEDESTRIAN = 4
+KIND_NAMES = ("landmark", "clutter", "persistent_clutter", "vehicle", "pedestrian")
+
+ROAD_USER_STREAM_TAG = 0x9E6
+
+
+class RoadUserNoise:
+    """The streams of this module (see the module docstring)."""
+
+    STREAMS = ("sites", "detect", "noise", "class", "shuffle")
+
+    def __init__(self, seed: int):
+        for name in self.STREAMS:
+            setattr(self, name, effect_rng(seed, ROAD_USER_STREAM_TAG, name))
+
+
+def persistent_clutter_sites(lanes: list[tuple[np.ndarray, float]], per_km: float,
+                             rng: np.random.Generator) -> np.ndarray:
+    """(P, 2) places of the persistent false alarms: ``lanes`` (shape (n, 2), width) in a fixed order,
+    Poisson(per_km * total km) sites, each on a lane chosen by length, uniform along it, offset to the
+    right of its direction by width / 2 + U(0.5, 3) m."""
+    shapes = [np.asarray(s, dtype=float).reshape(-1, 2) for s, _ in lanes]
+    seg_len = [np.hypot(*np.diff(s, axis=0).T) if len(s) > 1 else np.zeros(0) for s in shapes]
+    lengths = np.array([x.sum() for x in seg_len])
+    total = float(lengths.sum())
+    count = int(rng.poisson(per_km * total / 1000.0)) if total > 0 else 0
+    if count == 0:
+        return np.empty((0, 2))
+    u_lane, u_along, u_off = rng.random(count), rng.random(count), rng.random(count)
+    lane = np.minimum(np.searchsorted(np.cumsum(lengths) / total, u_lane, side="right"), len(lanes) - 1)
+    out = np.empty((count, 2))
+    for k in range(count):
+        s, seg = shapes[lane[k]], seg_len[lane[k]]
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        a = u_along[k] * cum[-1]
+        j = min(int(np.searchsorted(cum, a, side="right")) - 1, seg.size - 1)
+        j = max(j, 0)
+        d = (s[j + 1] - s[j]) / max(seg[j], 1e-12)
+        p = s[j] + d * (a - cum[j])
+        off = lanes[lane[k]][1] / 2.0 + 0.5 + 2.5 * u_off[k]
+        out[k] = p + off * np.array([d[1], -d[0]])  # right of the direction of travel
+    return out
+
+
+def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.ndarray, targets: np.ndarray,
+                     target_pd: np.ndarray, target_occluder: np.ndarray, pair_owner: np.ndarray,
+                     pair_target: np.ndarray, params, noise: RoadUserNoise,
+                     occluder_corners: np.ndarray | None, observer_occluder: np.ndarray, buildings=None):
+    """Detections of the targets (M, 4) (true states) by the vehicles ``x_true``: candidates of every
+    sensor (the perception's field of view), sight lines cleared of every vehicle footprint but the
+    observer's and the target's own (``target_occluder``, -1: none) and of buildings, detection with
+    the sensor's P_D(d) or, where ``target_pd`` >= 0, once per (vehicle, target) with that probability;
+    one row per detected pair (the detecting sensor of smallest sigma_p, ties: the first listed).
+    Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v)."""
+    a, k = params.arrays, params.kernel_consts
+    xy = np.ascontiguousarray(x_true[:, :2], dtype=np.float64)
+    origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]
+    pair_owner = np.asarray(pair_owner, dtype=np.int64)
+    pair_target = np.asarray(pair_target, dtype=np.int64)
+    target_xy = np.ascontiguousarray(targets[pair_target, :2], dtype=np.float64)
+    pair, dist, sensor = _fov_params(origins, heading, direction, pair_owner, target_xy, params)
+    u = noise.detect.random(pair.size)
+    w = noise.noise.standard_normal((pair.size, 4))
+    owner_c = pair_owner[pair]
+    line, line_of = _distinct_lines(pair, sensor, k["groups"], pair_owner.size)
+    seg = _sight_lines(origins, sensor[line], owner_c[line], target_xy[pair[line]])
+    clear = np.ones(line.size, dtype=bool)
+    if params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners) and line.size:
+        clear &= ~_segments_occluded_by_vehicles(seg, OccluderIndex.build(occluder_corners),
+                                                 observer_occluder[owner_c[line]],
+                                                 target_occluder[pair_target[pair[line]]])
+    if params.occlusion_buildings and buildings is not None and len(buildings) and clear.any():
+        clear[clear] &= ~_segments_occluded_by_buildings(seg[clear], buildings)
+    visible = clear[line_of]
+    frac = np.clip(dist / a["range_m"][sensor], 0.0, 1.0)
+    sig = a["sigma_p_m"][sensor] * (1.0 + a["sigma_growth"][sensor] * frac)
+    pd = a["pd_near"][sensor] + (a["pd_far"][sensor] - a["pd_near"][sensor]) * frac
+    fixed = target_pd[pair_target[pair]]
+    detected = visible & (u < pd)
+    if (fixed >= 0).any():  # one draw per (vehicle, target): the first candidate's, any sensor seeing it
+        first_of = np.full(pair_owner.size, -1, dtype=np.int64)
+        first_of[pair[::-1]] = np.arange(pair.size)[::-1]
+        u_pair = u[first_of[pair]]
+        detected = np.where(fixed >= 0, visible & (u_pair < fixed), detected)
+    cand = np.flatnonzero(detected)
+    order = cand[np.lexsort((sensor[cand], sig[cand], pair[cand]))]
+    _, first = np.unique(pair[order], return_index=True)
+    best = order[first]
+    owner = pair_owner[pair[best]]
+    tgt = pair_target[pair[best]]
+    sp, sv = sig[best], a["sigma_v_mps"][sensor[best]]
+    z = targets[tgt] - x_true[owner]
+    z[:, :2] += w[best, :2] * sp[:, None]
+    z[:, 2:] += w[best, 2:] * sv[:, None]
+    return owner, tgt, sensor[best], z, sp, sv
+
+
+def confuse_classes(klass: np.ndarray, class_error: float, rng: np.random.Generator) -> np.ndarray:
+    """The classifier's report: each class replaced with probability ``class_error`` by one of the other
+    classes, uniformly (two uniforms per row, drawn only when ``class_error`` > 0)."""
+    if class_error <= 0 or klass.size == 0:
+        return klass
+    flip = rng.random(klass.size) < class_error
+    other = (klass.astype(np.int64) + 1 + (rng.random(klass.size) * (N_CLASSES - 1)).astype(np.int64)) % N_CLASSES
+    return np.where(flip, other, klass).astype(np.int8)
+
+
+def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarray:
+    """``Truth.v2f_kind`` of the perception's own rows: landmark (or pedestrian feature) or clutter."""
+    kind = np.full(feature.shape, KIND_CLUTTER, dtype=np.int8)
+    real = feature >= 0
+    kind[real] = KIND_LANDMARK
+    if feature_class is not None and real.any():
+        kind[real] = np.where(np.asarray(feature_class)[feature[real]] == CLASS_PEDESTRIAN, KIND_PEDESTRIAN,
+                              KIND_LANDMARK)
+    return kind
+
+
+def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float):
+    """The perception's rows ``det`` (:class:`couplers.sensing.perception.Detections`) and the ``extra`` rows
+    ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each
+    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set."""
+    owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64)
+    z = np.concatenate([det.z] + [e[1] for e in extra])
+    R_extra = []
+    for e in extra:
+        r = np.zeros((e[0].size, 4, 4))
+        r[:, 0, 0] = r[:, 1, 1] = e[2] ** 2
+        r[:, 2, 2] = r[:, 3, 3] = e[3] ** 2
+        R_extra.append(r)
+    R = np.concatenate([det.R] + R_extra)
+    feature = np.concatenate([det.feature] + [np.full(e[0].size, -1, dtype=np.int64) for e in extra])
+    sensor = np.concatenate([det.sensor] + [np.asarray(e[4], dtype=np.int64) for e in extra])
+    klass = np.concatenate([det.klass] + [np.asarray(e[5], dtype=np.int8) for e in extra]).astype(np.int8)
+    kind = np.concatenate([det.kind] + [np.asarray(e[6], dtype=np.int8) for e in extra])
+    perm = shuffle_within_owner(owner, noise.shuffle)
+    klass = confuse_classes(klass[perm], class_error, getattr(noise, "class"))
+    return replace(det, z=z[perm], owner=owner[perm], R=R[perm], feature=feature[perm], sensor=sensor[perm],
+                   klass=klass, kind=kind[perm])
+
+
+__all__ = ["CLASS_VEHICLE", "CLASS_STATIC", "CLASS_PEDESTRIAN", "KIND_NAMES", "RoadUserNoise",
+           "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "merged_rows"]
