@@ -20,6 +20,7 @@ from couplers.net.folder import NetFolder
 from couplers.sensing.pedestrians import FeatureRegistry, person_states
 from couplers.sensing.occlusion import _footprints, vehicle_footprints
 from couplers.sensing.perception import Detections, PerceptionNoise, perceive
+from couplers.sensing.sensor_frame import SensorFrameRows
 from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.traffic.sumo import SumoOptions, SumoTraffic, VehicleStates
 from couplers.sensing.v2x import V2xChannel
@@ -101,6 +102,9 @@ class SumoCoupler:
         self.perception = sensors.perception
         self.perception_noise = PerceptionNoise(scenario.seed) if self.perception is not None else None
         self.last_detections: Detections | None = None
+        # [perception] detections = "range_bearing": the rows in each sensor's frame (couplers.sensing.sensor_frame).
+        self.sensor_frame = (SensorFrameRows(self.perception, scenario.seed)
+                             if self.perception is not None and self.perception.detections == "range_bearing" else None)
         self.perception_totals: dict[str, int] = {}
         self.gnss_error = (GnssErrorProcess(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
@@ -165,6 +169,8 @@ class SumoCoupler:
                 prev_row=prev_row,
                 imu=imu,
             )
+            if self.sensor_frame is not None:
+                frame = self.sensor_frame.apply(frame, detections, x_true, states.heading, feats_true)
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)
             if self.v2x is not None:
