@@ -78,10 +78,6 @@ class SensorDetections:
     sigma_range_rate: np.ndarray  # (O,) m/s
 
 
-def _u(a):
-    return np.cos(a), np.sin(a)
-
-
 def to_net_frame(
     det: SensorDetections, heading: np.ndarray, heading_var: np.ndarray,
     tangential_sigma: float = TANGENTIAL_SIGMA_MPS,
@@ -93,36 +89,37 @@ def to_net_frame(
     rdot = np.asarray(det.range_rate, dtype=float)
     mount = np.asarray(det.mount_x, dtype=float)
     psi = np.asarray(heading, dtype=float)
+    hv = np.asarray(heading_var, dtype=float)
     phi = psi + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    c, s = _u(phi)
-    ch, sh = _u(psi)
+    c, s = np.cos(phi), np.sin(phi)
+    ch, sh = np.cos(psi), np.sin(psi)
     o = r.shape[0]
     z = np.empty((o, 4))
     z[:, 0] = mount * ch + r * c
     z[:, 1] = mount * sh + r * s
     z[:, 2] = rdot * c
     z[:, 3] = rdot * s
-    J = np.zeros((o, 4, 4))  # columns: r, b, rdot, psi
-    J[:, 0, 0], J[:, 1, 0] = c, s
-    J[:, 0, 1], J[:, 1, 1], J[:, 2, 1], J[:, 3, 1] = -r * s, r * c, -rdot * s, rdot * c
-    J[:, 2, 2], J[:, 3, 2] = c, s
-    J[:, 0, 3], J[:, 1, 3] = -mount * sh - r * s, mount * ch + r * c
-    J[:, 2, 3], J[:, 3, 3] = -rdot * s, rdot * c
-    var = np.stack([np.asarray(det.sigma_range, dtype=float) ** 2, np.asarray(det.sigma_bearing, dtype=float) ** 2,
-                    np.asarray(det.sigma_range_rate, dtype=float) ** 2, np.asarray(heading_var, dtype=float)],
-                   axis=1)
-    R = np.einsum("oik,ok,ojk->oij", J, var, J)
+    # R = J diag(...) J^T written out: e = u(phi), n = u_perp(phi), g = d z_p / d psi = mount u_perp(psi) + r n.
+    e = np.stack([c, s], axis=1)
+    n = np.stack([-s, c], axis=1)
+    g = np.stack([-mount * sh - r * s, mount * ch + r * c], axis=1)
+    ee = e[:, :, None] * e[:, None, :]
+    nn = n[:, :, None] * n[:, None, :]
+    var_r = np.asarray(det.sigma_range, dtype=float) ** 2
+    var_b = np.asarray(det.sigma_bearing, dtype=float) ** 2
+    var_rd = np.asarray(det.sigma_range_rate, dtype=float) ** 2
+    R = np.empty((o, 4, 4))
+    R[:, :2, :2] = (var_r[:, None, None] * ee + (var_b * r * r)[:, None, None] * nn
+                    + hv[:, None, None] * g[:, :, None] * g[:, None, :])
+    R[:, 2:, 2:] = (var_rd[:, None, None] * ee
+                    + ((var_b + hv) * rdot * rdot + float(tangential_sigma) ** 2)[:, None, None] * nn)
+    R[:, :2, 2:] = (var_b * r * rdot)[:, None, None] * nn + (hv * rdot)[:, None, None] * g[:, :, None] * n[:, None, :]
+    R[:, 2:, :2] = R[:, :2, 2:].transpose(0, 2, 1)
     # Second order in the heading error d: z(psi + d) = Rot(d) z(psi), whose part along z, (cos d - 1) z, the
     # Jacobian misses; its mean square E[(cos d - 1)^2] for d ~ N(0, heading_var) is added along z (it
     # matters once r heading_var / 2 nears sigma_r: 2 deg at 80 m).
-    hv = np.asarray(heading_var, dtype=float)
     k2 = 0.5 * (1.0 + np.exp(-2.0 * hv)) - 2.0 * np.exp(-0.5 * hv) + 1.0
     R += k2[:, None, None] * z[:, :, None] * z[:, None, :]
-    t2 = float(tangential_sigma) ** 2
-    R[:, 2, 2] += t2 * s * s
-    R[:, 3, 3] += t2 * c * c
-    R[:, 2, 3] -= t2 * s * c
-    R[:, 3, 2] -= t2 * s * c
     return z, R
 
 
