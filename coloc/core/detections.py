@@ -35,9 +35,10 @@ Heading estimate (:func:`heading_from_velocity`, :class:`HeadingMemory`): psi = 
 estimator's velocity estimate of the owner at t (its belief after prediction and the GNSS update,
 before any V2F row), var = g P_vv g^T with g = [-vy, vx] / |v|^2 (first-order atan2). Below
 ``heading_min_speed`` ([motion], the rule of :mod:`coloc.core.inertial`) the direction of the velocity
-is noise: the vehicle keeps the heading (and variance) it last had above that speed, advanced by the
-yaw rate of ``Frame.imu`` when the frame carries one (its variance grows by the IMU's yaw-rate noise
-over the step, taken as (0.01 rad/s Ts)^2: an assumption of the same order as the RotorS gyro noise);
+is noise: the vehicle keeps the heading (and variance) it last had above that speed, held (not
+dead-reckoned by ``Frame.imu``'s yaw rate: a slow vehicle mostly stands in a queue, where a gyro's
+turn-on bias of 0.5 deg/s would turn the heading by 30 deg a minute), its variance growing by
+(0.01 rad/s Ts)^2 a step (an assumed slow rotation while crawling);
 a vehicle that has never been fast enough takes the velocity's direction with its first-order variance
 capped at pi^2 / 3 (a heading uniform on the circle), so its rows carry almost no information across
 the line of sight.
@@ -60,7 +61,7 @@ __all__ = ["SensorDetections", "TANGENTIAL_SIGMA_MPS", "to_net_frame", "heading_
 TANGENTIAL_SIGMA_MPS = 30.0
 #: Variance of a heading uniform on the circle, pi^2 / 3 (rad^2): the cap of an unknown heading.
 HEADING_VAR_UNKNOWN = float(np.pi ** 2 / 3.0)
-#: Yaw-rate noise per step assumed when the kept heading of a slow vehicle is advanced by the IMU (rad/s).
+#: Yaw rate (rad/s) whose square times Ts^2 the kept heading's variance of a slow vehicle grows by per step.
 YAW_RATE_SIGMA = 0.01
 
 
@@ -167,9 +168,10 @@ def vehicle_headings(
         kept_h, kept_v = np.full(psi.shape, np.nan), np.full(psi.shape, np.nan)
     else:
         kept_h, kept_v = memory.carry(np.where(fresh, -1, idx))
-    if frame.imu is not None:  # advance the kept heading by the measured yaw rate
-        kept_h = kept_h + np.asarray(frame.imu.yaw_rate, dtype=float) * float(frame.dt)
-        kept_v = kept_v + (YAW_RATE_SIGMA * float(frame.dt)) ** 2
+    # Held, not dead-reckoned by an IMU's yaw rate: a slow vehicle is mostly standing in a queue, where the
+    # gyro's bias alone (0.5 deg/s turn-on, RotorS) would turn it by 30 deg a minute; the variance grows by
+    # a yaw rate of YAW_RATE_SIGMA per step instead.
+    kept_v = kept_v + (YAW_RATE_SIGMA * float(frame.dt)) ** 2
     speed = np.hypot(mean[:, 2], mean[:, 3])
     slow = (speed < min_speed) & np.isfinite(kept_h)
     psi = np.where(slow, kept_h, psi)

@@ -149,7 +149,8 @@ def test_slow_vehicle_keeps_its_last_heading():
     cov = np.tile(np.eye(4) * 0.01, (3, 1, 1))
     memory = HeadingMemory(np.array([1.0, np.nan, 2.0]), np.array([1e-4, np.nan, 1e-4]))
     psi, var, kept = vehicle_headings(frame, mean, cov, np.array([0, 1, 2]), memory, min_speed=1.0)
-    assert psi[0] == 1.0 and var[0] == 1e-4 and kept.heading[0] == 1.0  # slow, kept
+    assert psi[0] == 1.0 and kept.heading[0] == 1.0  # slow, kept (held), its variance grown by one step
+    assert var[0] == pytest.approx(1e-4 + (0.01 * 0.5) ** 2) and kept.var[0] == var[0]
     assert psi[1] == 0.0 and var[1] == HEADING_VAR_UNKNOWN and np.isnan(kept.heading[1])  # slow, none kept
     assert psi[2] == pytest.approx(np.pi / 2) and np.isnan(kept.heading[2])  # fresh: forgets
     fast = mean.copy()
