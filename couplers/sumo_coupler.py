@@ -21,6 +21,7 @@ from couplers.sensing.pedestrians import FeatureRegistry, person_states
 from couplers.sensing.occlusion import _footprints, vehicle_footprints
 from couplers.sensing.perception import Detections, PerceptionNoise, perceive
 from couplers.sensing import road_users as ru
+from couplers.sensing.sensor_frame import SensorFrameRows
 from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
 from couplers.traffic.sumo import SumoOptions, SumoTraffic, VehicleStates
 from couplers.sensing.v2x import V2xChannel
@@ -109,6 +110,9 @@ class SumoCoupler:
         self.road_noise = (ru.RoadUserNoise(scenario.seed) if self.perception is not None and self.perception.extended
                            else None)
         self.persistent_sites: np.ndarray | None = None  # drawn at the first step (SUMO's lanes)
+        # [perception] detections = "range_bearing": the rows in each sensor's frame (couplers.sensing.sensor_frame).
+        self.sensor_frame = (SensorFrameRows(self.perception, scenario.seed)
+                             if self.perception is not None and self.perception.detections == "range_bearing" else None)
         self.perception_totals: dict[str, int] = {}
         self.gnss_error = (gnss_error_process(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
                            if sensors.gnss_error is not None else None)
@@ -174,6 +178,8 @@ class SumoCoupler:
                 imu=imu,
                 start=self.scenario.start,
             )
+            if self.sensor_frame is not None:
+                frame = self.sensor_frame.apply(frame, detections, x_true, states.heading, feats_true)
             if self.pedestrians:
                 frame = self._with_registry_rows(frame, present, klass)
             if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds

@@ -277,6 +277,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                            "occluded is reported in a scan (default 0.9, an assumption)."),
         "class_error": (NO_UNIT, "Probability that the classifier reports one of the other two classes "
                                  "(default 0: a perfect classifier, an idealisation)."),
+        "detections": ("", "`\"net_xy\"` (default): each detection is the relative state x_F - x_V in the net "
+                           "frame (model (4)); `\"range_bearing\"`: range, bearing and range rate in the sensor's "
+                           "frame with the sigma_r_m / sigma_b_deg / sigma_rdot_mps noise, and every estimator "
+                           "rotates them with its own heading estimate (`coloc/core/detections.py`)."),
     },
     "perception.sensors": {
         "name": ("", "Name of the sensor (the row's sensor in the detections)."),
@@ -293,6 +297,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "sigma_growth": (NO_UNIT, "Position noise at the range is sigma_p_m (1 + sigma_growth), linear in "
                                   "between."),
         "sigma_v_mps": ("m/s", "Velocity noise per axis."),
+        "sigma_r_m": ("m", "Range noise std with `detections = \"range_bearing\"` (default: Continental ARS "
+                           "408-21, near range)."),
+        "sigma_b_deg": ("deg", "Bearing noise std with `detections = \"range_bearing\"`."),
+        "sigma_rdot_mps": ("m/s", "Range-rate (radial velocity) noise std with `detections = \"range_bearing\"`."),
     },
     "gnss_error": {
         "tau_s": ("s", "Correlation time of the Gauss-Markov position error; 0 = white noise, exactly today's "

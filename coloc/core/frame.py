@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from coloc.core.detections import SensorDetections
 from coloc.core.inertial import ImuFrame
 from coloc.core.v2x import V2xFrame
 
@@ -92,6 +93,14 @@ class Frame:
     heading): an estimator forms a_{t-1} itself by rotating ``imu.accel_body`` with its *estimated*
     heading (:func:`coloc.core.inertial.estimator_input`). None (the default): ``accel`` is the
     paper's net-frame input, exactly as before.
+
+    ``v2f_sensor`` (``[perception] detections = "range_bearing"``, :mod:`coloc.core.detections`): the V2F
+    rows as the sensors report them, range, bearing and range rate in each sensor's frame with the
+    sensor's mounting and noise std per row. When it is set, ``v2f_z`` and ``v2f_R`` are NaN (they would
+    carry the true heading; ``v2f_owner`` and the truth's ``v2f_feature`` keep their meaning): an
+    estimator forms model (4)'s rows itself with its own heading estimate
+    (:func:`coloc.core.detections.with_net_detections`). None (the default): ``v2f_z`` / ``v2f_R`` are
+    the net-frame rows, exactly as before.
     """
 
     t: float
@@ -121,6 +130,9 @@ class Frame:
     # as static (it is drawn as a static object). None (pedestrians off): every row is a static landmark,
     # and estimators run exactly as without classes.
     v2f_class: np.ndarray | None = None  # (O,) int8
+    # Sensor-frame detections ([perception] detections = "range_bearing"): range, bearing, range rate per V2F
+    # row (coloc.core.detections). None: v2f_z / v2f_R are the net-frame rows.
+    v2f_sensor: SensorDetections | None = None
 
     @property
     def n_vehicles(self) -> int:

@@ -13,7 +13,7 @@ vehicle it calls static is kept (``[perception] class_error``).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 
@@ -35,8 +35,12 @@ def without_vehicle_rows(frame: Frame) -> tuple[Frame, np.ndarray | None]:
     if truth is not None:
         kind = truth.v2f_kind[keep] if truth.v2f_kind is not None else None
         truth = replace(truth, v2f_feature=np.asarray(truth.v2f_feature)[keep], v2f_kind=kind)
+    sensor = frame.v2f_sensor
+    if sensor is not None:  # sensor-frame rows (coloc.core.detections): every per-row array keeps the same rows
+        sensor = replace(sensor, **{f.name: np.asarray(getattr(sensor, f.name))[keep] for f in fields(sensor)})
     return replace(frame, v2f_z=frame.v2f_z[keep], v2f_owner=np.asarray(frame.v2f_owner)[keep],
-                   v2f_R=frame.v2f_R[keep], v2f_class=np.asarray(cls)[keep], truth=truth), keep
+                   v2f_R=frame.v2f_R[keep], v2f_class=np.asarray(cls)[keep], truth=truth,
+                   v2f_sensor=sensor), keep
 
 
 def expand_rows(values: np.ndarray | None, keep: np.ndarray | None, n_rows: int, fill=-1):

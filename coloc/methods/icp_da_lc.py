@@ -104,6 +104,7 @@ from scipy.spatial import cKDTree
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
+from coloc.core.detections import with_net_detections
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch, layout_and_marginals_kernel
@@ -528,6 +529,10 @@ def icp_da_lc_step(
     # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
     b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
+    # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor track at t
+    # (coloc.core.detections; as coloc.methods.icp_known_da).
+    frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
+                                                params.motion.heading_min_speed)
     predicted = state.features.predict(frame.dt, params)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
@@ -659,7 +664,8 @@ def icp_da_lc_step(
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
-    return IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes), next_id, info
+    return (IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes,
+                     sensor_heading), next_id, info)
 
 
 def existence_after_association(

@@ -112,6 +112,7 @@ from scipy.special import logsumexp
 from coloc.core.detection import DetectionModel, expected_detection_probability
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
+from coloc.core.detections import HeadingMemory, with_net_detections
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import fresh_rows, match_ids
 from coloc.inference.comm import CommCount
@@ -181,6 +182,9 @@ class PfState:
     track_folded: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=bool))
     # [inertial] only: the heading kept per vehicle row (coloc.core.inertial.net_frame_input); None otherwise.
     heading: np.ndarray | None = None
+    # Sensor-frame detections only: the heading each vehicle last had above the minimum speed
+    # (coloc.core.detections.HeadingMemory); None otherwise.
+    sensor_heading: HeadingMemory | None = None
 
 
 @dataclass(frozen=True)
@@ -300,6 +304,15 @@ def icp_da_pf_step(
     else:
         own, log_own = particles, log_gnss
         assoc_particles, assoc_logw, assoc_cov = particles, log_gnss, v_cov
+    # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor sets' moments
+    # at t (the belief's with the "belief" recursion; coloc.core.detections, as coloc.methods.icp_known_da).
+    if frame.v2f_sensor is not None:
+        h_mean, h_cov = (own_mean, own_cov) if latest else (v_mean, v_cov)
+        frame, sensor_heading = with_net_detections(frame, h_mean, h_cov, idx, state.sensor_heading,
+                                                    params.motion.heading_min_speed)
+        z, r = np.asarray(frame.v2f_z, float), np.asarray(frame.v2f_R, float)
+    else:
+        sensor_heading = None
 
     # 2. Tracks: model (2), (24).
     k_old = state.track_ids.size
@@ -572,7 +585,8 @@ def icp_da_pf_step(
         keep_m = np.isin(msg_track, t_ids[keep_t])
         msg_track, msg_vehicle, msg_logv, msg_time = msg_track[keep_m], msg_vehicle[keep_m], msg_logv[keep_m], msg_time[keep_m]
     new_state = PfState(vids.copy(), new_particles, new_own, t_ids[keep_t], new_t_particles[keep_t], new_t_logw[keep_t],
-                        t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t], heading)
+                        t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t], heading,
+                        sensor_heading)
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
                       pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced],

@@ -38,7 +38,10 @@ With ``frame.v2x`` set, the consensus of (20) runs over the lossy V2X channel wi
 round budget (:mod:`coloc.inference.bpa`). With ``frame.imu`` (``[inertial]``) the input of model (1), for
 the belief and the own-sensor track alike, is the body-frame IMU rotated by the heading of the vehicle's
 previous belief (22) (:func:`coloc.core.inertial.estimator_input`; the kept headings are
-``IcpState.heading``). ``last_comm`` is what the vehicles sent in the last step
+``IcpState.heading``). With ``frame.v2f_sensor`` (sensor-frame detections) the V2F rows of model (4) are
+formed at step 1 from range, bearing and range rate by the heading of the own-sensor track at t (GNSS and
+inertial only: its covariance is consistent, which b^(0)'s is not, and the rows it converts never fed it;
+:func:`coloc.core.detections.with_net_detections`). ``last_comm`` is what the vehicles sent in the last step
 (:mod:`coloc.inference.comm`: per BPA-L consensus round, one broadcast per vehicle with 16 words per
 feature it shares with a neighbour).
 """
@@ -49,6 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from coloc.core.detections import HeadingMemory, with_net_detections
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.inertial import estimator_input
@@ -115,6 +119,10 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     match = match_ids(state.ids, frame.vehicle_ids)
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
     b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
+    # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor track at t
+    # (coloc.core.detections).
+    frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
+                                                params.motion.heading_min_speed)
     predicted = state.features.predict(frame.dt, params)
     used = assoc >= 0
     owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
@@ -133,7 +141,8 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes,
                              row_class)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
-    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading, codes)
+    return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading, codes,
+                         sensor_heading)
 
 
 def frame_vehicle_codes(state: "IcpState", frame: Frame, match: np.ndarray) -> np.ndarray:
@@ -166,6 +175,9 @@ class IcpState:
     heading: np.ndarray | None = None
     # vehicle_codes(ids) (coloc.inference.feature_store), carried to the next step; None: not kept.
     codes: np.ndarray | None = None
+    # Sensor-frame detections only: the heading each vehicle last had above the minimum speed
+    # (coloc.core.detections.HeadingMemory); None otherwise.
+    sensor_heading: HeadingMemory | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
         f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs

@@ -75,6 +75,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from coloc.core.detections import with_net_detections
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.models import (
     MotionParams,
@@ -129,6 +130,7 @@ class _InfraBase:
         self.params = params
         self.gnss = GnssTracker(motion=params.motion)
         self.stats = {"topology_updates": 0, "topology_skipped": 0}
+        self._sensor_heading = None  # sensor-frame detections: coloc.core.detections.HeadingMemory
 
     def _start_beliefs(self, frame: Frame, rows: np.ndarray, prev) -> tuple[np.ndarray, np.ndarray]:
         """Belief at t without this step's fix: tracker posterior of t-1 predicted by model (1), or the prior."""
@@ -144,6 +146,10 @@ class _InfraBase:
     def step(self, frame: Frame) -> StepEstimate:
         prev = (self.gnss._ids, self.gnss._mean, self.gnss._cov)
         fallback = self.gnss.step(frame)
+        if frame.v2f_sensor is not None:  # model (4)'s rows by the heading of the vehicle's own GNSS track at t
+            frame, self._sensor_heading = with_net_detections(
+                frame, fallback.mean, fallback.cov, match_ids(prev[0], frame.vehicle_ids), self._sensor_heading,
+                self.params.motion.heading_min_speed)
         mean, cov = fallback.mean.copy(), fallback.cov.copy()
         n = frame.n_vehicles
         covered = np.zeros(n, dtype=bool)

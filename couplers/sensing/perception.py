@@ -119,6 +119,11 @@ class SensorSpec:
     sigma_p_m: float = 0.1  # position noise per axis at 0 m
     sigma_growth: float = 3.0  # sigma_p(range) = sigma_p_m (1 + sigma_growth)
     sigma_v_mps: float = 0.1  # velocity noise per axis
+    # Noise in the sensor's own coordinates (``[perception] detections = "range_bearing"``,
+    # couplers.sensing.sensor_frame, where the defaults are sourced: Continental ARS 408-21, near range).
+    sigma_r_m: float = 0.1  # range
+    sigma_b_deg: float = 0.3  # bearing (azimuth)
+    sigma_rdot_mps: float = 0.028  # range rate (radial velocity), 0.1 km/h
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -136,7 +141,7 @@ class SensorSpec:
                 raise InputError(None, key, f"must be a probability in [0, 1], got {val!r}")
         if not (_finite(self.clutter_per_scan) and self.clutter_per_scan >= 0):
             raise InputError(None, "clutter_per_scan", f"must be >= 0 and finite, got {self.clutter_per_scan!r}")
-        for key in ("sigma_p_m", "sigma_v_mps"):
+        for key in ("sigma_p_m", "sigma_v_mps", "sigma_r_m", "sigma_b_deg", "sigma_rdot_mps"):
             val = getattr(self, key)
             if not (_finite(val) and val > 0):
                 raise InputError(None, key, f"must be positive and finite, got {val!r}")
@@ -162,6 +167,9 @@ DEFAULT_SENSORS = (
 )
 
 
+DETECTION_KINDS = ("net_xy", "range_bearing")
+
+
 @dataclass(frozen=True)
 class PerceptionParams:
     """The ``[perception]`` table: the sensors of every vehicle and which occluders count."""
@@ -175,8 +183,14 @@ class PerceptionParams:
     persistent_clutter_per_km: float = 0.0
     persistent_clutter_pd: float = 0.9  # assumption: a guard rail / pole / parked car is a strong reflector
     class_error: float = 0.0  # idealisation: a perfect object classifier
+    # What a detection reports: "net_xy", the relative state in the net frame (model (4) as the papers);
+    # "range_bearing", range, bearing and range rate in the sensor's frame (couplers.sensing.sensor_frame).
+    detections: str = "net_xy"
 
     def __post_init__(self):
+        if self.detections not in DETECTION_KINDS:
+            raise InputError(None, "detections", f"must be one of {', '.join(map(repr, DETECTION_KINDS))}, "
+                                                 f"got {self.detections!r}")
         if not isinstance(self.sensors, tuple) or not self.sensors:
             raise InputError(None, "sensors", "at least one sensor is needed")
         if not (_finite(self.persistent_clutter_per_km) and self.persistent_clutter_per_km >= 0):

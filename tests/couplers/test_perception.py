@@ -369,3 +369,41 @@ def test_arterial_with_perception_has_clutter_and_fewer_true_detections():
     assert steps == steps_p == 120
     assert ideal_clutter == 0 and real_clutter > steps  # default: 1 per scan and sensor
     assert 0 < real_true < ideal_true
+
+
+def test_range_bearing_frames_are_the_net_xy_world_in_the_sensor_frame(cross_net):
+    """The SUMO coupler with detections = "range_bearing": the same rows (owners, truth, order) and every other
+    measurement byte for byte as with "net_xy"; v2f_z / v2f_R NaN; the rows converted back with the true heading
+    lie within a few sigma of the net_xy rows (both noisy: each its own draw of the same world)."""
+    from dataclasses import replace as dc_replace
+
+    from coloc.core.detections import to_net_frame
+    from couplers.sumo_coupler import SumoCoupler, SumoScenario
+
+    net = load_net_folder(cross_net)
+    spec = SensorSpec(name="s", fov_deg=120.0, range_m=40.0, mount_x_m=-1.0, clutter_per_scan=0.5)
+    per = PerceptionParams(sensors=(spec,), occlusion_vehicles=True)
+
+    def frames(kind):
+        sens = SensorParams(perception=dc_replace(per, detections=kind))
+        with SumoCoupler(SumoScenario(net=net, control="tlr", seed=4, duration_s=60.0), sens) as c:
+            return list(c.frames())
+
+    xy, rb = frames("net_xy"), frames("range_bearing")
+    assert len(xy) == len(rb)
+    rows = 0
+    for a, b in zip(xy, rb):
+        assert a.v2f_sensor is None and b.v2f_sensor is not None
+        for f in ("gnss_z", "prior_z", "accel", "v2f_owner"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+        np.testing.assert_array_equal(a.truth.v2f_feature, b.truth.v2f_feature)
+        assert np.isnan(b.v2f_z).all() and np.isnan(b.v2f_R).all()
+        if not b.v2f_owner.size:
+            continue
+        psi = b.truth.heading[b.v2f_owner]
+        z, R = to_net_frame(b.v2f_sensor, psi, np.zeros(psi.size))
+        d = z[:, :2] - a.v2f_z[:, :2]
+        m2 = np.einsum("oi,oij,oj->o", d, np.linalg.inv(R[:, :2, :2] + a.v2f_R[:, :2, :2]), d)
+        assert (m2 < 40.0).all()  # chi-square 2 dof: P(> 40) ~ 2e-9
+        rows += b.v2f_owner.size
+    assert rows > 50

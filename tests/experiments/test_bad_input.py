@@ -461,6 +461,24 @@ def run_perception_negative_clutter(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "perception.detections", "range_bearing")
+def run_perception_unknown_detection_kind(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\ndetections = 'polar'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[0].sigma_b_deg")
+def run_perception_negative_bearing_sigma(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\ndetections = 'range_bearing'\n[[perception.sensors]]\nsigma_b_deg = -0.3\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "perception.sensors[0].sigma_r_m")
+def run_perception_zero_range_sigma(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\ndetections = 'range_bearing'\n[[perception.sensors]]\nsigma_r_m = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_error.tau_s")
 def run_gnss_error_negative_tau(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_error]\ntau_s = -5.0\n")

@@ -230,16 +230,22 @@ def test_preset_resolves_as_its_full_copy_did(name):
     new_cfg = load_config(CONFIGS / name)
     if name in CHANGED_SINCE:  # changed on purpose since the copies: those values taken from the overlay
         lc = dataclasses.replace(old_cfg.lc, **{k: getattr(new_cfg.lc, k) for k in CHANGED_SINCE[name]})
-        old_cfg = dataclasses.replace(old_cfg, lc=lc, perception=new_cfg.perception,
-                                      estimator_sensors=new_cfg.estimator_sensors,
-                                      sensors=dataclasses.replace(old_cfg.sensors, perception=new_cfg.perception))
+        old_cfg = dataclasses.replace(
+            old_cfg, lc=lc, perception=new_cfg.perception, estimator_sensors=new_cfg.estimator_sensors,
+            gnss_error=new_cfg.gnss_error, scenario=dataclasses.replace(old_cfg.scenario, start=new_cfg.scenario.start),
+            sensors=dataclasses.replace(old_cfg.sensors, perception=new_cfg.perception, gnss_error=new_cfg.gnss_error))
     assert _body(new_cfg) == _body(old_cfg)
 
 
 #: Presets changed on purpose after the full copies: the [perception] sensors (front radar to the ARS 408-21
-#: near beam, road users, persistent clutter), [estimator_sensors] and the [lc] values derived from them.
+#: near beam, road users, persistent clutter, detections in the sensor's frame), [estimator_sensors] and the
+#: [lc] values derived from them, the [gnss_error] field model and the entry from the receiver's first fix.
 CHANGED_SINCE = {name: ("clutter_intensity", "sensing_range_m") for name in
                  ("arterial_tlr_realistic.toml", "arterial_vsr_realistic.toml", "arterial_ped_tlr_realistic.toml")}
+
+
+# The realistic presets report detections in the sensor's frame since their full copies were replaced (the
+# sigma_r_m / sigma_b_deg / sigma_rdot_mps they write are the defaults).
 
 
 @pytest.mark.parametrize("name", sorted(OVERLAYS))
