@@ -221,6 +221,11 @@ RANGES: dict[str, Range] = {
     "inertial.gyro_bias_sigma": Range(0.0, 360.0, "deg/s", "a turn a second"),
     "inertial.gyro_bias_tau_s": CORRELATION,
     "inertial.gyro_turn_on_sigma": Range(0.0, 360.0, "deg/s", "a turn a second"),
+    "gnss_model.bias_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance; 1 would leave no white "
+                                   "noise", high_open=True),
+    "gnss_model.bias_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
+    "gnss_model.innovation_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would gate nothing",
+                                        high_open=True),
 }
 
 WORKERS = Range(1, 1024, NO_UNIT, "worker processes of one machine")

@@ -152,13 +152,14 @@ def build_estimators(cfg: Config) -> list:
 
 def method_params(cfg: Config) -> MethodParams:
     """The registry builders' parameters from ``[motion]``, ``[icp]``, ``[lc]``, ``[pf]`` (with the seed)
-    and ``[infra]`` (None without it)."""
+    ``[infra]`` (None without it) and ``[gnss_model]`` (None: the white ``gnss`` tracker)."""
     return MethodParams(
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
         detection=(detection_model(cfg.perception, cfg.motion.heading_min_speed, cfg.lc.visibility)
                    if cfg.perception is not None and cfg.lc.sensor_fov else None),
+        gnss_model=cfg.gnss_model,
     )
 
 
