@@ -103,8 +103,8 @@ TABLE_DOCS: dict[str, str] = {
     "gnss_model": "The integrator's GNSS receiver error model for `gnss` (optional table; "
                   "`coloc/methods/gnss_bias.py`): a first-order Gauss-Markov bias state per vehicle, which "
                   "takes `bias_share` of the receiver's reported position variance (`frame.gnss_R`, per step and "
-                  "vehicle), and a chi-square gate that skips a fix (predict only) whose position innovation is "
-                  "improbable. Never read from `[gnss_error]` (the world's table): its values are what an "
+                  "vehicle), and a chi-square gate that excludes the position of a fix whose position innovation "
+                  "is improbable. Never read from `[gnss_error]` (the world's table): its values are what an "
                   "integrator would assume. Reports and NEES use the 4-D kinematic marginal. Absent: the white "
                   "tracker of the paper, exactly as before.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
@@ -241,8 +241,14 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                             "correlate over tens of seconds to minutes)."),
         "innovation_gate": (NO_UNIT, "Level of the chi-square gate (2 degrees of freedom) on the normalized "
                                      "innovation squared of the fix's position: a fix beyond the quantile is "
-                                     "skipped (predict only); a vehicle's first fix is never gated. In [0, 1); "
-                                     "0: no exclusion. Default 0.999 (threshold 13.8)."),
+                                     "excluded: its position is skipped, its velocity still updates (skipping "
+                                     "the whole fix let trackers diverge with a biased IMU); a vehicle's first "
+                                     "fix is never gated. In [0, 1); 0: no exclusion. Default 0.999 (threshold "
+                                     "13.8)."),
+        "max_exclusions": (NO_UNIT, "Consecutive excluded fixes of a vehicle after which the next fix is taken "
+                                    "whatever its innovation (a lasting discrepancy is more likely the "
+                                    "tracker's own drift than a fault; a gate that never reopens diverges). "
+                                    "Default 10 (assumption: NLOS episodes last seconds)."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

@@ -224,6 +224,7 @@ RANGES: dict[str, Range] = {
     "gnss_model.bias_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance; 1 would leave no white "
                                    "noise", high_open=True),
     "gnss_model.bias_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
+    "gnss_model.max_exclusions": Range(0, 1_000_000, NO_UNIT, "consecutive excluded fixes"),
     "gnss_model.innovation_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would gate nothing",
                                         high_open=True),
 }

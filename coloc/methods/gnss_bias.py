@@ -22,9 +22,13 @@ it is only updated in its first step.
 
 Fault exclusion (``innovation_gate`` = level alpha > 0): a fix whose position innovation has a
 normalized innovation squared ``nu^T S_pos^-1 nu`` above the chi-square quantile of 2 degrees of freedom
-at alpha is skipped (predict only). Two degrees of freedom: the faults meant (NLOS reception) bias the
-position; gating the 4-D innovation would add two healthy velocity components that dilute the test.
-A fresh vehicle's first fix is never gated (its prior comes from it).
+at alpha is excluded: its position is skipped and only its velocity updates the state. Two degrees of
+freedom: the faults meant (NLOS reception) bias the position; gating the 4-D innovation would add two
+healthy velocity components that dilute the test. The velocity is kept because skipping the whole fix
+(predict only) let trackers diverge on the realistic arterial: with an IMU bias the predicted
+velocity drifts, the position error outgrows the predicted covariance and the gate never reopens
+(docs/validation/gnss_benchmark.md). For the same reason, after ``max_exclusions`` consecutive
+exclusions the next fix is taken. A fresh vehicle's first fix is never gated (its prior comes from it).
 
 Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a frame as one numpy
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
@@ -61,6 +65,10 @@ class GnssModelParams:
     bias_tau_s: float = 60.0
     # Level of the chi-square gate (2 dof) on the position innovation; 0: no exclusion.
     innovation_gate: float = 0.999
+    # Consecutive excluded fixes after which the next one is taken whatever its innovation: a
+    # discrepancy that lasts is more likely the tracker's own drift (e.g. an IMU bias) than a fault,
+    # and a gate that never reopens would let it diverge. Assumption: NLOS episodes last seconds.
+    max_exclusions: int = 10
 
     def __post_init__(self):
         if not (isinstance(self.bias_share, (int, float)) and 0.0 <= self.bias_share < 1.0):
@@ -68,6 +76,8 @@ class GnssModelParams:
                              f"got {self.bias_share!r}")
         if not (isinstance(self.bias_tau_s, (int, float)) and math.isfinite(self.bias_tau_s) and self.bias_tau_s > 0):
             raise ValueError(f"must be positive and finite (the bias correlation time, s), got {self.bias_tau_s!r}")
+        if not (isinstance(self.max_exclusions, int) and self.max_exclusions >= 0):
+            raise ValueError(f"must be a non-negative integer (consecutive excluded fixes), got {self.max_exclusions!r}")
         if not (isinstance(self.innovation_gate, (int, float)) and 0.0 <= self.innovation_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (the chi-square gate's level; 0: no exclusion), "
                              f"got {self.innovation_gate!r}")
@@ -78,10 +88,12 @@ class GnssModelParams:
         return math.inf if self.innovation_gate == 0 else -2.0 * math.log1p(-self.innovation_gate)
 
 
-def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams):
+def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
+                        streak=None):
     """One step for a batch of 6-D states (N, 6), (N, 6, 6): predict where ``predict_mask``, then the
-    update by each fix that passes the gate (a fresh row, ``~predict_mask``, is never gated).
-    Returns (mean, cov, excluded (N,) bool)."""
+    update by each fix that passes the gate (a fresh row, ``~predict_mask``, is never gated; nor is a
+    row whose ``streak`` of consecutive exclusions has reached ``model.max_exclusions``); an excluded
+    fix updates the velocity only. Returns (mean, cov, excluded (N,) bool)."""
     n = mean.shape[0]
     s = model.bias_share
     r = np.asarray(r, dtype=float)
@@ -115,13 +127,21 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         nu = innov[:, :2]
         nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
         excluded = predict_mask & (nis > model.gate_threshold)
-    upd = ~excluded
-    if upd.any():
-        gain = np.swapaxes(np.linalg.solve(sm[upd], np.swapaxes(ph[upd], -1, -2)), -1, -2)  # (U, 6, 4)
-        m[upd] = m[upd] + np.einsum("nij,nj->ni", gain, innov[upd])
-        ikh = np.eye(6) - gain @ H
-        pu = ikh @ p[upd] @ np.swapaxes(ikh, -1, -2) + gain @ rn[upd] @ np.swapaxes(gain, -1, -2)
-        p[upd] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+        if streak is not None:
+            excluded &= streak < model.max_exclusions
+    # A full update where the fix passes, a velocity-only update (rows 2-3 of H) where it is excluded.
+    for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
+        if not sel.any():
+            continue
+        hs = H[rows]
+        rs = rn[sel][:, rows, rows]
+        phs = ph[sel][:, :, rows]
+        ss = sm[sel][:, rows, rows]
+        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, 6, k)
+        m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
+        ikh = np.eye(6) - gain @ hs
+        pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
+        p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
     return m, p, excluded
 
 
@@ -139,6 +159,7 @@ class GnssBiasTracker:
     last_comm: CommCount | None = None  # non-cooperative: sends nothing
     last_excluded: np.ndarray | None = None  # (N,) bool: fixes skipped by the gate this step
     _heading: np.ndarray | None = None  # kept heading per vehicle row ([inertial] only)
+    _streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # consecutive exclusions
 
     def step(self, frame: Frame) -> StepEstimate:
         idx = match_ids(self._ids, frame.vehicle_ids)
@@ -157,9 +178,12 @@ class GnssBiasTracker:
             mean[fresh, :4] = prior_z[fresh]
             cov[fresh, :4, :4] = np.asarray(frame.prior_R, dtype=float)[fresh]
             cov[fresh, 4:, 4:] = self.model.bias_share * r[fresh, :2, :2]
+        streak = np.zeros(n, dtype=np.int64)
+        streak[keep] = self._streak[idx[keep]]
         mean, cov, self.last_excluded = bias_predict_update(
             mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
-            float(frame.dt), self.motion, self.model)
+            float(frame.dt), self.motion, self.model, streak)
+        self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)
         return StepEstimate(mean=mean[:, :4].copy(), cov=cov[:, :4, :4].copy())

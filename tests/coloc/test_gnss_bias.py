@@ -50,6 +50,7 @@ class ReferenceKF:
         k = self.P @ h.T @ np.linalg.inv(s)
         self.x = self.x + k @ (z - h @ self.x)
         self.P = (np.eye(6) - k @ h) @ self.P
+        self.P = 0.5 * (self.P + self.P.T)
 
 
 def reference_matrices(x, r, dt, model: GnssModelParams):
@@ -121,10 +122,11 @@ def scripted_run(seed, steps, model, jumps=0.0):
 
 @pytest.mark.parametrize("gate", [0.0, 0.999])
 def test_bias_tracker_equals_a_textbook_kalman_filter(gate):
-    model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=gate)
+    model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=gate, max_exclusions=2)
     frames = scripted_run(5, 300, model, jumps=0.03 if gate else 0.0)
     est = GnssBiasTracker(motion=MOTION, model=model)
     refs: dict[str, ReferenceKF] = {}
+    streak: dict[str, int] = {}
     n_excluded = 0
     threshold = chi2.ppf(gate, 2) if gate else math.inf
     entries = leaves = 0
@@ -144,14 +146,18 @@ def test_bias_tracker_equals_a_textbook_kalman_filter(gate):
                 refs[vid] = ReferenceKF(np.concatenate([fr.prior_z[i], [0.0, 0.0]]), p0)
                 f, b, q, h, rn = reference_matrices(refs[vid].x, r, fr.dt, model)
                 refs[vid].update(fr.gnss_z[i], rn, h)
+                streak[vid] = 0
             else:
                 kf = refs[vid]
                 f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
                 kf.predict(fr.accel[i], b, f, q)
-                if kf.nis_pos(fr.gnss_z[i], rn, h) > threshold:
+                if kf.nis_pos(fr.gnss_z[i], rn, h) > threshold and streak[vid] < model.max_exclusions:
                     n_excluded += 1
+                    streak[vid] += 1
                     assert est.last_excluded[i]
+                    kf.update(fr.gnss_z[i][2:], rn[2:, 2:], h[2:])  # the velocity only
                 else:
+                    streak[vid] = 0
                     assert not est.last_excluded[i]
                     kf.update(fr.gnss_z[i], rn, h)
             np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
@@ -159,6 +165,20 @@ def test_bias_tracker_equals_a_textbook_kalman_filter(gate):
             np.testing.assert_allclose(est._cov[i], refs[vid].P, rtol=0, atol=1e-9)
     assert entries > 10 and leaves > 5
     assert (n_excluded > 3) == (gate > 0)
+    if gate:
+        assert max_streak_hit(frames, model)
+
+
+def max_streak_hit(frames, model) -> bool:
+    """Some vehicle had its fix taken after max_exclusions exclusions in a row (the scripted world's
+    slow common error makes long runs of exclusions)."""
+    est = GnssBiasTracker(motion=MOTION, model=model)
+    for fr in frames:
+        est.step(fr)
+        before = dict(zip(fr.vehicle_ids, est._streak))
+        if any(v == model.max_exclusions for v in before.values()):
+            return True
+    return False
 
 
 def test_zero_bias_share_is_the_white_tracker():
@@ -238,7 +258,7 @@ def test_the_bias_state_beats_the_white_tracker_on_a_correlated_error():
 
 def test_a_50_m_jump_is_excluded_and_ordinary_fixes_are_kept():
     """Fixes from the tracker's own error model (Gauss-Markov bias + white noise, 3 m): none excluded
-    but the one 50 m off, and that step is a prediction only."""
+    but the one 50 m off, whose position is not used."""
     model = GnssModelParams(bias_share=0.8, bias_tau_s=30.0, innovation_gate=0.999)
     rng = np.random.default_rng(4)
     est = GnssBiasTracker(motion=MOTION, model=model)
@@ -262,14 +282,15 @@ def test_a_50_m_jump_is_excluded_and_ordinary_fixes_are_kept():
         out = est.step(fr)
         excluded.append(bool(est.last_excluded[0]))
         if t == 100:
-            # predict only: the position is the prior's carried one step
-            np.testing.assert_allclose(out.mean[0, :2], before[0, :2] + before[0, 2:4], atol=1e-9)
+            # the position is not pulled towards the jump: within 0.5 m of the prior carried one step
+            # (the velocity update moves it a little), far from the 50 m off fix
+            assert np.linalg.norm(out.mean[0, :2] - (before[0, :2] + before[0, 2:4])) < 0.5
     assert excluded[100]
     assert sum(excluded) == 1
 
 
 @pytest.mark.parametrize("kw", [{"bias_share": 1.0}, {"bias_share": -0.1}, {"bias_tau_s": 0.0},
-                                {"bias_tau_s": math.inf}, {"innovation_gate": 1.0}])
+                                {"bias_tau_s": math.inf}, {"innovation_gate": 1.0}, {"max_exclusions": -1}])
 def test_params_refuse_values_that_break_the_model(kw):
     with pytest.raises(ValueError):
         GnssModelParams(**kw)

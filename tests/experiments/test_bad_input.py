@@ -1137,6 +1137,36 @@ def sweep_workers_huge(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(tmp / "o"), "--workers", "100000", "--dry-run"], None
 
 
+@case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
+def run_gnss_model_bias_share_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.bias_tau_s", "positive")
+def run_gnss_model_zero_tau(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_tau_s = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.innovation_gate", "[0, 1)")
+def run_gnss_model_gate_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ninnovation_gate = 1.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.bias_tau_s", "number")
+def run_gnss_model_text_value(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_tau_s = 'a minute'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.model", "unknown key")
+def run_gnss_model_unknown_key(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nmodel = 'gauss_markov'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
