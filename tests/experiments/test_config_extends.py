@@ -1,5 +1,6 @@
 """Config inheritance (``extends``, experiments/config_extends.py) and the arterial presets written as overlays."""
 
+import dataclasses
 import os
 import subprocess
 import sys
