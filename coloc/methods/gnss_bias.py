@@ -46,6 +46,7 @@ from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, match_ids
 from coloc.inference.comm import CommCount
+from coloc.methods.registry import GNSS
 
 #: H of the fix for the state [p, v, b]: z_pos = p + b, z_vel = v.
 H = np.zeros((4, 6))
@@ -152,7 +153,7 @@ class GnssBiasTracker:
 
     motion: MotionParams = field(default_factory=MotionParams)
     model: GnssModelParams = field(default_factory=GnssModelParams)
-    name: str = "gnss"
+    name: str = GNSS.name
     _ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
     _mean: np.ndarray = field(default_factory=lambda: np.empty((0, 6)))
     _cov: np.ndarray = field(default_factory=lambda: np.empty((0, 6, 6)))
