@@ -58,6 +58,7 @@ from pathlib import Path
 from coloc.core.models import MotionParams
 from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, PEDESTRIAN_SIGMA_PAR, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
+from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
 from couplers.errors import InputError, read_toml, seed_problem
@@ -215,6 +216,9 @@ class Config:
     # [estimator_sensors], optional: the estimators' own sensor model (experiments.estimator_sensors); not
     # handed to the coupler.
     estimator_sensors: EstimatorSensors | None = None
+    # [gnss_model], optional: the integrator's receiver error model for the gnss method
+    # (coloc.methods.gnss_bias); never read from [gnss_error], the world's table.
+    gnss_model: GnssModelParams | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -251,7 +255,8 @@ SECTIONS: dict[str, type] = {
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
                                       "inertial": InertialParams, "features": FeaturesParams,
-                                      "estimator_sensors": EstimatorSensors}
+                                      "estimator_sensors": EstimatorSensors,
+                                      "gnss_model": GnssModelParams}
 #: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")

@@ -110,6 +110,13 @@ TABLE_DOCS: dict[str, str] = {
            "MHz, 6 Mb/s) and Rayleigh fading per packet; no interference or congestion (derivation: "
            "`couplers/sensing/v2x.py`). Absent: every vehicle connected over perfect links, exactly as before. Not "
            "for the controlled scenarios, nor together with `[infra]`.",
+    "gnss_model": "The integrator's GNSS receiver error model for `gnss` (optional table; "
+                  "`coloc/methods/gnss_bias.py`): a first-order Gauss-Markov bias state per vehicle, which "
+                  "takes `bias_share` of the receiver's reported position variance (`frame.gnss_R`, per step and "
+                  "vehicle), and a chi-square gate that excludes the position of a fix whose position innovation "
+                  "is improbable. Never read from `[gnss_error]` (the world's table): its values are what an "
+                  "integrator would assume. Reports and NEES use the 4-D kinematic marginal. Absent: the white "
+                  "tracker of the paper, exactly as before.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "
@@ -237,6 +244,27 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "gyro_bias_tau_s": ("s", "Correlation time of the yaw-rate bias drift. Default 1000 s: RotorS."),
         "gyro_turn_on_sigma": ("deg/s", "Std of the yaw-rate turn-on bias, drawn when a vehicle enters. Default "
                                         "0.5 deg/s: RotorS."),
+    },
+    "gnss_model": {
+        "bias_share": (NO_UNIT, "Share of the reported position variance that is a slowly varying bias, in [0, "
+                                "1); the white rest, (1 - share) R_pos, is the fix's noise. The bias's stationary "
+                                "covariance is share x R_pos of the zone the vehicle is in (reached with the "
+                                "bias's correlation time after a zone change). 0: a white tracker (with the gate). "
+                                "Default 0.8 (assumption: code noise of decimetres against metres of slow "
+                                "atmospheric, orbit/clock and multipath error)."),
+        "bias_tau_s": ("s", "Correlation time of the bias: b_k = a b_{k-1} + w, a = exp(-Ts / tau), Var(w) = "
+                            "(1 - a^2) share R_pos. Default 60 s (assumption: single-frequency position errors "
+                            "correlate over tens of seconds to minutes)."),
+        "innovation_gate": (NO_UNIT, "Level of the chi-square gate (2 degrees of freedom) on the normalized "
+                                     "innovation squared of the fix's position: a fix beyond the quantile is "
+                                     "excluded: its position is skipped, its velocity still updates (skipping "
+                                     "the whole fix let trackers diverge with a biased IMU); a vehicle's first "
+                                     "fix is never gated. In [0, 1); 0: no exclusion. Default 0.999 (threshold "
+                                     "13.8)."),
+        "max_exclusions": (NO_UNIT, "Consecutive excluded fixes of a vehicle after which the next fix is taken "
+                                    "whatever its innovation (a lasting discrepancy is more likely the "
+                                    "tracker's own drift than a fault; a gate that never reopens diverges). "
+                                    "Default 10 (assumption: NLOS episodes last seconds)."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

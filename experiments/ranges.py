@@ -238,6 +238,12 @@ RANGES: dict[str, Range] = {
     "perception.persistent_clutter_per_km": Range(0.0, 1e4, "1/km", "a false-alarm source every 10 cm of road"),
     "perception.persistent_clutter_pd": PROB,
     "perception.class_error": PROB,
+    "gnss_model.bias_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance; 1 would leave no white "
+                                   "noise", high_open=True),
+    "gnss_model.bias_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
+    "gnss_model.max_exclusions": Range(0, 1_000_000, NO_UNIT, "consecutive excluded fixes"),
+    "gnss_model.innovation_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would gate nothing",
+                                        high_open=True),
 }
 # [estimator_sensors]: the estimators' own datasheet table has the keys (and so the ranges) of the world's sensors.
 RANGES.update({"estimator_sensors.sensors." + k[len("perception.sensors."):]: r for k, r in list(RANGES.items())

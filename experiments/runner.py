@@ -151,12 +151,13 @@ def build_estimators(cfg: Config) -> list:
 
 def method_params(cfg: Config) -> MethodParams:
     """The registry builders' parameters from ``[motion]``, ``[icp]``, ``[lc]``, ``[pf]`` (with the seed)
-    and ``[infra]`` (None without it)."""
+    ``[infra]`` (None without it) and ``[gnss_model]`` (None: the white ``gnss`` tracker)."""
     return MethodParams(
         motion=cfg.motion, icp=IcpParams(motion=cfg.motion, **dataclasses.asdict(cfg.icp)), lc=cfg.lc,
         pf=PfParams(seed=cfg.run.seed, **dataclasses.asdict(cfg.pf)),
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
         detection=estimator_detection_model(cfg),
+        gnss_model=cfg.gnss_model,
     )
 
 

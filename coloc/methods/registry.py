@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from coloc.inference.params import IcpParams
     from coloc.methods.icp_da_lc import LcParams
     from coloc.methods.icp_da_pf import PfParams
+    from coloc.methods.gnss_bias import GnssModelParams
     from coloc.methods.infra import InfraMethodParams
 
 
@@ -42,6 +43,9 @@ class MethodParams:
     pf: PfParams
     infra: InfraMethodParams | None = None
     detection: DetectionModel | None = None  # the vehicles' sensors, with lc.sensor_fov (from [perception])
+    # The integrator's receiver error model ([gnss_model]): gnss with a bias state and fault exclusion;
+    # None: the white tracker of the paper.
+    gnss_model: GnssModelParams | None = None
 
 
 @dataclass(frozen=True)
@@ -74,6 +78,10 @@ class Method:
 
 
 def _gnss(p: MethodParams):
+    if p.gnss_model is not None:
+        from coloc.methods.gnss_bias import GnssBiasTracker
+
+        return GnssBiasTracker(motion=p.motion, model=p.gnss_model)
     from coloc.methods.gnss import GnssTracker
 
     return GnssTracker(motion=p.motion)

@@ -22,39 +22,47 @@ from coloc.core.protocol import Estimator, KnownAssociationEstimator
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.infra import InfraMethodParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from scenes import infra_frames, road_frames, scrambled, select_vehicles
 
-RUNNABLE = [m.name for m in METHODS.values() if m.runnable]
+# ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias).
+RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model"]
+
+
+def _method(name: str):
+    """The registry entry of a parametrization name (``gnss+gnss_model`` -> ``gnss``)."""
+    return METHODS[name.split("+")[0]]
 ROAD_MOTION = MotionParams(sigma_along=0.08, sigma_cross=0.08)
 INFRA_MOTION = MotionParams(sigma_cross=0.1)
 
 
 def build(name: str):
-    method = METHODS[name]
+    method = _method(name)
     motion = INFRA_MOTION if method.infrastructure else ROAD_MOTION
     params = MethodParams(
         motion=motion, icp=IcpParams(motion=motion), lc=LcParams(),
         pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
+        gnss_model=GnssModelParams() if name.endswith("+gnss_model") else None,
     )
-    est = build_method(name, params)
-    assert est.name == name
+    est = build_method(method.name, params)
+    assert est.name == method.name
     protocol = KnownAssociationEstimator if method.known_association else Estimator
     assert isinstance(est, protocol)
     return est
 
 
 def frames_for(name: str, **kw) -> list:
-    if METHODS[name].infrastructure:
+    if _method(name).infrastructure:
         return infra_frames(**{"n_steps": 20, "n_veh": 5, **kw})
     return road_frames(**{"steps": 8, "v2v_range": 25.0, **kw})
 
 
 def step(name: str, est, frame, association=None):
     """One step as the runner drives it; ``association`` defaults to the frame's true one."""
-    if METHODS[name].known_association:
+    if _method(name).known_association:
         v2f = frame.truth.v2f_feature if association is None else association
         return est.step_with_association(frame, np.array(v2f, copy=True))
     return est.step(frame)
@@ -95,7 +103,7 @@ def test_truth_blind(name):
 def test_empty_frames_and_no_features(name):
     """No vehicles at the start, in the middle (all left) and at the end; vehicles entering after
     an empty frame start afresh; a run whose vehicles have no feature in range."""
-    frames = frames_for(name, **({"n_steps": 8} if METHODS[name].infrastructure else {"steps": 6}))
+    frames = frames_for(name, **({"n_steps": 8} if _method(name).infrastructure else {"steps": 6}))
     none = lambda f: select_vehicles(f, [])  # noqa: E731
     everyone = lambda f: select_vehicles(f, np.arange(f.n_vehicles), entered=np.ones(f.n_vehicles, bool))  # noqa: E731
     seq = [none(frames[0]), everyone(frames[1]), frames[2], none(frames[3]), everyone(frames[4]), *frames[5:],
@@ -104,7 +112,7 @@ def test_empty_frames_and_no_features(name):
     for f in seq:
         assert_valid(step(name, est, f), f)
     est = build(name)
-    no_features = (infra_frames(n_steps=8, n_veh=4, features=False) if METHODS[name].infrastructure
+    no_features = (infra_frames(n_steps=8, n_veh=4, features=False) if _method(name).infrastructure
                    else road_frames(steps=6, n_feat=0))
     for f in no_features:
         assert f.v2f_z.shape[0] == 0
@@ -120,7 +128,7 @@ def _nearest_truth(est, frame) -> np.ndarray:
 def test_vehicles_enter_and_leave(name):
     """Vehicle 1 leaves at step 3, vehicle 2 enters at step 2, vehicle 0 leaves at step 4 and
     comes back (entered) at step 6: every row stays with its vehicle and every output is valid."""
-    kw = {"n_steps": 10, "n_veh": 5} if METHODS[name].infrastructure else {"steps": 9, "spacing": 40.0}
+    kw = {"n_steps": 10, "n_veh": 5} if _method(name).infrastructure else {"steps": 9, "spacing": 40.0}
     est = build(name)
     for k, f in enumerate(frames_for(name, **kw)):
         present = [i for i in range(f.n_vehicles)
@@ -135,7 +143,7 @@ def test_vehicles_enter_and_leave(name):
 @pytest.mark.parametrize("name", RUNNABLE)
 def test_rows_in_frame_order(name):
     """The vehicles come in a different order at every step: row i is always vehicle_ids[i]."""
-    kw = {"n_steps": 10, "n_veh": 5} if METHODS[name].infrastructure else {"steps": 8, "spacing": 40.0}
+    kw = {"n_steps": 10, "n_veh": 5} if _method(name).infrastructure else {"steps": 8, "spacing": 40.0}
     rng = np.random.default_rng(11)
     est = build(name)
     for f in frames_for(name, **kw):
@@ -148,7 +156,7 @@ def test_rows_in_frame_order(name):
 @pytest.mark.parametrize("name", RUNNABLE)
 def test_covariances_stay_spd(name):
     """A longer run with features: every vehicle covariance symmetric positive definite, every step."""
-    kw = {"n_steps": 30, "n_veh": 6} if METHODS[name].infrastructure else {"steps": 15}
+    kw = {"n_steps": 30, "n_veh": 6} if _method(name).infrastructure else {"steps": 15}
     est = build(name)
     for f in frames_for(name, **kw):
         e = step(name, est, f)
@@ -157,7 +165,7 @@ def test_covariances_stay_spd(name):
             assert np.all(np.isfinite(e.feature_cov))
 
 
-ROAD_METHODS = [m for m in RUNNABLE if not METHODS[m].infrastructure]
+ROAD_METHODS = [m for m in RUNNABLE if not _method(m).infrastructure]
 
 
 @pytest.mark.parametrize("name", ROAD_METHODS)

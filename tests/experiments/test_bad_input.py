@@ -1250,6 +1250,36 @@ def net_import_routes_not_sorted(tmp, net, run):
             "--name", "x", "--out", str(tmp / "x"), "--experiments-dir", str(tmp / "exps")], None
 
 
+@case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
+def run_gnss_model_bias_share_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.bias_tau_s", "positive")
+def run_gnss_model_zero_tau(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_tau_s = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.innovation_gate", "[0, 1)")
+def run_gnss_model_gate_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ninnovation_gate = 1.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.bias_tau_s", "number")
+def run_gnss_model_text_value(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_tau_s = 'a minute'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.model", "unknown key")
+def run_gnss_model_unknown_key(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nmodel = 'gauss_markov'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
