@@ -16,6 +16,10 @@ A sweep file names a base run config, the seeds and a grid of parameters::
     "crossroad.n_features" = [3, 10, 20, 60]
     "lc.eta_threshold" = [0.5, 1.0]
 
+A grid key may select the base config per value (``[sweep.bases]``, e.g. each control from its own
+preset: ``"scenario.control" = {vsr = "../arterial_vsr_realistic.toml"}``); a factor level's own
+``base`` still wins.
+
 Any key of a run config's tables can be swept or set, including the optional ``[infra]``
 (e.g. ``"infra.rsu_range_m" = [40.0, 70.0, 100.0]``; the base config must have the ``[infra]``
 table: a sweep varies infrastructure mode, it does not switch it on). Every run's config is
@@ -90,7 +94,7 @@ from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dot
     split_overrides, variants
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 
-SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors")
+SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
@@ -114,6 +118,10 @@ class SweepSpec:
     fixed: tuple[tuple[str, object], ...]  # [sweep.set]
     distance_bin_m: float
     factors: tuple[Factor, ...] = ()  # [sweep.factors]: one factor at a time (experiments.sweep.factors)
+    # [sweep.bases]: (grid key, ((grid value, run config), ...)): the runs with that grid value start from
+    # that config instead of `base` (e.g. each control from its own preset: the VSR preset sets more than
+    # scenario.control); a factor level's own base still wins.
+    bases: tuple[tuple[str, tuple[tuple[str, Path], ...]], ...] = ()
 
     @property
     def grid_keys(self) -> list[str]:
@@ -253,8 +261,47 @@ def load_sweep(path: str | Path) -> SweepSpec:
                 if unknown:
                     raise InputError(path, f"sweep.factors.{f.name}[{i}].only.{key}",
                                      f"{unknown[0]!r} is not one of the grid's values")
+    bases = _grid_bases(sw.get("bases", {}), dict(grid), path)
     return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
-                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors)
+                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors,
+                     bases=bases)
+
+
+def _grid_bases(table, grid: dict, path: Path) -> tuple:
+    """``[sweep.bases]``: ``"scenario.control" = {vsr = "../arterial_vsr_realistic.toml"}`` (one grid key)."""
+    if not isinstance(table, dict):
+        raise InputError(path, "sweep.bases", "expected a table: grid key -> {grid value = run config}")
+    if len(table) > 1:
+        raise InputError(path, f"sweep.bases.{sorted(table)[1]}", "only one grid key may select the base config")
+    out = []
+    for key, by_value in table.items():
+        where = f"sweep.bases.{key}"
+        if key not in grid:
+            raise InputError(path, where, "not a key of [sweep.grid]")
+        if not isinstance(by_value, dict) or not by_value:
+            raise InputError(path, where, "expected a table {grid value = run config}")
+        pairs = []
+        for value, rel in by_value.items():
+            if value not in [str(v) for v in grid[key]]:
+                raise InputError(path, f"{where}.{value}", "not one of the grid's values")
+            if not isinstance(rel, str) or not rel:
+                raise InputError(path, f"{where}.{value}", f"expected the path of a run config, got {rel!r}")
+            bpath = (path.parent / rel).resolve()
+            if not bpath.is_file():
+                raise InputError(path, f"{where}.{value}", f"no run config at {bpath}")
+            pairs.append((value, bpath))
+        out.append((key, tuple(pairs)))
+    return tuple(out)
+
+
+def _grid_base(spec: SweepSpec, params: tuple) -> Path | None:
+    """The run config [sweep.bases] gives the runs of these grid values, or None."""
+    p = dict(params)
+    for key, pairs in spec.bases:
+        for value, bpath in pairs:
+            if str(p.get(key)) == value:
+                return bpath
+    return None
 
 
 def _load_base(spec: SweepSpec) -> dict:
@@ -320,6 +367,10 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
         params = tuple(zip(spec.grid_keys, combo))
         text = ", ".join(f"{k} = {_value_text(v)}" for k, v in params)
         data, extra, where, cspec = base_data, {}, "sweep.grid", spec
+        gbase = _grid_base(spec, params)
+        if gbase is not None:
+            cspec = dataclasses.replace(spec, base=gbase)
+            data = bases.setdefault(gbase, read_config_data(gbase))
         if variant is not None and variant.factor != "preset":
             where = f"sweep.factors.{variant.factor}"
             if variant.base is not None:
@@ -362,6 +413,10 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
     lines += [f"{_toml_value(k)} = {_toml_value(v)}" for k, v in spec.fixed]
     lines += ["", "[sweep.grid]"]
     lines += [f"{_toml_value(k)} = {_toml_value(list(v))}" for k, v in spec.grid]
+    if spec.bases:
+        lines += ["", "[sweep.bases]"]
+        lines += [f"{_toml_value(k)} = {{{', '.join(f'{_toml_value(v)} = {_toml_value(str(b))}' for v, b in pairs)}}}"
+                  for k, pairs in spec.bases]
     if spec.factors:
         lines += factors_toml(spec.factors, _toml_value)
     return "\n".join(lines) + "\n"
