@@ -180,6 +180,14 @@ class ReportSection:
 
 
 @dataclass(frozen=True)
+class AnalysisSection:
+    """[analysis], optional: how a run is scored (estimates.parquet keeps every row either way)."""
+    # Scored statistics (summary.json, the reports' CDFs, the sweeps' tables) leave out the estimates
+    # with t < scenario.begin_s + warmup_s: the net fills from empty at the begin (0: score everything).
+    warmup_s: float = 0.0
+
+
+@dataclass(frozen=True)
 class Config:
     path: Path
     run: RunSection
@@ -207,6 +215,8 @@ class Config:
     # [features] (issue 21 item 3), optional, SUMO only: SUMO pedestrians as moving features; handed to
     # the coupler as sensors.features.
     features: FeaturesParams | None = None
+    # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
+    analysis: AnalysisSection | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -242,7 +252,8 @@ SECTIONS: dict[str, type] = {
 #: Tables a config may leave out (then the Config field is None and nothing is written for them).
 OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": PerceptionParams,
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
-                                      "inertial": InertialParams, "features": FeaturesParams}
+                                      "inertial": InertialParams, "features": FeaturesParams,
+                                      "analysis": AnalysisSection}
 #: Optional tables of the coupler (issue 21's realistic sensing, issue 22's V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")

@@ -56,6 +56,9 @@ from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
 from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.scoring import (
+    analysis_summary,
+    scored_from,
+    scored_mask,
     along_cross_errors,
     association_by_group,
     association_summary,
@@ -724,21 +727,32 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             "v2v": v2v.summary(),
             "wall_seconds": wall,
         }
+        # [analysis] warmup_s: the statistics score t >= begin + warmup_s only (every row stays in the files)
+        t0 = scored_from(cfg)
+        if (block := analysis_summary(cfg)) is not None:
+            summary["analysis"] = block
         for method in methods:
             rows = estimates[estimates["method"] == method]
+            keep = scored_mask(rows["t"], t0)
+            nees = log.position_nees(method)
+            if t0 is not None:
+                rows, nees = rows[keep], nees[keep]
             block = method_summary(rows)
-            block["nees_pos"] = nees_summary(log.position_nees(method), rows["zone"].to_numpy())
+            block["nees_pos"] = nees_summary(nees, rows["zone"].to_numpy())
             block["seconds"] = seconds[method]
             if comm[method].steps:
                 block["comm"] = comm[method].summary()
-            feat = features[features["method"] == method]["err_pos"].to_numpy()
+            feat_rows = features[features["method"] == method]
+            feat = feat_rows["err_pos"].to_numpy()[scored_mask(feat_rows["t"], t0)]
             if feat.size:
                 block["features"] = feature_summary(feat)
             summary["methods"][method] = block
             if method in scores:
-                summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
+                sk = scored_mask(scores[method][0], t0)
+                summary["association"][method] = association_summary(*scores[method][1][sk].sum(axis=0).tolist())
                 summary["association"][method]["by_zone"] = association_by_group(
-                    [(a, f) for _, a, f in log.assoc_parts[method]], log.assoc_zone_parts[method], scores[method][2])
+                    [(a, f) for (_, a, f), k in zip(log.assoc_parts[method], sk) if k],
+                    [z for z, k in zip(log.assoc_zone_parts[method], sk) if k], scores[method][2])
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
             # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).
@@ -746,7 +760,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             summary["perception"] = {"totals": dict(totals),
                                      "per_vehicle_step": {k: v / vehicle_steps for k, v in totals.items()}}
         if log.infra_parts:
-            cov_summary = coverage_summary(estimates, methods)
+            cov_summary = coverage_summary(estimates[scored_mask(estimates["t"], t0)] if t0 is not None else estimates,
+                                           methods)
             for name, stats in method_stats.items():
                 if stats is not None and name in cov_summary["methods"]:
                     cov_summary["methods"][name]["stats"] = stats

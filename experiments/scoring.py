@@ -220,3 +220,30 @@ def coverage_summary(est: pd.DataFrame, methods: list[str]) -> dict:
     for name, g in first.groupby("rsu", sort=True, observed=True):
         out["rsu_vehicle_steps"][str(name)] = int(len(g))
     return _nan_to_none(out)
+
+
+def scored_from(cfg) -> float | None:
+    """First scored time of a run on its clock: ``scenario.begin_s + analysis.warmup_s``; None when the
+    config has no warm-up (``[analysis]`` absent or ``warmup_s = 0``: every estimate is scored)."""
+    analysis = getattr(cfg, "analysis", None)
+    if analysis is None or not analysis.warmup_s > 0:
+        return None
+    return float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)
+
+
+def scored_mask(t, t0: float | None) -> np.ndarray:
+    """Which rows of time ``t`` are scored: t >= t0 (all when ``t0`` is None). The estimates files keep
+    every row; this filter is applied to the statistics only, so that they can be recomputed."""
+    t = np.asarray(t, dtype=float)
+    if t0 is None:
+        return np.ones(t.shape, dtype=bool)
+    return t >= t0 - 1e-9
+
+
+def analysis_summary(cfg) -> dict | None:
+    """summary.json "analysis" block (None without [analysis]: the summary is as before)."""
+    analysis = getattr(cfg, "analysis", None)
+    if analysis is None:
+        return None
+    return {"warmup_s": float(analysis.warmup_s),
+            "scored_from_s": float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)}

@@ -204,6 +204,10 @@ def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = 
 
 def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str]:
     est = run.estimates
+    # [analysis] warmup_s: the CDFs score what summary.json scores (t >= scored_from_s)
+    t0 = (run.summary.get("analysis") or {}).get("scored_from_s")
+    if t0 is not None and est is not None:
+        est = est[est["t"].to_numpy(dtype=float) >= t0 - 1e-9]
     curves = _quantile_curves(est, group_col)
     labels = _sorted_labels(k[0] for k in curves)
     if not labels:

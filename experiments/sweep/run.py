@@ -88,6 +88,7 @@ import pandas as pd
 
 from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
 from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
+from experiments.scoring import scored_mask
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
 from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
@@ -674,6 +675,10 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     est = pq.read_table(run_dir / "estimates.parquet",
                         columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true", "zone"]).to_pandas()
     est["method"] = est["method"].astype(str)
+    # [analysis] warmup_s: the tables score what the run's summary scored (t >= scored_from_s)
+    t0 = (summary.get("analysis") or {}).get("scored_from_s")
+    if t0 is not None:
+        est = est[scored_mask(est["t"], t0)]
     out = {"summary": rows}
     out["zone_sums"], out["zone_hist"] = zone_partials(est)
     out["degree"] = degree_partial(summary)
@@ -687,10 +692,14 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     if fpath.exists():
         feat = pq.read_table(fpath, columns=["method", "t", "err_pos"]).to_pandas()
         feat["method"] = feat["method"].astype(str)
+        if t0 is not None:
+            feat = feat[scored_mask(feat["t"], t0)]
         out["feature_time"] = _sse(feat, ["method", "t"], {"err_pos": "sse_pos"}).rename(columns={"t": "x"})
         out["feature_overall"] = _sse(feat, ["method"], {"err_pos": "sse_pos"})
-    assoc = pq.read_table(run_dir / "association.parquet", columns=["method", "correct", "wrong", "discarded"]).to_pandas()
+    assoc = pq.read_table(run_dir / "association.parquet",
+                          columns=["method", "t", "correct", "wrong", "discarded"]).to_pandas()
     assoc["method"] = assoc["method"].astype(str)
+    assoc = (assoc[scored_mask(assoc["t"], t0)] if t0 is not None else assoc).drop(columns="t")
     out["association"] = assoc.groupby("method", sort=True).sum().reset_index()
     return out
 
