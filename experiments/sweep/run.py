@@ -95,7 +95,8 @@ from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dot
     split_overrides, variants
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 
-SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases")
+SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases",
+             "tune_seeds", "eval_seeds")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
@@ -123,6 +124,14 @@ class SweepSpec:
     # that config instead of `base` (e.g. each control from its own preset: the VSR preset sets more than
     # scenario.control); a factor level's own base still wins.
     bases: tuple[tuple[str, tuple[tuple[str, Path], ...]], ...] = ()
+    # [sweep] tune_seeds / eval_seeds (disjoint; both or neither): every seed runs, the tables and the
+    # report use the evaluation seeds only (seeds = tune_seeds + eval_seeds). Empty: every seed is scored.
+    tune_seeds: tuple[int, ...] = ()
+    eval_seeds: tuple[int, ...] = ()
+
+    @property
+    def scored_seeds(self) -> tuple[int, ...]:
+        return self.eval_seeds or self.seeds
 
     @property
     def grid_keys(self) -> list[str]:
@@ -161,8 +170,7 @@ def _check_dotted(dotted: str, path: Path, where: str) -> None:
         raise InputError(path, where, f"{dotted} cannot be swept or set here: {FORBIDDEN_KEYS[dotted]}")
 
 
-def _seeds(value, path: Path) -> tuple[int, ...]:
-    where = "sweep.seeds"
+def _seeds(value, path: Path, where: str = "sweep.seeds") -> tuple[int, ...]:
     if isinstance(value, dict):
         unknown = sorted(set(value) - {"start", "count"})
         if unknown:
@@ -204,6 +212,21 @@ def load_sweep(path: str | Path) -> SweepSpec:
     unknown = sorted(set(sw) - set(SPEC_KEYS))
     if unknown:
         raise InputError(path, f"sweep.{unknown[0]}", f"unknown key (known: {', '.join(SPEC_KEYS)})")
+    split = [k for k in ("tune_seeds", "eval_seeds") if k in sw]
+    if split and "seeds" in sw:
+        raise InputError(path, f"sweep.{split[0]}", "give sweep.seeds or sweep.tune_seeds + sweep.eval_seeds, not both")
+    if len(split) == 1:
+        missing = ({"tune_seeds", "eval_seeds"} - set(split)).pop()
+        raise InputError(path, f"sweep.{missing}", f"required with sweep.{split[0]}")
+    tune, evals = (), ()
+    if split:
+        tune = _seeds(sw["tune_seeds"], path, "sweep.tune_seeds")
+        evals = _seeds(sw["eval_seeds"], path, "sweep.eval_seeds")
+        both = sorted(set(tune) & set(evals))
+        if both:
+            raise InputError(path, "sweep.eval_seeds", f"seed {both[0]} is also a tuning seed (tune_seeds and "
+                                                       "eval_seeds must be disjoint)")
+        sw = {**sw, "seeds": list(tune + evals)}
     for key in ("name", "base", "seeds"):
         if key not in sw:
             raise InputError(path, f"sweep.{key}", "required key missing")
@@ -265,7 +288,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
     bases = _grid_bases(sw.get("bases", {}), dict(grid), path)
     return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
                      grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors,
-                     bases=bases)
+                     bases=bases, tune_seeds=tune, eval_seeds=evals)
 
 
 def _grid_bases(table, grid: dict, path: Path) -> tuple:
@@ -405,6 +428,8 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
         f"base = {_toml_value(str(spec.base))}",
         f"base_config_sha256 = {_toml_value(hashlib.sha256(base_text.encode()).hexdigest())}",
         f"seeds = {_toml_value(list(spec.seeds))}",
+        *([f"tune_seeds = {_toml_value(list(spec.tune_seeds))}", f"eval_seeds = {_toml_value(list(spec.eval_seeds))}"]
+          if spec.eval_seeds else []),
         f"methods = {_toml_value(list(base_cfg.run.methods))}",
         f"distance_bin_m = {_toml_value(spec.distance_bin_m)}",
         f"runs = {n_runs}",
@@ -734,6 +759,32 @@ def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarra
     return cols
 
 
+def paired_partials(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> pd.DataFrame:
+    """``DIR/paired.parquet``: per setting and GNSS zone ("all" pools them), LC minus GNSS and LC minus
+    known association of the per-seed RMSE (same seed, same traffic), mean over the seeds with its 95 %
+    paired t interval and the number of seeds (:mod:`experiments.sweep.paired`). Empty without LC."""
+    from experiments.sweep.paired import paired_table
+
+    rows = []
+    for run, part in zip(runs, partials):
+        zs = part.get("zone_sums")
+        if zs is None or not len(zs):
+            continue
+        for r in zs.itertuples(index=False):
+            rows.append({"_setting": run.setting, "zone": str(r.zone), "seed": run.seed, "method": str(r.method),
+                         "rmse_pos_m": math.sqrt(r.sse_pos / r.n) if r.n else math.nan})
+    if not rows:
+        return pd.DataFrame()
+    t = paired_table(pd.DataFrame(rows), ["_setting", "zone"])
+    if not len(t):
+        return pd.DataFrame()
+    params = _param_columns(spec, t["_setting"].to_numpy(dtype=np.int64))
+    front = pd.DataFrame(params)
+    rest = t.drop(columns=["_setting"]).reset_index(drop=True)
+    rest["seeds"] = rest["seeds"].astype("int64")
+    return pd.concat([front.reset_index(drop=True), rest], axis=1)
+
+
 def aggregate(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """sweep.parquet and curves.parquet tables from the runs' partial sums (in run order)."""
     method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
@@ -973,14 +1024,19 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
         failed.sort()
         raise SweepFailed(f"{len(failed)} of {len(runs)} runs failed (first: {failed[0][0]}: {failed[0][1]}); "
                           "completed runs are kept: rerun the same command to retry the others")
+    if spec.eval_seeds:  # the tables and the report score the evaluation seeds only
+        keep = [k for k, r in enumerate(runs) if r.seed in set(spec.eval_seeds)]
+        runs, partials = [runs[k] for k in keep], [partials[k] for k in keep]
     table, curves = aggregate(spec, runs, partials)
+    paired = paired_partials(spec, runs, partials)
     method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
     n_runs = np.bincount([r.setting for r in runs], minlength=len(settings_of(spec)))
     zones, v2v = aggregate_zones(runs, partials, lambda st: _param_columns(spec, st), n_runs, method_rank)
     from experiments.runner import write_parquet
 
     outputs = [("sweep.parquet", table), ("curves.parquet", curves)]
-    outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v)) if len(df)]
+    outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v),
+                                            ("paired.parquet", paired)) if len(df)]
     for name, df in outputs:
         buf = io.BytesIO()
         write_parquet(df, buf)
