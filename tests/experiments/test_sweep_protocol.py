@@ -64,7 +64,7 @@ def test_eval_seeds_only_in_the_tables_and_paired_intervals(tmp_path):
     spec = load_sweep(p)
     assert spec.seeds == (1, 2, 3, 4) and spec.scored_seeds == (2, 3, 4)
     out = tmp_path / "out"
-    run_sweep(p, out, workers=1, progress=False, write_report=False)
+    run_sweep(p, out, workers=1, progress=False)
     assert (out / "runs" / "feature_spacing_m=3.0,seed=1").is_dir()  # the tuning seed ran
     table = pd.read_parquet(out / "sweep.parquet")
     assert sorted(set(table["seed"])) == [2, 3, 4]
@@ -78,3 +78,5 @@ def test_eval_seeds_only_in_the_tables_and_paired_intervals(tmp_path):
         want = paired_ci([rmse[(s, "icp_da_lc")] for s in (2, 3, 4)], [rmse[(s, b)] for s in (2, 3, 4)])
         assert row["seeds"] == 3
         assert (row["mean"], row["ci_lo"], row["ci_hi"]) == tuple(pytest.approx(w, rel=1e-9) for w in want[:3])
+    html = (out / "report.html").read_text()
+    assert "Paired differences per setting and zone" in html and "evaluation seeds [2, 3, 4]" in html
