@@ -1,5 +1,6 @@
 """Config inheritance (``extends``, experiments/config_extends.py) and the arterial presets written as overlays."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -32,7 +33,8 @@ OVERLAYS = {
     "arterial_tlr_realistic.toml": ("arterial_tlr.toml", {
         "run.name", "lc.clutter_intensity", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
-        "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial"}),
+        "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
+        "analysis"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
@@ -225,7 +227,8 @@ def test_preset_resolves_as_its_full_copy_did(name):
         pytest.skip("the git history with the full copies is not available")
     old_cfg = config_from_dict(tomllib.loads(old), CONFIGS / name)
     assert "extends" not in old
-    assert _body(load_config(CONFIGS / name)) == _body(old_cfg)
+    # [analysis] (the scoring warm-up) came after the copies: it changes no estimate, so it is left out here
+    assert _body(dataclasses.replace(load_config(CONFIGS / name), analysis=None)) == _body(old_cfg)
 
 
 @pytest.mark.parametrize("name", sorted(OVERLAYS))
