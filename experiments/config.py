@@ -186,6 +186,14 @@ class ReportSection:
 
 
 @dataclass(frozen=True)
+class AnalysisSection:
+    """[analysis], optional: how a run is scored (estimates.parquet keeps every row either way)."""
+    # Scored statistics (summary.json, the reports' CDFs, the sweeps' tables) leave out the estimates
+    # with t < scenario.begin_s + warmup_s: the net fills from empty at the begin (0: score everything).
+    warmup_s: float = 0.0
+
+
+@dataclass(frozen=True)
 class Config:
     path: Path
     run: RunSection
@@ -219,6 +227,8 @@ class Config:
     # [gnss_model], optional: the integrator's receiver error model for the gnss method
     # (coloc.methods.gnss_bias); never read from [gnss_error], the world's table.
     gnss_model: GnssModelParams | None = None
+    # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
+    analysis: AnalysisSection | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -256,7 +266,8 @@ OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": Perce
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
                                       "inertial": InertialParams, "features": FeaturesParams,
                                       "estimator_sensors": EstimatorSensors,
-                                      "gnss_model": GnssModelParams}
+                                      "gnss_model": GnssModelParams,
+                                      "analysis": AnalysisSection}
 #: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")

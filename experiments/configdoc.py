@@ -35,6 +35,10 @@ NO_UNIT = "1"
 
 #: What each table is for (one paragraph under its heading).
 TABLE_DOCS: dict[str, str] = {
+    "analysis": "Optional: how a run is scored. summary.json, the reports' CDFs and the sweeps' tables "
+                "leave out the estimates with t < `scenario.begin_s` + `warmup_s` (the net fills from empty); "
+                "estimates.parquet keeps every row, so the statistics can be recomputed. summary.json "
+                "states it in its `analysis` block.",
     "run": "What to run: the name, the seed of every random stream, the simulated duration and the "
            "methods. The only required table.",
     "scenario": "Where the frames come from: SUMO traffic on a net folder (`kind = \"sumo\"`) or one of "
@@ -157,6 +161,11 @@ _SCENARIO_COMMON: dict[str, tuple[str, str]] = {
 #: (unit, meaning) of every key the loader accepts, per table. Unit NO_UNIT for a
 #: dimensionless number, "" for strings, booleans and lists of names.
 KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
+    "analysis": {
+        "warmup_s": ("s", "Scoring warm-up after the begin (0: score everything). The realistic arterial "
+                          "presets use 600 s: the TLR net holds about 150 vehicles from minute 6 on "
+                          "(`tools/net_fill.py`)."),
+    },
     "run": {
         "name": ("", "Name of the run (progress bar, the `run` column of estimates.parquet)."),
         "seed": (NO_UNIT, "Seed of every random stream (SUMO, sensors, particle generators); same config and "

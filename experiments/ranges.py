@@ -122,6 +122,7 @@ RANGES: dict[str, Range] = {
     "run.duration_s": DURATION,
     "scenario.step_s": STEP,
     "scenario.begin_s": Range(0.0, WEEK_S, "s", "a begin on the scenario's clock within its first week"),
+    "analysis.warmup_s": Range(0.0, WEEK_S, "s", "a scoring warm-up within a week of the begin"),
     **{f"single_road.{k}": r for k, r in _SCENARIO_COMMON.items()},
     "single_road.n_vehicles": Range(1, 10_000, NO_UNIT, "vehicles in one lane of at most 100 km"),
     "single_road.headway_m": Range(0.0, 1e4, "m", "a spacing within 10 km", low_open=True),

@@ -43,6 +43,7 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from experiments.scoring import (
+    scored_mask,
     DETECTION_KINDS,
     detection_kinds,
     _correct_rows,
@@ -226,6 +227,9 @@ class StreamLog:
         self.methods = list(methods)
         self.flush_rows = FLUSH_ROWS if flush_rows is None else int(flush_rows)
         self.vehicle_steps = 0
+        # [analysis] warmup_s: the summaries score rows with t >= scored_from only (None: every row); the files
+        # keep every row (experiments.scoring.scored_mask)
+        self.scored_from: float | None = None
         # V2F rows by what they truly are (experiments.runner DETECTION_KINDS order), summed over the run
         self.kind_counts = np.zeros(len(DETECTION_KINDS), dtype=np.int64)
         self.infra = False
@@ -379,9 +383,10 @@ class StreamLog:
                 step, assign, truth, zone = (batch.column(c).to_numpy() for c in ("step", "assign", "truth", "zone"))
                 correct = _correct_rows(assign, truth, labels)
                 kept = assign >= 0
+                scored = scored_mask(np.asarray(steps, dtype=float)[step], self.scored_from)
                 for j, sel in enumerate((correct, kept & ~correct, ~kept)):
                     counts[:, j] += np.bincount(step[sel], minlength=n)
-                    by_zone[:, j] += np.bincount(zone[sel], minlength=len(self.zones.names))
+                    by_zone[:, j] += np.bincount(zone[sel & scored], minlength=len(self.zones.names))
             out[method] = (np.array(steps, dtype=float), counts, labels)
             seen = by_zone.sum(axis=1) > 0
             self.association_by_zone[method] = {
@@ -398,7 +403,7 @@ class StreamLog:
         out = RowGroupWriter(path)
         blocks: dict = {}
         coverage = {"methods": {}, "rsu_vehicle_steps": {}}
-        cols = ("err_pos", "err_vel", "err_along", "err_cross", "nees")
+        cols = ("err_pos", "err_vel", "err_along", "err_cross", "nees", "t")
         for method in self.methods:
             if method not in self._est_spill:
                 continue
@@ -414,6 +419,9 @@ class StreamLog:
                     kept["covered"].append(batch.column("covered").to_numpy(zero_copy_only=False))
                     kept["rsu"].append(self.rsus.encode(batch.column("rsu").to_numpy(zero_copy_only=False)))
             arrays = {c: np.concatenate(v) for c, v in kept.items() if v}
+            if self.scored_from is not None:  # [analysis] warmup_s: the rows the statistics score
+                scored = scored_mask(arrays.pop("t"), self.scored_from)
+                arrays = {c: v[scored] for c, v in arrays.items()}
             zone = self.zones.categorical(arrays.pop("zone"))
             df = pd.DataFrame({"err_pos": arrays["err_pos"], "err_vel": arrays["err_vel"],
                                "err_along": arrays["err_along"], "err_cross": arrays["err_cross"],
@@ -480,11 +488,11 @@ class StreamLog:
                     continue
                 ex, ey = x[ok] - tx[ok, 0], y[ok] - tx[ok, 1]
                 err = np.hypot(ex, ey)
-                errs.append(err)
+                errs.append(err[scored_mask(t[ok], self.scored_from)])  # [analysis] warmup_s: the scored rows
                 out.append(_arrow_table(pd.DataFrame({
                     "method": np.full(err.size, m, dtype=object), "t": t[ok], "track": ids[ok], "feature": feat[ok],
                     "err_pos": err}).astype(FEATURE_COLUMNS)))
-            if errs:
+            if errs and sum(e.size for e in errs):
                 blocks[m] = feature_summary(np.concatenate(errs))
         out.close()
         return blocks

@@ -60,6 +60,9 @@ from experiments.rowstream import StreamLog
 from experiments.scoring import (
     DETECTION_KINDS,
     detection_kinds,
+    analysis_summary,
+    scored_from,
+    scored_mask,
     along_cross_errors,
     association_summary,
     score_association,
@@ -742,6 +745,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         else:
             provenance["frames"] = f"couplers.scenarios ({cfg.scenario.kind}), no SUMO"
         methods = list(cfg.run.methods)
+        t0 = scored_from(cfg)  # [analysis] warmup_s: the statistics score t >= t0 only (every row stays in the files)
+        log.scored_from = t0
         scores = log.association_scores()
         (tmp / "config.toml").write_text(config_to_toml(cfg, provenance))
         blocks = log.write_estimates(tmp / "estimates.parquet")
@@ -766,6 +771,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
             from couplers.net.placeholders import folder_placeholders
 
             summary["placeholders"] = folder_placeholders(cfg.net_dir)
+        if (analysis := analysis_summary(cfg)) is not None:  # [analysis] warmup_s: what the statistics score
+            summary["analysis"] = analysis
         for method in methods:
             block = blocks[method]
             block["seconds"] = seconds[method]
@@ -775,7 +782,8 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
                 block["features"] = feature_blocks[method]
             summary["methods"][method] = block
             if method in scores:
-                summary["association"][method] = association_summary(*scores[method][1].sum(axis=0).tolist())
+                sk = scored_mask(scores[method][0], t0)  # [analysis] warmup_s: steps from t0 on
+                summary["association"][method] = association_summary(*scores[method][1][sk].sum(axis=0).tolist())
                 summary["association"][method]["by_zone"] = log.association_by_zone[method]
         if gnss_world is not None:
             summary["gnss_world"] = gnss_world.summary()

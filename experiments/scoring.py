@@ -238,3 +238,30 @@ def detection_kinds(truth) -> np.ndarray:
     ped = int(np.count_nonzero(np.asarray(truth.feature_class)[real] == 1)) if truth.feature_class is not None else 0
     out[0], out[4] = real.size - ped, ped
     return out
+
+
+def scored_from(cfg) -> float | None:
+    """First scored time of a run on its clock: ``scenario.begin_s + analysis.warmup_s``; None when the
+    config has no warm-up (``[analysis]`` absent or ``warmup_s = 0``: every estimate is scored)."""
+    analysis = getattr(cfg, "analysis", None)
+    if analysis is None or not analysis.warmup_s > 0:
+        return None
+    return float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)
+
+
+def scored_mask(t, t0: float | None) -> np.ndarray:
+    """Which rows of time ``t`` are scored: t >= t0 (all when ``t0`` is None). The estimates files keep
+    every row; this filter is applied to the statistics only, so that they can be recomputed."""
+    t = np.asarray(t, dtype=float)
+    if t0 is None:
+        return np.ones(t.shape, dtype=bool)
+    return t >= t0 - 1e-9
+
+
+def analysis_summary(cfg) -> dict | None:
+    """summary.json "analysis" block (None without [analysis]: the summary is as before)."""
+    analysis = getattr(cfg, "analysis", None)
+    if analysis is None:
+        return None
+    return {"warmup_s": float(analysis.warmup_s),
+            "scored_from_s": float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)}

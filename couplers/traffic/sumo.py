@@ -119,7 +119,9 @@ class TrafficStats:
         self._acc = dict(start=start, steps=0, vehicles=0, halting=0, arrived=0, dist_m=0.0, teleports=0)
 
     def add(self, t: float, n: int, halting: int, arrived: int, dist_m: float, teleports: int) -> None:
-        start = self.origin + math.floor((t - self.origin - 1e-9) / self.interval_s) * self.interval_s
+        # intervals (start, start + interval_s]: steps at begin + dt ... begin + 3600 s make 12 hourly rows;
+        # a step at the begin itself (none today) joins the first interval rather than making a partial one
+        start = self.origin + max(0, math.floor((t - self.origin - 1e-9) / self.interval_s)) * self.interval_s
         if not self._acc:
             self._reset(start)
         elif start != self._acc["start"]:

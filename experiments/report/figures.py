@@ -58,9 +58,18 @@ def _choose_bin(t: np.ndarray, preferred: float) -> float:
 
 def _binned_rmse(df: pd.DataFrame, cols: list[str], width: float,
                  by: str = "method") -> pd.DataFrame:
-    """RMSE of each column in ``cols`` per (by, time bin); index (by, t_mid_s)."""
+    """RMSE of each column in ``cols`` per (by, time bin); index (by, t_mid_s). Bins are
+    [k width, (k + 1) width); a last bin that ends after the last estimate is partial (an hour sampled
+    up to t = 3600 s has a 13th bin holding t = 3600 s only) and is dropped: never an interval."""
     t = df["t"].to_numpy(dtype=float)
-    tmp = pd.DataFrame({by: df[by], "bin": np.floor(t / width) * width + width / 2.0})
+    start = np.floor(t / width) * width
+    if t.size:
+        u = np.unique(t[np.isfinite(t)])
+        dt = float(np.diff(u).min()) if u.size > 1 else 0.0  # the sampling step: the last sample covers it
+        full = start + width <= float(u[-1]) + dt + 1e-9
+        if full.any():  # a run shorter than one bin keeps its only bin
+            df, t, start = df[full], t[full], start[full]
+    tmp = pd.DataFrame({by: df[by], "bin": start + width / 2.0})
     for c in cols:
         v = df[c].to_numpy(dtype=float)
         tmp[c] = v * v
@@ -199,6 +208,10 @@ def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = 
 
 def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str]:
     est = run.estimates
+    # [analysis] warmup_s: the CDFs score what summary.json scores (t >= scored_from_s)
+    t0 = (run.summary.get("analysis") or {}).get("scored_from_s")
+    if t0 is not None and est is not None:
+        est = est[est["t"].to_numpy(dtype=float) >= t0 - 1e-9]
     counts: dict[tuple[str, str], int] = {}
     curves = _quantile_curves(est, group_col, counts)
     # every method's samples (finite errors with a label): the share of each panel

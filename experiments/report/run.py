@@ -50,6 +50,11 @@ def write_run_report(run_dir: Path, *, workers: int = 1, force: bool = False) ->
     ``force``: a file in the way that coloc did not write is kept aside rather than refused."""
     run_dir = Path(run_dir)
     run = _load_run(run_dir)
+    analysis = run.summary.get("analysis") or {}
+    if analysis.get("warmup_s"):
+        run.notes.append(f"Scored after a warm-up of {analysis['warmup_s']:g} s: the statistics and CDFs use the "
+                         f"estimates with t >= {analysis['scored_from_s']:g} s (estimates.parquet keeps every row; "
+                         "the time curves show the warm-up).")
 
     def build(tmp: Path) -> None:
         figdir = tmp / "figures"

@@ -337,8 +337,9 @@ def write_sweep_report(out: Path) -> Path:
     zones = _read_optional(out / "zones.parquet", [*keys, "method", "zone", "n_runs", "n_samples", "rmse_pos_m",
                                                    "p95_pos_m"])
     v2v = _read_optional(out / "v2v.parquet", [*keys, "n_runs", "degree", "vehicle_steps"])
+    paired = _read_optional(out / "paired.parquet", [*keys, "zone", "a", "b", "mean", "ci_lo", "ci_hi", "seeds"])
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
-    seeds = spec.get("seeds") or []
+    seeds = spec.get("eval_seeds") or spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""
     what = (f"<i>Sweep: {_esc(spec.get('name', ''))}, base config <code>{_esc(Path(str(spec.get('base', ''))).name)}"
             f"</code>, {_esc(seed_text or 'no seeds')}, methods {_esc(', '.join(spec.get('methods', [])))}.</i>")
@@ -406,8 +407,23 @@ def write_sweep_report(out: Path) -> Path:
             "are in <code>sweep.parquet</code>, the curves in <code>curves.parquet</code>, each run's files in "
             "<code>runs/</code>.</p>",
             _table(header, rows, left_cols=len(keys) + 1),
-            "<h2>Figures</h2>",
         ]
+        if spec.get("eval_seeds"):
+            parts.append(f"<p>Scored on the evaluation seeds {_esc(str(spec['eval_seeds']))}; the tuning seeds "
+                         f"{_esc(str(spec.get('tune_seeds')))} ran but are in no table or figure.</p>")
+        if paired is not None and len(paired):
+            parts += ["<h2>Paired differences per setting and zone</h2>",
+                      "<p>Difference of the per-seed position RMSE of two methods on the same runs (same seed, "
+                      "same traffic), mean over the seeds with its 95 % paired t interval (few seeds; a "
+                      "difference of two RMSEs over many vehicle-steps is roughly normal); an interval that "
+                      "holds 0 leaves the sign undetermined. From <code>paired.parquet</code>.</p>",
+                      _table([*(_esc(_key_label(k)) for k in keys), "zone", "difference", "mean [m]",
+                              "95 % interval [m]", "seeds"],
+                             [[*(_esc(_value_label(r[k])) for k in keys), _esc(str(r["zone"])),
+                               _esc(f"{method_label(r['a'])} − {method_label(r['b'])}"), f"{r['mean']:+.2f}",
+                               f"[{r['ci_lo']:+.2f}, {r['ci_hi']:+.2f}]", str(int(r["seeds"]))]
+                              for _, r in paired.iterrows()], left_cols=len(keys) + 2)]
+        parts.append("<h2>Figures</h2>")
         parts.extend(blocks if blocks else ["<p>No figures (no curves).</p>"])
         (tmp / "report.html").write_text(_page(f"coloc sweep report: {spec.get('name', '')}", "\n".join(parts)),
                                          encoding="utf-8")

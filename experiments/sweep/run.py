@@ -16,6 +16,10 @@ A sweep file names a base run config, the seeds and a grid of parameters::
     "crossroad.n_features" = [3, 10, 20, 60]
     "lc.eta_threshold" = [0.5, 1.0]
 
+A grid key may select the base config per value (``[sweep.bases]``, e.g. each control from its own
+preset: ``"scenario.control" = {vsr = "../arterial_vsr_realistic.toml"}``); a factor level's own
+``base`` still wins.
+
 Any key of a run config's tables can be swept or set, including the optional ``[infra]``
 (e.g. ``"infra.rsu_range_m" = [40.0, 70.0, 100.0]``; the base config must have the ``[infra]``
 table: a sweep varies infrastructure mode, it does not switch it on). Every run's config is
@@ -84,13 +88,15 @@ import pandas as pd
 
 from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
 from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
+from experiments.scoring import scored_mask
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
 from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
     split_overrides, variants
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 
-SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors")
+SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases",
+             "tune_seeds", "eval_seeds")
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
@@ -114,6 +120,18 @@ class SweepSpec:
     fixed: tuple[tuple[str, object], ...]  # [sweep.set]
     distance_bin_m: float
     factors: tuple[Factor, ...] = ()  # [sweep.factors]: one factor at a time (experiments.sweep.factors)
+    # [sweep.bases]: (grid key, ((grid value, run config), ...)): the runs with that grid value start from
+    # that config instead of `base` (e.g. each control from its own preset: the VSR preset sets more than
+    # scenario.control); a factor level's own base still wins.
+    bases: tuple[tuple[str, tuple[tuple[str, Path], ...]], ...] = ()
+    # [sweep] tune_seeds / eval_seeds (disjoint; both or neither): every seed runs, the tables and the
+    # report use the evaluation seeds only (seeds = tune_seeds + eval_seeds). Empty: every seed is scored.
+    tune_seeds: tuple[int, ...] = ()
+    eval_seeds: tuple[int, ...] = ()
+
+    @property
+    def scored_seeds(self) -> tuple[int, ...]:
+        return self.eval_seeds or self.seeds
 
     @property
     def grid_keys(self) -> list[str]:
@@ -152,8 +170,7 @@ def _check_dotted(dotted: str, path: Path, where: str) -> None:
         raise InputError(path, where, f"{dotted} cannot be swept or set here: {FORBIDDEN_KEYS[dotted]}")
 
 
-def _seeds(value, path: Path) -> tuple[int, ...]:
-    where = "sweep.seeds"
+def _seeds(value, path: Path, where: str = "sweep.seeds") -> tuple[int, ...]:
     if isinstance(value, dict):
         unknown = sorted(set(value) - {"start", "count"})
         if unknown:
@@ -195,6 +212,21 @@ def load_sweep(path: str | Path) -> SweepSpec:
     unknown = sorted(set(sw) - set(SPEC_KEYS))
     if unknown:
         raise InputError(path, f"sweep.{unknown[0]}", f"unknown key (known: {', '.join(SPEC_KEYS)})")
+    split = [k for k in ("tune_seeds", "eval_seeds") if k in sw]
+    if split and "seeds" in sw:
+        raise InputError(path, f"sweep.{split[0]}", "give sweep.seeds or sweep.tune_seeds + sweep.eval_seeds, not both")
+    if len(split) == 1:
+        missing = ({"tune_seeds", "eval_seeds"} - set(split)).pop()
+        raise InputError(path, f"sweep.{missing}", f"required with sweep.{split[0]}")
+    tune, evals = (), ()
+    if split:
+        tune = _seeds(sw["tune_seeds"], path, "sweep.tune_seeds")
+        evals = _seeds(sw["eval_seeds"], path, "sweep.eval_seeds")
+        both = sorted(set(tune) & set(evals))
+        if both:
+            raise InputError(path, "sweep.eval_seeds", f"seed {both[0]} is also a tuning seed (tune_seeds and "
+                                                       "eval_seeds must be disjoint)")
+        sw = {**sw, "seeds": list(tune + evals)}
     for key in ("name", "base", "seeds"):
         if key not in sw:
             raise InputError(path, f"sweep.{key}", "required key missing")
@@ -253,8 +285,47 @@ def load_sweep(path: str | Path) -> SweepSpec:
                 if unknown:
                     raise InputError(path, f"sweep.factors.{f.name}[{i}].only.{key}",
                                      f"{unknown[0]!r} is not one of the grid's values")
+    bases = _grid_bases(sw.get("bases", {}), dict(grid), path)
     return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
-                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors)
+                     grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors,
+                     bases=bases, tune_seeds=tune, eval_seeds=evals)
+
+
+def _grid_bases(table, grid: dict, path: Path) -> tuple:
+    """``[sweep.bases]``: ``"scenario.control" = {vsr = "../arterial_vsr_realistic.toml"}`` (one grid key)."""
+    if not isinstance(table, dict):
+        raise InputError(path, "sweep.bases", "expected a table: grid key -> {grid value = run config}")
+    if len(table) > 1:
+        raise InputError(path, f"sweep.bases.{sorted(table)[1]}", "only one grid key may select the base config")
+    out = []
+    for key, by_value in table.items():
+        where = f"sweep.bases.{key}"
+        if key not in grid:
+            raise InputError(path, where, "not a key of [sweep.grid]")
+        if not isinstance(by_value, dict) or not by_value:
+            raise InputError(path, where, "expected a table {grid value = run config}")
+        pairs = []
+        for value, rel in by_value.items():
+            if value not in [str(v) for v in grid[key]]:
+                raise InputError(path, f"{where}.{value}", "not one of the grid's values")
+            if not isinstance(rel, str) or not rel:
+                raise InputError(path, f"{where}.{value}", f"expected the path of a run config, got {rel!r}")
+            bpath = (path.parent / rel).resolve()
+            if not bpath.is_file():
+                raise InputError(path, f"{where}.{value}", f"no run config at {bpath}")
+            pairs.append((value, bpath))
+        out.append((key, tuple(pairs)))
+    return tuple(out)
+
+
+def _grid_base(spec: SweepSpec, params: tuple) -> Path | None:
+    """The run config [sweep.bases] gives the runs of these grid values, or None."""
+    p = dict(params)
+    for key, pairs in spec.bases:
+        for value, bpath in pairs:
+            if str(p.get(key)) == value:
+                return bpath
+    return None
 
 
 def _load_base(spec: SweepSpec) -> dict:
@@ -320,6 +391,10 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
         params = tuple(zip(spec.grid_keys, combo))
         text = ", ".join(f"{k} = {_value_text(v)}" for k, v in params)
         data, extra, where, cspec = base_data, {}, "sweep.grid", spec
+        gbase = _grid_base(spec, params)
+        if gbase is not None:
+            cspec = dataclasses.replace(spec, base=gbase)
+            data = bases.setdefault(gbase, read_config_data(gbase))
         if variant is not None and variant.factor != "preset":
             where = f"sweep.factors.{variant.factor}"
             if variant.base is not None:
@@ -353,6 +428,8 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
         f"base = {_toml_value(str(spec.base))}",
         f"base_config_sha256 = {_toml_value(hashlib.sha256(base_text.encode()).hexdigest())}",
         f"seeds = {_toml_value(list(spec.seeds))}",
+        *([f"tune_seeds = {_toml_value(list(spec.tune_seeds))}", f"eval_seeds = {_toml_value(list(spec.eval_seeds))}"]
+          if spec.eval_seeds else []),
         f"methods = {_toml_value(list(base_cfg.run.methods))}",
         f"distance_bin_m = {_toml_value(spec.distance_bin_m)}",
         f"runs = {n_runs}",
@@ -362,6 +439,10 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
     lines += [f"{_toml_value(k)} = {_toml_value(v)}" for k, v in spec.fixed]
     lines += ["", "[sweep.grid]"]
     lines += [f"{_toml_value(k)} = {_toml_value(list(v))}" for k, v in spec.grid]
+    if spec.bases:
+        lines += ["", "[sweep.bases]"]
+        lines += [f"{_toml_value(k)} = {{{', '.join(f'{_toml_value(v)} = {_toml_value(str(b))}' for v, b in pairs)}}}"
+                  for k, pairs in spec.bases]
     if spec.factors:
         lines += factors_toml(spec.factors, _toml_value)
     return "\n".join(lines) + "\n"
@@ -619,6 +700,10 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     est = pq.read_table(run_dir / "estimates.parquet",
                         columns=["method", "t", "err_pos", "err_vel", "px_true", "py_true", "zone"]).to_pandas()
     est["method"] = est["method"].astype(str)
+    # [analysis] warmup_s: the tables score what the run's summary scored (t >= scored_from_s)
+    t0 = (summary.get("analysis") or {}).get("scored_from_s")
+    if t0 is not None:
+        est = est[scored_mask(est["t"], t0)]
     out = {"summary": rows}
     out["zone_sums"], out["zone_hist"] = zone_partials(est)
     out["degree"] = degree_partial(summary)
@@ -632,10 +717,14 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     if fpath.exists():
         feat = pq.read_table(fpath, columns=["method", "t", "err_pos"]).to_pandas()
         feat["method"] = feat["method"].astype(str)
+        if t0 is not None:
+            feat = feat[scored_mask(feat["t"], t0)]
         out["feature_time"] = _sse(feat, ["method", "t"], {"err_pos": "sse_pos"}).rename(columns={"t": "x"})
         out["feature_overall"] = _sse(feat, ["method"], {"err_pos": "sse_pos"})
-    assoc = pq.read_table(run_dir / "association.parquet", columns=["method", "correct", "wrong", "discarded"]).to_pandas()
+    assoc = pq.read_table(run_dir / "association.parquet",
+                          columns=["method", "t", "correct", "wrong", "discarded"]).to_pandas()
     assoc["method"] = assoc["method"].astype(str)
+    assoc = (assoc[scored_mask(assoc["t"], t0)] if t0 is not None else assoc).drop(columns="t")
     out["association"] = assoc.groupby("method", sort=True).sum().reset_index()
     return out
 
@@ -668,6 +757,32 @@ def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarra
             arr = np.array([getattr(v, attr) for _, v in all_settings], dtype=object)
             cols[name] = pd.Series(arr[settings], dtype="string")
     return cols
+
+
+def paired_partials(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> pd.DataFrame:
+    """``DIR/paired.parquet``: per setting and GNSS zone ("all" pools them), LC minus GNSS and LC minus
+    known association of the per-seed RMSE (same seed, same traffic), mean over the seeds with its 95 %
+    paired t interval and the number of seeds (:mod:`experiments.sweep.paired`). Empty without LC."""
+    from experiments.sweep.paired import paired_table
+
+    rows = []
+    for run, part in zip(runs, partials):
+        zs = part.get("zone_sums")
+        if zs is None or not len(zs):
+            continue
+        for r in zs.itertuples(index=False):
+            rows.append({"_setting": run.setting, "zone": str(r.zone), "seed": run.seed, "method": str(r.method),
+                         "rmse_pos_m": math.sqrt(r.sse_pos / r.n) if r.n else math.nan})
+    if not rows:
+        return pd.DataFrame()
+    t = paired_table(pd.DataFrame(rows), ["_setting", "zone"])
+    if not len(t):
+        return pd.DataFrame()
+    params = _param_columns(spec, t["_setting"].to_numpy(dtype=np.int64))
+    front = pd.DataFrame(params)
+    rest = t.drop(columns=["_setting"]).reset_index(drop=True)
+    rest["seeds"] = rest["seeds"].astype("int64")
+    return pd.concat([front.reset_index(drop=True), rest], axis=1)
 
 
 def aggregate(spec: SweepSpec, runs: list[SweepRun], partials: list[dict]) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -909,14 +1024,19 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
         failed.sort()
         raise SweepFailed(f"{len(failed)} of {len(runs)} runs failed (first: {failed[0][0]}: {failed[0][1]}); "
                           "completed runs are kept: rerun the same command to retry the others")
+    if spec.eval_seeds:  # the tables and the report score the evaluation seeds only
+        keep = [k for k, r in enumerate(runs) if r.seed in set(spec.eval_seeds)]
+        runs, partials = [runs[k] for k in keep], [partials[k] for k in keep]
     table, curves = aggregate(spec, runs, partials)
+    paired = paired_partials(spec, runs, partials)
     method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
     n_runs = np.bincount([r.setting for r in runs], minlength=len(settings_of(spec)))
     zones, v2v = aggregate_zones(runs, partials, lambda st: _param_columns(spec, st), n_runs, method_rank)
     from experiments.runner import write_parquet
 
     outputs = [("sweep.parquet", table), ("curves.parquet", curves)]
-    outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v)) if len(df)]
+    outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v),
+                                            ("paired.parquet", paired)) if len(df)]
     for name, df in outputs:
         buf = io.BytesIO()
         write_parquet(df, buf)

@@ -34,7 +34,7 @@ OVERLAYS = {
         "run.name", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
         "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
-        "estimator_sensors", "gnss_model"}),
+        "estimator_sensors", "gnss_model", "analysis"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
@@ -227,7 +227,8 @@ def test_preset_resolves_as_its_full_copy_did(name):
         pytest.skip("the git history with the full copies is not available")
     old_cfg = config_from_dict(tomllib.loads(old), CONFIGS / name)
     assert "extends" not in old
-    new_cfg = load_config(CONFIGS / name)
+    # [analysis] (the scoring warm-up) came after the copies: it changes no estimate, so it is left out here
+    new_cfg = dataclasses.replace(load_config(CONFIGS / name), analysis=None)
     if name in CHANGED_SINCE:  # changed on purpose since the copies: those values taken from the overlay
         lc = dataclasses.replace(old_cfg.lc, **{k: getattr(new_cfg.lc, k) for k in CHANGED_SINCE[name]})
         old_cfg = dataclasses.replace(
