@@ -790,7 +790,7 @@ def run_experiment(cfg: Config, out_dir: Path, progress: bool | None = None, wri
         summary["detections"] = dict(zip(DETECTION_KINDS, (int(c) for c in log.kind_counts)))
         totals = getattr(getattr(source, "coupler", None), "perception_totals", None)
         if totals:
-            # [perception]: what the sensors did, over the run and per vehicle-step (issue 21 item 9).
+            # [perception]: what the sensors did, over the run and per vehicle-step.
             vehicle_steps = log.vehicle_steps
             summary["perception"] = {"totals": dict(totals),
                                      "per_vehicle_step": {k: v / vehicle_steps for k, v in totals.items()}}

@@ -17,14 +17,7 @@ SELF = Path(__file__).resolve().relative_to(ROOT).as_posix()
 PATTERN = re.compile(r"\bissues?\s*#?\s*[0-9]", re.IGNORECASE)
 SUFFIXES = (".py", ".toml", ".md", ".txt", ".cfg")
 #: Files still allowed to carry a tracker number; must stay empty.
-ALLOWED: set[str] = {
-    # cleaned by the lead (other work in flight on these files)
-    "couplers/sensing/perception.py",
-    "couplers/sensing/gnss_error.py",
-    "couplers/sensing/sensors.py",
-    "docs/validation/realistic_sensing.md",
-    "experiments/runner.py",
-}
+ALLOWED: set[str] = set()  # nothing: a mention of a tracker number says what it stands for instead
 
 
 def _tracked_files() -> list[str]:

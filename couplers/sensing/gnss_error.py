@@ -36,7 +36,7 @@ Default sources:
   of seconds to minutes, better modelled by an Ornstein-Uhlenbeck process than by white noise
   (Sensors 2020, 20(21), 6050, "Comparison of Enhanced Noise Model Performance Based on Analysis of
   Civilian GPS Data"; D. L. Wilson's autocorrelation of Garmin 12XL horizontal errors bends at ~1
-  min); 30 s is also the issue's study value.
+  min); 30 s is also the centre value of the realistic-sensing study.
 * Bias magnitude, mean 10 m (exponential: median 7 m, 95th percentile 30 m): NLOS reception in
   urban canyons gives pseudorange errors of tens of metres and position errors of 10-50 m (L.-T.
   Hsu, "Analysis and modeling GPS NLOS effect in highly urbanized area", GPS Solutions 22:7, 2018;

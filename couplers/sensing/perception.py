@@ -1,4 +1,4 @@
-"""Realistic on-board perception (issue 21 item 1): field of view, missed detections, range-dependent
+"""Realistic on-board perception: field of view, missed detections, range-dependent
 noise, clutter and occlusion, turning true states into the V2F rows of a frame.
 
 Opt-in through the ``[perception]`` config table; without it the coupler synthesises the paper's
@@ -156,11 +156,11 @@ class SensorSpec:
 #:   kept as the default so that configs without sensor tables keep their results. Accuracy near
 #:   range 0.1 m in distance and ~0.3 deg at boresight, i.e. ~0.4 m across the beam at 70-80 m, hence
 #:   sigma_p 0.1 m at 0 m growing 4x to the range (sigma_growth 3);
-#: * surround, 360 deg / 30 m: short-range corner sensors seen as one surround field (assumption;
-#:   the issue's "360 deg short-range sensor"), same noise model.
-#: pd_near / pd_far 0.95 / 0.7 (assumption, inside the issue's study range P_D in {1, 0.9, 0.7});
-#: profile linear in distance as MOSAIC's DistanceModifier; clutter 1 per scan (the issue's
-#: study centre value); sigma_p 0.1 m / sigma_v 0.1 m/s at 0 m: the paper's V2F noise (Sec. VI).
+#: * surround, 360 deg / 30 m: short-range corner sensors seen as one surround field (assumption),
+#:   same noise model.
+#: pd_near / pd_far 0.95 / 0.7 (assumption, inside the sensing study's range P_D in {1, 0.9, 0.7});
+#: profile linear in distance as MOSAIC's DistanceModifier; clutter 1 per scan (the sensing study's
+#: centre value); sigma_p 0.1 m / sigma_v 0.1 m/s at 0 m: the paper's V2F noise (Sec. VI).
 DEFAULT_SENSORS = (
     SensorSpec(name="front_radar", fov_deg=120.0, range_m=80.0),
     SensorSpec(name="surround", fov_deg=360.0, range_m=30.0),

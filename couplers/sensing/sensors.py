@@ -36,13 +36,13 @@ class SensorParams:
     v2v_range_m: float = 250.0  # Rc
     prior_sigma_p: float = 2.0  # m, fast-start prior (Sec. VI-A)
     prior_sigma_v: float = 0.1  # m/s
-    # Opt-in realism (issues 21, 22), from the [perception] / [gnss_error] / [v2x] / [inertial] config
+    # Opt-in realism (realistic sensing and V2X), from the [perception] / [gnss_error] / [v2x] / [inertial] config
     # tables; None (the default) is the paper's idealisation, synthesised exactly as before. SUMO coupler only.
     perception: PerceptionParams | None = None
     gnss_error: GnssErrorParams | None = None
     v2x: V2xParams | None = None
     inertial: InertialParams | None = None
-    # [features] (issue 21 item 3): SUMO pedestrians as moving features (couplers.sensing.pedestrians).
+    # [features]: SUMO pedestrians as moving features (couplers.sensing.pedestrians).
     features: "FeaturesParams | None" = None
 
 
