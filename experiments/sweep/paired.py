@@ -13,8 +13,10 @@ import math
 
 import numpy as np
 
+from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA
+
 #: the methods the sweep tables and reports compare LC with (same seed, same traffic)
-PAIRS = (("icp_da_lc", "gnss"), ("icp_da_lc", "icp_known_da"))
+PAIRS = ((ICP_DA_LC.name, GNSS.name), (ICP_DA_LC.name, ICP_KNOWN_DA.name))
 
 
 def paired_ci(a, b, level: float = 0.95) -> tuple[float, float, float, int]:
