@@ -1,0 +1,229 @@
+"""A sweep's output folder: its lock, the resolved spec and the recorded inputs a restart is checked against,
+and the leftovers of killed runs (the sweep command: :mod:`experiments.sweep.run`)."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import io
+import itertools
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import sys
+import threading
+import time
+import tomllib
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
+from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
+from experiments.scoring import scored_mask
+from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+from experiments.config_extends import read_config_data
+from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
+    split_overrides, variants
+from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
+from experiments.sweep.spec import (  # noqa: F401 (re-exported: the names of the sweep, one import path)
+    SPEC_KEYS,
+    FORBIDDEN_KEYS,
+    DEFAULT_DISTANCE_BIN_M,
+    RUNS_DIR,
+    CURVE_KINDS,
+    COVERED_COLUMNS,
+    SweepSpec,
+    SweepRun,
+    settings_of,
+    _check_dotted,
+    _seeds,
+    load_sweep,
+    _grid_bases,
+    _grid_base,
+    _load_base,
+    _config,
+    _value_text,
+    _safe,
+    _short_names,
+    run_id_of,
+    expand_runs,
+    resolved_spec_toml,
+    _first_difference,
+)
+
+# --------------------------------------------------------------------------- #
+# Output folder: lock, spec check, leftovers
+# --------------------------------------------------------------------------- #
+
+
+def _acquire_lock(out: Path, spec_path: Path):
+    return lock_output(out)  # the lock of every coloc output (couplers.publish)
+
+
+def _check_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:
+    """Refuse a sweep that resolves differently from the one stored in ``out/sweep.toml`` (``ignore``:
+    keys of [sweep] left out of the comparison)."""
+    target = out / "sweep.toml"
+    try:
+        old = tomllib.loads(target.read_text())
+    except tomllib.TOMLDecodeError:
+        old = {}
+    new = tomllib.loads(text)
+    for d in (old, new):
+        for key in ignore:
+            d.get("sweep", {}).pop(key, None)
+    if old != new:
+        diff = _first_difference(new, old) or "sweep"
+        raise InputError(spec_path, diff,
+                         f"{out} holds a different sweep ({target} has another {diff}); "
+                         "use another --out folder, or remove that one to start over")
+
+
+def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:
+    target = out / "sweep.toml"
+    if target.exists():
+        _check_spec(out, text, spec_path, ignore)
+        if ignore and target.read_text() != text:  # --force over changed configs: the sweep as resolved now
+            write_file_atomic(target, text)
+        return
+    if (out / RUNS_DIR).exists():
+        raise InputError(spec_path, None, f"{out / RUNS_DIR} exists without {target}: not a sweep folder of this sweep")
+    write_file_atomic(target, text)
+
+
+INPUTS_FILE = "inputs.json"
+
+
+def _sha256(path: Path) -> str | None:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    except FileNotFoundError:
+        return None
+    return h.hexdigest()
+
+
+def _net_files(net_dir: Path) -> list[Path]:
+    """Every file of a net folder (hidden ones, e.g. an editor's swap files, left out)."""
+    return sorted(p.resolve() for p in net_dir.rglob("*")
+                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(net_dir).parts))
+
+
+def sweep_inputs(spec: SweepSpec, runs: list[SweepRun], config_files: list[Path]) -> dict:
+    """What ``DIR/inputs.json`` holds: the sha256 of every file the runs read, and per run the files it
+    read. ``config_files``: the TOML files read while the configs were loaded (bases, ``extends``
+    chains, net folders' scenario.toml); a factor's own base counts only for that factor's runs. The
+    sweep file itself is checked by its resolved values (``DIR/sweep.toml``), not by its bytes."""
+    own_bases = {Path(lv.base).resolve() for f in spec.factors for lv in f.levels if lv.base is not None}
+    net_dirs = {Path(r.cfg.scenario.net_dir) for r in runs if r.cfg.scenario.net_dir}
+    # a net folder's files count for the runs on that net only
+    shared = sorted({Path(p) for p in config_files if not any(Path(p).is_relative_to(d) for d in net_dirs)}
+                    - (own_bases - {spec.base}) - {spec.path})
+    nets: dict[str, list[Path]] = {}
+    per_run: dict[str, list[str]] = {}
+    for run in runs:
+        files = set(shared)
+        if run.variant is not None and run.variant.base is not None:
+            files.add(Path(run.variant.base).resolve())
+        net_dir = run.cfg.scenario.net_dir
+        if net_dir and Path(net_dir).is_dir():
+            files.update(nets.setdefault(net_dir, _net_files(Path(net_dir))))
+        per_run[run.run_id] = sorted(str(p) for p in files)
+    hashes = {p: _sha256(Path(p)) for p in sorted({p for ps in per_run.values() for p in ps})}
+    return {"files": hashes, "runs": per_run}
+
+
+def _inputs_text(inputs: dict) -> str:
+    return json.dumps(inputs, indent=1, sort_keys=True) + "\n"
+
+
+def _check_inputs(out: Path, inputs: dict, runs: list[SweepRun], force: bool) -> tuple[frozenset[str], tuple[str, ...]]:
+    """Compare the inputs with those a resumed sweep was started with (``out/inputs.json``).
+
+    Returns the finished runs to recompute (``force`` only) and the sweep.toml keys to leave out of its
+    check (the resolved base config's hash, when a config file changed and ``force`` recomputes its
+    runs). Without ``force``, a changed, removed or added file read by a finished run is an InputError
+    naming the file. A folder without inputs.json (written before it existed) is not checked."""
+    try:
+        old = json.loads((out / INPUTS_FILE).read_text())
+        old_files, old_runs = dict(old["files"]), dict(old["runs"])
+    except FileNotFoundError:
+        return frozenset(), ()
+    except (ValueError, KeyError, TypeError):
+        raise InputError(out / INPUTS_FILE, None, "not the record of a sweep's inputs (damaged): remove the "
+                                                  "sweep folder to start over") from None
+    new_files = inputs["files"]
+    changed: dict[str, list[str]] = {}  # file -> finished runs made with its old version
+    for run in runs:
+        if run.run_id not in old_runs or not run_complete(out / RUNS_DIR / run.run_id):
+            continue  # computed with the inputs of now
+        before = {p: old_files.get(p) for p in old_runs[run.run_id]}
+        now = {p: new_files.get(p) for p in inputs["runs"][run.run_id]}
+        for p in sorted(set(before) | set(now)):
+            if before.get(p) != now.get(p):
+                changed.setdefault(p, []).append(run.run_id)
+    if not changed:
+        return frozenset(), ()
+    redo = frozenset(r for ids in changed.values() for r in ids)
+    if force:
+        net_dirs = {r.cfg.scenario.net_dir for r in runs if r.cfg.scenario.net_dir}
+        configs_changed = any(not any(Path(p).is_relative_to(d) for d in net_dirs) for p in changed)
+        return redo, ("base_config_sha256",) if configs_changed else ()
+    first = next(iter(changed))
+    if first not in old_files:
+        state = "is new"
+    elif new_files.get(first) is None:
+        state = "is no longer read by the runs" if Path(first).exists() else "was removed"
+    else:
+        state = "changed"
+    others = f" (and {len(changed) - 1} other file(s))" if len(changed) > 1 else ""
+    raise InputError(first, None,
+                     f"{state} since the sweep in {out} started{others}: {len(redo)} finished run(s) read the old "
+                     f"inputs (e.g. {min(redo)}); restore it, pass --force to recompute those runs, or use another "
+                     "--out folder")
+
+
+def _restart_changed(out: Path, inputs: dict, redo: frozenset[str]) -> None:
+    """Remove the finished runs to recompute (through a hidden name, so a kill leaves a leftover that
+    :func:`clean_leftovers` removes, never a half-removed run), then record the inputs of now."""
+    for run_id in sorted(redo):
+        run_dir = out / RUNS_DIR / run_id
+        if run_dir.exists():
+            hidden = run_dir.with_name(f".{run_id}.old-{os.getpid()}")
+            os.replace(run_dir, hidden)
+            shutil.rmtree(hidden)
+    text = _inputs_text(inputs)
+    target = out / INPUTS_FILE
+    if not target.is_file() or target.read_text() != text:
+        write_file_atomic(target, text)
+
+
+def clean_leftovers(out: Path) -> list[Path]:
+    """Remove the hidden partial folders and temporary files a killed sweep or run left behind."""
+    removed = []
+    candidates = list(out.glob(".*.tmp-*")) + list(out.glob(".report-*"))
+    runs = out / RUNS_DIR
+    if runs.is_dir():
+        candidates += [p for p in runs.iterdir() if p.name.startswith(".") and (".partial-" in p.name or ".old-" in p.name)]
+    for p in sorted(candidates):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
+def run_complete(run_dir: Path) -> bool:
+    # run_experiment renames a finished folder into place: if it exists it is complete.
+    return (run_dir / "summary.json").is_file()
