@@ -3,61 +3,16 @@ and the leftovers of killed runs (the sweep command: :mod:`experiments.sweep.run
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import hashlib
-import io
-import itertools
 import json
-import logging
-import math
 import os
-import re
 import shutil
-import sys
-import threading
-import time
 import tomllib
-import traceback
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-
-from couplers.errors import SEED_MAX, InputError, read_toml, recording_reads, seed_problem
-from couplers.publish import check_target, lock_output, make_folder, mark, write_file_atomic
-from experiments.scoring import scored_mask
-from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
-from experiments.config_extends import read_config_data
-from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
-    split_overrides, variants
-from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
-from experiments.sweep.spec import (  # noqa: F401 (re-exported: the names of the sweep, one import path)
-    SPEC_KEYS,
-    FORBIDDEN_KEYS,
-    DEFAULT_DISTANCE_BIN_M,
-    RUNS_DIR,
-    CURVE_KINDS,
-    COVERED_COLUMNS,
-    SweepSpec,
-    SweepRun,
-    settings_of,
-    _check_dotted,
-    _seeds,
-    load_sweep,
-    _grid_bases,
-    _grid_base,
-    _load_base,
-    _config,
-    _value_text,
-    _safe,
-    _short_names,
-    run_id_of,
-    expand_runs,
-    resolved_spec_toml,
-    _first_difference,
-)
+from couplers.errors import InputError
+from couplers.publish import lock_output, write_file_atomic
+from experiments.sweep.spec import RUNS_DIR, SweepSpec, SweepRun, _first_difference
 
 # --------------------------------------------------------------------------- #
 # Output folder: lock, spec check, leftovers
