@@ -509,11 +509,14 @@ def staged_folder(out: Path, kind: str | None, force: bool = False, field: str |
         _publish_new(tmp, out, kind, force, field, replace)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        lock.close()  # its file sits in the parent: released first, so that a parent it created can go too
+        lock = None
         remove_created(created)
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        lock.close()
+        if lock is not None:
+            lock.close()
 
 
 def publish_members(target_dir: Path, build: Callable[[Path], None], names: tuple[str, ...],

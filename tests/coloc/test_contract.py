@@ -276,7 +276,7 @@ def test_truth_blind_with_sensor_frame_detections(name):
     rng = np.random.default_rng(6)
     a, b, c = build(name), build(name), build(name)
     for f in frames_for(name):
-        if METHODS[name].infrastructure and f.truth.x_true.shape[0] == 0:
+        if _method(name).infrastructure and f.truth.x_true.shape[0] == 0:
             continue
         f = sensor_frame(f, rng)
         assoc = f.truth.v2f_feature.copy()
