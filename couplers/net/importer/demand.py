@@ -282,12 +282,15 @@ def gridlock_trials_vsr_tlr(net_path: Path, routes_path: Path, seed: int, end: f
     from it, do not depend on which process finishes first.
     """
     import multiprocessing  # noqa: PLC0415
+    import threading  # noqa: PLC0415
 
     jobs = {"vsr": (net_path, routes_path, True, seed, end, vehicles, *more),
             "tlr": (net_path, routes_path, False, seed, end, vehicles, *more)}
     # "fork": the children need nothing re-imported (spawn would re-run a caller's unguarded
-    # script); libsumo is only started inside them. Without fork, one after the other.
-    if "fork" not in multiprocessing.get_all_start_methods():
+    # script); libsumo is only started inside them. Without fork, one after the other; likewise in a
+    # process that runs other threads (an embedding program, a test session with a Dask or tqdm thread):
+    # a fork copies the locks those threads hold, and a pool worker then waits on them forever.
+    if "fork" not in multiprocessing.get_all_start_methods() or threading.active_count() > 1:
         out = {"vsr": gridlock_trial(*jobs["vsr"])}
         if out["vsr"]["ok"]:
             out["tlr"] = gridlock_trial(*jobs["tlr"])
