@@ -516,7 +516,7 @@ def run_gnss_error_unknown_model(tmp, net, run):
 
 
 @case("cfg.toml", "scenario.start", "gnss_fix")
-def run_unknown_start(tmp, net, run):
+def run_unknown_sumo_start(tmp, net, run):
     path = tmp / "cfg.toml"
     path.write_text(CONFIG.format(net=net, extra="").replace('control = "tlr"', 'control = "tlr"\nstart = "truth"'))
     return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
