@@ -75,7 +75,8 @@ class SumoCoupler:
     pedestrians``) every SUMO person is a moving feature (:mod:`couplers.sensing.pedestrians`): the frame
     carries ``v2f_class`` and the truth keeps stable feature rows (``c.registry``). With
     ``sensors.gnss_error`` (``[gnss_error]``) the GNSS position error is
-    :class:`couplers.sensing.gnss_error.GnssErrorProcess`'s (``model = "field"``: ``FieldErrorProcess``'s). With ``sensors.v2x`` (``[v2x]``) only the
+    :class:`couplers.sensing.gnss_error.GnssErrorProcess`'s (``model = "field"``: ``FieldErrorProcess``'s; ``"satellites"``:
+    ``couplers.sensing.gnss_satellites.SatelliteErrorProcess``'s, whose reported covariance is the frame's ``gnss_R``). With ``sensors.v2x`` (``[v2x]``) only the
     equipped vehicles (:class:`couplers.sensing.v2x.V2xChannel`) are in the frames, and each frame carries
     the channel (``frame.v2x``); every SUMO vehicle on the road, equipped or not, still occludes the
     perception's sight lines and counts in the traffic statistics. With ``sensors.inertial``
@@ -114,7 +115,8 @@ class SumoCoupler:
         self.sensor_frame = (SensorFrameRows(self.perception, scenario.seed)
                              if self.perception is not None and self.perception.detections == "range_bearing" else None)
         self.perception_totals: dict[str, int] = {}
-        self.gnss_error = (gnss_error_process(sensors.gnss_error, scenario.seed, scenario.step_length, buildings)
+        self.gnss_error = (gnss_error_process(sensors.gnss_error, scenario.seed, scenario.step_length, buildings,
+                                              net_path=scenario.net.net)
                            if sensors.gnss_error is not None else None)
         self.v2x = V2xChannel(sensors.v2x, scenario.seed, buildings) if sensors.v2x is not None else None
         self.inertial = (InertialProcess(sensors.inertial, scenario.seed, scenario.step_length)

@@ -1,6 +1,7 @@
 """Realistic GNSS position error: first-order Gauss-Markov error per vehicle plus
 NLOS / multipath bias episodes (``model = "per_vehicle"``, the default), or errors that nearby vehicles
-share (``model = "field"``, at the end). Opt-in through the ``[gnss_error]`` config table.
+share (``model = "field"``, at the end); ``model = "satellites"`` is a receiver at pseudorange level
+(couplers.sensing.gnss_satellites). Opt-in through the ``[gnss_error]`` config table.
 
 Position error of vehicle i at step k (net x/y, per axis):
 
@@ -118,8 +119,10 @@ from couplers.sensing.perception import effect_rng
 from couplers.net.zones import CellGrid, _grid_values
 
 GNSS_ERROR_STREAM_TAG = 0x6E5
-#: The ``[gnss_error] model`` values: each vehicle's error on its own, or the shared field.
-GNSS_MODELS = ("per_vehicle", "field")
+#: The ``[gnss_error] model`` values: each vehicle's error on its own, the shared field, or a receiver at
+#: pseudorange level (couplers.sensing.gnss_satellites).
+GNSS_MODELS = ("per_vehicle", "field", "satellites")
+NLOS_MODES = ("block", "delay")
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,26 @@ class GnssErrorParams:
     field_features: int = 64
     local_corr_length_m: float = 20.0
     nlos_cell_m: float = 50.0
+    # "satellites" (couplers.sensing.gnss_satellites, sources and assumptions there); the other models do not
+    # read these keys, and "satellites" reads none of the keys above.
+    elevation_mask_deg: float = 10.0
+    antenna_height_m: float = 1.5
+    nlos: str = "delay"
+    constellation_time_s: float = 0.0
+    sv_clock_orbit_m: float = 0.5
+    iono_vertical_m: float = 1.0
+    tropo_zenith_m: float = 0.1
+    sv_tau_s: float = 1800.0
+    code_noise_a_m: float = 0.3
+    code_noise_b_m: float = 0.3
+    multipath_m: float = 0.5
+    multipath_corr_length_m: float = 10.0
+    rx_ure_m: float = 1.0
+    rx_iono_m: float = 1.0
+    rx_tropo_m: float = 0.3
+    rx_code_a_m: float = 0.3
+    rx_code_b_m: float = 0.3
+    raim_pfa: float = 1e-3
 
     def __post_init__(self):
         def finite(v):
@@ -152,6 +175,23 @@ class GnssErrorParams:
 
         if self.model not in GNSS_MODELS:
             raise InputError(None, "model", f"unknown model {self.model!r} (available: {', '.join(GNSS_MODELS)})")
+        if not (finite(self.elevation_mask_deg) and 0.0 <= self.elevation_mask_deg < 90.0):
+            raise InputError(None, "elevation_mask_deg", f"must be in [0, 90) deg, got {self.elevation_mask_deg!r}")
+        if self.nlos not in NLOS_MODES:
+            raise InputError(None, "nlos", f"unknown value {self.nlos!r} (available: {', '.join(NLOS_MODES)})")
+        for key in ("antenna_height_m", "multipath_corr_length_m"):
+            if not (finite(getattr(self, key)) and getattr(self, key) > 0):
+                raise InputError(None, key, f"must be positive and finite, got {getattr(self, key)!r}")
+        for key in ("constellation_time_s", "sv_clock_orbit_m", "iono_vertical_m", "tropo_zenith_m", "sv_tau_s",
+                    "code_noise_a_m", "code_noise_b_m", "multipath_m", "rx_ure_m", "rx_iono_m", "rx_tropo_m",
+                    "rx_code_a_m", "rx_code_b_m"):
+            if not (finite(getattr(self, key)) and getattr(self, key) >= 0):
+                raise InputError(None, key, f"must be >= 0 and finite, got {getattr(self, key)!r}")
+        if not (finite(self.raim_pfa) and 0.0 <= self.raim_pfa < 1.0):
+            raise InputError(None, "raim_pfa", f"must be in [0, 1) (0: no fault exclusion), got {self.raim_pfa!r}")
+        if self.model == "satellites" and self.rx_ure_m ** 2 + self.rx_iono_m ** 2 + self.rx_tropo_m ** 2 \
+                + self.rx_code_a_m ** 2 + self.rx_code_b_m ** 2 == 0:
+            raise InputError(None, "rx_code_a_m", "the receiver's error budget is zero: no weights for its fix")
         for key in ("common_share", "field_share"):
             if not (finite(getattr(self, key)) and 0.0 <= getattr(self, key) <= 1.0):
                 raise InputError(None, key, f"must be in [0, 1], got {getattr(self, key)!r}")
@@ -583,8 +623,14 @@ class FieldErrorProcess:
         return np.any(self._bias_now != 0.0, axis=1)
 
 
-def gnss_error_process(params: GnssErrorParams, seed: int, dt: float, buildings: Buildings | None = None):
-    """The process of ``params.model``: :class:`GnssErrorProcess` ("per_vehicle") or
-    :class:`FieldErrorProcess` ("field")."""
+def gnss_error_process(params: GnssErrorParams, seed: int, dt: float, buildings: Buildings | None = None,
+                       net_path=None):
+    """The process of ``params.model``: :class:`GnssErrorProcess` ("per_vehicle"), :class:`FieldErrorProcess`
+    ("field") or :class:`couplers.sensing.gnss_satellites.SatelliteErrorProcess` ("satellites", seen from the
+    geographic reference of the net file ``net_path``)."""
+    if params.model == "satellites":
+        from couplers.sensing.gnss_satellites import SatelliteErrorProcess
+
+        return SatelliteErrorProcess(params, seed, dt, buildings, net_path)
     cls = FieldErrorProcess if params.model == "field" else GnssErrorProcess
     return cls(params, seed, dt, buildings)

@@ -360,6 +360,8 @@ def synthesize_frame(
     if gnss_error is not None:
         gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
                                                         x_true[:, :2], idx=prev_row)
+        if getattr(gnss_error, "reported_cov", None) is not None:  # "satellites": the covariance the receiver reports
+            gnss_R[:, :2, :2] = gnss_error.reported_cov
     if gnss_fix:  # the receiver's first fix, its error included, and the covariance it reports
         prior_z[entered], prior_R[entered] = gnss_z[entered], gnss_R[entered]
 

@@ -1,0 +1,336 @@
+"""``[gnss_error] model = "satellites"``: a receiver at pseudorange level. Each vehicle's fix is the weighted
+least-squares solution of its own pseudoranges to the GPS + Galileo satellites it receives, and the covariance it
+reports is the receiver's own (DOP times its error budget), which is what the estimators get as ``gnss_R``.
+
+Sky and line of sight: :mod:`couplers.sensing.gnss_sky` (constellation, geographic reference, buildings).
+
+Pseudorange error of vehicle i to satellite s (m), at elevation el_s:
+
+    eps_is = c_s + I_s F(el_s) + T m(el_s) + sigma_n(el_s) w_is + sigma_mp(el_s) u_is + nlos_is
+
+* c_s: broadcast clock and orbit error of the satellite (``sv_clock_orbit_m``), I_s: the vertical ionospheric
+  delay left after the broadcast (Klobuchar) model at that satellite's pierce point (``iono_vertical_m``), T: the
+  zenith tropospheric delay left after the receiver's model (``tropo_zenith_m``, one value for the net). Each a
+  unit first-order Gauss-Markov process (correlation time ``sv_tau_s``) times its sigma, shared by every receiver
+  of the net: the few km of a net change neither the satellite nor the pierce point appreciably (the reason
+  differential GNSS works). Mapping functions: F(el) = 1 + 16 (0.53 - E)^3, E the elevation in semicircles, the
+  Klobuchar obliquity factor (IS-GPS-200, 20.3.3.5.2.5); m(el) = 1.001 / sqrt(0.002001 + sin^2 el) (RTCA DO-229,
+  A.4.2.4, the SBAS tropospheric mapping).
+* Receiver noise, white per epoch: sigma_n^2 = a^2 + b^2 / sin(el) with ``code_noise_a_m`` / ``code_noise_b_m``
+  (the elevation model of RTKLIB 2.4.2 pntpos.c ``varerr``; a = b = 0.3 m are its defaults, err[1..2] 0.003 m
+  times eratio 100).
+* Multipath: sigma_mp = ``multipath_m`` / sin(el), a unit process u_is per (vehicle, satellite) correlated over
+  the distance the vehicle travels, a = exp(-d / ``multipath_corr_length_m``), not over time (a standing vehicle
+  keeps its multipath). The 1 / sin(el) growth and the 0.5 m at zenith are assumptions (code multipath of a car
+  roof antenna grows toward the horizon); the 10 m correlation length is an assumption (code multipath of a moving
+  antenna varies within metres: P. D. Groves, Principles of GNSS, Inertial, and Multisensor Integrated Navigation
+  Systems, 2nd ed. 2013, ch. 9).
+* NLOS (the buildings of the net folder, :func:`couplers.sensing.gnss_sky.line_of_sight`): ``nlos = "block"``:
+  a blocked satellite is not received; ``"delay"``: it is received by a reflection, with the extra path
+  2 d cos(el), d the horizontal distance from the antenna to the blocking facade along the satellite's azimuth
+  (the reflection model of L.-T. Hsu, "Analysis and modeling GPS NLOS effect in highly urbanized area", GPS
+  Solutions 22:7, 2018, gamma = d sec(el) (1 + cos 2 el) = 2 d cos(el), with the reflector across the street
+  taken at the blocking facade's distance: alike in a street canyon of even width; our simplification).
+
+Receiver (:func:`_wls_kernel`): states east, north, up and clock (one clock for both systems: the broadcast
+GPS-Galileo time offset applied), the satellites above ``elevation_mask_deg`` and received, weights 1 / sigma_rx^2
+from the receiver's own budget (in the form of RTKLIB pntpos.c ``rescode``, not the world's values):
+
+    sigma_rx^2 = rx_ure_m^2 + (rx_iono_m F(el))^2 + (rx_tropo_m / (sin el + 0.1))^2 + rx_code_a_m^2
+                 + rx_code_b_m^2 / sin(el)
+
+(RTKLIB: ephemeris variance from the broadcast URA, ionosphere 0.5 times the Klobuchar delay (ERR_BRDCI),
+troposphere ERR_SAAS = 0.3 m over sin(el) + 0.1, code as above.) The fix is linearised about the truth: its error
+is the WLS solution dx = (H^T W H)^-1 H^T W eps, H's rows (-e_s, 1) with e_s the unit vector to the satellite
+(metres of error against tens of thousands of km of range: the linearisation error is far below a millimetre).
+Fault exclusion (RAIM): the weighted sum of squared residuals against the chi-square quantile 1 - ``raim_pfa``
+with m - 4 degrees of freedom (RTKLIB's table is alpha = 0.001, our default); while it fails and at least six
+satellites remain, the satellite of the largest normalised residual (r_j^2 / (sigma_j^2 - h_j P h_j^T), Baarda's
+w-test) is excluded and the fix recomputed. ``raim_pfa = 0``: no test. The reported covariance is the 2 x 2
+east-north block of (H^T W H)^-1 of the satellites used. Fewer than four satellites: no fix; the receiver holds
+its last fix (the vehicle has moved on) and reports :data:`NO_FIX_SIGMA_M` per axis; a vehicle with no fix yet
+gets a fix drawn at that sigma around it (its own stream). Velocity stays the zone's white Doppler error.
+
+Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
+"multipath" (u), "no_fix". Every step draws for every satellite (visible or not) and every vehicle, so the
+streams do not depend on the geometry.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from coloc.core.vehicles import match_ids
+from couplers.errors import InputError
+from couplers.net.buildings import Buildings
+from couplers.sensing.gnss_sky import BuildingEdges, Sky, clearance_radius, line_of_sight, net_origin
+from couplers.sensing.perception import effect_rng
+
+GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
+NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
+MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
+
+
+def klobuchar_obliquity(el: np.ndarray) -> np.ndarray:
+    """F(el) = 1 + 16 (0.53 - E)^3, E = el / pi semicircles (IS-GPS-200, 20.3.3.5.2.5)."""
+    return 1.0 + 16.0 * (0.53 - np.asarray(el) / np.pi) ** 3
+
+
+def tropo_mapping(el: np.ndarray) -> np.ndarray:
+    """m(el) = 1.001 / sqrt(0.002001 + sin^2 el) (RTCA DO-229, A.4.2.4)."""
+    return 1.001 / np.sqrt(0.002001 + np.sin(np.asarray(el)) ** 2)
+
+
+def receiver_variance(params, el: np.ndarray) -> np.ndarray:
+    """sigma_rx^2 of the receiver's own budget (module docstring) per satellite at elevation ``el``."""
+    s = np.maximum(np.sin(el), MIN_SIN_EL)
+    p = params
+    return (p.rx_ure_m ** 2 + (p.rx_iono_m * klobuchar_obliquity(el)) ** 2 + (p.rx_tropo_m / (s + 0.1)) ** 2
+            + p.rx_code_a_m ** 2 + p.rx_code_b_m ** 2 / s)
+
+
+def chi2_thresholds(pfa: float, max_dof: int) -> np.ndarray:
+    """(max_dof + 1,) chi-square quantiles 1 - pfa by degrees of freedom (index 0 unused; pfa 0: inf)."""
+    out = np.full(max_dof + 1, np.inf)
+    if pfa > 0:
+        from scipy.stats import chi2
+
+        out[1:] = chi2.ppf(1.0 - pfa, np.arange(1, max_dof + 1))
+    return out
+
+
+def missing_heights(buildings: Buildings | None) -> np.ndarray:
+    """Indices of the buildings without a height."""
+    if buildings is None or not len(buildings):
+        return np.empty(0, dtype=np.int64)
+    return np.flatnonzero(~np.isfinite(np.asarray(buildings.heights, dtype=float)))
+
+
+def check_building_heights(net_dir: str | Path) -> None:
+    """Under ``model = "satellites"`` every building of the net folder needs its height: InputError naming the
+    buildings file and the first feature without one."""
+    from couplers.net.folder import BUILDINGS_FILE, load_net_folder
+
+    folder = load_net_folder(net_dir)
+    bad = missing_heights(folder.buildings)
+    if bad.size:
+        name = (folder.scenario.get("files") or {}).get("buildings") or BUILDINGS_FILE
+        raise InputError(folder.root / name, f"features[{int(bad[0])}].properties.height",
+                         f"missing: [gnss_error] model = \"satellites\" needs every building's height (the line of "
+                         f"sight of each satellite); {bad.size} building(s) have none")
+
+
+@njit(cache=True)
+def _inv_spd4(a, out):
+    """out = a^-1 for a symmetric positive definite 4 x 4 (Cholesky a = L L^T, then L^-T L^-1)."""
+    low = np.zeros((4, 4))
+    for j in range(4):
+        d = a[j, j]
+        for k in range(j):
+            d -= low[j, k] * low[j, k]
+        d = math.sqrt(d)
+        low[j, j] = d
+        for i in range(j + 1, 4):
+            v = a[i, j]
+            for k in range(j):
+                v -= low[i, k] * low[j, k]
+            low[i, j] = v / d
+    li = np.zeros((4, 4))  # L^-1, lower triangular
+    for j in range(4):
+        li[j, j] = 1.0 / low[j, j]
+        for i in range(j + 1, 4):
+            v = 0.0
+            for k in range(j, i):
+                v -= low[i, k] * li[k, j]
+            li[i, j] = v / low[i, i]
+    for i in range(4):
+        for j in range(4):
+            v = 0.0
+            for k in range(max(i, j), 4):
+                v += li[k, i] * li[k, j]
+            out[i, j] = v
+
+
+@njit(cache=True)
+def _wls_kernel(los, usable, eps, var_rx, thr):
+    """Per vehicle: the WLS fix error (east, north) of the usable satellites with fault exclusion, the reported
+    2 x 2 covariance, satellites used, satellites excluded, whether there is a fix (module docstring)."""
+    n, s = usable.shape
+    err = np.zeros((n, 2))
+    cov = np.zeros((n, 2, 2))
+    used = np.zeros(n, dtype=np.int64)
+    excluded = np.zeros(n, dtype=np.int64)
+    ok = np.zeros(n, dtype=np.bool_)
+    idx = np.empty(s, dtype=np.int64)
+    h = np.empty((s, 4))
+    for k in range(s):
+        h[k, 0], h[k, 1], h[k, 2], h[k, 3] = -los[k, 0], -los[k, 1], -los[k, 2], 1.0
+    a = np.empty((4, 4))
+    p = np.empty((4, 4))
+    b = np.empty(4)
+    x = np.empty(4)
+    for i in range(n):
+        m = 0
+        for k in range(s):
+            if usable[i, k]:
+                idx[m] = k
+                m += 1
+        while m >= 4:
+            a[:] = 0.0
+            b[:] = 0.0
+            for j in range(m):
+                k = idx[j]
+                w = 1.0 / var_rx[k]
+                for r in range(4):
+                    hw = h[k, r] * w
+                    b[r] += hw * eps[i, k]
+                    for c in range(4):
+                        a[r, c] += hw * h[k, c]
+            _inv_spd4(a, p)
+            for r in range(4):
+                x[r] = p[r, 0] * b[0] + p[r, 1] * b[1] + p[r, 2] * b[2] + p[r, 3] * b[3]
+            ok[i] = True
+            err[i, 0], err[i, 1] = x[0], x[1]
+            cov[i, 0, 0], cov[i, 0, 1], cov[i, 1, 0], cov[i, 1, 1] = p[0, 0], p[0, 1], p[1, 0], p[1, 1]
+            used[i] = m
+            if m == 4 or not np.isfinite(thr[m - 4]):
+                break
+            wsse = 0.0
+            worst, worst_w = -1, -1.0
+            for j in range(m):
+                k = idx[j]
+                r = eps[i, k] - (h[k, 0] * x[0] + h[k, 1] * x[1] + h[k, 2] * x[2] + x[3])
+                wsse += r * r / var_rx[k]
+                hph = 0.0
+                for rr in range(4):
+                    for c in range(4):
+                        hph += h[k, rr] * p[rr, c] * h[k, c]
+                cr = var_rx[k] - hph
+                wj = r * r / cr if cr > 1e-12 else 0.0
+                if wj > worst_w:
+                    worst, worst_w = j, wj
+            if wsse <= thr[m - 4] or m <= 5:
+                break  # consistent, or too few satellites to exclude one and test again
+            for j in range(worst, m - 1):
+                idx[j] = idx[j + 1]
+            m -= 1
+            excluded[i] += 1
+        if not ok[i]:
+            used[i] = m
+    return err, cov, used, excluded, ok
+
+
+class SatelliteErrorProcess:
+    """``[gnss_error] model = "satellites"`` (module docstring). Same ``step`` interface as
+    :class:`couplers.sensing.gnss_error.GnssErrorProcess`; after each step ``reported_cov`` (N, 2, 2) is the
+    covariance each receiver reports, and ``last`` the step's diagnostics (satellites above the mask, used,
+    excluded, NLOS received or blocked, fix or not)."""
+
+    STREAMS = ("sv_common", "code_noise", "multipath", "no_fix")
+
+    def __init__(self, params, seed: int, dt: float, buildings: Buildings | None = None,
+                 net_path: Path | None = None):
+        self.params = p = params
+        self.dt = float(dt)
+        for name in self.STREAMS:
+            setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
+        self.lat, self.lon, self.origin_how = net_origin(net_path)
+        self.sky = Sky.build(self.lat, self.lon)
+        bad = missing_heights(buildings)
+        if bad.size:
+            raise InputError(None, f"buildings: features[{int(bad[0])}].properties.height",
+                             "missing: model = \"satellites\" needs every building's height")
+        self.edges = BuildingEdges.build(buildings) if buildings is not None and len(buildings) else None
+        self.radius = (clearance_radius(self.edges.heights, p.antenna_height_m, p.elevation_mask_deg)
+                       if self.edges is not None else 0.0)
+        s = self.sky.size
+        self.a_sv = 0.0 if p.sv_tau_s == 0 else math.exp(-self.dt / p.sv_tau_s)
+        self.sv = self.sv_common.standard_normal((s, 2))  # clock+orbit, vertical iono; stationary from the start
+        self.tropo = float(self.sv_common.standard_normal())
+        self.thr = chi2_thresholds(p.raim_pfa, s)
+        self.mask = math.radians(p.elevation_mask_deg)
+        self._ids = np.empty(0, dtype=object)
+        self._xy = np.empty((0, 2))
+        self._u = np.empty((0, s))
+        self._fix = np.empty((0, 2))  # absolute x/y of each receiver's last fix (NaN: none yet)
+        self.reported_cov = np.empty((0, 2, 2))
+        self.last: dict[str, np.ndarray] = {}
+
+    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray):
+        """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
+        common processes and the per-receiver draws."""
+        p = self.params
+        los, az, el = self.sky.look(p.constellation_time_s + t)
+        above = el >= self.mask
+        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
+        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
+                  + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
+        sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
+        eps = common[None, :] + sig_n[None, :] * white + (p.multipath_m / sin_el)[None, :] * u
+        n = len(xy)
+        blocked = np.zeros((n, el.size), dtype=bool)
+        if self.edges is not None and n:
+            cols = np.flatnonzero(above)
+            b, d = line_of_sight(self.edges, xy, az[cols], el[cols], p.antenna_height_m, self.radius)
+            blocked[:, cols] = b
+            if p.nlos == "delay":
+                extra = np.zeros_like(eps)
+                extra[:, cols] = np.where(b, 2.0 * d * np.cos(el[cols])[None, :], 0.0)
+                eps = eps + extra
+        usable = np.broadcast_to(above, eps.shape).copy()
+        if p.nlos == "block":
+            usable &= ~blocked
+        return eps, usable, los, el, blocked
+
+    def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
+             zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) position error of this step's fixes (``w``, ``sigma_p`` and ``zone`` are not read: the error
+        comes from the satellites); ``reported_cov`` the covariance the receivers report."""
+        p = self.params
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        n, s = len(xy), self.sky.size
+        if idx is None:
+            idx = match_ids(self._ids, ids)
+        idx = np.asarray(idx, dtype=np.int64)
+        # satellite common processes: one Gauss-Markov step each
+        b_sv = math.sqrt(1.0 - self.a_sv ** 2)
+        self.sv = self.a_sv * self.sv + b_sv * self.sv_common.standard_normal((s, 2))
+        self.tropo = self.a_sv * self.tropo + b_sv * float(self.sv_common.standard_normal())
+        white = self.code_noise.standard_normal((n, s))
+        z = self.multipath.standard_normal((n, s))
+        # multipath: correlated over the distance travelled this step
+        carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
+        u = z.copy()
+        fix_prev = np.full((n, 2), np.nan)
+        if carried.any():
+            prev = idx[carried]
+            d = np.hypot(*(xy[carried] - self._xy[prev]).T)
+            a = np.exp(-d / p.multipath_corr_length_m)[:, None]
+            u[carried] = a * self._u[prev] + np.sqrt(1.0 - a * a) * z[carried]
+            fix_prev[carried] = self._fix[prev]
+        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white)
+        var_rx = receiver_variance(p, el)
+        err, cov, used, excluded, ok = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
+                                                   var_rx, self.thr)
+        if not ok.all():  # no fix: hold the last one, or one drawn at NO_FIX_SIGMA_M around a newcomer
+            lost = np.flatnonzero(~ok)
+            held = np.isfinite(fix_prev[lost, 0])
+            err[lost[held]] = fix_prev[lost[held]] - xy[lost[held]]
+            k = int((~held).sum())
+            err[lost[~held]] = NO_FIX_SIGMA_M * self.no_fix.standard_normal((k, 2))
+            cov[lost] = np.eye(2) * NO_FIX_SIGMA_M ** 2
+        above = el >= self.mask
+        self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
+                     "nlos": (blocked & above[None, :]).sum(axis=1)}
+        self.reported_cov = cov
+        self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
+        return err
+
+    @property
+    def in_episode(self) -> np.ndarray:
+        """(N,) bool for the vehicles of the last step: at least one blocked satellite above the mask."""
+        return np.asarray(self.last.get("nlos", np.zeros(0)), dtype=int) > 0

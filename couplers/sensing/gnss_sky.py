@@ -1,0 +1,282 @@
+"""The sky of the ``[gnss_error] model = "satellites"`` receivers: a GPS + Galileo constellation seen from the net,
+and the line of sight of every (vehicle, satellite) pair past the net folder's buildings.
+
+Constellation (:data:`CONSTELLATIONS`, synthetic, Walker-like, with the real planes and orbit sizes):
+
+* GPS: 24 satellites in 6 planes (right ascensions 60 deg apart), inclination 55 deg, semi-major axis 26 560 km
+  (period 11 h 58 min), 4 per plane, phased as a Walker 24/6/2 (assumption: the real GPS slots are not a
+  Walker pattern, and ~31 satellites fly rather than the 24 of the baseline; fewer satellites than in reality,
+  so the geometry is, if anything, pessimistic). Planes, inclination and radius: the GPS SPS Performance
+  Standard's baseline 24-slot constellation (6 planes A-F, 55 deg, 26 560 km).
+* Galileo: Walker 24/3/1, inclination 56 deg, semi-major axis 29 600 km (period 14 h 05 min): the nominal
+  Galileo constellation (three planes, eight satellites each).
+* Circular Kepler orbits, period 2 pi sqrt(a^3 / mu) with mu = 3.986004418e14 m^3/s^2 (WGS 84), propagated in
+  an Earth-centred inertial frame and rotated into ECEF with the Earth's rate 7.2921151467e-5 rad/s (WGS 84).
+  ``constellation_time_s`` is the time of the run's t = 0 after the constellation's epoch (at which each plane's
+  right ascension and each satellite's argument of latitude take their Walker values).
+* Seen from the net's geographic reference: the WGS 84 lon/lat of net x/y (0, 0) through the net's own
+  projection (``<location projParameter>``, :mod:`couplers.net.georef`); a net without geo-reference is placed at
+  :data:`DEFAULT_LAT_DEG` / :data:`DEFAULT_LON_DEG` (Turin, 45.07 N 7.69 E: the arterial is Turin-like). The few km
+  of a net change a satellite's direction by hundredths of a degree: one direction per satellite for the whole
+  net. Net x/y are taken as east / north (a projected net's grid convergence, a degree or two, is neglected).
+
+Line of sight (:func:`line_of_sight`): from the antenna (``antenna_height_m`` above the ground, the ground at 0) a
+ray in the satellite's azimuth rising at its elevation. It is blocked by a building when it enters the building's
+extruded footprint below the roof: the 2-D ray crosses the footprint at horizontal distance d (its first
+crossing) where d tan(el) + h_ant < h_building, or the antenna stands inside the footprint below the roof. Walls
+are vertical and roofs flat (the footprint extruded to ``height``). The ray's height grows with d, so the first
+crossing of a footprint is its lowest point there: one test per building. Candidate buildings per vehicle:
+the STRtree's ``dwithin`` query within the distance at which a ray at the elevation mask clears the tallest
+roof; per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
+the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import shapely
+from numba import njit
+
+from couplers.net.buildings import Buildings
+
+MU_EARTH = 3.986004418e14  # m^3/s^2, WGS 84
+OMEGA_EARTH = 7.2921151467e-5  # rad/s, WGS 84
+WGS84_A = 6378137.0  # m
+WGS84_F = 1.0 / 298.257223563
+DEFAULT_LAT_DEG = 45.07  # Turin (assumption for a net without geo-reference)
+DEFAULT_LON_DEG = 7.69
+
+
+@dataclass(frozen=True)
+class Constellation:
+    """A Walker T/P/F constellation: ``t`` satellites in ``p`` planes, phasing ``f``."""
+
+    name: str
+    t: int
+    p: int
+    f: int
+    inclination_deg: float
+    a_m: float
+
+    @property
+    def period_s(self) -> float:
+        return 2.0 * math.pi * math.sqrt(self.a_m ** 3 / MU_EARTH)
+
+    def elements(self) -> tuple[np.ndarray, np.ndarray]:
+        """(raan0, u0) of each satellite (rad): plane k at RAAN 2 pi k / p, slot j at 2 pi j / s + 2 pi f k / t."""
+        s = self.t // self.p
+        k, j = np.divmod(np.arange(self.t), s)
+        raan = 2.0 * np.pi * k / self.p
+        u = 2.0 * np.pi * j / s + 2.0 * np.pi * self.f * k / self.t
+        return raan, u
+
+
+GPS = Constellation("GPS", 24, 6, 2, 55.0, 26_560e3)
+GALILEO = Constellation("Galileo", 24, 3, 1, 56.0, 29_600e3)
+CONSTELLATIONS = (GPS, GALILEO)
+
+
+@dataclass(frozen=True)
+class Sky:
+    """Every satellite's orbital elements (arrays over the satellites of :data:`CONSTELLATIONS`, in order) and the
+    receivers' geographic reference."""
+
+    raan0: np.ndarray
+    u0: np.ndarray
+    inc: np.ndarray
+    a: np.ndarray
+    n: np.ndarray  # mean motion, rad/s
+    system: np.ndarray  # index into CONSTELLATIONS
+    lat_deg: float
+    lon_deg: float
+
+    @classmethod
+    def build(cls, lat_deg: float = DEFAULT_LAT_DEG, lon_deg: float = DEFAULT_LON_DEG) -> "Sky":
+        raan, u, inc, a, n, sys_ = [], [], [], [], [], []
+        for k, c in enumerate(CONSTELLATIONS):
+            r, uu = c.elements()
+            raan.append(r)
+            u.append(uu)
+            inc.append(np.full(c.t, math.radians(c.inclination_deg)))
+            a.append(np.full(c.t, c.a_m))
+            n.append(np.full(c.t, 2.0 * math.pi / c.period_s))
+            sys_.append(np.full(c.t, k))
+        cat = np.concatenate
+        return cls(cat(raan), cat(u), cat(inc), cat(a), cat(n), cat(sys_), float(lat_deg), float(lon_deg))
+
+    @property
+    def size(self) -> int:
+        return int(self.raan0.size)
+
+    def ecef(self, t: float) -> np.ndarray:
+        """(S, 3) ECEF positions (m) at ``t`` s after the constellation's epoch: circular orbits, Earth rotation."""
+        u = self.u0 + self.n * t
+        raan = self.raan0 - OMEGA_EARTH * t  # the node's longitude in the rotating frame
+        cu, su = np.cos(u), np.sin(u)
+        ci, si = np.cos(self.inc), np.sin(self.inc)
+        cr, sr = np.cos(raan), np.sin(raan)
+        x = self.a * (cr * cu - sr * su * ci)
+        y = self.a * (sr * cu + cr * su * ci)
+        z = self.a * (su * si)
+        return np.stack([x, y, z], axis=1)
+
+    def receiver_ecef(self) -> np.ndarray:
+        """The reference point on the WGS 84 ellipsoid (height 0)."""
+        lat, lon = math.radians(self.lat_deg), math.radians(self.lon_deg)
+        e2 = WGS84_F * (2.0 - WGS84_F)
+        nr = WGS84_A / math.sqrt(1.0 - e2 * math.sin(lat) ** 2)
+        return np.array([nr * math.cos(lat) * math.cos(lon), nr * math.cos(lat) * math.sin(lon),
+                         nr * (1.0 - e2) * math.sin(lat)])
+
+    def enu_rotation(self) -> np.ndarray:
+        """(3, 3) rows: east, north, up unit vectors in ECEF at the reference point."""
+        lat, lon = math.radians(self.lat_deg), math.radians(self.lon_deg)
+        sl, cl, sp, cp = math.sin(lon), math.cos(lon), math.sin(lat), math.cos(lat)
+        return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
+
+    def look(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(unit line-of-sight vectors (S, 3) in ENU, azimuth (S,) rad clockwise from north, elevation (S,) rad)."""
+        d = (self.ecef(t) - self.receiver_ecef()) @ self.enu_rotation().T
+        los = d / np.linalg.norm(d, axis=1)[:, None]
+        az = np.arctan2(los[:, 0], los[:, 1])
+        el = np.arcsin(np.clip(los[:, 2], -1.0, 1.0))
+        return los, az, el
+
+
+def net_origin(net_path: Path | None) -> tuple[float, float, str]:
+    """(lat, lon, how) of the net's x/y (0, 0): through its projection, else the default (module docstring)."""
+    if net_path is not None:
+        from couplers.net.georef import read_georef
+
+        g = read_georef(Path(net_path))
+        if g.has_proj:
+            import pyproj
+
+            lon, lat = pyproj.Proj(projparams=g.proj)(-g.net_offset[0], -g.net_offset[1], inverse=True)
+            if math.isfinite(lat) and math.isfinite(lon):
+                return float(lat), float(lon), f"the net's projection {g.proj!r}"
+    return DEFAULT_LAT_DEG, DEFAULT_LON_DEG, "no geo-reference: the default (Turin)"
+
+
+# --- line of sight ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BuildingEdges:
+    """Every ring edge of the footprints (E, 4: x0, y0, x1, y1), listed per building (CSR ``start``), with the
+    buildings' boxes (B, 4), heights (B,) and the STRtree of :class:`couplers.net.buildings.Buildings`."""
+
+    edges: np.ndarray
+    start: np.ndarray
+    boxes: np.ndarray
+    heights: np.ndarray
+    tree: shapely.STRtree
+
+    @classmethod
+    def build(cls, buildings: Buildings) -> "BuildingEdges":
+        rings_per_poly = []
+        for poly in buildings.polygons:
+            parts = shapely.get_parts(poly)
+            rings = []
+            for part in parts:
+                rings.append(shapely.get_exterior_ring(part))
+                rings.extend(shapely.get_interior_ring(part, i) for i in range(shapely.get_num_interior_rings(part)))
+            rings_per_poly.append(rings)
+        edges, start = [], [0]
+        for rings in rings_per_poly:
+            k = 0
+            for ring in rings:
+                c = shapely.get_coordinates(ring)
+                if len(c) >= 2:
+                    edges.append(np.hstack([c[:-1], c[1:]]))
+                    k += len(c) - 1
+            start.append(start[-1] + k)
+        e = np.vstack(edges) if edges else np.empty((0, 4))
+        return cls(edges=np.ascontiguousarray(e, dtype=np.float64), start=np.asarray(start, dtype=np.int64),
+                   boxes=np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64),
+                   heights=np.asarray(buildings.heights, dtype=np.float64), tree=buildings.tree)
+
+    def candidates(self, xy: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """CSR (start (N + 1,), building ids) of the buildings within ``radius`` of each point."""
+        n = len(xy)
+        if n == 0 or self.heights.size == 0:
+            return np.zeros(n + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
+        pairs = self.tree.query(shapely.points(np.asarray(xy, dtype=float)), predicate="dwithin", distance=radius)
+        order = np.lexsort((pairs[1], pairs[0]))
+        veh, bld = pairs[0][order], pairs[1][order]
+        start = np.zeros(n + 1, dtype=np.int64)
+        np.add.at(start, veh + 1, 1)
+        return np.cumsum(start), np.ascontiguousarray(bld, dtype=np.int64)
+
+
+def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mask_deg: float) -> float:
+    """Horizontal distance beyond which no roof blocks a ray at or above the elevation mask."""
+    h = float(np.max(heights, initial=0.0)) - antenna_height_m
+    if h <= 0:
+        return 0.0
+    return h / math.tan(math.radians(max(elevation_mask_deg, 0.5)))
+
+
+def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.ndarray, antenna_height_m: float,
+                  radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(blocked (N, S) bool, d (N, S): horizontal distance to the first blocking crossing, inf where clear) for
+    antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring)."""
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    start, ids = edges.candidates(xy, radius)
+    return _los_kernel(xy, start, ids, edges.edges, edges.start, edges.boxes, edges.heights,
+                       np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m))
+
+
+@njit(cache=True)
+def _box_distance(px, py, box):
+    dx = max(box[0] - px, 0.0, px - box[2])
+    dy = max(box[1] - py, 0.0, py - box[3])
+    return math.sqrt(dx * dx + dy * dy)
+
+
+@njit(cache=True)
+def _los_kernel(xy, cstart, cids, edges, estart, boxes, heights, de, dn, tan_el, h_ant):
+    n, s = xy.shape[0], de.size
+    blocked = np.zeros((n, s), dtype=np.bool_)
+    dist = np.full((n, s), np.inf)
+    for i in range(n):
+        px, py = xy[i, 0], xy[i, 1]
+        for c in range(cstart[i], cstart[i + 1]):
+            b = cids[c]
+            hb = heights[b]
+            if not hb > h_ant:
+                continue
+            bd = _box_distance(px, py, boxes[b])
+            for k in range(s):
+                if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
+                    continue  # under the horizon (not used), or the box is already cleared at this elevation
+                dx, dy = de[k], dn[k]
+                crossings = 0
+                tmin = np.inf
+                for e in range(estart[b], estart[b + 1]):
+                    ax, ay = edges[e, 0] - px, edges[e, 1] - py
+                    ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+                    den = dx * ey - dy * ex  # cross(dir, edge)
+                    if den == 0.0:
+                        continue  # parallel
+                    t = (ax * ey - ay * ex) / den  # distance along the ray
+                    u = (ax * dy - ay * dx) / den  # fraction along the edge
+                    if t >= 0.0 and 0.0 <= u < 1.0:
+                        crossings += 1
+                        if t < tmin:
+                            tmin = t
+                if crossings == 0:
+                    continue
+                if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
+                    hit = True
+                else:
+                    hit = tmin * tan_el[k] + h_ant < hb
+                if hit:
+                    blocked[i, k] = True
+                    if tmin < dist[i, k]:
+                        dist[i, k] = tmin
+    return blocked, dist

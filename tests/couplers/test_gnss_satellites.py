@@ -1,0 +1,246 @@
+"""The "satellites" GNSS model (couplers.sensing.gnss_sky, couplers.sensing.gnss_satellites): the constellation's
+geometry, the line of sight past extruded footprints against an exact check with shapely, the receiver's WLS fix
+against the covariance it reports, no NLOS without buildings, same seed same bytes."""
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+from scipy.stats import chi2
+
+from couplers.errors import InputError
+from couplers.net.buildings import Buildings
+from couplers.sensing.gnss_error import GnssErrorParams, gnss_error_process
+from couplers.sensing.gnss_satellites import SatelliteErrorProcess, check_building_heights
+from couplers.sensing.gnss_sky import GALILEO, GPS, BuildingEdges, Sky, line_of_sight
+
+SAT = dict(model="satellites")
+
+
+def _ids(n):
+    return np.array([f"v{i}" for i in range(n)], dtype=object)
+
+
+def test_periods_are_the_real_ones_and_orbits_close_after_one_period():
+    assert abs(GPS.period_s - (11 * 3600 + 58 * 60)) < 60  # 11 h 58 min
+    assert abs(GALILEO.period_s - (14 * 3600 + 5 * 60)) < 60  # 14 h 05 min
+    sky = Sky.build()
+    # in the inertial frame (Earth rotation taken back out) a satellite is where it was one period earlier
+    for c, sel in ((GPS, sky.system == 0), (GALILEO, sky.system == 1)):
+        t = c.period_s
+        rot = 7.2921151467e-5 * t
+        r = np.array([[math.cos(rot), -math.sin(rot), 0], [math.sin(rot), math.cos(rot), 0], [0, 0, 1]])
+        np.testing.assert_allclose(sky.ecef(t)[sel] @ r.T, sky.ecef(0.0)[sel], atol=1e-3)
+        assert np.allclose(np.linalg.norm(sky.ecef(123.0)[sel], axis=1), c.a_m)
+
+
+@pytest.mark.parametrize("lat", [45.07, 0.0, 60.0])
+def test_satellites_above_ten_degrees_number_eight_to_twenty(lat):
+    """Typically 8-20 GPS + Galileo satellites above a 10 deg mask: the 5th to 95th percentile over a day."""
+    sky = Sky.build(lat, 7.69)
+    counts = np.array([(sky.look(t)[2] > math.radians(10)).sum() for t in np.arange(0.0, 86400.0, 600.0)])
+    assert 8 <= np.percentile(counts, 5) and np.percentile(counts, 95) <= 20
+    assert counts.min() >= 6
+    assert 10 <= counts.mean() <= 18
+
+
+def _random_scene(rng, k=25):
+    polys, heights = [], []
+    for _ in range(k):
+        cx, cy = rng.uniform(-80, 80, 2)
+        if rng.random() < 0.7:  # rotated rectangle
+            w, h, a = rng.uniform(4, 30), rng.uniform(4, 30), rng.uniform(0, np.pi)
+            c = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+            r = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+            poly = shapely.Polygon(c @ r.T + [cx, cy])
+        else:  # a concave star-like outline
+            m = int(rng.integers(5, 10))
+            ang = np.sort(rng.uniform(0, 2 * np.pi, m))
+            rad = rng.uniform(3, 15, m)
+            poly = shapely.Polygon(np.c_[cx + rad * np.cos(ang), cy + rad * np.sin(ang)])
+        if poly.is_valid:
+            polys.append(poly)
+            heights.append(rng.uniform(0.5, 35.0))
+    return Buildings.from_polygons(polys, heights)
+
+
+def _brute_force(b: Buildings, p, az, el, h_ant):
+    """Exact 3-D check on the extruded footprints: the ray's horizontal trace clipped by each footprint (GEOS);
+    the 3-D ray (rising with distance) enters the prism iff it is below the roof at the trace's first point inside."""
+    out = np.zeros(az.size, dtype=bool)
+    for k in range(az.size):
+        far = 500.0
+        end = (p[0] + far * math.sin(az[k]), p[1] + far * math.cos(az[k]))
+        ray = shapely.LineString([tuple(p), end])
+        for poly, h in zip(b.polygons, b.heights):
+            inter = poly.intersection(ray)
+            if inter.is_empty:
+                continue
+            pts = shapely.get_coordinates(inter)
+            d = np.min(np.hypot(pts[:, 0] - p[0], pts[:, 1] - p[1]))
+            if d * math.tan(el[k]) + h_ant < h:
+                out[k] = True
+                break
+    return out
+
+
+def test_line_of_sight_equals_an_exact_3d_check_on_random_scenes():
+    rng = np.random.default_rng(7)
+    checked = blocked_total = 0
+    for _ in range(6):
+        b = _random_scene(rng)
+        edges = BuildingEdges.build(b)
+        xy = rng.uniform(-90, 90, (25, 2))  # some antennas stand inside footprints
+        az = rng.uniform(-np.pi, np.pi, 30)
+        el = np.radians(rng.uniform(5, 85, 30))
+        h_ant = 1.5
+        blocked, dist = line_of_sight(edges, xy, az, el, h_ant, radius=1000.0)
+        for i in range(len(xy)):
+            ref = _brute_force(b, xy[i], az, el, h_ant)
+            np.testing.assert_array_equal(blocked[i], ref)
+            checked += ref.size
+            blocked_total += ref.sum()
+        assert np.all(np.isfinite(dist[blocked])) and np.all(np.isinf(dist[~blocked]))
+    assert 0.1 * checked < blocked_total < 0.9 * checked  # both outcomes are exercised
+
+
+def test_the_clearance_radius_loses_no_blocked_ray():
+    rng = np.random.default_rng(3)
+    b = _random_scene(rng, 40)
+    edges = BuildingEdges.build(b)
+    xy = rng.uniform(-90, 90, (30, 2))
+    az = rng.uniform(-np.pi, np.pi, 40)
+    el = np.radians(rng.uniform(10, 85, 40))
+    from couplers.sensing.gnss_sky import clearance_radius
+
+    r = clearance_radius(edges.heights, 1.5, 10.0)
+    np.testing.assert_array_equal(line_of_sight(edges, xy, az, el, 1.5, r)[0],
+                                  line_of_sight(edges, xy, az, el, 1.5, 1e4)[0])
+
+
+def _run(proc, n, steps, rng, speed=8.0, dt=0.75):
+    xy = rng.uniform(0, 1500, (n, 2))
+    errs, covs = [], []
+    for k in range(steps):
+        xy = xy + rng.normal(0, speed * dt, (n, 2))
+        e = proc.step(k * dt, _ids(n), np.full(n, k == 0), None, None, None, xy)
+        errs.append(e)
+        covs.append(proc.reported_cov.copy())
+    return np.array(errs), np.array(covs)
+
+
+def test_fix_error_is_consistent_with_the_reported_covariance_in_the_open():
+    """World errors exactly the receiver's budget (white code noise of the same elevation model, no common part,
+    no multipath, open sky): NEES of the 2-D fix is chi-square with 2 degrees of freedom. 20 receivers x 1500
+    epochs; the mean NEES of 30000 fixes within the two-sided 0.1 % band of chi2(60000) / 30000, and the share
+    above the 95 % point within 3.3 sigma of 5 %. RAIM on at 1e-3 (its rare exclusions hardly move the mean)."""
+    p = GnssErrorParams(model="satellites", sv_clock_orbit_m=0.0, iono_vertical_m=0.0, tropo_zenith_m=0.0,
+                        multipath_m=0.0, code_noise_a_m=0.8, code_noise_b_m=0.6, rx_ure_m=0.0, rx_iono_m=0.0,
+                        rx_tropo_m=0.0, rx_code_a_m=0.8, rx_code_b_m=0.6)
+    proc = SatelliteErrorProcess(p, 11, 0.75)
+    e, c = _run(proc, 20, 1500, np.random.default_rng(5))
+    nees = np.einsum("kni,knij,knj->kn", e, np.linalg.inv(c), e).ravel()
+    n = nees.size
+    lo, hi = chi2.ppf([0.0005, 0.9995], 2 * n) / n
+    assert lo < nees.mean() < hi, nees.mean()
+    share = (nees > chi2.ppf(0.95, 2)).mean()
+    assert abs(share - 0.05) < 3.3 * math.sqrt(0.05 * 0.95 / n)
+    assert (c[:, :, 0, 1] != 0).any()  # the receiver reports the east-north correlation of its geometry
+
+
+def test_open_sky_defaults_give_metre_level_errors_shared_between_receivers():
+    proc = SatelliteErrorProcess(GnssErrorParams(**SAT), 2, 0.75)
+    e, c = _run(proc, 10, 800, np.random.default_rng(1))
+    rms = math.sqrt((e ** 2).sum(-1).mean())
+    assert 0.7 < rms < 3.0  # open-sky single-frequency horizontal error (docs/validation/realistic_sensing.md)
+    assert proc.last["fix"].all() and (proc.last["nlos"] == 0).all()
+
+
+def test_common_mode_errors_alone_are_the_same_for_every_receiver_in_the_open():
+    """Without receiver noise and multipath, every receiver of the net sees the same satellites with the same
+    errors (clock/orbit, ionosphere, troposphere): identical fixes' errors, metre-level and changing slowly."""
+    proc = SatelliteErrorProcess(GnssErrorParams(**SAT, code_noise_a_m=0.0, code_noise_b_m=0.0, multipath_m=0.0),
+                                 2, 0.75)
+    e, _ = _run(proc, 10, 100, np.random.default_rng(1))
+    np.testing.assert_allclose(e, np.broadcast_to(e[:, :1], e.shape), atol=1e-9)
+    assert 0.1 < np.abs(e).max() < 10.0
+    assert np.abs(np.diff(e[:, 0], axis=0)).max() < 0.2  # Gauss-Markov over sv_tau_s = 1800 s
+
+
+def test_no_buildings_no_nlos_and_low_buildings_none_either():
+    low = Buildings.from_polygons([shapely.box(x, 10, x + 20, 30) for x in range(0, 400, 40)], [1.0] * 10)
+    for b in (None, Buildings.from_polygons([], []), low):
+        proc = SatelliteErrorProcess(GnssErrorParams(**SAT, nlos="block"), 4, 0.75, b)
+        rng = np.random.default_rng(0)
+        xy = np.c_[rng.uniform(0, 400, 30), np.zeros(30)]
+        for k in range(20):
+            proc.step(k * 0.75, _ids(30), np.full(30, k == 0), None, None, None, xy)
+            assert (proc.last["nlos"] == 0).all()
+            assert (proc.last["used"] == proc.last["above"] - proc.last["excluded"]).all()
+
+
+def test_a_street_canyon_blocks_satellites_and_delay_biases_the_fix():
+    """A 20 m wide east-west canyon of 25 m high blocks, receivers on its axis. "block": the satellites across the
+    street are lost, the fix is poor across the street (north) and the receiver says so; "delay": they come in
+    late, the receiver excludes some and is overconfident about the rest (NLOS is not in its budget)."""
+    blocks = [shapely.box(x, s * 10, x + 45, s * 10 + 30 * s) for x in range(-300, 300, 50) for s in (1, -1)]
+    b = Buildings.from_polygons([shapely.box(*g.bounds) for g in blocks], [25.0] * len(blocks))
+    xy = np.c_[np.linspace(-250, 100, 40), np.zeros(40)]
+    out = {}
+    for mode in ("block", "delay"):
+        proc = SatelliteErrorProcess(GnssErrorParams(**SAT, nlos=mode), 9, 0.75, b)
+        errs, covs, excl = [], [], 0
+        for k in range(200):
+            errs.append(proc.step(k * 0.75, _ids(40), np.full(40, k == 0), None, None, None, xy + [k * 0.5, 0]))
+            covs.append(proc.reported_cov.copy())
+            assert (proc.last["nlos"] > 0).all() and proc.last["fix"].all()
+            excl += proc.last["excluded"].sum()
+        e, c = np.array(errs), np.array(covs)
+        out[mode] = (e, np.einsum("kni,knij,knj->kn", e, np.linalg.inv(c), e).mean(), excl, proc.last)
+    e, nees, _, last = out["block"]
+    assert (last["used"] < last["above"]).all()
+    assert np.sqrt((e[..., 1] ** 2).mean()) > 2 * np.sqrt((e[..., 0] ** 2).mean())
+    assert nees < 4.0  # the poor geometry is in the reported covariance
+    e, nees, excl, last = out["delay"]
+    assert excl > 0 and nees > 4.0
+
+
+def test_same_seed_same_bytes_and_another_seed_differs():
+    b = Buildings.from_polygons([shapely.box(0, 8, 200, 40), shapely.box(0, -40, 200, -8)], [20.0, 30.0])
+
+    def run(seed):
+        proc = gnss_error_process(GnssErrorParams(**SAT), seed, 0.75, b)
+        e, c = _run(proc, 12, 60, np.random.default_rng(0))
+        return e.tobytes() + c.tobytes()
+
+    assert run(3) == run(3)
+    assert run(3) != run(4)
+
+
+def test_elevation_mask_outside_0_90_and_unknown_nlos_are_refused():
+    for bad in (-1.0, 90.0, 120.0, float("nan")):
+        with pytest.raises(InputError) as exc:
+            GnssErrorParams(**SAT, elevation_mask_deg=bad)
+        assert exc.value.field == "elevation_mask_deg"
+    with pytest.raises(InputError) as exc:
+        GnssErrorParams(**SAT, nlos="reflect")
+    assert exc.value.field == "nlos"
+
+
+def test_a_building_without_height_is_refused_with_its_file_and_field(tmp_path):
+    import json
+    import shutil
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[2] / "sumo_nets" / "arterial"
+    net = tmp_path / "net"
+    shutil.copytree(src, net)
+    doc = json.loads((net / "buildings.geojson").read_text())
+    del doc["features"][3]["properties"]["height"]
+    (net / "buildings.geojson").write_text(json.dumps(doc))
+    with pytest.raises(InputError) as exc:
+        check_building_heights(net)
+    assert exc.value.field == "features[3].properties.height"
+    assert str(exc.value.path).endswith("buildings.geojson")
+    check_building_heights(src)  # every building of the arterial has its height
