@@ -426,6 +426,10 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.start", f"unknown value {cfg.scenario.start!r} (available: {', '.join(STARTS)})")
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
+    if cfg.gnss_error is not None and cfg.gnss_error.model == "satellites" and cfg.scenario.kind == "sumo":
+        from couplers.sensing.gnss_satellites import check_building_heights
+
+        check_building_heights(cfg.scenario.net_dir)  # every building needs its height (file and field named)
 
 
 def _validate_pedestrians(cfg: Config) -> None:

@@ -90,8 +90,12 @@ TABLE_DOCS: dict[str, str] = {
                                  "recorded, the estimators read each row's covariance from the frame).",
     "gnss_error": "Realistic GNSS error (optional table, SUMO only; `couplers/sensing/gnss_error.py`): first-order "
                   "Gauss-Markov position error with the zone's sigma and correlation time `tau_s`, plus NLOS "
-                  "bias episodes (`model = \"per_vehicle\"`), or errors nearby vehicles share (`model = \"field\"`). "
-                  "The estimators keep the nominal zone covariance a receiver reports.",
+                  "bias episodes (`model = \"per_vehicle\"`), or errors nearby vehicles share (`model = \"field\"`); "
+                  "with these two the estimators keep the nominal zone covariance a receiver reports. "
+                  "`model = \"satellites\"` (`couplers/sensing/gnss_satellites.py`): a receiver at pseudorange "
+                  "level, GPS + Galileo seen past the net folder's buildings (every building needs its `height`), "
+                  "a weighted least-squares fix with fault exclusion, and the covariance that receiver reports is "
+                  "the frame's GNSS covariance.",
     "inertial": "Realistic inertial input (optional table, SUMO only; `couplers/sensing/inertial.py`): a body-frame IMU "
                 "per vehicle, longitudinal and lateral acceleration and yaw rate over the step, each with white "
                 "noise, a turn-on bias drawn when the vehicle enters and a first-order Gauss-Markov drift. The "
@@ -364,6 +368,36 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                      "(standing still it keeps it, up to `tau_s`, its time floor)."),
         "nlos_cell_m": ("m", "field: side of the square cells NLOS episodes belong to; every vehicle in a cell "
                              "shares its episode."),
+        "elevation_mask_deg": ("deg", "satellites: the receiver uses satellites at or above this elevation, in "
+                                      "[0, 90)."),
+        "antenna_height_m": ("m", "satellites: antenna height above the road, the start of each sight line."),
+        "nlos": ("", "satellites: a satellite whose sight line a building blocks is `\"block\"`: not received, or "
+                     "`\"delay\"`: received by reflection with the extra path 2 d cos(el), d the distance to the "
+                     "blocking facade."),
+        "constellation_time_s": ("s", "satellites: the run's t = 0 after the constellation's epoch (moves the "
+                                      "geometry)."),
+        "sv_clock_orbit_m": ("m", "satellites: broadcast clock and orbit error per satellite (Gauss-Markov, shared "
+                                  "by every receiver)."),
+        "iono_vertical_m": ("m", "satellites: vertical ionospheric delay left after the broadcast model, per "
+                                 "satellite, times the Klobuchar obliquity factor."),
+        "tropo_zenith_m": ("m", "satellites: zenith tropospheric delay left after the receiver's model (one for "
+                                "the net), times the RTCA DO-229 mapping."),
+        "sv_tau_s": ("s", "satellites: correlation time of the clock/orbit, ionosphere and troposphere errors; "
+                          "0 = white."),
+        "code_noise_a_m": ("m", "satellites: receiver code noise, white, sigma^2 = a^2 + b^2 / sin(el) (RTKLIB's "
+                                "elevation model)."),
+        "code_noise_b_m": ("m", "satellites: the b of `code_noise_a_m`."),
+        "multipath_m": ("m", "satellites: code multipath at zenith, growing as 1 / sin(el)."),
+        "multipath_corr_length_m": ("m", "satellites: distance travelled over which a receiver's multipath "
+                                         "decorrelates (a standing vehicle keeps it)."),
+        "rx_ure_m": ("m", "satellites, the receiver's own budget (weights and reported covariance, RTKLIB "
+                          "pntpos form): broadcast range error."),
+        "rx_iono_m": ("m", "satellites, receiver budget: ionosphere at zenith, times the obliquity factor."),
+        "rx_tropo_m": ("m", "satellites, receiver budget: troposphere, over sin(el) + 0.1."),
+        "rx_code_a_m": ("m", "satellites, receiver budget: code noise a (as `code_noise_a_m`)."),
+        "rx_code_b_m": ("m", "satellites, receiver budget: code noise b."),
+        "raim_pfa": (NO_UNIT, "satellites: false-alarm probability of the receiver's chi-square residual test; "
+                              "a failed test excludes the worst satellite and tries again; 0 = no test."),
     },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),

@@ -511,7 +511,39 @@ def run_gnss_error_zero_field_length(tmp, net, run):
 
 @case("cfg.toml", "gnss_error.model", "per_vehicle")
 def run_gnss_error_unknown_model(tmp, net, run):
-    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\n")
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'rinex'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.elevation_mask_deg", "[0, 90)")
+def run_gnss_satellites_mask_at_zenith(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nelevation_mask_deg = 90.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.elevation_mask_deg", "[0, 90)")
+def run_gnss_satellites_mask_below_horizon(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nelevation_mask_deg = -5.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.nlos", "block")
+def run_gnss_satellites_unknown_nlos(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nnlos = 'reflect'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("buildings.geojson", "features[1].properties.height", "satellites")
+def run_gnss_satellites_building_without_height(tmp, net, run):
+    copy = _net_copy(tmp, net)
+    doc = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": "urn:coloc:sumo-net-xy"}},
+           "features": [{"type": "Feature", "properties": {"height": h},
+                         "geometry": {"type": "Polygon", "coordinates": [[[x, 20], [x + 10, 20], [x + 10, 30],
+                                                                          [x, 30], [x, 20]]]}}
+                        for x, h in ((0.0, 12.0), (40.0, None))]}
+    doc["features"][1]["properties"] = {}
+    (copy / "buildings.geojson").write_text(json.dumps(doc))
+    cfg = _config(tmp, copy, "[gnss_error]\nmodel = 'satellites'\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
@@ -1314,7 +1346,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 169
+    assert len(CASES) >= 173
 
 
 # ----------------------------------------------------------------------------- what --out may replace
