@@ -19,6 +19,10 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      same traffic and prints them against the idealised frames: the target for the realistic frames is at most 1.5x
      the idealised ones
      (--repeat N: N alternating idealised / realistic runs, their medians and every pair's ratio);
+     --satellites also times the idealised frames with [gnss_error] model = "satellites" (the receiver at
+     pseudorange level, couplers/sensing/gnss_satellites.py, on the arterial's buildings) and prints them against
+     the idealised frames: the target is at most 2x (with --realistic, the realistic preset with model =
+     "satellites" is timed too; --repeat alternates every variant);
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)
@@ -148,6 +152,8 @@ def main() -> None:
                          "beside the fused path on the same batches of frames, named <method>[reference]")
     ap.add_argument("--realistic", action="store_true",
                     help="also time the frames of the realistic preset's sensing (same traffic)")
+    ap.add_argument("--satellites", action="store_true",
+                    help="also time the frames with [gnss_error] model = \"satellites\" (same traffic)")
     ap.add_argument("--repeat", type=int, default=1,
                     help="with --realistic: time the idealised and the realistic frames this many times, "
                          "alternating, and print the medians and every pair's ratio (a shared machine's "
@@ -173,14 +179,26 @@ def main() -> None:
     if args.realistic:  # the preset's sensing tables on the idealised config's traffic
         rcfg = load_config(ROOT / "experiments" / f"arterial_{args.control}_realistic.toml",
                            {"run.duration_s": args.duration})
+    sats = {}  # name -> sensors with [gnss_error] model = "satellites"
+    if args.satellites:
+        from couplers.sensing.gnss_error import GnssErrorParams
+
+        sats["satellites"] = dataclasses.replace(cfg.sensors, gnss_error=GnssErrorParams(model="satellites"))
+        if rcfg:
+            sats["realistic+satellites"] = dataclasses.replace(
+                rcfg.sensors, gnss_error=dataclasses.replace(rcfg.sensors.gnss_error, model="satellites"))
     warm = dataclasses.replace(scenario, duration_s=min(60.0, scenario.duration_s))
-    for sensors in [cfg.sensors] + ([rcfg.sensors] if rcfg else []):  # imports, numba caches: not timed
+    for sensors in [cfg.sensors] + ([rcfg.sensors] if rcfg else []) + list(sats.values()):  # numba caches: not timed
         time_coupled(warm, sensors, [])
     pairs = []  # (idealised wall, realistic wall, idealised CPU, realistic CPU) per repetition, alternating
-    for _ in range(args.repeat if rcfg else 1):
+    sat_runs = {name: [] for name in sats}  # (wall, CPU, idealised wall, idealised CPU) per repetition
+    for _ in range(args.repeat if (rcfg or sats) else 1):
         coupler_only, steps, _ = time_coupled(scenario, cfg.sensors, [], "frames")
         realistic = time_coupled(scenario, rcfg.sensors, [], "realistic")[0] if rcfg else None
         pairs.append((coupler_only, realistic, CPU["frames"], CPU.get("realistic")))
+        for name, sensors in sats.items():
+            wall = time_coupled(scenario, sensors, [], name)[0]
+            sat_runs[name].append((wall, CPU[name], coupler_only, CPU["frames"]))
     if len(pairs) > 1:  # the medians (and the median of the pairs' ratios below)
         coupler_only, realistic, CPU["frames"], CPU["realistic"] = (float(np.median(col)) for col in zip(*pairs))
     estimators = build_estimators(cfg)
@@ -213,6 +231,12 @@ def main() -> None:
     print(f"  libsumo step + getters   {floor:8.2f} s   ratio to sumo {floor / sumo_alone:5.2f}" + cpu("floor"))
     print(f"  coupler (frames only)    {coupler_only:8.2f} s   ratio to sumo {coupler_only / sumo_alone:5.2f}"
           + cpu("frames"))
+    for name, runs in sat_runs.items():
+        wall = [w / i for w, _, i, _ in runs]
+        cpu_r = [c / ic for _, c, _, ic in runs]
+        print(f"  frames, {name:<20} {float(np.median([r[0] for r in runs])):8.2f} s   to idealised frames: wall "
+              f"{' '.join(f'{x:.2f}' for x in wall)} (median {np.median(wall):.2f}), CPU "
+              f"{' '.join(f'{x:.2f}' for x in cpu_r)} (median {np.median(cpu_r):.2f})")
     if realistic is not None:
         print(f"  frames, realistic preset {realistic:8.2f} s   ratio to sumo {realistic / sumo_alone:5.2f}, "
               f"to idealised frames {realistic / coupler_only:5.2f}" + cpu("realistic"))

@@ -25,9 +25,10 @@ ray in the satellite's azimuth rising at its elevation. It is blocked by a build
 extruded footprint below the roof: the 2-D ray crosses the footprint at horizontal distance d (its first
 crossing) where d tan(el) + h_ant < h_building, or the antenna stands inside the footprint below the roof. Walls
 are vertical and roofs flat (the footprint extruded to ``height``). The ray's height grows with d, so the first
-crossing of a footprint is its lowest point there: one test per building. Candidate buildings per vehicle:
-the STRtree's ``dwithin`` query within the distance at which a ray at the elevation mask clears the tallest
-roof; per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
+crossing of a footprint is its lowest point there: one test per building. Candidate buildings per vehicle: those whose
+bounding box lies within the distance at which a ray at the elevation mask clears the tallest roof, found through
+a grid of square cells of that size listing the buildings whose box meets each cell (one numba kernel, no
+per-pair Python); per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
 the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h).
 """
 
@@ -41,7 +42,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from couplers.net.buildings import Buildings
+from couplers.net.buildings import Buildings, _cell_lists
 
 MU_EARTH = 3.986004418e14  # m^3/s^2, WGS 84
 OMEGA_EARTH = 7.2921151467e-5  # rad/s, WGS 84
@@ -168,13 +169,12 @@ def net_origin(net_path: Path | None) -> tuple[float, float, str]:
 @dataclass(frozen=True)
 class BuildingEdges:
     """Every ring edge of the footprints (E, 4: x0, y0, x1, y1), listed per building (CSR ``start``), with the
-    buildings' boxes (B, 4), heights (B,) and the STRtree of :class:`couplers.net.buildings.Buildings`."""
+    buildings' boxes (B, 4) and heights (B,)."""
 
     edges: np.ndarray
     start: np.ndarray
     boxes: np.ndarray
     heights: np.ndarray
-    tree: shapely.STRtree
 
     @classmethod
     def build(cls, buildings: Buildings) -> "BuildingEdges":
@@ -198,19 +198,25 @@ class BuildingEdges:
         e = np.vstack(edges) if edges else np.empty((0, 4))
         return cls(edges=np.ascontiguousarray(e, dtype=np.float64), start=np.asarray(start, dtype=np.int64),
                    boxes=np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64),
-                   heights=np.asarray(buildings.heights, dtype=np.float64), tree=buildings.tree)
+                   heights=np.asarray(buildings.heights, dtype=np.float64))
 
-    def candidates(self, xy: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        """CSR (start (N + 1,), building ids) of the buildings within ``radius`` of each point."""
-        n = len(xy)
-        if n == 0 or self.heights.size == 0:
-            return np.zeros(n + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
-        pairs = self.tree.query(shapely.points(np.asarray(xy, dtype=float)), predicate="dwithin", distance=radius)
-        order = np.lexsort((pairs[1], pairs[0]))
-        veh, bld = pairs[0][order], pairs[1][order]
-        start = np.zeros(n + 1, dtype=np.int64)
-        np.add.at(start, veh + 1, 1)
-        return np.cumsum(start), np.ascontiguousarray(bld, dtype=np.int64)
+    def grid(self, radius: float) -> tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
+        """(x0, y0, cell, nx, ny, CSR start, building ids) of square cells of side ``radius`` (at least 10 m)
+        listing the buildings whose box meets each cell; cached per radius."""
+        cache = self.__dict__.setdefault("_grids", {})
+        if radius not in cache:
+            cell = max(float(radius), 10.0)
+            b = self.boxes
+            x0, y0 = float(b[:, 0].min()), float(b[:, 1].min())
+            nx = int((b[:, 2].max() - x0) // cell) + 1
+            ny = int((b[:, 3].max() - y0) // cell) + 1
+            ix0 = np.floor((b[:, 0] - x0) / cell).astype(np.int64)
+            iy0 = np.floor((b[:, 1] - y0) / cell).astype(np.int64)
+            ix1 = np.minimum(np.floor((b[:, 2] - x0) / cell).astype(np.int64), nx - 1)
+            iy1 = np.minimum(np.floor((b[:, 3] - y0) / cell).astype(np.int64), ny - 1)
+            start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
+            cache[radius] = (x0, y0, cell, nx, ny, start, ids)
+        return cache[radius]
 
 
 def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mask_deg: float) -> float:
@@ -226,9 +232,11 @@ def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.n
     """(blocked (N, S) bool, d (N, S): horizontal distance to the first blocking crossing, inf where clear) for
     antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring)."""
     xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
-    start, ids = edges.candidates(xy, radius)
-    return _los_kernel(xy, start, ids, edges.edges, edges.start, edges.boxes, edges.heights,
-                       np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m))
+    if edges.heights.size == 0 or radius <= 0:
+        return np.zeros((len(xy), az.size), dtype=bool), np.full((len(xy), az.size), np.inf)
+    x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
+    return _los_kernel(xy, x0, y0, cell, nx, ny, start, ids, float(radius), edges.edges, edges.start, edges.boxes,
+                       edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m))
 
 
 @njit(cache=True)
@@ -239,44 +247,66 @@ def _box_distance(px, py, box):
 
 
 @njit(cache=True)
-def _los_kernel(xy, cstart, cids, edges, estart, boxes, heights, de, dn, tan_el, h_ant):
+def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn, tan_el,
+                h_ant):
     n, s = xy.shape[0], de.size
     blocked = np.zeros((n, s), dtype=np.bool_)
     dist = np.full((n, s), np.inf)
+    seen = np.full(heights.size, -1, dtype=np.int64)  # the vehicle that last looked at each building
     for i in range(n):
         px, py = xy[i, 0], xy[i, 1]
-        for c in range(cstart[i], cstart[i + 1]):
-            b = cids[c]
-            hb = heights[b]
-            if not hb > h_ant:
-                continue
-            bd = _box_distance(px, py, boxes[b])
-            for k in range(s):
-                if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
-                    continue  # under the horizon (not used), or the box is already cleared at this elevation
-                dx, dy = de[k], dn[k]
-                crossings = 0
-                tmin = np.inf
-                for e in range(estart[b], estart[b + 1]):
-                    ax, ay = edges[e, 0] - px, edges[e, 1] - py
-                    ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
-                    den = dx * ey - dy * ex  # cross(dir, edge)
-                    if den == 0.0:
-                        continue  # parallel
-                    t = (ax * ey - ay * ex) / den  # distance along the ray
-                    u = (ax * dy - ay * dx) / den  # fraction along the edge
-                    if t >= 0.0 and 0.0 <= u < 1.0:
-                        crossings += 1
-                        if t < tmin:
-                            tmin = t
-                if crossings == 0:
-                    continue
-                if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
-                    hit = True
-                else:
-                    hit = tmin * tan_el[k] + h_ant < hb
-                if hit:
-                    blocked[i, k] = True
-                    if tmin < dist[i, k]:
-                        dist[i, k] = tmin
+        cx0 = max(int(math.floor((px - radius - x0) / cell)), 0)
+        cx1 = min(int(math.floor((px + radius - x0) / cell)), nx - 1)
+        cy0 = max(int(math.floor((py - radius - y0) / cell)), 0)
+        cy1 = min(int(math.floor((py + radius - y0) / cell)), ny - 1)
+        for cy in range(cy0, cy1 + 1):
+            for cx in range(cx0, cx1 + 1):
+                c = cy * nx + cx
+                for g in range(gstart[c], gstart[c + 1]):
+                    b = gids[g]
+                    if seen[b] == i:
+                        continue
+                    seen[b] = i
+                    _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius,
+                                  blocked, dist)
     return blocked, dist
+
+
+@njit(cache=True)
+def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius, blocked, dist):
+    """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``)."""
+    s = de.size
+    hb = heights[b]
+    if not hb > h_ant:
+        return
+    bd = _box_distance(px, py, boxes[b])
+    if bd > radius:
+        return
+    for k in range(s):
+        if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
+            continue  # under the horizon (not used), or the box is already cleared at this elevation
+        dx, dy = de[k], dn[k]
+        crossings = 0
+        tmin = np.inf
+        for e in range(estart[b], estart[b + 1]):
+            ax, ay = edges[e, 0] - px, edges[e, 1] - py
+            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+            den = dx * ey - dy * ex  # cross(dir, edge)
+            if den == 0.0:
+                continue  # parallel
+            t = (ax * ey - ay * ex) / den  # distance along the ray
+            u = (ax * dy - ay * dx) / den  # fraction along the edge
+            if t >= 0.0 and 0.0 <= u < 1.0:
+                crossings += 1
+                if t < tmin:
+                    tmin = t
+        if crossings == 0:
+            continue
+        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
+            hit = True
+        else:
+            hit = tmin * tan_el[k] + h_ant < hb
+        if hit:
+            blocked[i, k] = True
+            if tmin < dist[i, k]:
+                dist[i, k] = tmin
