@@ -244,3 +244,29 @@ def test_a_building_without_height_is_refused_with_its_file_and_field(tmp_path):
     assert exc.value.field == "features[3].properties.height"
     assert str(exc.value.path).endswith("buildings.geojson")
     check_building_heights(src)  # every building of the arterial has its height
+
+
+def test_the_frame_carries_the_receivers_fix_and_reported_covariance_and_gnss_world_scores_it():
+    from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame
+    from experiments.gnss_world import GnssWorldTally
+
+    n = 8
+    rng = np.random.default_rng(2)
+    x_true = np.c_[rng.uniform(0, 300, (n, 2)), rng.normal(0, 5, (n, 2))]
+    proc = SatelliteErrorProcess(GnssErrorParams(**SAT), 1, 0.75)
+    twin = SatelliteErrorProcess(GnssErrorParams(**SAT), 1, 0.75)
+    entered = np.ones(n, bool)
+    frame = synthesize_frame(
+        t=0.0, dt=0.75, vehicle_ids=_ids(n), entered=entered, x_true=x_true, accel_true=np.zeros((n, 2)),
+        heading=np.zeros(n), gnss_sigma_p=np.full(n, 8.0), gnss_sigma_v=np.full(n, 0.5),
+        features_true=np.empty((0, 4)), feature_tree=None, params=SensorParams(), noise=SensorNoise(1),
+        zone=np.full(n, "B", dtype=object), area=np.full(n, "1", dtype=object), gnss_error=proc, start="gnss_fix")
+    err = twin.step(0.0, _ids(n), entered, None, None, None, x_true[:, :2])
+    np.testing.assert_allclose(frame.gnss_z[:, :2] - x_true[:, :2], err, atol=1e-9)
+    np.testing.assert_array_equal(frame.gnss_R[:, :2, :2], twin.reported_cov)
+    assert np.allclose(frame.gnss_R[:, 2, 2], 0.25)  # the velocity keeps the zone's Doppler sigma
+    np.testing.assert_array_equal(frame.prior_R[entered], frame.gnss_R[entered])  # entry from the receiver's fix
+    tally = GnssWorldTally()
+    tally.add(frame)
+    block = tally.summary()["receiver_error_by_zone"]["B"]
+    assert block["n"] == n and block["rms_2d_m"] == pytest.approx(math.sqrt((err ** 2).sum(1).mean()))
