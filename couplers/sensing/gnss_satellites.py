@@ -93,6 +93,27 @@ def receiver_variance(params, el: np.ndarray) -> np.ndarray:
             + p.rx_code_a_m ** 2 + p.rx_code_b_m ** 2 / s)
 
 
+def open_sky_common_share(params, sky: Sky, t: float) -> tuple[float, float]:
+    """Share of the horizontal error variance (east, north) that every receiver of the net shares at run time
+    ``t`` in the open (all satellites above the mask used, no exclusion): the correlation of two receivers'
+    errors at any separation within the net. The WLS gain K = (H^T W H)^-1 H^T W maps the pseudorange error
+    covariance, common (clock/orbit and ionosphere per satellite, one troposphere) plus own (code noise and
+    multipath), into position: (K S_common K^T)_jj / (K S K^T)_jj."""
+    p = params
+    los, _, el = sky.look(p.constellation_time_s + t)
+    m = el >= math.radians(p.elevation_mask_deg)
+    los, el = los[m], el[m]
+    s = np.maximum(np.sin(el), MIN_SIN_EL)
+    h = np.c_[-los, np.ones(el.size)]
+    w = 1.0 / receiver_variance(p, el)
+    k = np.linalg.solve((h.T * w) @ h, h.T * w)
+    g = p.tropo_zenith_m * tropo_mapping(el)
+    common = np.diag(p.sv_clock_orbit_m ** 2 + (p.iono_vertical_m * klobuchar_obliquity(el)) ** 2) + np.outer(g, g)
+    own = np.diag(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / s + (p.multipath_m / s) ** 2)
+    cc, ct = k @ common @ k.T, k @ (common + own) @ k.T
+    return float(cc[0, 0] / ct[0, 0]), float(cc[1, 1] / ct[1, 1])
+
+
 def chi2_thresholds(pfa: float, max_dof: int) -> np.ndarray:
     """(max_dof + 1,) chi-square quantiles 1 - pfa by degrees of freedom (index 0 unused; pfa 0: inf)."""
     out = np.full(max_dof + 1, np.inf)
