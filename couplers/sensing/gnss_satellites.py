@@ -147,12 +147,16 @@ def check_building_heights(net_dir: str | Path) -> None:
 
 @njit(cache=True)
 def _inv_spd4(a, out):
-    """out = a^-1 for a symmetric positive definite 4 x 4 (Cholesky a = L L^T, then L^-T L^-1)."""
+    """out = a^-1 for a symmetric positive definite 4 x 4 (Cholesky a = L L^T, then L^-T L^-1); False (out
+    untouched) when a pivot is not positive: a geometry without a fix (satellites nearly coplanar with the
+    antenna)."""
     low = np.zeros((4, 4))
     for j in range(4):
         d = a[j, j]
         for k in range(j):
             d -= low[j, k] * low[j, k]
+        if not d > 1e-12 * a[j, j]:
+            return False
         d = math.sqrt(d)
         low[j, j] = d
         for i in range(j + 1, 4):
@@ -174,6 +178,7 @@ def _inv_spd4(a, out):
             for k in range(max(i, j), 4):
                 v += li[k, i] * li[k, j]
             out[i, j] = v
+    return True
 
 
 @njit(cache=True)
@@ -211,7 +216,8 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
                     b[r] += hw * eps[i, k]
                     for c in range(4):
                         a[r, c] += hw * h[k, c]
-            _inv_spd4(a, p)
+            if not _inv_spd4(a, p):
+                break  # degenerate geometry: the fix of the previous set of satellites stands, if any
             for r in range(4):
                 x[r] = p[r, 0] * b[0] + p[r, 1] * b[1] + p[r, 2] * b[2] + p[r, 3] * b[3]
             ok[i] = True
@@ -263,7 +269,7 @@ class SatelliteErrorProcess:
         self.sky = Sky.build(self.lat, self.lon)
         bad = missing_heights(buildings)
         if bad.size:
-            raise InputError(None, f"buildings: features[{int(bad[0])}].properties.height",
+            raise InputError(None, f"features[{int(bad[0])}].properties.height",
                              "missing: model = \"satellites\" needs every building's height")
         self.edges = BuildingEdges.build(buildings) if buildings is not None and len(buildings) else None
         self.radius = (clearance_radius(self.edges.heights, p.antenna_height_m, p.elevation_mask_deg)

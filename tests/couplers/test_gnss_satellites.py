@@ -292,3 +292,20 @@ def test_two_receivers_correlate_in_the_open_as_the_common_errors_derive():
     for j in range(2):
         rho = np.mean(e[:, 0, j] * e[:, 1, j]) / np.mean((e[:, 0, j] ** 2 + e[:, 1, j] ** 2) / 2)
         assert rho == pytest.approx(derived[j], abs=0.06)
+
+
+def test_a_degenerate_geometry_gives_no_fix_rather_than_nan():
+    """Four satellites at one elevation: up and clock cannot be told apart (H singular): no fix, nothing NaN;
+    a fifth satellite higher up gives the fix."""
+    from couplers.sensing.gnss_satellites import _wls_kernel
+
+    el = math.radians(30.0)
+    az = np.radians([0.0, 90.0, 180.0, 270.0, 45.0])
+    els = np.array([el] * 4 + [math.radians(80.0)])
+    los = np.c_[np.cos(els) * np.sin(az), np.cos(els) * np.cos(az), np.sin(els)]
+    eps = np.random.default_rng(0).normal(0, 1, (2, 5))
+    usable = np.array([[True] * 4 + [False], [True] * 5])
+    err, cov, used, excluded, ok = _wls_kernel(los, usable, eps, np.ones(5), np.full(6, np.inf))
+    assert ok.tolist() == [False, True]
+    assert np.isfinite(err).all() and np.isfinite(cov).all()
+    assert used.tolist() == [4, 5]
