@@ -331,7 +331,9 @@ def synthesize_frame(
 
     ``detections`` (couplers.sensing.perception.perceive) replaces the idealised V2F rows; ``gnss_error``
     replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
-    standard normal draws (both None: the paper's idealisation, byte for byte as before). ``prev_row``: the
+    standard normal draws (both None: the paper's idealisation, byte for byte as before); a process with a
+    ``reported_cov`` (``model = "satellites"``) also sets the position block of ``gnss_R`` to the covariance its
+    receivers report. ``prev_row``: the
     row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
     matches the ids itself). ``imu`` (``couplers.sensing.inertial.InertialProcess``): the frame carries it and
     ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
