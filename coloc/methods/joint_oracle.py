@@ -253,7 +253,6 @@ class JointOracle:
         idx = match_ids(st.vehicle_ids, frame.vehicle_ids)
         fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
         idx_c = np.where(fresh, -1, idx)
-        n = frame.n_vehicles
         prev_v = st.mean[:vd * n_prev].reshape(n_prev, vd)[:, 2:4] if n_prev else np.empty((0, 2))
         accel, heading = estimator_input(frame, idx_c, prev_v, st.heading, p_icp.motion.heading_min_speed)
         accel = np.asarray(accel, dtype=float)
@@ -294,6 +293,17 @@ class JointOracle:
             p[cc, cc] += 1.0 - a_c * a_c
         p = symmetrize(p)
 
+        # Sensor-frame rows of a vehicle below heading_min_speed (predicted speed; fresh: its fix's) are left
+        # out: the heading it keeps while slow has the same error at every step of a stop, and counting its rows
+        # again each step made the map overconfident (docs/validation/oracle.md).
+        n = frame.n_vehicles
+        zg = np.asarray(frame.gnss_z, dtype=float)
+        if frame.v2f_sensor is not None and assoc.size:
+            speed = np.hypot(zg[:, 2], zg[:, 3])
+            speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
+            slow = speed < p_icp.motion.heading_min_speed
+            assoc = np.where(slow[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
+
         # --- layout after the update: vehicles (frame order), old features, new features, common.
         used = assoc >= 0
         seen = np.unique(assoc[used])
@@ -311,7 +321,6 @@ class JointOracle:
         pos_keep = pos_keep.astype(np.int64)
         # predicted covariance blocks needed by the gate and the headings, in the new layout
         rg = np.asarray(frame.gnss_R, dtype=float)
-        zg = np.asarray(frame.gnss_z, dtype=float)
         sig = np.sqrt(rg[:, 0, 0]) if n else np.empty(0)
 
         lam = np.zeros((d, d))
@@ -454,25 +463,7 @@ class JointOracle:
 
             sub = _replace(det, **{f: np.asarray(getattr(det, f))[used] for f in (
                 "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
-            v = mean_pred[:vd * n].reshape(n, vd)[own, 2:4]
-            speed2 = v[:, 0] ** 2 + v[:, 1] ** 2
-            fast = np.sqrt(speed2) >= self.params.motion.heading_min_speed
-            ps = psi[own]
-            fast_psi = np.arctan2(v[:, 1], v[:, 0])
-            ps = np.where(fast, fast_psi, ps)
-            z, r = to_net_frame(sub, ps, np.where(fast, 0.0, var[own]))
-            # EKF on the heading through the velocity (fast vehicles): G = dz/dpsi, g = dpsi/dv.
-            rr = np.asarray(sub.range, dtype=float)
-            rd = np.asarray(sub.range_rate, dtype=float)
-            mount = np.asarray(sub.mount_x, dtype=float)
-            phi = ps + np.asarray(sub.yaw, dtype=float) + np.asarray(sub.bearing, dtype=float)
-            gcol = np.stack([-mount * np.sin(ps) - rr * np.sin(phi), mount * np.cos(ps) + rr * np.cos(phi),
-                             -rd * np.sin(phi), rd * np.cos(phi)], axis=1)
-            g = np.stack([-v[:, 1], v[:, 0]], axis=1) / np.maximum(speed2, 1e-300)[:, None]
-            hv = -gcol[:, :, None] * g[:, None, :]  # (m, 4, 2): d z / d v through the heading
-            hv[~fast] = 0.0
-            h[:, :, 2:4] += hv
-            z = z + np.einsum("nij,nj->ni", hv, v)  # z(psi^) - G g^T v^ = x_F - x_V - G g^T v + n
+            z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
         rinv = symmetrize(np.linalg.inv(r))
         hth, htz = _information(h, rinv, z)
