@@ -21,9 +21,14 @@ def oracle_world(cfg):
     from coloc.methods.joint_oracle import GNSS_WORLDS, OracleWorld
 
     start = getattr(cfg.scenario, "start", "fast_start")
+    imu = {}
+    if getattr(cfg, "inertial", None) is not None:
+        i = cfg.inertial
+        imu = dict(accel_turn_on_sigma=i.accel_turn_on_sigma, accel_bias_sigma=i.accel_bias_sigma,
+                   accel_bias_tau_s=i.accel_bias_tau_s, accel_noise_density=i.accel_noise_density)
     ge = cfg.gnss_error
     if ge is None:
-        return OracleWorld(start=start)
+        return OracleWorld(start=start, **imu)
     if ge.model not in GNSS_WORLDS:
         raise InputError(cfg.path, "gnss_error.model",
                          f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
@@ -34,5 +39,5 @@ def oracle_world(cfg):
         common_share=ge.common_share if field else 0.0, common_tau_s=ge.common_tau_s,
         field_share=ge.field_share if field else 0.0, field_corr_length_m=ge.field_corr_length_m,
         field_tau_s=ge.field_tau_s, local_corr_length_m=ge.local_corr_length_m if field else math.inf,
-        nlos=bool(rates and ge.nlos_bias_mean_m > 0), start=start,
+        nlos=bool(rates and ge.nlos_bias_mean_m > 0), start=start, **imu,
     )

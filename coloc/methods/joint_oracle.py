@@ -68,7 +68,7 @@ from scipy.linalg import lapack
 
 from coloc.core.detections import HeadingMemory, to_net_frame, vehicle_headings
 from coloc.core.frame import Frame, StepEstimate
-from coloc.core.inertial import estimator_input
+from coloc.core.inertial import wrap_angle
 from coloc.core.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.vehicles import match_ids
@@ -99,6 +99,12 @@ class OracleWorld:
     local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
     nlos: bool = False  # the world has NLOS episodes: gate the fixes
     start: str = "fast_start"  # "gnss_fix": the entering vehicle's prior is the step's own fix
+    # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
+    # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
+    accel_turn_on_sigma: float | None = None
+    accel_bias_sigma: float = 0.0
+    accel_bias_tau_s: float = 300.0
+    accel_noise_density: float = 0.0
     # Oracle settings (not the world's): the chi-square level of the NLOS gate, the consecutive exclusions
     # after which a fix is taken, the white share of the fix's variance, how long unseen features are kept.
     gate_level: float = 0.999
@@ -124,8 +130,17 @@ class OracleWorld:
         return self.gnss != "white"
 
     @property
-    def vehicle_dim(self) -> int:
+    def imu(self) -> bool:
+        return self.accel_turn_on_sigma is not None
+
+    @property
+    def bias_offset(self) -> int:
+        """Index of the accelerometer bias in a vehicle block."""
         return 6 if self.correlated else 4
+
+    @property
+    def vehicle_dim(self) -> int:
+        return self.bias_offset + (2 if self.imu else 0)
 
     @property
     def common_dim(self) -> int:
@@ -254,8 +269,10 @@ class JointOracle:
         fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
         idx_c = np.where(fresh, -1, idx)
         prev_v = st.mean[:vd * n_prev].reshape(n_prev, vd)[:, 2:4] if n_prev else np.empty((0, 2))
-        accel, heading = estimator_input(frame, idx_c, prev_v, st.heading, p_icp.motion.heading_min_speed)
-        accel = np.asarray(accel, dtype=float)
+        if frame.imu is None:
+            accel, heading = np.asarray(frame.accel, dtype=float), None
+        else:
+            accel, heading, psi_var = self._imu_input(frame, idx, fresh, st)
 
         # --- predict survivors, old features and the common state (block-diagonal F, Q).
         surv = np.flatnonzero(~fresh)
@@ -274,6 +291,32 @@ class JointOracle:
             a_l = w.local_coefficient(np.hypot(xv[:, 2], xv[:, 3]) * dt, dt)
             fv[:, 4, 4] = fv[:, 5, 5] = a_l
             qv[:, 4, 4] = qv[:, 5, 5] = 1.0 - a_l * a_l
+        if w.imu:
+            # accelerometer bias b (body frame): a_net = R(psi_mid) (a_body - b), psi_mid the heading the input
+            # was rotated by; b constant (turn-on) plus a drift whose increments are taken as a random walk of
+            # the drift's one-step variance (module docstring).
+            bo = w.bias_offset
+            r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+            psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
+            c, s_ = np.cos(psi_mid), np.sin(psi_mid)
+            rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
+            fv[:, 0:2, bo:bo + 2] = -0.5 * dt * dt * rot
+            fv[:, 2:4, bo:bo + 2] = -dt * rot
+            fv[:, bo, bo] = fv[:, bo + 1, bo + 1] = 1.0
+            a_b = math.exp(-dt / w.accel_bias_tau_s)
+            qv[:, bo, bo] = qv[:, bo + 1, bo + 1] = (1.0 - a_b * a_b) * w.accel_bias_sigma ** 2
+            bm = input_matrix(dt)
+            qv[:, :4, :4] += (w.accel_noise_density ** 2 / dt) * (bm @ bm.T)
+        if frame.imu is not None:
+            # the input rotated by a heading of variance psi_var: an error |a| dpsi across it (first order)
+            ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
+            amag2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
+            u = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1) if w.imu else None
+            if u is None:
+                hh = np.asarray(heading, dtype=float)[surv]
+                u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
+            bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
+            qv[:, :4, :4] += (amag2 * psi_var[surv])[:, None, None] * bu[:, :, None] * bu[:, None, :]
         a_c = math.exp(-dt / w.common_tau_s) if cd and w.common_tau_s > 0 else 0.0
         xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
         p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
@@ -339,6 +382,10 @@ class JointOracle:
             if w.correlated:  # the local error state starts stationary
                 ind = _idx(vd * fr + 4, 2)
                 _scatter(lam, eta, ind, np.broadcast_to(np.eye(2), (fr.size, 2, 2)), np.zeros((fr.size, 2)))
+            if w.imu:  # the bias of an IMU just switched on: turn-on plus stationary drift
+                ind = _idx(vd * fr + w.bias_offset, 2)
+                ib = np.eye(2) / (w.accel_turn_on_sigma ** 2 + w.accel_bias_sigma ** 2)
+                _scatter(lam, eta, ind, np.broadcast_to(ib, (fr.size, 2, 2)), np.zeros((fr.size, 2)))
             # linearization points of fresh vehicles: their fix
             mean_pred[:vd * n].reshape(n, vd)[fr, :4] = zg[fr]
         if new_ids.size and p_icp.feature_velocity_prior_sigma:
@@ -376,6 +423,42 @@ class JointOracle:
             mean=mean, cov=cov, heading=heading, sensor_heading=sensor_heading,
             streak=np.where(excluded, streak + 1, 0),
         )
+
+    def _imu_input(self, frame: Frame, idx: np.ndarray, fresh: np.ndarray, st: OracleState):
+        """The input a_{t-1} of model (1) from the body-frame IMU, the mid-step heading kept, and the variance
+        of the heading used. The heading at t-1 is the direction of the oracle's velocity at t-1 when the
+        vehicle was above ``heading_min_speed`` (variance g P_vv g^T), else the heading the sensor-frame rows
+        keep for it (:class:`coloc.core.detections.HeadingMemory`: held, not dead-reckoned by the gyroscope,
+        whose turn-on bias would turn a queued vehicle by tens of degrees a minute); unknown (pi^2 / 3) without
+        one. Rotated at mid-step by the measured yaw rate (:mod:`coloc.core.inertial`)."""
+        from coloc.core.detections import HEADING_VAR_UNKNOWN, heading_from_velocity
+        from coloc.core.inertial import rotate, wrap_angle
+
+        vd = self.world.vehicle_dim
+        n = frame.n_vehicles
+        n_prev = st.vehicle_ids.shape[0]
+        have = ~fresh
+        pv = np.zeros((n, 2))
+        pvv = np.tile(np.eye(2) * HEADING_VAR_UNKNOWN, (n, 1, 1))
+        if n_prev and have.any():
+            rows = idx[have]
+            blk = st.mean[:vd * n_prev].reshape(n_prev, vd)
+            pv[have] = blk[rows, 2:4]
+            ii = vd * rows[:, None] + np.array([2, 3])
+            pvv[have] = st.cov[ii[:, :, None], ii[:, None, :]]
+        psi, var = heading_from_velocity(pv, pvv)
+        slow = np.hypot(pv[:, 0], pv[:, 1]) < self.params.motion.heading_min_speed
+        if st.sensor_heading is not None and n_prev:
+            kh, kv = st.sensor_heading.carry(np.where(fresh, -1, idx))
+            use = slow & np.isfinite(kh)
+            psi = np.where(use, kh, psi)
+            var = np.where(use, kv, var)
+            slow = slow & ~use
+        var = np.where(slow, HEADING_VAR_UNKNOWN, var)
+        r = np.asarray(frame.imu.yaw_rate, dtype=float)
+        step = np.where(fresh, 0.0, r * float(frame.dt))
+        accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
+        return accel, wrap_angle(psi + step), var
 
     def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
         """Add every fix's information; returns which fixes' positions the gate left out."""
