@@ -41,21 +41,27 @@ the kinematics (the fix is used once, in the update; the world's prior would cou
 frame's prior (``prior_z``, ``prior_R``). Their ``l`` starts stationary, N(0, I), independent.
 
 Sensor rows: net-frame rows (``v2f_z``, ``v2f_R``) as model (4), H = [-I (vehicle) | +I (feature)], with
-the frame's row covariance (the world's sensor noise). Sensor-frame rows (``frame.v2f_sensor``, range,
-bearing, range rate with the world's sigmas): an EKF on the heading. The world's heading is the
-direction of the vehicle's velocity, psi = atan2(vy, vx); the rows are converted with the predicted
-heading psi^ (:func:`coloc.core.detections.to_net_frame` without heading variance) and the heading error
-enters the model through the velocity: z(psi^) = x_F - x_V - G g^T (v - v^) + n, G = dz / dpsi,
-g = [-vy, vx] / |v|^2. Below ``heading_min_speed`` the velocity does not fix the heading: the kept heading
-of :func:`coloc.core.detections.vehicle_headings` and its variance (independent noise per row,
-an approximation) are used as for the other methods.
+the frame's row covariance (the world's sensor noise). Sensor-frame rows (``frame.v2f_sensor``: range,
+bearing, range rate with the world's sigmas) are converted by :func:`coloc.core.detections.to_net_frame`
+with the oracle's heading, the direction of its predicted velocity at t with variance g P_vv g^T from its
+joint covariance (:func:`coloc.core.detections.vehicle_headings`; the world's heading is the direction of
+the velocity, couplers/traffic/sumo.py). Rows of a vehicle below ``heading_min_speed`` are left out: the
+heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
+again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
+heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
 
-Inertial input: :func:`coloc.core.inertial.estimator_input` with the oracle's own velocity (as every
-method), and model (1)'s driving noise from ``[motion]``. The IMU's turn-on and drift biases are not
-states (cost; the driving noise absorbs them, as for every method): stated in docs/validation/oracle.md.
+Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
+oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
+than dead-reckoned by the biased gyroscope) plus half the step's measured yaw rate. The accelerometer
+bias is a state per vehicle (body frame, 2): prior N(0, turn_on^2 + drift^2) when the vehicle enters;
+each step b_k = b_{k-1} + w, Var(w) = (1 - a^2) drift^2, a = exp(-Ts / tau) (**approximation**: the
+world's turn-on part is constant and its drift Gauss-Markov; the oracle's random walk has the drift's
+one-step variance and grows by about one drift variance per tau). The accelerometer's white noise
+(density^2 / Ts) and the heading's error (|a|^2 var(psi) across the input) add to model (1)'s driving
+noise from ``[motion]``; the gyroscope's biases are not states.
 
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
-joint information / covariance (dimension 6 N + 4 K + 2) per step, O(d^3); the rest O(d^2).
+joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 with every option) per step, O(d^3); the rest O(d^2).
 """
 
 from __future__ import annotations

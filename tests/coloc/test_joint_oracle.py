@@ -263,6 +263,7 @@ def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
     return out, x
 
 
+@pytest.mark.slow  # 100 runs per world: about a minute on the 2-core machine
 @pytest.mark.parametrize("world_name", ["white", "field"])
 def test_nees_inside_the_99_band_where_the_model_is_the_truth(world_name):
     world = WORLDS[world_name]
