@@ -302,13 +302,14 @@ class JointOracle:
             # was rotated by; b constant (turn-on) plus a drift whose increments are taken as a random walk of
             # the drift's one-step variance (module docstring).
             bo = w.bias_offset
-            r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
-            psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
-            c, s_ = np.cos(psi_mid), np.sin(psi_mid)
-            rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
-            fv[:, 0:2, bo:bo + 2] = -0.5 * dt * dt * rot
-            fv[:, 2:4, bo:bo + 2] = -dt * rot
             fv[:, bo, bo] = fv[:, bo + 1, bo + 1] = 1.0
+            if frame.imu is not None:  # a frame without the IMU leaves the bias out of the input
+                r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+                psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
+                c, s_ = np.cos(psi_mid), np.sin(psi_mid)
+                rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
+                fv[:, 0:2, bo:bo + 2] = -0.5 * dt * dt * rot
+                fv[:, 2:4, bo:bo + 2] = -dt * rot
             a_b = math.exp(-dt / w.accel_bias_tau_s)
             qv[:, bo, bo] = qv[:, bo + 1, bo + 1] = (1.0 - a_b * a_b) * w.accel_bias_sigma ** 2
             bm = input_matrix(dt)
@@ -317,10 +318,9 @@ class JointOracle:
             # the input rotated by a heading of variance psi_var: an error |a| dpsi across it (first order)
             ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
             amag2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
-            u = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1) if w.imu else None
-            if u is None:
-                hh = np.asarray(heading, dtype=float)[surv]
-                u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
+            hh = wrap_angle(np.asarray(heading, dtype=float)[surv]
+                            - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
+            u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
             bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
             qv[:, :4, :4] += (amag2 * psi_var[surv])[:, None, None] * bu[:, :, None] * bu[:, None, :]
         a_c = math.exp(-dt / w.common_tau_s) if cd and w.common_tau_s > 0 else 0.0
