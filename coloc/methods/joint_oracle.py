@@ -274,7 +274,6 @@ class JointOracle:
         idx = match_ids(st.vehicle_ids, frame.vehicle_ids)
         fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
         idx_c = np.where(fresh, -1, idx)
-        prev_v = st.mean[:vd * n_prev].reshape(n_prev, vd)[:, 2:4] if n_prev else np.empty((0, 2))
         if frame.imu is None:
             accel, heading = np.asarray(frame.accel, dtype=float), None
         else:
