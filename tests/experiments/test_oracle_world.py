@@ -21,7 +21,10 @@ def test_realistic_preset_tells_the_field_model_and_the_first_fix():
     assert (w.common_share, w.common_tau_s, w.field_share) == (ge.common_share, ge.common_tau_s, ge.field_share)
     assert (w.tau_s, w.local_corr_length_m, w.field_corr_length_m) == (ge.tau_s, ge.local_corr_length_m,
                                                                         ge.field_corr_length_m)
-    assert w.vehicle_dim == 6 and w.common_dim == 2
+    assert w.vehicle_dim == 8 and w.common_dim == 2  # p, v, local GNSS error, accelerometer bias; common
+    i = cfg.inertial
+    assert (w.accel_turn_on_sigma, w.accel_bias_sigma, w.accel_bias_tau_s) == (
+        i.accel_turn_on_sigma, i.accel_bias_sigma, i.accel_bias_tau_s)
 
 
 def test_paper_config_is_white_and_only_with_the_oracle():
@@ -29,7 +32,7 @@ def test_paper_config_is_white_and_only_with_the_oracle():
     assert oracle_world(cfg) is None  # not among the methods: nothing read
     cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml", overrides={"run.methods": ["joint_oracle"]})
     w = oracle_world(cfg)
-    assert (w.gnss, w.nlos, w.vehicle_dim, w.common_dim) == ("white", False, 4, 0)
+    assert (w.gnss, w.nlos, w.vehicle_dim, w.common_dim, w.imu) == ("white", False, 4, 0, False)
 
 
 def test_per_vehicle_world_has_no_shared_part():
