@@ -55,6 +55,7 @@ from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config, config_to_toml
 from experiments.gnss_world import GnssWorldTally
+from experiments.oracle_world import oracle_world
 from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.rowstream import StreamLog
 from experiments.run_checks import _empty_run, _nothing_to_estimate, check_finite_estimate  # noqa: F401
@@ -162,6 +163,7 @@ def method_params(cfg: Config) -> MethodParams:
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
         detection=estimator_detection_model(cfg),
         gnss_model=cfg.gnss_model,
+        oracle_world=oracle_world(cfg),
     )
 
 

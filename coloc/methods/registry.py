@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from coloc.methods.icp_da_pf import PfParams
     from coloc.methods.gnss_bias import GnssModelParams
     from coloc.methods.infra import InfraMethodParams
+    from coloc.methods.joint_oracle import OracleWorld
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,9 @@ class MethodParams:
     # The integrator's receiver error model ([gnss_model]): gnss with a bias state and fault exclusion;
     # None: the white tracker of the paper.
     gnss_model: GnssModelParams | None = None
+    # What the joint_oracle is told of the world ([gnss_error], [scenario] start; the oracle only);
+    # None: the paper's white GNSS and fast-start prior.
+    oracle_world: OracleWorld | None = None
 
 
 @dataclass(frozen=True)
@@ -113,6 +117,12 @@ def _icp_known_da_pf(p: MethodParams):
     return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, name=ICP_KNOWN_DA_PF.name)
 
 
+def _joint_oracle(p: MethodParams):
+    from coloc.methods.joint_oracle import JointOracle, OracleWorld
+
+    return JointOracle(params=p.icp, world=p.oracle_world if p.oracle_world is not None else OracleWorld())
+
+
 def _infra_params(p: MethodParams) -> InfraMethodParams:
     if p.infra is None:
         raise ValueError("an infrastructure method needs MethodParams.infra (config [infra])")
@@ -144,6 +154,11 @@ ICP_DA_LC = Method("icp_da_lc", "ICP-DA-LC", "tab:red", _icp_da_lc, feature_clas
 ICP_DA_PF = Method("icp_da_pf", "ICP-DA-PF", "tab:orange", _icp_da_pf, cost=1500.0)
 ICP_KNOWN_DA_PF = Method("icp_known_da_pf", "ICP-PF known DA", "goldenrod", _icp_known_da_pf,
                          known_association=True, cost=1500.0)
+# The oracle: centralized, told the association and the world's GNSS error structure (not a method a
+# vehicle could run; coloc/methods/joint_oracle.py). Its step is O(d^3) in the joint dimension: ~1 s
+# on the realistic arterial (docs/validation/oracle.md).
+JOINT_ORACLE = Method("joint_oracle", "Joint oracle", "dimgray", _joint_oracle, known_association=True,
+                      cost=500.0)
 RSU_BP = Method("rsu_bp", "RSU-BP", "tab:purple", _rsu_bp, infrastructure=True)
 SME = Method("sme", "SME", "tab:brown", _sme, infrastructure=True)
 FG_TOPOLOGY_OLD = Method("fg_topology_old", "FG topology (old)", "tab:pink")
@@ -154,7 +169,7 @@ KF_GPS_ODOM = Method("kf_gps_odom", "KF GPS+odometry", "tab:cyan")
 #: name -> method, in report order.
 METHODS: dict[str, Method] = {
     m.name: m
-    for m in (GNSS, ICP_KNOWN_DA, ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA_PF, RSU_BP, SME, FG_TOPOLOGY_OLD,
+    for m in (GNSS, ICP_KNOWN_DA, ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA_PF, JOINT_ORACLE, RSU_BP, SME, FG_TOPOLOGY_OLD,
               FG_TOPOLOGY_NEW, KF_GPS_ODOM)
 }
 

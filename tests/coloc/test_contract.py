@@ -24,11 +24,16 @@ from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.infra import InfraMethodParams
+from coloc.methods.joint_oracle import OracleWorld
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from scenes import infra_frames, road_frames, scrambled, select_vehicles
 
-# ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias).
-RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model"]
+# ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias); ``joint_oracle+world``: the
+# oracle told a correlated GNSS world, first fixes and an IMU (coloc.methods.joint_oracle.OracleWorld).
+RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"]
+ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
+                           local_corr_length_m=20.0, nlos=True, start="gnss_fix", accel_turn_on_sigma=0.196,
+                           accel_bias_sigma=0.0735, accel_noise_density=0.004)
 
 
 def _method(name: str):
@@ -46,6 +51,7 @@ def build(name: str):
         pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
         gnss_model=GnssModelParams() if name.endswith("+gnss_model") else None,
+        oracle_world=ORACLE_WORLD if name.endswith("+world") else None,
     )
     est = build_method(method.name, params)
     assert est.name == method.name

@@ -1,0 +1,565 @@
+"""``joint_oracle``: a centralized joint filter told the true association and the world's error structure.
+
+An explicitly labelled **oracle** (docs/validation/oracle.md): the reference the cooperative methods are
+drawn against. It is the one estimator allowed to read the world's configuration (``[gnss_error]``,
+``[scenario] start``; the runner turns them into :class:`OracleWorld`); it never reads truth positions
+or headings. It is told, like ``icp_known_da``, the true feature of every V2F row (the runner passes
+``truth.v2f_feature``; clutter and other road users carry -1 and are left out).
+
+State (one joint Gaussian, covariance form between steps), extending :mod:`coloc.methods.centralized`:
+
+* per vehicle (frame order) ``[px, py, vx, vy]`` of model (1), and with a correlated GNSS world a unit
+  error state ``u`` (2, per axis) for the receiver's local error (below);
+* per feature (sorted ids) ``[px, py, vx, vy]`` of model (2);
+* with ``common_share > 0``, one unit common-mode state ``c`` (2) shared by every receiver.
+
+GNSS (world ``couplers/sensing/gnss_error.py``): per axis the world's position error is
+``sigma_p(zone) (sqrt(s) c + sqrt(1 - s) (sqrt(f) F(p_i) + sqrt(1 - f) u_i)) + b_nlos``. The oracle's
+fix model is ``z_pos = p_i + sigma_i (sqrt(s) c + sqrt(1 - s) l_i) + n`` with ``sigma_i`` the reported
+position std (``frame.gnss_R``: the zone's sigma_p, so the zone rescaling of the world is exact) and:
+
+* ``c``: the common Gauss-Markov process, ``a_c = exp(-Ts / common_tau_s)`` (exact);
+* ``l_i``: the vehicle's local unit process, standing for the field part F(p_i) and the receiver's own
+  part u_i together. **Approximation**: the field is shared by vehicles within tens of metres; the
+  oracle treats each vehicle's field part as its own (no cross-vehicle correlation) and merges the two
+  parts into one Gauss-Markov state whose one-step correlation is the world's,
+  ``a_l = f exp(-d / L_field - Ts / tau_field) + (1 - f) exp(-d / L_local - Ts / tau_s)`` with ``d`` the
+  distance the vehicle moved in the step **as the oracle estimates it** (|v| Ts of its previous
+  posterior). The "per_vehicle" world is the case s = f = 0, L_local = inf (exact);
+* ``n``: white, variance ``fix_noise_share`` sigma_i^2 (1e-4: 1 % of the std). The world has no white
+  position noise; this regularizes the information form and is negligible;
+* velocity ``z_vel = v_i + n_v``, the reported velocity block (the world's white Doppler error, exact);
+* NLOS episodes (bias of uniform direction, exponential magnitude, random start and length) are not
+  structure an estimator can know in advance: a fix whose position innovation on the predicted state
+  has ``nu^T S^-1 nu`` above the chi-square quantile of 2 dof at ``gate_level`` is left out (its
+  velocity kept), as in ``coloc.methods.gnss_bias``; after ``max_exclusions`` in a row the next fix is
+  taken.
+* "white" world (no ``[gnss_error]``): no error states, ``R = gnss_R`` as in the centralized KF.
+
+Entering vehicles: ``start = "gnss_fix"`` (the prior is the step's own fix) -> zero prior information on
+the kinematics (the fix is used once, in the update; the world's prior would count it twice); else the
+frame's prior (``prior_z``, ``prior_R``). Their ``l`` starts stationary, N(0, I), independent.
+
+Sensor rows: net-frame rows (``v2f_z``, ``v2f_R``) as model (4), H = [-I (vehicle) | +I (feature)], with
+the frame's row covariance (the world's sensor noise). Sensor-frame rows (``frame.v2f_sensor``: range,
+bearing, range rate with the world's sigmas) are converted by :func:`coloc.core.detections.to_net_frame`
+with the oracle's heading, the direction of its predicted velocity at t with variance g P_vv g^T from its
+joint covariance (:func:`coloc.core.detections.vehicle_headings`; the world's heading is the direction of
+the velocity, couplers/traffic/sumo.py). Rows of a vehicle below ``heading_min_speed`` are left out: the
+heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
+again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
+heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
+
+Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
+oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
+than dead-reckoned by the biased gyroscope) plus half the step's measured yaw rate. The accelerometer
+bias is a state per vehicle (body frame, 2): prior N(0, turn_on^2 + drift^2) when the vehicle enters;
+each step b_k = b_{k-1} + w, Var(w) = (1 - a^2) drift^2, a = exp(-Ts / tau) (**approximation**: the
+world's turn-on part is constant and its drift Gauss-Markov; the oracle's random walk has the drift's
+one-step variance and grows by about one drift variance per tau). The accelerometer's white noise
+(density^2 / Ts) and the heading's error (|a|^2 var(psi) across the input) add to model (1)'s driving
+noise from ``[motion]``; the gyroscope's biases are not states.
+
+Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
+joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 with every option) per step, O(d^3); the rest O(d^2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import lapack
+
+from coloc.core.detections import HeadingMemory, to_net_frame, vehicle_headings
+from coloc.core.frame import Frame, StepEstimate
+from coloc.core.inertial import wrap_angle
+from coloc.core.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
+from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
+from coloc.core.vehicles import match_ids
+from coloc.inference.bpa import validate_association
+from coloc.inference.feature_store import feature_track_q
+from coloc.inference.params import IcpParams
+from coloc.methods.registry import JOINT_ORACLE
+
+__all__ = ["OracleWorld", "JointOracle", "OracleState", "spd_inverse"]
+
+GNSS_WORLDS = ("white", "per_vehicle", "field")
+
+
+@dataclass(frozen=True)
+class OracleWorld:
+    """What the oracle is told of the world (``[gnss_error]``, ``[scenario] start``), plus its gate.
+
+    Names and meanings as in ``couplers.sensing.gnss_error.GnssErrorParams`` (the oracle is in ``coloc`` and
+    does not import ``couplers``: the runner copies the values)."""
+
+    gnss: str = "white"  # "white" (no [gnss_error]), "per_vehicle" or "field"
+    tau_s: float = 30.0
+    common_share: float = 0.0
+    common_tau_s: float = 600.0
+    field_share: float = 0.0
+    field_corr_length_m: float = 50.0
+    field_tau_s: float = 300.0
+    local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
+    nlos: bool = False  # the world has NLOS episodes: gate the fixes
+    start: str = "fast_start"  # "gnss_fix": the entering vehicle's prior is the step's own fix
+    # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
+    # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
+    accel_turn_on_sigma: float | None = None
+    accel_bias_sigma: float = 0.0
+    accel_bias_tau_s: float = 300.0
+    accel_noise_density: float = 0.0
+    # Oracle settings (not the world's): the chi-square level of the NLOS gate, the consecutive exclusions
+    # after which a fix is taken, the white share of the fix's variance, how long unseen features are kept.
+    gate_level: float = 0.999
+    max_exclusions: int = 40  # 30 s at 0.75 s: three mean episode lengths (10 s, the world's default)
+    fix_noise_share: float = 1e-4
+    feature_keep_s: float = 120.0
+
+    def __post_init__(self):
+        if self.gnss not in GNSS_WORLDS:
+            raise ValueError(f"gnss must be one of {GNSS_WORLDS}, got {self.gnss!r}")
+        if self.start not in ("fast_start", "gnss_fix"):
+            raise ValueError(f"start must be 'fast_start' or 'gnss_fix', got {self.start!r}")
+        for key in ("common_share", "field_share"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"{key} must be in [0, 1]")
+        if not 0.0 < self.fix_noise_share <= 1.0:
+            raise ValueError("fix_noise_share must be in (0, 1]")
+        if not 0.0 <= self.gate_level < 1.0:
+            raise ValueError("gate_level must be in [0, 1) (0: no gate)")
+
+    @property
+    def correlated(self) -> bool:
+        return self.gnss != "white"
+
+    @property
+    def imu(self) -> bool:
+        return self.accel_turn_on_sigma is not None
+
+    @property
+    def bias_offset(self) -> int:
+        """Index of the accelerometer bias in a vehicle block."""
+        return 6 if self.correlated else 4
+
+    @property
+    def vehicle_dim(self) -> int:
+        return self.bias_offset + (2 if self.imu else 0)
+
+    @property
+    def common_dim(self) -> int:
+        return 2 if self.correlated and self.common_share > 0 else 0
+
+    @property
+    def gate_threshold(self) -> float:
+        return math.inf if (not self.nlos or self.gate_level == 0) else -2.0 * math.log1p(-self.gate_level)
+
+    def local_coefficient(self, dist: np.ndarray, dt: float) -> np.ndarray:
+        """a_l per vehicle for a step of ``dt`` in which it moved ``dist`` (module docstring)."""
+        d = np.asarray(dist, dtype=float)
+        own = np.exp(-d / self.local_corr_length_m - (dt / self.tau_s if self.tau_s > 0 else np.inf))
+        if self.gnss != "field" or self.field_share == 0:
+            return own
+        fld = np.exp(-d / self.field_corr_length_m - (dt / self.field_tau_s if self.field_tau_s > 0 else np.inf))
+        return self.field_share * fld + (1.0 - self.field_share) * own
+
+
+def spd_inverse(a: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix by Cholesky (LAPACK potrf / potri), symmetric."""
+    if a.shape[0] == 0:
+        return a.copy()
+    c, info = lapack.dpotrf(a, lower=1, clean=0, overwrite_a=0)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"joint_oracle: matrix not positive definite (potrf info {info})")
+    inv, info = lapack.dpotri(c, lower=1, overwrite_c=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"joint_oracle: potri info {info}")
+    low = np.tril(inv)
+    return low + np.tril(inv, -1).T
+
+
+@dataclass(frozen=True)
+class OracleState:
+    """Joint Gaussian: vehicles (blocks of ``vehicle_dim``, frame order), features (4, sorted ids), common."""
+
+    vehicle_ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=object))
+    feature_ids: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    feature_last_seen: np.ndarray = field(default_factory=lambda: np.empty(0))
+    mean: np.ndarray | None = None  # None: not started (the common state is set at the first step)
+    cov: np.ndarray | None = None
+    heading: np.ndarray | None = None  # [inertial]: kept heading per vehicle row
+    sensor_heading: HeadingMemory | None = None
+    streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+
+
+def _idx(starts: np.ndarray, width: int) -> np.ndarray:
+    """(len(starts), width) state indices of blocks starting at ``starts``."""
+    return np.asarray(starts, dtype=np.int64)[:, None] + np.arange(width)
+
+
+def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa: np.ndarray, a_c: float) -> np.ndarray:
+    """F p for block-diagonal F: ``fv`` (nv, vdim, vdim) vehicle blocks, ``fa`` (4, 4) every feature block,
+    ``a_c`` times the identity on the common block (the rest of the rows)."""
+    out = np.empty_like(p)
+    cols = p.shape[1]
+    nvr = nv * vdim
+    if nv:
+        out[:nvr] = np.einsum("nij,njc->nic", fv, p[:nvr].reshape(nv, vdim, cols)).reshape(nvr, cols)
+    if k:
+        out[nvr:nvr + 4 * k] = np.einsum("ij,njc->nic", fa, p[nvr:nvr + 4 * k].reshape(k, 4, cols)).reshape(4 * k, cols)
+    out[nvr + 4 * k:] = a_c * p[nvr + 4 * k:]
+    return out
+
+
+def _scatter(lam: np.ndarray, eta: np.ndarray, ind: np.ndarray, hth: np.ndarray, htz: np.ndarray) -> None:
+    """lam[ind_r, ind_r] += hth[r], eta[ind_r] += htz[r] for every row-group r (duplicates add up)."""
+    if ind.shape[0] == 0:
+        return
+    w = ind.shape[1]
+    rr = np.broadcast_to(ind[:, :, None], (ind.shape[0], w, w))
+    cc = np.broadcast_to(ind[:, None, :], (ind.shape[0], w, w))
+    np.add.at(lam, (rr, cc), hth)
+    np.add.at(eta, ind, htz)
+
+
+def _information(h: np.ndarray, rinv: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H^T R^-1 H and H^T R^-1 z for a batch: h (M, m, w), rinv (M, m, m), z (M, m)."""
+    htr = np.swapaxes(h, -1, -2) @ rinv
+    return htr @ h, np.einsum("nij,nj->ni", htr, z)
+
+
+@dataclass
+class JointOracle:
+    """The oracle (module docstring): a :class:`coloc.core.protocol.KnownAssociationEstimator`."""
+
+    params: IcpParams = field(default_factory=IcpParams)
+    world: OracleWorld = field(default_factory=OracleWorld)
+    name: str = JOINT_ORACLE.name
+    state: OracleState = field(default_factory=OracleState)
+    last_excluded: np.ndarray | None = None  # (N,) fixes left out by the NLOS gate this step
+    last_dim: int = 0  # the joint dimension of the last step
+
+    def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
+        n_rows = frame.v2f_z.shape[0]
+        frame, kept = without_vehicle_rows(frame)
+        assoc = np.asarray(v2f_feature)[kept] if kept is not None else np.asarray(v2f_feature)
+        assoc = validate_association(frame.v2f_owner, assoc, frame.v2f_z.shape[0])
+        self.state = self._step(self.state, frame, assoc)
+        s, w = self.state, self.world
+        n, vd = s.vehicle_ids.shape[0], w.vehicle_dim
+        vi = _idx(vd * np.arange(n), 4)
+        fi = _idx(vd * n + 4 * np.arange(s.feature_ids.size), 4)
+        cov = s.cov
+        return StepEstimate(
+            mean=s.mean[vi].copy(), cov=cov[vi[:, :, None], vi[:, None, :]].copy(),
+            feature_mean=s.mean[fi].copy(), feature_cov=cov[fi[:, :, None], fi[:, None, :]].copy(),
+            feature_track_ids=s.feature_ids.copy(),
+            v2f_assignment=expand_rows(assoc.astype(np.int64), kept, n_rows) if kept is not None
+            else assoc.astype(np.int64).copy(),
+        )
+
+    # --- one step -------------------------------------------------------------------------------------
+
+    def _step(self, st: OracleState, frame: Frame, assoc: np.ndarray) -> OracleState:
+        w, p_icp = self.world, self.params
+        vd, cd = w.vehicle_dim, w.common_dim
+        dt = float(frame.dt)
+        n_prev = st.vehicle_ids.shape[0]
+        k_prev = st.feature_ids.size
+        if st.mean is None:  # first step: the common state starts stationary
+            st = OracleState(mean=np.zeros(cd), cov=np.eye(cd))
+            n_prev, k_prev = 0, 0
+        idx = match_ids(st.vehicle_ids, frame.vehicle_ids)
+        fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
+        idx_c = np.where(fresh, -1, idx)
+        if frame.imu is None:
+            accel, heading = np.asarray(frame.accel, dtype=float), None
+        else:
+            accel, heading, psi_var = self._imu_input(frame, idx, fresh, st)
+
+        # --- predict survivors, old features and the common state (block-diagonal F, Q).
+        surv = np.flatnonzero(~fresh)
+        sp = idx[surv]
+        keep = np.concatenate([_idx(vd * sp, vd).ravel(), vd * n_prev + np.arange(4 * k_prev + cd)]).astype(np.int64)
+        x = st.mean[keep]
+        p = st.cov[np.ix_(keep, keep)]
+        ns = surv.size
+        a4 = transition_matrix(dt)
+        xv = x[:vd * ns].reshape(ns, vd)
+        fv = np.zeros((ns, vd, vd))
+        fv[:, :4, :4] = a4
+        qv = np.zeros((ns, vd, vd))
+        qv[:, :4, :4] = driving_noise_cov(xv[:, 2:4], dt, p_icp.motion)
+        if w.correlated:
+            a_l = w.local_coefficient(np.hypot(xv[:, 2], xv[:, 3]) * dt, dt)
+            fv[:, 4, 4] = fv[:, 5, 5] = a_l
+            qv[:, 4, 4] = qv[:, 5, 5] = 1.0 - a_l * a_l
+        if w.imu:
+            # accelerometer bias b (body frame): a_net = R(psi_mid) (a_body - b), psi_mid the heading the input
+            # was rotated by; b constant (turn-on) plus a drift whose increments are taken as a random walk of
+            # the drift's one-step variance (module docstring).
+            bo = w.bias_offset
+            fv[:, bo, bo] = fv[:, bo + 1, bo + 1] = 1.0
+            if frame.imu is not None:  # a frame without the IMU leaves the bias out of the input
+                r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+                psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
+                c, s_ = np.cos(psi_mid), np.sin(psi_mid)
+                rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
+                fv[:, 0:2, bo:bo + 2] = -0.5 * dt * dt * rot
+                fv[:, 2:4, bo:bo + 2] = -dt * rot
+            a_b = math.exp(-dt / w.accel_bias_tau_s)
+            qv[:, bo, bo] = qv[:, bo + 1, bo + 1] = (1.0 - a_b * a_b) * w.accel_bias_sigma ** 2
+            bm = input_matrix(dt)
+            qv[:, :4, :4] += (w.accel_noise_density ** 2 / dt) * (bm @ bm.T)
+        if frame.imu is not None:
+            # the input rotated by a heading of variance psi_var: an error |a| dpsi across it (first order)
+            ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
+            amag2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
+            hh = wrap_angle(np.asarray(heading, dtype=float)[surv]
+                            - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
+            u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
+            bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
+            qv[:, :4, :4] += (amag2 * psi_var[surv])[:, None, None] * bu[:, :, None] * bu[:, None, :]
+        a_c = math.exp(-dt / w.common_tau_s) if cd and w.common_tau_s > 0 else 0.0
+        xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
+        p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
+        p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
+        xv = np.einsum("nij,nj->ni", fv, xv)
+        xv[:, :4] += accel[surv] @ input_matrix(dt).T
+        xf = xf @ a4.T
+        xc = a_c * x[vd * ns + 4 * k_prev:]
+        pv = p[:vd * ns, :vd * ns].reshape(ns, vd, ns, vd)
+        pv[np.arange(ns), :, np.arange(ns), :] += qv
+        if k_prev:
+            qf = feature_track_q(xf, dt, p_icp)
+            pf = p[vd * ns:vd * ns + 4 * k_prev, vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4, k_prev, 4)
+            pf[np.arange(k_prev), :, np.arange(k_prev), :] += qf
+        if cd:
+            cc = np.arange(p.shape[0] - cd, p.shape[0])
+            p[cc, cc] += 1.0 - a_c * a_c
+        p = symmetrize(p)
+
+        # Sensor-frame rows of a vehicle below heading_min_speed (predicted speed; fresh: its fix's) are left
+        # out: the heading it keeps while slow has the same error at every step of a stop, and counting its rows
+        # again each step made the map overconfident (docs/validation/oracle.md).
+        n = frame.n_vehicles
+        zg = np.asarray(frame.gnss_z, dtype=float)
+        if frame.v2f_sensor is not None and assoc.size:
+            speed = np.hypot(zg[:, 2], zg[:, 3])
+            speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
+            slow = speed < p_icp.motion.heading_min_speed
+            assoc = np.where(slow[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
+
+        # --- layout after the update: vehicles (frame order), old features, new features, common.
+        used = assoc >= 0
+        seen = np.unique(assoc[used])
+        new_ids = np.setdiff1d(seen, st.feature_ids)
+        fids = np.concatenate([st.feature_ids, new_ids]).astype(np.int64)
+        k = fids.size
+        d = vd * n + 4 * k + cd
+        c0 = vd * n + 4 * k  # first index of the common state
+        # predicted means in the new layout (fresh vehicles: filled below, only as linearization points)
+        mean_pred = np.zeros(d)
+        mean_pred[:vd * n].reshape(n, vd)[surv] = xv
+        mean_pred[vd * n:vd * n + 4 * k_prev] = xf.ravel()
+        mean_pred[c0:] = xc
+        pos_keep = np.concatenate([_idx(vd * surv, vd).ravel(), vd * n + np.arange(4 * k_prev), c0 + np.arange(cd)])
+        pos_keep = pos_keep.astype(np.int64)
+        # predicted covariance blocks needed by the gate and the headings, in the new layout
+        rg = np.asarray(frame.gnss_R, dtype=float)
+        sig = np.sqrt(rg[:, 0, 0]) if n else np.empty(0)
+
+        lam = np.zeros((d, d))
+        eta = np.zeros(d)
+        if pos_keep.size:
+            li = spd_inverse(p)
+            lam[np.ix_(pos_keep, pos_keep)] = li
+            eta[pos_keep] = li @ mean_pred[pos_keep]
+        fr = np.flatnonzero(fresh)
+        if fr.size:
+            if w.start != "gnss_fix":
+                prior_z = np.asarray(frame.prior_z, dtype=float)[fr]
+                lp = np.linalg.inv(np.asarray(frame.prior_R, dtype=float)[fr])
+                ind = _idx(vd * fr, 4)
+                _scatter(lam, eta, ind, symmetrize(lp), np.einsum("nij,nj->ni", lp, prior_z))
+            if w.correlated:  # the local error state starts stationary
+                ind = _idx(vd * fr + 4, 2)
+                _scatter(lam, eta, ind, np.broadcast_to(np.eye(2), (fr.size, 2, 2)), np.zeros((fr.size, 2)))
+            if w.imu:  # the bias of an IMU just switched on: turn-on plus stationary drift
+                ind = _idx(vd * fr + w.bias_offset, 2)
+                ib = np.eye(2) / (w.accel_turn_on_sigma ** 2 + w.accel_bias_sigma ** 2)
+                _scatter(lam, eta, ind, np.broadcast_to(ib, (fr.size, 2, 2)), np.zeros((fr.size, 2)))
+            # linearization points of fresh vehicles: their fix
+            mean_pred[:vd * n].reshape(n, vd)[fr, :4] = zg[fr]
+        if new_ids.size and p_icp.feature_velocity_prior_sigma:
+            ind = _idx(vd * n + 4 * np.arange(k_prev, k) + 2, 2)
+            iv = np.eye(2) / p_icp.feature_velocity_prior_sigma ** 2
+            _scatter(lam, eta, ind, np.broadcast_to(iv, (new_ids.size, 2, 2)), np.zeros((new_ids.size, 2)))
+
+        # --- GNSS (3) with the error states; the NLOS gate on the predicted state.
+        excluded = np.zeros(n, dtype=bool)
+        streak = np.zeros(n, dtype=np.int64)
+        if n:
+            have = idx_c >= 0
+            streak[have] = st.streak[idx_c[have]] if st.streak.size else 0
+            excluded = self._gnss_information(lam, eta, p, frame, fresh, surv, mean_pred, sig, zg, rg, streak)
+        self.last_excluded = excluded
+
+        # --- V2F (4) rows with the true association.
+        sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, mean_pred, p, surv, st)
+
+        lam = symmetrize(lam)
+        cov = spd_inverse(lam)
+        mean = cov @ eta
+        last_seen = np.concatenate([st.feature_last_seen, np.full(new_ids.size, float(frame.t))])
+        if seen.size:
+            last_seen[_positions(fids, seen)] = float(frame.t)
+        keep_f = np.flatnonzero((frame.t - last_seen) <= w.feature_keep_s)
+        keep_f = keep_f[np.argsort(fids[keep_f], kind="stable")]
+        sel = np.concatenate([np.arange(vd * n), (vd * n + 4 * keep_f[:, None] + np.arange(4)).ravel(),
+                              c0 + np.arange(cd)]).astype(np.int64)
+        if sel.size != d or np.any(sel != np.arange(d)):
+            mean, cov = mean[sel], cov[np.ix_(sel, sel)]
+        self.last_dim = d
+        return OracleState(
+            vehicle_ids=np.asarray(frame.vehicle_ids), feature_ids=fids[keep_f], feature_last_seen=last_seen[keep_f],
+            mean=mean, cov=cov, heading=heading, sensor_heading=sensor_heading,
+            streak=np.where(excluded, streak + 1, 0),
+        )
+
+    def _imu_input(self, frame: Frame, idx: np.ndarray, fresh: np.ndarray, st: OracleState):
+        """The input a_{t-1} of model (1) from the body-frame IMU, the mid-step heading kept, and the variance
+        of the heading used. The heading at t-1 is the direction of the oracle's velocity at t-1 when the
+        vehicle was above ``heading_min_speed`` (variance g P_vv g^T), else the heading the sensor-frame rows
+        keep for it (:class:`coloc.core.detections.HeadingMemory`: held, not dead-reckoned by the gyroscope,
+        whose turn-on bias would turn a queued vehicle by tens of degrees a minute); unknown (pi^2 / 3) without
+        one. Rotated at mid-step by the measured yaw rate (:mod:`coloc.core.inertial`)."""
+        from coloc.core.detections import HEADING_VAR_UNKNOWN, heading_from_velocity
+        from coloc.core.inertial import rotate, wrap_angle
+
+        vd = self.world.vehicle_dim
+        n = frame.n_vehicles
+        n_prev = st.vehicle_ids.shape[0]
+        have = ~fresh
+        pv = np.zeros((n, 2))
+        pvv = np.tile(np.eye(2) * HEADING_VAR_UNKNOWN, (n, 1, 1))
+        if n_prev and have.any():
+            rows = idx[have]
+            blk = st.mean[:vd * n_prev].reshape(n_prev, vd)
+            pv[have] = blk[rows, 2:4]
+            ii = vd * rows[:, None] + np.array([2, 3])
+            pvv[have] = st.cov[ii[:, :, None], ii[:, None, :]]
+        psi, var = heading_from_velocity(pv, pvv)
+        slow = np.hypot(pv[:, 0], pv[:, 1]) < self.params.motion.heading_min_speed
+        if st.sensor_heading is not None and n_prev:
+            kh, kv = st.sensor_heading.carry(np.where(fresh, -1, idx))
+            use = slow & np.isfinite(kh)
+            psi = np.where(use, kh, psi)
+            var = np.where(use, kv, var)
+            slow = slow & ~use
+        var = np.where(slow, HEADING_VAR_UNKNOWN, var)
+        r = np.asarray(frame.imu.yaw_rate, dtype=float)
+        step = np.where(fresh, 0.0, r * float(frame.dt))
+        accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
+        return accel, wrap_angle(psi + step), var
+
+    def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
+        """Add every fix's information; returns which fixes' positions the gate left out."""
+        w = self.world
+        vd, cd = w.vehicle_dim, w.common_dim
+        n = frame.n_vehicles
+        d = lam.shape[0]
+        c0 = d - cd
+        # H of the position rows on [p (2), l (2), c (2)]: I, sigma sqrt(1 - s) I, sigma sqrt(s) I.
+        s = w.common_share if cd else 0.0
+        if w.correlated:
+            cols = [vd * np.arange(n)[:, None] + np.array([0, 1, 4, 5])]
+            hp = np.zeros((n, 2, 4 + cd))
+            hp[:, :, :2] = np.eye(2)
+            hp[:, :, 2:4] = (sig * math.sqrt(1.0 - s))[:, None, None] * np.eye(2)
+            if cd:
+                cols.append(np.broadcast_to(c0 + np.arange(cd), (n, cd)))
+                hp[:, :, 4:] = (sig * math.sqrt(s))[:, None, None] * np.eye(2)
+            pcols = np.concatenate(cols, axis=1)
+            rp = (w.fix_noise_share * sig * sig)[:, None, None] * np.eye(2)
+        else:
+            pcols = vd * np.arange(n)[:, None] + np.array([0, 1])
+            hp = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+            rp = rg[:, :2, :2]
+        zp = zg[:, :2]
+        excluded = np.zeros(n, dtype=bool)
+        thr = w.gate_threshold
+        if math.isfinite(thr) and surv.size:
+            # innovation covariance on the predicted joint: the survivors' rows of p_pred (old layout)
+            ns = surv.size
+            old = pcols[surv].copy()
+            ov = old < vd * n
+            veh = old // vd
+            rank = np.empty(n, dtype=np.int64)
+            rank[surv] = np.arange(ns)
+            old[ov] = vd * rank[veh[ov]] + old[ov] % vd
+            old[~ov] = p_pred.shape[0] - (d - old[~ov])
+            pp = p_pred[old[:, :, None], old[:, None, :]]
+            hs = hp[surv]
+            sm = hs @ pp @ np.swapaxes(hs, -1, -2) + rp[surv]
+            nu = zp[surv] - np.einsum("nij,nj->ni", hs, mean_pred[pcols[surv]])
+            nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm, nu[..., None])[..., 0])
+            excluded[surv] = (nis > thr) & (streak[surv] < w.max_exclusions)
+        take = ~excluded
+        if take.any():
+            hth, htz = _information(hp[take], np.linalg.inv(rp[take]), zp[take])
+            _scatter(lam, eta, pcols[take], hth, htz)
+        # velocity rows: v + white noise with the reported block
+        vcols = vd * np.arange(n)[:, None] + np.array([2, 3])
+        rv_inv = np.linalg.inv(rg[:, 2:, 2:])
+        _scatter(lam, eta, vcols, symmetrize(rv_inv), np.einsum("nij,nj->ni", rv_inv, zg[:, 2:]))
+        return excluded
+
+    def _v2f_information(self, lam, eta, frame, assoc, fids, idx_c, mean_pred, p_pred, surv, st):
+        """Add every associated V2F row's information; returns the heading memory to keep."""
+        vd = self.world.vehicle_dim
+        n = frame.n_vehicles
+        used = np.flatnonzero(assoc >= 0)
+        det = frame.v2f_sensor
+        memory = None
+        owner = np.asarray(frame.v2f_owner, dtype=np.int64)
+        if det is not None:
+            # each vehicle's predicted velocity and its covariance (fresh: the fix's velocity block)
+            vmean = mean_pred[:vd * n].reshape(n, vd)[:, :4]
+            vcov = np.zeros((n, 4, 4))
+            vcov[:] = np.asarray(frame.gnss_R, dtype=float)
+            if surv.size:
+                ii = _idx(vd * np.arange(surv.size), 4)
+                vcov[surv] = p_pred[ii[:, :, None], ii[:, None, :]]
+            psi, var, memory = vehicle_headings(frame, vmean, vcov, idx_c, st.sensor_heading,
+                                                self.params.motion.heading_min_speed)
+        if used.size == 0:
+            return memory
+        own = owner[used]
+        fpos = _positions(fids, assoc[used])
+        m = used.size
+        h = np.zeros((m, 4, 8))
+        h[:, :, :4] = -np.eye(4)
+        h[:, :, 4:] = np.eye(4)
+        if det is None:
+            z = np.asarray(frame.v2f_z, dtype=float)[used]
+            r = np.asarray(frame.v2f_R, dtype=float)[used]
+        else:
+            from dataclasses import replace as _replace
+
+            sub = _replace(det, **{f: np.asarray(getattr(det, f))[used] for f in (
+                "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
+            z, r = to_net_frame(sub, psi[own], var[own])
+        ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
+        rinv = symmetrize(np.linalg.inv(r))
+        hth, htz = _information(h, rinv, z)
+        _scatter(lam, eta, ind, hth, htz)
+        return memory
+
+
+def _positions(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Position of each of ``wanted`` in ``ids`` (all present)."""
+    order = np.argsort(ids, kind="stable")
+    return order[np.searchsorted(ids[order], wanted)]

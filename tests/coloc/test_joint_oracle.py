@@ -1,0 +1,296 @@
+"""``joint_oracle`` (coloc/methods/joint_oracle.py) against batch least squares, and its consistency where its
+model is the truth.
+
+* Batch: on small linear problems (GNSS with common and local error states, net-frame V2F rows, features born
+  with zero position information) the filter's final joint mean and covariance equal the solution of the
+  weighted least-squares problem over the whole trajectory (the same information: priors, process noises,
+  every fix and row) to 1e-9.
+* NEES: over 100 seeded runs drawn from the oracle's own model, the average NEES of a vehicle's final
+  position is inside the 99 % chi-square band.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.stats import chi2
+
+from coloc.core.frame import Frame
+from coloc.core.models import MotionParams, driving_noise_cov, input_matrix, transition_matrix
+from coloc.inference.feature_store import feature_track_q
+from coloc.inference.params import IcpParams
+from coloc.methods.joint_oracle import JointOracle, OracleWorld
+
+DT = 0.75
+MOTION = MotionParams(sigma_along=0.3, sigma_cross=0.3)  # isotropic: Q does not depend on the estimate
+PARAMS = IcpParams(motion=MOTION, feature_sigma_par=0.05, feature_sigma_perp=0.05, feature_velocity_prior_sigma=0.4,
+                   feature_drop_after_s=1e9)
+# Linear worlds: with infinite correlation lengths the local error's coefficient does not depend on the speed.
+WORLDS = {
+    "white": OracleWorld(),
+    "per_vehicle": OracleWorld(gnss="per_vehicle", tau_s=20.0, fix_noise_share=0.05),
+    "field": OracleWorld(gnss="field", tau_s=20.0, common_share=0.4, common_tau_s=200.0, field_share=0.5,
+                         field_corr_length_m=math.inf, field_tau_s=60.0, fix_noise_share=0.05),
+}
+
+
+def _factor(q: np.ndarray) -> np.ndarray:
+    """L with L L^T = q (q symmetric PSD, possibly singular)."""
+    w, v = np.linalg.eigh(q)
+    keep = w > 1e-12 * max(w.max(), 1e-300)
+    return v[:, keep] * np.sqrt(w[keep])
+
+
+def _frame(t, n, rng, entered, sig, zg, vel_sig, owner, rows_z, rows_r, prior_z=None, prior_r=None):
+    gr = np.zeros((n, 4, 4))
+    gr[:, 0, 0] = gr[:, 1, 1] = sig ** 2
+    gr[:, 2, 2] = gr[:, 3, 3] = vel_sig ** 2
+    return Frame(
+        t=t, dt=DT, vehicle_ids=np.array([f"v{i}" for i in range(n)], dtype=object), entered=entered,
+        prior_z=prior_z if prior_z is not None else np.full((n, 4), np.nan),
+        prior_R=prior_r if prior_r is not None else np.full((n, 4, 4), np.nan),
+        accel=rng.normal(0, 0.5, (n, 2)), gnss_z=zg, gnss_R=gr, v2f_z=rows_z, v2f_owner=owner, v2f_R=rows_r,
+        neighbors=sp.csr_matrix((n, n), dtype=bool),
+    )
+
+
+def _scenario(rng, n=3, k=3, steps=6):
+    """Random measurements (any values do for the equality test): a list of (frame, association)."""
+    frames = []
+    prior_z = rng.normal(0, 5, (n, 4))
+    prior_r = np.zeros((n, 4, 4))
+    for i in range(n):
+        a = rng.normal(size=(4, 4))
+        prior_r[i] = a @ a.T + np.diag([4.0, 4.0, 0.5, 0.5])
+    for step in range(steps):
+        sig = rng.uniform(2.0, 9.0, n)  # zone changes: the reported sigma moves
+        zg = rng.normal(0, 5, (n, 4))
+        owner = np.repeat(np.arange(n), 2)
+        # two distinct features per vehicle; every feature is born in the first step (zero position information)
+        assoc = np.concatenate([rng.choice(k, 2, replace=False) for _ in range(n)])
+        if step == 0:
+            assoc = np.concatenate([[i % k, (i + 1) % k] for i in range(n)])
+        rows_z = rng.normal(0, 10, (owner.size, 4))
+        rows_r = np.zeros((owner.size, 4, 4))
+        for j in range(owner.size):
+            a = rng.normal(size=(4, 4)) * 0.2
+            rows_r[j] = a @ a.T + 0.05 * np.eye(4)
+        entered = np.full(n, step == 0)
+        f = _frame(step * DT, n, rng, entered, sig, zg, rng.uniform(0.1, 0.4, n), owner, rows_z, rows_r,
+                   prior_z if step == 0 else None, prior_r if step == 0 else None)
+        frames.append((f, assoc))
+    return frames
+
+
+def _batch(frames, world: OracleWorld, params: IcpParams):
+    """Weighted least squares over the whole trajectory, parametrized by the initial state and the unit process
+    noises: returns the final joint (mean, covariance) in the oracle's layout."""
+    n = frames[0][0].n_vehicles
+    k = int(max(a.max() for _, a in frames)) + 1
+    vd, cd = world.vehicle_dim, world.common_dim
+    d = vd * n + 4 * k + cd
+    a4, b4 = transition_matrix(DT), input_matrix(DT)
+    # theta = [x_0 (d), e_1, e_2, ...]; x_t = phi_t theta + off_t
+    phi = np.eye(d)
+    off = np.zeros(d)
+    blocks_info = [np.zeros((d, d))]
+    eta_parts = [np.zeros(d)]
+    f0 = frames[0][0]
+    lam0, eta0 = blocks_info[0], eta_parts[0]
+    if world.start != "gnss_fix":
+        for i in range(n):
+            li = np.linalg.inv(f0.prior_R[i])
+            s = slice(vd * i, vd * i + 4)
+            lam0[s, s] += li
+            eta0[s] += li @ f0.prior_z[i]
+    for i in range(n if world.correlated else 0):
+        s = slice(vd * i + 4, vd * i + 6)
+        lam0[s, s] += np.eye(2)
+    for j in range(k):
+        s = slice(vd * n + 4 * j + 2, vd * n + 4 * j + 4)
+        lam0[s, s] += np.eye(2) / params.feature_velocity_prior_sigma ** 2
+    if cd:
+        lam0[-cd:, -cd:] += np.eye(cd)
+    rows_h, rows_rinv, rows_z, rows_t = [], [], [], []
+    phis, offs = [], []
+    for t, (f, assoc) in enumerate(frames):
+        if t > 0:
+            fm = np.zeros((d, d))
+            lq = []
+            inp = np.zeros(d)
+            for i in range(n):
+                s = slice(vd * i, vd * i + 4)
+                fm[s, s] = a4
+                inp[s] = b4 @ frames[t][0].accel[i]
+                lq.append((s, _factor(driving_noise_cov(np.zeros((1, 2)), DT, params.motion)[0])))
+                if world.correlated:
+                    a_l = float(world.local_coefficient(np.zeros(1), DT)[0])
+                    su = slice(vd * i + 4, vd * i + 6)
+                    fm[su, su] = a_l * np.eye(2)
+                    lq.append((su, math.sqrt(1 - a_l ** 2) * np.eye(2)))
+            for j in range(k):
+                s = slice(vd * n + 4 * j, vd * n + 4 * j + 4)
+                fm[s, s] = a4
+                lq.append((s, _factor(feature_track_q(np.zeros((1, 4)), DT, params)[0])))
+            if cd:
+                a_c = math.exp(-DT / world.common_tau_s)
+                fm[-cd:, -cd:] = a_c * np.eye(cd)
+                lq.append((slice(d - cd, d), math.sqrt(1 - a_c ** 2) * np.eye(cd)))
+            ne = sum(l.shape[1] for _, l in lq)
+            g = np.zeros((d, ne))
+            c = 0
+            for s, l in lq:
+                g[s, c:c + l.shape[1]] = l
+                c += l.shape[1]
+            phi = np.hstack([fm @ phi, g])
+            off = fm @ off + inp
+        phis.append(phi)
+        offs.append(off)
+        # measurements of step t: GNSS
+        s_share = world.common_share if cd else 0.0
+        for i in range(n):
+            sig = math.sqrt(f.gnss_R[i, 0, 0])
+            h = np.zeros((4, d))
+            h[:, vd * i:vd * i + 4] = np.eye(4)
+            r = f.gnss_R[i].copy()
+            if world.correlated:
+                h[0:2, vd * i + 4:vd * i + 6] = sig * math.sqrt(1 - s_share) * np.eye(2)
+                if cd:
+                    h[0:2, d - cd:] = sig * math.sqrt(s_share) * np.eye(2)
+                r[:2, :2] = world.fix_noise_share * sig * sig * np.eye(2)
+            rows_h.append(h), rows_rinv.append(np.linalg.inv(r)), rows_z.append(f.gnss_z[i]), rows_t.append(t)
+        for o in range(f.v2f_owner.size):
+            h = np.zeros((4, d))
+            i, j = f.v2f_owner[o], assoc[o]
+            h[:, vd * i:vd * i + 4] = -np.eye(4)
+            h[:, vd * n + 4 * j:vd * n + 4 * j + 4] = np.eye(4)
+            rows_h.append(h), rows_rinv.append(np.linalg.inv(f.v2f_R[o])), rows_z.append(f.v2f_z[o]), rows_t.append(t)
+    p_dim = phis[-1].shape[1]
+    lam = np.zeros((p_dim, p_dim))
+    eta = np.zeros(p_dim)
+    lam[:d, :d] += lam0
+    eta[:d] += eta0
+    lam[d:, d:] += np.eye(p_dim - d)  # unit process noises
+    for h, ri, z, t in zip(rows_h, rows_rinv, rows_z, rows_t):
+        ph = h @ phis[t]
+        ph = np.hstack([ph, np.zeros((4, p_dim - ph.shape[1]))])
+        lam += ph.T @ ri @ ph
+        eta += ph.T @ ri @ (z - h @ offs[t])
+    cov_theta = np.linalg.inv(lam)
+    theta = cov_theta @ eta
+    mean = phis[-1] @ theta + offs[-1]
+    cov = phis[-1] @ cov_theta @ phis[-1].T
+    return mean, cov
+
+
+@pytest.mark.parametrize("world_name", sorted(WORLDS))
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_equals_batch_least_squares(world_name, seed):
+    world = WORLDS[world_name]
+    frames = _scenario(np.random.default_rng(seed))
+    est = JointOracle(params=PARAMS, world=world)
+    for f, assoc in frames:
+        est.step_with_association(f, assoc)
+    mean, cov = _batch(frames, world, PARAMS)
+    scale = max(1.0, float(np.abs(cov).max()))
+    np.testing.assert_allclose(est.state.mean, mean, rtol=0, atol=1e-9 * max(1.0, float(np.abs(mean).max())))
+    np.testing.assert_allclose(est.state.cov, cov, rtol=0, atol=1e-9 * scale)
+
+
+def test_batch_differs_when_the_model_does():
+    """The comparison can fail: a filter told another world's coefficients misses the batch solution."""
+    frames = _scenario(np.random.default_rng(5))
+    est = JointOracle(params=PARAMS, world=WORLDS["field"])
+    for f, assoc in frames:
+        est.step_with_association(f, assoc)
+    other = OracleWorld(**{**WORLDS["field"].__dict__, "common_tau_s": 20.0})
+    mean, _ = _batch(frames, other, PARAMS)
+    assert np.abs(est.state.mean - mean).max() > 1e-3
+
+
+def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
+    """One run drawn from the oracle's own model (linear world, features static on average): frames,
+    associations and the final true vehicle states."""
+    vd = world.vehicle_dim
+    a4, b4 = transition_matrix(DT), input_matrix(DT)
+    lv = _factor(driving_noise_cov(np.zeros((1, 2)), DT, MOTION)[0])
+    lf = _factor(feature_track_q(np.zeros((1, 4)), DT, PARAMS)[0])
+    prior_r = np.tile(np.diag([4.0, 4.0, 0.25, 0.25]), (n, 1, 1))
+    x = np.zeros((n, 4))
+    x[:, 2:] = rng.normal(0, 3, (n, 2))
+    x[:, :2] = np.array([[20.0 * i, 0.0] for i in range(n)])
+    prior_z = x + np.einsum("nij,nj->ni", np.linalg.cholesky(prior_r), rng.standard_normal((n, 4)))
+    feat = np.zeros((k, 4))
+    feat[:, :2] = rng.uniform(-30, 60, (k, 2))
+    feat[:, 2:] = rng.normal(0, PARAMS.feature_velocity_prior_sigma, (k, 2))
+    u = rng.standard_normal((n, 2))
+    c = rng.standard_normal(2)
+    s = world.common_share if world.common_dim else 0.0
+    a_l = float(world.local_coefficient(np.zeros(1), DT)[0]) if world.correlated else 0.0
+    a_c = math.exp(-DT / world.common_tau_s)
+    out = []
+    for step in range(steps):
+        accel = rng.normal(0, 0.5, (n, 2))  # the input over (t - Ts, t], carried by the frame at t
+        if step:
+            x = x @ a4.T + accel @ b4.T + rng.standard_normal((n, lv.shape[1])) @ lv.T
+            feat = feat @ a4.T + rng.standard_normal((k, lf.shape[1])) @ lf.T
+            u = a_l * u + math.sqrt(1 - a_l ** 2) * rng.standard_normal((n, 2))
+            c = a_c * c + math.sqrt(1 - a_c ** 2) * rng.standard_normal(2)
+        sig = rng.uniform(2.0, 6.0, n)
+        vel_sig = np.full(n, 0.3)
+        zg = x.copy()
+        if world.correlated:
+            white = math.sqrt(world.fix_noise_share) * sig[:, None] * rng.standard_normal((n, 2))
+            zg[:, :2] += sig[:, None] * (math.sqrt(s) * c[None, :] + math.sqrt(1 - s) * u) + white
+        else:
+            zg[:, :2] += sig[:, None] * rng.standard_normal((n, 2))
+        zg[:, 2:] += vel_sig[:, None] * rng.standard_normal((n, 2))
+        owner = np.repeat(np.arange(n), k)
+        assoc = np.tile(np.arange(k), n)
+        keep = rng.random(owner.size) < 0.5
+        if step == 0:
+            keep[:k] = True
+        owner, assoc = owner[keep], assoc[keep]
+        rr = np.tile(np.diag([0.3, 0.3, 0.2, 0.2]) ** 2, (owner.size, 1, 1))
+        rows = feat[assoc] - x[owner] + rng.standard_normal((owner.size, 4)) * np.array([0.3, 0.3, 0.2, 0.2])
+        f = _frame(step * DT, n, rng, np.full(n, step == 0), sig, zg, vel_sig, owner, rows, rr,
+                   prior_z if step == 0 else None, prior_r if step == 0 else None)
+        f = Frame(**{**f.__dict__, "accel": accel})
+        out.append((f, assoc))
+    return out, x
+
+
+@pytest.mark.slow  # 100 runs per world: about a minute on the 2-core machine
+@pytest.mark.parametrize("world_name", ["white", "field"])
+def test_nees_inside_the_99_band_where_the_model_is_the_truth(world_name):
+    world = WORLDS[world_name]
+    runs = 100
+    nees = []
+    for seed in range(runs):
+        frames, x_true = _simulate(np.random.default_rng(1000 + seed), world)
+        est = JointOracle(params=PARAMS, world=world)
+        for f, assoc in frames:
+            res = est.step_with_association(f, assoc)
+        e = res.mean[0, :2] - x_true[0, :2]
+        nees.append(float(e @ np.linalg.solve(res.cov[0, :2, :2], e)))
+    lo, hi = chi2.ppf([0.005, 0.995], 2 * runs) / runs
+    assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
+
+
+def test_gate_leaves_out_a_fix_far_from_the_prediction():
+    """NLOS gate: a fix 200 m off is left out (its velocity kept); the estimate stays near the others."""
+    world = OracleWorld(gnss="per_vehicle", tau_s=20.0, nlos=True)
+    frames, _ = _simulate(np.random.default_rng(7), world, steps=10)
+    est = JointOracle(params=PARAMS, world=world)
+    for f, assoc in frames[:-1]:
+        est.step_with_association(f, assoc)
+    before = est.state.mean[:2].copy()
+    f, assoc = frames[-1]
+    z = f.gnss_z.copy()
+    z[0, :2] += 200.0
+    res = est.step_with_association(Frame(**{**f.__dict__, "gnss_z": z}), assoc)
+    assert est.last_excluded[0] and not est.last_excluded[1:].any()
+    assert np.hypot(*(res.mean[0, :2] - before)) < 20.0

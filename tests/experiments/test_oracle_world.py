@@ -1,0 +1,44 @@
+"""What ``joint_oracle`` is told of the world (experiments/oracle_world.py): the world's tables, only for a run
+that has the oracle."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from experiments.config import load_config
+from experiments.oracle_world import oracle_world
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_realistic_preset_tells_the_field_model_and_the_first_fix():
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
+                      overrides={"run.methods": ["gnss", "joint_oracle"]})
+    w = oracle_world(cfg)
+    ge = cfg.gnss_error
+    assert (w.gnss, w.start, w.nlos) == ("field", "gnss_fix", True)
+    assert (w.common_share, w.common_tau_s, w.field_share) == (ge.common_share, ge.common_tau_s, ge.field_share)
+    assert (w.tau_s, w.local_corr_length_m, w.field_corr_length_m) == (ge.tau_s, ge.local_corr_length_m,
+                                                                        ge.field_corr_length_m)
+    assert w.vehicle_dim == 8 and w.common_dim == 2  # p, v, local GNSS error, accelerometer bias; common
+    i = cfg.inertial
+    assert (w.accel_turn_on_sigma, w.accel_bias_sigma, w.accel_bias_tau_s) == (
+        i.accel_turn_on_sigma, i.accel_bias_sigma, i.accel_bias_tau_s)
+
+
+def test_paper_config_is_white_and_only_with_the_oracle():
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml")
+    assert oracle_world(cfg) is None  # not among the methods: nothing read
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml", overrides={"run.methods": ["joint_oracle"]})
+    w = oracle_world(cfg)
+    assert (w.gnss, w.nlos, w.vehicle_dim, w.common_dim, w.imu) == ("white", False, 4, 0, False)
+
+
+def test_per_vehicle_world_has_no_shared_part():
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
+                      overrides={"run.methods": ["joint_oracle"], "gnss_error.model": "per_vehicle",
+                                 "scenario.start": "fast_start"})
+    w = oracle_world(cfg)
+    assert (w.gnss, w.start, w.common_dim, w.field_share) == ("per_vehicle", "fast_start", 0, 0.0)
+    assert math.isinf(w.local_corr_length_m)
