@@ -26,6 +26,16 @@ alone on the same net and routes against the coupled run with gnss + icp_da_lc (
 
     python bench/city_scale.py [--work /tmp/coloc_city] [--duration 900] [--seed 1]
 
+With ``--realistic`` it measures instead icp_da_lc's cost per vehicle-step with the realistic tables
+(the import's ``city_tlr_realistic.toml``, i.e. the arterial's realistic preset on the city) against
+the arterial's own (``experiments/arterial_tlr_realistic.toml``), over the steps after ``--warmup``
+seconds of the same ``--duration`` and seed (target: the city within 1.5x the arterial). For a city
+of about 300 vehicles in the net build it with a lower rate, e.g.
+``--work /tmp/coloc_city300 --insertion-rate 2500 --insert-s 1800``.
+
+Every SUMO run here is started as `coloc run` starts it (:func:`experiments.runner.sumo_scenario`:
+every route file, additional file and the begin of the net folder).
+
 The net folder is cached in ``--work`` (rebuilt when absent). Not a test: it asserts nothing and
 prints numbers measured in one run (6 minutes on an idle 2-core machine, plus about 1 minute to
 build the net folder the first time). The simulation jams as the demand exceeds the net's capacity,
