@@ -184,7 +184,8 @@ def realistic_against_arterial(city_config: Path, args) -> None:
         out[label] = cost
         print(f"  {label:<9} realistic: mean {n:6.1f} vehicles in the net, {rows:5.2f} V2F rows per vehicle-step, "
               f"frames {frames:7.1f} us, icp_da_lc {cost:7.1f} us per vehicle-step "
-              f"(t >= {args.warmup:g} s of {args.duration:g} s, seed {args.seed}; {time.perf_counter() - t0:.0f} s wall)")
+              f"(t >= {args.warmup:g} s of {args.duration:g} s, seed {args.seed}; "
+              f"{time.perf_counter() - t0:.0f} s wall)")
     print(f"  icp_da_lc per vehicle-step, city against arterial, realistic sensing: "
           f"{out['city'] / out['arterial']:.2f}x (target at most 1.5x)")
 

@@ -2,10 +2,10 @@
 
 Prints the import's wall time, then for each control the traffic of the
 simulated hour from the ``sumo`` binary run with exactly the options a
-``coloc run`` uses (:func:`experiments.runner.folder_scenario`: every route and additional file of the
-folder, its begin, step 0.75 s, ballistic update, seed, ``--tls.all-off`` for VSR) plus SUMO's own statistics output: vehicles
-loaded / inserted / arrived, still running or waiting to enter at the end,
-teleports (jam, yield, wrong lane), mean vehicles running and halting, and
+``coloc run`` uses (:func:`experiments.runner.folder_scenario`: every route and
+additional file of the folder, its begin, step 0.75 s, ballistic update, seed,
+``--tls.all-off`` for VSR) plus SUMO's own statistics output: vehicles loaded /
+inserted / arrived, still running or waiting to enter at the end, teleports (jam, yield, wrong lane), mean vehicles running and halting, and
 the mean speed and arrivals of the last 5 minutes (near 0 = gridlock).
 
     python bench/net_import.py (--net FILE.net.xml | --osm FILE.osm) [--seed 1] [--demand-scale 1]
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--demand-scale", type=float, default=1.0)
     ap.add_argument("--guess-signals", action="store_true")
-    ap.add_argument("--end", type=float, default=3600.0)
+    ap.add_argument("--end", type=float, default=3600.0, help="simulated seconds from the folder's begin")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         if args.folder:
