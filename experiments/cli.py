@@ -7,7 +7,6 @@ no traceback, nothing half-written.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 import sys
@@ -243,9 +242,6 @@ def cmd_net_import(args: argparse.Namespace) -> int:
             cfg = experiments_dir / cfg_name
             if cfg.exists():
                 raise InputError(cfg, None, "already exists (pass --force to replace it)")
-
-    if not (args.occlusion_s >= 0 and math.isfinite(args.occlusion_s)):
-        raise InputError(None, "--occlusion-s", f"{args.occlusion_s:g}: must be a finite number of seconds >= 0")
 
     def configs(result):
         return net_configs(args.name, out, experiments_dir, result.track_area, source,
