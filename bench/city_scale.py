@@ -178,7 +178,7 @@ def realistic_against_arterial(city_config: Path, args) -> None:
     """icp_da_lc per vehicle-step with the realistic tables on the city (its import's
     ``city_tlr_realistic.toml``) against the arterial's (``arterial_tlr_realistic.toml``), same duration, seed
     and warm-up; each SUMO run as `coloc run` starts it (:func:`experiments.runner.sumo_scenario`)."""
-    over = {"run.duration_s": args.duration, "run.methods": ["gnss", ICP_DA_LC.name], "run.seed": args.seed}
+    over = {"run.duration_s": args.duration, "run.methods": [GNSS.name, ICP_DA_LC.name], "run.seed": args.seed}
     out = {}
     for label, path in (("arterial", ROOT / "experiments" / "arterial_tlr_realistic.toml"),
                         ("city", city_config.with_name("city_tlr_realistic.toml"))):

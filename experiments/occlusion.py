@@ -68,13 +68,14 @@ def measure_occlusion(net_dir: Path, control: str, seed: int, seconds: float, tr
     """Occluded / in-view pairs over the first ``seconds`` of ``net_dir``'s demand (from its begin) under
     ``control``, with experiments/arterial_<control>_realistic.toml's ``[perception]`` (``buildings``:
     whether the folder has buildings to occlude)."""
+    from coloc.methods.registry import GNSS  # noqa: PLC0415
     from couplers.sumo_coupler import SumoCoupler  # noqa: PLC0415
     from experiments.config import load_config  # noqa: PLC0415
     from experiments.runner import sumo_scenario  # noqa: PLC0415
 
     preset = HERE / f"arterial_{control}_realistic.toml"
     cfg = load_config(preset, {"scenario.net_dir": str(Path(net_dir).resolve()), "run.seed": seed,
-                               "run.duration_s": float(seconds), "run.methods": ["gnss"],
+                               "run.duration_s": float(seconds), "run.methods": [GNSS.name],
                                "report.track_areas": [track_area], "perception.occlusion_buildings": buildings})
     keep = {"perception": cfg.sensors.perception, "features": cfg.sensors.features}
     sensors = dataclasses.replace(cfg.sensors, gnss_error=None, v2x=None, inertial=None, **keep)
