@@ -26,6 +26,16 @@ alone on the same net and routes against the coupled run with gnss + icp_da_lc (
 
     python bench/city_scale.py [--work /tmp/coloc_city] [--duration 900] [--seed 1]
 
+With ``--realistic`` it measures instead icp_da_lc's cost per vehicle-step with the realistic tables
+(the import's ``city_tlr_realistic.toml``, i.e. the arterial's realistic preset on the city) against
+the arterial's own (``experiments/arterial_tlr_realistic.toml``), over the steps after ``--warmup``
+seconds of the same ``--duration`` and seed (target: the city within 1.5x the arterial). For a city
+of about 300 vehicles in the net build it with a lower rate, e.g.
+``--work /tmp/coloc_city300 --insertion-rate 2500 --insert-s 1800``.
+
+Every SUMO run here is started as `coloc run` starts it (:func:`experiments.runner.sumo_scenario`:
+every route file, additional file and the begin of the net folder).
+
 The net folder is cached in ``--work`` (rebuilt when absent). Not a test: it asserts nothing and
 prints numbers measured in one run (6 minutes on an idle 2-core machine, plus about 1 minute to
 build the net folder the first time). The simulation jams as the demand exceeds the net's capacity,
@@ -51,7 +61,7 @@ from couplers.net.folder import load_net_folder  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler, SumoScenario  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA, METHODS  # noqa: E402
-from experiments.runner import build_estimators  # noqa: E402
+from experiments.runner import build_estimators, sumo_scenario  # noqa: E402
 from bench.coupled_vs_sumo import time_sumo_binary  # noqa: E402
 
 BINS = (100, 200, 300, 500, 750, 1000, 1500, 2000, 2500, 3000, 3500)
@@ -99,30 +109,32 @@ def build_city(work: Path, seed: int, features: int, spacing: float, rate: float
     return config
 
 
-def coupled_steps(scenario: SumoScenario, cfg, methods) -> dict[str, np.ndarray]:
-    """Per step: vehicles, V2V links, V2F rows, frame seconds and each method's seconds."""
+def coupled_steps(scenario: SumoScenario, cfg, methods, clock=time.perf_counter) -> dict[str, np.ndarray]:
+    """Per step: vehicles, V2V links, V2F rows, frame seconds and each method's seconds (``clock``: wall,
+    or ``time.process_time`` for CPU seconds, steadier on a shared machine)."""
     estimators = build_estimators(cfg)
     estimators = [e for e in estimators if e.name in methods]
-    rec = {k: [] for k in ("n", "links", "rows", "frame", *[e.name for e in estimators])}
+    rec = {k: [] for k in ("t", "n", "links", "rows", "frame", *[e.name for e in estimators])}
     with SumoCoupler(scenario, cfg.sensors) as coupler:
         frames = coupler.frames()
         while True:
-            t0 = time.perf_counter()
+            t0 = clock()
             frame = next(frames, None)
             if frame is None:
                 break
-            rec["frame"].append(time.perf_counter() - t0)
+            rec["frame"].append(clock() - t0)
+            rec["t"].append(frame.t)
             rec["n"].append(frame.vehicle_ids.size)
             rec["links"].append(frame.neighbors.nnz // 2)
             rec["rows"].append(frame.v2f_owner.size)
             blind = frame.without_truth()
             for est in estimators:
-                s = time.perf_counter()
+                s = clock()
                 if METHODS[est.name].known_association:  # the bound is told the association
                     est.step_with_association(blind, frame.truth.v2f_feature)
                 else:
                     est.step(blind)
-                rec[est.name].append(time.perf_counter() - s)
+                rec[est.name].append(clock() - s)
     return {k: np.asarray(v, dtype=float) for k, v in rec.items()}
 
 
@@ -149,6 +161,40 @@ def per_vehicle_table(rec: dict[str, np.ndarray], names: list[str]) -> dict[int,
     return lc
 
 
+def lc_per_vehicle_step(rec: dict[str, np.ndarray], warmup_s: float, vehicles: tuple[float, float] | None = None,
+                        ) -> tuple[float, float, float, float]:
+    """icp_da_lc's cost per vehicle-step (microseconds), the mean vehicles in the net, the V2F rows per
+    vehicle-step and the frames' cost per vehicle-step, over the steps from ``warmup_s`` after the first
+    (and with ``vehicles`` = (lo, hi) vehicles in the net, when given)."""
+    sel = rec["t"] >= rec["t"][0] + warmup_s
+    if vehicles is not None:
+        sel &= (rec["n"] >= vehicles[0]) & (rec["n"] < vehicles[1])
+    veh_steps = rec["n"][sel].sum()
+    return (1e6 * rec[ICP_DA_LC.name][sel].sum() / veh_steps, float(rec["n"][sel].mean()),
+            rec["rows"][sel].sum() / veh_steps, 1e6 * rec["frame"][sel].sum() / veh_steps)
+
+
+def realistic_against_arterial(city_config: Path, args) -> None:
+    """icp_da_lc per vehicle-step with the realistic tables on the city (its import's
+    ``city_tlr_realistic.toml``) against the arterial's (``arterial_tlr_realistic.toml``), same duration, seed
+    and warm-up; each SUMO run as `coloc run` starts it (:func:`experiments.runner.sumo_scenario`)."""
+    over = {"run.duration_s": args.duration, "run.methods": [GNSS.name, ICP_DA_LC.name], "run.seed": args.seed}
+    out = {}
+    for label, path in (("arterial", ROOT / "experiments" / "arterial_tlr_realistic.toml"),
+                        ("city", city_config.with_name("city_tlr_realistic.toml"))):
+        cfg = load_config(path, over)
+        t0 = time.perf_counter()
+        rec = coupled_steps(sumo_scenario(cfg), cfg, over["run.methods"], time.process_time)
+        cost, n, rows, frames = lc_per_vehicle_step(rec, args.warmup, args.vehicles if label == "city" else None)
+        out[label] = cost
+        print(f"  {label:<9} realistic: mean {n:6.1f} vehicles in the net, {rows:5.2f} V2F rows per vehicle-step, "
+              f"frames {frames:7.1f} us, icp_da_lc {cost:7.1f} us CPU per vehicle-step "
+              f"(t >= {args.warmup:g} s of {args.duration:g} s, seed {args.seed}; "
+              f"{time.perf_counter() - t0:.0f} s wall)")
+    print(f"  icp_da_lc per vehicle-step, city against arterial, realistic sensing: "
+          f"{out['city'] / out['arterial']:.2f}x (target at most 1.5x)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, default=Path("/tmp/coloc_city"))
@@ -159,17 +205,23 @@ def main() -> None:
     ap.add_argument("--insertion-rate", type=float, default=14000.0, help="veh/h while inserting")
     ap.add_argument("--insert-s", type=float, default=900.0, help="seconds of insertion")
     ap.add_argument("--methods", default=",".join(METHOD_NAMES))
+    ap.add_argument("--realistic", action="store_true",
+                    help="instead: icp_da_lc per vehicle-step with the realistic tables, city against arterial")
+    ap.add_argument("--warmup", type=float, default=300.0, help="with --realistic: seconds not counted at the start")
+    ap.add_argument("--vehicles", type=lambda v: tuple(float(x) for x in v.split(",")), default=None,
+                    help="with --realistic: count only the city's steps with LO,HI vehicles in the net")
     args = ap.parse_args()
 
     t0 = time.perf_counter()
     config = build_city(args.work, args.seed, args.features, args.feature_spacing, args.insertion_rate, args.insert_s)
     build_s = time.perf_counter() - t0
+    if args.realistic:
+        realistic_against_arterial(config, args)
+        return
     methods = args.methods.split(",")
     cfg = load_config(config, {"run.duration_s": args.duration, "run.methods": methods, "run.seed": args.seed})
     net = load_net_folder(cfg.net_dir)
-    scenario = SumoScenario(net=net, control=cfg.scenario.control, seed=cfg.run.seed,
-                            step_length=cfg.scenario.step_s, duration_s=cfg.run.duration_s,
-                            ballistic=cfg.scenario.ballistic)
+    scenario = sumo_scenario(cfg, net)  # as `coloc run` starts SUMO
     feats = net.features.ids.size
     sumo_alone = time_sumo_binary(scenario)
     rec = coupled_steps(scenario, cfg, methods)

@@ -58,7 +58,7 @@ from coloc.kernels.pf import KernelWorkspace  # noqa: E402
 from coloc.kernels import icp_fused  # noqa: E402
 from coloc.methods.registry import ICP_DA_LC, ICP_DA_PF, ICP_KNOWN_DA, METHODS  # noqa: E402
 from experiments.pipeline import BATCH, step_batch  # noqa: E402
-from experiments.runner import build_estimators, method_params  # noqa: E402
+from experiments.runner import build_estimators, method_params, sumo_scenario  # noqa: E402
 
 
 REFERENCE = "[reference]"
@@ -169,10 +169,7 @@ def main() -> None:
         {"run.duration_s": args.duration, "run.methods": args.methods.split(",")},
     )
     net = load_net_folder(cfg.net_dir)
-    scenario = SumoScenario(
-        net=net, control=cfg.scenario.control, seed=cfg.run.seed, step_length=cfg.scenario.step_s,
-        duration_s=cfg.run.duration_s, ballistic=cfg.scenario.ballistic,
-    )
+    scenario = sumo_scenario(cfg, net)  # as `coloc run` starts SUMO
     sumo_alone = time_sumo_binary(scenario)
     floor = time_libsumo_floor(scenario)
     rcfg = None

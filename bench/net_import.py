@@ -2,10 +2,10 @@
 
 Prints the import's wall time, then for each control the traffic of the
 simulated hour from the ``sumo`` binary run with exactly the options a
-``coloc run`` uses (``SumoOptions.command``: step 0.75 s, ballistic update,
-seed, ``--tls.all-off`` for VSR) plus SUMO's own statistics output: vehicles
-loaded / inserted / arrived, still running or waiting to enter at the end,
-teleports (jam, yield, wrong lane), mean vehicles running and halting, and
+``coloc run`` uses (:func:`experiments.runner.folder_scenario`: every route and
+additional file of the folder, its begin, step 0.75 s, ballistic update, seed,
+``--tls.all-off`` for VSR) plus SUMO's own statistics output: vehicles loaded /
+inserted / arrived, still running or waiting to enter at the end, teleports (jam, yield, wrong lane), mean vehicles running and halting, and
 the mean speed and arrivals of the last 5 minutes (near 0 = gridlock).
 
     python bench/net_import.py (--net FILE.net.xml | --osm FILE.osm) [--seed 1] [--demand-scale 1]
@@ -30,14 +30,13 @@ import sumolib
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from couplers.net.folder import load_net_folder  # noqa: E402
 from couplers.net.importer import ImportOptions, import_net  # noqa: E402
-from couplers.traffic.sumo import SumoOptions  # noqa: E402
+from experiments.runner import folder_scenario  # noqa: E402
 
 
 def run_hour(folder: Path, control: str, seed: int, end: float) -> dict:
-    nf = load_net_folder(folder)
-    opts = SumoOptions(net=nf.net, routes=nf.routes, seed=seed, end=end, tls_off=nf.tls_off[control])
+    # every route and additional file of the folder, from its begin, as `coloc run` starts SUMO
+    opts = folder_scenario(folder, control, seed, end).sumo_options()
     with tempfile.TemporaryDirectory() as tmp:
         stats, summary = Path(tmp) / "stats.xml", Path(tmp) / "summary.xml"
         cmd = opts.command()
@@ -77,7 +76,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--demand-scale", type=float, default=1.0)
     ap.add_argument("--guess-signals", action="store_true")
-    ap.add_argument("--end", type=float, default=3600.0)
+    ap.add_argument("--end", type=float, default=3600.0, help="simulated seconds from the folder's begin")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         if args.folder:

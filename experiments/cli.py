@@ -211,7 +211,7 @@ def _kinds(text: str) -> tuple[str, ...]:
 
 def cmd_net_import(args: argparse.Namespace) -> int:
     from couplers.net.importer import ImportOptions, import_net
-    from experiments.netconfigs import config_names, net_configs
+    from experiments.netconfigs import config_names, net_configs, realistic_values
 
     out = Path(args.out) if args.out else Path("sumo_nets") / args.name
     experiments_dir = Path(args.experiments_dir)
@@ -245,7 +245,9 @@ def cmd_net_import(args: argparse.Namespace) -> int:
 
     def configs(result):
         return net_configs(args.name, out, experiments_dir, result.track_area, source,
-                           clock=result.summary["derived"].get("sumocfg"))
+                           clock=result.summary["derived"].get("sumocfg"),
+                           realistic=realistic_values(result.staged, result.track_area, args.seed, args.occlusion_s,
+                                                      print))
 
     res = import_net(opts, finalize=configs)
     for line in res.lines:
@@ -397,6 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     ni.add_argument("--calibration-s", type=float,
                     help="simulated seconds of each gridlock trial (default: the whole demand, --duration)")
     ni.add_argument("--zone-cell", type=float, default=200.0, help="cell size of building-density zones, m")
+    ni.add_argument("--occlusion-s", type=float, default=600.0,
+                    help="simulated seconds (from the begin, per control) of the occlusion measurement that sets "
+                         "[lc] visibility in the realistic configs (default 600; 0: keep the arterial's)")
     ni.add_argument("--force", action="store_true", help="replace an existing folder and configs")
     ni.set_defaults(func=cmd_net_import)
     nc = nsub.add_parser("check", help="validate a net folder: one line per problem, non-zero exit if any")

@@ -68,6 +68,7 @@ from couplers.sensing.pedestrians import FeaturesParams
 from couplers.sensing.perception import PerceptionParams
 from couplers.scenarios import STARTS, CrossroadParams, SingleRoadParams
 from experiments.estimator_sensors import EstimatorSensors
+from experiments.occlusion import check_building_occlusion
 from couplers.sensing.sensors import SensorParams
 from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
@@ -592,13 +593,16 @@ def config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> C
     if EXTENDS in data:
         data = resolve_extends(data, path)
     try:
-        return _config_from_dict(data, path, overrides)
+        cfg = _config_from_dict(data, path, overrides)
     except InputError as exc:
         origin = origin_of(data, exc.field)
         if (origin is None or exc.path is None or Path(exc.path).resolve() != Path(path).resolve()
                 or origin.resolve() == Path(path).resolve() or exc.field.split("[")[0] in (overrides or {})):
             raise
         raise InputError(origin, exc.field, exc.message) from None
+    check_building_occlusion(cfg, data, overrides)  # names this file: it chose the net folder
+    return cfg
+
 
 
 def _config_from_dict(data: dict, path: Path, overrides: dict | None = None) -> Config:

@@ -306,7 +306,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "occlusion_vehicles": ("", "Sight lines blocked by the footprint of any other SUMO vehicle (vType "
                                    "length and width), connected or not."),
         "occlusion_buildings": ("", "Sight lines blocked by the net folder's `buildings.geojson` (when it has "
-                                    "one)."),
+                                    "one). Given true (here or in a config it extends) on a net folder without "
+                                    "buildings: refused."),
         "road_users": ("", "Every other SUMO vehicle (equipped or not) and every SUMO person (when the net has "
                            "persons and `[features] pedestrians` is off) in view and not occluded is detected "
                            "with the sensor's P_D and noise, class vehicle (2) or pedestrian (1); the estimators "

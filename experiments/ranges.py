@@ -286,6 +286,7 @@ OPTION_RANGES: dict[tuple[str, str], Range] = {
     ("cmd_net_import", "max_density_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),
     ("cmd_net_import", "calibration_s"): POS_DURATION,
     ("cmd_net_import", "zone_cell"): Range(1.0, 1e5, "m", "a cell between 1 m and 100 km"),
+    ("cmd_net_import", "occlusion_s"): Range(0.0, 86400.0, "s", "0 (not measured) up to a simulated day"),
     ("cmd_net_check", "max_feature_distance"): Range(0.0, 1e4, "m", "10 km, beyond any on-board sensor"),
 }
 

@@ -469,6 +469,27 @@ class _ScenarioSource:
         return empty_traffic_table()
 
 
+def sumo_scenario(cfg: Config, net=None) -> SumoScenario:
+    """The SUMO run of ``cfg`` as `coloc run` starts it (also every bench): the net folder's every route
+    file, its additional files and its clock (``SumoScenario.sumo_options``), from ``[scenario] begin_s``
+    for ``[run] duration_s``; ``net``: the loaded net folder (default: ``cfg``'s)."""
+    return SumoScenario(net=net if net is not None else load_net_folder(cfg.net_dir), control=cfg.scenario.control,
+                        seed=cfg.run.seed, step_length=cfg.scenario.step_s, duration_s=cfg.run.duration_s,
+                        ballistic=cfg.scenario.ballistic, begin_s=cfg.scenario.begin_s or 0.0,
+                        start=cfg.scenario.start)
+
+
+def folder_scenario(net_dir: str | Path, control: str, seed: int, duration_s: float | None = None) -> SumoScenario:
+    """:func:`sumo_scenario` of a config that names only the net folder: its clock and step are the folder's
+    ``[sumo]`` (duration: its end - begin, else one hour), the rest the config defaults (tools, benches)."""
+    from experiments.config import config_from_dict  # noqa: PLC0415
+
+    run = {"name": "folder", "seed": seed, **({"duration_s": float(duration_s)} if duration_s is not None else {})}
+    net_dir = Path(net_dir).resolve()
+    return sumo_scenario(config_from_dict({"run": run, "scenario": {"kind": "sumo", "net_dir": str(net_dir),
+                                                                     "control": control}}, net_dir / "bench.toml"))
+
+
 class _SumoSource:
     """The SUMO coupler for a net folder."""
 
@@ -478,16 +499,7 @@ class _SumoSource:
         if cfg.scenario.control not in net.tls_off:
             raise InputError(cfg.path, "scenario.control", f"no control named {cfg.scenario.control!r} in "
                                                            f"{net.root / 'scenario.toml'} (have {sorted(net.tls_off)})")
-        self.scenario = SumoScenario(
-            net=net,
-            control=cfg.scenario.control,
-            seed=cfg.run.seed,
-            step_length=cfg.scenario.step_s,
-            duration_s=cfg.run.duration_s,
-            ballistic=cfg.scenario.ballistic,
-            begin_s=cfg.scenario.begin_s or 0.0,
-            start=cfg.scenario.start,
-        )
+        self.scenario = sumo_scenario(cfg, net)
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)
         self.coupler = None

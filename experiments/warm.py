@@ -3,7 +3,7 @@
 Every hot loop of coloc is an ``njit(cache=True)`` kernel; numba compiles each on its first call and
 keeps the machine code next to the source (``__pycache__/<module>.<function>-<line>.py<ver>.nbi``
 index files, or under ``NUMBA_CACHE_DIR``). The first run after an install compiles them all:
-COMPILE_MIN_S to COMPILE_MAX_S on 2 cores (see COMPILE_MIN_S), silent without a word. So
+about COMPILE_CPU_S seconds of one core (measured, see there), silent without a word. So
 ``coloc run`` says so when most index files are missing (:func:`cold_cache_note`), and ``make run``'s
 install step compiles them once (``python -m experiments.warm``: a 30 s run of the arterial under TLR
 with the methods of ``make run``, into a temporary folder).
@@ -11,6 +11,7 @@ with the methods of ``make run``, into a temporary folder).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import sys
@@ -18,11 +19,11 @@ import tempfile
 import time
 from pathlib import Path
 
-# A new user's first run on 2 cores took 2-5 minutes longer than the next ones (the compilation of the
-# kernels make run's methods call: gnss, icp_known_da, icp_da_lc). Not re-measured here: the machine this
-# was written on was shared (load ~24 on 2 cores), which makes any timing of it meaningless.
-COMPILE_MIN_S = 120.0
-COMPILE_MAX_S = 300.0
+# Measured: `python -m experiments.warm` (the 30 s arterial run of make run's methods) with a fresh
+# NUMBA_CACHE_DIR took 208.6 s of CPU (user; 24 min wall on a shared 2-core AMD EPYC VM at load 20-25),
+# the same run on the filled cache 5.9 s (67 s wall): compiling costs about 200 s of one core, and numba
+# compiles on one thread, so about 3.5 min on an idle machine, longer when the machine is shared.
+COMPILE_CPU_S = 203.0
 COLD_SHARE = 0.5  # the cache counts as cold when at least this share of the core kernels' index files is missing
 # The kernels every SUMO run calls (the GNSS tracker, the sensor rows, the traffic's continuity): a run of
 # any method compiles them, a method's own kernels (PF, RSU, ...) only when that method runs.
@@ -35,10 +36,13 @@ _PACKAGES = ("coloc", "couplers")
 
 
 def _index_dir(source_dir: Path) -> Path:
-    """Where numba keeps the index files of a source folder's kernels (numba's cache locators)."""
+    """Where numba keeps the index files of a source folder's kernels (numba's cache locators; under
+    ``NUMBA_CACHE_DIR``: ``<folder name>_<sha1 of its absolute path>``, numba.core.caching
+    ``_CacheLocator.get_suitable_cache_subpath``)."""
     custom = os.environ.get("NUMBA_CACHE_DIR", "")
     if custom:
-        return Path(custom) / source_dir.resolve().relative_to(source_dir.resolve().anchor)
+        folder = os.path.abspath(source_dir)
+        return Path(custom) / f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
     return source_dir / "__pycache__"
 
 
@@ -71,7 +75,8 @@ def cold_cache_note(root: Path | None = None) -> str | None:
         return None
     return ("coloc: compiling numba kernels (first run after install: "
             f"{missing} of the {len(files)} every run calls not cached), "
-            f"about {COMPILE_MIN_S / 60:.0f}-{COMPILE_MAX_S / 60:.0f} min on 2 cores, once per install; "
+            f"about {COMPILE_CPU_S / 60:.1f} min of one core (measured with a fresh cache; longer on a busy "
+            "machine), once per install; "
             "the progress ETA leaves it out")
 
 

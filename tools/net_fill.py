@@ -8,6 +8,7 @@ The realistic presets' ``[analysis] warmup_s`` comes from this measure (docs/val
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 import numpy as np
@@ -15,12 +16,11 @@ import numpy as np
 
 def fill(net_dir: str, control: str, seed: int, minutes: int, step_s: float = 0.75) -> list[tuple[int, float, int]]:
     """(minute, mean vehicles in the net over that minute, vehicles that left the net in it)."""
-    from couplers.net.folder import load_net_folder
-    from couplers.sumo_coupler import SumoScenario
+    from experiments.runner import folder_scenario
     from couplers.traffic.sumo import SumoTraffic
 
-    scen = SumoScenario(net=load_net_folder(net_dir), control=control, seed=seed, step_length=step_s,
-                        duration_s=60.0 * minutes)
+    # every route and additional file of the folder, from its begin, as `coloc run` starts SUMO
+    scen = dataclasses.replace(folder_scenario(net_dir, control, seed, 60.0 * minutes), step_length=step_s)
     rows = []
     with SumoTraffic(scen.sumo_options()) as traffic:
         n, arrived = np.zeros(minutes), np.zeros(minutes, dtype=int)
@@ -29,7 +29,7 @@ def fill(net_dir: str, control: str, seed: int, minutes: int, step_s: float = 0.
 
         while not traffic.done():
             s = traffic.step()
-            k = min(int((s.t - 1e-9) // 60.0), minutes - 1)
+            k = min(int((s.t - scen.begin_s - 1e-9) // 60.0), minutes - 1)  # minutes from the begin
             n[k] += len(s.ids)
             steps[k] += 1
             arrived[k] += libsumo.simulation.getArrivedNumber()

@@ -139,14 +139,29 @@ def _i64(*arrays):
     return tuple(np.ascontiguousarray(a, dtype=np.int64) for a in arrays)
 
 
+DENSE_PAIRS_MAX = 200_000  # vehicles x tracks above which candidate_pairs indexes the tracks (a city)
+
+
 def candidate_pairs(
     v_mean: np.ndarray, v_cov: np.ndarray, t_mean: np.ndarray, t_cov: np.ndarray, lc: LcParams
 ) -> tuple[np.ndarray, np.ndarray]:
     """(vehicle, track) index pairs with the track predicted in the vehicle's sensing range (+3 sigma)."""
     if v_mean.shape[0] == 0 or t_mean.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
+    tr_v = np.trace(v_cov[:, :2, :2], axis1=1, axis2=2)
+    tr_t = np.trace(t_cov[:, :2, :2], axis1=1, axis2=2)
+    if v_mean.shape[0] * t_mean.shape[0] > DENSE_PAIRS_MAX:
+        # a city: the tracks near each vehicle from a k-d tree (radius: the test below with the largest
+        # spreads, widened past hypot's rounding), then the same test on those; same pairs, same order
+        reach = (lc.sensing_range_m + 3.0 * math.sqrt(tr_v.max() + tr_t.max())) * (1.0 + 1e-9)
+        near = cKDTree(v_mean[:, :2]).sparse_distance_matrix(cKDTree(t_mean[:, :2]), reach, output_type="ndarray")
+        order = np.lexsort((near["j"], near["i"]))  # np.nonzero's row-major order
+        vi, ti = near["i"][order].astype(np.int64), near["j"][order].astype(np.int64)
+        d = np.hypot(v_mean[vi, 0] - t_mean[ti, 0], v_mean[vi, 1] - t_mean[ti, 1])
+        keep = d <= lc.sensing_range_m + 3.0 * np.sqrt(tr_v[vi] + tr_t[ti])
+        return vi[keep], ti[keep]
     d = np.hypot(v_mean[:, None, 0] - t_mean[None, :, 0], v_mean[:, None, 1] - t_mean[None, :, 1])
-    spread = np.trace(v_cov[:, :2, :2], axis1=1, axis2=2)[:, None] + np.trace(t_cov[:, :2, :2], axis1=1, axis2=2)[None]
+    spread = tr_v[:, None] + tr_t[None]
     vi, ti = np.nonzero(d <= lc.sensing_range_m + 3.0 * np.sqrt(spread))
     return vi.astype(np.int64), ti.astype(np.int64)
 

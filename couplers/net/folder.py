@@ -235,6 +235,16 @@ def _read_features(path: Path) -> Features:
     )
 
 
+def has_buildings(root: str | Path) -> bool:
+    """Whether the net folder ``root`` has buildings (its ``[files] buildings``, else ``buildings.geojson``),
+    without loading the folder."""
+    root = Path(root)
+    toml = root / "scenario.toml"
+    files = read_toml(toml).get("files", {}) if toml.is_file() else {}
+    name = files.get("buildings") if isinstance(files, dict) else None
+    return (root / (name if isinstance(name, str) else BUILDINGS_FILE)).is_file()
+
+
 def load_net_folder(root: str | Path) -> NetFolder:
     """Read and validate a net folder; raises ``InputError`` naming the file and field."""
     root = Path(root)

@@ -223,3 +223,24 @@ def test_vectorised_map_pairing_equals_the_per_vehicle_loop(eta_th):
         ref = _map_pairing_reference(pv, pt, pr, w, owner.size, lc)
         np.testing.assert_array_equal(got[0], ref[0])
         np.testing.assert_allclose(got[1], ref[1], rtol=1e-12)
+
+
+def test_candidate_pairs_indexed_as_dense(monkeypatch):
+    """On a city (vehicles x tracks above DENSE_PAIRS_MAX) the tracks are found with a k-d tree: the same
+    pairs, in the same order, as the dense test of every (vehicle, track)."""
+    from coloc.methods import icp_da_lc as lcmod
+
+    rng = np.random.default_rng(3)
+    lc = LcParams()
+    for nv, nt in ((300, 2000), (40, 7), (1, 500)):
+        vm, tm = rng.uniform(0, 2000, (nv, 4)), rng.uniform(0, 2000, (nt, 4))
+        vm[0, :2] = tm[0, :2] + [lc.sensing_range_m, 0.0]  # on the edge of the reach
+        vc = np.eye(4) * rng.uniform(0.01, 40.0, (nv, 1, 1))
+        tc = np.eye(4) * rng.uniform(0.0, 3.0, (nt, 1, 1))
+        monkeypatch.setattr(lcmod, "DENSE_PAIRS_MAX", 10**12)
+        dense = lcmod.candidate_pairs(vm, vc, tm, tc, lc)
+        monkeypatch.setattr(lcmod, "DENSE_PAIRS_MAX", 0)
+        tree = lcmod.candidate_pairs(vm, vc, tm, tc, lc)
+        assert dense[0].size > 0
+        for a, b in zip(dense, tree):
+            assert a.dtype == b.dtype == np.int64 and np.array_equal(a, b)

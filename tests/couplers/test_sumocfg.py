@@ -355,3 +355,21 @@ def test_empty_window_says_where_the_demand_is(imported, tmp_path, capsys):
     assert len(err) == 1 and "scenario.begin_s: no vehicle in the simulated window [0, 30] s (00:00-00:00:30)" in err[0]
     assert "the demand departs from 25000 s (06:56:40) on; set [scenario] begin_s = 25200" in err[0]
     assert "run longer" not in err[0] and not (tmp_path / "run").exists()
+
+
+def test_benches_start_sumo_as_coloc_run(imported):
+    """Every bench's SUMO run is `coloc run`'s (experiments.runner.sumo_scenario): every route file, the
+    additional files, the begin; the realistic overlays' occlusion is measured from that begin too."""
+    from experiments.config import load_config
+    from experiments.runner import folder_scenario, sumo_scenario
+
+    out, exps, text = imported
+    cfg = load_config(exps / "lust_tlr.toml")
+    cmd = sumo_scenario(cfg).sumo_options().command()
+    assert cmd == folder_scenario(out, "tlr", cfg.run.seed, cfg.run.duration_s).sumo_options().command()
+    assert float(cmd[cmd.index("--begin") + 1]) == BEGIN
+    assert cmd[cmd.index("--route-files") + 1].endswith("demand_1.rou.xml," + str(out / "demand_2.rou.xml.gz"))
+    assert cmd[cmd.index("--additional-files") + 1] == str(out / "signals.add.xml")
+    assert "occlusion (TLR, 600 s from the begin, seed 1)" in text
+    real = (exps / "lust_tlr_realistic.toml").read_text()
+    assert "600 s simulated from the begin (07:00" in real or "no (vehicle, feature) pair was in view" in real

@@ -413,6 +413,27 @@ def run_perception_fov_out_of_range(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "perception.occlusion_buildings", "has no buildings", "set it false")
+def run_building_occlusion_without_buildings(tmp, net, run):
+    cfg = _config(tmp, net, "[perception]\nocclusion_buildings = true\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("mine.toml", "perception.occlusion_buildings", "has no buildings")
+def run_realistic_preset_on_net_without_buildings(tmp, net, run):
+    # the preset's true is inherited; the error names the file that chose the net folder
+    (tmp / "mine.toml").write_text(f'extends = "{PROJECT / "experiments" / "arterial_tlr_realistic.toml"}"\n'
+                                   f'[run]\nname = "mine"\n[scenario]\nnet_dir = "{net}"\n'
+                                   '[report]\ntrack_areas = ["3"]\n')
+    return ["run", str(tmp / "mine.toml"), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("--occlusion-s", "-1", ">= 0")
+def net_import_occlusion_negative(tmp, net, run):
+    return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
+            "--experiments-dir", str(tmp / "exps"), "--occlusion-s", "-1"], None
+
+
 @case("cfg.toml", "perception.sensors[1].pd_near")
 def run_perception_probability_out_of_range(tmp, net, run):
     cfg = _config(tmp, net, "[perception]\n[[perception.sensors]]\nname = 'a'\n[[perception.sensors]]\npd_near = 1.5\n")
@@ -1346,7 +1367,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 173
+    assert len(CASES) >= 176
 
 
 # ----------------------------------------------------------------------------- what --out may replace

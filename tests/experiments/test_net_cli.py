@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import tomllib
 from pathlib import Path
@@ -44,8 +45,13 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
         art = load_config(PROJECT / "experiments" / f"arterial_{control}_realistic.toml")
         assert (real.run.name, Path(real.scenario.net_dir), real.report.track_areas) == (
             f"grid_{control}_realistic", out.resolve(), cfg.report.track_areas)
-        assert (real.perception, real.gnss_error, real.inertial, real.lc) == (art.perception, art.gnss_error,
-                                                                               art.inertial, art.lc)
+        # but [lc] visibility: measured on this net's own traffic (the grid has buildings: they stay on)
+        text_real = (exps / f"grid_{control}_realistic.toml").read_text()
+        vis = tomllib.loads(text_real)["lc"]["visibility"]
+        assert "measured by `coloc net import` on this net's own" in text_real and 0.05 <= vis <= 1.0
+        assert real.perception.occlusion_buildings and "occlusion_buildings" not in text_real
+        assert (real.perception, real.gnss_error, real.inertial, real.lc) == (
+            art.perception, art.gnss_error, art.inertial, dataclasses.replace(art.lc, visibility=vis))
     assert main(["net", "check", str(out)]) == 0
     assert "ok (" in capsys.readouterr().out
     # a second import without --force refuses and changes nothing
@@ -54,6 +60,28 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
     assert rc == 2
     assert "--force" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in exps.iterdir()} == before
+
+
+def test_realistic_configs_of_a_net_without_buildings(tmp_path, capsys, cross_net):
+    """A .net.xml holds no buildings: the realistic overlays turn building occlusion off (the presets'
+    true is refused on such a folder) and, with --occlusion-s 0, say that visibility is the arterial's."""
+    exps = tmp_path / "exps"
+    assert main(["net", "import", "--net", str(cross_net / "tlr.net.xml"), "--name", "x", "--out",
+                 str(tmp_path / "x"), "--experiments-dir", str(exps), "--occlusion-s", "0"]) == 0
+    for control in ("tlr", "vsr"):
+        text = (exps / f"x_{control}_realistic.toml").read_text()
+        assert "occlusion_buildings = false" in text and "not derived (imported with --occlusion-s 0)" in text
+        real = load_config(exps / f"x_{control}_realistic.toml")
+        art = load_config(PROJECT / "experiments" / f"arterial_{control}_realistic.toml")
+        assert not real.perception.occlusion_buildings and real.lc == art.lc
+        assert "occlusion" not in (exps / f"x_{control}.toml").read_text()  # the idealised ones: untouched
+
+
+def test_visibility_from_the_occluded_share():
+    """As the arterial presets: 42 % occluded -> 0.6 (TLR), 13 % -> 0.85 (VSR)."""
+    from experiments.occlusion import visibility_of
+
+    assert [visibility_of(s) for s in (0.42, 0.399, 0.13, 0.134, 0.0, 1.0)] == [0.6, 0.6, 0.85, 0.85, 1.0, 0.05]
 
 
 def _zones(crs: str | None, x0: float, y0: float, x1: float, y1: float) -> str:

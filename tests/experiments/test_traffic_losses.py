@@ -239,6 +239,20 @@ def test_cold_numba_cache_is_announced(tmp_path, monkeypatch):
     assert cold_cache_note() is None
 
 
+def test_cache_dir_index_files_are_where_numba_puts_them(tmp_path, monkeypatch):
+    """Under NUMBA_CACHE_DIR numba names a source folder's cache <name>_<sha1 of its path> (an earlier
+    guess, the source path under the cache dir, saw a filled cache as cold)."""
+    from numba.core.caching import _CacheLocator
+
+    from experiments.warm import CORE, kernel_index_files
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    root = Path(__file__).resolve().parents[2]
+    for src in CORE:
+        f = kernel_index_files(None, (src,))[0]
+        assert f.parent == tmp_path / _CacheLocator.get_suitable_cache_subpath(str(root / src))
+
+
 def test_eta_is_timed_after_the_first_batches(monkeypatch, capsys):
     """The progress line's ETA leaves out the first steps (numba compiles there on a cold cache)."""
     from types import SimpleNamespace

@@ -159,6 +159,7 @@ class ImportResult:
     lines: tuple[str, ...]
     seconds: float
     track_area: str
+    staged: Path | None = None  # where the folder is while ``finalize`` runs (it is renamed into place after)
 
 
 @dataclass
@@ -257,7 +258,7 @@ def import_net(opts: ImportOptions,
             result = ImportResult(folder=opts.out,
                                   summary={"derived": report.derived, "not_derived": report.not_derived},
                                   lines=tuple(report.lines + [f"not derived: {x}" for x in report.not_derived]),
-                                  seconds=seconds, track_area=track_area)
+                                  seconds=seconds, track_area=track_area, staged=Path(work))
             for dest, text in (finalize(result) if finalize is not None else {}).items():
                 dest = Path(dest)
                 check_target(dest, (), force=opts.force, field=None, file=True)
