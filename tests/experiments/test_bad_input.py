@@ -8,7 +8,6 @@ beforehand is untouched and nothing was added. Add a case here for every new bad
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -22,6 +21,7 @@ import pytest
 
 from couplers.publish import MARKER
 from experiments.cli import main
+from filetree import snapshot
 
 PROJECT = Path(__file__).resolve().parents[2]
 SUMO_GAMES = Path(__import__("sumo").__file__).parent / "tools" / "game"
@@ -1280,19 +1280,6 @@ def run_gnss_model_unknown_key(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        if p.is_symlink():
-            out[key] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[key] = "dir"
-    return out
-
-
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     fn, needles = CASES[name]
@@ -1300,7 +1287,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     work.mkdir()
     argv, cwd = fn(work, cross_net, run_dir)
     monkeypatch.chdir(cwd or work)
-    before = _snapshot(work)
+    before = snapshot(work)
     capsys.readouterr()
     rc = main(argv)
     err = capsys.readouterr().err
@@ -1309,7 +1296,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     assert len(lines) == 1 and lines[0].startswith("coloc: error: "), err
     for needle in needles:
         assert needle in err, (needle, err)
-    assert _snapshot(work) == before  # nothing the case owned was changed, nothing half-written was left
+    assert snapshot(work) == before  # nothing the case owned was changed, nothing half-written was left
 
 
 def test_corpus_size():
@@ -1377,7 +1364,7 @@ def test_an_output_hidden_by_a_kill_between_the_renames_is_put_back(cross_net, t
 def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
     cfg = _config(tmp_path, cross_net)
     out = _run_copy(tmp_path, run_dir)
-    before = _snapshot(out)
+    before = snapshot(out)
     proc = subprocess.Popen([sys.executable, "-m", "experiments.cli", "run", str(cfg), "--out", str(out),
                              "--duration", "3600", "--quiet"], cwd=PROJECT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -1391,7 +1378,7 @@ def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert err.strip().splitlines() == ["coloc: terminated; nothing was written"]
-    assert not partial.exists() and _snapshot(out) == before
+    assert not partial.exists() and snapshot(out) == before
 
 
 def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):

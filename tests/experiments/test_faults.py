@@ -23,6 +23,7 @@ import pytest
 
 from couplers.publish import ASIDE, MARKER, read_manifest
 from experiments.cli import main
+from filetree import snapshot
 
 PROJECT = Path(__file__).resolve().parents[2]
 SINGLE_ROAD = PROJECT / "experiments" / "single_road.toml"  # no SUMO: the cheapest run with a report
@@ -31,19 +32,6 @@ SINGLE_ROAD = PROJECT / "experiments" / "single_road.toml"  # no SUMO: the cheap
 def _run(out: Path, *extra: str) -> int:
     return main(["run", str(SINGLE_ROAD), "--out", str(out), "--duration", "30", "--methods", "gnss", "--quiet",
                  *extra])
-
-
-def _snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        if p.is_symlink():
-            out[key] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[key] = "dir"
-    return out
 
 
 def _one_error(capsys, *needles: str) -> str:
@@ -90,11 +78,11 @@ def test_a_folder_with_a_runs_file_names_is_not_taken_for_a_run(tmp_path, capsys
     (p / "config.toml").write_text("x = 1\n")
     (p / "estimates.parquet").write_text("PAR1\n")
     (p / "thesis.tex").write_text("chapter 1\n")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(p) == 2
     _one_error(capsys, str(p), "--out", "was not written by coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert _run(p, "--force") == 0
     assert (p / "thesis.tex").read_text() == "chapter 1\n" and (p / "data").is_dir()
@@ -114,11 +102,11 @@ def test_a_users_compare_folder_is_not_taken_for_a_comparison(run_dir, tmp_path,
     (tmp_path / "compare" / "figures").mkdir(parents=True)
     (tmp_path / "compare" / "report.html").write_text("<p>mine</p>\n")
     (tmp_path / "compare" / "figures" / "my_plot.png").write_bytes(b"my plot")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert main(["report", str(a), str(b)]) == 2
     _one_error(capsys, "compare", "--out", "was not written by coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert main(["report", str(a), str(b), "--force"]) == 0
     cmp = tmp_path / "compare"
@@ -147,11 +135,11 @@ def test_a_file_the_user_changed_is_not_replaced(run_dir, tmp_path, capsys):
     run = _copy(run_dir, tmp_path / "run")
     with open(run / "report.html", "a") as fh:
         fh.write("<!-- my remark -->\n")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(run, "--seed", "2") == 2
     _one_error(capsys, "report.html", "--out", "cannot prove it wrote it", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert _run(run, "--seed", "2", "--force") == 0
     assert (run / f"report.html{ASIDE}").read_text().endswith("<!-- my remark -->\n")
@@ -198,11 +186,11 @@ def test_a_marker_without_a_file_list_is_refused_without_force(run_dir, tmp_path
     """An older coloc's marker names the kind only: its files cannot be told from a user's."""
     run = _copy(run_dir, tmp_path / "run")
     (run / MARKER).write_text('{"kind": "run"}\n')
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(run) == 2
     _one_error(capsys, "run", "--out", "older coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 # ----------------------------------------------------------------------------- one writer per output
@@ -232,7 +220,7 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(run
 
 def test_a_report_is_refused_while_a_run_writes_its_folder(run_dir, tmp_path, capsys):
     run = _copy(run_dir, tmp_path / "run")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     fh = _hold_lock(run)
     try:
         capsys.readouterr()
@@ -241,7 +229,7 @@ def test_a_report_is_refused_while_a_run_writes_its_folder(run_dir, tmp_path, ca
     finally:
         fh.close()
     (tmp_path / ".run.lock").unlink()
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 # ----------------------------------------------------------------------------- symbolic links
@@ -252,11 +240,11 @@ def test_a_symbolic_link_out_is_refused_and_written_through_with_force(points_at
     target = _copy(run_dir, tmp_path / "target") if points_at == "run" else tmp_path / "target"
     target.mkdir(exist_ok=True)
     (tmp_path / "link").symlink_to("target")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(tmp_path / "link", "--seed", "7") == 2
     _one_error(capsys, "link", "--out", "is a symbolic link to target", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert _run(tmp_path / "link", "--seed", "7", "--force") == 0
     assert (tmp_path / "link").is_symlink() and os.readlink(tmp_path / "link") == "target"
