@@ -106,7 +106,7 @@ def case(*needles: str):
 # ----------------------------------------------------------------------------- coloc run: --out
 
 
-@case("mywork", "--out", "was not written by coloc", "--force")
+@case("mywork", "--out", "cannot prove it wrote", "--force")
 def run_out_user_folder(tmp, net, run):
     return ["run", str(_config(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
 
@@ -147,7 +147,7 @@ def run_out_sweep_folder(tmp, net, run):
     return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
 
 
-@case("p", "--out", "was not written by coloc", "--force")
+@case("p", "--out", "cannot prove it wrote", "--force")
 def run_out_has_a_runs_file_names(tmp, net, run):
     """A run's file names do not make a folder a run (only its manifest does)."""
     d = tmp / "p"
@@ -1023,12 +1023,12 @@ def report_an_incomplete_run(tmp, net, run):
     return ["report", str(dst)], None
 
 
-@case("mywork", "--out", "was not written by coloc")
+@case("mywork", "--out", "cannot prove it wrote")
 def report_out_user_folder(tmp, net, run):
     return ["report", str(_run_copy(tmp, run)), "--out", str(_user_folder(tmp))], None
 
 
-@case("compare", "--out", "was not written by coloc", "--force")
+@case("compare", "--out", "cannot prove it wrote", "--force")
 def report_default_out_user_folder(tmp, net, run):
     """``coloc report A B`` writes ``A/../compare`` by default: a user's folder of that name is not taken."""
     a = _run_copy(tmp, run)
@@ -1079,7 +1079,7 @@ def sweep_out_file(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(_file(tmp)), "--quiet"], None
 
 
-@case("mywork", "--out", "was not written by coloc")
+@case("mywork", "--out", "cannot prove it wrote")
 def sweep_out_user_folder(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
 
