@@ -192,7 +192,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         for name in ("sweep.parquet", "curves.parquet"):
             if not (dirs[0] / name).is_file():
                 raise InputError(dirs[0] / name, None, "not found: has this sweep finished?")
-        print(f"wrote {write_sweep_report(dirs[0])}")
+        print(f"wrote {write_sweep_report(dirs[0], force=args.force)}")
         return 0
     for d in dirs:
         _check_run_folder(d)
