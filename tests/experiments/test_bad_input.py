@@ -1234,7 +1234,7 @@ def net_import_demand_infinite(tmp, net, run):
             "--experiments-dir", str(tmp / "exps"), "--demand", "100", "inf"], None
 
 
-@case("--zone-cell", "1e-09 m is outside [1, 100000] m")
+@case("--zone-cell", "1e-09 m is outside [10, 100000] m")
 def net_import_zone_cell_tiny(tmp, net, run):
     return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
             "--experiments-dir", str(tmp / "exps"), "--zone-cell", "1e-9"], None
