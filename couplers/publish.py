@@ -225,9 +225,10 @@ def check_target(out: Path, kinds: tuple[str, ...], force: bool = False, field: 
         raise InputError(out, field, f"already exists: {_FORCE_HINT}")
     m = read_manifest(out)
     if m is None:
-        raise InputError(out, field, f"has no {MARKER}, so coloc cannot prove it wrote anything in it: "
-                                     f"{_FORCE_HINT} (a folder an older coloc wrote before {MARKER} existed: "
-                                     "--force once, later commands there need none)")
+        raise InputError(out, field, f"has no {MARKER}, so coloc cannot prove it wrote anything in it: choose "
+                                     "another folder, or pass --force to write into it (nothing in it is deleted; "
+                                     f"a folder an older coloc wrote before {MARKER} existed needs --force once, "
+                                     "later commands there need none)")
     if m["kind"] not in kinds:
         raise InputError(out, field, f"holds a coloc {m['kind'] or 'unknown'} output, not a {' or '.join(kinds)} "
                                      f"output: {_FORCE_HINT}")
