@@ -136,6 +136,12 @@ def _owned(folder: Path, rel: str, manifest: dict | None) -> bool:
     return bool(hashes) and _digest(p) in hashes
 
 
+def owns(folder: Path, rel: str) -> bool:
+    """Whether ``folder/rel`` is a file coloc wrote (its manifest lists it with its current content)."""
+    folder = Path(os.path.realpath(folder))
+    return _owned(folder, rel, read_manifest(folder))
+
+
 def _write_manifest(folder: Path, kind: str | None, files: dict[str, str], replaced: dict | None = None) -> None:
     data: dict = {"kind": kind, "files": dict(sorted(files.items()))}
     if replaced is not None:

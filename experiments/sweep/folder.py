@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 
 from couplers.errors import InputError
-from couplers.publish import MARKER, lock_output, publish_files
+from couplers.publish import MARKER, lock_output, owns, publish_files
 from experiments.sweep.spec import RUNS_DIR, SweepSpec, SweepRun, _first_difference
 
 # --------------------------------------------------------------------------- #
@@ -48,7 +48,9 @@ def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[st
     target = out / "sweep.toml"
     if target.exists():
         _check_spec(out, text, spec_path, ignore)
-        if ignore and target.read_text() != text:  # --force over changed configs: the sweep as resolved now
+        # --force over changed configs: the sweep as resolved now; a file the manifest does not list (a sweep
+        # folder of an older coloc, adopted with --force): written as coloc's
+        if (ignore and target.read_text() != text) or not owns(out, target.name):
             publish_files(out, {target.name: text}, force=force)
         return
     if (out / RUNS_DIR).exists():
@@ -165,7 +167,7 @@ def _restart_changed(out: Path, inputs: dict, redo: frozenset[str], force: bool 
             shutil.rmtree(hidden)
     text = _inputs_text(inputs)
     target = out / INPUTS_FILE
-    if not target.is_file() or target.read_text() != text:
+    if not target.is_file() or target.read_text() != text or not owns(out, INPUTS_FILE):
         publish_files(out, {INPUTS_FILE: text}, force=force)
 
 

@@ -135,6 +135,15 @@ def test_the_sweeps_own_files_are_in_its_manifest_and_a_users_file_of_such_a_nam
     assert read_manifest(out)["files"]["sweep.parquet"] == sha256_file(out / "sweep.parquet")
     assert run_sweep(spec, out, workers=1, progress=False).present == 2  # coloc's again: no --force needed
 
+    # a sweep folder of an older coloc (its manifest lists none of these files): --force once, then none
+    (out / MARKER).write_text('{"kind": "sweep", "files": {}}\n')
+    with pytest.raises(InputError) as err:
+        run_sweep(spec, out, workers=1, progress=False)
+    assert "--force" in err.value.message
+    run_sweep(spec, out, workers=1, progress=False, force=True)
+    assert set(top) <= set(read_manifest(out)["files"])
+    assert run_sweep(spec, out, workers=1, progress=False).present == 2
+
 
 def test_a_changed_net_concerns_only_the_runs_on_that_net(tmp_path, cross_net):
     spec_path = _two_net_sweep(tmp_path, cross_net)
