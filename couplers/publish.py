@@ -23,7 +23,9 @@ one place:
   where it points; with ``--force`` coloc writes through it into the folder it points to.
 - **One writer per output.** A command holds ``.NAME.lock`` (``fcntl.flock``) in the parent of
   the output for as long as it writes there; a second command writing to the same place is
-  refused with one line. The lock file is removed when released.
+  refused with one line. The lock file is removed when released; one left by a killed process (the
+  kernel drops its flock) is taken over by the next writer. A file of that name coloc did not write
+  is refused, never deleted.
 - **Nothing half-written, as far as the file system allows.** Everything is built in a hidden
   staging folder first (``.NAME.partial-PID`` beside a folder output, ``.coloc-staging-PID`` inside
   a folder whose part is rewritten, e.g. a run's report) and removed on any error, Ctrl-C or
@@ -47,6 +49,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import functools
+import glob
 import hashlib
 import json
 import os
@@ -64,6 +67,9 @@ ASIDE = ".before-coloc"  # suffix of a file kept aside by --force
 _STAGING = (".partial-", ".old-")
 _INNER_STAGING = ".coloc-staging-"
 _FORCE_HINT = "choose another folder, or pass --force to write into it (nothing in it is deleted)"
+# a folder of an older coloc: one --force writes the manifest, later commands need none
+_ONCE_HINT = (f"pass --force once to write into it (nothing in it is deleted; a file the new output replaces is "
+              f"kept as NAME{ASIDE}), later commands there need no --force")
 
 
 # --------------------------------------------------------------------------- #
@@ -128,6 +134,12 @@ def _owned(folder: Path, rel: str, manifest: dict | None) -> bool:
         return False
     hashes = {manifest["files"].get(rel), manifest["replaced"].get(rel)} - {None}
     return bool(hashes) and _digest(p) in hashes
+
+
+def owns(folder: Path, rel: str) -> bool:
+    """Whether ``folder/rel`` is a file coloc wrote (its manifest lists it with its current content)."""
+    folder = Path(os.path.realpath(folder))
+    return _owned(folder, rel, read_manifest(folder))
 
 
 def _write_manifest(folder: Path, kind: str | None, files: dict[str, str], replaced: dict | None = None) -> None:
@@ -219,14 +231,15 @@ def check_target(out: Path, kinds: tuple[str, ...], force: bool = False, field: 
         raise InputError(out, field, f"already exists: {_FORCE_HINT}")
     m = read_manifest(out)
     if m is None:
-        what = f"exists and was not written by coloc (it has no {MARKER})"
-    elif m["kind"] not in kinds:
-        what = f"holds a coloc {m['kind'] or 'unknown'} output, not a {' or '.join(kinds)} output"
-    elif m["legacy"]:
-        what = f"was written by an older coloc whose {MARKER} lists no files, so its files cannot be told from yours"
-    else:
-        return
-    raise InputError(out, field, f"{what}: {_FORCE_HINT}")
+        raise InputError(out, field, f"has no {MARKER}, so coloc cannot prove it wrote anything in it: choose "
+                                     "another folder, or pass --force to write into it (nothing in it is deleted; "
+                                     f"a folder an older coloc wrote before {MARKER} existed needs --force once, "
+                                     "later commands there need none)")
+    if m["kind"] not in kinds:
+        raise InputError(out, field, f"holds a coloc {m['kind'] or 'unknown'} output, not a {' or '.join(kinds)} "
+                                     f"output: {_FORCE_HINT}")
+    if m["legacy"]:
+        raise InputError(out, field, f"was written by an older coloc whose {MARKER} lists no files: {_ONCE_HINT}")
 
 
 # --------------------------------------------------------------------------- #
@@ -234,10 +247,28 @@ def check_target(out: Path, kinds: tuple[str, ...], force: bool = False, field: 
 # --------------------------------------------------------------------------- #
 
 _HELD: dict[str, list] = {}  # lock path -> [fd, depth]: a command re-entering its own lock (a sweep's report)
+LOCK_TAG = "coloc output lock, pid "  # the first bytes of every lock file coloc writes
+
+
+def _lock_text(pid: int) -> bytes:
+    return f"{LOCK_TAG}{pid}\n".encode()
+
+
+def _is_coloc_lock(data: bytes) -> bool:
+    """Whether a lock file's bytes are coloc's: its tag and a PID (a bare PID: a coloc before the tag)."""
+    text = data.decode("ascii", "replace").strip()
+    return text.removeprefix(LOCK_TAG.strip()).strip().isdigit()
 
 
 class OutputLock:
-    """``.NAME.lock`` in the parent of an output, held with ``fcntl.flock`` until :meth:`close`."""
+    """``.NAME.lock`` in the parent of an output, held with ``fcntl.flock`` until :meth:`close`.
+
+    The file is created whole (written under a PID-named temporary, then hard-linked into place, so
+    no reader ever sees it empty) and removed on release. A process killed while holding it (SIGKILL
+    between publishing and releasing) leaves the file, but the kernel drops its flock: a lock file
+    nobody holds is stale and the next writer takes it over. A file of that name coloc did not write
+    (without :data:`LOCK_TAG`) is refused with one line, never locked, rewritten or deleted.
+    """
 
     def __init__(self, out: Path, field: str | None = "--out", named: Path | None = None):
         real = Path(os.path.realpath(out))
@@ -248,28 +279,65 @@ class OutputLock:
             return
         named = named or Path(out)
         created = make_folder(real.parent, named, field)
+        try:
+            fd = self._acquire(named, field)
+        except BaseException:
+            remove_created(created)
+            raise
+        _HELD[self._key] = [fd, 1]
+
+    def _create(self) -> bool:
+        """Put a new lock file (tag and PID) in place; False if one is there already."""
+        tmp = self.path.with_name(f"{self.path.name}-new-{os.getpid()}")
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 & ~_umask())
+        try:
+            os.write(fd, _lock_text(os.getpid()))
+        finally:
+            os.close(fd)
+        try:
+            os.link(tmp, self.path)
+            return True
+        except FileExistsError:
+            return False
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def _acquire(self, named: Path, field: str | None) -> int:
+        busy = InputError(named, field, "another coloc command is writing there (it holds "
+                                        f"{self.path}): wait for it, or choose another folder")
         while True:
             try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+                created = self._create()
+                fd = os.open(self.path, os.O_RDWR)
+            except FileNotFoundError:  # released (and removed) by its holder meanwhile: try again
+                continue
             except OSError as exc:
-                remove_created(created)
                 raise InputError(named, field, f"cannot be created ({exc.strerror or exc})") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 os.close(fd)
-                raise InputError(named, field, "another coloc command is writing there (it holds "
-                                               f"{self.path}): wait for it, or choose another folder") from None
+                raise busy from None
             try:  # the holder before may have removed the file between our open and flock: lock the new one
                 same = os.path.samestat(os.fstat(fd), os.stat(self.path))
             except FileNotFoundError:
                 same = False
-            if same:
-                break
-            os.close(fd)
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        _HELD[self._key] = [fd, 1]
+            if not same:
+                os.close(fd)
+                continue
+            if not created and not _is_coloc_lock(os.pread(fd, 256, 0)):
+                os.close(fd)
+                raise InputError(self.path, None, "is in the way of the lock coloc takes for "
+                                                  f"{named} and was not written by coloc: move it away") from None
+            # ours, or a stale lock of a killed coloc (nobody held its flock): taken over
+            for leftover in self.path.parent.glob(f"{glob.escape(self.path.name)}-new-*"):
+                if _stale(leftover.name):  # a temporary of a coloc killed inside _create
+                    leftover.unlink(missing_ok=True)
+            if not created:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, _lock_text(os.getpid()), 0)
+            return fd
 
     def close(self) -> None:
         held = _HELD.get(self._key)
@@ -279,7 +347,8 @@ class OutputLock:
         if held[1] == 0:
             del _HELD[self._key]
             with contextlib.suppress(OSError):
-                os.unlink(self.path)  # before unlocking: a waiter then locks a fresh file (see above)
+                if os.path.samestat(os.fstat(held[0]), os.stat(self.path)):  # our file, nothing put in its place
+                    os.unlink(self.path)  # before unlocking: a waiter then locks a fresh file (see above)
             os.close(held[0])
 
     def __enter__(self) -> "OutputLock":
@@ -548,6 +617,37 @@ def publish_members(target_dir: Path, build: Callable[[Path], None], names: tupl
             raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def check_members(folder: Path, names: tuple[str, ...], force: bool = False, field: str | None = None) -> None:
+    """Refuse, before any work, an entry among ``names`` in ``folder`` that a later :func:`publish_files`
+    or :func:`publish_members` would refuse: a file coloc cannot prove it wrote, or a link (``force``: none,
+    they are kept aside then)."""
+    folder = Path(os.path.realpath(folder))
+    if force or not folder.is_dir():
+        return
+    m = read_manifest(folder)
+    for name in names:
+        p = folder / name
+        if p.is_symlink() or (p.exists() and not p.is_dir() and not _owned(folder, name, m)):
+            raise InputError(p, field, f"is in the way and coloc cannot prove it wrote it (not in {MARKER}, or "
+                                       f"changed since): move it away, or pass --force to keep it as "
+                                       f"{name}{ASIDE}")
+
+
+def publish_files(folder: Path, files: dict[str, bytes | str], part: tuple[str, ...] = (), kind: str | None = None,
+                  force: bool = False, field: str | None = None) -> list[Path]:
+    """Write top-level files (name -> content) of an output written in place (a sweep's ``sweep.toml``,
+    ``sweep.parquet``, ...) into ``folder`` as coloc's, listed in its manifest: each replaces only a
+    file coloc wrote (:func:`publish_members`). ``part``: further names this output owns that it
+    does not write this time (coloc's earlier file of that name is deleted). Returns what ``force``
+    kept aside."""
+
+    def build(tmp: Path) -> None:
+        for name, data in files.items():
+            (tmp / name).write_bytes(data.encode() if isinstance(data, str) else data)
+
+    return publish_members(folder, build, (*files, *part), kind, force, field)
 
 
 def write_file_atomic(target: Path, data: bytes | str) -> None:

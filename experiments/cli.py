@@ -76,6 +76,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary = run_experiment(cfg, Path(args.out), progress=None if not args.quiet else False, force=args.force,
                              workers=args.workers)
     for method, block in summary["methods"].items():
+        if block["rmse_pos_m"] is None:  # nothing scored, e.g. a run no longer than its [analysis] warm-up
+            warmup = cfg.analysis.warmup_s if cfg.analysis is not None else 0.0
+            print(f"{method:>14}: no estimate scored" + (f" (none after the warm-up, analysis.warmup_s = {warmup:g} "
+                                                          "s: run longer)" if warmup else ""))
+            continue
         print(
             f"{method:>14}: RMSE {block['rmse_pos_m']:.2f} m, p50 {block['p50_pos_m']:.2f} m, "
             f"p95 {block['p95_pos_m']:.2f} m, velocity RMSE {block['rmse_vel_mps']:.3f} m/s"
@@ -192,7 +197,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         for name in ("sweep.parquet", "curves.parquet"):
             if not (dirs[0] / name).is_file():
                 raise InputError(dirs[0] / name, None, "not found: has this sweep finished?")
-        print(f"wrote {write_sweep_report(dirs[0])}")
+        print(f"wrote {write_sweep_report(dirs[0], force=args.force)}")
         return 0
     for d in dirs:
         _check_run_folder(d)

@@ -278,14 +278,16 @@ WORKERS = Range(1, 1024, NO_UNIT, "worker processes of one machine")
 OPTION_RANGES: dict[tuple[str, str], Range] = {
     ("cmd_run", "workers"): Range(0, 64, NO_UNIT, "estimator worker processes: at most one per method"),
     ("cmd_sweep", "workers"): WORKERS,
-    ("cmd_net_import", "features"): Range(0, 100_000, NO_UNIT, "landmarks of a city"),
+    ("cmd_net_import", "features"): Range(1, 100_000, NO_UNIT, "landmarks of a city; a net folder needs one"),
     ("cmd_net_import", "demand"): Range(0.0, 1e5, "veh/h", "beyond the capacity of any city net"),
     ("cmd_net_import", "demand_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),
     ("cmd_net_import", "fringe_factor"): Range(0.0, 1e6, NO_UNIT, "randomTrips' weight of the fringe edges"),
     ("cmd_net_import", "duration"): POS_DURATION,
     ("cmd_net_import", "max_density_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),
     ("cmd_net_import", "calibration_s"): POS_DURATION,
-    ("cmd_net_import", "zone_cell"): Range(1.0, 1e5, "m", "a cell between 1 m and 100 km"),
+    # building density over a cell smaller than a building measures single buildings (the import also caps
+    # the number of cells over the net: couplers.net.importer.regions.ZONE_CELLS_MAX)
+    ("cmd_net_import", "zone_cell"): Range(10.0, 1e5, "m", "a cell between 10 m and 100 km"),
     ("cmd_net_import", "occlusion_s"): Range(0.0, 86400.0, "s", "0 (not measured) up to a simulated day"),
     ("cmd_net_check", "max_feature_distance"): Range(0.0, 1e4, "m", "10 km, beyond any on-board sensor"),
 }

@@ -381,6 +381,7 @@ def perceive(
     buildings: Buildings | None = None,
     feature_class: np.ndarray | None = None,
     direction: np.ndarray | None = None,
+    reference: bool = False,
 ) -> Detections:
     """The V2F rows of one step.
 
@@ -396,21 +397,19 @@ def perceive(
     order, drawn inside the kernels through :mod:`couplers.sensing.streams`): the clutter and candidate draws,
     field of view, clutter geometry, sight lines and their occlusion (:func:`_sense_stage`); detections,
     merge, rows and the shuffle within each vehicle (:func:`_rows_stage`). Where numba's draws do not equal
-    numpy's (``streams.available()`` False), :func:`perceive_reference` runs instead.
+    numpy's (``streams.available()`` False), or with ``reference``, :func:`perceive_reference` runs instead.
     """
-    if not streams.available():
-        return perceive_reference(x_true=x_true, heading=heading, features_true=features_true, pair_owner=pair_owner,
-                                  pair_feature=pair_feature, params=params, noise=noise,
-                                  occluder_corners=occluder_corners, observer_occluder=observer_occluder,
-                                  buildings=buildings, feature_class=feature_class, direction=direction)
     n = x_true.shape[0]
     heading = np.asarray(heading, dtype=np.float64)
-    a, k = params.arrays, params.kernel_consts
-    n_sensors = len(params.sensors)
     if observer_occluder is None:
         observer_occluder = np.full(n, -1, dtype=np.int64)
     if direction is None:
         direction = unit_heading(heading)
+    if reference or not streams.available():
+        return _perceive_stages(x_true, heading, features_true, pair_owner, pair_feature, params, noise,
+                                occluder_corners, observer_occluder, buildings, feature_class, direction)
+    a, k = params.arrays, params.kernel_consts
+    n_sensors = len(params.sensors)
     boresight = np.empty((n_sensors, n, 2))  # rows of the sensors along the heading: ``direction`` instead
     for s, spec in enumerate(params.sensors):
         if not k["along_heading"][s]:
@@ -461,31 +460,19 @@ _NO_BUILDINGS = (0.0, 0.0, 1.0, np.zeros((1, 1), dtype=np.bool_), np.zeros(2, dt
                  np.empty(0, dtype=np.int64), np.empty((0, 4)), 0.0)
 
 
-def perceive_reference(
-    *,
-    x_true: np.ndarray,
-    heading: np.ndarray,
-    features_true: np.ndarray,
-    pair_owner: np.ndarray,
-    pair_feature: np.ndarray,
-    params: PerceptionParams,
-    noise: PerceptionNoise,
-    occluder_corners: np.ndarray | None = None,
-    observer_occluder: np.ndarray | None = None,
-    buildings: Buildings | None = None,
-    feature_class: np.ndarray | None = None,
-    direction: np.ndarray | None = None,
-) -> Detections:
+def perceive_reference(**inputs) -> Detections:
     """:func:`perceive` as a sequence of separate kernels with numpy between them (the reference of its
     fused stages: ``tests/couplers/test_frame_kernels.py`` compares the two; arguments: see :func:`perceive`)."""
+    return perceive(**inputs, reference=True)
+
+
+def _perceive_stages(x_true, heading, features_true, pair_owner, pair_feature, params, noise, occluder_corners,
+                     observer_occluder, buildings, feature_class, direction) -> Detections:
+    """The body of :func:`perceive_reference` (``heading``, ``observer_occluder`` and ``direction`` as
+    :func:`perceive` completed them)."""
     n = x_true.shape[0]
     xy = x_true[:, :2]
-    heading = np.asarray(heading, dtype=float)
     a = params.arrays
-    if observer_occluder is None:
-        observer_occluder = np.full(n, -1, dtype=np.int64)
-    if direction is None:
-        direction = unit_heading(heading)
     origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]  # (S, N, 2)
 
     # Candidates: (sensor, pair) with the feature inside the sensor's field of view, sensor after sensor.

@@ -3,6 +3,7 @@ and the leftovers of killed runs (the sweep command: :mod:`experiments.sweep.run
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import json
 import os
@@ -11,7 +12,7 @@ import tomllib
 from pathlib import Path
 
 from couplers.errors import InputError
-from couplers.publish import lock_output, write_file_atomic
+from couplers.publish import MARKER, lock_output, owns, publish_files
 from experiments.sweep.spec import RUNS_DIR, SweepSpec, SweepRun, _first_difference
 
 # --------------------------------------------------------------------------- #
@@ -42,19 +43,26 @@ def _check_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] =
                          "use another --out folder, or remove that one to start over")
 
 
-def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = ()) -> None:
+def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[str, ...] = (),
+                         force: bool = False) -> None:
     target = out / "sweep.toml"
     if target.exists():
         _check_spec(out, text, spec_path, ignore)
-        if ignore and target.read_text() != text:  # --force over changed configs: the sweep as resolved now
-            write_file_atomic(target, text)
+        # --force over changed configs: the sweep as resolved now; a file the manifest does not list (a sweep
+        # folder of an older coloc, adopted with --force): written as coloc's
+        if (ignore and target.read_text() != text) or not owns(out, target.name):
+            publish_files(out, {target.name: text}, force=force)
         return
     if (out / RUNS_DIR).exists():
         raise InputError(spec_path, None, f"{out / RUNS_DIR} exists without {target}: not a sweep folder of this sweep")
-    write_file_atomic(target, text)
+    publish_files(out, {target.name: text}, force=force)
 
 
 INPUTS_FILE = "inputs.json"
+# The aggregate tables of a sweep folder and every top-level file the sweep writes there (all listed in
+# its manifest, couplers.publish): a user's file of such a name is never replaced.
+TABLES = ("sweep.parquet", "curves.parquet", "zones.parquet", "v2v.parquet", "paired.parquet")
+OWN_FILES = ("sweep.toml", INPUTS_FILE, *TABLES, "report.html")
 
 
 def _sha256(path: Path) -> str | None:
@@ -148,7 +156,7 @@ def _check_inputs(out: Path, inputs: dict, runs: list[SweepRun], force: bool) ->
                      "--out folder")
 
 
-def _restart_changed(out: Path, inputs: dict, redo: frozenset[str]) -> None:
+def _restart_changed(out: Path, inputs: dict, redo: frozenset[str], force: bool = False) -> None:
     """Remove the finished runs to recompute (through a hidden name, so a kill leaves a leftover that
     :func:`clean_leftovers` removes, never a half-removed run), then record the inputs of now."""
     for run_id in sorted(redo):
@@ -159,14 +167,16 @@ def _restart_changed(out: Path, inputs: dict, redo: frozenset[str]) -> None:
             shutil.rmtree(hidden)
     text = _inputs_text(inputs)
     target = out / INPUTS_FILE
-    if not target.is_file() or target.read_text() != text:
-        write_file_atomic(target, text)
+    if not target.is_file() or target.read_text() != text or not owns(out, INPUTS_FILE):
+        publish_files(out, {INPUTS_FILE: text}, force=force)
 
 
 def clean_leftovers(out: Path) -> list[Path]:
     """Remove the hidden partial folders and temporary files a killed sweep or run left behind."""
     removed = []
-    candidates = list(out.glob(".*.tmp-*")) + list(out.glob(".report-*"))
+    # temporaries of coloc's own files only (a user's hidden file is never taken for one)
+    candidates = [p for name in (*OWN_FILES, MARKER) for p in out.glob(f".{glob.escape(name)}.tmp-*")]
+    candidates += list(out.glob(".report-*"))
     runs = out / RUNS_DIR
     if runs.is_dir():
         candidates += [p for p in runs.iterdir() if p.name.startswith(".") and (".partial-" in p.name or ".old-" in p.name)]

@@ -322,8 +322,9 @@ def _zone_blocks(zones, v2v, keys, figdir, runs_text, seed_text, what) -> list[s
     return blocks
 
 
-def write_sweep_report(out: Path) -> Path:
-    """Write ``out/report.html`` and ``out/figures/*.png`` from the sweep's files."""
+def write_sweep_report(out: Path, force: bool = False) -> Path:
+    """Write ``out/report.html`` and ``out/figures/*.png`` from the sweep's files (``force``: a user's
+    file in the way is kept aside, :func:`couplers.publish.publish_members`)."""
     out = Path(out)
     with open(out / "sweep.toml", "rb") as fh:
         spec = tomllib.load(fh)["sweep"]
@@ -428,4 +429,4 @@ def write_sweep_report(out: Path) -> Path:
         (tmp / "report.html").write_text(_page(f"coloc sweep report: {spec.get('name', '')}", "\n".join(parts)),
                                          encoding="utf-8")
 
-    return _atomic_publish(out, build)
+    return _atomic_publish(out, build, force=force)

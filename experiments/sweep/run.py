@@ -82,7 +82,7 @@ import numpy as np
 import pandas as pd
 
 from couplers.errors import InputError, recording_reads
-from couplers.publish import check_target, make_folder, mark, write_file_atomic
+from couplers.publish import check_members, check_target, make_folder, mark, publish_files
 from experiments.scoring import scored_mask
 from experiments.config import Config, _toml_value
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
@@ -116,6 +116,8 @@ from experiments.sweep.folder import (  # noqa: F401 (re-exported: the names of 
     _check_spec,
     _check_or_write_spec,
     INPUTS_FILE,
+    OWN_FILES,
+    TABLES,
     _sha256,
     _net_files,
     sweep_inputs,
@@ -467,17 +469,18 @@ def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = No
         mark(out, "sweep")
         lock = _acquire_lock(out, spec.path)
         try:
-            _check_or_write_spec(out, spec_text, spec.path, ignore)
-            _restart_changed(out, inputs, redo)
-            res = _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0)
+            check_members(out, OWN_FILES, force)  # a user's file of such a name: refused before any run
+            _check_or_write_spec(out, spec_text, spec.path, ignore, force)
+            _restart_changed(out, inputs, redo, force)
+            res = _run_locked(spec, runs, out, spec_text, client, progress, write_report, workers, t0, force)
             return dataclasses.replace(res, recomputed=len(redo), workers_asked=asked if capped else None)
         finally:
             lock.close()
 
 
 def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str, client, progress: bool,
-                write_report: bool, workers: int, t0: float) -> SweepResult:
-    _check_or_write_spec(out, spec_text, spec.path)
+                write_report: bool, workers: int, t0: float, force: bool = False) -> SweepResult:
+    _check_or_write_spec(out, spec_text, spec.path, force=force)
     clean_leftovers(out)
     (out / RUNS_DIR).mkdir(exist_ok=True)
     partials: list[dict | None] = [None] * len(runs)
@@ -532,12 +535,15 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
     outputs = [("sweep.parquet", table), ("curves.parquet", curves)]
     outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v),
                                             ("paired.parquet", paired)) if len(df)]
+    tables = {}
     for name, df in outputs:
         buf = io.BytesIO()
         write_parquet(df, buf)
-        write_file_atomic(out / name, buf.getvalue())
+        tables[name] = buf.getvalue()
+    # in the manifest, one rename each; coloc's table of an earlier pass that this one lacks is removed
+    publish_files(out, tables, tuple(n for n in TABLES if n not in tables), force=force)
     if write_report:
         from experiments.sweep.report import write_sweep_report
 
-        write_sweep_report(out)
+        write_sweep_report(out, force=force)
     return SweepResult(out, len(runs), computed, present, [], time.perf_counter() - t0, workers)

@@ -8,7 +8,6 @@ beforehand is untouched and nothing was added. Add a case here for every new bad
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -22,6 +21,7 @@ import pytest
 
 from couplers.publish import MARKER
 from experiments.cli import main
+from filetree import snapshot
 
 PROJECT = Path(__file__).resolve().parents[2]
 SUMO_GAMES = Path(__import__("sumo").__file__).parent / "tools" / "game"
@@ -106,7 +106,7 @@ def case(*needles: str):
 # ----------------------------------------------------------------------------- coloc run: --out
 
 
-@case("mywork", "--out", "was not written by coloc", "--force")
+@case("mywork", "--out", "cannot prove it wrote", "--force")
 def run_out_user_folder(tmp, net, run):
     return ["run", str(_config(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
 
@@ -147,7 +147,7 @@ def run_out_sweep_folder(tmp, net, run):
     return ["run", str(_config(tmp, net)), "--out", str(d), "--quiet"], None
 
 
-@case("p", "--out", "was not written by coloc", "--force")
+@case("p", "--out", "cannot prove it wrote", "--force")
 def run_out_has_a_runs_file_names(tmp, net, run):
     """A run's file names do not make a folder a run (only its manifest does)."""
     d = tmp / "p"
@@ -1076,12 +1076,12 @@ def report_an_incomplete_run(tmp, net, run):
     return ["report", str(dst)], None
 
 
-@case("mywork", "--out", "was not written by coloc")
+@case("mywork", "--out", "cannot prove it wrote")
 def report_out_user_folder(tmp, net, run):
     return ["report", str(_run_copy(tmp, run)), "--out", str(_user_folder(tmp))], None
 
 
-@case("compare", "--out", "was not written by coloc", "--force")
+@case("compare", "--out", "cannot prove it wrote", "--force")
 def report_default_out_user_folder(tmp, net, run):
     """``coloc report A B`` writes ``A/../compare`` by default: a user's folder of that name is not taken."""
     a = _run_copy(tmp, run)
@@ -1132,7 +1132,7 @@ def sweep_out_file(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(_file(tmp)), "--quiet"], None
 
 
-@case("mywork", "--out", "was not written by coloc")
+@case("mywork", "--out", "cannot prove it wrote")
 def sweep_out_user_folder(tmp, net, run):
     return ["sweep", str(_sweep(tmp, net)), "--out", str(_user_folder(tmp)), "--quiet"], None
 
@@ -1287,7 +1287,7 @@ def net_import_demand_infinite(tmp, net, run):
             "--experiments-dir", str(tmp / "exps"), "--demand", "100", "inf"], None
 
 
-@case("--zone-cell", "1e-09 m is outside [1, 100000] m")
+@case("--zone-cell", "1e-09 m is outside [10, 100000] m")
 def net_import_zone_cell_tiny(tmp, net, run):
     return ["net", "import", "--net", str(net / "tlr.net.xml"), "--name", "x", "--out", str(tmp / "x"),
             "--experiments-dir", str(tmp / "exps"), "--zone-cell", "1e-9"], None
@@ -1333,19 +1333,6 @@ def run_gnss_model_unknown_key(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        if p.is_symlink():
-            out[key] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[key] = "dir"
-    return out
-
-
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     fn, needles = CASES[name]
@@ -1353,7 +1340,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     work.mkdir()
     argv, cwd = fn(work, cross_net, run_dir)
     monkeypatch.chdir(cwd or work)
-    before = _snapshot(work)
+    before = snapshot(work)
     capsys.readouterr()
     rc = main(argv)
     err = capsys.readouterr().err
@@ -1362,7 +1349,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     assert len(lines) == 1 and lines[0].startswith("coloc: error: "), err
     for needle in needles:
         assert needle in err, (needle, err)
-    assert _snapshot(work) == before  # nothing the case owned was changed, nothing half-written was left
+    assert snapshot(work) == before  # nothing the case owned was changed, nothing half-written was left
 
 
 def test_corpus_size():
@@ -1430,7 +1417,7 @@ def test_an_output_hidden_by_a_kill_between_the_renames_is_put_back(cross_net, t
 def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
     cfg = _config(tmp_path, cross_net)
     out = _run_copy(tmp_path, run_dir)
-    before = _snapshot(out)
+    before = snapshot(out)
     proc = subprocess.Popen([sys.executable, "-m", "experiments.cli", "run", str(cfg), "--out", str(out),
                              "--duration", "3600", "--quiet"], cwd=PROJECT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -1444,7 +1431,7 @@ def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert err.strip().splitlines() == ["coloc: terminated; nothing was written"]
-    assert not partial.exists() and _snapshot(out) == before
+    assert not partial.exists() and snapshot(out) == before
 
 
 def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):

@@ -21,8 +21,9 @@ from pathlib import Path
 
 import pytest
 
-from couplers.publish import ASIDE, MARKER, read_manifest
+from couplers.publish import ASIDE, LOCK_TAG, MARKER, read_manifest
 from experiments.cli import main
+from filetree import snapshot
 
 PROJECT = Path(__file__).resolve().parents[2]
 SINGLE_ROAD = PROJECT / "experiments" / "single_road.toml"  # no SUMO: the cheapest run with a report
@@ -31,19 +32,6 @@ SINGLE_ROAD = PROJECT / "experiments" / "single_road.toml"  # no SUMO: the cheap
 def _run(out: Path, *extra: str) -> int:
     return main(["run", str(SINGLE_ROAD), "--out", str(out), "--duration", "30", "--methods", "gnss", "--quiet",
                  *extra])
-
-
-def _snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        if p.is_symlink():
-            out[key] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[key] = "dir"
-    return out
 
 
 def _one_error(capsys, *needles: str) -> str:
@@ -90,11 +78,11 @@ def test_a_folder_with_a_runs_file_names_is_not_taken_for_a_run(tmp_path, capsys
     (p / "config.toml").write_text("x = 1\n")
     (p / "estimates.parquet").write_text("PAR1\n")
     (p / "thesis.tex").write_text("chapter 1\n")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(p) == 2
-    _one_error(capsys, str(p), "--out", "was not written by coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    _one_error(capsys, str(p), "--out", "cannot prove it wrote", "--force")
+    assert snapshot(tmp_path) == before
 
     assert _run(p, "--force") == 0
     assert (p / "thesis.tex").read_text() == "chapter 1\n" and (p / "data").is_dir()
@@ -114,11 +102,11 @@ def test_a_users_compare_folder_is_not_taken_for_a_comparison(run_dir, tmp_path,
     (tmp_path / "compare" / "figures").mkdir(parents=True)
     (tmp_path / "compare" / "report.html").write_text("<p>mine</p>\n")
     (tmp_path / "compare" / "figures" / "my_plot.png").write_bytes(b"my plot")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert main(["report", str(a), str(b)]) == 2
-    _one_error(capsys, "compare", "--out", "was not written by coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    _one_error(capsys, "compare", "--out", "cannot prove it wrote", "--force")
+    assert snapshot(tmp_path) == before
 
     assert main(["report", str(a), str(b), "--force"]) == 0
     cmp = tmp_path / "compare"
@@ -147,11 +135,11 @@ def test_a_file_the_user_changed_is_not_replaced(run_dir, tmp_path, capsys):
     run = _copy(run_dir, tmp_path / "run")
     with open(run / "report.html", "a") as fh:
         fh.write("<!-- my remark -->\n")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(run, "--seed", "2") == 2
     _one_error(capsys, "report.html", "--out", "cannot prove it wrote it", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert _run(run, "--seed", "2", "--force") == 0
     assert (run / f"report.html{ASIDE}").read_text().endswith("<!-- my remark -->\n")
@@ -198,11 +186,24 @@ def test_a_marker_without_a_file_list_is_refused_without_force(run_dir, tmp_path
     """An older coloc's marker names the kind only: its files cannot be told from a user's."""
     run = _copy(run_dir, tmp_path / "run")
     (run / MARKER).write_text('{"kind": "run"}\n')
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(run) == 2
-    _one_error(capsys, "run", "--out", "older coloc", "--force")
-    assert _snapshot(tmp_path) == before
+    _one_error(capsys, "run", "--out", "older coloc", "pass --force once", "later commands there need no --force")
+    assert snapshot(tmp_path) == before
+    # as the message says: --force once (the files it replaces kept aside), then no --force any more
+    assert _run(run, "--seed", "5", "--force") == 0 and (run / f"summary.json{ASIDE}").is_file()
+    assert _run(run, "--seed", "6") == 0 and _seed(run) == 6
+
+
+def test_a_run_folder_of_a_coloc_before_manifests_needs_force_once(run_dir, tmp_path, capsys):
+    run = _copy(run_dir, tmp_path / "run")
+    (run / MARKER).unlink()
+    capsys.readouterr()
+    assert _run(run) == 2
+    _one_error(capsys, "run", "--out", f"has no {MARKER}", "--force once")
+    assert _run(run, "--seed", "5", "--force") == 0
+    assert _run(run, "--seed", "6") == 0 and _seed(run) == 6
 
 
 # ----------------------------------------------------------------------------- one writer per output
@@ -212,6 +213,8 @@ def _hold_lock(out: Path):
     """Hold ``out``'s lock as another coloc command would (a separate open file: flock conflicts in-process too)."""
     fh = open(out.parent / f".{out.name}.lock", "a+")
     fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    fh.write(f"{LOCK_TAG}{os.getpid()}\n")
+    fh.flush()
     return fh
 
 
@@ -232,7 +235,7 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(run
 
 def test_a_report_is_refused_while_a_run_writes_its_folder(run_dir, tmp_path, capsys):
     run = _copy(run_dir, tmp_path / "run")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     fh = _hold_lock(run)
     try:
         capsys.readouterr()
@@ -241,7 +244,50 @@ def test_a_report_is_refused_while_a_run_writes_its_folder(run_dir, tmp_path, ca
     finally:
         fh.close()
     (tmp_path / ".run.lock").unlink()
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
+
+
+_KILL_AFTER_PUBLISH = """
+import os, signal, sys
+import couplers.publish as pub
+from experiments.cli import main
+
+publish = pub._publish_new
+
+
+def publish_then_die(*args, **kwargs):  # SIGKILL after publishing, before the lock is released
+    publish(*args, **kwargs)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+pub._publish_new = publish_then_die
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_lock_left_by_a_command_killed_after_publishing_is_taken_over(tmp_path):
+    """SIGKILL between publishing and releasing the lock: the output is complete, the lock file stays but
+    nobody holds its flock; the next writer takes it over and removes it when done."""
+    out = tmp_path / "o"
+    proc = subprocess.run([sys.executable, "-c", _KILL_AFTER_PUBLISH, "run", str(SINGLE_ROAD), "--out", str(out),
+                           "--duration", "30", "--methods", "gnss", "--quiet", "--seed", "3"],
+                          cwd=PROJECT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr
+    lock = tmp_path / ".o.lock"
+    assert lock.read_text().startswith(LOCK_TAG) and _seed(out) == 3  # published whole, the lock file left
+    assert _run(out, "--seed", "4") == 0 and _seed(out) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]  # the stale lock was taken over and removed
+
+
+def test_a_users_file_with_the_locks_name_is_refused_never_deleted(tmp_path, capsys):
+    (tmp_path / ".o.lock").write_text("my own notes, not a lock\n")
+    before = snapshot(tmp_path)
+    capsys.readouterr()
+    assert _run(tmp_path / "o", "--seed", "3") == 2
+    _one_error(capsys, ".o.lock", "was not written by coloc", "move it away")
+    assert snapshot(tmp_path) == before
+    assert _run(tmp_path / "o", "--seed", "3", "--force") == 2  # not even --force takes a user's file
+    assert snapshot(tmp_path) == before
 
 
 # ----------------------------------------------------------------------------- symbolic links
@@ -252,11 +298,11 @@ def test_a_symbolic_link_out_is_refused_and_written_through_with_force(points_at
     target = _copy(run_dir, tmp_path / "target") if points_at == "run" else tmp_path / "target"
     target.mkdir(exist_ok=True)
     (tmp_path / "link").symlink_to("target")
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     capsys.readouterr()
     assert _run(tmp_path / "link", "--seed", "7") == 2
     _one_error(capsys, "link", "--out", "is a symbolic link to target", "--force")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
     assert _run(tmp_path / "link", "--seed", "7", "--force") == 0
     assert (tmp_path / "link").is_symlink() and os.readlink(tmp_path / "link") == "target"

@@ -18,7 +18,9 @@ from pathlib import Path
 import pytest
 
 from couplers.errors import InputError, recording_reads
+from couplers.publish import MARKER, read_manifest, sha256_file
 from experiments.cli import main
+from filetree import snapshot
 from experiments.sweep.run import (INPUTS_FILE, _check_inputs, _inputs_text, cap_workers, expand_runs, load_sweep,
                                run_sweep, sweep_inputs, usable_cores)
 
@@ -104,6 +106,43 @@ track_area = "3"
     spec.write_text('[sweep]\nname = "two"\nbase = "cfg.toml"\nseeds = [1, 2]\n\n'
                     '[sweep.grid]\n"scenario.net_dir" = ["netA", "netB"]\n')
     return spec
+
+
+def test_the_sweeps_own_files_are_in_its_manifest_and_a_users_file_of_such_a_name_is_kept(tmp_path):
+    """sweep.toml, inputs.json, the tables and the report are listed in the sweep folder's manifest with
+    their sha256; a file of such a name coloc cannot prove it wrote is refused before any run, and with
+    --force kept aside, never replaced."""
+    (tmp_path / "base.toml").write_text(BASE.format(headway=20.0))
+    spec = tmp_path / "sweep.toml"
+    spec.write_text(SWEEP)
+    out = tmp_path / "out"
+    run_sweep(spec, out, workers=1, progress=False)
+    files = read_manifest(out)["files"]
+    top = sorted(p.name for p in out.iterdir() if p.is_file() and p.name != MARKER)
+    assert {"sweep.toml", INPUTS_FILE, "sweep.parquet", "curves.parquet", "report.html"} <= set(top)
+    assert all(files[name] == sha256_file(out / name) for name in top)  # every top-level file is coloc's
+
+    (out / "sweep.parquet").write_bytes(b"my own table")  # the user's now: its hash is not coloc's
+    shutil.rmtree(out / "runs" / "seed=2")  # a run left to compute: it must not start
+    before = snapshot(out)
+    with pytest.raises(InputError) as err:
+        run_sweep(spec, out, workers=1, progress=False)
+    assert Path(err.value.path).name == "sweep.parquet" and "cannot prove it wrote it" in err.value.message
+    assert snapshot(out) == before
+
+    res = run_sweep(spec, out, workers=1, progress=False, force=True)
+    assert res.computed == 1 and (out / "sweep.parquet.before-coloc").read_bytes() == b"my own table"
+    assert read_manifest(out)["files"]["sweep.parquet"] == sha256_file(out / "sweep.parquet")
+    assert run_sweep(spec, out, workers=1, progress=False).present == 2  # coloc's again: no --force needed
+
+    # a sweep folder of an older coloc (its manifest lists none of these files): --force once, then none
+    (out / MARKER).write_text('{"kind": "sweep", "files": {}}\n')
+    with pytest.raises(InputError) as err:
+        run_sweep(spec, out, workers=1, progress=False)
+    assert "--force" in err.value.message
+    run_sweep(spec, out, workers=1, progress=False, force=True)
+    assert set(top) <= set(read_manifest(out)["files"])
+    assert run_sweep(spec, out, workers=1, progress=False).present == 2
 
 
 def test_a_changed_net_concerns_only_the_runs_on_that_net(tmp_path, cross_net):

@@ -186,3 +186,12 @@ def test_version_names_coloc_sumo_and_python(capsys):
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("coloc ") and ", SUMO 1." in out and ", Python 3." in out
+
+
+def test_a_run_no_longer_than_its_warm_up_says_so_instead_of_a_traceback(cross_net, tmp_path, capsys):
+    """Nothing scored (every estimate inside [analysis] warmup_s): the summary's numbers are None; the
+    command prints what happened and exits 0 (the folder holds every row)."""
+    cfg = write_config(tmp_path, cross_net, duration=30.0, extra="[analysis]\nwarmup_s = 600.0\n")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "gnss: no estimate scored (none after the warm-up, analysis.warmup_s = 600 s: run longer)" in out

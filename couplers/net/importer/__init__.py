@@ -194,8 +194,8 @@ def _validate_options(opts: ImportOptions) -> None:
                 raise InputError(p, None, "is a folder, not a file" if p.is_dir() else "file not found")
     if opts.begin_s is not None and not (opts.begin_s >= 0 and math.isfinite(opts.begin_s)):
         raise InputError(opts.sumocfg, "begin", "must be a finite time >= 0 s")
-    if opts.feature_count < 0:
-        raise InputError(None, "--features", "must be >= 0")
+    if opts.feature_count < 1:  # a folder without features is refused by `coloc net check`
+        raise InputError(None, "--features", f"must be >= 1 (a net folder needs features), got {opts.feature_count}")
     bad = [k for k in opts.feature_kinds if k not in FEATURE_KINDS]
     if bad or not opts.feature_kinds:
         what = f"unknown kind {bad[0]!r}" if bad else "at least one kind is needed"
@@ -379,15 +379,18 @@ def _build_folder(work: Path, opts: ImportOptions, report: "_Report", osm_counts
     fcounts = {k: sum(1 for f in feats if f[1] == k) for k in FEATURE_KINDS if k in opts.feature_kinds}
     report.derived["features"] = fcounts
     report.derived["feature_candidates"] = {k: len(v) for k, v in cands.items()}
+    whys = {"bus_stop": "no bus stops in the data" + (" (a .net.xml holds none: pass --additional "
+                                                       "with busStop elements)" if opts.osm is None else ""),
+            "parking": "no car parks in the data" + (" (pass --additional with parkingArea elements)"
+                                                     if opts.osm is None else ""),
+            "traffic_light": "no signalised junction approaches",
+            "sign": "no unsignalised junction with a minor approach"}
+    if not feats:  # a folder without features is refused by `coloc net check`: say why here instead
+        raise InputError(opts.source, "--feature-kinds", "no place for a feature of the kinds asked ("
+                         + "; ".join(f"{k}: {whys[k]}" for k in opts.feature_kinds) + "): add other kinds")
     for k in opts.feature_kinds:
         if not cands[k]:
-            why = {"bus_stop": "no bus stops in the data" + (" (a .net.xml holds none: pass --additional "
-                                                              "with busStop elements)" if opts.osm is None else ""),
-                   "parking": "no car parks in the data" + (" (pass --additional with parkingArea elements)"
-                                                            if opts.osm is None else ""),
-                   "traffic_light": "no signalised junction approaches",
-                   "sign": "no unsignalised junction with a minor approach"}[k]
-            report.not_derived.append(f"features of kind {k}: {why}")
+            report.not_derived.append(f"features of kind {k}: {whys[k]}")
     if len(feats) < opts.feature_count:
         report.not_derived.append(f"{opts.feature_count} features: only {len(feats)} candidate places "
                                   f"{FEATURE_MIN_SPACING_M:.0f} m apart in the net")

@@ -349,6 +349,12 @@ def _write_demand(opts: ImportOptions, net, net_path: Path, work: Path, lane_km:
             report.not_derived.append("demand calibration against gridlock: libsumo is not installed")
     while True:
         counts = counts_for(scale)
+        if not sum(counts):  # a folder without vehicles is refused by `coloc net check`: say why here instead
+            raise InputError(None, "--demand/--demand-scale/--duration",
+                             f"the generated demand has no vehicle ({_fmt(opts.demand_start_vph)} -> "
+                             f"{_fmt(opts.demand_end_vph)} veh/h x {scale:.4g} over {_fmt(opts.duration_s)} s rounds "
+                             "to none" + (f" after {len(trials)} gridlock trial(s)" if trials else "")
+                             + "): raise them")
         path.write_text(_demand_text(opts, pool, counts, note_for(scale)))
         if not calibrate:
             break

@@ -34,6 +34,10 @@ ZONE_PARAMS = {"A": (3.0, 0.1), "B": (8.0, 0.17), "C": (15.0, 0.45)}
 BUILT_FRACTION_C = 0.30
 BUILT_FRACTION_B = 0.12
 ZONE_MARGIN_M = 60.0
+# At most this many building-density cells over a net: each is a shapely intersection with the buildings
+# (1 m cells over the test grid of tests/osmfixture.py, about 5e5 cells, took minutes); a --zone-cell giving
+# more is refused, naming the count.
+ZONE_CELLS_MAX = 100_000
 
 
 # --------------------------------------------------------------------------
@@ -83,6 +87,9 @@ def _write_buildings(path: Path, buildings: list, heights: list, lane_tree, repo
 
 def _zones_from_buildings(path: Path, lane_xy: np.ndarray, buildings: list, cell: float, report: _Report) -> None:
     x0, y0, x1, y1, nx, ny = _grid_bbox(lane_xy, cell)
+    if nx * ny > ZONE_CELLS_MAX:
+        raise InputError(None, "--zone-cell", f"{_fmt(cell)} m gives {nx} x {ny} = {nx * ny} cells over this net, "
+                                              f"more than {ZONE_CELLS_MAX}: choose a larger cell")
     cells = [box(x0 + i * cell, y0 + j * cell, x0 + (i + 1) * cell, y0 + (j + 1) * cell)
              for j in range(ny) for i in range(nx)]
     built = shapely.union_all(buildings)
