@@ -205,6 +205,32 @@ def test_default_areas_without_a_road_are_dropped():
     assert any("areas 5, 6 of the default grid: no road crosses them" in x for x in report.not_derived)
 
 
+def test_default_areas_keep_a_cell_that_holds_only_a_footpath():
+    """A cell crossed by no drivable lane but holding shape points of another lane (a footpath, a rail) is
+    kept: ``coloc net check`` wants every lane shape point covered, so dropping it wrote a folder the
+    check refused (an imported Berlin: 148 of 74866 points uncovered)."""
+    import shapely
+    from shapely.geometry import LineString
+
+    from couplers.net.importer import _Report
+    from couplers.net.importer.regions import _default_areas
+
+    lines = [LineString([(0, 0), (900, 0)]), LineString([(0, 0), (0, 600)])]
+    footpath = np.array([[700.0, 500.0], [850.0, 550.0]])  # in cell 6 only
+    xy = np.vstack([np.array([p for line in lines for p in line.coords]), footpath])
+    report = _Report()
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "areas.geojson"
+        _default_areas(path, xy, report, lines)
+        feats = json.loads(path.read_text())["features"]
+    assert [f["properties"]["area"] for f in feats] == ["1", "2", "3", "4", "6"]
+    union = shapely.union_all([shapely.geometry.shape(f["geometry"]) for f in feats])
+    assert shapely.intersects_xy(union, xy[:, 0], xy[:, 1]).all()  # what net check tests
+    assert any("areas 5 of the default grid" in x for x in report.not_derived)
+
+
 def test_cdf_panels_show_the_sample_count(monkeypatch, tmp_path):
     from experiments.report import figures
     from experiments.report.load import _Run

@@ -138,7 +138,9 @@ def _default_zones(path: Path, lane_xy: np.ndarray, report: _Report) -> None:
 
 def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report, lane_lines: list | None = None) -> None:
     """A 3 x 2 (or 2 x 3) grid over the lanes' bounding box, numbered from the south-west; cells no drivable
-    lane crosses (``lane_lines``) are dropped and listed as not derived (the others keep their numbers)."""
+    lane crosses (``lane_lines``) and that hold no lane shape point (``lane_xy``: every lane of the net,
+    footpaths and rails too, which ``coloc net check`` wants covered) are dropped and listed as not derived
+    (the others keep their numbers)."""
     x0, y0, x1, y1, _, _ = _grid_bbox(lane_xy, 1.0)
     wide = (x1 - x0) >= (y1 - y0)
     ncol, nrow = (3, 2) if wide else (2, 3)
@@ -150,7 +152,8 @@ def _default_areas(path: Path, lane_xy: np.ndarray, report: _Report, lane_lines:
     for j in range(nrow):
         for i in range(ncol):
             cell = box(xs[i], ys[j], xs[i + 1], ys[j + 1])
-            if lane_lines is not None and not any(cell.intersects(line) for line in lane_lines):
+            if (lane_lines is not None and not any(cell.intersects(line) for line in lane_lines)
+                    and not shapely.intersects_xy(cell, lane_xy[:, 0], lane_xy[:, 1]).any()):
                 empty.append(str(k))
             else:
                 feats.append({"type": "Feature", "properties": {"area": str(k)}, "geometry": mapping(cell)})
