@@ -42,6 +42,7 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.inference.params import IcpParams
+from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
@@ -162,6 +163,7 @@ def method_params(cfg: Config) -> MethodParams:
         infra=infra_method_params(cfg) if cfg.infra is not None else None,
         detection=estimator_detection_model(cfg),
         gnss_model=cfg.gnss_model,
+        fusion=CoopFusion.from_config(cfg.fusion, cfg.gnss_model),
     )
 
 

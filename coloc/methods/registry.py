@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from coloc.inference.params import IcpParams
     from coloc.methods.icp_da_lc import LcParams
     from coloc.methods.icp_da_pf import PfParams
+    from coloc.methods.coop_fusion import CoopFusion
     from coloc.methods.gnss_bias import GnssModelParams
     from coloc.methods.infra import InfraMethodParams
 
@@ -46,6 +47,8 @@ class MethodParams:
     # The integrator's receiver error model ([gnss_model]): gnss with a bias state and fault exclusion;
     # None: the white tracker of the paper.
     gnss_model: GnssModelParams | None = None
+    # [fusion] with its receiver model: split-CI fusion in icp_known_da and icp_da_lc; None: the paper's BPA-L.
+    fusion: CoopFusion | None = None
 
 
 @dataclass(frozen=True)
@@ -90,13 +93,13 @@ def _gnss(p: MethodParams):
 def _icp_known_da(p: MethodParams):
     from coloc.methods.icp_known_da import IcpKnownDA
 
-    return IcpKnownDA(params=p.icp)
+    return IcpKnownDA(params=p.icp, fusion=p.fusion)
 
 
 def _icp_da_lc(p: MethodParams):
     from coloc.methods.icp_da_lc import IcpDaLc
 
-    return IcpDaLc(params=p.icp, lc=p.lc, detection=p.detection if p.lc.sensor_fov else None)
+    return IcpDaLc(params=p.icp, lc=p.lc, detection=p.detection if p.lc.sensor_fov else None, fusion=p.fusion)
 
 
 def _icp_da_pf(p: MethodParams):
