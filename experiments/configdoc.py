@@ -289,6 +289,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "bias_state": ("", "The cooperative methods take `[gnss_model]`'s receiver model (a Gauss-Markov bias "
                            "state per vehicle and fault exclusion of the fix) when the config has that table; "
                            "false, or no `[gnss_model]`: the white receiver."),
+        "common_mode_gnss": ("", "The receivers' errors may be shared between nearby vehicles (atmosphere, "
+                                 "orbit and clock): what a vehicle's own fixes put in its belief counts as of "
+                                 "unknown correlation with the other vehicles' messages (the dependent part of "
+                                 "split CI). False: every receiver's error its own, as the paper's model (3)."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

@@ -54,6 +54,12 @@ class FusionParams:
     # Give the cooperative methods the receiver error model of [gnss_model] (a bias state and fault
     # exclusion) when the config has that table; false (or no [gnss_model]): the white receiver.
     bias_state: bool = True
+    # The receivers' errors may be shared between nearby vehicles (the atmospheric, orbit and clock terms
+    # of single-frequency receivers are common-mode over kilometres): then what a vehicle's fixes put in
+    # its belief is of unknown correlation with the other vehicles' messages, and split CI counts it in
+    # the dependent part (its prior from the receiver and the bias's driving noise too). False: the
+    # paper's model (3), every receiver's error its own.
+    common_mode_gnss: bool = False
 
     def __post_init__(self):
         if self.rule not in FUSION_RULES:
@@ -122,10 +128,11 @@ def _carry(prev, match, fresh, n, shape, fill=0.0):
 
 
 def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
-                     streak):
+                     streak, common_mode: bool = False):
     """The cooperative belief's model (1) prediction and fix (3), with the independent part carried
     along: P' = F P F^T + Q and P_i' = F P_i F^T + Q (the driving and bias noise are the vehicle's own),
-    then the fix in Joseph form on both, K from the total (the fix's noise is independent). The fix's
+    then the fix in Joseph form on both, K from the total (the fix's noise is independent; with
+    ``common_mode`` the fix's noise and the bias's driving noise go to the dependent part). The fix's
     position is excluded by :class:`GnssModelParams`'s chi-square rule on this belief's innovation
     (velocity-only update, at most ``max_exclusions`` in a row; a fresh row is never gated), as
     :func:`coloc.methods.gnss_bias.bias_predict_update` does for the own track."""
@@ -147,7 +154,10 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
         sel = predict_mask
         m[sel] = mp[sel]
         p[sel] = f @ p[sel] @ f.T + q[sel]
-        pi[sel] = f @ pi[sel] @ f.T + q[sel]
+        q_ind = q[sel].copy()
+        if common_mode:
+            q_ind[:, 4:, 4:] = 0.0
+        pi[sel] = f @ pi[sel] @ f.T + q_ind
     rn = r.copy()
     rn[:, :2, :2] *= 1.0 - s
     innov = z - m @ H.T
@@ -167,15 +177,16 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
         ikh = np.eye(6) - gain @ hs
         noise = gain @ rs @ np.swapaxes(gain, -1, -2)
         for arr in (p, pi):
-            u = ikh @ arr[sel] @ np.swapaxes(ikh, -1, -2) + noise
+            u = ikh @ arr[sel] @ np.swapaxes(ikh, -1, -2) + (0.0 if common_mode and arr is pi else noise)
             arr[sel] = 0.5 * (u + np.swapaxes(u, -1, -2))
     return m, p, pi, excluded
 
 
 def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel: np.ndarray, motion: MotionParams,
-                model: GnssModelParams) -> SplitPrior:
+                model: GnssModelParams, common_mode: bool = False) -> SplitPrior:
     """Both filters carried to this frame (``match`` = ``match_ids(previous ids, frame.vehicle_ids)``),
-    predicted with the input ``accel`` (frame order) and updated by the step's fix."""
+    predicted with the input ``accel`` (frame order) and updated by the step's fix (``common_mode``:
+    :attr:`FusionParams.common_mode_gnss`)."""
     state = state or SplitState()
     prior_z = np.asarray(frame.prior_z, dtype=float)
     fresh = fresh_rows(match, frame.entered, prior_z)
@@ -202,9 +213,10 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
                                                own_streak)
     m, p = carried(state.mean, state.cov)
     pi = _carry(state.ind, match, fresh, n, (6, 6))
-    pi[fresh] = init_p[fresh]  # a new vehicle's prior is its own receiver's: independent
+    # A new vehicle's prior is its own receiver's: independent (dependent with common-mode errors).
+    pi[fresh] = 0.0 if common_mode else init_p[fresh]
     streak = _carry(state.streak, match, fresh, n, ())
-    m, p, pi, ex = _split_gnss_step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak)
+    m, p, pi, ex = _split_gnss_step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
     return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0))
 
 

@@ -134,11 +134,9 @@ def nees_runs(make, runs=100, steps=15, dof=2):
 
 @pytest.mark.slow
 def test_nees_where_the_model_is_the_truth():
-    """The estimators' models are the scene's (driving noise, GNSS, V2F noise and prior), so a
-    consistent method's position NEES averages at most 2; split CI bounds the error with a margin
-    (the correlation it guards against is partly absent), so its mean lies below the upper end of the
-    99 % chi-square band for the 500 samples (100 runs x 5 vehicles) and stays away from 0, while the
-    paper's BPA-L is far above the band."""
+    """The estimators' models are the scene's (driving noise, GNSS, V2F noise and prior): the mean
+    position NEES of each fused method lies inside the 99 % chi-square band of its 500 samples (100
+    runs x 5 vehicles; measured 1.84 and 1.86), the paper's BPA-L far above it (16.6)."""
     params = IcpParams(motion=TRUE_MOTION)
     lc = LcParams()
     band = chi2.ppf([0.005, 0.995], 2 * 500) / 500
@@ -147,7 +145,7 @@ def test_nees_where_the_model_is_the_truth():
     paper = nees_runs(lambda: IcpKnownDA(params))
     print(f"mean NEES: known {known.mean():.2f}, lc {dalc.mean():.2f}, paper {paper.mean():.2f}, band {band}")
     for v in (known, dalc):
-        assert 0.5 < v.mean() < band[1]
+        assert band[0] < v.mean() < band[1]
     assert paper.mean() > band[1]
 
 
