@@ -293,6 +293,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                  "orbit and clock): what a vehicle's own fixes put in its belief counts as of "
                                  "unknown correlation with the other vehicles' messages (the dependent part of "
                                  "split CI). False: every receiver's error its own, as the paper's model (3)."),
+        "feature_ci": ("", "A feature's evidence to a vehicle is the covariance intersection (equal weights, the "
+                           "consensus average) of this step's other observers' own-sensor messages instead of the "
+                           "sum of every message the track keeps: the other vehicles' messages may share their "
+                           "receivers' errors. False: their sum (independent receivers)."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

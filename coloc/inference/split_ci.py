@@ -330,7 +330,7 @@ def split_ci_update(mean, cov, ind, y_f, p_f, r_f, has, iterations):
 
 
 def feature_evidence(own_mean, own_cov, owner, feature, z, r, adjacency, feature_prior_lam, feature_prior_eta,
-                     params, v2x=None):
+                     params, v2x=None, feature_ci=False):
     """The step's feature evidence of every vehicle under split CI (module docstring).
 
     ``own_mean``/``own_cov`` (N, 4): the vehicles' own-sensor beliefs; ``owner``/``feature``/``z``/``r``
@@ -338,7 +338,11 @@ def feature_evidence(own_mean, own_cov, owner, feature, z, r, adjacency, feature
     of (12) for the sorted unique used ids, without the messages of this step's observers
     (:meth:`coloc.inference.feature_store.FeatureStore.prior_information`). The feature belief (20) is
     the prior plus the observers' own-sensor messages (19), summed by the consensus of (20) in one pass
-    (``params.consensus_iterations`` rounds; over the V2X channel when ``v2x`` is given).
+    (``params.consensus_iterations`` rounds; over the V2X channel when ``v2x`` is given). ``feature_ci``:
+    the other vehicles' messages may be correlated with each other (receivers sharing their errors), so
+    the extrinsic belief of a row is their covariance intersection with equal weights, the consensus
+    average of this step's other observers' messages (count x average minus the own, over count - 1),
+    and the stored messages of earlier observers are left out (leaving information out keeps the bound).
 
     Returns (msg_lam, msg_eta, y_f, p_f, r_f, has, comm): the messages the tracks keep (the used rows'
     own-sensor messages) and the per-vehicle evidence of :func:`combine_messages`."""
@@ -379,8 +383,13 @@ def feature_evidence(own_mean, own_cov, owner, feature, z, r, adjacency, feature
         rounds = n_cons
     avg_lam, avg_eta = _unpack_sym(avg)
     # (20) at each observer, then (21): its own message out (extrinsic), projected on the PSD cone.
-    ext_lam, ext_eta = psd_clip(symmetrize(lam_f0_row + count[:, None, None] * avg_lam - m_lam),
-                                eta_f0_row + count[:, None] * avg_eta - m_eta)
+    if feature_ci:
+        others = np.maximum(count - 1, 1).astype(float)
+        ext_lam, ext_eta = psd_clip(symmetrize((count[:, None, None] * avg_lam - m_lam) / others[:, None, None]),
+                                    (count[:, None] * avg_eta - m_eta) / others[:, None])
+    else:
+        ext_lam, ext_eta = psd_clip(symmetrize(lam_f0_row + count[:, None, None] * avg_lam - m_lam),
+                                    eta_f0_row + count[:, None] * avg_eta - m_eta)
     dep, y, valid = message_moments(np.ascontiguousarray(ext_lam), np.ascontiguousarray(ext_eta), z_u)
     y_f, p_f, r_f, has = combine_messages(owner_u, dep, r_u, y, valid, n)
     comm = broadcast_rounds(owner_u, count >= 2, n, rounds, GAUSSIAN_CONSENSUS_WORDS)

@@ -60,6 +60,10 @@ class FusionParams:
     # the dependent part (its prior from the receiver and the bias's driving noise too). False: the
     # paper's model (3), every receiver's error its own.
     common_mode_gnss: bool = False
+    # The feature evidence as the covariance intersection (equal weights) of this step's other observers'
+    # messages instead of the sum of every stored message (coloc.inference.split_ci.feature_evidence):
+    # the other vehicles' messages may share their receivers' errors.
+    feature_ci: bool = False
 
     def __post_init__(self):
         if self.rule not in FUSION_RULES:
@@ -222,7 +226,7 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
 
 def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray, z: np.ndarray, r: np.ndarray,
                        adjacency, feature_prior_lam: np.ndarray, feature_prior_eta: np.ndarray, params: IcpParams,
-                       v2x=None) -> tuple[BpaResult, SplitState]:
+                       v2x=None, feature_ci: bool = False) -> tuple[BpaResult, SplitState]:
     """The step's localization under split CI, in place of :func:`coloc.inference.bpa.bpa_localization`
     (same row arguments): the feature evidence of :func:`coloc.inference.split_ci.feature_evidence` fused
     into each observing vehicle's b^(0); vehicles without evidence keep b^(0). The result's messages are
@@ -230,7 +234,7 @@ def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray
     own_mean, own_cov = prior.own_mean[:, :4], prior.own_cov[:, :4, :4]
     msg_lam, msg_eta, y_f, p_f, r_f, has, comm = feature_evidence(
         np.ascontiguousarray(own_mean), np.ascontiguousarray(own_cov), owner, feature, z, r, adjacency,
-        feature_prior_lam, feature_prior_eta, params, v2x)
+        feature_prior_lam, feature_prior_eta, params, v2x, feature_ci)
     mean, cov, ind, _ = split_ci_update(np.ascontiguousarray(prior.mean), np.ascontiguousarray(prior.cov),
                                         np.ascontiguousarray(prior.ind), y_f, p_f, r_f, has, SEARCH_ITERATIONS)
     used = np.asarray(feature, dtype=np.int64) >= 0

@@ -622,7 +622,7 @@ def icp_da_lc_step(
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
                                                  l_cls[used] if l_cls is not None else None)
     res, split_after = localize(split, b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame,
-                                f_lam0, f_eta0, params)
+                                f_lam0, f_eta0, params, fusion is not None and fusion.params.feature_ci)
     rec_track, rec_owner, rec_lam, rec_eta = bpa_track[used], l_owner[used], res.msg_lam, res.msg_eta
     rec_cls = l_cls[used] if l_cls is not None else None
     tentative = (l_track >= 0) & ~used

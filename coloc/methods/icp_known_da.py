@@ -126,13 +126,14 @@ def prior_pair(state: "IcpState", frame: Frame, params: IcpParams, match: np.nda
 
 
 def localize(split: SplitPrior | None, b0_mean, b0_cov, own_mean, own_cov, owner, track, z, r, frame: Frame,
-             f_lam0, f_eta0, params: IcpParams) -> tuple[BpaResult, SplitState | None]:
+             f_lam0, f_eta0, params: IcpParams, feature_ci: bool = False) -> tuple[BpaResult, SplitState | None]:
     """The step's BPA-L (:func:`coloc.inference.bpa.bpa_localization`), or with ``[fusion]`` (``split``
     not None) the split-CI fusion (:func:`coloc.methods.coop_fusion.split_localization`)."""
     if split is None:
         return bpa_localization(b0_mean, b0_cov, own_mean, own_cov, owner, track, z, r, frame.neighbors, f_lam0,
                                 f_eta0, params, v2x=frame.v2x), None
-    return split_localization(split, owner, track, z, r, frame.neighbors, f_lam0, f_eta0, params, v2x=frame.v2x)
+    return split_localization(split, owner, track, z, r, frame.neighbors, f_lam0, f_eta0, params, v2x=frame.v2x,
+                              feature_ci=feature_ci)
 
 
 def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams,
@@ -157,7 +158,8 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     row_class = frame.v2f_class[used] if frame.v2f_class is not None else None
     f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes, row_class)
     res, split_after = localize(split, b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z,
-                                frame.v2f_R, frame, f_lam0, f_eta0, params)
+                                frame.v2f_R, frame, f_lam0, f_eta0, params,
+                                fusion is not None and fusion.params.feature_ci)
     # Classes (frame.v2f_class, SUMO pedestrians): a track takes its first row's class, and its
     # model (2) noise follows it (coloc.inference.feature_store.feature_track_q).
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes,

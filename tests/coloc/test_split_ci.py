@@ -96,18 +96,20 @@ def test_combined_messages_bound_every_correlation():
 # ----------------------------------------------------------------------------- against the joint KF
 
 
-@pytest.mark.parametrize("common_mode", [False, True])
+@pytest.mark.parametrize("variant", [FusionParams(), FusionParams(common_mode_gnss=True),
+                                     FusionParams(common_mode_gnss=True, feature_ci=True)])
 @pytest.mark.parametrize("seed", range(8))
-def test_never_smaller_than_the_centralized_joint_covariance(seed, common_mode):
+def test_never_smaller_than_the_centralized_joint_covariance(seed, variant):
     """On small random scenes (4-6 vehicles, 2-5 features, V2V range 25 m or all-to-all) the
     distributed covariance with [fusion] is at least the exact joint KF's of the same information in
-    Loewner order, at every step and for every vehicle; the paper's BPA-L is not."""
+    Loewner order, at every step and for every vehicle, for each [fusion] variant; the paper's BPA-L
+    is not."""
     rng = np.random.default_rng(100 + seed)
     n, n_feat = int(rng.integers(4, 7)), int(rng.integers(2, 6))
     frames = road_frames(seed=seed, n=n, steps=12, n_feat=n_feat, v2v_range=float(rng.choice([25.0, 250.0])),
                          gnss_sp=float(rng.uniform(2.0, 8.0)))
     params = IcpParams(motion=TRUE_MOTION)
-    fusion = CoopFusion(FusionParams(common_mode_gnss=common_mode))
+    fusion = CoopFusion(variant)
     fused, paper, kf = IcpKnownDA(params, fusion=fusion), IcpKnownDA(params), CentralizedKF(params)
     worst_fused, worst_paper = np.inf, np.inf
     for f in frames:
