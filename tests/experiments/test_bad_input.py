@@ -1250,6 +1250,18 @@ def net_import_routes_not_sorted(tmp, net, run):
             "--name", "x", "--out", str(tmp / "x"), "--experiments-dir", str(tmp / "exps")], None
 
 
+@case("cfg.toml", "fusion.rule", "split_ci")
+def run_fusion_unknown_rule(tmp, net, run):
+    cfg = _config(tmp, net, '[fusion]\nrule = "ci"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "fusion.feature_ci", "true or false")
+def run_fusion_feature_ci_not_bool(tmp, net, run):
+    cfg = _config(tmp, net, "[fusion]\nfeature_ci = 1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
 def run_gnss_model_bias_share_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
@@ -1314,7 +1326,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 169
+    assert len(CASES) >= 171
 
 
 # ----------------------------------------------------------------------------- what --out may replace
