@@ -58,6 +58,7 @@ from pathlib import Path
 from coloc.core.models import MotionParams
 from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, PEDESTRIAN_SIGMA_PAR, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
+from coloc.methods.coop_fusion import FusionParams
 from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import GNSS, METHODS, runnable_methods
@@ -228,6 +229,9 @@ class Config:
     # [gnss_model], optional: the integrator's receiver error model for the gnss method
     # (coloc.methods.gnss_bias); never read from [gnss_error], the world's table.
     gnss_model: GnssModelParams | None = None
+    # [fusion], optional: consistent (split covariance intersection) fusion in icp_known_da and icp_da_lc,
+    # with [gnss_model]'s receiver model (coloc.methods.coop_fusion).
+    fusion: FusionParams | None = None
     # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
     analysis: AnalysisSection | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
@@ -267,7 +271,7 @@ OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": Perce
                                       "gnss_error": GnssErrorParams, "v2x": V2xParams,
                                       "inertial": InertialParams, "features": FeaturesParams,
                                       "estimator_sensors": EstimatorSensors,
-                                      "gnss_model": GnssModelParams,
+                                      "gnss_model": GnssModelParams, "fusion": FusionParams,
                                       "analysis": AnalysisSection}
 #: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].

@@ -125,6 +125,13 @@ TABLE_DOCS: dict[str, str] = {
                   "is improbable. Never read from `[gnss_error]` (the world's table): its values are what an "
                   "integrator would assume. Reports and NEES use the 4-D kinematic marginal. Absent: the white "
                   "tracker of the paper, exactly as before.",
+    "fusion": "Consistent cooperative fusion (optional table; `coloc/inference/split_ci.py`, "
+              "`coloc/methods/coop_fusion.py`): `icp_known_da` and `icp_da_lc` exchange only their own-sensor "
+              "messages and fuse the feature evidence by split covariance intersection (the step's V2F noise "
+              "independent, everything else of unknown correlation), so their covariances bound their errors; "
+              "ICP-DA-LC's association, births and existence then gate on that covariance. With `bias_state` "
+              "they also carry `[gnss_model]`'s receiver model. Absent: the paper's Gaussian BPA-L, exactly as "
+              "before.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "
@@ -278,6 +285,22 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "whatever its innovation (a lasting discrepancy is more likely the "
                                     "tracker's own drift than a fault; a gate that never reopens diverges). "
                                     "Default 10 (assumption: NLOS episodes last seconds)."),
+    },
+    "fusion": {
+        "rule": ("", "How the cooperative methods fuse what they receive: `split_ci` (split covariance "
+                     "intersection; weights: fast CI across a vehicle's features, then the minimum determinant "
+                     "of the kinematic covariance against its prior)."),
+        "bias_state": ("", "The cooperative methods take `[gnss_model]`'s receiver model (a Gauss-Markov bias "
+                           "state per vehicle and fault exclusion of the fix) when the config has that table; "
+                           "false, or no `[gnss_model]`: the white receiver."),
+        "common_mode_gnss": ("", "The receivers' errors may be shared between nearby vehicles (atmosphere, "
+                                 "orbit and clock): what a vehicle's own fixes put in its belief counts as of "
+                                 "unknown correlation with the other vehicles' messages (the dependent part of "
+                                 "split CI). False: every receiver's error its own, as the paper's model (3)."),
+        "feature_ci": ("", "A feature's evidence to a vehicle is the covariance intersection (equal weights, the "
+                           "consensus average) of this step's other observers' own-sensor messages instead of the "
+                           "sum of every message the track keeps: the other vehicles' messages may share their "
+                           "receivers' errors. False: their sum (independent receivers)."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

@@ -42,6 +42,7 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.inference.params import IcpParams
+from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_da_pf import PfParams
 from coloc.methods.registry import METHODS, MethodParams, build_method
 from couplers.errors import InputError
@@ -164,6 +165,7 @@ def method_params(cfg: Config) -> MethodParams:
         detection=estimator_detection_model(cfg),
         gnss_model=cfg.gnss_model,
         oracle_world=oracle_world(cfg),
+        fusion=CoopFusion.from_config(cfg.fusion, cfg.gnss_model),
     )
 
 

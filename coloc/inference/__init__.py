@@ -84,6 +84,11 @@ delivered and within the step's round budget
 particle ICP still assumes every consensus message arrives. What each method sends per step is
 counted by :mod:`coloc.inference.comm`.
 
+Consistent fusion (``[fusion]``): :mod:`coloc.inference.split_ci` replaces the BPA-L iterations by one
+pass in which vehicles exchange only their own-sensor messages and fuse the feature evidence by split
+covariance intersection (the rule, its weights and its sources are there; the vehicle filters in
+:mod:`coloc.methods.coop_fusion`).
+
 Clutter: :mod:`coloc.inference.existence` carries an existence probability per feature track (BP
 multitarget tracking, Meyer et al. 2018) and updates it from the BPA-DA beliefs (13)-(17) in
 log-odds over vehicles; ICP-DA-LC uses it when ``[lc] track_existence`` is set (its step 9).

@@ -108,7 +108,7 @@ from coloc.core.detections import with_net_detections
 from coloc.core.inertial import estimator_input
 from coloc.core.vehicles import match_ids
 from coloc.inference.association import association_marginals_batch, layout_and_marginals_kernel
-from coloc.inference.bpa import bpa_localization, step_feature_beliefs
+from coloc.inference.bpa import step_feature_beliefs
 from coloc.inference.comm import LC_BIRTH_WORDS, CommCount, announcements
 from coloc.inference.feature_store import FeatureStore
 from coloc.inference.existence import TrackExistence, birth_existence, existence_update
@@ -122,7 +122,8 @@ from coloc.kernels.icp_fused import (
     map_pairing_kernel,
     unique_inverse,
 )
-from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, vehicle_prior_pair
+from coloc.methods.coop_fusion import CoopFusion
+from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
 from coloc.methods.registry import ICP_DA_LC
 
 __all__ = [
@@ -535,15 +536,20 @@ class LcStepInfo:
 def icp_da_lc_step(
     state: IcpState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams,
     existence: TrackExistence | None = None, detection: DetectionModel | None = None,
+    fusion: CoopFusion | None = None,
 ) -> tuple[IcpState, int, LcStepInfo]:
     """One ICP-DA-LC step (pure). Returns the new state, the next free track id and the step's
     bookkeeping; ``existence``: the tracks' existence after the previous step (``lc.track_existence``;
     the new one is ``info.existence``); ``detection``: the vehicles' sensors, for a P_D per
-    (vehicle, track) (:mod:`coloc.core.detection`; None: ``lc.detection_probability``)."""
+    (vehicle, track) (:mod:`coloc.core.detection`; None: ``lc.detection_probability``); ``fusion``: ``[fusion]``
+    (:mod:`coloc.methods.coop_fusion`: split-CI fusion and the receiver model; the association then gates on
+    b^(0)'s own, consistent covariance), None: the paper's BPA-L."""
     match = match_ids(state.ids, frame.vehicle_ids)
     # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
-    b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
+    b0_mean, b0_cov, own_mean, own_cov, split = prior_pair(state, frame, params, match, accel, fusion)
+    # The covariance the association, the births and the existence see with b^(0)'s mean (below).
+    gate_cov = own_cov if split is None else b0_cov
     # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor track at t
     # (coloc.core.detections; as coloc.methods.icp_known_da).
     frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
@@ -557,7 +563,7 @@ def icp_da_lc_step(
     # arterial), which gates out correct pairings (arterial TLR, 300 s: 1494 births and 1208
     # merges with the b^(0) covariance, 171 births and no merge with the own-sensor one).
     pv, pt, pr, w = association_weights(
-        b0_mean, own_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection
+        b0_mean, gate_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection
     )
     row_cls = frame.v2f_class
     if row_cls is not None:
@@ -583,7 +589,7 @@ def icp_da_lc_step(
     ab = association_beliefs(pv, pt, pr, w, frame.n_vehicles, o, lc, missed)
     row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
     if lc.track_existence:  # r updated by the step
-        existence = existence_after_association(r_pred, ab, b0_mean, own_cov, t_mean, t_cov, predicted.ids, pd_of,
+        existence = existence_after_association(r_pred, ab, b0_mean, gate_cov, t_mean, t_cov, predicted.ids, pd_of,
                                                 lc, detection is None)
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
     # Births (step 6). A row no track explains may be a new feature or clutter: it starts a track
@@ -591,7 +597,7 @@ def icp_da_lc_step(
     # static landmark and a false detection look alike in one scan).
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
     implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
-    implied_cov = own_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
+    implied_cov = gate_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
     if row_cls is None:
         labels = birth_clusters(owner[birth], implied, implied_cov, chi2_ppf(0.99, 2))
     else:  # rows of one class only start one track together
@@ -618,7 +624,7 @@ def icp_da_lc_step(
     # Confirmation (step 9): rows of tentative tracks update their track but not the vehicles.
     bpa_track = l_track
     if lc.track_existence:
-        share = new_feature_share(b0_mean[owner[birth]], own_cov[owner[birth]], frame.v2f_z[birth],
+        share = new_feature_share(b0_mean[owner[birth]], gate_cov[owner[birth]], frame.v2f_z[birth],
                                   frame.v2f_R[birth], lc)
         existence = existence.with_tracks(next_id - born + np.arange(born), birth_existence(share, labels, born))
         bpa_track = np.where(existence.confirmed(l_track, lc.confirm_existence), l_track, -1)
@@ -630,10 +636,8 @@ def icp_da_lc_step(
     fids = unique_inverse(bpa_track[used])[0]
     f_lam0, f_eta0 = predicted.prior_information(fids, bpa_track[used], row_vehicle, params, row_codes,
                                                  l_cls[used] if l_cls is not None else None)
-    res = bpa_localization(
-        b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame.neighbors,
-        f_lam0, f_eta0, params, v2x=frame.v2x,
-    )
+    res, split_after = localize(split, b0_mean, b0_cov, own_mean, own_cov, l_owner, bpa_track, l_z, l_r, frame,
+                                f_lam0, f_eta0, params, fusion is not None and fusion.params.feature_ci)
     rec_track, rec_owner, rec_lam, rec_eta = bpa_track[used], l_owner[used], res.msg_lam, res.msg_eta
     rec_cls = l_cls[used] if l_cls is not None else None
     tentative = (l_track >= 0) & ~used
@@ -674,13 +678,15 @@ def icp_da_lc_step(
     if lc.own_consistency_gate > 0:
         v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate)
         resets = int(reset.sum())
+        if split_after is not None and resets:  # the 6-D filters too: the own track, all of it independent
+            split_after = split_after.reset_to_own(reset)
     info = LcStepInfo(row_track, int((row_idx >= 0).sum()) + int(extra_row.size), born, int((row_track < 0).sum()),
                       int(absorbed.size), res.iterations, int(extra_row.size), n_tentative,
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     return (IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes,
-                     sensor_heading), next_id, info)
+                     sensor_heading, split_after), next_id, info)
 
 
 def existence_after_association(
@@ -736,13 +742,14 @@ class IcpDaLc:
     # The vehicles' sensors (field of view, range, detection profile), for a P_D per (vehicle,
     # track); None: lc.detection_probability everywhere in range.
     detection: DetectionModel | None = None
+    fusion: CoopFusion | None = None  # [fusion] (coloc.methods.coop_fusion); None: the paper's BPA-L
 
     def step(self, frame: Frame) -> StepEstimate:
         existence = self.last.existence if self.last is not None else None
         n_rows = frame.v2f_z.shape[0]
         frame, kept = without_vehicle_rows(frame)  # vehicle-class rows are not landmarks (coloc.core.vehicle_rows)
         self.state, self.next_id, self.last = icp_da_lc_step(
-            self.state, self.next_id, frame, self.params, self.lc, existence, self.detection
+            self.state, self.next_id, frame, self.params, self.lc, existence, self.detection, self.fusion
         )
         est = self.state.estimate(expand_rows(self.last.row_track, kept, n_rows), self.params)
         if self.last.existence is None:

@@ -64,6 +64,7 @@ from coloc.inference.params import IcpParams
 from coloc.kernels import icp_fused
 from coloc.kernels.icp_fused import carry_gnss_kernel, unique_inverse
 from coloc.kernels.kalman import gnss_step_kernel
+from coloc.methods.coop_fusion import CoopFusion, SplitPrior, SplitState, split_localization, split_prior
 from coloc.methods.registry import ICP_KNOWN_DA
 
 __all__ = ["IcpKnownDA", "IcpParams", "IcpState", "vehicle_prior_beliefs", "icp_known_da_step", "frame_vehicle_codes"]
@@ -113,12 +114,36 @@ def vehicle_prior_pair(
     )
 
 
-def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams) -> tuple[BpaResult, "IcpState"]:
-    """One time step of ICP with known association (pure function of the previous state)."""
+def prior_pair(state: "IcpState", frame: Frame, params: IcpParams, match: np.ndarray, accel: np.ndarray | None,
+               fusion: CoopFusion | None):
+    """(b0_mean, b0_cov, own_mean, own_cov, split prior): :func:`vehicle_prior_pair` (split prior None), or
+    with ``[fusion]`` the 6-D filters of :mod:`coloc.methods.coop_fusion` and their 4-D marginals."""
+    if fusion is None:
+        return (*vehicle_prior_pair(state, frame, params, match, accel), None)
+    prior = split_prior(state.split, frame, match, frame.accel if accel is None else accel, params.motion,
+                        fusion.model, fusion.params.common_mode_gnss)
+    return (*prior.marginal(), prior)
+
+
+def localize(split: SplitPrior | None, b0_mean, b0_cov, own_mean, own_cov, owner, track, z, r, frame: Frame,
+             f_lam0, f_eta0, params: IcpParams, feature_ci: bool = False) -> tuple[BpaResult, SplitState | None]:
+    """The step's BPA-L (:func:`coloc.inference.bpa.bpa_localization`), or with ``[fusion]`` (``split``
+    not None) the split-CI fusion (:func:`coloc.methods.coop_fusion.split_localization`)."""
+    if split is None:
+        return bpa_localization(b0_mean, b0_cov, own_mean, own_cov, owner, track, z, r, frame.neighbors, f_lam0,
+                                f_eta0, params, v2x=frame.v2x), None
+    return split_localization(split, owner, track, z, r, frame.neighbors, f_lam0, f_eta0, params, v2x=frame.v2x,
+                              feature_ci=feature_ci)
+
+
+def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, params: IcpParams,
+                      fusion: CoopFusion | None = None) -> tuple[BpaResult, "IcpState"]:
+    """One time step of ICP with known association (pure function of the previous state); ``fusion``:
+    ``[fusion]`` (:mod:`coloc.methods.coop_fusion`), None: the paper's BPA-L."""
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
     match = match_ids(state.ids, frame.vehicle_ids)
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed)
-    b0_mean, b0_cov, own_mean, own_cov = vehicle_prior_pair(state, frame, params, match, accel)
+    b0_mean, b0_cov, own_mean, own_cov, split = prior_pair(state, frame, params, match, accel, fusion)
     # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor track at t
     # (coloc.core.detections).
     frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
@@ -132,17 +157,16 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     fids = unique_inverse(assoc[used])[0]
     row_class = frame.v2f_class[used] if frame.v2f_class is not None else None
     f_lam0, f_eta0 = predicted.prior_information(fids, assoc[used], row_vehicle, params, row_codes, row_class)
-    res = bpa_localization(
-        b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z, frame.v2f_R, frame.neighbors,
-        f_lam0, f_eta0, params, v2x=frame.v2x,
-    )
+    res, split_after = localize(split, b0_mean, b0_cov, own_mean, own_cov, frame.v2f_owner, assoc, frame.v2f_z,
+                                frame.v2f_R, frame, f_lam0, f_eta0, params,
+                                fusion is not None and fusion.params.feature_ci)
     # Classes (frame.v2f_class, SUMO pedestrians): a track takes its first row's class, and its
     # model (2) noise follows it (coloc.inference.feature_store.feature_track_q).
     store = predicted.record(assoc[used], row_vehicle, res.msg_lam, res.msg_eta, frame.t, params, row_codes,
                              row_class)
     beliefs = step_feature_beliefs(store, params, assoc[used], res)
     return res, IcpState(frame.vehicle_ids, res.mean, res.cov, own_mean, own_cov, store, beliefs, heading, codes,
-                         sensor_heading)
+                         sensor_heading, split_after)
 
 
 def frame_vehicle_codes(state: "IcpState", frame: Frame, match: np.ndarray) -> np.ndarray:
@@ -178,6 +202,8 @@ class IcpState:
     # Sensor-frame detections only: the heading each vehicle last had above the minimum speed
     # (coloc.core.detections.HeadingMemory); None otherwise.
     sensor_heading: HeadingMemory | None = None
+    # [fusion] only: the 6-D cooperative and own-sensor filters (coloc.methods.coop_fusion); None otherwise.
+    split: SplitState | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
         f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs
@@ -202,13 +228,14 @@ class IcpKnownDA:
     last_converged: bool = True
     state: IcpState = field(default_factory=IcpState)
     last_comm: CommCount | None = None  # what the vehicles sent in the last step
+    fusion: CoopFusion | None = None  # [fusion] (coloc.methods.coop_fusion); None: the paper's BPA-L
 
     def step_with_association(self, frame: Frame, v2f_feature: np.ndarray) -> StepEstimate:
         # Vehicle-class rows are not landmarks (coloc.core.vehicle_rows): dropped, as clutter rows are.
         n_rows = frame.v2f_z.shape[0]
         frame, kept = without_vehicle_rows(frame)
         assoc = np.asarray(v2f_feature)[kept] if kept is not None else v2f_feature
-        res, self.state = icp_known_da_step(self.state, frame, assoc, self.params)
+        res, self.state = icp_known_da_step(self.state, frame, assoc, self.params, self.fusion)
         self.last_iterations, self.last_converged, self.last_comm = res.iterations, res.converged, res.comm
         return self.state.estimate(expand_rows(np.asarray(assoc, dtype=np.int64), kept, n_rows)
                                    if kept is not None else v2f_feature, self.params)

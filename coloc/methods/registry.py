@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from coloc.inference.params import IcpParams
     from coloc.methods.icp_da_lc import LcParams
     from coloc.methods.icp_da_pf import PfParams
+    from coloc.methods.coop_fusion import CoopFusion
     from coloc.methods.gnss_bias import GnssModelParams
     from coloc.methods.infra import InfraMethodParams
     from coloc.methods.joint_oracle import OracleWorld
@@ -50,6 +51,8 @@ class MethodParams:
     # What the joint_oracle is told of the world ([gnss_error], [scenario] start; the oracle only);
     # None: the paper's white GNSS and fast-start prior.
     oracle_world: OracleWorld | None = None
+    # [fusion] with its receiver model: split-CI fusion in icp_known_da and icp_da_lc; None: the paper's BPA-L.
+    fusion: CoopFusion | None = None
 
 
 @dataclass(frozen=True)
@@ -94,13 +97,13 @@ def _gnss(p: MethodParams):
 def _icp_known_da(p: MethodParams):
     from coloc.methods.icp_known_da import IcpKnownDA
 
-    return IcpKnownDA(params=p.icp)
+    return IcpKnownDA(params=p.icp, fusion=p.fusion)
 
 
 def _icp_da_lc(p: MethodParams):
     from coloc.methods.icp_da_lc import IcpDaLc
 
-    return IcpDaLc(params=p.icp, lc=p.lc, detection=p.detection if p.lc.sensor_fov else None)
+    return IcpDaLc(params=p.icp, lc=p.lc, detection=p.detection if p.lc.sensor_fov else None, fusion=p.fusion)
 
 
 def _icp_da_pf(p: MethodParams):

@@ -22,6 +22,7 @@ from coloc.core.protocol import Estimator, KnownAssociationEstimator
 from coloc.inference.params import IcpParams
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
+from coloc.methods.coop_fusion import CoopFusion, FusionParams
 from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.infra import InfraMethodParams
 from coloc.methods.joint_oracle import OracleWorld
@@ -29,8 +30,10 @@ from coloc.methods.registry import METHODS, MethodParams, build_method
 from scenes import infra_frames, road_frames, scrambled, select_vehicles
 
 # ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias); ``joint_oracle+world``: the
-# oracle told a correlated GNSS world, first fixes and an IMU (coloc.methods.joint_oracle.OracleWorld).
-RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"]
+# oracle told a correlated GNSS world, first fixes and an IMU (coloc.methods.joint_oracle.OracleWorld);
+# ``X+fusion``: X with [fusion] (coloc.methods.coop_fusion, white receiver); ``X+fusion+gnss_model``: with both tables.
+FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc") for tail in ("", "+gnss_model")]
+RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"] + FUSED
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, start="gnss_fix", accel_turn_on_sigma=0.196,
                            accel_bias_sigma=0.0735, accel_noise_density=0.004)
@@ -52,6 +55,8 @@ def build(name: str):
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
         gnss_model=GnssModelParams() if name.endswith("+gnss_model") else None,
         oracle_world=ORACLE_WORLD if name.endswith("+world") else None,
+        fusion=(CoopFusion.from_config(FusionParams(), GnssModelParams() if name.endswith("+gnss_model") else None)
+                if "+fusion" in name else None),
     )
     est = build_method(method.name, params)
     assert est.name == method.name
@@ -219,7 +224,8 @@ def with_clutter_and_pedestrians(frame, rng):
                    truth=replace(tr, v2f_feature=feat, feature_class=klass))
 
 
-@pytest.mark.parametrize("name", ["icp_known_da", "icp_da_lc"])
+@pytest.mark.parametrize("name", ["icp_known_da", "icp_da_lc", "icp_known_da+fusion+gnss_model",
+                                  "icp_da_lc+fusion+gnss_model"])
 def test_truth_blind_with_clutter_and_pedestrians(name):
     """Clutter rows (truth -1), pedestrian rows (class 1) and the existence / clutter model of ICP-DA-LC:
     scrambled truth or none gives the same bytes, pairings and tracks."""
@@ -230,7 +236,9 @@ def test_truth_blind_with_clutter_and_pedestrians(name):
     params = IcpParams(motion=ROAD_MOTION)
 
     def make():
-        return IcpDaLc(params=params, lc=lc) if name == "icp_da_lc" else IcpKnownDA(params)
+        fusion = CoopFusion.from_config(FusionParams(), GnssModelParams()) if "+fusion" in name else None
+        return (IcpDaLc(params=params, lc=lc, fusion=fusion) if name.startswith("icp_da_lc")
+                else IcpKnownDA(params, fusion=fusion))
 
     rng = np.random.default_rng(11)
     frames = [with_clutter_and_pedestrians(f, rng) for f in road_frames(steps=8, v2v_range=25.0)]

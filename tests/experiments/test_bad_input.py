@@ -1303,6 +1303,18 @@ def net_import_routes_not_sorted(tmp, net, run):
             "--name", "x", "--out", str(tmp / "x"), "--experiments-dir", str(tmp / "exps")], None
 
 
+@case("cfg.toml", "fusion.rule", "split_ci")
+def run_fusion_unknown_rule(tmp, net, run):
+    cfg = _config(tmp, net, '[fusion]\nrule = "ci"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "fusion.feature_ci", "true or false")
+def run_fusion_feature_ci_not_bool(tmp, net, run):
+    cfg = _config(tmp, net, "[fusion]\nfeature_ci = 1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
 def run_gnss_model_bias_share_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")

@@ -34,7 +34,7 @@ OVERLAYS = {
         "run.name", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
         "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
-        "estimator_sensors", "gnss_model", "analysis", "scenario.start"}),
+        "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
@@ -238,6 +238,9 @@ def test_preset_resolves_as_its_full_copy_did(name):
     if "gnss_model" not in tomllib.loads(old):  # added to the realistic presets after the copies
         assert (new_cfg.gnss_model is not None) == ("realistic" in name)
         new_cfg = dataclasses.replace(new_cfg, gnss_model=None)
+    if "fusion" not in tomllib.loads(old):  # [fusion] added to the realistic presets after the copies
+        assert (new_cfg.fusion is not None) == ("realistic" in name)
+        new_cfg = dataclasses.replace(new_cfg, fusion=None)
     assert _body(new_cfg) == _body(old_cfg)
 
 
