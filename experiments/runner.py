@@ -63,6 +63,7 @@ from experiments.scoring import (
     detection_kinds,
     analysis_summary,
     scored_from,
+    traffic_only_s,
     scored_mask,
     along_cross_errors,
     association_summary,
@@ -485,6 +486,7 @@ class _SumoSource:
             ballistic=cfg.scenario.ballistic,
             begin_s=cfg.scenario.begin_s or 0.0,
             start=cfg.scenario.start,
+            traffic_only_s=traffic_only_s(cfg),
         )
         self.sensors = cfg.sensors
         self.infra = infra_setup(cfg, net)

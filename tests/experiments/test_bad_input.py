@@ -1280,6 +1280,26 @@ def run_gnss_model_unknown_key(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "analysis.warmup_start", "unknown value", "traffic")
+def run_warmup_start_unknown(tmp, net, run):
+    cfg = _config(tmp, net, "[analysis]\nwarmup_s = 10.0\nwarmup_start = \"saved_state\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "analysis.warmup_s", "leaves nothing to sense")
+def run_warmup_start_traffic_whole_run(tmp, net, run):
+    cfg = _config(tmp, net, "[analysis]\nwarmup_s = 30.0\nwarmup_start = \"traffic\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sr.toml", "analysis.warmup_start", "SUMO scenario")
+def run_warmup_start_traffic_controlled_scenario(tmp, net, run):
+    text = (PROJECT / "experiments" / "single_road.toml").read_text()
+    path = tmp / "sr.toml"
+    path.write_text(text + "\n[analysis]\nwarmup_s = 5.0\nwarmup_start = \"traffic\"\n")
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -1314,7 +1334,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 169
+    assert len(CASES) >= 172
 
 
 # ----------------------------------------------------------------------------- what --out may replace
