@@ -15,8 +15,8 @@ from pathlib import Path
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
-from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
-    split_overrides, variants
+from experiments.sweep.factors import Factor, Variant, apply_relative, factors_toml, flatten_dotted as _flatten, \
+    parse_factors, split_overrides, variants
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases",
              "tune_seeds", "eval_seeds")
@@ -325,7 +325,10 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
                 data = bases.setdefault(variant.base, read_config_data(variant.base))
             data, extra = split_overrides(data, variant.overrides, spec.path, where)
             text = ", ".join(x for x in (text, f"{variant.factor} = {variant.level}") if x)
-        cfg = _config(cspec, data, {**fixed, **extra, **dict(params)}, where, context=f"with {text}: ")
+        overrides = {**fixed, **extra, **dict(params)}
+        if variant is not None and variant.relative:  # a mismatch arm: the estimator's model off the world's
+            data, overrides = apply_relative(data, overrides, variant.relative, spec.path, where)
+        cfg = _config(cspec, data, overrides, where, context=f"with {text}: ")
         for seed in spec.seeds:
             run_id = run_id_of(params, seed, short, variant)
             run_cfg = dataclasses.replace(

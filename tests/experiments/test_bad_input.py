@@ -1300,6 +1300,25 @@ def run_warmup_start_traffic_controlled_scenario(tmp, net, run):
     return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("sweep.toml", "sweep.factors.mm[0].relative.lc.visibility.times", "finite number")
+def sweep_relative_negative_times(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]")
+                    + '[sweep.factors]\nmm = [{label = "a", relative = {"lc.visibility" = {times = -0.5}}}]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+@case("sweep.toml", "sweep.factors.mm[0].relative.lc.visibility.of", "unknown parameter")
+def sweep_relative_unknown_world_key(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]")
+                    + '[sweep.factors]\nmm = [{label = "a", relative = {"lc.visibility" = {of = "lc.nope", '
+                      'times = 0.5}}}]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -1334,7 +1353,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 172
+    assert len(CASES) >= 174
 
 
 # ----------------------------------------------------------------------------- what --out may replace
