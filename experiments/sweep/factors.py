@@ -80,6 +80,7 @@ class Variant:
     base: Path | None = None
     only: tuple[tuple[str, tuple], ...] = ()
     relative: tuple[tuple[str, str, float], ...] = ()
+    combo: tuple[tuple[str, str], ...] = ()  # a design point ([sweep] design): (factor, level label) of every factor
 
     def runs_with(self, params: dict) -> bool:
         """Whether this variant runs with the grid combination ``params`` ({dotted key: value})."""

@@ -1319,6 +1319,17 @@ def sweep_relative_unknown_world_key(tmp, net, run):
     return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
 
 
+@case("sweep.toml", "sweep.design", "no tabulated fraction")
+def sweep_fractional_design_too_few_factors(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]").replace('methods = ["gnss"]', 'methods = ["gnss"]\ndesign = "fractional"')
+                    + '[sweep.factors]\n'
+                    + "".join(f'{n} = [{{label = "a", preset = true}}, {{label = "b", set = {{"lc.{k}" = 0.9}}}}]\n'
+                              for n, k in (("f1", "eta_threshold"), ("f2", "visibility"), ("f3", "own_consistency_gate"))))
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
 def _snapshot(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
@@ -1353,7 +1364,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 174
+    assert len(CASES) >= 175
 
 
 # ----------------------------------------------------------------------------- what --out may replace
