@@ -73,6 +73,7 @@ from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
 from experiments.config_extends import chain_text, origin_of, resolve_extends
 from experiments.ranges import check_ranges_of
+from experiments.warmup_start import validate_warmup_start
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -185,18 +186,14 @@ class ReportSection:
         return self.track_areas or (self.track_area,)
 
 
-WARMUP_STARTS = ("sensed", "traffic")  # [analysis] warmup_start
-
-
 @dataclass(frozen=True)
 class AnalysisSection:
     """[analysis], optional: how a run is scored (estimates.parquet keeps every row either way)."""
     # Scored statistics (summary.json, the reports' CDFs, the sweeps' tables) leave out the estimates
     # with t < scenario.begin_s + warmup_s: the net fills from empty at the begin (0: score everything).
     warmup_s: float = 0.0
-    # What runs during the warm-up (SUMO scenarios; docs/configuration.md "[analysis]"): "sensed" (sensing and
-    # estimation from the begin, the warm-up's rows are written and not scored) or "traffic" (SUMO alone drives
-    # the warm-up; sensing and estimation start at begin + warmup_s, every vehicle on the road entering then).
+    # What runs during the warm-up: "sensed" (everything, its rows not scored) or "traffic" (SUMO alone;
+    # sensing and estimation start after it): experiments.warmup_start, docs/protocol.md "Warm-up".
     warmup_start: str = "sensed"
 
 
@@ -431,28 +428,9 @@ def _validate(cfg: Config) -> None:
         _check_begin_against_demand(cfg)
         if cfg.scenario.start not in STARTS:
             raise InputError(p, "scenario.start", f"unknown value {cfg.scenario.start!r} (available: {', '.join(STARTS)})")
-    _validate_warmup_start(cfg)
+    validate_warmup_start(cfg)
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
-
-
-def _validate_warmup_start(cfg: Config) -> None:
-    """[analysis] warmup_start: a known value; "traffic" on a SUMO scenario with a window left to sense."""
-    a = cfg.analysis
-    if a is None:
-        return
-    if a.warmup_start not in WARMUP_STARTS:
-        raise InputError(cfg.path, "analysis.warmup_start",
-                         f"unknown value {a.warmup_start!r} (available: {', '.join(WARMUP_STARTS)})")
-    if a.warmup_start != "traffic":
-        return
-    if cfg.scenario.kind != "sumo":
-        raise InputError(cfg.path, "analysis.warmup_start", "\"traffic\" needs a SUMO scenario (the controlled "
-                                                            "scenarios have no traffic to run alone)")
-    if not a.warmup_s < cfg.run.duration_s:
-        raise InputError(cfg.path, "analysis.warmup_s", f"{a.warmup_s:g} s leaves nothing to sense with "
-                                                        f"warmup_start = \"traffic\" (run.duration_s = "
-                                                        f"{cfg.run.duration_s:g} s)")
 
 
 def _validate_pedestrians(cfg: Config) -> None:
