@@ -41,6 +41,9 @@ class SumoScenario:
     # The prior of an entering vehicle: "fast_start" (N(truth, 2 m), the paper's) or "gnss_fix" (its
     # receiver's fix of that step; couplers.sensing.sensors.synthesize_frame).
     start: str = "fast_start"
+    # Seconds after begin_s that SUMO simulates alone before the first frame (a traffic-only warm-up,
+    # [analysis] warmup_start = "traffic"): sensing, its random streams and the estimators start then.
+    traffic_only_s: float = 0.0
 
     def sumo_options(self) -> SumoOptions:
         if self.control not in self.net.tls_off:
@@ -133,10 +136,12 @@ class SumoCoupler:
 
     @property
     def n_steps(self) -> int:
-        return int(round(self.scenario.duration_s / self.scenario.step_length))
+        return int(round((self.scenario.duration_s - self.scenario.traffic_only_s) / self.scenario.step_length))
 
     def frames(self) -> Iterator[Frame]:
         dt = self.scenario.step_length
+        if self.scenario.traffic_only_s > 0:  # SUMO alone first: no frame, no draw of any sensing stream
+            self.traffic.advance(self.scenario.begin_s + self.scenario.traffic_only_s)
         while not self.traffic.done():
             road = self.traffic.step()  # every SUMO vehicle: occluders and traffic statistics
             states = road if self.v2x is None else _subset(road, self.v2x.equipped(road.ids))

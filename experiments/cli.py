@@ -157,6 +157,34 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tune(args: argparse.Namespace) -> int:
+    from experiments.sweep.run import SweepFailed, run_sweep
+    from experiments.sweep.tune import tuning_spec, write_tuning
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError(None, "--workers", "must be >= 1")
+    spec = tuning_spec(args.sweep)
+    try:
+        res = run_sweep(args.sweep, Path(args.out), workers=args.workers, progress=not args.quiet,
+                        dry_run=args.dry_run, force=args.force, write_report=False, spec=spec)
+    except SweepFailed as exc:
+        print(f"coloc: error: {exc}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
+        return _stop_code(exc)
+    if res.dry_run:
+        print(f"{args.sweep}: valid, {res.n_runs} tuning runs on seeds {list(spec.seeds)} (nothing was run)")
+        return 0
+    table, tuned = write_tuning(spec, res.out, spec.path)
+    best = table[table["rank"] == 1].iloc[0]
+    chosen = ", ".join(f"{k} = {best[k]}" for k in spec.grid_keys)
+    print(f"{res.n_runs} tuning runs in {res.seconds:.1f} s; chosen {chosen} "
+          f"({spec.objective[0]} {spec.objective[1]} {best['objective_mean']:.4f} m over {int(best['seeds'])} seeds)")
+    print(f"wrote {tuned}, {res.out}/tuned.resolved.toml, {res.out}/tuning.parquet")
+    return 0
+
+
 RUN_FILES = ("summary.json", "estimates.parquet", "traffic.parquet", "config.toml")
 
 
@@ -340,6 +368,16 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--dry-run", action="store_true", help="validate the sweep and every config; run nothing")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=cmd_sweep)
+
+    tu = sub.add_parser("tune", help="choose [sweep.grid] values on the sweep's tune_seeds only (objective: "
+                                     "[sweep] objective); writes an extends overlay, tuned.toml")
+    tu.add_argument("sweep", help="sweep TOML with tune_seeds, eval_seeds, objective and a grid of candidates")
+    tu.add_argument("--out", required=True, help="tuning folder (a sweep folder of the tuning runs, tuned.toml)")
+    tu.add_argument("--force", action="store_true", help="write into --out even if coloc did not write it")
+    tu.add_argument("--workers", type=int, help="local worker processes (default: min(CPUs, 4))")
+    tu.add_argument("--dry-run", action="store_true", help="validate; run nothing")
+    tu.add_argument("--quiet", action="store_true", help="no progress bar")
+    tu.set_defaults(func=cmd_tune)
 
     rep = sub.add_parser("report", help="rebuild a run's or a sweep's report, or compare several runs")
     rep.add_argument("dirs", nargs="+", help="run output folders (or one sweep folder)")

@@ -75,6 +75,7 @@ from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
 from experiments.config_extends import chain_text, origin_of, resolve_extends
 from experiments.ranges import check_ranges_of
+from experiments.warmup_start import validate_warmup_start
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
@@ -193,6 +194,9 @@ class AnalysisSection:
     # Scored statistics (summary.json, the reports' CDFs, the sweeps' tables) leave out the estimates
     # with t < scenario.begin_s + warmup_s: the net fills from empty at the begin (0: score everything).
     warmup_s: float = 0.0
+    # What runs during the warm-up: "sensed" (everything, its rows not scored) or "traffic" (SUMO alone;
+    # sensing and estimation start after it): experiments.warmup_start, docs/protocol.md "Warm-up".
+    warmup_start: str = "sensed"
 
 
 @dataclass(frozen=True)
@@ -429,6 +433,7 @@ def _validate(cfg: Config) -> None:
         _check_begin_against_demand(cfg)
         if cfg.scenario.start not in STARTS:
             raise InputError(p, "scenario.start", f"unknown value {cfg.scenario.start!r} (available: {', '.join(STARTS)})")
+    validate_warmup_start(cfg)
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
     if cfg.gnss_error is not None and cfg.gnss_error.model == "satellites" and cfg.scenario.kind == "sumo":

@@ -176,6 +176,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "warmup_s": ("s", "Scoring warm-up after the begin (0: score everything). The realistic arterial "
                           "presets use 600 s: the TLR net holds about 150 vehicles from minute 6 on "
                           "(`tools/net_fill.py`)."),
+        "warmup_start": ("", "What runs during the warm-up (SUMO scenarios): `sensed` (sensing and estimation from "
+                             "the begin; the warm-up's rows are written, not scored) or `traffic` (SUMO alone "
+                             "drives the warm-up, about 1.4 s of CPU for 600 s of the TLR arterial; sensing, its "
+                             "random streams and the estimators start at begin + warmup_s, every vehicle on the "
+                             "road entering then with its prior). Why not SUMO's saved state: `docs/protocol.md`."),
     },
     "run": {
         "name": ("", "Name of the run (progress bar, the `run` column of estimates.parquet)."),

@@ -278,6 +278,7 @@ WORKERS = Range(1, 1024, NO_UNIT, "worker processes of one machine")
 OPTION_RANGES: dict[tuple[str, str], Range] = {
     ("cmd_run", "workers"): Range(0, 64, NO_UNIT, "estimator worker processes: at most one per method"),
     ("cmd_sweep", "workers"): WORKERS,
+    ("cmd_tune", "workers"): WORKERS,
     ("cmd_net_import", "features"): Range(1, 100_000, NO_UNIT, "landmarks of a city; a net folder needs one"),
     ("cmd_net_import", "demand"): Range(0.0, 1e5, "veh/h", "beyond the capacity of any city net"),
     ("cmd_net_import", "demand_scale"): Range(0.0, 1e3, NO_UNIT, "a factor on the demand"),

@@ -249,6 +249,15 @@ def scored_from(cfg) -> float | None:
     return float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)
 
 
+def traffic_only_s(cfg) -> float:
+    """Seconds after the begin that SUMO simulates alone (``[analysis] warmup_start = "traffic"``: the warm-up),
+    0 otherwise."""
+    analysis = getattr(cfg, "analysis", None)
+    if analysis is None or analysis.warmup_start != "traffic":
+        return 0.0
+    return float(analysis.warmup_s)
+
+
 def scored_mask(t, t0: float | None) -> np.ndarray:
     """Which rows of time ``t`` are scored: t >= t0 (all when ``t0`` is None). The estimates files keep
     every row; this filter is applied to the statistics only, so that they can be recomputed."""
@@ -263,5 +272,6 @@ def analysis_summary(cfg) -> dict | None:
     analysis = getattr(cfg, "analysis", None)
     if analysis is None:
         return None
-    return {"warmup_s": float(analysis.warmup_s),
+    start = {} if analysis.warmup_start == "sensed" else {"warmup_start": analysis.warmup_start}
+    return {"warmup_s": float(analysis.warmup_s), **start,
             "scored_from_s": float(cfg.scenario.begin_s or 0.0) + float(analysis.warmup_s)}

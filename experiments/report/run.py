@@ -54,7 +54,8 @@ def write_run_report(run_dir: Path, *, workers: int = 1, force: bool = False) ->
     if analysis.get("warmup_s"):
         run.notes.append(f"Scored after a warm-up of {analysis['warmup_s']:g} s: the statistics and CDFs use the "
                          f"estimates with t >= {analysis['scored_from_s']:g} s (estimates.parquet keeps every row; "
-                         "the time curves show the warm-up).")
+                         "the time curves show the warm-up)." if analysis.get("warmup_start") != "traffic" else
+                         "SUMO drove the warm-up alone: sensing and estimation start at that time).")
 
     def build(tmp: Path) -> None:
         figdir = tmp / "figures"

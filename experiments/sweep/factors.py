@@ -18,7 +18,20 @@ on the factor's axis from the one preset run) or ``set`` (dotted overrides as in
 ``"table.key[*].field"`` sets ``field`` in every table of the array ``table.key``, e.g. every
 ``[[perception.sensors]]``), optionally ``base`` (another run config, relative to the sweep file) and
 ``only`` (``{"scenario.control" = ["tlr"]}``: the level runs only with those values of grid keys, e.g.
-on a net that has no VSR variant).
+on a net that has no VSR variant) and ``relative`` (a mismatch arm: the estimator's model set to a
+multiple of the simulated world's value, read from the run's own resolved config)::
+
+    clutter_model = [
+        {label = "x0.5", relative = {"estimator_sensors.sensors[*].clutter_per_scan" =
+                                     {of = "perception.sensors[*].clutter_per_scan", times = 0.5}}},
+        {label = "matched", preset = true},
+        {label = "x1.5", relative = {"estimator_sensors.sensors[*].clutter_per_scan" =
+                                     {of = "perception.sensors[*].clutter_per_scan", times = 1.5}}},
+    ]
+    visibility_model = [{label = "x0.5", relative = {"lc.visibility" = {times = 0.5}}}]  # of: the key itself
+
+``of`` is read after the level's base, its ``set``, ``[sweep.set]`` and the grid (so a VSR run scales the VSR
+preset's value); a ``[*]`` key pairs the tables of two arrays one by one (the same number of sensors).
 The runs of a sweep are then every ``[sweep.grid]`` combination times the variants: the preset once,
 and every level that is not the preset. A run's folder name ends in ``<factor>=<label>`` (or
 ``preset``); ``sweep.parquet`` and ``curves.parquet`` gain the string columns ``factor`` and
@@ -34,7 +47,8 @@ from pathlib import Path
 
 from couplers.errors import InputError
 
-LEVEL_KEYS = ("label", "preset", "set", "base", "only")
+LEVEL_KEYS = ("label", "preset", "set", "base", "only", "relative")
+RELATIVE_KEYS = ("of", "times")
 PRESET = "preset"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _STAR = re.compile(r"^([a-z_]+)\.([a-z_]+)\[\*\]\.([a-z_]+)$")
@@ -47,6 +61,7 @@ class Level:
     overrides: tuple[tuple[str, object], ...]  # dotted keys, "table.key[*].field" allowed
     base: Path | None  # another base config, or None
     only: tuple[tuple[str, tuple], ...] = ()  # grid keys and the values this level runs with (empty: all)
+    relative: tuple[tuple[str, str, float], ...] = ()  # (target key, world key "of", times): a mismatch arm
 
 
 @dataclass(frozen=True)
@@ -64,6 +79,8 @@ class Variant:
     overrides: tuple[tuple[str, object], ...] = ()
     base: Path | None = None
     only: tuple[tuple[str, tuple], ...] = ()
+    relative: tuple[tuple[str, str, float], ...] = ()
+    combo: tuple[tuple[str, str], ...] = ()  # a design point ([sweep] design): (factor, level label) of every factor
 
     def runs_with(self, params: dict) -> bool:
         """Whether this variant runs with the grid combination ``params`` ({dotted key: value})."""
@@ -106,10 +123,15 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
             if not isinstance(sets, dict):
                 raise InputError(path, f"{lw}.set", "expected a table of dotted keys")
             base = lv.get("base")
-            if preset and (sets or base is not None):
-                raise InputError(path, lw, "the preset level takes no set or base: it is the base config")
-            if not preset and not sets and base is None:
-                raise InputError(path, lw, "a level sets something (set = {...}) or names another base config")
+            relative = _parse_relative(lv.get("relative", {}), path, f"{lw}.relative", check_dotted)
+            if preset and (sets or base is not None or relative):
+                raise InputError(path, lw, "the preset level takes no set, base or relative: it is the base config")
+            if not preset and not sets and base is None and not relative:
+                raise InputError(path, lw, "a level sets something (set = {...}, relative = {...}) or names another "
+                                           "base config")
+            clash = [t for t, _, _ in relative if t in flatten_dotted(sets)]
+            if clash:
+                raise InputError(path, f"{lw}.relative.{clash[0]}", "also in the level's set")
             overrides = []
             for dotted, value in flatten_dotted(sets).items():
                 if _STAR.match(dotted):
@@ -132,7 +154,8 @@ def parse_factors(table, path: Path, check_dotted) -> tuple[Factor, ...]:
                 if not isinstance(values, list) or not values:
                     raise InputError(path, f"{lw}.only.{key}", f"expected a non-empty list of values, got {values!r}")
                 only_t.append((key, tuple(values)))
-            parsed.append(Level(label=label, preset=preset, overrides=tuple(overrides), base=bpath, only=tuple(only_t)))
+            parsed.append(Level(label=label, preset=preset, overrides=tuple(overrides), base=bpath, only=tuple(only_t),
+                                relative=relative))
         if sum(lv.preset for lv in parsed) > 1:
             raise InputError(path, where, "more than one level is the preset")
         factors.append(Factor(name=name, levels=tuple(parsed)))
@@ -158,7 +181,8 @@ def variants(factors: tuple[Factor, ...]) -> list[Variant | None]:
         return [None]
     out = [PRESET_VARIANT]
     for f in factors:
-        out += [Variant(f.name, lv.label, lv.overrides, lv.base, lv.only) for lv in f.levels if not lv.preset]
+        out += [Variant(f.name, lv.label, lv.overrides, lv.base, lv.only, lv.relative) for lv in f.levels
+                if not lv.preset]
     return out
 
 
@@ -177,6 +201,105 @@ def split_overrides(data: dict, overrides: tuple[tuple[str, object], ...], path:
             raise InputError(path, f"{where}.set.{dotted}", f"the base config has no [[{sec}.{key}]] tables")
         for t in items:
             t[fld] = value
+    return data, plain
+
+
+def _parse_relative(table, path: Path, where: str, check_dotted) -> tuple[tuple[str, str, float], ...]:
+    """A level's ``relative = {"target.key" = {of = "world.key", times = x}}`` (quoted dotted keys)."""
+    if not isinstance(table, dict):
+        raise InputError(path, where, "expected a table {\"table.key\" = {of = \"table.key\", times = x}}")
+    out = []
+    for target, spec in table.items():
+        w = f"{where}.{target}"
+        if not isinstance(spec, dict) or "times" not in spec:
+            raise InputError(path, w, "expected a table {of = \"table.key\", times = x} (times required)")
+        unknown = sorted(set(spec) - set(RELATIVE_KEYS))
+        if unknown:
+            raise InputError(path, f"{w}.{unknown[0]}", f"unknown key (known: {', '.join(RELATIVE_KEYS)})")
+        of = spec.get("of", target)
+        if not isinstance(of, str) or not of:
+            raise InputError(path, f"{w}.of", f"expected a dotted key, got {of!r}")
+        times = spec["times"]
+        if isinstance(times, bool) or not isinstance(times, (int, float)) or not (times == times and times >= 0
+                                                                                   and times != float("inf")):
+            raise InputError(path, f"{w}.times", f"expected a finite number >= 0, got {times!r}")
+        if bool(_STAR.match(target)) != bool(_STAR.match(of)):
+            raise InputError(path, f"{w}.of", "a [*] key is relative to a [*] key (sensor by sensor), a plain key "
+                                              "to a plain key")
+        for key, kw in ((target, w), (of, f"{w}.of")):
+            if not _STAR.match(key):
+                check_dotted(key, path, kw)
+        out.append((target, of, float(times)))
+    return tuple(out)
+
+
+def _optional(section: str) -> bool:
+    from experiments.config import OPTIONAL_SECTIONS  # noqa: PLC0415 - experiments.config imports this package
+
+    return section in OPTIONAL_SECTIONS
+
+
+def _default_of(dotted: str):
+    """The dataclass default of a config key (plain "table.key" or "table.key[*].field"), or None."""
+    import dataclasses  # noqa: PLC0415
+
+    from experiments.config import OPTIONAL_SECTIONS, SECTIONS  # noqa: PLC0415 - experiments.config imports this package
+
+    m = _STAR.match(dotted)
+    sec, key = (m.group(1), m.group(2)) if m else dotted.split(".")
+    cls = {**SECTIONS, **OPTIONAL_SECTIONS}.get(sec)
+    if cls is None:
+        return None
+    if m:
+        from couplers.sensing.perception import SensorSpec  # noqa: PLC0415 - the tables of [*] arrays
+
+        fields = {f.name: f for f in dataclasses.fields(SensorSpec)}
+        f = fields.get(m.group(3))
+    else:
+        f = {f.name: f for f in dataclasses.fields(cls)}.get(key)
+    return None if f is None or f.default is dataclasses.MISSING else f.default
+
+
+def apply_relative(data: dict, plain: dict, relative: tuple[tuple[str, str, float], ...], path: Path,
+                   where: str) -> tuple[dict, dict]:
+    """(config ``data``, plain overrides) with the mismatch arm's targets set to ``times`` x the world's value,
+    read from ``plain`` (the run's dotted overrides) before ``data`` (the base with the level's [*] sets)."""
+    if not relative:
+        return data, plain
+    data, plain = copy.deepcopy(data), dict(plain)
+    for target, of, times in relative:
+        w = f"{where}.relative.{target}"
+        m_of, m_t = _STAR.match(of), _STAR.match(target)
+        if m_of is None:
+            sec, key = of.split(".")
+            if of not in plain and sec not in data and _optional(sec):
+                raise InputError(path, f"{w}.of", f"the run's config has no [{sec}]: no world value to be relative to")
+            value = plain[of] if of in plain else (data.get(sec) or {}).get(key, _default_of(of))
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise InputError(path, f"{w}.of", f"{of} is {value!r} in this run, not a number")
+            if target in plain and target != of:
+                raise InputError(path, w, "also set by [sweep.set] or the grid")
+            plain[target] = times * value
+            continue
+        items = []
+        for m, role in ((m_of, "of"), (m_t, "target")):
+            sec, key = m.group(1), m.group(2)
+            arr = data.get(sec, {}).get(key) if isinstance(data.get(sec), dict) else None
+            if not isinstance(arr, list) or not arr or not all(isinstance(t, dict) for t in arr):
+                raise InputError(path, w if role == "target" else f"{w}.of", f"the run's config has no [[{sec}.{key}]] "
+                                                                             "tables")
+            items.append(arr)
+        world, model = items
+        if len(world) != len(model):
+            raise InputError(path, w, f"{len(model)} tables against {len(world)} in {m_of.group(1)}.{m_of.group(2)}: "
+                                      "the sensors are paired one by one")
+        fo, ft = m_of.group(3), m_t.group(3)
+        values = [t.get(fo, _default_of(of)) for t in world]
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise InputError(path, f"{w}.of", f"{of} is {v!r} in this run, not a number")
+        for t, v in zip(model, values):
+            t[ft] = times * v
     return data, plain
 
 
@@ -202,6 +325,9 @@ def factors_toml(factors: tuple[Factor, ...], toml_value) -> list[str]:
                 parts.append("set = {" + ", ".join(f"{toml_value(k)} = {toml_value(v)}" for k, v in lv.overrides) + "}")
             if lv.base is not None:
                 parts.append(f"base = {toml_value(str(lv.base))}")
+            if lv.relative:
+                parts.append("relative = {" + ", ".join(
+                    f"{toml_value(t)} = {{of = {toml_value(o)}, times = {toml_value(x)}}}" for t, o, x in lv.relative) + "}")
             if lv.only:
                 parts.append("only = {" + ", ".join(f"{toml_value(k)} = {toml_value(list(v))}" for k, v in lv.only) + "}")
             items.append("{" + ", ".join(parts) + "}")

@@ -253,6 +253,10 @@ def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarra
         for name, attr in (("factor", "factor"), ("level", "level")):
             arr = np.array([getattr(v, attr) for _, v in all_settings], dtype=object)
             cols[name] = pd.Series(arr[settings], dtype="string")
+    if spec.design != "one_at_a_time":  # a design: every factor's level label in a column of its own
+        for j, f in enumerate(spec.factors):
+            arr = np.array([v.combo[j][1] for _, v in all_settings], dtype=object)
+            cols[f.name] = pd.Series(arr[settings], dtype="string")
     return cols
 
 
@@ -435,10 +439,11 @@ class _DaskClient:
 
 def run_sweep(spec_path: str | Path, out: str | Path, scheduler: str | None = None, workers: int | None = None,
               progress: bool = True, dry_run: bool = False, write_report: bool = True,
-              connect_timeout: str = "20s", force: bool = False) -> SweepResult:
-    """Run (or resume) a sweep; returns counts. Raises InputError on bad input, SweepFailed on failed runs."""
+              connect_timeout: str = "20s", force: bool = False, spec: SweepSpec | None = None) -> SweepResult:
+    """Run (or resume) a sweep; returns counts. Raises InputError on bad input, SweepFailed on failed runs.
+    ``spec``: the sweep already loaded from ``spec_path`` (and possibly narrowed, e.g. by ``coloc tune``)."""
     t0 = time.perf_counter()
-    spec = load_sweep(spec_path)
+    spec = spec if spec is not None else load_sweep(spec_path)
     with recording_reads() as config_files:
         base_cfg, runs = expand_runs(spec)
     out = Path(out)
@@ -536,6 +541,13 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
     outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v),
                                             ("paired.parquet", paired)) if len(df)]
     tables = {}
+    if spec.design != "one_at_a_time":  # main effects and two-factor interactions with their intervals
+        from experiments.sweep.effects import effects_figure, effects_table
+
+        eff = effects_table(spec, table)
+        if len(eff):
+            outputs.append(("effects.parquet", eff))
+            tables["effects.png"] = effects_figure(eff)
     for name, df in outputs:
         buf = io.BytesIO()
         write_parquet(df, buf)

@@ -15,11 +15,12 @@ from pathlib import Path
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
 from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
 from experiments.config_extends import read_config_data
-from experiments.sweep.factors import Factor, Variant, factors_toml, flatten_dotted as _flatten, parse_factors, \
-    split_overrides, variants
+from experiments.sweep.factors import Factor, Variant, apply_relative, factors_toml, flatten_dotted as _flatten, \
+    parse_factors, split_overrides, variants
 
 SPEC_KEYS = ("name", "base", "seeds", "methods", "distance_bin_m", "grid", "set", "factors", "bases",
-             "tune_seeds", "eval_seeds")
+             "tune_seeds", "eval_seeds", "design", "objective")
+DESIGNS = ("one_at_a_time", "full", "fractional")  # [sweep] design (experiments.sweep.design)
 FORBIDDEN_KEYS = {"run.seed": "use sweep.seeds", "run.methods": "use sweep.methods", "run.name": "runs are named by the sweep"}
 DEFAULT_DISTANCE_BIN_M = 20.0
 RUNS_DIR = "runs"
@@ -51,6 +52,13 @@ class SweepSpec:
     # report use the evaluation seeds only (seeds = tune_seeds + eval_seeds). Empty: every seed is scored.
     tune_seeds: tuple[int, ...] = ()
     eval_seeds: tuple[int, ...] = ()
+    # [sweep] design: "one_at_a_time" (the preset and each factor's other levels), "full" (every combination of
+    # the factors' levels) or "fractional" (a two-level 2^(k-p) fraction of resolution >= IV, these generators).
+    design: str = "one_at_a_time"
+    generators: tuple[str, ...] = ()
+    # [sweep] objective = {method = "icp_da_lc", statistic = "rmse_pos_m"}: what `coloc tune` minimises (the
+    # mean over the tuning seeds of the method's scored statistic); None: the sweep cannot be tuned.
+    objective: tuple[str, str] | None = None
 
     @property
     def scored_seeds(self) -> tuple[int, ...]:
@@ -73,11 +81,64 @@ class SweepRun:
 
 def settings_of(spec: SweepSpec) -> list[tuple[tuple, Variant | None]]:
     """Every setting of a sweep in run order: grid combinations (file order) x variants (the preset, then
-    each factor's non-preset levels; a single None without factors)."""
+    each factor's non-preset levels; a single None without factors; with a design, its points)."""
     combos = list(itertools.product(*[values for _, values in spec.grid]))
     keys = spec.grid_keys
-    return [(combo, v) for combo in combos for v in variants(spec.factors)
+    vs = variants(spec.factors) if spec.design == "one_at_a_time" else design_points(spec)
+    return [(combo, v) for combo in combos for v in vs
             if v is None or v.runs_with(dict(zip(keys, combo)))]
+
+
+def design_points(spec: SweepSpec) -> list[Variant]:
+    """The points of a "full" or "fractional" design, each a Variant combining one level of every factor
+    (the first listed level is the low one, -1, of a two-level factor)."""
+    from experiments.sweep import design as dsg  # noqa: PLC0415
+
+    if spec.design == "fractional":
+        coded = dsg.fractional_design(len(spec.factors), spec.generators)
+        picks = [[f.levels[int(c > 0)] for f, c in zip(spec.factors, row)] for row in coded]
+    else:
+        picks = [list(p) for p in itertools.product(*[f.levels for f in spec.factors])]
+    out = []
+    for levels in picks:
+        overrides = tuple(o for lv in levels for o in lv.overrides)
+        relative = tuple(r for lv in levels for r in lv.relative)
+        combo = tuple((f.name, lv.label) for f, lv in zip(spec.factors, levels))
+        out.append(Variant("design", ",".join(f"{f}={lb}" for f, lb in combo), overrides, None, (), relative, combo))
+    return out
+
+
+def _check_design(design, factors: tuple[Factor, ...], path: Path) -> tuple[str, tuple[str, ...]]:
+    """[sweep] design: its name and, for a fraction, the generators (experiments.sweep.design.GENERATORS)."""
+    from experiments.sweep import design as dsg  # noqa: PLC0415
+
+    if design not in DESIGNS:
+        raise InputError(path, "sweep.design", f"unknown design {design!r} (available: {', '.join(DESIGNS)})")
+    if design == "one_at_a_time":
+        return design, ()
+    if len(factors) < 2:
+        raise InputError(path, "sweep.design", f"a {design} design needs at least 2 factors in [sweep.factors]")
+    seen: dict[str, str] = {}
+    for f in factors:
+        for i, lv in enumerate(f.levels):
+            where = f"sweep.factors.{f.name}[{i}]"
+            if lv.base is not None or lv.only:
+                raise InputError(path, where, f"a level of a {design} design takes set, relative or preset = true "
+                                              "(no base, no only: every level combines with every other)")
+            for key in [k for k, _ in lv.overrides] + [t for t, _, _ in lv.relative]:
+                if seen.setdefault(key, f.name) != f.name:
+                    raise InputError(path, where, f"{key} is also set by factor {seen[key]}: the factors of a design "
+                                                  "set different keys")
+        if design == "fractional" and len(f.levels) != 2:
+            raise InputError(path, f"sweep.factors.{f.name}", f"a fractional design takes two levels per factor, got "
+                                                              f"{len(f.levels)}")
+    if design == "full":
+        return design, ()
+    try:
+        _, _, gens = dsg.choose(len(factors))
+    except ValueError as exc:
+        raise InputError(path, "sweep.design", f"{exc}: use design = \"full\" or more factors") from None
+    return design, gens
 
 
 def _check_dotted(dotted: str, path: Path, where: str) -> None:
@@ -209,9 +270,35 @@ def load_sweep(path: str | Path) -> SweepSpec:
                     raise InputError(path, f"sweep.factors.{f.name}[{i}].only.{key}",
                                      f"{unknown[0]!r} is not one of the grid's values")
     bases = _grid_bases(sw.get("bases", {}), dict(grid), path)
-    return SweepSpec(path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
+    design, generators = _check_design(sw.get("design", "one_at_a_time"), factors, path)
+    objective = _objective(sw.get("objective"), methods, base, path)
+    return SweepSpec(objective=objective, path=path.resolve(), name=name.strip(), base=base, seeds=seeds, methods=methods,
                      grid=tuple(grid), fixed=tuple(fixed), distance_bin_m=float(dbin), factors=factors,
-                     bases=bases, tune_seeds=tune, eval_seeds=evals)
+                     bases=bases, tune_seeds=tune, eval_seeds=evals, design=design, generators=generators)
+
+
+OBJECTIVE_STATISTICS = ("rmse_pos_m", "p95_pos_m", "p50_pos_m", "rmse_vel_mps")
+
+
+def _objective(table, methods, base: Path, path: Path) -> tuple[str, str] | None:
+    """[sweep] objective = {method = ..., statistic = ...} (statistic default rmse_pos_m), or None."""
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        raise InputError(path, "sweep.objective", "expected a table {method = \"...\", statistic = \"rmse_pos_m\"}")
+    unknown = sorted(set(table) - {"method", "statistic"})
+    if unknown:
+        raise InputError(path, f"sweep.objective.{unknown[0]}", "unknown key (known: method, statistic)")
+    method, stat = table.get("method"), table.get("statistic", "rmse_pos_m")
+    if methods is None:
+        methods = tuple(read_config_data(base).get("run", {}).get("methods", ()))
+    if method not in methods:
+        raise InputError(path, "sweep.objective.method", f"{method!r} is not one of the sweep's methods "
+                                                         f"({', '.join(methods)})")
+    if stat not in OBJECTIVE_STATISTICS:
+        raise InputError(path, "sweep.objective.statistic",
+                         f"unknown statistic {stat!r} (available: {', '.join(OBJECTIVE_STATISTICS)})")
+    return method, stat
 
 
 def _grid_bases(table, grid: dict, path: Path) -> tuple:
@@ -288,7 +375,9 @@ def _short_names(keys: list[str]) -> dict[str, str]:
 def run_id_of(params: tuple[tuple[str, object], ...], seed: int, short: dict[str, str],
               variant: Variant | None = None) -> str:
     parts = [f"{short[k]}={_safe(_value_text(v))}" for k, v in params]
-    if variant is not None:
+    if variant is not None and variant.combo:
+        parts += [f"{f}={_safe(lb)}" for f, lb in variant.combo]
+    elif variant is not None:
         parts.append(variant.factor if variant.factor == "preset" else f"{variant.factor}={_safe(variant.level)}")
     return ",".join(parts + [f"seed={seed}"])
 
@@ -325,7 +414,10 @@ def expand_runs(spec: SweepSpec) -> tuple[Config, list[SweepRun]]:
                 data = bases.setdefault(variant.base, read_config_data(variant.base))
             data, extra = split_overrides(data, variant.overrides, spec.path, where)
             text = ", ".join(x for x in (text, f"{variant.factor} = {variant.level}") if x)
-        cfg = _config(cspec, data, {**fixed, **extra, **dict(params)}, where, context=f"with {text}: ")
+        overrides = {**fixed, **extra, **dict(params)}
+        if variant is not None and variant.relative:  # a mismatch arm: the estimator's model off the world's
+            data, overrides = apply_relative(data, overrides, variant.relative, spec.path, where)
+        cfg = _config(cspec, data, overrides, where, context=f"with {text}: ")
         for seed in spec.seeds:
             run_id = run_id_of(params, seed, short, variant)
             run_cfg = dataclasses.replace(
@@ -355,6 +447,11 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
           if spec.eval_seeds else []),
         f"methods = {_toml_value(list(base_cfg.run.methods))}",
         f"distance_bin_m = {_toml_value(spec.distance_bin_m)}",
+        *([f"design = {_toml_value(spec.design)}"] if spec.design != "one_at_a_time" else []),
+        *([f"objective = {{method = {_toml_value(spec.objective[0])}, statistic = {_toml_value(spec.objective[1])}}}"]
+          if spec.objective else []),
+        *([f"generators = {_toml_value(list(spec.generators))}  # added factors in letter order (A, B, ... "
+           "the factors in file order)"] if spec.generators else []),
         f"runs = {n_runs}",
         "",
         "[sweep.set]",

@@ -98,6 +98,8 @@ CASES = {}
 
 def case(*needles: str):
     def deco(fn):
+        if fn.__name__ in CASES:  # a second case of one name would hide the first
+            raise NameError(f"two bad-input cases are named {fn.__name__}")
         CASES[fn.__name__] = (fn, needles)
         return fn
     return deco
@@ -1345,6 +1347,69 @@ def run_gnss_model_unknown_key(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "analysis.warmup_start", "unknown value", "traffic")
+def run_warmup_start_unknown(tmp, net, run):
+    cfg = _config(tmp, net, "[analysis]\nwarmup_s = 10.0\nwarmup_start = \"saved_state\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "analysis.warmup_s", "leaves nothing to sense")
+def run_warmup_start_traffic_whole_run(tmp, net, run):
+    cfg = _config(tmp, net, "[analysis]\nwarmup_s = 30.0\nwarmup_start = \"traffic\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sr.toml", "analysis.warmup_start", "SUMO scenario")
+def run_warmup_start_traffic_controlled_scenario(tmp, net, run):
+    text = (PROJECT / "experiments" / "single_road.toml").read_text()
+    path = tmp / "sr.toml"
+    path.write_text(text + "\n[analysis]\nwarmup_s = 5.0\nwarmup_start = \"traffic\"\n")
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sweep.toml", "sweep.factors.mm[0].relative.lc.visibility.times", "finite number")
+def sweep_relative_negative_times(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]")
+                    + '[sweep.factors]\nmm = [{label = "a", relative = {"lc.visibility" = {times = -0.5}}}]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+@case("sweep.toml", "sweep.factors.mm[0].relative.lc.visibility.of", "unknown parameter")
+def sweep_relative_unknown_world_key(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]")
+                    + '[sweep.factors]\nmm = [{label = "a", relative = {"lc.visibility" = {of = "lc.nope", '
+                      'times = 0.5}}}]\n')
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+@case("sweep.toml", "sweep.design", "no tabulated fraction")
+def sweep_fractional_design_too_few_factors(tmp, net, run):
+    _config(tmp, net)
+    path = tmp / "sweep.toml"
+    path.write_text(SWEEP.format(seeds="[1, 2]").replace('methods = ["gnss"]', 'methods = ["gnss"]\ndesign = "fractional"')
+                    + '[sweep.factors]\n'
+                    + "".join(f'{n} = [{{label = "a", preset = true}}, {{label = "b", set = {{"lc.{k}" = 0.9}}}}]\n'
+                              for n, k in (("f1", "eta_threshold"), ("f2", "visibility"), ("f3", "own_consistency_gate"))))
+    return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    out = {}
+    for p in sorted(root.rglob("*")):
+        key = str(p.relative_to(root))
+        if p.is_symlink():
+            out[key] = "link:" + os.readlink(p)
+        elif p.is_file():
+            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
+        else:
+            out[key] = "dir"
+    return out
+
+
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     fn, needles = CASES[name]
@@ -1366,7 +1431,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 176
+    assert len(CASES) >= 184
 
 
 # ----------------------------------------------------------------------------- what --out may replace
