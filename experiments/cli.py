@@ -129,20 +129,31 @@ def traffic_losses_line(tr: dict) -> str:
     return text
 
 
+def _sweep_or_stop(run):
+    """``run()`` (a sweep or a tuning pass) and None, or None and the exit code of a failed or stopped pass
+    (its completed runs are kept for a resume)."""
+    from experiments.sweep.run import SweepFailed
+
+    try:
+        return run(), 0
+    except SweepFailed as exc:
+        print(f"coloc: error: {exc}", file=sys.stderr)
+        return None, 1
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
+        return None, _stop_code(exc)
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from experiments.sweep.run import SweepFailed, run_sweep
+    from experiments.sweep.run import run_sweep
 
     if args.workers is not None and args.workers < 1:
         raise InputError(None, "--workers", "must be >= 1")
-    try:
-        res = run_sweep(args.sweep, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                        progress=not args.quiet, dry_run=args.dry_run, force=args.force)
-    except SweepFailed as exc:
-        print(f"coloc: error: {exc}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, Terminated) as exc:
-        print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
-        return _stop_code(exc)
+    res, code = _sweep_or_stop(lambda: run_sweep(args.sweep, Path(args.out), scheduler=args.scheduler,
+                                                 workers=args.workers, progress=not args.quiet,
+                                                 dry_run=args.dry_run, force=args.force))
+    if res is None:
+        return code
     if res.dry_run:
         print(f"{args.sweep}: valid, {res.n_runs} runs (nothing was run)")
         return 0
@@ -158,21 +169,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from experiments.sweep.run import SweepFailed, run_sweep
+    from experiments.sweep.run import run_sweep
     from experiments.sweep.tune import tuning_spec, write_tuning
 
     if args.workers is not None and args.workers < 1:
         raise InputError(None, "--workers", "must be >= 1")
     spec = tuning_spec(args.sweep)
-    try:
-        res = run_sweep(args.sweep, Path(args.out), workers=args.workers, progress=not args.quiet,
-                        dry_run=args.dry_run, force=args.force, write_report=False, spec=spec)
-    except SweepFailed as exc:
-        print(f"coloc: error: {exc}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, Terminated) as exc:
-        print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
-        return _stop_code(exc)
+    res, code = _sweep_or_stop(lambda: run_sweep(args.sweep, Path(args.out), workers=args.workers,
+                                                 progress=not args.quiet, dry_run=args.dry_run, force=args.force,
+                                                 write_report=False, spec=spec))
+    if res is None:
+        return code
     if res.dry_run:
         print(f"{args.sweep}: valid, {res.n_runs} tuning runs on seeds {list(spec.seeds)} (nothing was run)")
         return 0

@@ -1397,19 +1397,6 @@ def sweep_fractional_design_too_few_factors(tmp, net, run):
     return ["sweep", str(path), "--out", str(tmp / "o"), "--dry-run"], None
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        if p.is_symlink():
-            out[key] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[key] = "dir"
-    return out
-
-
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
     fn, needles = CASES[name]
