@@ -20,7 +20,7 @@ The summary blocks are computed from the spill files, equal to the whole-table o
 numpy reductions over the same arrays, in the same order):
 
 * per method, after the loop: err_pos, err_vel, err_along, err_cross (float64), the position NEES
-  (float64, computed per flush: the covariance term ``cov[0, 1]`` is not in estimates.parquet),
+  (float64, computed per flush by :func:`position_nees` from the file's var_px, var_py, cov_pxy),
   zone and area codes (int32), and under ``[infra]`` covered (bool) and rsu codes (int32): 48 bytes
   per row of one method (53 with ``[infra]``), about twice that while pandas groups them, while its
   summary is computed; RMSE and percentiles need the samples;
@@ -70,6 +70,55 @@ PARQUET_OPTIONS = {"compression": "zstd", "write_statistics": True}
 
 ESTIMATE_EXTRA = ("nees",)  # spilled beside the estimates.parquet columns, for the summary only
 FEATURE_COLUMNS = {"method": "string", "t": "float64", "track": "int64", "feature": "int64", "err_pos": "float64"}
+
+
+def position_nees(ex: np.ndarray, ey: np.ndarray, var_px: np.ndarray, var_py: np.ndarray,
+                  cov_pxy: np.ndarray) -> np.ndarray:
+    """2-D position NEES e^T P^-1 e per sample, P = [[var_px, cov_pxy], [cov_pxy, var_py]] (2 on average for
+    a consistent estimator; NaN or inf where P is singular). From estimates.parquet:
+    ``position_nees(px - px_true, py - py_true, var_px, var_py, cov_pxy)``."""
+    det = var_px * var_py - cov_pxy * cov_pxy
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (var_py * ex * ex - 2.0 * cov_pxy * ex * ey + var_px * ey * ey) / det
+
+
+def estimate_rows(run_name: str, method: str, truth: tuple, infra: tuple | None, est: tuple) -> pd.DataFrame:
+    """The estimates.parquet rows of one method over some steps (docs/outputs.md), built once for the
+    streamed log and for :class:`experiments.runner.EstimateLog`. ``truth``: (t, vehicle, x_true, heading,
+    zone, area) concatenated over the steps (vehicle, zone and area as str); ``infra``: (covered, rsu) or
+    None; ``est``: (mean (R, 4), var_px, var_py, cov_pxy) of the method in the same rows."""
+    import pandas as pd
+
+    t, vid, x_true, heading, zone, area = truth
+    mean, vx_, vy_, cxy = est
+    err = mean - x_true
+    along, cross = along_cross_errors(err[:, :2], heading)
+    infra_cols = {} if infra is None else {"covered": infra[0].astype(bool), "rsu": infra[1].astype(str)}
+    return pd.DataFrame(
+        {
+            "run": run_name,
+            "method": method,
+            "t": t,
+            "vehicle": vid,
+            "px": mean[:, 0], "py": mean[:, 1], "vx": mean[:, 2], "vy": mean[:, 3],
+            "px_true": x_true[:, 0], "py_true": x_true[:, 1],
+            "vx_true": x_true[:, 2], "vy_true": x_true[:, 3],
+            "err_pos": np.hypot(err[:, 0], err[:, 1]),
+            "err_vel": np.hypot(err[:, 2], err[:, 3]),
+            "err_along": along, "err_cross": cross,
+            "zone": zone, "area": area,
+            "var_px": vx_, "var_py": vy_, "cov_pxy": cxy,
+            **infra_cols,
+        }
+    )
+
+
+def concat_steps(truth_parts: list, infra_parts: list) -> tuple[tuple, tuple | None]:
+    """The per-step truth parts (t, vehicle ids, x_true, heading, zone, area) and infrastructure parts
+    (covered, home RSU) concatenated for :func:`estimate_rows`, the strings as str once for every method."""
+    t, vid, x_true, heading, zone, area = (np.concatenate(c) for c in zip(*truth_parts))
+    infra = tuple(np.concatenate(c) for c in zip(*infra_parts)) if infra_parts else None
+    return (t, vid.astype(str), x_true, heading, zone.astype(str), area.astype(str)), infra
 
 
 def _arrow_table(df: pd.DataFrame) -> pa.Table:
@@ -303,38 +352,13 @@ class StreamLog:
         import pyarrow as pa
 
         if self._truth:
-            t, vid, x_true, heading, zone, area = (np.concatenate(c) for c in zip(*self._truth))
-            infra_cols = {}
-            if self._infra:
-                covered, rsu = (np.concatenate(c) for c in zip(*self._infra))
-                infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
-            vid, zone, area = vid.astype(str), zone.astype(str), area.astype(str)  # once for every method
+            truth, infra = concat_steps(self._truth, self._infra)
+            x_true = truth[2]
             for method, parts in self._est.items():
-                mean, vx_, vy_, cxy = (np.concatenate(c) for c in zip(*parts))
-                err = mean - x_true
-                along, cross = along_cross_errors(err[:, :2], heading)
-                df = pd.DataFrame(
-                    {
-                        "run": self.run_name,
-                        "method": method,
-                        "t": t,
-                        "vehicle": vid,
-                        "px": mean[:, 0], "py": mean[:, 1], "vx": mean[:, 2], "vy": mean[:, 3],
-                        "px_true": x_true[:, 0], "py_true": x_true[:, 1],
-                        "vx_true": x_true[:, 2], "vy_true": x_true[:, 3],
-                        "err_pos": np.hypot(err[:, 0], err[:, 1]),
-                        "err_vel": np.hypot(err[:, 2], err[:, 3]),
-                        "err_along": along, "err_cross": cross,
-                        "zone": zone, "area": area,
-                        "var_px": vx_, "var_py": vy_,
-                        **infra_cols,
-                    }
-                )
-                # 2-D position NEES e^T P^-1 e (EstimateLog.position_nees, the same expression)
-                ex, ey = err[:, 0], err[:, 1]
-                det = vx_ * vy_ - cxy * cxy
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    df["nees"] = (vy_ * ex * ex - 2.0 * cxy * ex * ey + vx_ * ey * ey) / det
+                est = tuple(np.concatenate(c) for c in zip(*parts))
+                df = estimate_rows(self.run_name, method, truth, infra, est)
+                mean = est[0]
+                df["nees"] = position_nees(mean[:, 0] - x_true[:, 0], mean[:, 1] - x_true[:, 1], *est[1:])
                 self._spill(self._est_spill, "estimates", method).write(_arrow_table(df))
         for method, parts in self._assoc.items():
             step = np.concatenate([np.full(a.size, s, dtype=np.int64) for s, a, _, _ in parts])

@@ -58,7 +58,7 @@ from experiments.config import Config, config_to_toml
 from experiments.gnss_world import GnssWorldTally
 from experiments.oracle_world import oracle_world
 from experiments.pipeline import BATCH, estimator_stats, step_batch
-from experiments.rowstream import StreamLog
+from experiments.rowstream import StreamLog, concat_steps, estimate_rows, position_nees
 from experiments.run_checks import _empty_run, _nothing_to_estimate, check_finite_estimate  # noqa: F401
 from experiments.scoring import (
     DETECTION_KINDS,
@@ -67,7 +67,6 @@ from experiments.scoring import (
     scored_from,
     traffic_only_s,
     scored_mask,
-    along_cross_errors,
     association_summary,
     score_association,
     traffic_summary,
@@ -264,10 +263,7 @@ class EstimateLog:
         of :meth:`table` (2 on average for a consistent estimator)."""
         x_true = np.concatenate([p[2] for p in self.truth_parts])
         mean, vx_, vy_, cxy = (np.concatenate(c) for c in zip(*self.method_parts[method]))
-        ex, ey = mean[:, 0] - x_true[:, 0], mean[:, 1] - x_true[:, 1]
-        det = vx_ * vy_ - cxy * cxy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return (vy_ * ex * ex - 2.0 * cxy * ex * ey + vx_ * ey * ey) / det
+        return position_nees(mean[:, 0] - x_true[:, 0], mean[:, 1] - x_true[:, 1], vx_, vy_, cxy)
 
     def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
@@ -362,36 +358,9 @@ class EstimateLog:
         if not self.truth_parts:
             cols = {"run": [], "method": [], "t": [], "vehicle": []}
             return pd.DataFrame(cols)
-        t, vid, x_true, heading, zone, area = (np.concatenate(c) for c in zip(*self.truth_parts))
-        infra_cols = {}
-        if self.infra_parts:
-            covered, rsu = (np.concatenate(c) for c in zip(*self.infra_parts))
-            infra_cols = {"covered": covered.astype(bool), "rsu": rsu.astype(str)}
-        vid, zone, area = vid.astype(str), zone.astype(str), area.astype(str)  # once for every method
-        frames = []
-        for method, parts in self.method_parts.items():
-            mean, vx_, vy_, _ = (np.concatenate(c) for c in zip(*parts))
-            err = mean - x_true
-            along, cross = along_cross_errors(err[:, :2], heading)
-            frames.append(
-                pd.DataFrame(
-                    {
-                        "run": run_name,
-                        "method": method,
-                        "t": t,
-                        "vehicle": vid,
-                        "px": mean[:, 0], "py": mean[:, 1], "vx": mean[:, 2], "vy": mean[:, 3],
-                        "px_true": x_true[:, 0], "py_true": x_true[:, 1],
-                        "vx_true": x_true[:, 2], "vy_true": x_true[:, 3],
-                        "err_pos": np.hypot(err[:, 0], err[:, 1]),
-                        "err_vel": np.hypot(err[:, 2], err[:, 3]),
-                        "err_along": along, "err_cross": cross,
-                        "zone": zone, "area": area,
-                        "var_px": vx_, "var_py": vy_,
-                        **infra_cols,
-                    }
-                )
-            )
+        truth, infra = concat_steps(self.truth_parts, self.infra_parts)
+        frames = [estimate_rows(run_name, method, truth, infra, tuple(np.concatenate(c) for c in zip(*parts)))
+                  for method, parts in self.method_parts.items()]
         return pd.concat(frames, ignore_index=True)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -60,15 +61,29 @@ def method_summary(est: pd.DataFrame) -> dict:
     return _nan_to_none(out)
 
 
+#: The 95 % point of the chi-square distribution with 2 degrees of freedom, -2 ln(0.05): a 2-D position error
+#: lies inside the 95 % ellipse of its covariance when its NEES is at most this.
+CHI2_2_95 = -2.0 * math.log(0.05)
+
+
+def _nees_stats(nees: np.ndarray) -> dict:
+    return {"mean": float(nees.mean()), "median": float(np.median(nees)),
+            "inside_95": float(np.mean(nees <= CHI2_2_95)), "n": int(nees.size)}
+
+
 def nees_summary(nees: np.ndarray, zone: np.ndarray) -> dict:
-    """summary.json "nees_pos" block: mean 2-D position NEES overall and per GNSS zone (2 = consistent;
-    larger = the covariance claims more than the estimate delivers). Samples with a singular covariance
-    (non-finite NEES) are left out."""
+    """summary.json "nees_pos" block: the 2-D position NEES e^T P^-1 e (from px, py, var_px, var_py, cov_pxy of
+    estimates.parquet: :func:`experiments.rowstream.position_nees`), overall and per GNSS zone: ``mean``
+    (2 = consistent; larger = the covariance claims more than the estimate delivers), ``median`` (1.386 =
+    2 ln 2 for a consistent Gaussian), ``inside_95`` (the share of samples inside the 95 % ellipse: 0.95
+    when consistent), ``n``. Samples with a singular covariance (non-finite NEES) are left out."""
+    nees = np.asarray(nees, dtype=float)
+    zone = np.asarray(zone)
     ok = np.isfinite(nees)
-    out = {"mean": float(nees[ok].mean()) if ok.any() else None, "by_zone": {}}
+    out = _nees_stats(nees[ok]) if ok.any() else {"mean": None, "median": None, "inside_95": None, "n": 0}
+    out["by_zone"] = {}
     for z in sorted(set(zone[ok].tolist())):
-        sel = ok & (zone == z)
-        out["by_zone"][str(z)] = float(nees[sel].mean())
+        out["by_zone"][str(z)] = _nees_stats(nees[ok & (zone == z)])
     return out
 
 

@@ -155,8 +155,9 @@ def select_vehicles(frame: Frame, rows, entered=None) -> Frame:
         infra = replace(infra, v2i=infra.v2i[:, rows].tocsr(), radar_z=infra.radar_z[keep],
                         radar_owner=infra.radar_owner[keep], odom=odom)
     imu = None if frame.imu is None else ImuFrame(frame.imu.accel_body[rows], frame.imu.yaw_rate[rows])
+    has_fix = None if frame.prior_has_fix is None else np.asarray(frame.prior_has_fix)[rows] & ent
     return replace(
-        frame, imu=imu, vehicle_ids=frame.vehicle_ids[rows], entered=ent, prior_z=prior_z, prior_R=prior_r,
+        frame, imu=imu, prior_has_fix=has_fix, vehicle_ids=frame.vehicle_ids[rows], entered=ent, prior_z=prior_z, prior_R=prior_r,
         accel=frame.accel[rows], gnss_z=frame.gnss_z[rows], gnss_R=frame.gnss_R[rows], v2f_z=frame.v2f_z[o_idx],
         v2f_owner=owner[o_idx], v2f_R=frame.v2f_R[o_idx], neighbors=frame.neighbors[rows][:, rows].tocsr(),
         truth=truth, infra=infra)

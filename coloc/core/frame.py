@@ -84,6 +84,10 @@ class Frame:
     a teleport: the estimator must (re)start it from the fast-start prior
     ``prior_z[i]``, ``prior_R[i]`` (a receiver fix in fast-start condition,
     Brambilla Sec. VI-A; rows of vehicles that did not enter are NaN).
+    ``prior_has_fix[i]`` (SUMO runs with ``[scenario] start = "gnss_fix"``) says that this prior *is*
+    this step's fix ``gnss_z[i]``, ``gnss_R[i]``: the vehicle's belief at entry is that prior and the
+    fix must not update it a second time (:func:`coloc.core.vehicles.entry_fix_rows`). None: no prior
+    holds a fix of the step (the paper's fast start, and the Sec. V scenarios' independent first fix).
     ``accel`` is the inertial input a_{t-1} of model (1) over (t - dt, t],
     in the net frame; ``dt`` is the sampling interval Ts.
 
@@ -133,6 +137,8 @@ class Frame:
     # Sensor-frame detections ([perception] detections = "range_bearing"): range, bearing, range rate per V2F
     # row (coloc.core.detections). None: v2f_z / v2f_R are the net-frame rows.
     v2f_sensor: SensorDetections | None = None
+    # (N,) bool: the entering vehicle's prior is this step's receiver fix (start = "gnss_fix"); None: none is.
+    prior_has_fix: np.ndarray | None = None
 
     @property
     def n_vehicles(self) -> int:

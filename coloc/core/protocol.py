@@ -21,7 +21,10 @@ class Estimator(Protocol):
     """``step`` consumes one frame and returns estimates in ``frame.vehicle_ids`` order.
 
     Vehicles may appear and disappear between frames; a vehicle with
-    ``frame.entered`` set starts from the frame's fast-start prior.
+    ``frame.entered`` set starts from the frame's fast-start prior. The entry protocol: where
+    ``frame.prior_has_fix`` says that prior is this step's receiver fix (``start = "gnss_fix"``), the
+    fix is not applied to it again (:func:`coloc.core.vehicles.entry_fix_rows` names those rows,
+    :func:`coloc.core.vehicles.keep_entry_fix` undoes a batch update on them).
     An estimator must never read ``frame.truth``.
     """
 

@@ -24,6 +24,32 @@ def fresh_rows(idx: np.ndarray, entered: np.ndarray, prior_z: np.ndarray) -> np.
     return fresh
 
 
+def entry_fix_rows(frame, fresh: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: the ``fresh`` rows whose entry prior already is this step's fix (``Frame.prior_has_fix``,
+    ``[scenario] start = "gnss_fix"``). The entry protocol of every method: such a vehicle's belief at
+    entry is its prior, the fix of the step is not applied to it a second time (it would halve the
+    covariance and count the same receiver error twice). All False without ``prior_has_fix``.
+    ``rows``: ``fresh`` is given for these rows of the frame only (None: for all of them)."""
+    fresh = np.asarray(fresh, dtype=bool)
+    has = frame.prior_has_fix
+    if has is None:
+        return np.zeros(fresh.shape, dtype=bool)
+    has = np.asarray(has, dtype=bool)
+    return fresh & (has if rows is None else has[rows])
+
+
+def keep_entry_fix(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndarray) -> np.ndarray:
+    """In place, after a method's GNSS update of this step: the rows of :func:`entry_fix_rows` get back
+    their prior (the fix, once), i.e. that update is undone exactly. ``mean`` (N, >=4) and ``cov``
+    (N, >=4, >=4): the kinematic block [px, py, vx, vy] is written. Returns the rows (nothing to do
+    with the paper's fast start, where the arrays are untouched)."""
+    rows = entry_fix_rows(frame, fresh)
+    if rows.any():
+        mean[rows, :4] = np.asarray(frame.prior_z, dtype=float)[rows]
+        cov[rows, :4, :4] = np.asarray(frame.prior_R, dtype=float)[rows]
+    return rows
+
+
 def carry_states(
     previous_ids: np.ndarray,
     previous_mean: np.ndarray,

@@ -34,7 +34,7 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
-from coloc.core.vehicles import match_ids
+from coloc.core.vehicles import entry_fix_rows, match_ids
 from coloc.inference.bpa import validate_association
 from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
@@ -131,9 +131,13 @@ def centralized_step(
         lv[fr, :, fr, :] += lp
         eta.reshape(-1, 4)[fr] += np.einsum("nij,nj->ni", lp, frame.prior_z[fr])
 
-    # GNSS (3): H = I on each vehicle block.
+    # GNSS (3): H = I on each vehicle block (not on a fresh vehicle whose prior is this step's fix:
+    # coloc.core.vehicles.entry_fix_rows, the entry protocol).
     if n:
         rg = symmetrize(np.linalg.inv(frame.gnss_R))
+        once = entry_fix_rows(frame, fresh)
+        if once.any():
+            rg[once] = 0.0
         _block_diag_add(lam, rg, 0)
         eta[: 4 * n] += np.einsum("nij,nj->ni", rg, frame.gnss_z).ravel()
 

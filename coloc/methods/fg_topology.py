@@ -299,8 +299,8 @@ class FgTopologyInfra(_InfraBase):
         odom = infra.odom[rows]
         keys_now = {}
         new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
-        start_m, start_c = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
-                            else (np.empty((0, 4)), np.empty((0, 4, 4))))
+        start_m, start_c, held = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
+                                  else (np.empty((0, 4)), np.empty((0, 4, 4)), np.empty(0, dtype=bool)))
         start = {a: b for b, a in enumerate(new_rows)}
         est_prev = {}
         for a, vid in enumerate(ids):
@@ -309,7 +309,8 @@ class FgTopologyInfra(_InfraBase):
             keys_now[vid] = key
             z = frame.gnss_z[rows[a], :2]
             rz = frame.gnss_R[rows[a], :2, :2]
-            graph.add(gtsam.PriorFactorPoint2(key, z, gtsam.noiseModel.Gaussian.Covariance(rz)))
+            if not (a in start and held[start[a]]):  # a start prior that is this step's fix is not added twice
+                graph.add(gtsam.PriorFactorPoint2(key, z, gtsam.noiseModel.Gaussian.Covariance(rz)))
             if a in start:
                 b = start[a]
                 graph.add(gtsam.PriorFactorPoint2(key, start_m[b, :2],

@@ -18,7 +18,7 @@ import numpy as np
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov, kalman_update, predict
-from coloc.core.vehicles import carry_states, match_ids
+from coloc.core.vehicles import carry_states, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
 from coloc.kernels.kalman import gnss_step_kernel
 from coloc.methods.registry import GNSS
@@ -65,6 +65,7 @@ class GnssTracker:
             np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
             m.sigma_along, m.sigma_cross, m.heading_min_speed,
         )
+        keep_entry_fix(mean, cov, frame, fresh)  # a prior that is this step's fix is not updated by it again
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)
         return StepEstimate(mean=mean.copy(), cov=cov.copy())

@@ -18,7 +18,10 @@ State per vehicle ``[px, py, vx, vy, bx, by]``:
 
 A new (or re-entered) vehicle: the kinematic part from ``frame.prior_z`` / ``prior_R`` as the white
 tracker, the bias at 0 with its stationary covariance ``s R_pos``, uncorrelated with the kinematics;
-it is only updated in its first step.
+it is only updated in its first step. Where that prior is the step's fix itself (``Frame.prior_has_fix``,
+``start = "gnss_fix"``), the fix is not applied again: the state is the exact posterior of that one fix
+from a flat position prior, position = fix with the reported covariance, bias N(0, s R_pos) and
+Cov(p, b) = -s R_pos (p = z - b - n).
 
 Fault exclusion (``innovation_gate`` = level alpha > 0): a fix whose position innovation has a
 normalized innovation squared ``nu^T S_pos^-1 nu`` above the chi-square quantile of 2 degrees of freedom
@@ -44,7 +47,7 @@ import numpy as np
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
-from coloc.core.vehicles import fresh_rows, match_ids
+from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
 from coloc.methods.registry import GNSS
 
@@ -184,6 +187,14 @@ class GnssBiasTracker:
         mean, cov, self.last_excluded = bias_predict_update(
             mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
             float(frame.dt), self.motion, self.model, streak)
+        once = keep_entry_fix(mean, cov, frame, fresh)  # a prior that is this step's fix: not updated again
+        if once.any():
+            cross = -self.model.bias_share * r[once, :2, :2]
+            cov[once, :4, 4:] = 0.0
+            cov[once, 4:, :4] = 0.0
+            cov[once, :2, 4:], cov[once, 4:, :2] = cross, np.swapaxes(cross, -1, -2)
+            mean[once, 4:] = 0.0
+            cov[once, 4:, 4:] = self.model.bias_share * r[once, :2, :2]
         self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)

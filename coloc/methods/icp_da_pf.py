@@ -114,7 +114,7 @@ from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.detections import HeadingMemory, with_net_detections
 from coloc.core.inertial import estimator_input
-from coloc.core.vehicles import fresh_rows, match_ids
+from coloc.core.vehicles import entry_fix_rows, fresh_rows, match_ids
 from coloc.inference.comm import CommCount
 from coloc.inference.existence import TrackExistence, birth_existence
 from coloc.inference.gaussian import chi2_ppf, log_gauss
@@ -291,12 +291,22 @@ def icp_da_pf_step(
             out[i] = sample_gaussian(frame.prior_z[i], frame.prior_R[i], jv, entity_rng(pf.seed, prior_purpose, ents[i], step))
         return out
 
+    # The entry protocol (coloc.core.vehicles.entry_fix_rows): a set drawn from a prior that is this step's fix
+    # is not weighted by it again (equal weights).
+    once = entry_fix_rows(frame, fresh)
+
+    def gnss_weights(sets: np.ndarray) -> np.ndarray:
+        ll = gnss_log_likelihood(sets, frame.gnss_z, frame.gnss_R)
+        if once.any():
+            ll[once] = 0.0
+        return normalize_log(ll)
+
     particles = vehicle_sets(state.particles, "vehicle_predict", "vehicle_prior")
-    log_gnss = normalize_log(gnss_log_likelihood(particles, frame.gnss_z, frame.gnss_R)) if n else np.empty((0, jv))
+    log_gnss = gnss_weights(particles) if n else np.empty((0, jv))
     v_mean, v_cov = weighted_moments(particles, log_gnss) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
     if latest:  # the own-sensor sets carry no feature evidence; they run BPA-L, the belief sets get its messages
         own = vehicle_sets(state.own_particles, "own_predict", "own_prior")
-        log_own = normalize_log(gnss_log_likelihood(own, frame.gnss_z, frame.gnss_R)) if n else np.empty((0, jv))
+        log_own = gnss_weights(own) if n else np.empty((0, jv))
         own_mean, own_cov = weighted_moments(own, log_own) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
         # eta and births as LC: the mean of b_i^(0), the spread of the own-sensor belief.
         assoc_particles = own + (v_mean - own_mean)[:, None, :]

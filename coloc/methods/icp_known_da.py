@@ -17,7 +17,8 @@ Per step:
 1. vehicles: carried posterior predicted by model (1) with the inertial
    input and Q from :func:`coloc.core.models.driving_noise_cov`, then GNSS (3)
    update -> b^(0) of (11); vehicles fresh this step start from the frame's
-   fast-start prior (updated by GNSS, not predicted), exactly as
+   fast-start prior (updated by GNSS, not predicted; a prior that is the
+   step's fix, ``Frame.prior_has_fix``, is not updated again), exactly as
    :class:`coloc.methods.gnss.GnssTracker`;
    the vehicle's own-sensor track (GNSS + inertial only) is advanced the
    same way; it is what the vehicle tells features in (19)
@@ -56,7 +57,7 @@ from coloc.core.detections import HeadingMemory, with_net_detections
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
 from coloc.core.inertial import estimator_input
-from coloc.core.vehicles import carry_states, fresh_rows, match_ids
+from coloc.core.vehicles import carry_states, fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.bpa import BpaResult, bpa_localization, step_feature_beliefs, validate_association
 from coloc.inference.comm import CommCount
 from coloc.inference.feature_store import FeatureStore, vehicle_codes
@@ -91,6 +92,7 @@ def vehicle_prior_beliefs(
         np.ascontiguousarray(frame.gnss_R, dtype=float), ~fresh, float(frame.dt),
         m.sigma_along, m.sigma_cross, m.heading_min_speed,
     )
+    keep_entry_fix(mean, cov, frame, fresh)  # a prior that is this step's fix is not updated by it again
     return mean, cov
 
 
@@ -106,12 +108,15 @@ def vehicle_prior_pair(
     fresh = fresh_rows(match, frame.entered, frame.prior_z)
     m = params.motion
     f64 = np.ascontiguousarray
-    return carry_gnss_kernel(
+    out = carry_gnss_kernel(
         f64(state.mean, dtype=float), f64(state.cov, dtype=float), f64(state.own_mean, dtype=float),
         f64(state.own_cov, dtype=float), match, fresh, f64(frame.prior_z, dtype=float), f64(frame.prior_R, dtype=float),
         f64(frame.accel if accel is None else accel, dtype=float), f64(frame.gnss_z, dtype=float),
         f64(frame.gnss_R, dtype=float), float(frame.dt), m.sigma_along, m.sigma_cross, m.heading_min_speed,
     )
+    keep_entry_fix(out[0], out[1], frame, fresh)  # the entry protocol, as vehicle_prior_beliefs
+    keep_entry_fix(out[2], out[3], frame, fresh)
+    return out
 
 
 def prior_pair(state: "IcpState", frame: Frame, params: IcpParams, match: np.ndarray, accel: np.ndarray | None,

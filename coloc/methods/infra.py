@@ -86,7 +86,7 @@ from coloc.core.models import (
     symmetrize,
     transition_matrix,
 )
-from coloc.core.vehicles import carry_states, match_ids
+from coloc.core.vehicles import carry_states, entry_fix_rows, match_ids
 from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
 from coloc.methods.gnss import GnssTracker
 from coloc.methods.registry import RSU_BP, SME
@@ -132,8 +132,11 @@ class _InfraBase:
         self.stats = {"topology_updates": 0, "topology_skipped": 0}
         self._sensor_heading = None  # sensor-frame detections: coloc.core.detections.HeadingMemory
 
-    def _start_beliefs(self, frame: Frame, rows: np.ndarray, prev) -> tuple[np.ndarray, np.ndarray]:
-        """Belief at t without this step's fix: tracker posterior of t-1 predicted by model (1), or the prior."""
+    def _start_beliefs(self, frame: Frame, rows: np.ndarray, prev) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Belief at t without this step's fix: tracker posterior of t-1 predicted by model (1), or the prior.
+        Returns (mean, cov, held): ``held`` (rows,) bool marks priors that are this step's fix already
+        (the entry protocol, :func:`coloc.core.vehicles.entry_fix_rows`): the RSU does not apply the fix
+        to those again."""
         ids, mean, cov = prev
         m, c, fresh = carry_states(ids, mean, cov, frame.vehicle_ids[rows], frame.entered[rows],
                                    frame.prior_z[rows], frame.prior_R[rows])
@@ -141,7 +144,7 @@ class _InfraBase:
         if old.any():
             q = driving_noise_cov(m[old, 2:], frame.dt, self.params.motion)
             m[old], c[old] = predict(m[old], c[old], frame.accel[rows[old]], frame.dt, q)
-        return m, c
+        return m, c, entry_fix_rows(frame, fresh, rows)
 
     def step(self, frame: Frame) -> StepEstimate:
         prev = (self.gnss._ids, self.gnss._mean, self.gnss._cov)
@@ -197,9 +200,24 @@ def joint_predict(mean: np.ndarray, cov: np.ndarray, accel: np.ndarray, dt: floa
     return out.reshape(-1), symmetrize(a @ cov @ a.T + q)
 
 
-def joint_labelled_update(mean, cov, z, r_blocks):
-    """Kalman update of the joint state with each vehicle's own position-velocity fix (H = I, model (3))."""
+def joint_labelled_update(mean, cov, z, r_blocks, use=None):
+    """Kalman update of the joint state with each vehicle's own position-velocity fix (H = I, model (3)).
+    ``use`` (n,) bool: only these vehicles' fixes (None: all)."""
     n = mean.shape[0] // 4
+    if use is not None and not np.all(use):
+        keep = np.flatnonzero(use)
+        if keep.size == 0:
+            return mean, cov
+        sel = (4 * keep[:, None] + np.arange(4)).ravel()
+        r = np.zeros((sel.size, sel.size))
+        for a, i in enumerate(keep):
+            r[4 * a:4 * a + 4, 4 * a:4 * a + 4] = r_blocks[i]
+        s = cov[np.ix_(sel, sel)] + r
+        gain = np.linalg.solve(s, cov[sel, :]).T  # P H^T S^-1
+        new_mean = mean + gain @ (np.asarray(z, float)[keep].reshape(-1) - mean[sel])
+        ikh = np.eye(4 * n)
+        ikh[:, sel] -= gain
+        return new_mean, symmetrize(ikh @ cov @ ikh.T + gain @ r @ gain.T)
     r = np.zeros((4 * n, 4 * n))
     for i in range(n):
         r[4 * i:4 * i + 4, 4 * i:4 * i + 4] = r_blocks[i]
@@ -252,6 +270,7 @@ class SmeInfra(_InfraBase):
         old_ids, old_mean, old_cov = self._state.get(r, (np.empty(0, dtype=object), np.empty(0), np.empty((0, 0))))
         idx = match_ids(old_ids, ids)
         idx[np.asarray(frame.entered[rows], bool)] = -1
+        fixed = np.ones(n, dtype=bool)  # vehicles this step's fix updates
         if idx.size == old_ids.size and np.array_equal(idx, np.arange(n)):
             mean, cov = old_mean, old_cov  # same vehicles, same order: keep the joint covariance
             moving = np.ones(n, dtype=bool)
@@ -268,12 +287,13 @@ class SmeInfra(_InfraBase):
                     cov[4 * i:4 * i + 4, 4 * i2:4 * i2 + 4] = old_cov[4 * j:4 * j + 4, 4 * j2:4 * j2 + 4]
             new = np.flatnonzero(~moving)
             if new.size:
-                m0, c0 = self._start_beliefs(frame, rows[new], prev)  # already at t
+                m0, c0, held = self._start_beliefs(frame, rows[new], prev)  # already at t
                 for a, i in enumerate(new):
                     mean[4 * i:4 * i + 4] = m0[a]
                     cov[4 * i:4 * i + 4, 4 * i:4 * i + 4] = c0[a]
+                fixed[new[held]] = False  # their prior is this step's fix
         mean, cov = joint_predict(mean, cov, frame.accel[rows], frame.dt, self.params.motion, moving)
-        mean, cov = joint_labelled_update(mean, cov, frame.gnss_z[rows], frame.gnss_R[rows])
+        mean, cov = joint_labelled_update(mean, cov, frame.gnss_z[rows], frame.gnss_R[rows], fixed)
         if n >= 2:
             pts = infra.radar_z[infra.radar_owner == r]
             if pts.shape[0] == n:
@@ -339,9 +359,12 @@ class RsuBpInfra(_InfraBase):
             c_old = np.stack([store[v][1] for v in ids[old]])
             q = driving_noise_cov(m_old[:, 2:], frame.dt, p.motion)
             m[old], c[old] = predict(m_old, c_old, frame.accel[rows[old]], frame.dt, q)
+        held = np.zeros(rows.size, dtype=bool)
         if (~old).any():
-            m[~old], c[~old] = self._start_beliefs(frame, rows[~old], prev)
+            m[~old], c[~old], held[~old] = self._start_beliefs(frame, rows[~old], prev)
+        m0, c0 = m[held], c[held]
         m, c = kalman_update(m, c, frame.gnss_z[rows], frame.gnss_R[rows])
+        m[held], c[held] = m0, c0  # a prior that is this step's fix is not updated by it again
         z = self.rng.standard_normal((rows.size, self.bp.n_particles, 4))
         xs = m[:, None, :] + np.einsum("sij,spj->spi", np.linalg.cholesky(c + 1e-12 * np.eye(4)), z)
         fs = feats.particles.copy()

@@ -338,8 +338,8 @@ def synthesize_frame(
     matches the ids itself). ``imu`` (``couplers.sensing.inertial.InertialProcess``): the frame carries it and
     ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
     prior N(x_true, diag(sp^2, sp^2, sv^2, sv^2)) for entering vehicles) or "gnss_fix" (an entering vehicle's
-    prior is its receiver's fix of this step, ``gnss_z`` and ``gnss_R``: nothing of its truth; the estimators
-    then update that prior with the same fix once more at entry)."""
+    prior is its receiver's fix of this step, ``gnss_z`` and ``gnss_R``: nothing of its truth; the frame's
+    ``prior_has_fix`` says so, and the estimators do not update that prior with the same fix again)."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
@@ -403,4 +403,5 @@ def synthesize_frame(
         neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
         truth=truth,
         imu=imu,
+        prior_has_fix=entered.copy() if gnss_fix else None,
     )

@@ -206,6 +206,50 @@ def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = 
     return f"{width:g}"
 
 
+def _fig_nees_time(run: _Run, path: Path) -> str:
+    """(a) mean 2-D position NEES and (b) the share of samples inside the 95 % ellipse per time bin, one line
+    per method (the ``nees`` column :mod:`experiments.report.load` computes from cov_pxy); the warm-up, where
+    the summary does not score, is shaded. Returns the bin width in seconds."""
+    from experiments.scoring import CHI2_2_95
+
+    est = run.estimates
+    width = _choose_bin(est["t"].to_numpy(dtype=float), RMSE_BIN_S)
+    t = est["t"].to_numpy(dtype=float)
+    nees = est["nees"].to_numpy(dtype=float)
+    ok = np.isfinite(nees)
+    tmp = pd.DataFrame({"method": est["method"][ok], "bin": np.floor(t[ok] / width) * width + width / 2.0,
+                        "nees": nees[ok], "inside": (nees[ok] <= CHI2_2_95).astype(float)})
+    g = tmp.groupby(["method", "bin"], observed=True, sort=True)[["nees", "inside"]].mean()
+    fig = _new_fig(8.0, 6.0)
+    ax_n, ax_s = fig.subplots(2, 1, sharex=True)
+    for m in order_methods(g.index.get_level_values(0).unique()):
+        sub = g.loc[m]
+        x = sub.index.to_numpy() / 60.0
+        kw = dict(color=method_color(m), marker="o", ms=3, lw=1.4, label=method_label(m))
+        ax_n.plot(x, sub["nees"].to_numpy(), **kw)
+        ax_s.plot(x, 100.0 * sub["inside"].to_numpy(), **kw)
+    ax_n.axhline(2.0, color="0.3", lw=0.9, ls="--")
+    ax_s.axhline(95.0, color="0.3", lw=0.9, ls="--")
+    t0 = (run.summary.get("analysis") or {}).get("scored_from_s")
+    if t0:
+        for ax in (ax_n, ax_s):
+            ax.axvspan(float(np.nanmin(t)) / 60.0, float(t0) / 60.0, color="0.9", zorder=0)
+    if len(g) and float(g["nees"].max()) > 20 * max(float(g["nees"].min()), 1e-9):
+        ax_n.set_yscale("log")
+    else:
+        ax_n.set_ylim(bottom=0)
+    ax_s.set_ylim(0, 100)
+    ax_n.set_ylabel("mean NEES (2 = consistent)")
+    ax_s.set_ylabel("inside the 95 % ellipse [%]")
+    ax_s.set_xlabel("simulated time [min]")
+    ax_n.set_title(f"(a) mean 2-D position NEES per {width / 60:g}-min bin")
+    ax_s.set_title(f"(b) share of samples inside the 95 % ellipse per {width / 60:g}-min bin")
+    if ax_n.get_legend_handles_labels()[0]:
+        ax_n.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    _save(fig, path)
+    return f"{width:g}"
+
+
 def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str]:
     est = run.estimates
     # [analysis] warmup_s: the CDFs score what summary.json scores (t >= scored_from_s)

@@ -101,10 +101,35 @@ def _method_stats_rows(methods: list[str], summary: dict) -> list[list[str]]:
     rows = []
     for m in methods:
         s = (summary.get("methods") or {}).get(m, {}) or {}
-        nees = (s.get("nees_pos") or {}).get("mean")
+        nees = s.get("nees_pos") or {}
+        inside = nees.get("inside_95")
         rows.append([_method_cell(m), _fmt(s.get("rmse_pos_m")), _fmt(s.get("rmse_vel_mps")),
-                     _fmt(s.get("p50_pos_m")), _fmt(s.get("p95_pos_m")), _fmt(nees), _fmt(s.get("seconds"), 2)])
+                     _fmt(s.get("p50_pos_m")), _fmt(s.get("p95_pos_m")), _fmt(nees.get("mean")),
+                     _fmt(nees.get("median")), _fmt(None if inside is None else 100.0 * inside, 1),
+                     _fmt(s.get("seconds"), 2)])
     return rows
+
+
+def _nees_zone_table(methods: list[str], summary: dict) -> str:
+    """Per GNSS zone: mean NEES / median NEES / % inside the 95 % ellipse (summary.json ``nees_pos``)."""
+    blocks = {m: ((summary.get("methods") or {}).get(m) or {}).get("nees_pos") or {} for m in methods}
+    labels = _sorted_labels(z for b in blocks.values() for z in (b.get("by_zone") or {}))
+    if not labels:
+        return "<p>No per-zone NEES in summary.json.</p>"
+    header = ["method"] + [f"zone {_esc(z)}<br><small>mean / median NEES / % inside 95 %</small>" for z in labels]
+    rows = []
+    for m in methods:
+        row = [_method_cell(m)]
+        for z in labels:
+            b = (blocks[m].get("by_zone") or {}).get(z)
+            if not isinstance(b, dict):  # summaries written before the block had its median and share
+                row.append("–" if b is None else _fmt(b))
+                continue
+            inside = b.get("inside_95")
+            row.append(f"{_fmt(b.get('mean'))} / {_fmt(b.get('median'))} / "
+                       f"{_fmt(None if inside is None else 100.0 * inside, 1)}")
+        rows.append(row)
+    return _table(header, rows)
 
 
 def _by_table(methods: list[str], summary: dict, key: str, word: str) -> str:

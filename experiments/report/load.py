@@ -20,6 +20,8 @@ from experiments.report.styles import order_methods
 # --------------------------------------------------------------------------- #
 
 _EST_COLS = ["method", "t", "err_pos", "err_vel", "err_along", "err_cross", "zone", "area"]
+#: What the 2-D position NEES is computed from (cov_pxy: files written since it was added); replaced by "nees".
+_NEES_COLS = ["px", "py", "px_true", "py_true", "var_px", "var_py", "cov_pxy"]
 
 
 #: Columns a report cannot do without, per file of a run folder (the others it reads are optional:
@@ -120,7 +122,16 @@ def _load_run(run_dir: Path, *, need_areas: bool = True) -> _Run:
             raise InputError(run_dir / "summary.json", None, "not a coloc summary (expected a JSON object)")
     cols = _EST_COLS if need_areas else ["method", "t", "err_pos", "err_vel"]
     run = _Run(run_dir=run_dir, config=config, summary=summary)
-    run.estimates = _read_parquet(run_dir / "estimates.parquet", cols)
+    run.estimates = _read_parquet(run_dir / "estimates.parquet", cols + (_NEES_COLS if need_areas else []))
+    if run.estimates is not None and need_areas:
+        est = run.estimates
+        if set(_NEES_COLS) <= set(est.columns):
+            from experiments.rowstream import position_nees
+
+            col = {c: est[c].to_numpy(dtype=float) for c in _NEES_COLS}
+            est["nees"] = position_nees(col["px"] - col["px_true"], col["py"] - col["py_true"], col["var_px"],
+                                        col["var_py"], col["cov_pxy"])
+        run.estimates = est.drop(columns=[c for c in _NEES_COLS if c in est.columns])
     run.features = _read_parquet(run_dir / "features.parquet", ["method", "t", "err_pos"])
     run.traffic = _read_parquet(
         run_dir / "traffic.parquet",

@@ -12,6 +12,7 @@ import matplotlib
 from experiments.report.figures import (
     _fig_cdf,
     _fig_map,
+    _fig_nees_time,
     run_placeholders,
     _fig_rmse_time,
     _fig_track,
@@ -26,6 +27,7 @@ from experiments.report.html import (
     _fmt,
     _method_cell,
     _method_stats_rows,
+    _nees_zone_table,
     _page,
     _table,
     _what_was_run,
@@ -151,6 +153,20 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
             "cooperative gain at that time of the traffic evolution.", what=what),))
     jobs.append((2.0, rmse_time))
 
+    if "nees" in est.columns:
+        def nees_time() -> _Drawn:
+            width = _fig_nees_time(run, figdir / "nees_time.png")
+            return _Drawn((_figure_html(
+                "nees_time.png", "Consistency over time",
+                f"(a) Mean 2-D position NEES e<sup>T</sup>P<sup>-1</sup>e over all vehicles inside each {width} s "
+                "bin (e: the position error, P: the position covariance the method reports, from "
+                "<code>var_px</code>, <code>var_py</code>, <code>cov_pxy</code>); (b) the share of those samples "
+                "whose true position lies inside the reported 95 % ellipse (NEES at most 5.99). The grey band is "
+                "the warm-up the statistics do not score. How to read: a consistent method stays near 2 and 95 % "
+                "(dashed lines); above 2 and below 95 %, its covariance claims more accuracy than it has.",
+                what=what),))
+        jobs.append((2.0, nees_time))
+
     if "area" in est.columns:
         def cdf_area() -> _Drawn:
             if not _fig_cdf(run, "area", figdir / "cdf_area.png", "area"):
@@ -259,10 +275,11 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
     parts.append("<h2>Accuracy summary</h2>")
     parts.append("<p>From <code>summary.json</code>: position RMSE, velocity RMSE, median (p50) and "
                  "95th percentile (p95) of the position error over all vehicles and time steps, the mean "
-                 "2-D position NEES (2 for an estimator whose covariance matches its errors; larger: "
-                 "overconfident) and the estimator's wall-clock time.</p>")
+                 "and median 2-D position NEES (2 and 1.39 for an estimator whose covariance matches its "
+                 "errors; larger: overconfident), the share of samples inside the reported 95 % ellipse "
+                 "(95 % when consistent) and the estimator's wall-clock time.</p>")
     parts.append(_table(["method", "RMSE pos [m]", "RMSE vel [m/s]", "p50 pos [m]", "p95 pos [m]",
-                         "NEES pos", "time [s]"], _method_stats_rows(methods, s)))
+                         "NEES mean", "NEES median", "inside 95 % [%]", "time [s]"], _method_stats_rows(methods, s)))
     perc = s.get("perception")
     if perc:
         per = perc.get("per_vehicle_step") or {}
@@ -287,6 +304,7 @@ def _run_html(run: _Run, blocks: list[str]) -> str:
                               _fmt(c.get("rounds_per_step"), 1)] for m, c in comm]))
     parts.append("<h3>Per analysis area</h3>" + _by_table(methods, s, "by_area", "area"))
     parts.append("<h3>Per GNSS zone</h3>" + _by_table(methods, s, "by_zone", "zone"))
+    parts.append("<h3>Consistency per GNSS zone</h3>" + _nees_zone_table(methods, s))
     cov = s.get("within_rsu_coverage")
     if cov:
         parts.append(_coverage_html(methods, cov))

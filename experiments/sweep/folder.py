@@ -61,8 +61,8 @@ def _check_or_write_spec(out: Path, text: str, spec_path: Path, ignore: tuple[st
 INPUTS_FILE = "inputs.json"
 # The aggregate tables of a sweep folder and every top-level file the sweep writes there (all listed in
 # its manifest, couplers.publish): a user's file of such a name is never replaced.
-TABLES = ("sweep.parquet", "curves.parquet", "zones.parquet", "v2v.parquet", "paired.parquet", "effects.parquet",
-          "effects.png")
+TABLES = ("sweep.parquet", "curves.parquet", "zones.parquet", "v2v.parquet", "paired.parquet",
+          "consistency.parquet", "effects.parquet", "effects.png")
 OWN_FILES = ("sweep.toml", INPUTS_FILE, *TABLES, "report.html")
 
 

@@ -339,6 +339,8 @@ def write_sweep_report(out: Path, force: bool = False) -> Path:
                                                    "p95_pos_m"])
     v2v = _read_optional(out / "v2v.parquet", [*keys, "n_runs", "degree", "vehicle_steps"])
     paired = _read_optional(out / "paired.parquet", [*keys, "zone", "a", "b", "mean", "ci_lo", "ci_hi", "seeds"])
+    consistency = _read_optional(out / "consistency.parquet", [*keys, "method", "zone", "seeds", "anees", "band_lo",
+                                                               "band_hi", "inside_band", "t_lo", "t_hi", "inside_95"])
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
     seeds = spec.get("eval_seeds") or spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""
@@ -424,6 +426,24 @@ def write_sweep_report(out: Path, force: bool = False) -> Path:
                                _esc(f"{method_label(r['a'])} − {method_label(r['b'])}"), f"{r['mean']:+.2f}",
                                f"[{r['ci_lo']:+.2f}, {r['ci_hi']:+.2f}]", str(int(r["seeds"]))]
                               for _, r in paired.iterrows()], left_cols=len(keys) + 2)]
+        if consistency is not None and len(consistency):
+            parts += ["<h2>Consistency across seeds</h2>",
+                      "<p>Average NEES: the mean over the seeds of each run's time-averaged 2-D position NEES "
+                      "(after the warm-up), per GNSS zone (\"all\" pools them); 2 for a consistent method. Its 95 % "
+                      "band counts each run as one independent 2-dof sample, [χ²<sub>2S</sub>(0.025), "
+                      "χ²<sub>2S</sub>(0.975)] / S for S seeds: samples within a run are correlated, the runs are not, "
+                      "and a run's time average spreads at most as much as one sample, so the band is conservative "
+                      "(<code>experiments/sweep/consistency.py</code>). Beside it, the 95 % t interval of the per-run "
+                      "means, and the mean share of samples inside the reported 95 % ellipse (95 % when consistent). "
+                      "From <code>consistency.parquet</code>.</p>",
+                      _table([*(_esc(_key_label(k)) for k in keys), "method", "zone", "seeds", "average NEES",
+                              "χ² band", "inside band", "t interval", "inside 95 % [%]"],
+                             [[*(_esc(_value_label(r[k])) for k in keys), _method_cell(str(r["method"])),
+                               _esc(str(r["zone"])), str(int(r["seeds"])), _fmt(r["anees"]),
+                               f"[{r['band_lo']:.2f}, {r['band_hi']:.2f}]", "yes" if r["inside_band"] else "no",
+                               "–" if not np.isfinite(r["t_lo"]) else f"[{r['t_lo']:.2f}, {r['t_hi']:.2f}]",
+                               _fmt(100.0 * r["inside_95"], 1)]
+                              for _, r in consistency.iterrows()], left_cols=len(keys) + 2)]
         parts.append("<h2>Figures</h2>")
         parts.extend(blocks if blocks else ["<p>No figures (no curves).</p>"])
         (tmp / "report.html").write_text(_page(f"coloc sweep report: {spec.get('name', '')}", "\n".join(parts)),

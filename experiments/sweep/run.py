@@ -85,6 +85,7 @@ from couplers.errors import InputError, recording_reads
 from couplers.publish import check_members, check_target, make_folder, mark, publish_files
 from experiments.scoring import scored_mask
 from experiments.config import Config, _toml_value
+from experiments.sweep.consistency import consistency_table, nees_partial
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 from experiments.sweep.spec import (  # noqa: F401 (re-exported: the names of the sweep, one import path)
     SPEC_KEYS,
@@ -204,6 +205,7 @@ def run_partials(run_dir: Path, centre: tuple[float, float] | None, distance_bin
     out = {"summary": rows}
     out["zone_sums"], out["zone_hist"] = zone_partials(est)
     out["degree"] = degree_partial(summary)
+    out["nees"] = nees_partial(summary)
     out["time"] = _sse(est, ["method", "t"], {"err_pos": "sse_pos", "err_vel": "sse_vel"}).rename(columns={"t": "x"})
     out["overall"] = _sse(est, ["method"], {"err_pos": "sse_pos", "err_vel": "sse_vel"})
     if centre is not None:
@@ -535,11 +537,13 @@ def _run_locked(spec: SweepSpec, runs: list[SweepRun], out: Path, spec_text: str
     method_rank = {m: i for i, m in enumerate(runs[0].cfg.run.methods)} if runs else {}
     n_runs = np.bincount([r.setting for r in runs], minlength=len(settings_of(spec)))
     zones, v2v = aggregate_zones(runs, partials, lambda st: _param_columns(spec, st), n_runs, method_rank)
+    consistency = consistency_table(runs, partials, lambda st: _param_columns(spec, st), method_rank)
     from experiments.runner import write_parquet
 
     outputs = [("sweep.parquet", table), ("curves.parquet", curves)]
     outputs += [(name, df) for name, df in (("zones.parquet", zones), ("v2v.parquet", v2v),
-                                            ("paired.parquet", paired)) if len(df)]
+                                            ("paired.parquet", paired), ("consistency.parquet", consistency))
+                if len(df)]
     tables = {}
     if spec.design != "one_at_a_time":  # main effects and two-factor interactions with their intervals
         from experiments.sweep.effects import effects_figure, effects_table

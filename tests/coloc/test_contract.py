@@ -14,6 +14,8 @@ Known-association methods are driven through ``step_with_association`` with the 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -298,3 +300,52 @@ def test_truth_blind_with_sensor_frame_detections(name):
         assert_valid(ea, f)
         for e in (step(name, b, scrambled(f, rng), assoc), step(name, c, f.without_truth(), assoc)):
             assert ea.mean.tobytes() == e.mean.tobytes() and ea.cov.tobytes() == e.cov.tobytes()
+
+
+def _enter_from_fix(frame, k: int, first: bool):
+    """The frame with vehicle row ``k`` absent (``first`` False) or entering now from its receiver's fix
+    (``first``: ``start = "gnss_fix"`` as the SUMO coupler makes it: prior = the step's fix,
+    ``prior_has_fix``), with no V2F row and no radar detection of it, so its first belief has nothing
+    but that fix."""
+    n = frame.n_vehicles
+    if not first:
+        return select_vehicles(frame, np.delete(np.arange(n), k))
+    ent = frame.entered.copy()
+    ent[k] = True
+    f = select_vehicles(frame, np.arange(n), entered=ent)
+    f = replace(f, prior_z=np.where(ent[:, None], f.gnss_z, np.nan),
+                prior_R=np.where(ent[:, None, None], f.gnss_R, np.nan), prior_has_fix=ent.copy())
+    keep = np.flatnonzero(f.v2f_owner != k)
+    truth = replace(f.truth, v2f_feature=f.truth.v2f_feature[keep])
+    f = replace(f, v2f_z=f.v2f_z[keep], v2f_owner=f.v2f_owner[keep], v2f_R=f.v2f_R[keep], truth=truth)
+    if f.infra is not None:
+        seen = np.flatnonzero(f.truth.radar_vehicle != k)
+        f = replace(f, infra=replace(f.infra, radar_z=f.infra.radar_z[seen], radar_owner=f.infra.radar_owner[seen]),
+                    truth=replace(f.truth, radar_vehicle=f.truth.radar_vehicle[seen]))
+    return f
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_first_belief_is_the_receiver_fix(name):
+    """The entry protocol (start = "gnss_fix"): a vehicle whose prior is its receiver's fix of the step has,
+    as its belief written at that step, the fix and the covariance the receiver reports (position part),
+    not that fix applied twice (covariance halved), and nothing of its truth. Particle methods: within
+    their Monte Carlo error (300 particles)."""
+    frames = frames_for(name)
+    k, s = 1, 3
+    if _method(name).infrastructure:  # a vehicle inside the RSU's range at its entry step
+        s = next(j for j in range(2, len(frames)) if frames[j].infra.v2i[:, k].nnz)
+    est = build(name)
+    for j, f in enumerate(frames[: s + 1]):
+        f = _enter_from_fix(f, k, j == s)
+        out = step(name, est, f)
+    z, r = f.gnss_z[k, :2], f.gnss_R[k, :2, :2]
+    assert np.abs(z - f.truth.x_true[k, :2]).max() > 0.5  # the fix is not the truth
+    if name.startswith("icp_da_pf") or name.startswith("icp_known_da_pf") or name == "rsu_bp":
+        j_eff = 60 if name == "rsu_bp" else 300
+        assert np.all(np.abs(out.mean[k, :2] - z) < 4.5 * np.sqrt(np.diag(r) / j_eff))
+        ratio = np.diag(out.cov[k, :2, :2]) / np.diag(r)
+        assert np.all((ratio > 0.6) & (ratio < 1.4)), ratio  # twice the fix would give 0.5
+    else:
+        np.testing.assert_allclose(out.mean[k, :2], z, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(out.cov[k, :2, :2], r, rtol=1e-9, atol=1e-9)

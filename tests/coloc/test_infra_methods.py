@@ -105,7 +105,7 @@ def test_fg_single_vehicle_is_the_position_filter():
             continue
         z, rz = f.gnss_z[0, :2], f.gnss_R[0, :2, :2]
         if m is None:
-            sm, sc = fg._start_beliefs(f, np.array([0]), prev)
+            sm, sc, _ = fg._start_beliefs(f, np.array([0]), prev)
             m, p = sm[0, :2], sc[0, :2, :2]
         else:
             m, p = m + f.infra.odom[0], p + f.infra.odom_var * np.eye(2)

@@ -205,9 +205,10 @@ def test_gnss_fix_prior_is_the_receiver_fix(model):
 
 
 def test_estimators_start_from_the_receiver_fix(cross_net, tmp_path, monkeypatch):
-    """A short SUMO run with the field model and start = "gnss_fix": the gnss tracker's estimate of a vehicle
-    at its entry step is its fix (a prior at the fix updated by the same fix stays there), and icp_da_lc's
-    first belief b^(0) of every fresh vehicle is its fix."""
+    """A short SUMO run with the field model and start = "gnss_fix": the frame marks the prior as the fix
+    (prior_has_fix), the gnss tracker's estimate of a vehicle at its entry step is its fix with the receiver's
+    covariance (not updated by the same fix again), and icp_da_lc's first belief b^(0) of every fresh vehicle
+    is its fix."""
     import coloc.methods.icp_da_lc as lc_module
     from coloc.core.vehicles import fresh_rows, match_ids
     from experiments.config import load_config
@@ -256,6 +257,8 @@ model = "field"
             estimators[1].step(blind)
             assert np.array_equal(frame.prior_z[frame.entered], frame.gnss_z[frame.entered])
             assert np.abs(est.mean[fresh] - frame.gnss_z[fresh]).max(initial=0.0) < 1e-9
+            assert np.array_equal(frame.prior_has_fix, frame.entered)
+            assert np.abs(est.cov[fresh] - frame.gnss_R[fresh]).max(initial=0.0) < 1e-9
             entries += int(fresh.sum())
             prev_ids = frame.vehicle_ids
     assert entries > 5

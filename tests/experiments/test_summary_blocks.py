@@ -1,5 +1,6 @@
-"""summary.json blocks of realistic sensing: the mean 2-D position NEES (a consistent Gaussian gives 2) and the
-association shares per GNSS zone (they add up to the run's)."""
+"""summary.json blocks of realistic sensing: the 2-D position NEES (a consistent Gaussian gives mean 2, median
+2 ln 2 and 95 % of its samples inside the 95 % ellipse) and the association shares per GNSS zone (they add up
+to the run's)."""
 
 import numpy as np
 
@@ -31,8 +32,19 @@ def test_nees_of_samples_drawn_from_the_reported_covariance_is_two():
     out = nees_summary(nees, zone)
     se = 2.0 / np.sqrt(nees.size)
     assert abs(out["mean"] - 2.0) < 4 * se
+    assert out["n"] == nees.size
+    # the share inside the 95 % ellipse: binomial(n, 0.95), two-sided 0.1 % band (z = 3.29)
+    half = 3.29 * np.sqrt(0.95 * 0.05 / nees.size)
+    assert abs(out["inside_95"] - 0.95) < half
+    # the median of a chi-square with 2 dof is 2 ln 2; its standard error ~ 1 / (2 f(m) sqrt(n)), f(m) = 1/4
+    assert abs(out["median"] - 2.0 * np.log(2.0)) < 4 * 2.0 / np.sqrt(nees.size)
     for z in ("A", "B"):
-        assert abs(out["by_zone"][z] - 2.0) < 4 * 2.0 / np.sqrt(nees.size / 2)
+        b = out["by_zone"][z]
+        assert abs(b["mean"] - 2.0) < 4 * 2.0 / np.sqrt(nees.size / 2)
+        assert abs(b["inside_95"] - 0.95) < 3.29 * np.sqrt(0.95 * 0.05 / b["n"])
+    # the same errors against a covariance claiming half the spread: overconfident, far outside the band
+    over = nees_summary(2.0 * nees, zone)
+    assert over["inside_95"] < 0.95 - 10 * half and abs(over["mean"] - 4.0) < 8 * se
 
 
 def test_association_by_zone_adds_up_to_the_run_totals():
