@@ -1,7 +1,7 @@
 """What ``joint_oracle`` is told of the world: the one estimator that reads the world's tables.
 
 :func:`oracle_world` copies ``[gnss_error]`` (the GNSS error structure and its parameters) and
-``[scenario] start`` into :class:`coloc.methods.joint_oracle.OracleWorld` (``coloc`` does not import
+``[inertial]`` into :class:`coloc.methods.joint_oracle.OracleWorld` (``coloc`` does not import
 ``couplers``). Every other estimator keeps to its own tables (docs: DESIGN "Two models, never one").
 """
 
@@ -20,7 +20,6 @@ def oracle_world(cfg):
         return None
     from coloc.methods.joint_oracle import GNSS_WORLDS, OracleWorld
 
-    start = getattr(cfg.scenario, "start", "fast_start")
     imu = {}
     if getattr(cfg, "inertial", None) is not None:
         i = cfg.inertial
@@ -28,7 +27,7 @@ def oracle_world(cfg):
                    accel_bias_tau_s=i.accel_bias_tau_s, accel_noise_density=i.accel_noise_density)
     ge = cfg.gnss_error
     if ge is None:
-        return OracleWorld(start=start, **imu)
+        return OracleWorld(**imu)
     if ge.model not in GNSS_WORLDS:
         raise InputError(cfg.path, "gnss_error.model",
                          f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
@@ -39,5 +38,5 @@ def oracle_world(cfg):
         common_share=ge.common_share if field else 0.0, common_tau_s=ge.common_tau_s,
         field_share=ge.field_share if field else 0.0, field_corr_length_m=ge.field_corr_length_m,
         field_tau_s=ge.field_tau_s, local_corr_length_m=ge.local_corr_length_m if field else math.inf,
-        nlos=bool(rates and ge.nlos_bias_mean_m > 0), start=start, **imu,
+        nlos=bool(rates and ge.nlos_bias_mean_m > 0), **imu,
     )

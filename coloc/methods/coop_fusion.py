@@ -33,7 +33,7 @@ from coloc.core.vehicles import fresh_rows
 from coloc.inference.bpa import BpaResult
 from coloc.inference.params import IcpParams
 from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_ci_update
-from coloc.methods.gnss_bias import H, GnssModelParams, bias_predict_update
+from coloc.methods.gnss_bias import H, GnssModelParams, bias_predict_update, entry_fix_posterior
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -215,12 +215,15 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
     own_streak = _carry(state.own_streak, match, fresh, n, ())
     own_m, own_p, own_ex = bias_predict_update(own_m, own_p, accel, z, r, keep, float(frame.dt), motion, model,
                                                own_streak)
+    entry_fix_posterior(own_m, own_p, frame, fresh, r, model.bias_share)  # the entry protocol, as gnss_bias
     m, p = carried(state.mean, state.cov)
     pi = _carry(state.ind, match, fresh, n, (6, 6))
     # A new vehicle's prior is its own receiver's: independent (dependent with common-mode errors).
     pi[fresh] = 0.0 if common_mode else init_p[fresh]
     streak = _carry(state.streak, match, fresh, n, ())
     m, p, pi, ex = _split_gnss_step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
+    once = entry_fix_posterior(m, p, frame, fresh, r, model.bias_share)
+    pi[once] = 0.0 if common_mode else p[once]  # the receiver's fix, once: independent unless errors are shared
     return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0))
 
 

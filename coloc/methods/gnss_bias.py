@@ -92,6 +92,23 @@ class GnssModelParams:
         return math.inf if self.innovation_gate == 0 else -2.0 * math.log1p(-self.innovation_gate)
 
 
+def entry_fix_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndarray, r: np.ndarray,
+                        bias_share: float) -> np.ndarray:
+    """In place, after the step's GNSS update of 6-state [p, v, b] beliefs: the rows whose entry prior is this
+    step's fix (:func:`coloc.core.vehicles.entry_fix_rows`) get the one-fix posterior instead of a second
+    update by it. With a flat prior on p, z = p + b + w, b ~ N(0, s R), w ~ N(0, (1 - s) R): p | z ~ N(z, R),
+    b | z ~ N(0, s R), Cov(p, b) = -s R (s = ``bias_share``). Returns the rows."""
+    once = keep_entry_fix(mean, cov, frame, fresh)
+    if once.any():
+        cross = -bias_share * r[once, :2, :2]
+        cov[once, :4, 4:] = 0.0
+        cov[once, 4:, :4] = 0.0
+        cov[once, :2, 4:], cov[once, 4:, :2] = cross, np.swapaxes(cross, -1, -2)
+        mean[once, 4:] = 0.0
+        cov[once, 4:, 4:] = bias_share * r[once, :2, :2]
+    return once
+
+
 def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
                         streak=None):
     """One step for a batch of 6-D states (N, 6), (N, 6, 6): predict where ``predict_mask``, then the
@@ -187,14 +204,7 @@ class GnssBiasTracker:
         mean, cov, self.last_excluded = bias_predict_update(
             mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
             float(frame.dt), self.motion, self.model, streak)
-        once = keep_entry_fix(mean, cov, frame, fresh)  # a prior that is this step's fix: not updated again
-        if once.any():
-            cross = -self.model.bias_share * r[once, :2, :2]
-            cov[once, :4, 4:] = 0.0
-            cov[once, 4:, :4] = 0.0
-            cov[once, :2, 4:], cov[once, 4:, :2] = cross, np.swapaxes(cross, -1, -2)
-            mean[once, 4:] = 0.0
-            cov[once, 4:, 4:] = self.model.bias_share * r[once, :2, :2]
+        entry_fix_posterior(mean, cov, frame, fresh, r, self.model.bias_share)
         self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)

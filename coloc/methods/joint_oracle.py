@@ -36,9 +36,9 @@ position std (``frame.gnss_R``: the zone's sigma_p, so the zone rescaling of the
   taken.
 * "white" world (no ``[gnss_error]``): no error states, ``R = gnss_R`` as in the centralized KF.
 
-Entering vehicles: ``start = "gnss_fix"`` (the prior is the step's own fix) -> zero prior information on
-the kinematics (the fix is used once, in the update; the world's prior would count it twice); else the
-frame's prior (``prior_z``, ``prior_R``). Their ``l`` starts stationary, N(0, I), independent.
+Entering vehicles: a prior that is the step's own fix (``Frame.prior_has_fix``, the entry protocol of
+:func:`coloc.core.vehicles.entry_fix_rows`) -> zero prior information on the kinematics (the fix is used
+once, in the update); else the frame's prior (``prior_z``, ``prior_R``). Their ``l`` starts stationary, N(0, I), independent.
 
 Sensor rows: net-frame rows (``v2f_z``, ``v2f_R``) as model (4), H = [-I (vehicle) | +I (feature)], with
 the frame's row covariance (the world's sensor noise). Sensor-frame rows (``frame.v2f_sensor``: range,
@@ -77,7 +77,7 @@ from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import wrap_angle
 from coloc.core.models import driving_noise_cov, input_matrix, symmetrize, transition_matrix
 from coloc.core.vehicle_rows import expand_rows, without_vehicle_rows
-from coloc.core.vehicles import match_ids
+from coloc.core.vehicles import entry_fix_rows, match_ids
 from coloc.inference.bpa import validate_association
 from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
@@ -104,7 +104,6 @@ class OracleWorld:
     field_tau_s: float = 300.0
     local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
     nlos: bool = False  # the world has NLOS episodes: gate the fixes
-    start: str = "fast_start"  # "gnss_fix": the entering vehicle's prior is the step's own fix
     # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
     # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
     accel_turn_on_sigma: float | None = None
@@ -121,8 +120,6 @@ class OracleWorld:
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
             raise ValueError(f"gnss must be one of {GNSS_WORLDS}, got {self.gnss!r}")
-        if self.start not in ("fast_start", "gnss_fix"):
-            raise ValueError(f"start must be 'fast_start' or 'gnss_fix', got {self.start!r}")
         for key in ("common_share", "field_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ValueError(f"{key} must be in [0, 1]")
@@ -379,10 +376,11 @@ class JointOracle:
             eta[pos_keep] = li @ mean_pred[pos_keep]
         fr = np.flatnonzero(fresh)
         if fr.size:
-            if w.start != "gnss_fix":
-                prior_z = np.asarray(frame.prior_z, dtype=float)[fr]
-                lp = np.linalg.inv(np.asarray(frame.prior_R, dtype=float)[fr])
-                ind = _idx(vd * fr, 4)
+            pr = fr[~entry_fix_rows(frame, fresh)[fr]]  # a prior that is the step's fix is not counted twice
+            if pr.size:
+                prior_z = np.asarray(frame.prior_z, dtype=float)[pr]
+                lp = np.linalg.inv(np.asarray(frame.prior_R, dtype=float)[pr])
+                ind = _idx(vd * pr, 4)
                 _scatter(lam, eta, ind, symmetrize(lp), np.einsum("nij,nj->ni", lp, prior_z))
             if w.correlated:  # the local error state starts stationary
                 ind = _idx(vd * fr + 4, 2)

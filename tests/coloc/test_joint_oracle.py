@@ -100,12 +100,11 @@ def _batch(frames, world: OracleWorld, params: IcpParams):
     eta_parts = [np.zeros(d)]
     f0 = frames[0][0]
     lam0, eta0 = blocks_info[0], eta_parts[0]
-    if world.start != "gnss_fix":
-        for i in range(n):
-            li = np.linalg.inv(f0.prior_R[i])
-            s = slice(vd * i, vd * i + 4)
-            lam0[s, s] += li
-            eta0[s] += li @ f0.prior_z[i]
+    for i in range(n):  # the frames carry no prior_has_fix: every entry prior counts
+        li = np.linalg.inv(f0.prior_R[i])
+        s = slice(vd * i, vd * i + 4)
+        lam0[s, s] += li
+        eta0[s] += li @ f0.prior_z[i]
     for i in range(n if world.correlated else 0):
         s = slice(vd * i + 4, vd * i + 6)
         lam0[s, s] += np.eye(2)

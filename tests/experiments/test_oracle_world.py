@@ -17,7 +17,7 @@ def test_realistic_preset_tells_the_field_model_and_the_first_fix():
                       overrides={"run.methods": ["gnss", "joint_oracle"]})
     w = oracle_world(cfg)
     ge = cfg.gnss_error
-    assert (w.gnss, w.start, w.nlos) == ("field", "gnss_fix", True)
+    assert (w.gnss, w.nlos) == ("field", True)
     assert (w.common_share, w.common_tau_s, w.field_share) == (ge.common_share, ge.common_tau_s, ge.field_share)
     assert (w.tau_s, w.local_corr_length_m, w.field_corr_length_m) == (ge.tau_s, ge.local_corr_length_m,
                                                                         ge.field_corr_length_m)
@@ -40,5 +40,5 @@ def test_per_vehicle_world_has_no_shared_part():
                       overrides={"run.methods": ["joint_oracle"], "gnss_error.model": "per_vehicle",
                                  "scenario.start": "fast_start"})
     w = oracle_world(cfg)
-    assert (w.gnss, w.start, w.common_dim, w.field_share) == ("per_vehicle", "fast_start", 0, 0.0)
+    assert (w.gnss, w.common_dim, w.field_share) == ("per_vehicle", 0, 0.0)
     assert math.isinf(w.local_corr_length_m)
