@@ -127,8 +127,12 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
     for r in runs:
         for row in _method_stats_rows(r.methods, r.summary):
             rows.append([_esc(_run_label(r, runs))] + row)
+    parts.append("<p>From each run's <code>summary.json</code>: position and velocity RMSE, median and 95th "
+                 "percentile of the position error, the mean and median 2-D position NEES (2 and 1.39 when the "
+                 "reported covariance matches the errors; larger: overconfident), the share of samples inside "
+                 "the reported 95 % ellipse (95 % when consistent) and the estimator's wall-clock time.</p>")
     parts.append(_table(["run", "method", "RMSE pos [m]", "RMSE vel [m/s]", "p50 pos [m]", "p95 pos [m]",
-                         "NEES pos", "time [s]"], rows, left_cols=2))
+                         "NEES mean", "NEES median", "inside 95 % [%]", "time [s]"], rows, left_cols=2))
 
     # Per-area p95: one column per (run, method).
     cols = [(r, m) for r in runs for m in r.methods]
@@ -143,6 +147,8 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
         parts.append(_table(header, rows))
     else:
         parts.append("<p>No per-area statistics.</p>")
+
+    parts.extend(_nees_zone_html(runs))
 
     # Infrastructure mode: all methods on the covered vehicle-steps, per run and area, side by side.
     cov_runs = [r for r in runs if r.summary.get("within_rsu_coverage")]
@@ -180,3 +186,31 @@ def _comparison_html(runs: list[_Run], out_dir: Path, blocks: list[str]) -> str:
     parts.extend(blocks if blocks else ["<p>No figures (missing input files).</p>"])
     title = "coloc comparison: " + " vs ".join(_run_label(r, runs) for r in runs)
     return _page(title, "\n".join(parts))
+
+
+def _nees_zone_html(runs: list[_Run]) -> list[str]:
+    """Consistency per GNSS zone, one column per (run, method): summary.json ``nees_pos.by_zone`` (mean /
+    median NEES / % inside the 95 % ellipse); nothing when no run has per-zone NEES."""
+    cols = [(r, m) for r in runs for m in r.methods]
+    blocks = {(id(r), m): ((((r.summary.get("methods") or {}).get(m) or {}).get("nees_pos") or {})
+                           .get("by_zone") or {}) for r, m in cols}
+    zones = _sorted_labels(z for b in blocks.values() for z in b)
+    if not zones:
+        return []
+
+    def cell(b) -> str:
+        if b is None:
+            return "–"
+        if not isinstance(b, dict):  # summaries written before the block had its median and share
+            return _fmt(b)
+        inside = b.get("inside_95")
+        return (f"{_fmt(b.get('mean'))} / {_fmt(b.get('median'))} / "
+                f"{_fmt(None if inside is None else 100.0 * inside, 1)}")
+
+    header = ["zone"] + [f"{_esc(_run_label(r, runs))}<br>{_esc(method_label(m))}" for r, m in cols]
+    rows = [[_esc(z)] + [cell(blocks[(id(r), m)].get(z)) for r, m in cols] for z in zones]
+    return ["<h2>Consistency per GNSS zone: mean / median NEES / inside 95 % [%]</h2>",
+            "<p>The 2-D position NEES of each run's vehicle-steps in a zone (after the warm-up), from "
+            "<code>summary.json</code> <code>nees_pos.by_zone</code>; 2 / 1.39 / 95 % for a consistent "
+            "method.</p>",
+            _table(header, rows)]

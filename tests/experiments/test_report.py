@@ -338,3 +338,50 @@ def test_run_report_workers_same_bytes(tmp_path, net_dir):
         page = report.write_run_report(d, workers=2).read_text(encoding="utf-8")
     assert "map skipped" in page and "figures/map.png" not in page
     assert not (d / "figures" / "map.png").exists() and (d / "figures" / "cdf_area.png").exists()
+
+
+def _table_after(page: str, heading: str) -> list[list[str]]:
+    """The cells of the first table after ``heading`` (tags stripped), one list per body row."""
+    body = page[page.index(heading):]
+    body = body[body.index("<tbody>"):body.index("</tbody>")]
+    return [[re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", tr)]
+            for tr in re.findall(r"<tr>(.*?)</tr>", body)]
+
+
+def test_comparison_report_shows_each_runs_nees(tmp_path):
+    """The comparison's accuracy table has the NEES mean, median and share inside the 95 % ellipse of every
+    (run, method), and the per-zone table the by-zone block, both equal to the runs' summary.json."""
+    runs = []
+    for k, (name, control) in enumerate((("arterial_tlr", "tlr"), ("arterial_vsr", "vsr"))):
+        d = _make_run(tmp_path / "runs", name, control, 1, None, with_features=False)
+        s = json.loads((d / "summary.json").read_text())
+        for j, m in enumerate(sorted(s["methods"])):
+            base = 1.5 + 0.75 * k + 2.0 * j
+            s["methods"][m]["nees_pos"] = {
+                "mean": base, "median": base * 0.6931, "inside_95": 0.9 - 0.1 * j - 0.05 * k, "n": 160,
+                "by_zone": {z: {"mean": base + i, "median": (base + i) * 0.7, "inside_95": 0.8 + 0.05 * i, "n": 50}
+                            for i, z in enumerate(ZONES)}}
+        (d / "summary.json").write_text(json.dumps(s))
+        runs.append(d)
+    page = report.write_comparison_report(runs, tmp_path / "cmp", build_missing=False).read_text(encoding="utf-8")
+    acc = _table_after(page, "<h2>Accuracy summary</h2>")
+    assert all(len(r) == 10 for r in acc)  # run, method, 4 errors, 3 NEES columns, time
+    zone_rows = {r[0]: r[1:] for r in _table_after(page, "<h2>Consistency per GNSS zone")}
+    assert sorted(zone_rows) == sorted(ZONES)
+    col = 0
+    for d in runs:
+        s = json.loads((d / "summary.json").read_text())
+        for m in s["methods"]:  # the order the report lists a run's methods in
+            n = s["methods"][m]["nees_pos"]
+            row = next(r for r in acc if r[1].endswith(f"({m})") and r[0].startswith(d.name))
+            assert row[6:9] == [f"{n['mean']:.3f}", f"{n['median']:.3f}", f"{100 * n['inside_95']:.1f}"]
+            for z, b in n["by_zone"].items():
+                assert zone_rows[z][col] == f"{b['mean']:.3f} / {b['median']:.3f} / {100 * b['inside_95']:.1f}"
+            col += 1
+
+
+def test_comparison_without_nees_has_no_zone_consistency_table(tmp_path):
+    a = _make_run(tmp_path / "runs", "arterial_tlr", "tlr", 1, None, with_features=False)
+    page = report.write_comparison_report([a], tmp_path / "cmp", build_missing=False).read_text(encoding="utf-8")
+    assert "Consistency per GNSS zone" not in page
+    assert all(r[6:9] == ["–", "–", "–"] for r in _table_after(page, "<h2>Accuracy summary</h2>"))
