@@ -322,6 +322,47 @@ def _zone_blocks(zones, v2v, keys, figdir, runs_text, seed_text, what) -> list[s
     return blocks
 
 
+def _effects_parts(effects: pd.DataFrame, grid_keys: list[str], has_figure: bool, what: str) -> list[str]:
+    """The section of a sweep with ``design = "full" | "fractional"``: its effects table (effects.parquet,
+    :func:`experiments.sweep.effects.effects_table`) and, when present, its figure (effects.png)."""
+    names = {str(r["letters"]): str(r["term"]) for _, r in effects.iterrows() if len(str(r["letters"])) == 1}
+
+    def aliases(v) -> str:  # "CD,EF" -> "CD (eta x vis), EF (...)": the letters of the factors' order
+        if v is None or pd.isna(v) or not str(v):
+            return "–"
+        return ", ".join(_esc(w + (" (" + " x ".join(names[c] for c in w) + ")" if all(c in names for c in w) else ""))
+                         for w in str(v).split(","))
+
+    def levels(r) -> str:
+        if "low" not in r or pd.isna(r["low"]) or pd.isna(r["high"]):
+            return "–"
+        return _esc(f"{r['low']} → {r['high']}")
+
+    parts = ["<h2>Main effects and two-factor interactions</h2>",
+             "<p>Effect of each factor (and of each pair, its interaction) from its first to its second level on "
+             "a run's position RMSE, per method and setting of the grid: the difference of the mean RMSE of the "
+             "runs at the two levels (for an interaction, of the runs where the two factors' levels agree and "
+             "where they differ), with its 95 % t interval from the residual variance of the fitted model "
+             "(Montgomery, Design and Analysis of Experiments, Ch. 6 and 8). An interval that holds 0 leaves "
+             "the sign undetermined. In a fraction, an effect is the sum of the effects of the terms it is "
+             "aliased with (column aliases, in the design's letters, A the first factor of the sweep file; "
+             "three-factor and higher interactions omitted). From "
+             "<code>effects.parquet</code>.</p>",
+             _table([*(_esc(_key_label(k)) for k in grid_keys), "method", "term", "levels", "effect [m]",
+                     "95 % interval [m]", "aliases", "runs"],
+                    [[*(_esc(_value_label(r[k])) for k in grid_keys), _method_cell(str(r["method"])),
+                      _esc(str(r["term"])), levels(r), f"{r['effect']:+.3f}",
+                      f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}]", aliases(r["aliases"]), str(int(r["n_runs"]))]
+                     for _, r in effects.iterrows()], left_cols=len(grid_keys) + 3)]
+    if has_figure:
+        parts.append(_figure_html(
+            "effects.png", "Effects on the position RMSE with their 95 % intervals",
+            "One panel per setting of the grid and method, one bar per term (blue: main effect, red: two-factor "
+            "interaction) with its 95 % interval. How to read: a bar whose interval crosses 0 is not resolved by "
+            "these seeds; the longest bars are the factors that matter.", prefix="", what=what))
+    return parts
+
+
 def write_sweep_report(out: Path, force: bool = False) -> Path:
     """Write ``out/report.html`` and ``out/figures/*.png`` from the sweep's files (``force``: a user's
     file in the way is kept aside, :func:`couplers.publish.publish_members`)."""
@@ -341,6 +382,8 @@ def write_sweep_report(out: Path, force: bool = False) -> Path:
     paired = _read_optional(out / "paired.parquet", [*keys, "zone", "a", "b", "mean", "ci_lo", "ci_hi", "seeds"])
     consistency = _read_optional(out / "consistency.parquet", [*keys, "method", "zone", "seeds", "anees", "band_lo",
                                                                "band_hi", "inside_band", "t_lo", "t_hi", "inside_95"])
+    effects = _read_optional(out / "effects.parquet", [*grid_keys, "method", "term", "letters", "effect", "ci_low",
+                                                       "ci_high", "aliases", "n_runs"])
     runs_text = _runs_text(curves[curves["curve"] == "overall"])
     seeds = spec.get("eval_seeds") or spec.get("seeds") or []
     seed_text = f"seeds {min(seeds)}–{max(seeds)}" if seeds else ""
@@ -444,6 +487,8 @@ def write_sweep_report(out: Path, force: bool = False) -> Path:
                                "–" if not np.isfinite(r["t_lo"]) else f"[{r['t_lo']:.2f}, {r['t_hi']:.2f}]",
                                _fmt(100.0 * r["inside_95"], 1)]
                               for _, r in consistency.iterrows()], left_cols=len(keys) + 2)]
+        if effects is not None and len(effects):
+            parts += _effects_parts(effects, grid_keys, (out / "effects.png").exists(), what)
         parts.append("<h2>Figures</h2>")
         parts.extend(blocks if blocks else ["<p>No figures (no curves).</p>"])
         (tmp / "report.html").write_text(_page(f"coloc sweep report: {spec.get('name', '')}", "\n".join(parts)),

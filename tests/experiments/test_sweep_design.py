@@ -185,3 +185,58 @@ def test_effects_table_recovers_known_effects_per_grid_value(tmp_path):
         assert e.loc["AB", "ci_low"] < 0.2 < e.loc["AB", "ci_high"]
         assert e.loc["AB", "aliases"].startswith("CD")  # AB = CD in the 2^(4-1), D = ABC
         assert e.loc["A", "term"] == "clutter" and e.loc["AB", "term"] == "clutter x tau"
+
+
+def test_design_sweep_report_shows_the_effects_table_and_figure(tmp_path):
+    """The sweep report of a fractional design gains the effects section (every term's effect, interval and
+    aliases as in effects.parquet, and effects.png); without effects.parquet the page is the same as before,
+    byte for byte, less that section."""
+    import io
+    import re
+
+    from experiments.runner import write_parquet
+    from experiments.sweep.effects import effects_figure
+    from experiments.sweep.report import write_sweep_report
+
+    out = tmp_path / "sw"
+    out.mkdir()
+    spec = _design_sweep(out, "fractional", ["clutter", "tau", "eta", "vis"])
+    curves = pd.DataFrame([{"curve": "overall", "scenario.control": c, "factor": "design", "level": "all",
+                            "method": "gnss", "x": 0.0, "n_runs": 16, "n_samples": 100, "rmse_pos_m": 3.0,
+                            "rmse_vel_mps": 0.5, "correct_pct": np.nan, "wrong_pct": np.nan,
+                            "discarded_pct": np.nan} for c in ("tlr", "vsr")])
+    write_parquet(curves, out / "curves.parquet")
+    plain = write_sweep_report(out).read_text(encoding="utf-8")
+    assert "Main effects" not in plain and "effects.png" not in plain
+
+    rng = np.random.default_rng(5)
+    rows = []
+    for control in ("tlr", "vsr"):
+        for seed in (1, 2):
+            for row in d.fractional_design(4, spec.generators):
+                rows.append({"scenario.control": control, "method": "gnss", "seed": seed,
+                             "rmse_pos_m": 2.0 + 0.4 * row[0] + 0.1 * row[0] * row[1] + rng.normal(0, 0.05),
+                             **{f.name: f.levels[int(v > 0)].label for f, v in zip(spec.factors, row)}})
+    eff = effects_table(spec, pd.DataFrame(rows))
+    assert len(eff) == 2 * 7  # per control: 4 main effects, 3 alias-free-of-mains two-factor chains
+    write_parquet(eff, out / "effects.parquet")
+    (out / "effects.png").write_bytes(effects_figure(eff))
+    page = write_sweep_report(out).read_text(encoding="utf-8")
+    assert '<img src="effects.png"' in page
+    sec = page[page.index("<h2>Main effects"):page.index("<h2>Figures</h2>")]
+    cells = [[re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", tr)]
+             for tr in re.findall(r"<tr>(.*?)</tr>", sec[sec.index("<tbody>"):])]
+    assert len(cells) == len(eff)
+    for cell, (_, r) in zip(cells, eff.iterrows()):
+        assert cell[0] == r["scenario.control"] and cell[2] == r["term"]
+        assert cell[4] == f"{r['effect']:+.3f}"
+        assert cell[5] == f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}]"
+        assert cell[6] == "–" or cell[6].split(" (")[0] == r["aliases"].split(",")[0]
+        assert cell[7] == str(int(r["n_runs"]))
+    a = next(c for c in cells if c[0] == "tlr" and c[2] == "clutter")
+    assert float(a[4]) == pytest.approx(0.8, abs=0.1)  # the known main effect, 2 x 0.4
+    ab = next(c for c in cells if c[0] == "tlr" and c[2] == "clutter x tau")
+    assert ab[6] == "CD (eta x vis)"  # AB = CD in the 2^(4-1), D = ABC
+    # the effects section and its figure are all that differ from the report without effects
+    fig = re.search(r'<figure id="effects">.*?</figure>\n?', page).group(0)
+    assert page.replace(sec, "").replace(fig, "") == plain
