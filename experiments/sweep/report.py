@@ -333,7 +333,9 @@ def _effects_parts(effects: pd.DataFrame, grid_keys: list[str], has_figure: bool
         return ", ".join(_esc(w + (" (" + " x ".join(names[c] for c in w) + ")" if all(c in names for c in w) else ""))
                          for w in str(v).split(","))
 
-    def levels(r) -> str:
+    def levels(r) -> str:  # an interaction: from the runs where its factors' levels differ to where they agree
+        if len(str(r["letters"])) > 1:
+            return "differ → agree"
         if "low" not in r or pd.isna(r["low"]) or pd.isna(r["high"]):
             return "–"
         return _esc(f"{r['low']} → {r['high']}")
@@ -345,8 +347,7 @@ def _effects_parts(effects: pd.DataFrame, grid_keys: list[str], has_figure: bool
              "where they differ), with its 95 % t interval from the residual variance of the fitted model "
              "(Montgomery, Design and Analysis of Experiments, Ch. 6 and 8). An interval that holds 0 leaves "
              "the sign undetermined. In a fraction, an effect is the sum of the effects of the terms it is "
-             "aliased with (column aliases, in the design's letters, A the first factor of the sweep file; "
-             "three-factor and higher interactions omitted). From "
+             "aliased with (column aliases, in the design's letters, A the first factor of the sweep file). From "
              "<code>effects.parquet</code>.</p>",
              _table([*(_esc(_key_label(k)) for k in grid_keys), "method", "term", "levels", "effect [m]",
                      "95 % interval [m]", "aliases", "runs"],

@@ -229,6 +229,7 @@ def test_design_sweep_report_shows_the_effects_table_and_figure(tmp_path):
     assert len(cells) == len(eff)
     for cell, (_, r) in zip(cells, eff.iterrows()):
         assert cell[0] == r["scenario.control"] and cell[2] == r["term"]
+        assert cell[3] == (f"{r['low']} → {r['high']}" if len(r["letters"]) == 1 else "differ → agree")
         assert cell[4] == f"{r['effect']:+.3f}"
         assert cell[5] == f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}]"
         assert cell[6] == "–" or cell[6].split(" (")[0] == r["aliases"].split(",")[0]
