@@ -115,6 +115,7 @@ from coloc.inference.existence import TrackExistence, birth_existence, existence
 from coloc.inference.gaussian import chi2_ppf, log_gauss, relative_message, to_information
 from coloc.inference.params import PAIRING_RULES, IcpParams, LcParams
 from coloc.kernels import icp_fused
+from coloc.kernels.birth import birth_greedy_kernel, birth_pairs
 from coloc.kernels.icp_fused import (
     any_pair_within,
     association_log_weights_kernel,
@@ -451,28 +452,13 @@ def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.nd
     most ``gate_d2``) that holds no row of the same vehicle -- one vehicle's
     rows are distinct features -- or opens a new cluster.
     """
-    b = owner.size
-    labels = np.full(b, -1, dtype=np.int64)
-    seeds: list[int] = []
-    members: list[set] = []
-    for i in range(b):
-        if seeds:
-            sd = np.asarray(seeds)
-            d = implied_xy[sd] - implied_xy[i]
-            s = implied_cov[sd] + implied_cov[i]
-            d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
-            for c in np.argsort(d2, kind="stable"):
-                if d2[c] > gate_d2:
-                    break
-                if owner[i] not in members[c]:
-                    labels[i] = c
-                    members[c].add(owner[i])
-                    break
-        if labels[i] < 0:
-            labels[i] = len(seeds)
-            seeds.append(i)
-            members.append({owner[i]})
-    return labels
+    owner = np.ascontiguousarray(owner, dtype=np.int64)
+    if owner.size == 0:
+        return np.empty(0, dtype=np.int64)
+    # Only the pairs that can pass the gate (coloc.kernels.birth: exact pruning, the same d2 bit for bit).
+    indptr, cand_j, cand_d2 = birth_pairs(np.asarray(implied_xy, dtype=float), np.asarray(implied_cov, dtype=float),
+                                          float(gate_d2))
+    return birth_greedy_kernel(owner, indptr, cand_j, cand_d2, float(gate_d2))
 
 
 def merge_candidates(
