@@ -41,7 +41,8 @@ def _spd(rng, n, scale):
 def _scene(rng, b, n_vehicles, spread):
     """Rows around a few feature positions, duplicated rows (ties), anisotropic covariances of mixed scale."""
     centres = rng.uniform(0, spread, size=(max(1, b // 4), 2))
-    xy = centres[rng.integers(0, centres.shape[0], b)] + rng.normal(size=(b, 2)) * rng.choice([0.05, 0.5, 3.0], b)[:, None]
+    jitter = rng.normal(size=(b, 2)) * rng.choice([0.05, 0.5, 3.0], b)[:, None]
+    xy = centres[rng.integers(0, centres.shape[0], b)] + jitter
     cov = _spd(rng, b, rng.choice([0.1, 0.7, 2.0], b))
     dup = rng.random(b) < 0.15  # exact copies of an earlier row: equal d2 to several seeds
     for i in np.flatnonzero(dup):
