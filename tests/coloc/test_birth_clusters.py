@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from coloc.kernels.birth import birth_pairs
+from coloc.methods.icp_da_lc import birth_pairs
 from coloc.methods.icp_da_lc import birth_clusters
 
 
