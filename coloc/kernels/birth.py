@@ -3,10 +3,11 @@
 The greedy of :func:`coloc.methods.icp_da_lc.birth_clusters` compares each birth row with every
 cluster seed before it. :func:`coloc.methods.icp_da_lc.birth_pairs` keeps only the (earlier row,
 row) pairs that can pass the gate, exactly: for an SPD S, d' S^-1 d >= |d|^2 / lambda_max(S) >=
-|d|^2 / trace(S), so a pair with |d|^2 > gate * trace(S_i + S_j) never passes it. The squared Mahalanobis distances of the
-kept pairs come from one batched ``np.linalg.solve`` (LAPACK per matrix: each value bit for bit
-the one of a per-row call) and :func:`birth_greedy_kernel` runs the greedy on them, so every label
-is the one of the per-row loop (tests/coloc/test_birth_clusters.py keeps that loop as reference).
+|d|^2 / trace(S), so a pair with |d|^2 > gate * trace(S_i + S_j) never passes it. The squared
+Mahalanobis distances of the kept pairs come from one batched ``np.linalg.solve`` (LAPACK per matrix:
+each value bit for bit the one of a per-row call) and :func:`birth_greedy_kernel` runs the greedy on
+them, so every label is the one of the per-row loop (tests/coloc/test_birth_clusters.py keeps that loop
+as reference).
 """
 
 from __future__ import annotations
