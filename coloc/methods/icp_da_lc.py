@@ -115,6 +115,7 @@ from coloc.inference.existence import TrackExistence, birth_existence, existence
 from coloc.inference.gaussian import chi2_ppf, log_gauss, relative_message, to_information
 from coloc.inference.params import PAIRING_RULES, IcpParams, LcParams
 from coloc.kernels import icp_fused
+from coloc.kernels.birth import birth_greedy_kernel
 from coloc.kernels.icp_fused import (
     any_pair_within,
     association_log_weights_kernel,
@@ -441,6 +442,39 @@ def pairs_from_beliefs(
     return row_track, ab.row_new, cand_row[extra], ab.combo_track[cand[extra]]
 
 
+#: Relative margin of the trace bound (coloc.kernels.birth): a pair is dropped only if |d|^2 exceeds
+#: gate * trace * (1 + PRUNE_MARGIN), far beyond the rounding of the solve and of |d|^2.
+PRUNE_MARGIN = 1e-6
+
+
+def birth_pairs(xy: np.ndarray, cov: np.ndarray, gate_d2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs (i, j), j < i, that may pass the gate, with their squared Mahalanobis distance.
+
+    Returns ``(indptr, cand_j, cand_d2)``: row i's candidates are ``cand_j[indptr[i]:indptr[i+1]]``,
+    sorted by d2 (NaN last, as ``np.argsort``), then by j. Non-finite input: every pair j < i.
+    """
+    b = xy.shape[0]
+    if np.isfinite(xy).all() and np.isfinite(cov).all():
+        tr = cov[:, 0, 0] + cov[:, 1, 1]
+        reach2 = gate_d2 * 2.0 * float(tr.max()) * (1.0 + PRUNE_MARGIN)
+        pairs = cKDTree(xy).query_pairs(math.sqrt(max(reach2, 0.0)) * (1.0 + PRUNE_MARGIN), output_type="ndarray")
+        j, i = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)  # query_pairs: first < second
+        dd = xy[j] - xy[i]
+        keep = (dd * dd).sum(axis=1) <= gate_d2 * (tr[i] + tr[j]) * (1.0 + PRUNE_MARGIN)
+        j, i = j[keep], i[keep]
+    else:
+        i, j = np.tril_indices(b, -1)
+        i, j = i.astype(np.int64), j.astype(np.int64)
+    # The expressions of the per-row loop, batched (d = seed - row, S = S_seed + S_row).
+    d = xy[j] - xy[i]
+    s = cov[j] + cov[i]
+    d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0]) if i.size else np.empty(0)
+    order = np.lexsort((j, d2, i))
+    indptr = np.zeros(b + 1, dtype=np.int64)
+    np.cumsum(np.bincount(i, minlength=b), out=indptr[1:])
+    return indptr, np.ascontiguousarray(j[order]), np.ascontiguousarray(d2[order])
+
+
 def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.ndarray, gate_d2: float) -> np.ndarray:
     """Cluster label of each birth row: rows of different vehicles implying the same feature share a new track.
 
@@ -451,28 +485,13 @@ def birth_clusters(owner: np.ndarray, implied_xy: np.ndarray, implied_cov: np.nd
     most ``gate_d2``) that holds no row of the same vehicle -- one vehicle's
     rows are distinct features -- or opens a new cluster.
     """
-    b = owner.size
-    labels = np.full(b, -1, dtype=np.int64)
-    seeds: list[int] = []
-    members: list[set] = []
-    for i in range(b):
-        if seeds:
-            sd = np.asarray(seeds)
-            d = implied_xy[sd] - implied_xy[i]
-            s = implied_cov[sd] + implied_cov[i]
-            d2 = np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
-            for c in np.argsort(d2, kind="stable"):
-                if d2[c] > gate_d2:
-                    break
-                if owner[i] not in members[c]:
-                    labels[i] = c
-                    members[c].add(owner[i])
-                    break
-        if labels[i] < 0:
-            labels[i] = len(seeds)
-            seeds.append(i)
-            members.append({owner[i]})
-    return labels
+    owner = np.ascontiguousarray(owner, dtype=np.int64)
+    if owner.size == 0:
+        return np.empty(0, dtype=np.int64)
+    # Only the pairs that can pass the gate (coloc.kernels.birth: exact pruning, the same d2 bit for bit).
+    indptr, cand_j, cand_d2 = birth_pairs(np.asarray(implied_xy, dtype=float), np.asarray(implied_cov, dtype=float),
+                                          float(gate_d2))
+    return birth_greedy_kernel(owner, indptr, cand_j, cand_d2, float(gate_d2))
 
 
 def merge_candidates(
