@@ -6,7 +6,8 @@ Per vehicle two filters run on the state [px, py, vx, vy, bx, by] (b: the receiv
 without a bias model its variance is 0 and the filters are the white ones of the paper's model):
 
 * the **own-sensor track**: GNSS and inertial only, :func:`coloc.methods.gnss_bias.bias_predict_update`
-  (the ``gnss`` benchmark's filter, fault exclusion included); it is what the vehicle sends to
+  (the ``gnss`` benchmark's filter, fault exclusion included; here as the numba kernel
+  :func:`coloc.kernels.gnss6.gnss6_step`, equal to it to 1e-12); it is what the vehicle sends to
   features (19) and what converts its sensor-frame detections;
 * the **cooperative belief**: the same prediction and fix (its fault exclusion by the same chi-square
   rule on its own innovation, with its own streak count), its covariance kept as a total and an
@@ -33,7 +34,8 @@ from coloc.core.vehicles import fresh_rows
 from coloc.inference.bpa import BpaResult
 from coloc.inference.params import IcpParams
 from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_ci_update
-from coloc.methods.gnss_bias import H, GnssModelParams, bias_predict_update, entry_fix_posterior
+from coloc.kernels.gnss6 import gnss6_step
+from coloc.methods.gnss_bias import H, GnssModelParams, entry_fix_posterior
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -186,6 +188,20 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     return m, p, pi, excluded
 
 
+def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,
+           common_mode: bool = False, with_ind: bool = True):
+    """The numba kernel :func:`coloc.kernels.gnss6.gnss6_step`: ``with_ind`` the cooperative belief as
+    :func:`_split_gnss_step`, else the own track as :func:`coloc.methods.gnss_bias.bias_predict_update`
+    (equal to 1e-12; tests). Returns (mean, cov, ind, excluded)."""
+    c = np.ascontiguousarray
+    ind = c(ind, dtype=float) if with_ind else np.empty((0, 6, 6))
+    return gnss6_step(c(mean, dtype=float), c(cov, dtype=float), ind, c(accel, dtype=float), c(z, dtype=float),
+                      c(r, dtype=float), c(predict_mask, dtype=np.bool_), c(streak, dtype=np.int64), float(dt),
+                      float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
+                      float(model.bias_share), math.exp(-dt / model.bias_tau_s), float(model.gate_threshold),
+                      int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind)
+
+
 def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel: np.ndarray, motion: MotionParams,
                 model: GnssModelParams, common_mode: bool = False) -> SplitPrior:
     """Both filters carried to this frame (``match`` = ``match_ids(previous ids, frame.vehicle_ids)``),
@@ -213,15 +229,15 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
     keep = ~fresh
     own_m, own_p = carried(state.own_mean, state.own_cov)
     own_streak = _carry(state.own_streak, match, fresh, n, ())
-    own_m, own_p, own_ex = bias_predict_update(own_m, own_p, accel, z, r, keep, float(frame.dt), motion, model,
-                                               own_streak)
+    own_m, own_p, _, own_ex = _gnss6(own_m, own_p, None, accel, z, r, keep, float(frame.dt), motion, model,
+                                     own_streak, with_ind=False)
     entry_fix_posterior(own_m, own_p, frame, fresh, r, model.bias_share)  # the entry protocol, as gnss_bias
     m, p = carried(state.mean, state.cov)
     pi = _carry(state.ind, match, fresh, n, (6, 6))
     # A new vehicle's prior is its own receiver's: independent (dependent with common-mode errors).
     pi[fresh] = 0.0 if common_mode else init_p[fresh]
     streak = _carry(state.streak, match, fresh, n, ())
-    m, p, pi, ex = _split_gnss_step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
+    m, p, pi, ex = _gnss6(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
     once = entry_fix_posterior(m, p, frame, fresh, r, model.bias_share)
     pi[once] = 0.0 if common_mode else p[once]  # the receiver's fix, once: independent unless errors are shared
     return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0))
