@@ -215,15 +215,15 @@ def test_estimators_start_from_the_receiver_fix(cross_net, tmp_path, monkeypatch
     from experiments.runner import build_estimators, frame_source
 
     seen = []
-    original = lc_module.vehicle_prior_pair
+    original = lc_module.prior_pair
 
-    def spy(state, frame, params, match, accel):
-        out = original(state, frame, params, match, accel)
+    def spy(state, frame, params, match, accel, fusion=None):
+        out = original(state, frame, params, match, accel, fusion)
         fresh = fresh_rows(match, frame.entered, frame.prior_z)
         seen.append((fresh.sum(), np.abs(out[0][fresh] - frame.gnss_z[fresh]).max(initial=0.0)))
         return out
 
-    monkeypatch.setattr(lc_module, "vehicle_prior_pair", spy)
+    monkeypatch.setattr(lc_module, "prior_pair", spy)
     cfg_path = tmp_path / "cfg.toml"
     cfg_path.write_text(f"""
 [run]
