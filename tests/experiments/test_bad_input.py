@@ -727,7 +727,7 @@ def run_v2x_unknown_channel(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("sweep.toml", "sweep.factors.x[0]", "the preset level takes no set or base")
+@case("sweep.toml", "sweep.factors.x[0]", "the preset level takes no set, base or relative")
 def sweep_factor_preset_with_overrides(tmp, net, run):
     path = _sweep(tmp, net)
     path.write_text(path.read_text() + '\n[sweep.factors]\nx = [{label = "a", preset = true, '
