@@ -23,7 +23,8 @@ import typing
 from pathlib import Path
 
 from coloc.methods.registry import METHODS, runnable_methods
-from experiments.config import OPTIONAL_SECTIONS, SCENARIO_KINDS, SCENARIO_TABLES, SECTIONS, _toml_value
+from experiments.config import OPTIONAL_SECTIONS, SCENARIO_KINDS, SCENARIO_TABLES, SECTIONS
+from experiments.config_toml import toml_value
 from experiments.ranges import RANGES
 
 INFRA_METHODS = tuple(m for m in runnable_methods() if METHODS[m].infrastructure)
@@ -637,7 +638,7 @@ def _default(f: dataclasses.Field) -> str:
         return "`inf`"
     if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
         return f"{len(value)} tables (see meaning)"
-    return f"`{_toml_value(value)}`"
+    return f"`{toml_value(value)}`"
 
 
 def _cell(text: str) -> str:

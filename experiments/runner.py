@@ -54,7 +54,8 @@ from couplers.sensing.perception import detection_model
 from couplers.publish import staged_folder
 from couplers.scenarios import scenario_frames
 from couplers.sumo_coupler import SumoCoupler, SumoScenario
-from experiments.config import Config, config_to_toml
+from experiments.config import Config
+from experiments.config_toml import config_to_toml
 from experiments.gnss_world import GnssWorldTally
 from experiments.oracle_world import oracle_world
 from experiments.pipeline import BATCH, estimator_stats, step_batch

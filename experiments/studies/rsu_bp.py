@@ -35,7 +35,8 @@ from tqdm import tqdm
 from coloc.methods.rsu_bp import RsuBpParams, cv_kalman_filter, rsu_bp_filter
 from couplers.errors import InputError, seed_problem
 from couplers.frohle_scenario import FrohleScenarioParams, simulate
-from experiments.config import _toml_value, section_from_table
+from experiments.config import section_from_table
+from experiments.config_toml import toml_value
 from experiments.scoring import score_association
 from experiments.studies.ranges import STUDY_RANGES
 
@@ -122,11 +123,11 @@ def resolved_toml(cfg: RsuBpStudy, provenance: dict) -> str:
                         ("study.sweep", cfg.sweep)):
         lines.append(f"[{header}]")
         for f in dataclasses.fields(obj):
-            lines.append(f"{f.name} = {_toml_value(getattr(obj, f.name))}")
+            lines.append(f"{f.name} = {toml_value(getattr(obj, f.name))}")
         lines.append("")
     lines.append("[provenance]")
     for key, val in provenance.items():
-        lines.append(f"{key} = {_toml_value(val)}")
+        lines.append(f"{key} = {toml_value(val)}")
     return "\n".join(lines) + "\n"
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from couplers.errors import InputError
-from experiments.config import _toml_value
+from experiments.config_toml import toml_value
 from experiments.ranges import check_nested
 from experiments.runner import git_revision
 
@@ -118,11 +118,11 @@ def resolved_toml(cfg: dict[str, dict[str, Any]], spec: dict[str, dict[str, Key]
         lines.append(f"[{name}]")
         for key, value in table.items():
             note = spec[name][key].help
-            lines.append(f"{key} = {_toml_value(value)}" + (f"  # {note}" if note else ""))
+            lines.append(f"{key} = {toml_value(value)}" + (f"  # {note}" if note else ""))
         lines.append("")
     lines.append("[provenance]")
     for key, val in provenance.items():
-        lines.append(f"{key} = {_toml_value(val)}")
+        lines.append(f"{key} = {toml_value(val)}")
     return "\n".join(lines) + "\n"
 
 

@@ -84,7 +84,8 @@ import pandas as pd
 from couplers.errors import InputError, recording_reads
 from couplers.publish import check_members, check_target, make_folder, mark, publish_files
 from experiments.scoring import scored_mask
-from experiments.config import Config, _toml_value
+from experiments.config import Config
+from experiments.config_toml import toml_value
 from experiments.sweep.consistency import consistency_table, nees_partial
 from experiments.sweep.zones import aggregate_zones, degree_partial, zone_partials
 from experiments.sweep.spec import (  # noqa: F401 (re-exported: the names of the sweep, one import path)
@@ -248,7 +249,7 @@ def _param_columns(spec: SweepSpec, settings: np.ndarray) -> dict[str, np.ndarra
         elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
             arr = np.array(vals, dtype=np.float64)
         else:
-            arr = np.array([v if isinstance(v, str) else _toml_value(v) for v in vals], dtype=object)
+            arr = np.array([v if isinstance(v, str) else toml_value(v) for v in vals], dtype=object)
         col = arr[settings]
         cols[key] = pd.Series(col, dtype="string") if col.dtype == object else col
     if spec.factors:

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from couplers.errors import SEED_MAX, InputError, read_toml, seed_problem
-from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, _toml_value, config_from_dict, config_to_toml
+from experiments.config import OPTIONAL_SECTIONS, SECTIONS, Config, config_from_dict
+from experiments.config_toml import toml_value, config_to_toml
 from experiments.config_extends import read_config_data
 from experiments.sweep.factors import Factor, Variant, apply_relative, factors_toml, flatten_dotted as _flatten, \
     parse_factors, split_overrides, variants
@@ -439,32 +440,32 @@ def resolved_spec_toml(spec: SweepSpec, base_cfg: Config, n_runs: int) -> str:
         "# A restart into this folder must resolve to the same values (the sweep file's path may differ).",
         "",
         "[sweep]",
-        f"name = {_toml_value(spec.name)}",
-        f"base = {_toml_value(str(spec.base))}",
-        f"base_config_sha256 = {_toml_value(hashlib.sha256(base_text.encode()).hexdigest())}",
-        f"seeds = {_toml_value(list(spec.seeds))}",
-        *([f"tune_seeds = {_toml_value(list(spec.tune_seeds))}", f"eval_seeds = {_toml_value(list(spec.eval_seeds))}"]
+        f"name = {toml_value(spec.name)}",
+        f"base = {toml_value(str(spec.base))}",
+        f"base_config_sha256 = {toml_value(hashlib.sha256(base_text.encode()).hexdigest())}",
+        f"seeds = {toml_value(list(spec.seeds))}",
+        *([f"tune_seeds = {toml_value(list(spec.tune_seeds))}", f"eval_seeds = {toml_value(list(spec.eval_seeds))}"]
           if spec.eval_seeds else []),
-        f"methods = {_toml_value(list(base_cfg.run.methods))}",
-        f"distance_bin_m = {_toml_value(spec.distance_bin_m)}",
-        *([f"design = {_toml_value(spec.design)}"] if spec.design != "one_at_a_time" else []),
-        *([f"objective = {{method = {_toml_value(spec.objective[0])}, statistic = {_toml_value(spec.objective[1])}}}"]
+        f"methods = {toml_value(list(base_cfg.run.methods))}",
+        f"distance_bin_m = {toml_value(spec.distance_bin_m)}",
+        *([f"design = {toml_value(spec.design)}"] if spec.design != "one_at_a_time" else []),
+        *([f"objective = {{method = {toml_value(spec.objective[0])}, statistic = {toml_value(spec.objective[1])}}}"]
           if spec.objective else []),
-        *([f"generators = {_toml_value(list(spec.generators))}  # added factors in letter order (A, B, ... "
+        *([f"generators = {toml_value(list(spec.generators))}  # added factors in letter order (A, B, ... "
            "the factors in file order)"] if spec.generators else []),
         f"runs = {n_runs}",
         "",
         "[sweep.set]",
     ]
-    lines += [f"{_toml_value(k)} = {_toml_value(v)}" for k, v in spec.fixed]
+    lines += [f"{toml_value(k)} = {toml_value(v)}" for k, v in spec.fixed]
     lines += ["", "[sweep.grid]"]
-    lines += [f"{_toml_value(k)} = {_toml_value(list(v))}" for k, v in spec.grid]
+    lines += [f"{toml_value(k)} = {toml_value(list(v))}" for k, v in spec.grid]
     if spec.bases:
         lines += ["", "[sweep.bases]"]
-        lines += [f"{_toml_value(k)} = {{{', '.join(f'{_toml_value(v)} = {_toml_value(str(b))}' for v, b in pairs)}}}"
+        lines += [f"{toml_value(k)} = {{{', '.join(f'{toml_value(v)} = {toml_value(str(b))}' for v, b in pairs)}}}"
                   for k, pairs in spec.bases]
     if spec.factors:
-        lines += factors_toml(spec.factors, _toml_value)
+        lines += factors_toml(spec.factors, toml_value)
     return "\n".join(lines) + "\n"
 
 

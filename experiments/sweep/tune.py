@@ -32,7 +32,8 @@ import pandas as pd
 
 from couplers.errors import InputError
 from couplers.publish import write_file_atomic
-from experiments.config import _toml_value, config_to_toml, load_config
+from experiments.config import load_config
+from experiments.config_toml import toml_value, config_to_toml
 from experiments.sweep.spec import SweepSpec, load_sweep
 
 TUNED = "tuned.toml"
@@ -96,22 +97,22 @@ def overlay_text(spec: SweepSpec, table: pd.DataFrame, source: Path) -> str:
     keys = spec.grid_keys
     lines = [f"# Tuned by coloc tune from {source}",
              f"# parameters: {', '.join(keys)}",
-             *[f"#   candidates {k} = {_toml_value(list(v))}" for k, v in spec.grid],
+             *[f"#   candidates {k} = {toml_value(list(v))}" for k, v in spec.grid],
              f"# objective: mean over the tuning seeds of {method}'s {stat} (summary.json, scored after the warm-up), "
              "smallest wins",
-             f"# tuning seeds: {_toml_value(list(spec.seeds))} (the evaluation seeds were not run)",
-             *([f"# tuning runs with [sweep.set]: " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in spec.fixed)]
+             f"# tuning seeds: {toml_value(list(spec.seeds))} (the evaluation seeds were not run)",
+             *([f"# tuning runs with [sweep.set]: " + ", ".join(f"{k} = {toml_value(v)}" for k, v in spec.fixed)]
                if spec.fixed else []),
              "# scores (objective mean +- standard error over the seeds, m):"]
     for r in table.sort_values("rank", kind="stable").itertuples(index=False):
-        vals = ", ".join(f"{k} = {_toml_value(_plain(r[i]))}"
+        vals = ", ".join(f"{k} = {toml_value(_plain(r[i]))}"
                          for i, k in enumerate(keys))
         lines.append(f"#   {r.rank:>3}. {vals}: {r.objective_mean:.4f} +- {r.objective_se:.4f} ({r.seeds} seeds)")
-    lines += ["", f"extends = {_toml_value(str(spec.base))}"]
+    lines += ["", f"extends = {toml_value(str(spec.base))}"]
     by_table: dict[str, list[str]] = {}
     for i, k in enumerate(keys):
         sec, key = k.split(".")
-        by_table.setdefault(sec, []).append(f"{key} = {_toml_value(_plain(best.iloc[i]))}")
+        by_table.setdefault(sec, []).append(f"{key} = {toml_value(_plain(best.iloc[i]))}")
     for sec, items in by_table.items():
         lines += ["", f"[{sec}]", *items]
     return "\n".join(lines) + "\n"

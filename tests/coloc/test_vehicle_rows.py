@@ -70,7 +70,8 @@ def _perception(fov, rng_m, pd):
 
 
 def test_estimators_read_estimator_sensors_not_perception():
-    from experiments.config import config_from_dict, config_to_toml
+    from experiments.config import config_from_dict
+    from experiments.config_toml import config_to_toml
     import tomllib
 
     from experiments.runner import estimator_detection_model, method_params

@@ -192,7 +192,8 @@ def test_inertial_table_resolves_and_round_trips():
     import tomllib
     from pathlib import Path
 
-    from experiments.config import config_from_dict, config_to_toml
+    from experiments.config import config_from_dict
+    from experiments.config_toml import config_to_toml
 
     project = Path(__file__).resolve().parents[2]
     data = tomllib.loads((project / "experiments" / "arterial_tlr.toml").read_text())

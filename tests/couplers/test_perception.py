@@ -250,7 +250,8 @@ def test_bad_perception_table_names_file_and_field(extra, field):
 
 
 def test_perception_table_resolves_and_round_trips():
-    from experiments.config import config_from_dict, config_to_toml
+    from experiments.config import config_from_dict
+    from experiments.config_toml import config_to_toml
 
     extra = ("[perception]\nocclusion_buildings = false\n[[perception.sensors]]\nname = 'front'\nfov_deg = 120.0\n"
              "[[perception.sensors]]\nname = 'around'\nfov_deg = 360.0\nrange_m = 30.0\nclutter_per_scan = 0.5\n"

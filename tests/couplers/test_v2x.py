@@ -282,7 +282,8 @@ def test_v2x_refused_for_the_controlled_scenarios():
 
 
 def test_v2x_table_resolves_and_round_trips():
-    from experiments.config import config_from_dict, config_to_toml
+    from experiments.config import config_from_dict
+    from experiments.config_toml import config_to_toml
 
     cfg = config_from_dict(arterial_config("[v2x]\npenetration_rate = 0.25\nrounds_per_step = 10\n"), Path("/x/cfg.toml"))
     assert cfg.sensors.v2x is cfg.v2x and cfg.v2x.penetration_rate == 0.25 and cfg.v2x.rounds_per_step == 10

@@ -11,7 +11,8 @@ import pytest
 
 from couplers.errors import InputError
 from experiments.cli import main
-from experiments.config import config_from_dict, config_to_toml, load_config
+from experiments.config import config_from_dict, load_config
+from experiments.config_toml import config_to_toml
 from experiments.config_extends import merge
 from experiments.netconfigs import _parent_ref, net_configs
 from experiments.sweep.run import expand_runs, load_sweep

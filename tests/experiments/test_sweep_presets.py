@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.config import config_to_toml
+from experiments.config_toml import config_to_toml
 from experiments.sweep.run import expand_runs, load_sweep
 
 ROOT = Path(__file__).resolve().parents[2]
