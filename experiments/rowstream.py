@@ -43,6 +43,9 @@ import numpy as np
 
 from coloc.core.frame import Frame, StepEstimate
 from experiments.scoring import (
+    label_arrays,
+    labelled,
+    labels_from_pairs,
     scored_mask,
     DETECTION_KINDS,
     detection_kinds,
@@ -253,18 +256,6 @@ def _merge_pair_counts(acc: tuple[np.ndarray, np.ndarray], track: np.ndarray, fe
     return pairs[starts], np.add.reduceat(counts, starts)
 
 
-def _labels(pairs: np.ndarray, counts: np.ndarray) -> dict[int, int]:
-    """The track labels of :func:`experiments.scoring.track_labels` from the pair counts: most
-    frequent feature per track, ties to the smallest."""
-    if pairs.shape[0] == 0:
-        return {}
-    order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
-    pairs = pairs[order]
-    first = np.ones(len(pairs), dtype=bool)
-    first[1:] = pairs[1:, 0] != pairs[:-1, 0]
-    return {int(t): int(f) for t, f in pairs[first]}
-
-
 class StreamLog:
     """Per-step rows of one run, streamed to spill files in ``folder`` (created; removed by
     :meth:`finish` or :meth:`discard`). ``methods``: the order of the methods in the files."""
@@ -399,7 +390,7 @@ class StreamLog:
         self.association_by_zone = {}
         for method, steps in self._assoc_t.items():
             pairs = self._pairs.get(method, (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.int64)))
-            labels = _labels(*pairs)
+            labels = labels_from_pairs(*pairs)
             n = len(steps)
             counts = np.zeros((n, 3), dtype=np.int64)
             by_zone = np.zeros((len(self.zones.names), 3), dtype=np.int64)
@@ -481,11 +472,8 @@ class StreamLog:
             if m in known:
                 label_of = None
             elif m in scores:
-                labels = scores[m][2]
-                keys = np.array(sorted(labels), dtype=np.int64)
-                vals = np.array([labels[k] for k in keys], dtype=np.int64)
-                label_of = (keys, vals)
-                if keys.size == 0:
+                label_of = label_arrays(scores[m][2])
+                if label_of[0].size == 0:
                     continue
             else:
                 continue  # tracks without any pairing cannot be scored
@@ -496,10 +484,7 @@ class StreamLog:
                     feat = ids
                     ok = np.ones(ids.size, dtype=bool)
                 else:
-                    keys, vals = label_of
-                    pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
-                    ok = (keys[pos] == ids) & (vals[pos] >= 0)
-                    feat = np.where(ok, vals[pos], 0)
+                    ok, feat = labelled(ids, *label_of)
                 # SUMO pedestrians: a label registered after this step (couplers.sensing.pedestrians)
                 ok &= feat < sizes[version]
                 tx = np.full((ids.size, 2), np.nan)

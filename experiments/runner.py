@@ -63,6 +63,8 @@ from experiments.rowstream import StreamLog, concat_steps, estimate_rows, positi
 from experiments.run_checks import _empty_run, _nothing_to_estimate, check_finite_estimate  # noqa: F401
 from experiments.scoring import (
     DETECTION_KINDS,
+    label_arrays,
+    labelled,
     detection_kinds,
     analysis_summary,
     scored_from,
@@ -311,22 +313,17 @@ class EstimateLog:
             if m in KNOWN_ASSOCIATION_METHODS:
                 label_of = None
             elif m in scores:
-                labels = scores[m][2]
-                keys = np.array(sorted(labels), dtype=np.int64)
-                vals = np.array([labels[k] for k in keys], dtype=np.int64)
-                label_of = (keys, vals)
+                label_of = label_arrays(scores[m][2])
             else:
                 continue  # tracks without any pairing cannot be scored
             for t, ids, xy, truth_xy in self.track_parts[m]:
                 if label_of is None:
                     feat = ids
                 else:
-                    keys, vals = label_of
-                    if keys.size == 0:
+                    if label_of[0].size == 0:
                         continue
-                    pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
-                    has = (keys[pos] == ids) & (vals[pos] >= 0)
-                    ids, xy, feat = ids[has], xy[has], vals[pos[has]]
+                    has, feat = labelled(ids, *label_of)
+                    ids, xy, feat = ids[has], xy[has], feat[has]
                 if ids.size == 0:
                     continue
                 if truth_xy.shape[0] and feat.max() >= truth_xy.shape[0]:

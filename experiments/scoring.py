@@ -136,12 +136,33 @@ def track_labels(track: np.ndarray, feature: np.ndarray) -> dict[int, int]:
     starts = np.flatnonzero(first_of_run)
     pairs = np.stack([t_s[starts], f_s[starts]], axis=1)
     counts = np.diff(np.append(starts, t_s.size))
+    return labels_from_pairs(pairs, counts)
+
+
+def labels_from_pairs(pairs: np.ndarray, counts: np.ndarray) -> dict[int, int]:
+    """:func:`track_labels` from the distinct (track, feature) pairs (P, 2) and how often each occurred."""
+    if pairs.shape[0] == 0:
+        return {}
     # Order: track ascending, count descending, feature ascending; the first row per track wins.
     order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
     pairs = pairs[order]
     first = np.ones(len(pairs), dtype=bool)
     first[1:] = pairs[1:, 0] != pairs[:-1, 0]
     return {int(t): int(f) for t, f in pairs[first]}
+
+
+def label_arrays(labels: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The labels of :func:`track_labels` as sorted track ids and their features, for :func:`labelled`."""
+    keys = np.array(sorted(labels), dtype=np.int64)
+    return keys, np.array([labels[k] for k in keys], dtype=np.int64)
+
+
+def labelled(ids: np.ndarray, keys: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which track ids carry a label of a true feature (not -1, a ghost), and that feature (0 where not);
+    ``keys`` must not be empty."""
+    pos = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
+    ok = (keys[pos] == ids) & (vals[pos] >= 0)
+    return ok, np.where(ok, vals[pos], 0)
 
 
 def score_association(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, dict[int, int]]:

@@ -193,7 +193,7 @@ def test_short_arterial_runs_equal_the_whole_tables(tmp_path, monkeypatch, confi
 
 def test_pair_counts_merged_per_flush_give_the_labels_of_the_whole_run():
     """Pair counts summed over chunks, then labelled, equal scoring.track_labels on all rows (ties too)."""
-    from experiments.scoring import track_labels
+    from experiments.scoring import labels_from_pairs, track_labels
 
     rng = np.random.default_rng(5)
     track = rng.integers(0, 30, 5000)
@@ -201,5 +201,5 @@ def test_pair_counts_merged_per_flush_give_the_labels_of_the_whole_run():
     acc = (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.int64))
     for lo in range(0, 5000, 777):
         acc = rowstream._merge_pair_counts(acc, track[lo:lo + 777], feature[lo:lo + 777])
-    assert rowstream._labels(*acc) == track_labels(track, feature)
+    assert labels_from_pairs(*acc) == track_labels(track, feature)
     assert int(acc[1].sum()) == 5000
