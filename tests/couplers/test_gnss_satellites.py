@@ -315,10 +315,10 @@ def test_a_degenerate_geometry_gives_no_fix_rather_than_nan():
     los = np.c_[np.cos(els) * np.sin(az), np.cos(els) * np.cos(az), np.sin(els)]
     eps = np.random.default_rng(0).normal(0, 1, (2, 5))
     usable = np.array([[True] * 4 + [False], [True] * 5])
-    err, cov, used, excluded, ok = _wls_kernel(los, usable, eps, np.ones(5), np.full(6, np.inf))
+    err, cov, used, excluded, ok, usedm = _wls_kernel(los, usable, eps, np.ones(5), np.full(6, np.inf))
     assert ok.tolist() == [False, True]
     assert np.isfinite(err).all() and np.isfinite(cov).all()
-    assert used.tolist() == [4, 5]
+    assert used.tolist() == [4, 5] and usedm.sum(axis=1).tolist() == [0, 5]
 
 
 def _canyon(width=20.0, height=25.0):
