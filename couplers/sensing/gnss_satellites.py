@@ -30,7 +30,12 @@ Pseudorange error of vehicle i to satellite s (m), at elevation el_s:
   2 d cos(el), d the horizontal distance from the antenna to the blocking facade along the satellite's azimuth
   (the reflection model of L.-T. Hsu, "Analysis and modeling GPS NLOS effect in highly urbanized area", GPS
   Solutions 22:7, 2018, gamma = d sec(el) (1 + cos 2 el) = 2 d cos(el), with the reflector across the street
-  taken at the blocking facade's distance: alike in a street canyon of even width; our simplification).
+  taken at the blocking facade's distance: alike in a street canyon of even width; our simplification);
+  ``"reflect"``: received off the facade that gives the shortest clear single-bounce specular path, extra path
+  2 d cos(el) cos(dphi), d that facade's perpendicular distance and dphi the angle between the satellite's azimuth
+  and the facade's normal (image method; Hsu's model for a general azimuth), not received when no facade gives
+  one (:func:`couplers.sensing.gnss_sky.reflections`). Deterministic geometry: receivers a few metres apart in
+  one street see the same facades, hence alike delays.
 
 Receiver (:func:`_wls_kernel`): states east, north, up and clock (one clock for both systems: the broadcast
 GPS-Galileo time offset applied), the satellites above ``elevation_mask_deg`` and received, weights 1 / sigma_rx^2
@@ -49,10 +54,19 @@ satellites remain, the satellite of the largest normalised residual (r_j^2 / (si
 w-test) is excluded and the fix recomputed. ``raim_pfa = 0``: no test. The reported covariance is the 2 x 2
 east-north block of (H^T W H)^-1 of the satellites used. Fewer than four satellites: no fix; the receiver holds
 its last fix (the vehicle has moved on) and reports :data:`NO_FIX_SIGMA_M` per axis; a vehicle with no fix yet
-gets a fix drawn at that sigma around it (its own stream). Velocity stays the zone's white Doppler error.
+gets a fix drawn at that sigma around it (its own stream).
+
+Velocity (``velocity = "doppler"``; ``"zone"``, the default, keeps the zone's white Doppler error as the other
+models): the range-rate WLS (east, north, up velocity and clock drift) over the satellites of the vehicle's fix,
+range-rate error white with sigma^2 = ``doppler_noise_mps``^2 (1 + 1 / sin el) plus, for a reflected signal, the
+rate of its extra path g . v (the antenna's image moves with the mirrored velocity: moving toward the reflecting
+wall shortens the path); weights and the reported 2 x 2 covariance from the receiver's ``rx_doppler_mps`` in the
+same form. 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
+0.05 m/s at 50 %, quoted from memory) with the elevation form of the code noise (assumption). Vehicles without
+a fix keep the zone's Doppler error.
 
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
-"multipath" (u), "no_fix". Every step draws for every satellite (visible or not) and every vehicle, so the
+"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Every step draws for every satellite (visible or not) and every vehicle, so the
 streams do not depend on the geometry.
 """
 
