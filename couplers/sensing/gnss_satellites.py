@@ -61,7 +61,8 @@ models): the range-rate WLS (east, north, up velocity and clock drift) over the 
 range-rate error white with sigma^2 = ``doppler_noise_mps``^2 (1 + 1 / sin el) plus, for a reflected signal, the
 rate of its extra path g . v (the antenna's image moves with the mirrored velocity: moving toward the reflecting
 wall shortens the path); weights and the reported 2 x 2 covariance from the receiver's ``rx_doppler_mps`` in the
-same form. 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
+same form, with the fix's fault exclusion (chi-square residual test at ``raim_pfa``, worst range rate excluded
+while at least six remain; an assumption: a receiver screening its range rates as its ranges). 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
 0.05 m/s at 50 %, quoted from memory) with the elevation form of the code noise (assumption). Vehicles without
 a fix keep the zone's Doppler error.
 
@@ -269,44 +270,6 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
     return err, cov, used, excluded, ok, usedm
 
 
-@njit(cache=True)
-def _doppler_kernel(los, usedm, eps_rate, var_rr):
-    """Per vehicle: the horizontal velocity error of the range-rate WLS (east, north, up velocity and clock drift)
-    over the satellites of its fix (``usedm``), weights 1 / ``var_rr``, the reported 2 x 2 covariance, and whether
-    the geometry gives a solution."""
-    n, s = usedm.shape
-    err = np.zeros((n, 2))
-    cov = np.zeros((n, 2, 2))
-    ok = np.zeros(n, dtype=np.bool_)
-    h = np.empty((s, 4))
-    for k in range(s):
-        h[k, 0], h[k, 1], h[k, 2], h[k, 3] = -los[k, 0], -los[k, 1], -los[k, 2], 1.0
-    a = np.empty((4, 4))
-    p = np.empty((4, 4))
-    b = np.empty(4)
-    for i in range(n):
-        a[:] = 0.0
-        b[:] = 0.0
-        m = 0
-        for k in range(s):
-            if not usedm[i, k]:
-                continue
-            m += 1
-            w = 1.0 / var_rr[k]
-            for r in range(4):
-                hw = h[k, r] * w
-                b[r] += hw * eps_rate[i, k]
-                for c in range(4):
-                    a[r, c] += hw * h[k, c]
-        if m < 4 or not _inv_spd4(a, p):
-            continue
-        ok[i] = True
-        for r in range(2):
-            err[i, r] = p[r, 0] * b[0] + p[r, 1] * b[1] + p[r, 2] * b[2] + p[r, 3] * b[3]
-        cov[i, 0, 0], cov[i, 0, 1], cov[i, 1, 0], cov[i, 1, 1] = p[0, 0], p[0, 1], p[1, 0], p[1, 1]
-    return err, cov, ok
-
-
 class SatelliteErrorProcess:
     """``[gnss_error] model = "satellites"`` (module docstring). Same ``step`` interface as
     :class:`couplers.sensing.gnss_error.GnssErrorProcess`; after each step ``reported_cov`` (N, 2, 2) is the
@@ -451,7 +414,9 @@ class SatelliteErrorProcess:
         if rate is not None:  # a reflected signal's Doppler is the antenna image's: g . v
             eps_rate = eps_rate + np.einsum("nsk,nk->ns", rate, np.asarray(v_true, dtype=float).reshape(-1, 2))
         var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
-        err, cov, solved = _doppler_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate), var_rr)
+        # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
+        err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
+                                                var_rr, self.thr)
         return err, cov, solved & ok
 
     @property
