@@ -399,6 +399,12 @@ def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edg
     seen = np.full(nb, -1, dtype=np.int64)
     cand = np.empty(nb, dtype=np.int64)
     cand2 = np.empty(nb, dtype=np.int64)
+    ne = edges.shape[0]
+    c_ex = np.empty(ne)  # this pair's specular facades: extra path, edge, t, normal, cos(dphi)
+    c_e = np.empty(ne, dtype=np.int64)
+    c_t = np.empty(ne)
+    c_n = np.empty((ne, 2))
+    c_c = np.empty(ne)
     stamp = 0
     eps = 1e-6
     for i in range(n):
@@ -417,8 +423,8 @@ def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edg
             if not blocked[i, k] or tan_el[k] <= 0.0:
                 continue
             ux, uy = de[k], dn[k]
-            best = np.inf
-            for q in range(m):
+            nc = 0
+            for q in range(m):  # every facade with a specular point on it, below its roof
                 b = cand[q]
                 hb = heights[b]
                 if _box_distance(px, py, boxes[b]) * tan_el[k] + h_ant >= hb:
@@ -438,27 +444,39 @@ def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edg
                     cphi = -(ux * nxw + uy * nyw)
                     if cphi <= eps:
                         continue  # the wall turns its back to the satellite
-                    ex2 = 2.0 * d * cos_el[k] * cphi
-                    if ex2 >= best:
-                        continue
-                    rx, ry = ux + 2.0 * cphi * nxw, uy + 2.0 * cphi * nyw
                     t = d / cphi
-                    qx, qy = px + t * rx, py + t * ry
+                    if t * tan_el[k] + h_ant >= hb:
+                        continue  # the specular point is above the roof
+                    qx, qy = px + t * (ux + 2.0 * cphi * nxw), py + t * (uy + 2.0 * cphi * nyw)
                     w = ((qx - ax) * ex + (qy - ay) * ey) / (ln * ln)
-                    if w < 0.0 or w > 1.0 or t * tan_el[k] + h_ant >= hb:
-                        continue  # the specular point is off the facade or above its roof
-                    if _ray_hits(px, py, rx, ry, tan_el[k], h_ant, eps, t - eps, e, cand, m, edges, estart, heights):
-                        continue  # the leg from the antenna to the wall is blocked
-                    ix, iy = px + 2.0 * d * nxw, py + 2.0 * d * nyw  # the antenna's image behind the wall
-                    m2 = _candidates(ix, iy, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen,
-                                     stamp, cand2)
-                    stamp += 1
-                    if _ray_hits(ix, iy, ux, uy, tan_el[k], h_ant, t + eps, np.inf, e, cand2, m2, edges, estart,
-                                 heights):
-                        continue  # the leg from the wall to the satellite is blocked
-                    best = ex2
-                    found[i, k] = True
-                    extra[i, k] = ex2
-                    rate[i, k, 0] = -2.0 * cos_el[k] * cphi * nxw
-                    rate[i, k, 1] = -2.0 * cos_el[k] * cphi * nyw
+                    if w < 0.0 or w > 1.0:
+                        continue  # ... or off the facade
+                    c_ex[nc] = 2.0 * d * cos_el[k] * cphi
+                    c_e[nc] = e
+                    c_t[nc] = t
+                    c_n[nc, 0], c_n[nc, 1] = nxw, nyw
+                    c_c[nc] = cphi
+                    nc += 1
+            if nc == 0:
+                continue
+            order = np.argsort(c_ex[:nc])
+            for j in order:  # the shortest path whose two legs are clear
+                e, t, cphi = c_e[j], c_t[j], c_c[j]
+                nxw, nyw = c_n[j, 0], c_n[j, 1]
+                rx, ry = ux + 2.0 * cphi * nxw, uy + 2.0 * cphi * nyw
+                if _ray_hits(px, py, rx, ry, tan_el[k], h_ant, eps, t - eps, e, cand, m, edges, estart, heights):
+                    continue  # the leg from the antenna to the wall is blocked
+                d = t * cphi
+                ix, iy = px + 2.0 * d * nxw, py + 2.0 * d * nyw  # the antenna's image behind the wall
+                m2 = _candidates(ix, iy, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen,
+                                 stamp, cand2)
+                stamp += 1
+                if _ray_hits(ix, iy, ux, uy, tan_el[k], h_ant, t + eps, np.inf, e, cand2, m2, edges, estart,
+                             heights):
+                    continue  # the leg from the wall to the satellite is blocked
+                found[i, k] = True
+                extra[i, k] = c_ex[j]
+                rate[i, k, 0] = -2.0 * cos_el[k] * cphi * nxw
+                rate[i, k, 1] = -2.0 * cos_el[k] * cphi * nyw
+                break
     return found, extra, rate
