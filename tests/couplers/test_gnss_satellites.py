@@ -282,6 +282,29 @@ def test_the_frame_carries_the_receivers_fix_and_reported_covariance_and_gnss_wo
     assert block["n"] == n and block["rms_2d_m"] == pytest.approx(math.sqrt((err ** 2).sum(1).mean()))
 
 
+def test_with_doppler_the_frame_carries_the_range_rate_velocity_and_its_covariance():
+    from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame
+
+    n = 8
+    rng = np.random.default_rng(2)
+    x_true = np.c_[rng.uniform(0, 300, (n, 2)), rng.normal(0, 5, (n, 2))]
+    params = GnssErrorParams(**SAT, velocity="doppler")
+    proc, twin = SatelliteErrorProcess(params, 1, 0.75), SatelliteErrorProcess(params, 1, 0.75)
+    entered = np.ones(n, bool)
+    frame = synthesize_frame(
+        t=0.0, dt=0.75, vehicle_ids=_ids(n), entered=entered, x_true=x_true, accel_true=np.zeros((n, 2)),
+        heading=np.zeros(n), gnss_sigma_p=np.full(n, 8.0), gnss_sigma_v=np.full(n, 0.5),
+        features_true=np.empty((0, 4)), feature_tree=None, params=SensorParams(), noise=SensorNoise(1),
+        zone=np.full(n, "B", dtype=object), area=np.full(n, "1", dtype=object), gnss_error=proc, start="gnss_fix")
+    twin.step(0.0, _ids(n), entered, None, None, None, x_true[:, :2])
+    verr, vcov, ok = twin.velocity_error(x_true[:, 2:])
+    assert ok.all()
+    np.testing.assert_allclose(frame.gnss_z[:, 2:] - x_true[:, 2:], verr, atol=1e-12)
+    np.testing.assert_array_equal(frame.gnss_R[:, 2:, 2:], vcov)
+    assert (frame.gnss_R[:, 2, 2] < 0.05).all()  # the range rates' covariance, not the zone's 0.5 m/s
+    np.testing.assert_array_equal(frame.prior_R[entered], frame.gnss_R[entered])
+
+
 def test_two_receivers_correlate_in_the_open_as_the_common_errors_derive():
     """Open sky: two receivers 1 km apart correlate by the common errors' share of the horizontal variance
     (:func:`open_sky_common_share`, 0.6-0.75 with the defaults). Common processes white here (sv_tau_s = 0)
