@@ -403,7 +403,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "antenna_height_m": ("m", "satellites: antenna height above the road, the start of each sight line."),
         "nlos": ("", "satellites: a satellite whose sight line a building blocks is `\"block\"`: not received, or "
                      "`\"delay\"`: received by reflection with the extra path 2 d cos(el), d the distance to the "
-                     "blocking facade."),
+                     "blocking facade, or `\"reflect\"`: received off the nearest facade that gives a clear "
+                     "single-bounce specular path, extra path 2 d cos(el) cos(dphi) (d that facade's distance, "
+                     "dphi between the satellite's azimuth and the facade's normal), not received when none does."),
         "constellation_time_s": ("s", "satellites: the run's t = 0 after the constellation's epoch (moves the "
                                       "geometry)."),
         "sv_clock_orbit_m": ("m", "satellites: broadcast clock and orbit error per satellite (Gauss-Markov, shared "
@@ -428,6 +430,12 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "rx_code_b_m": ("m", "satellites, receiver budget: code noise b."),
         "raim_pfa": (NO_UNIT, "satellites: false-alarm probability of the receiver's chi-square residual test; "
                               "a failed test excludes the worst satellite and tries again; 0 = no test."),
+        "velocity": ("", "satellites: the receiver's velocity is `\"zone\"`: the zone's white Doppler error "
+                         "(as the other models), or `\"doppler\"`: the range-rate least-squares solution over the "
+                         "satellites of its fix, with the covariance the receiver reports."),
+        "doppler_noise_mps": ("m/s", "satellites, doppler: range-rate noise, white, sigma^2 = s^2 (1 + 1 / sin(el))."),
+        "rx_doppler_mps": ("m/s", "satellites, doppler, receiver budget: the s of `doppler_noise_mps` the receiver "
+                                  "weights with and reports."),
     },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),

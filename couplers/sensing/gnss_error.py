@@ -122,7 +122,10 @@ GNSS_ERROR_STREAM_TAG = 0x6E5
 #: The ``[gnss_error] model`` values: each vehicle's error on its own, the shared field, or a receiver at
 #: pseudorange level (couplers.sensing.gnss_satellites).
 GNSS_MODELS = ("per_vehicle", "field", "satellites")
-NLOS_MODES = ("block", "delay")
+NLOS_MODES = ("block", "delay", "reflect")
+#: The ``[gnss_error] velocity`` values under "satellites": the zone's white Doppler error, or a range-rate
+#: least-squares velocity from the same satellites as the fix.
+VELOCITY_MODES = ("zone", "doppler")
 
 
 @dataclass(frozen=True)
@@ -168,6 +171,9 @@ class GnssErrorParams:
     rx_code_a_m: float = 0.3
     rx_code_b_m: float = 0.3
     raim_pfa: float = 1e-3
+    velocity: str = "zone"
+    doppler_noise_mps: float = 0.05
+    rx_doppler_mps: float = 0.05
 
     def __post_init__(self):
         def finite(v):
@@ -179,14 +185,20 @@ class GnssErrorParams:
             raise InputError(None, "elevation_mask_deg", f"must be in [0, 90) deg, got {self.elevation_mask_deg!r}")
         if self.nlos not in NLOS_MODES:
             raise InputError(None, "nlos", f"unknown value {self.nlos!r} (available: {', '.join(NLOS_MODES)})")
+        if self.velocity not in VELOCITY_MODES:
+            raise InputError(None, "velocity",
+                             f"unknown value {self.velocity!r} (available: {', '.join(VELOCITY_MODES)})")
         for key in ("antenna_height_m", "multipath_corr_length_m"):
             if not (finite(getattr(self, key)) and getattr(self, key) > 0):
                 raise InputError(None, key, f"must be positive and finite, got {getattr(self, key)!r}")
         for key in ("constellation_time_s", "sv_clock_orbit_m", "iono_vertical_m", "tropo_zenith_m", "sv_tau_s",
                     "code_noise_a_m", "code_noise_b_m", "multipath_m", "rx_ure_m", "rx_iono_m", "rx_tropo_m",
-                    "rx_code_a_m", "rx_code_b_m"):
+                    "rx_code_a_m", "rx_code_b_m", "doppler_noise_mps"):
             if not (finite(getattr(self, key)) and getattr(self, key) >= 0):
                 raise InputError(None, key, f"must be >= 0 and finite, got {getattr(self, key)!r}")
+        if not (finite(self.rx_doppler_mps) and self.rx_doppler_mps > 0):
+            raise InputError(None, "rx_doppler_mps", f"must be positive and finite (the receiver's Doppler weights), "
+                                                     f"got {self.rx_doppler_mps!r}")
         if not (finite(self.raim_pfa) and 0.0 <= self.raim_pfa < 1.0):
             raise InputError(None, "raim_pfa", f"must be in [0, 1) (0: no fault exclusion), got {self.raim_pfa!r}")
         if self.model == "satellites" and self.rx_ure_m ** 2 + self.rx_iono_m ** 2 + self.rx_tropo_m ** 2 \

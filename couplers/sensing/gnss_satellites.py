@@ -30,7 +30,12 @@ Pseudorange error of vehicle i to satellite s (m), at elevation el_s:
   2 d cos(el), d the horizontal distance from the antenna to the blocking facade along the satellite's azimuth
   (the reflection model of L.-T. Hsu, "Analysis and modeling GPS NLOS effect in highly urbanized area", GPS
   Solutions 22:7, 2018, gamma = d sec(el) (1 + cos 2 el) = 2 d cos(el), with the reflector across the street
-  taken at the blocking facade's distance: alike in a street canyon of even width; our simplification).
+  taken at the blocking facade's distance: alike in a street canyon of even width; our simplification);
+  ``"reflect"``: received off the facade that gives the shortest clear single-bounce specular path, extra path
+  2 d cos(el) cos(dphi), d that facade's perpendicular distance and dphi the angle between the satellite's azimuth
+  and the facade's normal (image method; Hsu's model for a general azimuth), not received when no facade gives
+  one (:func:`couplers.sensing.gnss_sky.reflections`). Deterministic geometry: receivers a few metres apart in
+  one street see the same facades, hence alike delays.
 
 Receiver (:func:`_wls_kernel`): states east, north, up and clock (one clock for both systems: the broadcast
 GPS-Galileo time offset applied), the satellites above ``elevation_mask_deg`` and received, weights 1 / sigma_rx^2
@@ -49,10 +54,20 @@ satellites remain, the satellite of the largest normalised residual (r_j^2 / (si
 w-test) is excluded and the fix recomputed. ``raim_pfa = 0``: no test. The reported covariance is the 2 x 2
 east-north block of (H^T W H)^-1 of the satellites used. Fewer than four satellites: no fix; the receiver holds
 its last fix (the vehicle has moved on) and reports :data:`NO_FIX_SIGMA_M` per axis; a vehicle with no fix yet
-gets a fix drawn at that sigma around it (its own stream). Velocity stays the zone's white Doppler error.
+gets a fix drawn at that sigma around it (its own stream).
+
+Velocity (``velocity = "doppler"``; ``"zone"``, the default, keeps the zone's white Doppler error as the other
+models): the range-rate WLS (east, north, up velocity and clock drift) over the satellites of the vehicle's fix,
+range-rate error white with sigma^2 = ``doppler_noise_mps``^2 (1 + 1 / sin el) plus, for a reflected signal, the
+rate of its extra path g . v (the antenna's image moves with the mirrored velocity: moving toward the reflecting
+wall shortens the path); weights and the reported 2 x 2 covariance from the receiver's ``rx_doppler_mps`` in the
+same form, with the fix's fault exclusion (chi-square residual test at ``raim_pfa``, worst range rate excluded
+while at least six remain; an assumption: a receiver screening its range rates as its ranges). 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
+0.05 m/s at 50 %, quoted from memory) with the elevation form of the code noise (assumption). Vehicles without
+a fix keep the zone's Doppler error.
 
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
-"multipath" (u), "no_fix". Every step draws for every satellite (visible or not) and every vehicle, so the
+"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Every step draws for every satellite (visible or not) and every vehicle, so the
 streams do not depend on the geometry.
 """
 
@@ -67,7 +82,7 @@ from numba import njit
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net.buildings import Buildings
-from couplers.sensing.gnss_sky import BuildingEdges, Sky, clearance_radius, line_of_sight, net_origin
+from couplers.sensing.gnss_sky import BuildingEdges, Sky, clearance_radius, line_of_sight, net_origin, reflections
 from couplers.sensing.perception import effect_rng
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
@@ -191,6 +206,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
     used = np.zeros(n, dtype=np.int64)
     excluded = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=np.bool_)
+    usedm = np.zeros((n, s), dtype=np.bool_)
     idx = np.empty(s, dtype=np.int64)
     h = np.empty((s, 4))
     for k in range(s):
@@ -224,6 +240,9 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
             err[i, 0], err[i, 1] = x[0], x[1]
             cov[i, 0, 0], cov[i, 0, 1], cov[i, 1, 0], cov[i, 1, 1] = p[0, 0], p[0, 1], p[1, 0], p[1, 1]
             used[i] = m
+            usedm[i, :] = False
+            for j in range(m):
+                usedm[i, idx[j]] = True
             if m == 4 or not np.isfinite(thr[m - 4]):
                 break
             wsse = 0.0
@@ -248,7 +267,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
             excluded[i] += 1
         if not ok[i]:
             used[i] = m
-    return err, cov, used, excluded, ok
+    return err, cov, used, excluded, ok, usedm
 
 
 class SatelliteErrorProcess:
@@ -257,7 +276,7 @@ class SatelliteErrorProcess:
     covariance each receiver reports, and ``last`` the step's diagnostics (satellites above the mask, used,
     excluded, NLOS received or blocked, fix or not)."""
 
-    STREAMS = ("sv_common", "code_noise", "multipath", "no_fix")
+    STREAMS = ("sv_common", "code_noise", "multipath", "no_fix", "doppler_noise")
 
     def __init__(self, params, seed: int, dt: float, buildings: Buildings | None = None,
                  net_path: Path | None = None):
@@ -286,10 +305,17 @@ class SatelliteErrorProcess:
         self._fix = np.empty((0, 2))  # absolute x/y of each receiver's last fix (NaN: none yet)
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
+        self._geom: tuple = ()  # this step's (los, el, used satellites, NLOS range-rate coefficients, fix)
 
-    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray):
+    @property
+    def doppler(self) -> bool:
+        """The receivers' velocity comes from their range rates (``velocity = "doppler"``)."""
+        return self.params.velocity == "doppler"
+
+    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
-        common processes and the per-receiver draws."""
+        common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
+        the (N, S, 2) range-rate coefficients of the received reflections (zero elsewhere)."""
         p = self.params
         los, az, el = self.sky.look(p.constellation_time_s + t)
         above = el >= self.mask
@@ -308,9 +334,22 @@ class SatelliteErrorProcess:
                 extra = np.zeros_like(eps)
                 extra[:, cols] = np.where(b, 2.0 * d * np.cos(el[cols])[None, :], 0.0)
                 eps = eps + extra
+            elif p.nlos == "reflect":
+                found, ex, g = reflections(self.edges, xy, az[cols], el[cols], b, p.antenna_height_m, self.radius)
+                extra = np.zeros_like(eps)
+                extra[:, cols] = ex
+                eps = eps + extra
+                lost = np.zeros_like(blocked)
+                lost[:, cols] = b & ~found  # blocked and no valid reflection: not received
+                if rate is not None:
+                    full = np.zeros((n, el.size, 2))
+                    full[:, cols] = g
+                    rate.append(full)
         usable = np.broadcast_to(above, eps.shape).copy()
         if p.nlos == "block":
             usable &= ~blocked
+        elif p.nlos == "reflect" and self.edges is not None and n:
+            usable &= ~lost
         return eps, usable, los, el, blocked
 
     def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
@@ -339,9 +378,10 @@ class SatelliteErrorProcess:
             a = np.exp(-d / p.multipath_corr_length_m)[:, None]
             u[carried] = a * self._u[prev] + np.sqrt(1.0 - a * a) * z[carried]
             fix_prev[carried] = self._fix[prev]
-        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white)
+        rate: list = []
+        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
         var_rx = receiver_variance(p, el)
-        err, cov, used, excluded, ok = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
+        err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
                                                    var_rx, self.thr)
         if not ok.all():  # no fix: hold the last one, or one drawn at NO_FIX_SIGMA_M around a newcomer
             lost = np.flatnonzero(~ok)
@@ -352,10 +392,32 @@ class SatelliteErrorProcess:
             cov[lost] = np.eye(2) * NO_FIX_SIGMA_M ** 2
         above = el >= self.mask
         self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
-                     "nlos": (blocked & above[None, :]).sum(axis=1)}
+                     "nlos": (blocked & above[None, :]).sum(axis=1),
+                     "nlos_received": (blocked & usedm).sum(axis=1)}
+        self._geom = (los, el, usedm, rate[0] if rate else None, ok)
         self.reported_cov = cov
         self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
         return err
+
+    def velocity_error(self, v_true: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``velocity = "doppler"``: ((N, 2) velocity error, (N, 2, 2) reported covariance, (N,) solved) of this
+        step's receivers (call after :meth:`step`, ``v_true`` (N, 2) their true velocities), from the range-rate
+        WLS over the satellites of each fix (module docstring). Not solved (no fix): the caller keeps the zone's
+        Doppler error."""
+        p = self.params
+        los, el, usedm, rate, ok = self._geom
+        n, s = usedm.shape
+        w = self.doppler_noise.standard_normal((n, s))
+        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
+        sig = p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el)
+        eps_rate = sig[None, :] * w
+        if rate is not None:  # a reflected signal's Doppler is the antenna image's: g . v
+            eps_rate = eps_rate + np.einsum("nsk,nk->ns", rate, np.asarray(v_true, dtype=float).reshape(-1, 2))
+        var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
+        # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
+        err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
+                                                var_rr, self.thr)
+        return err, cov, solved & ok
 
     @property
     def in_episode(self) -> np.ndarray:

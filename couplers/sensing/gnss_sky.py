@@ -310,3 +310,173 @@ def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h
             blocked[i, k] = True
             if tmin < dist[i, k]:
                 dist[i, k] = tmin
+
+
+# --- single-bounce reflections (``nlos = "reflect"``) ------------------------------------------------------------
+
+
+def reflections(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.ndarray, blocked: np.ndarray,
+                antenna_height_m: float, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(found (N, S) bool, extra path (N, S) m, rate coefficient g (N, S, 2)) of the shortest single-bounce
+    specular reflection off a building facade for every ``blocked`` (vehicle, satellite) pair.
+
+    Geometry (image method, vertical walls): a facade at perpendicular distance d from the antenna, unit normal
+    n pointing from the antenna to the wall, reflects a satellite of horizontal direction u_h (east, north) and
+    elevation el when the wall faces it, cos(dphi) = -u_h . n > 0. The reflected ray reaches the antenna from
+    the mirrored direction r = u_h + 2 cos(dphi) n at the same elevation, off the wall point at horizontal
+    distance t = d / cos(dphi), height h_ant + t tan(el); the point must lie on the facade's edge and below its
+    roof. The extra path over the direct one is 2 d cos(el) cos(dphi) (the antenna's image 2 d n behind the wall;
+    L.-T. Hsu, GPS Solutions 22:7, 2018, eq. gamma = d sec(el) (1 + cos 2 el) for dphi = 0). Both legs must be
+    clear: from the antenna to the wall point no other footprint is crossed below its roof, and the ray from the
+    wall point to the satellite (the image's ray beyond t) clears every roof. Among the valid facades the
+    shortest extra path is taken (the earliest replica, which a code tracking loop locks to when the direct
+    signal is absent). ``g``: the extra path's rate for a receiver velocity v is g . v, g = -2 cos(el) cos(dphi)
+    n (moving toward the wall shortens it): the Doppler error of the reflected signal. No valid facade: the
+    signal is not received (multiple bounces and diffraction are not modelled)."""
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    n, s = len(xy), az.size
+    if edges.heights.size == 0 or radius <= 0 or n == 0:
+        return np.zeros((n, s), dtype=bool), np.zeros((n, s)), np.zeros((n, s, 2))
+    x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
+    return _reflect_kernel(xy, np.ascontiguousarray(blocked, dtype=np.bool_), x0, y0, cell, nx, ny, start, ids,
+                           float(radius), edges.edges, edges.start, edges.boxes, edges.heights, np.sin(az),
+                           np.cos(az), np.tan(el), np.cos(el), float(antenna_height_m))
+
+
+@njit(cache=True)
+def _candidates(px, py, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen, stamp, out):
+    """Buildings taller than the antenna whose box is within ``radius`` of (px, py), into ``out``; their count."""
+    cx0 = max(int(math.floor((px - radius - x0) / cell)), 0)
+    cx1 = min(int(math.floor((px + radius - x0) / cell)), nx - 1)
+    cy0 = max(int(math.floor((py - radius - y0) / cell)), 0)
+    cy1 = min(int(math.floor((py + radius - y0) / cell)), ny - 1)
+    m = 0
+    for cy in range(cy0, cy1 + 1):
+        for cx in range(cx0, cx1 + 1):
+            c = cy * nx + cx
+            for g in range(gstart[c], gstart[c + 1]):
+                b = gids[g]
+                if seen[b] == stamp:
+                    continue
+                seen[b] = stamp
+                if heights[b] > h_ant and _box_distance(px, py, boxes[b]) <= radius:
+                    out[m] = b
+                    m += 1
+    return m
+
+
+@njit(cache=True)
+def _ray_hits(px, py, dx, dy, tan_el, h_ant, t_lo, t_hi, skip_edge, cand, m, edges, estart, heights):
+    """True when the ray from (px, py, h_ant) in horizontal direction (dx, dy) rising at tan_el crosses a
+    footprint edge (other than ``skip_edge``) at horizontal distance in (t_lo, t_hi) below that building's
+    roof."""
+    for q in range(m):
+        b = cand[q]
+        hb = heights[b]
+        for e in range(estart[b], estart[b + 1]):
+            if e == skip_edge:
+                continue
+            ax, ay = edges[e, 0] - px, edges[e, 1] - py
+            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+            den = dx * ey - dy * ex
+            if den == 0.0:
+                continue
+            t = (ax * ey - ay * ex) / den
+            u = (ax * dy - ay * dx) / den
+            if t_lo < t < t_hi and 0.0 <= u <= 1.0 and t * tan_el + h_ant < hb:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn,
+                    tan_el, cos_el, h_ant):
+    n, s = blocked.shape
+    found = np.zeros((n, s), dtype=np.bool_)
+    extra = np.zeros((n, s))
+    rate = np.zeros((n, s, 2))
+    nb = heights.size
+    seen = np.full(nb, -1, dtype=np.int64)
+    cand = np.empty(nb, dtype=np.int64)
+    cand2 = np.empty(nb, dtype=np.int64)
+    ne = edges.shape[0]
+    c_ex = np.empty(ne)  # this pair's specular facades: extra path, edge, t, normal, cos(dphi)
+    c_e = np.empty(ne, dtype=np.int64)
+    c_t = np.empty(ne)
+    c_n = np.empty((ne, 2))
+    c_c = np.empty(ne)
+    stamp = 0
+    eps = 1e-6
+    for i in range(n):
+        px, py = xy[i, 0], xy[i, 1]
+        any_blocked = False
+        for k in range(s):
+            if blocked[i, k]:
+                any_blocked = True
+                break
+        if not any_blocked:
+            continue
+        m = _candidates(px, py, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen, stamp,
+                        cand)
+        stamp += 1
+        for k in range(s):
+            if not blocked[i, k] or tan_el[k] <= 0.0:
+                continue
+            ux, uy = de[k], dn[k]
+            nc = 0
+            for q in range(m):  # every facade with a specular point on it, below its roof
+                b = cand[q]
+                hb = heights[b]
+                if _box_distance(px, py, boxes[b]) * tan_el[k] + h_ant >= hb:
+                    continue  # every point of this building's walls is above its roof on the reflected ray
+                for e in range(estart[b], estart[b + 1]):
+                    ax, ay = edges[e, 0], edges[e, 1]
+                    ex, ey = edges[e, 2] - ax, edges[e, 3] - ay
+                    ln = math.sqrt(ex * ex + ey * ey)
+                    if ln == 0.0:
+                        continue
+                    nxw, nyw = ey / ln, -ex / ln
+                    d = (ax - px) * nxw + (ay - py) * nyw
+                    if d < 0.0:
+                        nxw, nyw, d = -nxw, -nyw, -d
+                    if d < eps:
+                        continue  # the antenna on the wall's line
+                    cphi = -(ux * nxw + uy * nyw)
+                    if cphi <= eps:
+                        continue  # the wall turns its back to the satellite
+                    t = d / cphi
+                    if t * tan_el[k] + h_ant >= hb:
+                        continue  # the specular point is above the roof
+                    qx, qy = px + t * (ux + 2.0 * cphi * nxw), py + t * (uy + 2.0 * cphi * nyw)
+                    w = ((qx - ax) * ex + (qy - ay) * ey) / (ln * ln)
+                    if w < 0.0 or w > 1.0:
+                        continue  # ... or off the facade
+                    c_ex[nc] = 2.0 * d * cos_el[k] * cphi
+                    c_e[nc] = e
+                    c_t[nc] = t
+                    c_n[nc, 0], c_n[nc, 1] = nxw, nyw
+                    c_c[nc] = cphi
+                    nc += 1
+            if nc == 0:
+                continue
+            order = np.argsort(c_ex[:nc])
+            for j in order:  # the shortest path whose two legs are clear
+                e, t, cphi = c_e[j], c_t[j], c_c[j]
+                nxw, nyw = c_n[j, 0], c_n[j, 1]
+                rx, ry = ux + 2.0 * cphi * nxw, uy + 2.0 * cphi * nyw
+                if _ray_hits(px, py, rx, ry, tan_el[k], h_ant, eps, t - eps, e, cand, m, edges, estart, heights):
+                    continue  # the leg from the antenna to the wall is blocked
+                d = t * cphi
+                ix, iy = px + 2.0 * d * nxw, py + 2.0 * d * nyw  # the antenna's image behind the wall
+                m2 = _candidates(ix, iy, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen,
+                                 stamp, cand2)
+                stamp += 1
+                if _ray_hits(ix, iy, ux, uy, tan_el[k], h_ant, t + eps, np.inf, e, cand2, m2, edges, estart,
+                             heights):
+                    continue  # the leg from the wall to the satellite is blocked
+                found[i, k] = True
+                extra[i, k] = c_ex[j]
+                rate[i, k, 0] = -2.0 * cos_el[k] * cphi * nxw
+                rate[i, k, 1] = -2.0 * cos_el[k] * cphi * nyw
+                break
+    return found, extra, rate

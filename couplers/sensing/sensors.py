@@ -333,7 +333,8 @@ def synthesize_frame(
     replaces the white GNSS position error by its Gauss-Markov + NLOS error, driven by the same
     standard normal draws (both None: the paper's idealisation, byte for byte as before); a process with a
     ``reported_cov`` (``model = "satellites"``) also sets the position block of ``gnss_R`` to the covariance its
-    receivers report. ``prev_row``: the
+    receivers report, and with ``velocity = "doppler"`` the velocity and its block come from the receivers' range
+    rates (vehicles without a fix keep the zone's Doppler error). ``prev_row``: the
     row of each vehicle in the previous step's ``vehicle_ids`` (-1 if new), handed to ``gnss_error`` (None: it
     matches the ids itself). ``imu`` (``couplers.sensing.inertial.InertialProcess``): the frame carries it and
     ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
@@ -364,6 +365,10 @@ def synthesize_frame(
                                                         x_true[:, :2], idx=prev_row)
         if getattr(gnss_error, "reported_cov", None) is not None:  # "satellites": the covariance the receiver reports
             gnss_R[:, :2, :2] = gnss_error.reported_cov
+        if getattr(gnss_error, "doppler", False):  # "satellites", velocity = "doppler": the range-rate solution
+            verr, vcov, solved = gnss_error.velocity_error(x_true[:, 2:4])
+            gnss_z[solved, 2:4] = x_true[solved, 2:4] + verr[solved]
+            gnss_R[solved, 2:, 2:] = vcov[solved]
     if gnss_fix:  # the receiver's first fix, its error included, and the covariance it reports
         prior_z[entered], prior_R[entered] = gnss_z[entered], gnss_R[entered]
 

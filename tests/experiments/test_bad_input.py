@@ -552,7 +552,25 @@ def run_gnss_satellites_mask_below_horizon(tmp, net, run):
 
 @case("cfg.toml", "gnss_error.nlos", "block")
 def run_gnss_satellites_unknown_nlos(tmp, net, run):
-    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nnlos = 'reflect'\n")
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nnlos = 'mirror'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.velocity", "doppler")
+def run_gnss_satellites_unknown_velocity(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nvelocity = 'radar'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.rx_doppler_mps")
+def run_gnss_satellites_zero_doppler_budget(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nvelocity = 'doppler'\nrx_doppler_mps = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_error.doppler_noise_mps")
+def run_gnss_satellites_negative_doppler_noise(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\ndoppler_noise_mps = -0.1\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
@@ -1418,7 +1436,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 184
+    assert len(CASES) >= 187
 
 
 # ----------------------------------------------------------------------------- what --out may replace
