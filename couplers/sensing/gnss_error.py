@@ -504,6 +504,9 @@ def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
     return s + (1.0 - s) * f * np.exp(-np.asarray(d, dtype=float) / params.field_corr_length_m)
 
 
+_CODE_HALF = 1 << 31  # NLOS cell keys clipped to [-2^31, 2^31) and coded as kx 2^32 + ky (FieldErrorProcess)
+
+
 class FieldErrorProcess:
     """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
 
@@ -534,7 +537,8 @@ class FieldErrorProcess:
         self._u = np.empty((0, 2))
         self._bias_now = np.empty((0, 2))
         # NLOS cells, created at their first visit and evolved every step from then on
-        self._cells: dict[tuple[int, int], int] = {}
+        self._cell_codes = np.empty(0, dtype=np.int64)  # sorted codes of the known cells' keys (_cell_rows)
+        self._cell_code_rows = np.empty(0, dtype=np.int64)  # their rows
         self._cell_p = np.empty(0)  # start probability per step
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
@@ -545,28 +549,45 @@ class FieldErrorProcess:
         return (np.cos(phase) @ self.coef[0] + np.sin(phase) @ self.coef[1]) / math.sqrt(self.omega.shape[0])
 
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
-        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it)."""
-        p, cells = self.params, self._cells
-        keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
-        rows = np.empty(len(keys), dtype=np.int64)
-        new_p = []
-        for i, key in enumerate(map(tuple, keys.tolist())):
-            r = cells.get(key)
-            if r is None:
-                r = cells[key] = len(cells)
-                if self.density is not None:
-                    centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
-                    rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
-                else:
-                    rate = float(zone_rates(p, np.asarray(zone, dtype=object).reshape(-1)[i:i + 1])[0])
-                new_p.append(float(episode_start_probability(rate, self.dt)))
-            rows[i] = r
-        if new_p:
-            k = len(new_p)
-            self._cell_p = np.concatenate([self._cell_p, new_p])
-            self._cell_end = np.concatenate([self._cell_end, np.full(k, -np.inf)])
-            self._cell_bias = np.concatenate([self._cell_bias, np.zeros((k, 2))])
+        """Row of each vehicle's NLOS cell; new cells (rows numbered in the order of the first vehicle seen in
+        each) get their start probability (building density at the cell centre when the net has buildings,
+        else the rate of the zone of the first vehicle seen in it). The known cells are looked up by the
+        sorted integer codes of their keys (floor(xy / nlos_cell_m), clipped to +-2^31 cells: beyond any net)."""
+        p = self.params
+        keys = np.floor(np.asarray(xy, dtype=float).reshape(-1, 2) / p.nlos_cell_m).astype(np.int64)
+        keys = np.clip(keys, -_CODE_HALF, _CODE_HALF - 1)
+        code = keys[:, 0] * (2 * _CODE_HALF) + keys[:, 1]  # one-to-one on the clipped keys
+        known = self._cell_codes
+        if known.size:
+            pos = np.minimum(np.searchsorted(known, code), known.size - 1)
+            found = known[pos] == code
+        else:
+            pos, found = np.zeros(code.size, dtype=np.int64), np.zeros(code.size, dtype=bool)
+        rows = np.empty(code.size, dtype=np.int64)
+        rows[found] = self._cell_code_rows[pos[found]]
+        if found.all():
+            return rows
+        miss = np.flatnonzero(~found)
+        uniq, first, inverse = np.unique(code[miss], return_index=True, return_inverse=True)
+        rank = np.empty(uniq.size, dtype=np.int64)
+        rank[np.argsort(first, kind="stable")] = np.arange(uniq.size)  # order of the first vehicle seen
+        base = self._cell_p.size
+        rows[miss] = base + rank[inverse.reshape(-1)]
+        new_p = np.empty(uniq.size)
+        zone = np.asarray(zone, dtype=object).reshape(-1)
+        for u, i in zip(rank.tolist(), miss[first].tolist()):  # new cells only
+            if self.density is not None:
+                centre = (keys[i].astype(float) + 0.5) * p.nlos_cell_m
+                rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
+            else:
+                rate = float(zone_rates(p, zone[i:i + 1])[0])
+            new_p[u] = float(episode_start_probability(rate, self.dt))
+        at = np.searchsorted(known, uniq)
+        self._cell_codes = np.insert(known, at, uniq)
+        self._cell_code_rows = np.insert(self._cell_code_rows, at, base + rank)
+        self._cell_p = np.concatenate([self._cell_p, new_p])
+        self._cell_end = np.concatenate([self._cell_end, np.full(uniq.size, -np.inf)])
+        self._cell_bias = np.concatenate([self._cell_bias, np.zeros((uniq.size, 2))])
         return rows
 
     def _step_cells(self, t: float) -> None:
