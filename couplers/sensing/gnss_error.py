@@ -109,6 +109,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from numba import types as nb_types
+from numba.typed import Dict as NumbaDict
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
@@ -507,6 +509,24 @@ def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
 _CODE_HALF = 1 << 31  # NLOS cell keys clipped to [-2^31, 2^31) and coded as kx 2^32 + ky (FieldErrorProcess)
 
 
+@njit(cache=True)
+def _lookup_cells(code, table, n_known):
+    """Row of each code in ``table`` (code -> row); a code not in it gets the next row, n_known onwards, and is
+    added. Returns (rows, the first vehicle of each new code, in the order of the new rows)."""
+    rows = np.empty(code.size, dtype=np.int64)
+    first = np.empty(code.size, dtype=np.int64)
+    m = 0
+    for i in range(code.size):
+        r = table.get(code[i], -1)
+        if r < 0:
+            r = n_known + m
+            table[code[i]] = r
+            first[m] = i
+            m += 1
+        rows[i] = r
+    return rows, first[:m]
+
+
 class FieldErrorProcess:
     """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
 
@@ -537,8 +557,7 @@ class FieldErrorProcess:
         self._u = np.empty((0, 2))
         self._bias_now = np.empty((0, 2))
         # NLOS cells, created at their first visit and evolved every step from then on
-        self._cell_codes = np.empty(0, dtype=np.int64)  # sorted codes of the known cells' keys (_cell_rows)
-        self._cell_code_rows = np.empty(0, dtype=np.int64)  # their rows
+        self._cell_table = NumbaDict.empty(key_type=nb_types.int64, value_type=nb_types.int64)  # code -> row
         self._cell_p = np.empty(0)  # start probability per step
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
@@ -551,43 +570,26 @@ class FieldErrorProcess:
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Row of each vehicle's NLOS cell; new cells (rows numbered in the order of the first vehicle seen in
         each) get their start probability (building density at the cell centre when the net has buildings,
-        else the rate of the zone of the first vehicle seen in it). The known cells are looked up by the
-        sorted integer codes of their keys (floor(xy / nlos_cell_m), clipped to +-2^31 cells: beyond any net)."""
+        else the rate of the zone of the first vehicle seen in it). The cells are looked up in a numba dict
+        by an integer code of their key (floor(xy / nlos_cell_m), clipped to +-2^31 cells: beyond any net)."""
         p = self.params
         keys = np.floor(np.asarray(xy, dtype=float).reshape(-1, 2) / p.nlos_cell_m).astype(np.int64)
         keys = np.clip(keys, -_CODE_HALF, _CODE_HALF - 1)
-        code = keys[:, 0] * (2 * _CODE_HALF) + keys[:, 1]  # one-to-one on the clipped keys
-        known = self._cell_codes
-        if known.size:
-            pos = np.minimum(np.searchsorted(known, code), known.size - 1)
-            found = known[pos] == code
-        else:
-            pos, found = np.zeros(code.size, dtype=np.int64), np.zeros(code.size, dtype=bool)
-        rows = np.empty(code.size, dtype=np.int64)
-        rows[found] = self._cell_code_rows[pos[found]]
-        if found.all():
+        rows, first = _lookup_cells(keys[:, 0] * (2 * _CODE_HALF) + keys[:, 1], self._cell_table, self._cell_p.size)
+        if first.size == 0:
             return rows
-        miss = np.flatnonzero(~found)
-        uniq, first, inverse = np.unique(code[miss], return_index=True, return_inverse=True)
-        rank = np.empty(uniq.size, dtype=np.int64)
-        rank[np.argsort(first, kind="stable")] = np.arange(uniq.size)  # order of the first vehicle seen
-        base = self._cell_p.size
-        rows[miss] = base + rank[inverse.reshape(-1)]
-        new_p = np.empty(uniq.size)
+        new_p = np.empty(first.size)
         zone = np.asarray(zone, dtype=object).reshape(-1)
-        for u, i in zip(rank.tolist(), miss[first].tolist()):  # new cells only
+        for u, i in enumerate(first.tolist()):  # new cells only
             if self.density is not None:
                 centre = (keys[i].astype(float) + 0.5) * p.nlos_cell_m
                 rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
             else:
                 rate = float(zone_rates(p, zone[i:i + 1])[0])
             new_p[u] = float(episode_start_probability(rate, self.dt))
-        at = np.searchsorted(known, uniq)
-        self._cell_codes = np.insert(known, at, uniq)
-        self._cell_code_rows = np.insert(self._cell_code_rows, at, base + rank)
         self._cell_p = np.concatenate([self._cell_p, new_p])
-        self._cell_end = np.concatenate([self._cell_end, np.full(uniq.size, -np.inf)])
-        self._cell_bias = np.concatenate([self._cell_bias, np.zeros((uniq.size, 2))])
+        self._cell_end = np.concatenate([self._cell_end, np.full(first.size, -np.inf)])
+        self._cell_bias = np.concatenate([self._cell_bias, np.zeros((first.size, 2))])
         return rows
 
     def _step_cells(self, t: float) -> None:
