@@ -60,7 +60,8 @@ def _grid_values(xy, x0, y0, cell, values):
     return out
 
 
-def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float) -> np.ndarray:
+def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float,
+              edges: list[np.ndarray] | None = None) -> np.ndarray:
     """Labels of the closed boxes [bx, bx + size] x [by, by + size] widened by ``margin`` (lower left corners
     on a lattice of spacing ``size``): a region's index where the box lies inside it and touches no region
     listed before, ``_BORDER`` where a region's border comes near the box, ``_OUTSIDE`` elsewhere.
@@ -69,7 +70,8 @@ def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size:
     (:func:`_near_edges`, conservative) lies wholly inside or wholly outside that region, as its centre does
     (one vectorised point test). A box near an edge is ``_BORDER``, which only sends the points in it to the
     finer cells and the polygon test. :func:`_classify_boxes` is the per-box shapely classification this
-    replaces (its reference in the tests: every label it gives that is not ``_BORDER`` is the same here)."""
+    replaces (its reference in the tests: every label it gives that is not ``_BORDER`` is the same here).
+    ``edges``: the regions' :func:`_region_edges`, when the caller has them."""
     labels = np.full(bx.size, _OUTSIDE, dtype=np.int16)
     if bx.size == 0:
         return labels
@@ -83,7 +85,8 @@ def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size:
         cand = np.flatnonzero(open_)
         if cand.size == 0:
             break
-        near = _near_edges(_region_edges(r.polygon), x0, y0, size, 4.0 * margin, nx, ny)[jy[cand], jx[cand]]
+        e = _region_edges(r.polygon) if edges is None else edges[i]
+        near = _near_edges(e, x0, y0, size, 4.0 * margin, nx, ny)[jy[cand], jx[cand]]
         inside = np.zeros(cand.size, dtype=bool)
         inside[~near] = shapely.intersects_xy(r.polygon, cx[cand[~near]], cy[cand[~near]])
         hit = near | inside
@@ -129,7 +132,7 @@ def _near_edges(edges, x0, y0, size, tol, nx, ny):
 
 
 def _classify_boxes(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float,
-                    margin: float) -> np.ndarray:
+                    margin: float, edges=None) -> np.ndarray:
     """:func:`_classify` with a shapely box per cell (shapely's intersects / covers): its reference."""
     boxes = shapely.box(bx - margin, by - margin, bx + size + margin, by + size + margin)
     labels = np.full(boxes.size, _OUTSIDE, dtype=np.int16)
@@ -161,14 +164,16 @@ def region_raster(regions: tuple[Region, ...], cell_m: float = RASTER_CELL_M,
     # coordinates' magnitude; 1e-9 of it (and at least a micrometre) keeps every point inside its box.
     margin = max(1e-6, 1e-9 * max(abs(xmin), abs(xmax), abs(ymin), abs(ymax), cell))
     jx, jy = np.meshgrid(np.arange(bnx), np.arange(bny))
-    coarse_labels = _classify(regions, x0 + jx.ravel() * block, y0 + jy.ravel() * block, block, margin)
+    edges = [_region_edges(r.polygon) for r in regions]
+    coarse_labels = _classify(regions, x0 + jx.ravel() * block, y0 + jy.ravel() * block, block, margin, edges)
     labels = np.repeat(np.repeat(coarse_labels.reshape(bny, bnx), coarse, axis=0), coarse, axis=1)
     border = np.flatnonzero(coarse_labels == _BORDER)
     if border.size:
         sub = np.arange(coarse)
         ix = (jx.ravel()[border, None, None] * coarse + sub[None, None, :]).repeat(coarse, axis=1)
         iy = (jy.ravel()[border, None, None] * coarse + sub[None, :, None]).repeat(coarse, axis=2)
-        labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell, margin)
+        labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell,
+                                                   margin, edges)
     return CellGrid(x0=float(x0), y0=float(y0), cell=float(cell), values=labels)
 
 
@@ -233,6 +238,11 @@ class RegionIndex:
         return np.where(hits[first, np.arange(xy.shape[0])], first, -1).astype(np.int64)
 
     @cached_property
+    def _edges(self) -> list[np.ndarray]:
+        """The edges of each region's rings (:func:`_region_edges`), for the fine cells' classification."""
+        return [_region_edges(r.polygon) for r in self.regions]
+
+    @cached_property
     def _fine_blocks(self) -> dict:
         """Labels of the fine cells of the border cells met so far (:meth:`_refine`), by raster and block."""
         return {}
@@ -265,7 +275,7 @@ class RegionIndex:
                 ix = np.tile((jx // REFINE) * REFINE + sub, REFINE)
                 iy = np.repeat((jy // REFINE) * REFINE + sub, REFINE)
                 block = blocks[key] = _classify(self.regions, g.x0 + ix * fine, g.y0 + iy * fine, fine,
-                                                self._margin).reshape(REFINE, REFINE)
+                                                self._margin, self._edges).reshape(REFINE, REFINE)
             label = block[jy % REFINE, jx % REFINE]
             if label == _BORDER:
                 left.append(k)
