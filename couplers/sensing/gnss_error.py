@@ -109,8 +109,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numba import types as nb_types
-from numba.typed import Dict as NumbaDict
 
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
@@ -506,27 +504,6 @@ def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
     return s + (1.0 - s) * f * np.exp(-np.asarray(d, dtype=float) / params.field_corr_length_m)
 
 
-_CODE_HALF = 1 << 31  # NLOS cell keys clipped to [-2^31, 2^31) and coded as kx 2^32 + ky (FieldErrorProcess)
-
-
-@njit(cache=True)
-def _lookup_cells(code, table, n_known):
-    """Row of each code in ``table`` (code -> row); a code not in it gets the next row, n_known onwards, and is
-    added. Returns (rows, the first vehicle of each new code, in the order of the new rows)."""
-    rows = np.empty(code.size, dtype=np.int64)
-    first = np.empty(code.size, dtype=np.int64)
-    m = 0
-    for i in range(code.size):
-        r = table.get(code[i], -1)
-        if r < 0:
-            r = n_known + m
-            table[code[i]] = r
-            first[m] = i
-            m += 1
-        rows[i] = r
-    return rows, first[:m]
-
-
 class FieldErrorProcess:
     """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
 
@@ -557,7 +534,7 @@ class FieldErrorProcess:
         self._u = np.empty((0, 2))
         self._bias_now = np.empty((0, 2))
         # NLOS cells, created at their first visit and evolved every step from then on
-        self._cell_table = NumbaDict.empty(key_type=nb_types.int64, value_type=nb_types.int64)  # code -> row
+        self._cells: dict[tuple[int, int], int] = {}
         self._cell_p = np.empty(0)  # start probability per step
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
@@ -568,28 +545,28 @@ class FieldErrorProcess:
         return (np.cos(phase) @ self.coef[0] + np.sin(phase) @ self.coef[1]) / math.sqrt(self.omega.shape[0])
 
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Row of each vehicle's NLOS cell; new cells (rows numbered in the order of the first vehicle seen in
-        each) get their start probability (building density at the cell centre when the net has buildings,
-        else the rate of the zone of the first vehicle seen in it). The cells are looked up in a numba dict
-        by an integer code of their key (floor(xy / nlos_cell_m), clipped to +-2^31 cells: beyond any net)."""
-        p = self.params
-        keys = np.floor(np.asarray(xy, dtype=float).reshape(-1, 2) / p.nlos_cell_m).astype(np.int64)
-        keys = np.clip(keys, -_CODE_HALF, _CODE_HALF - 1)
-        rows, first = _lookup_cells(keys[:, 0] * (2 * _CODE_HALF) + keys[:, 1], self._cell_table, self._cell_p.size)
-        if first.size == 0:
-            return rows
-        new_p = np.empty(first.size)
-        zone = np.asarray(zone, dtype=object).reshape(-1)
-        for u, i in enumerate(first.tolist()):  # new cells only
-            if self.density is not None:
-                centre = (keys[i].astype(float) + 0.5) * p.nlos_cell_m
-                rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
-            else:
-                rate = float(zone_rates(p, zone[i:i + 1])[0])
-            new_p[u] = float(episode_start_probability(rate, self.dt))
-        self._cell_p = np.concatenate([self._cell_p, new_p])
-        self._cell_end = np.concatenate([self._cell_end, np.full(first.size, -np.inf)])
-        self._cell_bias = np.concatenate([self._cell_bias, np.zeros((first.size, 2))])
+        """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
+        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it)."""
+        p, cells = self.params, self._cells
+        keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
+        rows = np.empty(len(keys), dtype=np.int64)
+        new_p = []
+        for i, key in enumerate(map(tuple, keys.tolist())):
+            r = cells.get(key)
+            if r is None:
+                r = cells[key] = len(cells)
+                if self.density is not None:
+                    centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
+                    rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
+                else:
+                    rate = float(zone_rates(p, np.asarray(zone, dtype=object).reshape(-1)[i:i + 1])[0])
+                new_p.append(float(episode_start_probability(rate, self.dt)))
+            rows[i] = r
+        if new_p:
+            k = len(new_p)
+            self._cell_p = np.concatenate([self._cell_p, new_p])
+            self._cell_end = np.concatenate([self._cell_end, np.full(k, -np.inf)])
+            self._cell_bias = np.concatenate([self._cell_bias, np.zeros((k, 2))])
         return rows
 
     def _step_cells(self, t: float) -> None:

@@ -6,18 +6,14 @@ import math
 
 import numpy as np
 import pytest
-import shapely
 
-from couplers.net.buildings import Buildings
 from couplers.sensing.gnss_error import (
     FieldErrorProcess,
     GnssErrorParams,
     GnssErrorProcess,
-    episode_start_probability,
     expected_correlation,
     exponential_kernel_frequencies,
     gnss_error_process,
-    zone_rates,
 )
 from couplers.sensing.sensors import SensorNoise, SensorParams, synthesize_frame
 
@@ -160,7 +156,7 @@ def test_nlos_episodes_belong_to_cells():
             seen_active = True
             assert not np.array_equal(b[0], b[3])
     assert seen_active
-    assert proc._cell_p.size == 2
+    assert len(proc._cells) == 2
 
 
 def test_same_seed_same_errors_and_streams_per_effect():
@@ -268,49 +264,3 @@ model = "field"
     assert entries > 5
     assert sum(k for k, _ in seen) == entries
     assert max(err for _, err in seen) < 1e-9
-
-
-def _cell_rows_by_dict(proc, cells, zone, xy):
-    """The NLOS cells' rows by a dict lookup per vehicle (what FieldErrorProcess._cell_rows replaced), and the
-    start probabilities of the new cells in row order."""
-    p = proc.params
-    keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
-    rows, new_p = np.empty(len(keys), dtype=np.int64), []
-    for i, key in enumerate(map(tuple, keys.tolist())):
-        r = cells.get(key)
-        if r is None:
-            r = cells[key] = len(cells)
-            if proc.density is not None:
-                centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
-                rate = p.nlos_rate_per_density_per_min * float(proc.density.at(centre[None])[0])
-            else:
-                rate = float(zone_rates(p, np.asarray(zone, dtype=object).reshape(-1)[i:i + 1])[0])
-            new_p.append(float(episode_start_probability(rate, proc.dt)))
-        rows[i] = r
-    return rows, new_p
-
-
-@pytest.mark.parametrize("buildings", [False, True])
-def test_cell_rows_equal_the_dict_lookup(buildings):
-    """The coded lookup of the NLOS cells numbers the cells and gives their start probabilities exactly as a
-    dict lookup per vehicle, in the order of the first vehicle seen in each (random walks, vehicles leaving
-    and entering, some sharing cells, negative coordinates)."""
-    rng = np.random.default_rng(5)
-    b = None
-    if buildings:
-        b = Buildings.from_polygons([shapely.box(x, y, x + 30.0, y + 20.0) for x, y in rng.uniform(-300, 300, (25, 2))],
-                                    np.full(25, 15.0))
-    p = GnssErrorParams(model="field", nlos_zones=("B", "C"), nlos_rate_per_min=(1.0, 3.0), nlos_cell_m=40.0)
-    proc = FieldErrorProcess(p, 3, 0.75, b)
-    cells, want_p = {}, []
-    xy = rng.uniform(-400.0, 400.0, (30, 2))
-    for k in range(60):
-        xy = xy + rng.normal(0.0, 15.0, xy.shape)
-        if k % 7 == 0:  # a few new vehicles, two on the same spot
-            xy = np.vstack([xy[3:], rng.uniform(-400.0, 400.0, (2, 2)).repeat(2, axis=0)])
-        zone = rng.choice(np.array(["A", "B", "C"], dtype=object), xy.shape[0])
-        want, new_p = _cell_rows_by_dict(proc, cells, zone, xy)
-        want_p += new_p
-        np.testing.assert_array_equal(proc._cell_rows(zone, xy), want)
-        np.testing.assert_array_equal(proc._cell_p, want_p)
-    assert len(cells) > 100
