@@ -22,7 +22,7 @@ from couplers.sensing.occlusion import _footprints, vehicle_footprints
 from couplers.sensing.perception import Detections, PerceptionNoise, perceive
 from couplers.sensing import road_users as ru
 from couplers.sensing.sensor_frame import SensorFrameRows
-from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, synthesize_frame
+from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, points_in_range, synthesize_frame
 from couplers.traffic.sumo import SumoOptions, SumoTraffic, VehicleStates
 from couplers.sensing.v2x import V2xChannel
 from couplers.net.zones import RegionIndex, gnss_sigma_for_zone
@@ -114,6 +114,7 @@ class SumoCoupler:
         self.road_noise = (ru.RoadUserNoise(scenario.seed) if self.perception is not None and self.perception.extended
                            else None)
         self.persistent_sites: np.ndarray | None = None  # drawn at the first step (SUMO's lanes)
+        self._persistent_part: tuple | None = None  # their targets, P_D, footprint, class and kind rows
         # [perception] detections = "range_bearing": the rows in each sensor's frame (couplers.sensing.sensor_frame).
         self.sensor_frame = (SensorFrameRows(self.perception, scenario.seed)
                              if self.perception is not None and self.perception.detections == "range_bearing" else None)
@@ -286,15 +287,16 @@ class SumoCoupler:
             if self.persistent_sites is None:
                 self.persistent_sites = ru.persistent_clutter_sites(self._road_lanes(), p.persistent_clutter_per_km,
                                                                     self.road_noise.sites)
-            s = self.persistent_sites.shape[0]
-            parts.append((np.hstack([self.persistent_sites, np.zeros((s, 2))]), np.full(s, p.persistent_clutter_pd),
-                          np.full(s, -1), np.full(s, ru.CLASS_STATIC), np.full(s, ru.KIND_PERSISTENT_CLUTTER)))
+                s = self.persistent_sites.shape[0]  # the same part every step
+                self._persistent_part = (np.hstack([self.persistent_sites, np.zeros((s, 2))]),
+                                         np.full(s, p.persistent_clutter_pd), np.full(s, -1),
+                                         np.full(s, ru.CLASS_STATIC), np.full(s, ru.KIND_PERSISTENT_CLUTTER))
+            parts.append(self._persistent_part)
         extra = []
         if parts:
             targets, pd, occ, klass, kind = (np.concatenate(c) for c in zip(*parts))
             observer = np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids)
-            tree = cKDTree(targets[:, :2]) if len(targets) else None
-            owner, tgt = features_in_range(states.xy, tree, p.max_reach_m)
+            owner, tgt = points_in_range(states.xy, targets[:, :2], p.max_reach_m)
             keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])  # a vehicle never sees itself
             owner, tgt = owner[keep], tgt[keep]
             direction = states.direction if states.direction is not None else ru_unit(states.heading)

@@ -60,8 +60,80 @@ def _grid_values(xy, x0, y0, cell, values):
     return out
 
 
-def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float) -> np.ndarray:
-    """Labels of the closed boxes [bx, bx + size] x [by, by + size] widened by ``margin``."""
+def _classify(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float, margin: float,
+              edges: list[np.ndarray] | None = None) -> np.ndarray:
+    """Labels of the closed boxes [bx, bx + size] x [by, by + size] widened by ``margin`` (lower left corners
+    on a lattice of spacing ``size``): a region's index where the box lies inside it and touches no region
+    listed before, ``_BORDER`` where a region's border comes near the box, ``_OUTSIDE`` elsewhere.
+
+    Without a geometry per box: a box that no edge of a region's rings comes within 4 ``margin`` of
+    (:func:`_near_edges`, conservative) lies wholly inside or wholly outside that region, as its centre does
+    (one vectorised point test). A box near an edge is ``_BORDER``, which only sends the points in it to the
+    finer cells and the polygon test. :func:`_classify_boxes` is the per-box shapely classification this
+    replaces (its reference in the tests: every label it gives that is not ``_BORDER`` is the same here).
+    ``edges``: the regions' :func:`_region_edges`, when the caller has them."""
+    labels = np.full(bx.size, _OUTSIDE, dtype=np.int16)
+    if bx.size == 0:
+        return labels
+    x0, y0 = float(bx.min()), float(by.min())
+    jx = np.rint((bx - x0) / size).astype(np.int64)
+    jy = np.rint((by - y0) / size).astype(np.int64)
+    nx, ny = int(jx.max()) + 1, int(jy.max()) + 1
+    cx, cy = bx + 0.5 * size, by + 0.5 * size
+    open_ = np.ones(bx.size, dtype=bool)  # no region listed so far touches the box
+    for i, r in enumerate(regions):
+        cand = np.flatnonzero(open_)
+        if cand.size == 0:
+            break
+        e = _region_edges(r.polygon) if edges is None else edges[i]
+        near = _near_edges(e, x0, y0, size, 4.0 * margin, nx, ny)[jy[cand], jx[cand]]
+        inside = np.zeros(cand.size, dtype=bool)
+        inside[~near] = shapely.intersects_xy(r.polygon, cx[cand[~near]], cy[cand[~near]])
+        hit = near | inside
+        labels[cand[hit]] = np.where(near[hit], _BORDER, i)
+        open_[cand[hit]] = False
+    return labels
+
+
+def _region_edges(polygon) -> np.ndarray:
+    """(E, 4) edges (ax, ay, bx, by) of every ring of a Polygon / MultiPolygon."""
+    rings = shapely.get_rings(shapely.get_parts(polygon))
+    xy, ring = shapely.get_coordinates(rings, return_index=True)
+    same = ring[1:] == ring[:-1]
+    return np.ascontiguousarray(np.hstack([xy[:-1][same], xy[1:][same]]), dtype=np.float64)
+
+
+@njit(cache=True)
+def _near_edges(edges, x0, y0, size, tol, nx, ny):
+    """(ny, nx) bool: the boxes [x0 + j size, x0 + (j + 1) size] x [y0 + i size, ...] widened by ``tol`` that an
+    edge may meet. Column by column of each edge: the y range of the edge over the column's widened x span,
+    widened by ``tol`` (conservative: a box marked may miss the edge, a box the edge meets is marked)."""
+    out = np.zeros((ny, nx), dtype=np.bool_)
+    for e in range(edges.shape[0]):
+        ax, ay, bx, by = edges[e, 0], edges[e, 1], edges[e, 2], edges[e, 3]
+        if ax > bx:
+            ax, ay, bx, by = bx, by, ax, ay
+        c0 = max(int(math.floor((ax - tol - x0) / size)), 0)
+        c1 = min(int(math.floor((bx + tol - x0) / size)), nx - 1)
+        for c in range(c0, c1 + 1):
+            xl = max(ax, x0 + c * size - tol)
+            xr = min(bx, x0 + (c + 1) * size + tol)
+            if bx > ax:
+                ya = ay + (by - ay) * ((xl - ax) / (bx - ax))
+                yb = ay + (by - ay) * ((xr - ax) / (bx - ax))
+            else:
+                ya, yb = ay, by
+            lo, hi = min(ya, yb), max(ya, yb)
+            r0 = max(int(math.floor((lo - tol - y0) / size)), 0)
+            r1 = min(int(math.floor((hi + tol - y0) / size)), ny - 1)
+            for row in range(r0, r1 + 1):
+                out[row, c] = True
+    return out
+
+
+def _classify_boxes(regions: tuple[Region, ...], bx: np.ndarray, by: np.ndarray, size: float,
+                    margin: float, edges=None) -> np.ndarray:
+    """:func:`_classify` with a shapely box per cell (shapely's intersects / covers): its reference."""
     boxes = shapely.box(bx - margin, by - margin, bx + size + margin, by + size + margin)
     labels = np.full(boxes.size, _OUTSIDE, dtype=np.int16)
     open_ = np.ones(boxes.size, dtype=bool)  # no region listed so far touches the box
@@ -92,14 +164,16 @@ def region_raster(regions: tuple[Region, ...], cell_m: float = RASTER_CELL_M,
     # coordinates' magnitude; 1e-9 of it (and at least a micrometre) keeps every point inside its box.
     margin = max(1e-6, 1e-9 * max(abs(xmin), abs(xmax), abs(ymin), abs(ymax), cell))
     jx, jy = np.meshgrid(np.arange(bnx), np.arange(bny))
-    coarse_labels = _classify(regions, x0 + jx.ravel() * block, y0 + jy.ravel() * block, block, margin)
+    edges = [_region_edges(r.polygon) for r in regions]
+    coarse_labels = _classify(regions, x0 + jx.ravel() * block, y0 + jy.ravel() * block, block, margin, edges)
     labels = np.repeat(np.repeat(coarse_labels.reshape(bny, bnx), coarse, axis=0), coarse, axis=1)
     border = np.flatnonzero(coarse_labels == _BORDER)
     if border.size:
         sub = np.arange(coarse)
         ix = (jx.ravel()[border, None, None] * coarse + sub[None, None, :]).repeat(coarse, axis=1)
         iy = (jy.ravel()[border, None, None] * coarse + sub[None, :, None]).repeat(coarse, axis=2)
-        labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell, margin)
+        labels[iy.ravel(), ix.ravel()] = _classify(regions, x0 + ix.ravel() * cell, y0 + iy.ravel() * cell, cell,
+                                                   margin, edges)
     return CellGrid(x0=float(x0), y0=float(y0), cell=float(cell), values=labels)
 
 
@@ -164,6 +238,11 @@ class RegionIndex:
         return np.where(hits[first, np.arange(xy.shape[0])], first, -1).astype(np.int64)
 
     @cached_property
+    def _edges(self) -> list[np.ndarray]:
+        """The edges of each region's rings (:func:`_region_edges`), for the fine cells' classification."""
+        return [_region_edges(r.polygon) for r in self.regions]
+
+    @cached_property
     def _fine_blocks(self) -> dict:
         """Labels of the fine cells of the border cells met so far (:meth:`_refine`), by raster and block."""
         return {}
@@ -196,7 +275,7 @@ class RegionIndex:
                 ix = np.tile((jx // REFINE) * REFINE + sub, REFINE)
                 iy = np.repeat((jy // REFINE) * REFINE + sub, REFINE)
                 block = blocks[key] = _classify(self.regions, g.x0 + ix * fine, g.y0 + iy * fine, fine,
-                                                self._margin).reshape(REFINE, REFINE)
+                                                self._margin, self._edges).reshape(REFINE, REFINE)
             label = block[jy % REFINE, jx % REFINE]
             if label == _BORDER:
                 left.append(k)

@@ -39,6 +39,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from numba import njit
 
 from couplers.sensing.occlusion import OccluderIndex, _segments_occluded_by_buildings, _segments_occluded_by_vehicles
 from couplers.sensing.perception import _fov_params, effect_rng
@@ -101,13 +102,15 @@ def persistent_clutter_sites(lanes: list[tuple[np.ndarray, float]], per_km: floa
 def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.ndarray, targets: np.ndarray,
                      target_pd: np.ndarray, target_occluder: np.ndarray, pair_owner: np.ndarray,
                      pair_target: np.ndarray, params, noise: RoadUserNoise,
-                     occluder_corners: np.ndarray | None, observer_occluder: np.ndarray, buildings=None):
+                     occluder_corners: np.ndarray | None, observer_occluder: np.ndarray, buildings=None,
+                     reference: bool = False):
     """Detections of the targets (M, 4) (true states) by the vehicles ``x_true``: candidates of every
     sensor (the perception's field of view), sight lines cleared of every vehicle footprint but the
     observer's and the target's own (``target_occluder``, -1: none) and of buildings, detection with
     the sensor's P_D(d) or, where ``target_pd`` >= 0, once per (vehicle, target) with that probability;
     one row per detected pair (the detecting sensor of smallest sigma_p, ties: the first listed).
-    Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v)."""
+    Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v): rows in the order of the pairs. The detection
+    and the rows run in :func:`_target_rows` (numba; ``reference``: its numpy reference)."""
     a, k = params.arrays, params.kernel_consts
     xy = np.ascontiguousarray(x_true[:, :2], dtype=np.float64)
     origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]
@@ -127,10 +130,21 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
                                                  target_occluder[pair_target[pair[line]]])
     if params.occlusion_buildings and buildings is not None and len(buildings) and clear.any():
         clear[clear] &= ~_segments_occluded_by_buildings(seg[clear], buildings)
+    tail = _target_rows_reference if reference else _target_rows
+    return tail(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_target,
+                np.ascontiguousarray(target_pd, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
+                np.ascontiguousarray(x_true, dtype=np.float64), a["range_m"], a["pd_near"], a["pd_far"],
+                a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
+
+
+def _target_rows_reference(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_target, target_pd, targets,
+                           x_true, range_m, pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v):
+    """Detection, the best sensor per detected pair and the rows (:func:`perceive_targets`), in numpy: the
+    reference of :func:`_target_rows`."""
     visible = clear[line_of]
-    frac = np.clip(dist / a["range_m"][sensor], 0.0, 1.0)
-    sig = a["sigma_p_m"][sensor] * (1.0 + a["sigma_growth"][sensor] * frac)
-    pd = a["pd_near"][sensor] + (a["pd_far"][sensor] - a["pd_near"][sensor]) * frac
+    frac = np.clip(dist / range_m[sensor], 0.0, 1.0)
+    sig = sigma_p_m[sensor] * (1.0 + sigma_growth[sensor] * frac)
+    pd = pd_near[sensor] + (pd_far[sensor] - pd_near[sensor]) * frac
     fixed = target_pd[pair_target[pair]]
     detected = visible & (u < pd)
     if (fixed >= 0).any():  # one draw per (vehicle, target): the first candidate's, any sensor seeing it
@@ -144,11 +158,68 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     best = order[first]
     owner = pair_owner[pair[best]]
     tgt = pair_target[pair[best]]
-    sp, sv = sig[best], a["sigma_v_mps"][sensor[best]]
+    sp, sv = sig[best], sigma_v[sensor[best]]
     z = targets[tgt] - x_true[owner]
     z[:, :2] += w[best, :2] * sp[:, None]
     z[:, 2:] += w[best, 2:] * sv[:, None]
     return owner, tgt, sensor[best], z, sp, sv
+
+
+@njit(cache=True)
+def _target_rows(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_target, target_pd, targets, x_true,
+                 range_m, pd_near, pd_far, sigma_p_m, sigma_growth, sigma_v):
+    """:func:`_target_rows_reference` in one pass over the candidates (same arithmetic, same order of the
+    operations): a candidate is detected if its sight line is clear and its uniform is below the sensor's
+    P_D(d), or, for a target with a fixed probability, below that with the uniform of the pair's first
+    candidate; per detected pair the detecting candidate of smallest sigma_p, then smallest sensor index, then
+    first listed (the reference's stable lexsort); rows in pair order."""
+    c_total, n_pairs = pair.size, pair_owner.size
+    first_of = np.full(n_pairs, -1, dtype=np.int64)
+    for c in range(c_total):
+        if first_of[pair[c]] < 0:
+            first_of[pair[c]] = c
+    sig = np.empty(c_total)
+    best = np.full(n_pairs, -1, dtype=np.int64)
+    for c in range(c_total):
+        s = sensor[c]
+        frac = min(max(dist[c] / range_m[s], 0.0), 1.0)
+        sig[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+        fixed = target_pd[pair_target[pair[c]]]
+        if fixed >= 0:
+            det = clear[line_of[c]] and u[first_of[pair[c]]] < fixed
+        else:
+            det = clear[line_of[c]] and u[c] < pd_near[s] + (pd_far[s] - pd_near[s]) * frac
+        if det:
+            b = best[pair[c]]
+            if b < 0 or sig[c] < sig[b] or (sig[c] == sig[b] and s < sensor[b]):
+                best[pair[c]] = c
+    d = 0
+    for p in range(n_pairs):
+        if best[p] >= 0:
+            d += 1
+    owner = np.empty(d, dtype=np.int64)
+    tgt = np.empty(d, dtype=np.int64)
+    sens = np.empty(d, dtype=np.int64)
+    sp = np.empty(d)
+    sv = np.empty(d)
+    z = np.empty((d, targets.shape[1]))
+    r = 0
+    for p in range(n_pairs):
+        c = best[p]
+        if c < 0:
+            continue
+        i, t = pair_owner[p], pair_target[p]
+        owner[r], tgt[r], sens[r] = i, t, sensor[c]
+        sp[r] = sig[c]
+        sv[r] = sigma_v[sensor[c]]
+        for j in range(targets.shape[1]):
+            z[r, j] = targets[t, j] - x_true[i, j]
+        z[r, 0] += w[c, 0] * sp[r]
+        z[r, 1] += w[c, 1] * sp[r]
+        z[r, 2] += w[c, 2] * sv[r]
+        z[r, 3] += w[c, 3] * sv[r]
+        r += 1
+    return owner, tgt, sens, z, sp, sv
 
 
 def confuse_classes(klass: np.ndarray, class_error: float, rng: np.random.Generator) -> np.ndarray:

@@ -82,7 +82,8 @@ def relative_states(det: Detections, x_true: np.ndarray, features_true: np.ndarr
     rel[~real, 2:] = -np.asarray(x_true, dtype=float)[owner[~real], 2:]
     kind = getattr(det, "kind", None)
     if kind is not None:  # other road users move: their net-frame row's relative velocity (couplers.sensing.road_users)
-        moving = ~real & np.isin(np.asarray(kind), (KIND_VEHICLE, KIND_PEDESTRIAN))
+        kind = np.asarray(kind)
+        moving = ~real & ((kind == KIND_VEHICLE) | (kind == KIND_PEDESTRIAN))
         rel[moving, 2:] = np.asarray(det.z, dtype=float)[moving, 2:]
     return rel
 

@@ -297,10 +297,18 @@ def features_in_range(vehicle_xy: np.ndarray, feature_tree: cKDTree | None, radi
 
     ``feature_tree``: the features' cKDTree (its ``data``); pairs at exactly zero distance and at exactly
     ``radius`` are kept, as the tree's ``sparse_distance_matrix`` keeps them (its reference in the tests)."""
-    if feature_tree is None or vehicle_xy.shape[0] == 0:
+    if feature_tree is None:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    return points_in_range(vehicle_xy, feature_tree.data, radius)
+
+
+def points_in_range(vehicle_xy: np.ndarray, points_xy: np.ndarray, radius: float):
+    """:func:`features_in_range` of the points ``points_xy`` (K, 2) themselves (a tree's ``data``), for
+    points that change every step (no tree to build)."""
+    if vehicle_xy.shape[0] == 0 or len(points_xy) == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     return _pairs_within(np.ascontiguousarray(vehicle_xy, dtype=np.float64),
-                         np.ascontiguousarray(feature_tree.data, dtype=np.float64), float(radius))
+                         np.ascontiguousarray(points_xy, dtype=np.float64), float(radius))
 
 
 def synthesize_frame(

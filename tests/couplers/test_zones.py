@@ -124,3 +124,25 @@ def test_fine_cells_of_the_border_cells_give_the_polygon_test():
         pts = np.vstack([near, edges, np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf)])
         np.testing.assert_array_equal(index.locate(pts), index.locate_exact(pts))
         assert index._fine_blocks  # the fine cells were used
+
+
+@pytest.mark.parametrize("which", ["synthetic", "arterial_zones", "arterial_areas"])
+def test_raster_labels_agree_with_shapely_boxes(which, monkeypatch):
+    """The raster classified without a geometry per cell (zones._classify) gives every cell the label of the
+    shapely classification with a box per cell (zones._classify_boxes) or _BORDER, and marks few more
+    cells _BORDER than it."""
+    from couplers.net import zones
+
+    if which == "synthetic":
+        regions = _synthetic_regions()
+    else:
+        net = load_net_folder(ARTERIAL)
+        regions = net.zones if which == "arterial_zones" else net.areas
+    new = region_raster(regions, cell_m=2.0)
+    monkeypatch.setattr(zones, "_classify", zones._classify_boxes)
+    ref = region_raster(regions, cell_m=2.0)
+    assert new.values.shape == ref.values.shape and (new.x0, new.y0, new.cell) == (ref.x0, ref.y0, ref.cell)
+    border = new.values == zones._BORDER
+    np.testing.assert_array_equal(new.values[~border], ref.values[~border])
+    n_ref = int((ref.values == zones._BORDER).sum())
+    assert n_ref > 0 and border.sum() <= 1.2 * n_ref + 10, (int(border.sum()), n_ref)
