@@ -31,6 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+# this checkout's packages, not an installed copy (a script's own folder is first on sys.path)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 CHI2_2_95 = 5.991464547107979
 
 

@@ -293,3 +293,51 @@ def test_gate_leaves_out_a_fix_far_from_the_prediction():
     res = est.step_with_association(Frame(**{**f.__dict__, "gnss_z": z}), assoc)
     assert est.last_excluded[0] and not est.last_excluded[1:].any()
     assert np.hypot(*(res.mean[0, :2] - before)) < 20.0
+
+
+def test_shared_heading_term_equals_the_dense_joint_covariance():
+    """Sensor-frame rows of one vehicle share its heading error: the rank-one term per vehicle gives the same
+    information as inverting the dense joint covariance of all rows (D + var_i G_i G_i^T), and differs from
+    the rows taken as independent."""
+    from coloc.core.detections import SensorDetections, to_net_frame
+    from coloc.methods.joint_oracle import _information, _scatter, _shared_heading_information
+
+    rng = np.random.default_rng(3)
+    m, nv = 7, 3
+    own = np.array([0, 1, 0, 0, 1, 2, 0])
+    fpos = np.array([0, 1, 1, 2, 2, 0, 3])
+    det = SensorDetections(range=rng.uniform(5, 60, m), bearing=rng.uniform(-1, 1, m), range_rate=rng.normal(0, 5, m),
+                           mount_x=rng.uniform(0, 3, m), yaw=rng.uniform(-1, 1, m), sigma_range=np.full(m, 0.1),
+                           sigma_bearing=np.full(m, 0.005), sigma_range_rate=np.full(m, 0.03))
+    psi, var = rng.uniform(-3, 3, nv), np.array([0.002, 0.01, 0.05])
+    z, r = to_net_frame(det, psi[own], var[own])
+    d = 4 * nv + 16
+    ind = np.concatenate([own[:, None] * 4 + np.arange(4), 4 * nv + 4 * fpos[:, None] + np.arange(4)], axis=1)
+    lam, eta = np.zeros((d, d)), np.zeros(d)
+    _shared_heading_information(lam, eta, ind, det, psi[own], var, own, z, r)
+    h = np.zeros((4 * m, d))
+    for j in range(m):
+        h[4 * j:4 * j + 4, ind[j, :4]] = -np.eye(4)
+        h[4 * j:4 * j + 4, ind[j, 4:]] = np.eye(4)
+    phi = psi[own] + det.yaw + det.bearing
+    nrm = np.stack([-np.sin(phi), np.cos(phi)], 1)
+    g = det.mount_x[:, None] * np.stack([-np.sin(psi[own]), np.cos(psi[own])], 1) + det.range[:, None] * nrm
+    gz = np.concatenate([g, det.range_rate[:, None] * nrm], 1)
+    big = np.zeros((4 * m, 4 * m))
+    for j in range(m):
+        big[4 * j:4 * j + 4, 4 * j:4 * j + 4] = r[j] - var[own[j]] * np.outer(gz[j], gz[j])
+    for i in range(nv):
+        col = np.zeros(4 * m)
+        for j in np.flatnonzero(own == i):
+            col[4 * j:4 * j + 4] = gz[j]
+        big += var[i] * np.outer(col, col)
+    inv = np.linalg.inv(big)
+    assert np.allclose(lam, h.T @ inv @ h, rtol=1e-9, atol=1e-9 * np.abs(lam).max())
+    assert np.allclose(eta, h.T @ inv @ z.ravel(), rtol=1e-9, atol=1e-9 * np.abs(eta).max())
+    # the rows taken as independent (each with its own full heading variance) are not the same information
+    lam_ind, eta_ind = np.zeros((d, d)), np.zeros(d)
+    hh = np.zeros((m, 4, 8))
+    hh[:, :, :4], hh[:, :, 4:] = -np.eye(4), np.eye(4)
+    hth, htz = _information(hh, np.linalg.inv(r), z)
+    _scatter(lam_ind, eta_ind, ind, hth, htz)
+    assert not np.allclose(lam_ind, lam, rtol=1e-3)
