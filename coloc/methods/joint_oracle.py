@@ -124,6 +124,10 @@ class OracleWorld:
     # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
     # than independent per row.
     shared_heading: bool = True
+    # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
+    # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
+    # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
+    heading_from_state: bool = False
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -606,6 +610,10 @@ class JointOracle:
                 "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
+        if det is not None and self.world.heading_from_state:
+            _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,
+                                       to_net_frame(sub, psi[own], np.zeros(m))[1])
+            return memory
         if det is not None and self.world.shared_heading:
             _shared_heading_information(lam, eta, ind, sub, psi[own], var, own, z, r)
             return memory
@@ -613,6 +621,32 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
+
+
+def _heading_gradient(det, psi_row) -> np.ndarray:
+    """(m, 4) d z / d psi of sensor-frame rows converted with heading ``psi_row``
+    (:func:`coloc.core.detections.to_net_frame`): [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]."""
+    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
+    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
+    g = (np.asarray(det.mount_x, dtype=float)[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1)
+         + np.asarray(det.range, dtype=float)[:, None] * n_perp)
+    return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
+
+
+def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> None:
+    """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
+    z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
+    at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
+    unchanged; ``r0`` is the row covariance without the heading's term."""
+    gz = _heading_gradient(det, psi_row)
+    s2 = np.maximum(np.einsum("ni,ni->n", v_row, v_row), 1e-12)
+    gv = np.stack([-v_row[:, 1], v_row[:, 0]], axis=1) / s2[:, None]
+    h = np.zeros((psi_row.shape[0], 4, 8))
+    h[:, :, :4] = -np.eye(4)
+    h[:, :, 4:] = np.eye(4)
+    h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
+    hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
+    _scatter(lam, eta, ind, hth, htz)
 
 
 def _shared_heading_information(lam, eta, ind, det, psi_row, var, own, z, r) -> None:

@@ -341,3 +341,36 @@ def test_shared_heading_term_equals_the_dense_joint_covariance():
     hth, htz = _information(hh, np.linalg.inv(r), z)
     _scatter(lam_ind, eta_ind, ind, hth, htz)
     assert not np.allclose(lam_ind, lam, rtol=1e-3)
+
+
+def test_heading_from_state_rows_linearize_the_conversion():
+    """With the heading the direction of the velocity state, a row's H on the velocity is - dz/dpsi dpsi/dv:
+    the converted row moves with a small change of the velocity as H predicts (finite differences)."""
+    from coloc.core.detections import SensorDetections, to_net_frame
+    from coloc.methods.joint_oracle import _heading_state_information
+
+    rng = np.random.default_rng(5)
+    m = 4
+    det = SensorDetections(range=rng.uniform(5, 60, m), bearing=rng.uniform(-1, 1, m), range_rate=rng.normal(0, 5, m),
+                           mount_x=rng.uniform(0, 3, m), yaw=rng.uniform(-1, 1, m), sigma_range=np.full(m, 0.1),
+                           sigma_bearing=np.full(m, 0.005), sigma_range_rate=np.full(m, 0.03))
+    v = rng.normal(0, 8, (m, 2))
+    psi = np.arctan2(v[:, 1], v[:, 0])
+    z, r0 = to_net_frame(det, psi, np.zeros(m))
+    # one row at a time, one vehicle (cols 0-3) and one feature (cols 4-7): recover H from the information
+    for j in range(m):
+        sub = SensorDetections(**{k: np.asarray(getattr(det, k))[j:j + 1] for k in det.__dataclass_fields__})
+        lam, eta = np.zeros((8, 8)), np.zeros(8)
+        ind = np.arange(8)[None, :]
+        _heading_state_information(lam, eta, ind, sub, psi[j:j + 1], v[j:j + 1], z[j:j + 1], r0[j:j + 1])
+        # H^T R^-1 H = lam with R = r0: H's velocity columns from lam's vehicle-velocity / feature block
+        dv = 1e-6 * rng.normal(size=2)
+        psi2 = np.arctan2(v[j, 1] + dv[1], v[j, 0] + dv[0])
+        z2, _ = to_net_frame(sub, np.array([psi2]), np.zeros(1))
+        # the world's row for a velocity v + dv is the same body-frame measurement seen with the truer heading:
+        # z(psi_hat) - z(psi_true) = -(H_v) (v_true - v_hat) to first order, i.e. z(psi2) - z(psi) = -H_v dv
+        hvel = -(z2[0] - z[j])
+        # H_v as built: -gz g_v^T; read it back from the information: lam[4:, 2:4] = R^-1 H_v (feature's H = I)
+        h_built = np.linalg.solve(np.linalg.inv(r0[j]), lam[4:, 2:4])
+        h_built[2:4] += np.eye(2)  # model (4)'s -I on the relative velocity; the rest is the heading's part
+        assert np.allclose(h_built @ dv, hvel, rtol=1e-4, atol=1e-9)
