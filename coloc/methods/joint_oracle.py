@@ -19,8 +19,13 @@ fix model is ``z_pos = p_i + sigma_i (sqrt(s) c + sqrt(1 - s) l_i) + n`` with ``
 position std (``frame.gnss_R``: the zone's sigma_p, so the zone rescaling of the world is exact) and:
 
 * ``c``: the common Gauss-Markov process, ``a_c = exp(-Ts / common_tau_s)`` (exact);
-* ``l_i``: the vehicle's local unit process, standing for the field part F(p_i) and the receiver's own
-  part u_i together. **Approximation**: the field is shared by vehicles within tens of metres; the
+* field: with the world's field frequencies given (``OracleWorld.field_omega``, the runner copies the world's
+  draw), F(p_i) = phi(p_i)^T theta with theta the 4 M unit Gauss-Markov coefficients (``field_tau_s``) as
+  shared states, phi the random Fourier basis at the vehicle's predicted position (linearized: the field's
+  gradient times the position error is left out; 5 m against a 50 m correlation length), and ``l_i`` the
+  receiver's own part u_i alone, a_l = exp(-d / L_local - Ts / tau_s) (exact up to that linearization);
+* ``l_i`` without ``field_omega``: the vehicle's local unit process, standing for the field part F(p_i) and the
+  receiver's own part u_i together. **Approximation**: the field is shared by vehicles within tens of metres; the
   oracle treats each vehicle's field part as its own (no cross-vehicle correlation) and merges the two
   parts into one Gauss-Markov state whose one-step correlation is the world's,
   ``a_l = f exp(-d / L_field - Ts / tau_field) + (1 - f) exp(-d / L_local - Ts / tau_s)`` with ``d`` the
@@ -45,7 +50,10 @@ the frame's row covariance (the world's sensor noise). Sensor-frame rows (``fram
 bearing, range rate with the world's sigmas) are converted by :func:`coloc.core.detections.to_net_frame`
 with the oracle's heading, the direction of its predicted velocity at t with variance g P_vv g^T from its
 joint covariance (:func:`coloc.core.detections.vehicle_headings`; the world's heading is the direction of
-the velocity, couplers/traffic/sumo.py). Rows of a vehicle below ``heading_min_speed`` are left out: the
+the velocity, couplers/traffic/sumo.py). One heading error per vehicle and step is shared by all its rows:
+they enter with their joint covariance (``shared_heading``, :func:`_shared_heading_information`), not as
+independent rows; ``heading_from_state`` instead makes the heading the direction of the velocity state
+(EKF, :func:`_heading_state_information`), so its error is carried across steps. Rows of a vehicle below ``heading_min_speed`` are left out: the
 heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
 again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
 heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
@@ -61,7 +69,8 @@ one-step variance and grows by about one drift variance per tau). The accelerome
 noise from ``[motion]``; the gyroscope's biases are not states.
 
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
-joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 with every option) per step, O(d^3); the rest O(d^2).
+joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
+the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
 """
 
 from __future__ import annotations
