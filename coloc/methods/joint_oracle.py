@@ -136,7 +136,7 @@ class OracleWorld:
     # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
     # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
     # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
-    heading_from_state: bool = False
+    heading_from_state: bool = True
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
