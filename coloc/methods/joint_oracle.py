@@ -137,6 +137,9 @@ class OracleWorld:
     # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
     # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
     heading_from_state: bool = True
+    # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
+    # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
+    imu_heading_from_state: bool = True
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -369,7 +372,22 @@ class JointOracle:
                             - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
             u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
             bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
-            qv[:, :4, :4] += (amag2 * psi_var[surv])[:, None, None] * bu[:, :, None] * bu[:, None, :]
+            pvar = psi_var[surv]
+            if w.imu_heading_from_state:
+                # a_net = Rot(psi(v) + r Ts / 2) a_body with psi(v) = atan2(vy, vx) of the velocity at t-1: the
+                # transition gets B d a_net / d psi g_v^T on that velocity (g_v = [-vy, vx] / |v|^2; g_v^T v = 0,
+                # so the predicted mean is unchanged); the heading's variance leaves Q for those vehicles.
+                fast = self._imu_fast[surv]
+                v0 = xv[:, 2:4]
+                s2 = np.maximum(v0[:, 0] ** 2 + v0[:, 1] ** 2, 1e-12)
+                gv = np.stack([-v0[:, 1], v0[:, 0]], axis=1) / s2[:, None]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
+                c2, s2_ = np.cos(ang), np.sin(ang)
+                da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
+                jac = np.einsum("ij,nj->ni", input_matrix(dt), da)[:, :, None] * gv[:, None, :]  # (ns, 4, 2)
+                fv[fast, 0:4, 2:4] += jac[fast]
+                pvar = np.where(fast, 0.0, pvar)
+            qv[:, :4, :4] += (amag2 * pvar)[:, None, None] * bu[:, :, None] * bu[:, None, :]
         a_c = w.tail_coefficients(dt)
         xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
         p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
@@ -509,6 +527,8 @@ class JointOracle:
             var = np.where(use, kv, var)
             slow = slow & ~use
         var = np.where(slow, HEADING_VAR_UNKNOWN, var)
+        # heading from the velocity at t-1 (not held, not unknown): the EKF input of imu_heading_from_state
+        self._imu_fast = have & (np.hypot(pv[:, 0], pv[:, 1]) >= self.params.motion.heading_min_speed)
         r = np.asarray(frame.imu.yaw_rate, dtype=float)
         step = np.where(fresh, 0.0, r * float(frame.dt))
         accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
