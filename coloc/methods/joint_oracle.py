@@ -66,7 +66,9 @@ each step b_k = b_{k-1} + w, Var(w) = (1 - a^2) drift^2, a = exp(-Ts / tau) (**a
 world's turn-on part is constant and its drift Gauss-Markov; the oracle's random walk has the drift's
 one-step variance and grows by about one drift variance per tau). The accelerometer's white noise
 (density^2 / Ts) and the heading's error (|a|^2 var(psi) across the input) add to model (1)'s driving
-noise from ``[motion]``; the gyroscope's biases are not states.
+noise from ``[motion]``; the gyroscope's biases are not states. With ``imu_heading_from_state`` (default) a
+vehicle whose heading at t-1 is its velocity's direction has the input's dependence on that velocity in the
+transition instead (EKF, g_v^T v_hat = 0 so the mean is unchanged) and no heading term in Q.
 
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
