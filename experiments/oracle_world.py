@@ -32,11 +32,20 @@ def oracle_world(cfg):
         raise InputError(cfg.path, "gnss_error.model",
                          f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
     field = ge.model == "field"
+    omega = None
+    if field and ge.field_share > 0:
+        # the world's draw of the field's frequencies (the field's structure; its values stay unknown states)
+        from couplers.sensing.gnss_error import GNSS_ERROR_STREAM_TAG, exponential_kernel_frequencies
+        from couplers.sensing.perception import effect_rng
+
+        om = exponential_kernel_frequencies(effect_rng(cfg.run.seed, GNSS_ERROR_STREAM_TAG, "field_features"),
+                                            ge.field_features, ge.field_corr_length_m)
+        omega = tuple(map(tuple, om.tolist()))
     rates = any(r > 0 for r in ge.nlos_rate_per_min) or ge.nlos_rate_per_density_per_min > 0
     return OracleWorld(
         gnss=ge.model, tau_s=ge.tau_s,
         common_share=ge.common_share if field else 0.0, common_tau_s=ge.common_tau_s,
         field_share=ge.field_share if field else 0.0, field_corr_length_m=ge.field_corr_length_m,
         field_tau_s=ge.field_tau_s, local_corr_length_m=ge.local_corr_length_m if field else math.inf,
-        nlos=bool(rates and ge.nlos_bias_mean_m > 0), **imu,
+        nlos=bool(rates and ge.nlos_bias_mean_m > 0), field_omega=omega, **imu,
     )

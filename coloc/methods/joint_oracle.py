@@ -19,8 +19,13 @@ fix model is ``z_pos = p_i + sigma_i (sqrt(s) c + sqrt(1 - s) l_i) + n`` with ``
 position std (``frame.gnss_R``: the zone's sigma_p, so the zone rescaling of the world is exact) and:
 
 * ``c``: the common Gauss-Markov process, ``a_c = exp(-Ts / common_tau_s)`` (exact);
-* ``l_i``: the vehicle's local unit process, standing for the field part F(p_i) and the receiver's own
-  part u_i together. **Approximation**: the field is shared by vehicles within tens of metres; the
+* field: with the world's field frequencies given (``OracleWorld.field_omega``, the runner copies the world's
+  draw), F(p_i) = phi(p_i)^T theta with theta the 4 M unit Gauss-Markov coefficients (``field_tau_s``) as
+  shared states, phi the random Fourier basis at the vehicle's predicted position (linearized: the field's
+  gradient times the position error is left out; 5 m against a 50 m correlation length), and ``l_i`` the
+  receiver's own part u_i alone, a_l = exp(-d / L_local - Ts / tau_s) (exact up to that linearization);
+* ``l_i`` without ``field_omega``: the vehicle's local unit process, standing for the field part F(p_i) and the
+  receiver's own part u_i together. **Approximation**: the field is shared by vehicles within tens of metres; the
   oracle treats each vehicle's field part as its own (no cross-vehicle correlation) and merges the two
   parts into one Gauss-Markov state whose one-step correlation is the world's,
   ``a_l = f exp(-d / L_field - Ts / tau_field) + (1 - f) exp(-d / L_local - Ts / tau_s)`` with ``d`` the
@@ -45,7 +50,10 @@ the frame's row covariance (the world's sensor noise). Sensor-frame rows (``fram
 bearing, range rate with the world's sigmas) are converted by :func:`coloc.core.detections.to_net_frame`
 with the oracle's heading, the direction of its predicted velocity at t with variance g P_vv g^T from its
 joint covariance (:func:`coloc.core.detections.vehicle_headings`; the world's heading is the direction of
-the velocity, couplers/traffic/sumo.py). Rows of a vehicle below ``heading_min_speed`` are left out: the
+the velocity, couplers/traffic/sumo.py). One heading error per vehicle and step is shared by all its rows:
+they enter with their joint covariance (``shared_heading``, :func:`_shared_heading_information`), not as
+independent rows; ``heading_from_state`` instead makes the heading the direction of the velocity state
+(EKF, :func:`_heading_state_information`), so its error is carried across steps. Rows of a vehicle below ``heading_min_speed`` are left out: the
 heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
 again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
 heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
@@ -58,10 +66,13 @@ each step b_k = b_{k-1} + w, Var(w) = (1 - a^2) drift^2, a = exp(-Ts / tau) (**a
 world's turn-on part is constant and its drift Gauss-Markov; the oracle's random walk has the drift's
 one-step variance and grows by about one drift variance per tau). The accelerometer's white noise
 (density^2 / Ts) and the heading's error (|a|^2 var(psi) across the input) add to model (1)'s driving
-noise from ``[motion]``; the gyroscope's biases are not states.
+noise from ``[motion]``; the gyroscope's biases are not states. With ``imu_heading_from_state`` (default) a
+vehicle whose heading at t-1 is its velocity's direction has the input's dependence on that velocity in the
+transition instead (EKF, g_v^T v_hat = 0 so the mean is unchanged) and no heading term in Q.
 
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
-joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 with every option) per step, O(d^3); the rest O(d^2).
+joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
+the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
 """
 
 from __future__ import annotations
@@ -116,6 +127,21 @@ class OracleWorld:
     max_exclusions: int = 40  # 30 s at 0.75 s: three mean episode lengths (10 s, the world's default)
     fix_noise_share: float = 1e-4
     feature_keep_s: float = 120.0
+    # The world's field F as it draws it (couplers/sensing/gnss_error.py, FieldErrorProcess): its random Fourier
+    # frequencies (M, 2) rad/m, F(p) = sum_m (cos(omega_m . p) a_m + sin(omega_m . p) b_m) / sqrt(M) per axis with
+    # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
+    # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
+    field_omega: tuple | None = field(default=None, compare=False, repr=False)
+    # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
+    # than independent per row.
+    shared_heading: bool = True
+    # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
+    # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
+    # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
+    heading_from_state: bool = True
+    # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
+    # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
+    imu_heading_from_state: bool = True
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -150,6 +176,36 @@ class OracleWorld:
         return 2 if self.correlated and self.common_share > 0 else 0
 
     @property
+    def field_dim(self) -> int:
+        """4 M coefficient states of the exact field (``field_omega`` given), else 0."""
+        if self.gnss != "field" or self.field_share == 0 or self.field_omega is None:
+            return 0
+        return 4 * len(self.field_omega)
+
+    @property
+    def tail_dim(self) -> int:
+        """The shared states after the features: common (``common_dim``), then field coefficients."""
+        return self.common_dim + self.field_dim
+
+    def tail_coefficients(self, dt: float) -> np.ndarray:
+        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, then field)."""
+        a_c = math.exp(-dt / self.common_tau_s) if self.common_tau_s > 0 else 0.0
+        a_f = math.exp(-dt / self.field_tau_s) if self.field_tau_s > 0 else 0.0
+        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f)])
+
+    def field_basis(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's
+        ``coef`` (cos/sin, feature, axis) flattened)."""
+        om = np.asarray(self.field_omega, dtype=float).reshape(-1, 2)
+        m = om.shape[0]
+        phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ om.T  # (N, M)
+        basis = np.stack([np.cos(phase), np.sin(phase)], axis=1) / math.sqrt(m)  # (N, 2 cos/sin, M)
+        out = np.zeros((phase.shape[0], 2, 2, m, 2))
+        out[:, 0, :, :, 0] = basis
+        out[:, 1, :, :, 1] = basis
+        return out.reshape(phase.shape[0], 2, 4 * m)
+
+    @property
     def gate_threshold(self) -> float:
         return math.inf if (not self.nlos or self.gate_level == 0) else -2.0 * math.log1p(-self.gate_level)
 
@@ -157,7 +213,7 @@ class OracleWorld:
         """a_l per vehicle for a step of ``dt`` in which it moved ``dist`` (module docstring)."""
         d = np.asarray(dist, dtype=float)
         own = np.exp(-d / self.local_corr_length_m - (dt / self.tau_s if self.tau_s > 0 else np.inf))
-        if self.gnss != "field" or self.field_share == 0:
+        if self.gnss != "field" or self.field_share == 0 or self.field_dim:
             return own
         fld = np.exp(-d / self.field_corr_length_m - (dt / self.field_tau_s if self.field_tau_s > 0 else np.inf))
         return self.field_share * fld + (1.0 - self.field_share) * own
@@ -196,9 +252,9 @@ def _idx(starts: np.ndarray, width: int) -> np.ndarray:
     return np.asarray(starts, dtype=np.int64)[:, None] + np.arange(width)
 
 
-def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa: np.ndarray, a_c: float) -> np.ndarray:
+def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa: np.ndarray, a_c) -> np.ndarray:
     """F p for block-diagonal F: ``fv`` (nv, vdim, vdim) vehicle blocks, ``fa`` (4, 4) every feature block,
-    ``a_c`` times the identity on the common block (the rest of the rows)."""
+    ``a_c`` (one per row, or a scalar) on the shared block (the rest of the rows)."""
     out = np.empty_like(p)
     cols = p.shape[1]
     nvr = nv * vdim
@@ -206,7 +262,7 @@ def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa
         out[:nvr] = np.einsum("nij,njc->nic", fv, p[:nvr].reshape(nv, vdim, cols)).reshape(nvr, cols)
     if k:
         out[nvr:nvr + 4 * k] = np.einsum("ij,njc->nic", fa, p[nvr:nvr + 4 * k].reshape(k, 4, cols)).reshape(4 * k, cols)
-    out[nvr + 4 * k:] = a_c * p[nvr + 4 * k:]
+    out[nvr + 4 * k:] = np.asarray(a_c, dtype=float).reshape(-1, 1) * p[nvr + 4 * k:]
     return out
 
 
@@ -261,7 +317,7 @@ class JointOracle:
 
     def _step(self, st: OracleState, frame: Frame, assoc: np.ndarray) -> OracleState:
         w, p_icp = self.world, self.params
-        vd, cd = w.vehicle_dim, w.common_dim
+        vd, cd = w.vehicle_dim, w.tail_dim  # cd: every shared state (common, field)
         dt = float(frame.dt)
         n_prev = st.vehicle_ids.shape[0]
         k_prev = st.feature_ids.size
@@ -318,8 +374,23 @@ class JointOracle:
                             - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
             u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
             bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
-            qv[:, :4, :4] += (amag2 * psi_var[surv])[:, None, None] * bu[:, :, None] * bu[:, None, :]
-        a_c = math.exp(-dt / w.common_tau_s) if cd and w.common_tau_s > 0 else 0.0
+            pvar = psi_var[surv]
+            if w.imu_heading_from_state:
+                # a_net = Rot(psi(v) + r Ts / 2) a_body with psi(v) = atan2(vy, vx) of the velocity at t-1: the
+                # transition gets B d a_net / d psi g_v^T on that velocity (g_v = [-vy, vx] / |v|^2; g_v^T v = 0,
+                # so the predicted mean is unchanged); the heading's variance leaves Q for those vehicles.
+                fast = self._imu_fast[surv]
+                v0 = xv[:, 2:4]
+                s2 = np.maximum(v0[:, 0] ** 2 + v0[:, 1] ** 2, 1e-12)
+                gv = np.stack([-v0[:, 1], v0[:, 0]], axis=1) / s2[:, None]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
+                c2, s2_ = np.cos(ang), np.sin(ang)
+                da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
+                jac = np.einsum("ij,nj->ni", input_matrix(dt), da)[:, :, None] * gv[:, None, :]  # (ns, 4, 2)
+                fv[fast, 0:4, 2:4] += jac[fast]
+                pvar = np.where(fast, 0.0, pvar)
+            qv[:, :4, :4] += (amag2 * pvar)[:, None, None] * bu[:, :, None] * bu[:, None, :]
+        a_c = w.tail_coefficients(dt)
         xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
         p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
         p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
@@ -458,6 +529,8 @@ class JointOracle:
             var = np.where(use, kv, var)
             slow = slow & ~use
         var = np.where(slow, HEADING_VAR_UNKNOWN, var)
+        # heading from the velocity at t-1 (not held, not unknown): the EKF input of imu_heading_from_state
+        self._imu_fast = have & (np.hypot(pv[:, 0], pv[:, 1]) >= self.params.motion.heading_min_speed)
         r = np.asarray(frame.imu.yaw_rate, dtype=float)
         step = np.where(fresh, 0.0, r * float(frame.dt))
         accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
@@ -466,20 +539,28 @@ class JointOracle:
     def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
         """Add every fix's information; returns which fixes' positions the gate left out."""
         w = self.world
-        vd, cd = w.vehicle_dim, w.common_dim
+        vd, cd, fd = w.vehicle_dim, w.common_dim, w.field_dim
         n = frame.n_vehicles
         d = lam.shape[0]
-        c0 = d - cd
-        # H of the position rows on [p (2), l (2), c (2)]: I, sigma sqrt(1 - s) I, sigma sqrt(s) I.
+        c0 = d - cd - fd
+        # H of the position rows on [p (2), l (2), c (2), field coefficients (fd)]: I, sigma sqrt(1 - s) I (times
+        # sqrt(1 - f) with the exact field), sigma sqrt(s) I, sigma sqrt(1 - s) sqrt(f) dF/dcoef at the predicted
+        # position (linearized: the field's gradient times the position error is left out).
         s = w.common_share if cd else 0.0
         if w.correlated:
+            own = math.sqrt(1.0 - w.field_share) if fd else 1.0
             cols = [vd * np.arange(n)[:, None] + np.array([0, 1, 4, 5])]
-            hp = np.zeros((n, 2, 4 + cd))
+            hp = np.zeros((n, 2, 4 + cd + fd))
             hp[:, :, :2] = np.eye(2)
-            hp[:, :, 2:4] = (sig * math.sqrt(1.0 - s))[:, None, None] * np.eye(2)
+            hp[:, :, 2:4] = (sig * math.sqrt(1.0 - s) * own)[:, None, None] * np.eye(2)
             if cd:
                 cols.append(np.broadcast_to(c0 + np.arange(cd), (n, cd)))
-                hp[:, :, 4:] = (sig * math.sqrt(s))[:, None, None] * np.eye(2)
+                hp[:, :, 4:4 + cd] = (sig * math.sqrt(s))[:, None, None] * np.eye(2)
+            if fd:
+                cols.append(np.broadcast_to(c0 + cd + np.arange(fd), (n, fd)))
+                xy = mean_pred[:vd * n].reshape(n, vd)[:, :2]
+                hp[:, :, 4 + cd:] = ((sig * math.sqrt((1.0 - s) * w.field_share))[:, None, None]
+                                     * w.field_basis(xy))
             pcols = np.concatenate(cols, axis=1)
             rp = (w.fix_noise_share * sig * sig)[:, None, None] * np.eye(2)
         else:
@@ -506,7 +587,16 @@ class JointOracle:
             nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm, nu[..., None])[..., 0])
             excluded[surv] = (nis > thr) & (streak[surv] < w.max_exclusions)
         take = ~excluded
-        if take.any():
+        if take.any() and fd:  # wide rows (every fix reads the shared field): dense H^T R^-1 H, R diagonal here
+            tk = np.flatnonzero(take)
+            hd = np.zeros((tk.size, 2, d))
+            np.put_along_axis(hd, np.broadcast_to(pcols[tk][:, None, :], hd.shape[:2] + (pcols.shape[1],)),
+                              hp[tk], axis=2)
+            hd = hd.reshape(2 * tk.size, d)
+            wts = 1.0 / np.repeat(w.fix_noise_share * sig[tk] ** 2, 2)
+            lam += hd.T @ (wts[:, None] * hd)
+            eta += hd.T @ (wts * zp[tk].ravel())
+        elif take.any():
             hth, htz = _information(hp[take], np.linalg.inv(rp[take]), zp[take])
             _scatter(lam, eta, pcols[take], hth, htz)
         # velocity rows: v + white noise with the reported block
@@ -551,10 +641,89 @@ class JointOracle:
                 "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
+        if det is not None and self.world.heading_from_state:
+            _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,
+                                       to_net_frame(sub, psi[own], np.zeros(m))[1])
+            return memory
+        if det is not None and self.world.shared_heading:
+            _shared_heading_information(lam, eta, ind, sub, psi[own], var, own, z, r)
+            return memory
         rinv = symmetrize(np.linalg.inv(r))
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
+
+
+def _heading_gradient(det, psi_row) -> np.ndarray:
+    """(m, 4) d z / d psi of sensor-frame rows converted with heading ``psi_row``
+    (:func:`coloc.core.detections.to_net_frame`): [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]."""
+    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
+    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
+    g = (np.asarray(det.mount_x, dtype=float)[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1)
+         + np.asarray(det.range, dtype=float)[:, None] * n_perp)
+    return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
+
+
+def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> None:
+    """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
+    z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
+    at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
+    unchanged; ``r0`` is the row covariance without the heading's term."""
+    gz = _heading_gradient(det, psi_row)
+    s2 = np.maximum(np.einsum("ni,ni->n", v_row, v_row), 1e-12)
+    gv = np.stack([-v_row[:, 1], v_row[:, 0]], axis=1) / s2[:, None]
+    h = np.zeros((psi_row.shape[0], 4, 8))
+    h[:, :, :4] = -np.eye(4)
+    h[:, :, 4:] = np.eye(4)
+    h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
+    hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
+    _scatter(lam, eta, ind, hth, htz)
+
+
+def _shared_heading_information(lam, eta, ind, det, psi_row, var, own, z, r) -> None:
+    """Sensor-frame rows with one heading error per vehicle and step, shared by all its rows.
+
+    Every row of vehicle i is rotated by the same estimated heading, so its error dpsi_i ~ N(0, var_i) enters
+    each row j as gz_j dpsi_i, gz_j = d z_j / d psi = [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]
+    (:func:`coloc.core.detections.to_net_frame`, whose R_j holds var_i gz_j gz_j^T). The rows of one vehicle
+    then have the joint covariance D + var_i G G^T (D block-diagonal, R_j without that term), whose inverse
+    by the matrix inversion lemma is D^-1 - alpha_i (D^-1 G)(D^-1 G)^T, alpha_i = 1 / (1 / var_i + sum_j
+    gz_j^T D_j^-1 gz_j): the information of the rows as independent, less one rank-one term per vehicle.
+    H_j = [-I (vehicle) | +I (feature)] as model (4)."""
+    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
+    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
+    mount = np.asarray(det.mount_x, dtype=float)
+    rr = np.asarray(det.range, dtype=float)
+    g = mount[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1) + rr[:, None] * n_perp
+    gz = np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)  # (m, 4)
+    v_row = var[own]
+    d_rows = symmetrize(r - v_row[:, None, None] * gz[:, :, None] * gz[:, None, :])
+    dinv = symmetrize(np.linalg.inv(d_rows))
+    h = np.zeros((own.size, 4, 8))
+    h[:, :, :4] = -np.eye(4)
+    h[:, :, 4:] = np.eye(4)
+    hth, htz = _information(h, dinv, z)
+    _scatter(lam, eta, ind, hth, htz)
+    a = np.einsum("nij,nj->ni", dinv, gz)  # D_j^-1 gz_j
+    u = np.concatenate([-a, a], axis=1)  # H_j^T D_j^-1 gz_j on ind_j
+    c = np.einsum("ni,ni->n", gz, a)
+    e = np.einsum("ni,ni->n", a, z)
+    nv = var.shape[0]
+    csum = np.bincount(own, weights=c, minlength=nv)
+    esum = np.bincount(own, weights=e, minlength=nv)
+    alpha = 1.0 / (1.0 / np.maximum(var, 1e-300) + csum)
+    # every ordered pair (j, j') of rows of one vehicle: - alpha_i u_j u_j'^T on (ind_j, ind_j')
+    order = np.argsort(own, kind="stable")
+    counts = np.bincount(own, minlength=nv)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    m_row = counts[own[order]]
+    left = np.repeat(order, m_row)
+    offs = np.arange(left.size) - np.repeat(np.cumsum(m_row) - m_row, m_row)
+    right = order[starts[own[order]].repeat(m_row) + offs]
+    wgt = alpha[own[left]]
+    blk = -wgt[:, None, None] * u[left][:, :, None] * u[right][:, None, :]
+    np.add.at(lam, (ind[left][:, :, None], ind[right][:, None, :]), blk)
+    np.add.at(eta, ind, -(alpha * esum)[own][:, None] * u)
 
 
 def _positions(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:

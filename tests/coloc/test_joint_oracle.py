@@ -293,3 +293,84 @@ def test_gate_leaves_out_a_fix_far_from_the_prediction():
     res = est.step_with_association(Frame(**{**f.__dict__, "gnss_z": z}), assoc)
     assert est.last_excluded[0] and not est.last_excluded[1:].any()
     assert np.hypot(*(res.mean[0, :2] - before)) < 20.0
+
+
+def test_shared_heading_term_equals_the_dense_joint_covariance():
+    """Sensor-frame rows of one vehicle share its heading error: the rank-one term per vehicle gives the same
+    information as inverting the dense joint covariance of all rows (D + var_i G_i G_i^T), and differs from
+    the rows taken as independent."""
+    from coloc.core.detections import SensorDetections, to_net_frame
+    from coloc.methods.joint_oracle import _information, _scatter, _shared_heading_information
+
+    rng = np.random.default_rng(3)
+    m, nv = 7, 3
+    own = np.array([0, 1, 0, 0, 1, 2, 0])
+    fpos = np.array([0, 1, 1, 2, 2, 0, 3])
+    det = SensorDetections(range=rng.uniform(5, 60, m), bearing=rng.uniform(-1, 1, m), range_rate=rng.normal(0, 5, m),
+                           mount_x=rng.uniform(0, 3, m), yaw=rng.uniform(-1, 1, m), sigma_range=np.full(m, 0.1),
+                           sigma_bearing=np.full(m, 0.005), sigma_range_rate=np.full(m, 0.03))
+    psi, var = rng.uniform(-3, 3, nv), np.array([0.002, 0.01, 0.05])
+    z, r = to_net_frame(det, psi[own], var[own])
+    d = 4 * nv + 16
+    ind = np.concatenate([own[:, None] * 4 + np.arange(4), 4 * nv + 4 * fpos[:, None] + np.arange(4)], axis=1)
+    lam, eta = np.zeros((d, d)), np.zeros(d)
+    _shared_heading_information(lam, eta, ind, det, psi[own], var, own, z, r)
+    h = np.zeros((4 * m, d))
+    for j in range(m):
+        h[4 * j:4 * j + 4, ind[j, :4]] = -np.eye(4)
+        h[4 * j:4 * j + 4, ind[j, 4:]] = np.eye(4)
+    phi = psi[own] + det.yaw + det.bearing
+    nrm = np.stack([-np.sin(phi), np.cos(phi)], 1)
+    g = det.mount_x[:, None] * np.stack([-np.sin(psi[own]), np.cos(psi[own])], 1) + det.range[:, None] * nrm
+    gz = np.concatenate([g, det.range_rate[:, None] * nrm], 1)
+    big = np.zeros((4 * m, 4 * m))
+    for j in range(m):
+        big[4 * j:4 * j + 4, 4 * j:4 * j + 4] = r[j] - var[own[j]] * np.outer(gz[j], gz[j])
+    for i in range(nv):
+        col = np.zeros(4 * m)
+        for j in np.flatnonzero(own == i):
+            col[4 * j:4 * j + 4] = gz[j]
+        big += var[i] * np.outer(col, col)
+    inv = np.linalg.inv(big)
+    assert np.allclose(lam, h.T @ inv @ h, rtol=1e-9, atol=1e-9 * np.abs(lam).max())
+    assert np.allclose(eta, h.T @ inv @ z.ravel(), rtol=1e-9, atol=1e-9 * np.abs(eta).max())
+    # the rows taken as independent (each with its own full heading variance) are not the same information
+    lam_ind, eta_ind = np.zeros((d, d)), np.zeros(d)
+    hh = np.zeros((m, 4, 8))
+    hh[:, :, :4], hh[:, :, 4:] = -np.eye(4), np.eye(4)
+    hth, htz = _information(hh, np.linalg.inv(r), z)
+    _scatter(lam_ind, eta_ind, ind, hth, htz)
+    assert not np.allclose(lam_ind, lam, rtol=1e-3)
+
+
+def test_heading_from_state_rows_linearize_the_conversion():
+    """With the heading the direction of the velocity state, a row's H on the velocity is - dz/dpsi dpsi/dv:
+    the converted row moves with a small change of the velocity as H predicts (finite differences)."""
+    from coloc.core.detections import SensorDetections, to_net_frame
+    from coloc.methods.joint_oracle import _heading_state_information
+
+    rng = np.random.default_rng(5)
+    m = 4
+    det = SensorDetections(range=rng.uniform(5, 60, m), bearing=rng.uniform(-1, 1, m), range_rate=rng.normal(0, 5, m),
+                           mount_x=rng.uniform(0, 3, m), yaw=rng.uniform(-1, 1, m), sigma_range=np.full(m, 0.1),
+                           sigma_bearing=np.full(m, 0.005), sigma_range_rate=np.full(m, 0.03))
+    v = rng.normal(0, 8, (m, 2))
+    psi = np.arctan2(v[:, 1], v[:, 0])
+    z, r0 = to_net_frame(det, psi, np.zeros(m))
+    # one row at a time, one vehicle (cols 0-3) and one feature (cols 4-7): recover H from the information
+    for j in range(m):
+        sub = SensorDetections(**{k: np.asarray(getattr(det, k))[j:j + 1] for k in det.__dataclass_fields__})
+        lam, eta = np.zeros((8, 8)), np.zeros(8)
+        ind = np.arange(8)[None, :]
+        _heading_state_information(lam, eta, ind, sub, psi[j:j + 1], v[j:j + 1], z[j:j + 1], r0[j:j + 1])
+        # H^T R^-1 H = lam with R = r0: H's velocity columns from lam's vehicle-velocity / feature block
+        dv = 1e-6 * rng.normal(size=2)
+        psi2 = np.arctan2(v[j, 1] + dv[1], v[j, 0] + dv[0])
+        z2, _ = to_net_frame(sub, np.array([psi2]), np.zeros(1))
+        # the world's row for a velocity v + dv is the same body-frame measurement seen with the truer heading:
+        # z(psi_hat) - z(psi_true) = -(H_v) (v_true - v_hat) to first order, i.e. z(psi2) - z(psi) = -H_v dv
+        hvel = -(z2[0] - z[j])
+        # H_v as built: -gz g_v^T; read it back from the information: lam[4:, 2:4] = R^-1 H_v (feature's H = I)
+        h_built = np.linalg.solve(np.linalg.inv(r0[j]), lam[4:, 2:4])
+        h_built[2:4] += np.eye(2)  # model (4)'s -I on the relative velocity; the rest is the heading's part
+        assert np.allclose(h_built @ dv, hvel, rtol=1e-4, atol=1e-9)

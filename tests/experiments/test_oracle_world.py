@@ -42,3 +42,25 @@ def test_per_vehicle_world_has_no_shared_part():
     w = oracle_world(cfg)
     assert (w.gnss, w.common_dim, w.field_share) == ("per_vehicle", 0, 0.0)
     assert math.isinf(w.local_corr_length_m)
+
+
+def test_field_coefficient_states_reproduce_the_worlds_field():
+    """The oracle carries the world's field as coefficient states on the world's own frequencies: with the
+    world's coefficients, its basis gives the world's field at any point (to rounding), and another seed's
+    frequencies do not."""
+    import numpy as np
+
+    from couplers.sensing.gnss_error import FieldErrorProcess
+
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
+                      overrides={"run.methods": ["joint_oracle"], "run.seed": 7})
+    w = oracle_world(cfg)
+    assert w.field_dim == 4 * cfg.gnss_error.field_features and w.tail_dim == 2 + w.field_dim
+    proc = FieldErrorProcess(cfg.gnss_error, 7, 0.75)
+    xy = np.random.default_rng(0).uniform(-500, 2000, (40, 2))
+    world = proc.field_at(xy)
+    mine = np.einsum("nak,k->na", w.field_basis(xy), proc.coef.ravel())
+    assert np.allclose(mine, world, atol=1e-12)
+    other = FieldErrorProcess(cfg.gnss_error, 8, 0.75)
+    assert not np.allclose(np.einsum("nak,k->na", w.field_basis(xy), other.coef.ravel()), other.field_at(xy),
+                           atol=1e-3)

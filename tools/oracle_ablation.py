@@ -1,0 +1,184 @@
+"""Ablations of ``joint_oracle`` on recorded frames (docs/validation/oracle.md, "Ablations").
+
+Records the frames of a config once per world variant (realism components switched off one by one) and
+runs the oracle, or a variant of it, on them, scored against the frames' truth:
+
+    OPENBLAS_NUM_THREADS=1 python tools/oracle_ablation.py record experiments/arterial_tlr_realistic.toml \
+        --variant full --seed 1 --duration 300 --out /tmp/frames
+    OPENBLAS_NUM_THREADS=1 python tools/oracle_ablation.py score /tmp/frames/full_s1.pkl --from 120 \
+        --methods joint_oracle,icp_known_da [--oracle key=value ...]
+
+World variants (edits of the config's tables before it is validated):
+``full``; ``net_xy`` (``[perception] detections = "net_xy"``); ``no_imu`` (no ``[inertial]``); ``no_nlos``
+(NLOS rates 0); ``per_vehicle`` (``[gnss_error] model = "per_vehicle"``, no common / field part);
+``no_field`` (field: common only, ``field_share`` 0); ``no_users`` (no road users, no persistent clutter);
+``ideal_sensing`` (net_xy and no IMU). Combine with ``+``, e.g. ``net_xy+no_imu``.
+
+Scores: RMSE and p95 of the 2-D position error, mean / median position NEES and the share inside the 95 %
+ellipse (NEES <= 5.991), overall and by GNSS zone, from ``--from`` seconds on. A diagnostic, not a run:
+nothing here is written under results/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import pickle
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+# this checkout's packages, not an installed copy (a script's own folder is first on sys.path)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+CHI2_2_95 = 5.991464547107979
+
+
+def _edit(data: dict, variant: str) -> dict:
+    for v in variant.split("+"):
+        if v == "full":
+            continue
+        if v in ("net_xy", "ideal_sensing"):
+            data.setdefault("perception", {})["detections"] = "net_xy"
+        if v in ("no_imu", "ideal_sensing"):
+            data.pop("inertial", None)
+        if v == "no_nlos":
+            data["gnss_error"]["nlos_rate_per_min"] = [0.0 for _ in data["gnss_error"]["nlos_rate_per_min"]]
+            data["gnss_error"]["nlos_bias_mean_m"] = 0.0
+        if v == "per_vehicle":
+            ge = data["gnss_error"]
+            ge["model"] = "per_vehicle"
+            for k in ("common_share", "common_tau_s", "field_share", "field_corr_length_m", "field_tau_s",
+                      "local_corr_length_m", "nlos_cell_m"):
+                ge.pop(k, None)
+        if v == "no_field":
+            data["gnss_error"]["field_share"] = 0.0
+        if v == "no_users":
+            data["perception"]["road_users"] = False
+            data["perception"]["persistent_clutter_per_km"] = 0.0
+        if v not in ("full", "net_xy", "ideal_sensing", "no_imu", "no_nlos", "per_vehicle", "no_field", "no_users"):
+            raise SystemExit(f"unknown variant {v!r}")
+    return data
+
+
+def load_variant(path: str, variant: str, seed: int, duration: float, methods: str):
+    from experiments.config import config_from_dict
+    from experiments.config_extends import resolve_extends
+
+    p = Path(path).resolve()
+    data = tomllib.loads(p.read_text())
+    data = resolve_extends(data, p) if "extends" in data else data
+    data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    data = _edit(data, variant)
+    data["run"] = {**data["run"], "seed": seed, "duration_s": duration, "methods": methods.split(",")}
+    return config_from_dict(data, p)
+
+
+def record(args) -> None:
+    from experiments.runner import frame_source
+
+    cfg = load_variant(args.config, args.variant, args.seed, args.duration, "gnss,icp_known_da,joint_oracle")
+    frames = []
+    t0 = time.process_time()
+    with frame_source(cfg) as src:
+        for f in src.frames():
+            frames.append(f)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    dest = out / f"{args.variant}_s{args.seed}.pkl"
+    with open(dest, "wb") as fh:
+        pickle.dump({"config": args.config, "variant": args.variant, "seed": args.seed, "frames": frames}, fh)
+    print(f"{dest}: {len(frames)} frames, {time.process_time() - t0:.0f} s CPU", file=sys.stderr)
+
+
+def _score(err: np.ndarray, nees: np.ndarray) -> str:
+    e = np.hypot(err[:, 0], err[:, 1])
+    return (f"RMSE {np.sqrt(np.mean(e ** 2)):7.2f}  p95 {np.quantile(e, 0.95):7.2f}  NEES {nees.mean():9.2f} "
+            f"(med {np.median(nees):7.2f})  in95 {100 * np.mean(nees <= CHI2_2_95):5.1f} %  n {e.size}")
+
+
+def score(args) -> None:
+    from coloc.methods.registry import build_method
+    from experiments.runner import method_params
+
+    with open(args.frames, "rb") as fh:
+        rec = pickle.load(fh)
+    cfg = load_variant(rec["config"], rec["variant"], rec["seed"], 1.0, args.methods)
+    params = method_params(cfg)
+    if args.oracle and params.oracle_world is not None:
+        kw = {}
+        for item in args.oracle:
+            k, v = item.split("=")
+            old = getattr(params.oracle_world, k)
+            if v == "none":
+                kw[k] = None
+            else:
+                kw[k] = type(old)(v) if not isinstance(old, bool) else v.lower() in ("1", "true", "yes")
+        params = dataclasses.replace(params, oracle_world=dataclasses.replace(params.oracle_world, **kw))
+    frames = [f for f in rec["frames"] if f.t <= args.until + 1e-9]
+    for name in args.methods.split(","):
+        est = build_method(name, params)
+        errs, nees, zones, ts, excl = [], [], [], [], []
+        cpu = time.process_time()
+        for f in frames:
+            clean = f.without_truth()
+            if getattr(est, "step_with_association", None) is not None and name != "gnss":
+                out = est.step_with_association(clean, f.truth.v2f_feature)
+            else:
+                out = est.step(clean)
+            if getattr(est, "last_excluded", None) is not None:
+                excl.append(float(np.mean(est.last_excluded)) if est.last_excluded.size else 0.0)
+            if args.verbose and len(excl) % 40 == 0:
+                print(f"  t {f.t:.0f} cpu {time.process_time() - cpu:.0f} s excluded {np.mean(excl[-40:]):.3f}",
+                      file=sys.stderr, flush=True)
+            if f.t + 1e-9 < args.t_from or f.n_vehicles == 0:
+                continue
+            e = out.mean[:, :2] - f.truth.x_true[:, :2]
+            pc = out.cov[:, :2, :2]
+            nees.append(np.einsum("ni,ni->n", e, np.linalg.solve(pc, e[..., None])[..., 0]))
+            errs.append(e)
+            zones.append(np.asarray(f.truth.zone))
+            ts.append(np.full(e.shape[0], f.t))
+        cpu = time.process_time() - cpu
+        err, nee, zone = np.concatenate(errs), np.concatenate(nees), np.concatenate(zones)
+        if excl:
+            print(f"   share of fixes excluded by the NLOS gate: {np.mean(excl):.3f}")
+        print(f"{name:14s} {_score(err, nee)}  cpu {cpu:.0f} s ({1e3 * cpu / len(frames):.0f} ms/step)")
+        for z in np.unique(zone):
+            m = zone == z
+            print(f"   zone {z}       {_score(err[m], nee[m])}")
+        if args.over_time:
+            t = np.concatenate(ts)
+            for lo in np.arange(args.t_from, args.until, args.over_time):
+                m = (t >= lo) & (t < lo + args.over_time)
+                if m.any():
+                    print(f"   t {lo:5.0f}        {_score(err[m], nee[m])}")
+        sys.stdout.flush()
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record")
+    r.add_argument("config")
+    r.add_argument("--variant", default="full")
+    r.add_argument("--seed", type=int, default=1)
+    r.add_argument("--duration", type=float, default=300.0)
+    r.add_argument("--out", required=True)
+    s = sub.add_parser("score")
+    s.add_argument("frames")
+    s.add_argument("--methods", default="joint_oracle")
+    s.add_argument("--from", dest="t_from", type=float, default=120.0)
+    s.add_argument("--until", type=float, default=1e9)
+    s.add_argument("--over-time", type=float, default=0.0)
+    s.add_argument("--verbose", action="store_true")
+    s.add_argument("--oracle", nargs="*", help="OracleWorld overrides key=value")
+    args = ap.parse_args(argv)
+    record(args) if args.cmd == "record" else score(args)
+
+
+if __name__ == "__main__":
+    main()
