@@ -590,6 +590,11 @@ def icp_da_lc_step(
         # only a candidate of tracks of class c (eta(alpha = l) = 0 otherwise).
         t_cls = predicted.klass if predicted.klass is not None else np.zeros(predicted.size, np.int8)
         w = np.where(t_cls[pt] == row_cls[pr], w, 0.0)
+    # BPA-DA (association_beliefs) keeps the pairs of positive weight only: the others (outside the
+    # gate, e.g. the clutter rows near a city's many tracks) are dropped before their P_D is computed.
+    gated = w > 0
+    if not gated.all():
+        pv, pt, pr, w = pv[gated], pt[gated], pr[gated], w[gated]
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
