@@ -76,3 +76,26 @@ def test_weights_on_clutter_scenes_equal_the_numpy_reference(seed, lc, monkeypat
     for x, y in zip(out[False], out[True]):
         assert x.shape == y.shape and x.tobytes() == y.tobytes()
     assert (out[True][3] > 0).any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_candidates_with_non_finite_positions_and_a_wide_net_equal_the_numpy_reference(seed, monkeypatch):
+    """The x window of the candidate search: tracks and vehicles without a finite position, a track
+    with an infinite spread (the window then spans every track), vehicles far apart."""
+    v_mean, v_cov, t_mean, t_cov, owner, z, r = _clutter_scene(200 + seed, n_v=40, n_t=200)
+    v_mean[:, 0] *= 10.0  # 4 km along x
+    t_mean[:, 0] *= 10.0
+    t_mean[3, 0], t_mean[5, 1], v_mean[2, 0] = np.nan, np.inf, np.nan
+    if seed % 2:
+        t_cov[7, 0, 0] = np.inf
+    scene = (v_mean, v_cov, t_mean, t_cov, owner, z, r)
+    lc = LcParams(sensing_range_m=75.0, clutter_intensity=3.35e-4)
+    out = {}
+    for fused in (False, True):
+        monkeypatch.setattr(icp_fused, "FUSED", fused)
+        with np.errstate(invalid="ignore"):
+            out[fused] = association_weights(*scene, lc)
+    for x, y in zip(out[False][:3], out[True][:3]):
+        assert x.tobytes() == y.tobytes()
+    assert np.array_equal(out[False][3], out[True][3], equal_nan=True)
+    assert out[True][0].size > 0
