@@ -264,8 +264,12 @@ def association_weights(
     if detection is None:
         log_w = math.log(lc.detection_probability) + log_lik - log_new
     else:
-        with np.errstate(divide="ignore"):
-            log_w = np.log(expected_detection_probability(v_mean[pv], t_mean[pt, :2], detection)) + log_lik - log_new
+        # P_D only of the pairs that can get a weight: _gated_weights gives 0 to those beyond the gate
+        pd = np.zeros(pr.size)
+        need = ~(d2 > chi2_ppf(lc.gate_probability, 4)) if lc.pairing == "gated" else np.ones(pr.size, dtype=bool)
+        pd[need] = expected_detection_probability(v_mean[pv[need]], t_mean[pt[need], :2], detection)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_w = np.log(pd) + log_lik - log_new
     return pv, pt, pr, _gated_weights(log_w, d2, lc)
 
 
