@@ -33,6 +33,10 @@ seconds of the same ``--duration`` and seed (target: the city within 1.5x the ar
 of about 300 vehicles in the net build it with a lower rate, e.g.
 ``--work /tmp/coloc_city300 --insertion-rate 2500 --insert-s 1800``.
 
+To time two revisions of icp_da_lc on the same inputs, record the frames once and replay them from each
+checkout with ``bench/lc_replay.py``; the measurements of both kinds are in docs/performance.md
+("City scale with realistic sensing").
+
 Every SUMO run here is started as `coloc run` starts it (:func:`experiments.runner.sumo_scenario`:
 every route file, additional file and the begin of the net folder).
 

@@ -264,8 +264,12 @@ def association_weights(
     if detection is None:
         log_w = math.log(lc.detection_probability) + log_lik - log_new
     else:
-        with np.errstate(divide="ignore"):
-            log_w = np.log(expected_detection_probability(v_mean[pv], t_mean[pt, :2], detection)) + log_lik - log_new
+        # P_D only of the pairs that can get a weight: _gated_weights gives 0 to those beyond the gate
+        pd = np.zeros(pr.size)
+        need = ~(d2 > chi2_ppf(lc.gate_probability, 4)) if lc.pairing == "gated" else np.ones(pr.size, dtype=bool)
+        pd[need] = expected_detection_probability(v_mean[pv[need]], t_mean[pt[need], :2], detection)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_w = np.log(pd) + log_lik - log_new
     return pv, pt, pr, _gated_weights(log_w, d2, lc)
 
 
@@ -590,6 +594,11 @@ def icp_da_lc_step(
         # only a candidate of tracks of class c (eta(alpha = l) = 0 otherwise).
         t_cls = predicted.klass if predicted.klass is not None else np.zeros(predicted.size, np.int8)
         w = np.where(t_cls[pt] == row_cls[pr], w, 0.0)
+    # BPA-DA (association_beliefs) keeps the pairs of positive weight only: the others (outside the
+    # gate, e.g. the clutter rows near a city's many tracks) are dropped before their P_D is computed.
+    gated = w > 0
+    if not gated.all():
+        pv, pt, pr, w = pv[gated], pt[gated], pr[gated], w[gated]
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
