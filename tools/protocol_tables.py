@@ -159,8 +159,10 @@ def markdown(rows: pd.DataFrame) -> str:
                             cells += ["-"] * 4
                             continue
                         r = r.iloc[0]
-                        cells += [f"{r['mean']:+.2f} [{r.ci_lo:+.2f}, {r.ci_hi:+.2f}]", f"{r.a_better}/{r.seeds}",
-                                  f"{r.sd:.2f}", str(r.seeds_needed) if r.seeds_needed > 0 else "-"]
+                        ci = (f"[{r.ci_lo:+.2f}, {r.ci_hi:+.2f}]" if math.isfinite(r.ci_lo) else "(one seed: no interval)")
+                        cells += [f"{r['mean']:+.2f} {ci}", f"{r.a_better}/{r.seeds}",
+                                  f"{r.sd:.2f}" if math.isfinite(r.sd) else "-",
+                                  str(r.seeds_needed) if r.seeds_needed > 0 else "-"]
                     lines.append(f"| {zone} | {SHORT[a]} - {SHORT[b]} | " + " | ".join(cells) + " |")
             lines.append("")
     return "\n".join(lines)
