@@ -295,7 +295,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
     "fusion": {
         "rule": ("", "How the cooperative methods fuse what they receive: `split_ci` (split covariance "
                      "intersection; weights: fast CI across a vehicle's features, then the minimum determinant "
-                     "of the kinematic covariance against its prior)."),
+                     "of the kinematic covariance against its prior), or `bp`: the paper's Gaussian BP "
+                     "propagation, as without the table (the other keys unused; a sweep's before arm)."),
         "bias_state": ("", "The cooperative methods take `[gnss_model]`'s receiver model (a Gauss-Markov bias "
                            "state per vehicle and fault exclusion of the fix) when the config has that table; "
                            "false, or no `[gnss_model]`: the white receiver."),

@@ -40,8 +40,9 @@ from coloc.methods.gnss_bias import H, GnssModelParams, entry_fix_posterior
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
 
-#: ``[fusion] rule`` values.
-FUSION_RULES = ("split_ci",)
+#: ``[fusion] rule`` values: "bp" is the paper's Gaussian BP propagation (Brambilla et al., Sec. IV), as
+#: without the table (a sweep level can switch the fusion off with it).
+FUSION_RULES = ("split_ci", "bp")
 
 #: The receiver model without a bias or a gate: the white tracker of the paper's model (3).
 WHITE_RECEIVER = GnssModelParams(bias_share=0.0, innovation_gate=0.0)
@@ -51,7 +52,8 @@ WHITE_RECEIVER = GnssModelParams(bias_share=0.0, innovation_gate=0.0)
 class FusionParams:
     """The ``[fusion]`` table."""
 
-    # How the cooperative methods fuse what they receive: "split_ci" (coloc.inference.split_ci).
+    # How the cooperative methods fuse what they receive: "split_ci" (coloc.inference.split_ci), or "bp":
+    # the paper's BP propagation, as without [fusion] (the other keys are then unused).
     rule: str = "split_ci"
     # Give the cooperative methods the receiver error model of [gnss_model] (a bias state and fault
     # exclusion) when the config has that table; false (or no [gnss_model]): the white receiver.
@@ -82,7 +84,7 @@ class CoopFusion:
     @staticmethod
     def from_config(params: FusionParams | None, gnss_model: GnssModelParams | None) -> "CoopFusion | None":
         """None without ``[fusion]``; the receiver model of ``[gnss_model]`` when ``bias_state``."""
-        if params is None:
+        if params is None or params.rule == "bp":
             return None
         model = gnss_model if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
         return CoopFusion(params, model)

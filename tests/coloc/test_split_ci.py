@@ -164,3 +164,12 @@ def test_from_config_takes_the_receiver_model_only_with_bias_state():
     assert CoopFusion.from_config(FusionParams(), model).model == model
     assert CoopFusion.from_config(FusionParams(bias_state=False), model).model.bias_share == 0.0
     assert CoopFusion.from_config(FusionParams(), None).model.bias_share == 0.0
+
+
+def test_rule_bp_is_the_paper_propagation():
+    """rule = "bp" switches the fusion off (a sweep's before arm): the methods get no CoopFusion, as
+    without the table, whatever the other keys say."""
+    model = GnssModelParams()
+    assert CoopFusion.from_config(FusionParams(rule="bp"), model) is None
+    assert CoopFusion.from_config(FusionParams(rule="bp", common_mode_gnss=True, feature_ci=True), model) is None
+    assert CoopFusion.from_config(FusionParams(rule="split_ci"), model) is not None

@@ -1,0 +1,198 @@
+#!/usr/bin/env python3
+"""The tables of docs/validation/protocol_runs.md from a sweep folder of
+experiments/sweeps/realistic_protocol.toml, read from the runs' summary.json files (so a sweep cut short
+gives the tables of the runs it finished; every table states its seeds).
+
+Per control, GNSS zone ("all" pools them), arm (fusion.rule) and method: the mean over the seeds of the
+run's RMSE and p95 of the 2-D position error, the average NEES over the seeds (each run's time-averaged
+NEES, experiments/sweep/consistency.py) with its chi-square band for that many runs, and the mean share of
+samples inside the 95 % ellipse. Then the paired differences (same seed, same traffic) LC - GNSS and
+known DA - GNSS of RMSE and of p95, with their 95 % paired t intervals (experiments/sweep/paired.py), and
+the seeds a +-0.15 m half-width would need from the per-seed differences' standard deviation.
+
+    python tools/protocol_tables.py /work/proto_out/sweep/realistic_protocol > tables.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from experiments.sweep.consistency import anees_band
+from experiments.sweep.paired import paired_ci
+
+GNSS, KNOWN, LC = "gnss", "icp_known_da", "icp_da_lc"
+PAIRS = ((LC, GNSS), (KNOWN, GNSS))
+SHORT = {GNSS: "GNSS", KNOWN: "known DA", LC: "LC"}
+ARMS = {"split_ci": "after (split CI, as shipped)", "bp": "before (paper BP)"}
+_ID = re.compile(r"rule=(?P<rule>[^,]+),control=(?P<control>[^,]+),seed=(?P<seed>\d+)$")
+
+
+def seeds_for_half_width(sd: float, half: float = 0.15, level: float = 0.95, n_max: int = 100000) -> int:
+    """The smallest n with t_{n-1, (1+level)/2} * sd / sqrt(n) <= half, i.e. n = (t sd / half)^2 with t
+    taken at that n; at least 2, -1 for an undefined sd."""
+    from scipy.stats import norm
+    from scipy.stats import t as student_t
+
+    if not math.isfinite(sd) or sd < 0:
+        return -1
+    if sd == 0:
+        return 2
+    q = 0.5 + level / 2.0
+    # t_{n-1} > z for every n, so the root is at least (z sd / half)^2; from there n only grows
+    n = max(2, math.ceil((float(norm.ppf(q)) * sd / half) ** 2))
+    while n <= n_max:
+        if float(student_t.ppf(q, n - 1)) * sd / math.sqrt(n) <= half:
+            return n
+        n += 1
+    return -1
+
+
+def run_rows(folder: Path) -> pd.DataFrame:
+    """One row per (arm, control, seed, method, zone) of every finished run in ``folder/runs``."""
+    rows = []
+    for summ in sorted((folder / "runs").glob("*/summary.json")):
+        m = _ID.match(summ.parent.name)
+        if m is None:
+            continue
+        data = json.loads(summ.read_text())
+        for method, b in (data.get("methods") or {}).items():
+            nees = b.get("nees_pos") or {}
+            zones = {"all": (b, nees)}
+            for z, zb in sorted((b.get("by_zone") or {}).items()):
+                zn = (nees.get("by_zone") or {}).get(z)
+                zones[z] = (zb, zn if isinstance(zn, dict) else {})
+            for zone, (st, ns) in zones.items():
+                rows.append({"rule": m["rule"], "control": m["control"], "seed": int(m["seed"]), "method": method,
+                             "zone": zone, "rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
+                             "n": int(st.get("n") or 0), "nees": _f(ns.get("mean")),
+                             "inside_95": _f(ns.get("inside_95")),
+                             "wall_s": _f(data.get("wall_seconds"))})
+    return pd.DataFrame(rows)
+
+
+def _f(v) -> float:
+    return math.nan if v is None else float(v)
+
+
+def method_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per (control, zone, rule, method): seeds, mean RMSE and p95, ANEES and its band, mean share inside."""
+    out = []
+    for key, g in rows.groupby(["control", "zone", "rule", "method"], sort=True):
+        s = int(g["seed"].nunique())
+        lo, hi = anees_band(s) if s else (math.nan, math.nan)
+        anees = float(g["nees"].mean())
+        out.append(dict(zip(["control", "zone", "rule", "method"], key), seeds=s, rmse=float(g["rmse"].mean()),
+                        p95=float(g["p95"].mean()), anees=anees, band_lo=lo, band_hi=hi,
+                        inside_band=bool(lo <= anees <= hi), inside_95=float(g["inside_95"].mean())))
+    return pd.DataFrame(out)
+
+
+def paired_rows(rows: pd.DataFrame, half: float = 0.15) -> pd.DataFrame:
+    """Per (control, zone, rule, pair, statistic): the paired mean difference a - b over the seeds with both,
+    its 95 % paired t interval, the per-seed differences' SD and the seeds a +-``half`` m half-width needs."""
+    out = []
+    for key, g in rows.groupby(["control", "zone", "rule"], sort=True):
+        for stat in ("rmse", "p95"):
+            wide = g.pivot_table(index="seed", columns="method", values=stat, aggfunc="first")
+            for a, b in PAIRS:
+                if a not in wide or b not in wide:
+                    continue
+                mean, lo, hi, n = paired_ci(wide[a].to_numpy(), wide[b].to_numpy())
+                d = (wide[a] - wide[b]).to_numpy()
+                d = d[np.isfinite(d)]
+                sd = float(d.std(ddof=1)) if d.size > 1 else math.nan
+                out.append(dict(zip(["control", "zone", "rule"], key), a=a, b=b, stat=stat, mean=mean, ci_lo=lo,
+                                ci_hi=hi, seeds=n, sd=sd, a_better=int((d < 0).sum()),
+                                seeds_needed=seeds_for_half_width(sd, half) if d.size > 1 else -1))
+    return pd.DataFrame(out)
+
+
+def _zone_order(z: str) -> tuple:
+    return (z == "all", z)
+
+
+def markdown(rows: pd.DataFrame) -> str:
+    mt, pr = method_table(rows), paired_rows(rows)
+    lines = []
+    for control in sorted(rows["control"].unique(), key=lambda c: (c != "tlr", c)):
+        for rule in [r for r in ARMS if r in set(rows["rule"])]:
+            sub = mt[(mt.control == control) & (mt.rule == rule)]
+            if not len(sub):
+                continue
+            seeds = sorted(rows[(rows.control == control) & (rows.rule == rule)]["seed"].unique())
+            s = int(sub["seeds"].max())
+            lo, hi = anees_band(s)
+            lines += [f"### {control.upper()}, {ARMS[rule]}: seeds {_seed_text(seeds)}", "",
+                      f"Mean over the seeds; ANEES = average NEES over the runs, chi-square band for {s} runs "
+                      f"[{lo:.2f}, {hi:.2f}] (2 is consistent); inside = mean share of samples inside the 95 % "
+                      "ellipse.", "",
+                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
+                      "|---|---|---|---|---|---|---|"]
+            for zone in sorted(sub["zone"].unique(), key=_zone_order):
+                for method in (GNSS, KNOWN, LC):
+                    r = sub[(sub.zone == zone) & (sub.method == method)]
+                    if not len(r):
+                        continue
+                    r = r.iloc[0]
+                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {_g(r.anees)} | "
+                                 f"{'yes' if r.inside_band else 'no'} | {100 * r.inside_95:.1f} % |")
+            lines += ["", "Paired differences over the seeds (same seed, same traffic), mean [95 % paired t "
+                          "interval], seeds where the first is lower, SD of the per-seed differences and the "
+                          "seeds a +-0.15 m half-width needs:", "",
+                      "| zone | difference | RMSE (m) | lower on | SD | seeds for +-0.15 | p95 (m) | lower on | SD "
+                      "| seeds for +-0.15 |", "|---|---|---|---|---|---|---|---|---|---|"]
+            ps = pr[(pr.control == control) & (pr.rule == rule)]
+            for zone in sorted(ps["zone"].unique(), key=_zone_order):
+                for a, b in PAIRS:
+                    cells = []
+                    for stat in ("rmse", "p95"):
+                        r = ps[(ps.zone == zone) & (ps.a == a) & (ps.b == b) & (ps.stat == stat)]
+                        if not len(r):
+                            cells += ["-"] * 4
+                            continue
+                        r = r.iloc[0]
+                        ci = (f"[{r.ci_lo:+.2f}, {r.ci_hi:+.2f}]" if math.isfinite(r.ci_lo) else "(one seed: no interval)")
+                        cells += [f"{r['mean']:+.2f} {ci}", f"{r.a_better}/{r.seeds}",
+                                  f"{r.sd:.2f}" if math.isfinite(r.sd) else "-",
+                                  str(r.seeds_needed) if r.seeds_needed > 0 else "-"]
+                    lines.append(f"| {zone} | {SHORT[a]} - {SHORT[b]} | " + " | ".join(cells) + " |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def _g(v: float) -> str:
+    return "-" if not math.isfinite(v) else (f"{v:.2f}" if v < 100 else f"{v:.0f}")
+
+
+def _seed_text(seeds) -> str:
+    seeds = [int(s) for s in seeds]
+    if seeds and seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}-{seeds[-1]} ({len(seeds)})"
+    return ", ".join(map(str, seeds)) + f" ({len(seeds)})"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", type=Path, help="sweep folder of experiments/sweeps/realistic_protocol.toml")
+    ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
+    args = ap.parse_args(argv)
+    rows = run_rows(args.folder)
+    if not len(rows):
+        print(f"{args.folder}: no finished run", file=sys.stderr)
+        return 2
+    if args.csv:
+        rows.to_csv(args.csv, index=False)
+    print(markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
