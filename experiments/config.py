@@ -233,8 +233,8 @@ class Config:
     # [gnss_model], optional: the integrator's receiver error model for the gnss method
     # (coloc.methods.gnss_bias); never read from [gnss_error], the world's table.
     gnss_model: GnssModelParams | None = None
-    # [fusion], optional: consistent (split covariance intersection) fusion in icp_known_da and icp_da_lc,
-    # with [gnss_model]'s receiver model (coloc.methods.coop_fusion).
+    # [fusion], optional: consistent (split covariance intersection) fusion in icp_known_da, icp_da_lc and
+    # icp_da_pf, with [gnss_model]'s receiver model (coloc.methods.coop_fusion, coloc.methods.pf_fusion).
     fusion: FusionParams | None = None
     # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
     analysis: AnalysisSection | None = None

@@ -131,8 +131,10 @@ TABLE_DOCS: dict[str, str] = {
               "messages and fuse the feature evidence by split covariance intersection (the step's V2F noise "
               "independent, everything else of unknown correlation), so their covariances bound their errors; "
               "ICP-DA-LC's association, births and existence then gate on that covariance. With `bias_state` "
-              "they also carry `[gnss_model]`'s receiver model. Absent: the paper's Gaussian BPA-L, exactly as "
-              "before.",
+              "they also carry `[gnss_model]`'s receiver model. `icp_da_pf` (and `icp_known_da_pf`) localize "
+              "their vehicles the same way, on 6-D split filters, and keep their particles for the association "
+              "and the feature tracks (`coloc/methods/pf_fusion.py`). Absent: the paper's Gaussian BPA-L and "
+              "particle BPA-L, exactly as before.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "

@@ -192,7 +192,9 @@ def weighted_moments_normalized(particles: np.ndarray, log_w: np.ndarray) -> tup
 # The synchronized generators of ICP-DA-PF: one purpose code per kind of draw (seeded with the
 # purpose, the entity and the step, see :func:`entity_rng`).
 _PURPOSE = {"vehicle_predict": 1, "vehicle_prior": 2, "track_predict": 3, "track_birth": 4,
-            "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9}
+            "vehicle_resample": 5, "track_resample": 6, "own_predict": 7, "own_prior": 8, "own_resample": 9,
+            # [fusion]: the sets drawn from the split-CI filters' marginals (coloc.methods.pf_fusion)
+            "split_belief": 10, "split_own": 11}
 
 
 def entity_rng(seed: int, purpose: str, entity: int, step: int) -> np.random.Generator:

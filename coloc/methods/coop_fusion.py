@@ -1,5 +1,5 @@
-"""Consistent fusion in the Gaussian cooperative methods (config ``[fusion]``; ``icp_known_da`` and
-``icp_da_lc``): split covariance intersection (:mod:`coloc.inference.split_ci`, where the rule and its
+"""Consistent fusion in the cooperative methods (config ``[fusion]``; ``icp_known_da``, ``icp_da_lc``, and the
+vehicles of ``icp_da_pf`` through :mod:`coloc.methods.pf_fusion`): split covariance intersection (:mod:`coloc.inference.split_ci`, where the rule and its
 sources are) and the receiver error model ``[gnss_model]`` (:mod:`coloc.methods.gnss_bias`).
 
 Per vehicle two filters run on the state [px, py, vx, vy, bx, by] (b: the receiver's Gauss-Markov bias;

@@ -145,6 +145,8 @@ from coloc.methods.icp_da_lc import (
     new_feature_log_density,
     new_feature_share,
 )
+from coloc.methods.coop_fusion import CoopFusion, SplitState, split_prior
+from coloc.methods.pf_fusion import gaussian_sets, pf_split_localization
 from coloc.methods.registry import ICP_DA_PF
 
 __all__ = [
@@ -185,6 +187,8 @@ class PfState:
     # Sensor-frame detections only: the heading each vehicle last had above the minimum speed
     # (coloc.core.detections.HeadingMemory); None otherwise.
     sensor_heading: HeadingMemory | None = None
+    # [fusion] only: the 6-D cooperative and own-sensor filters (coloc.methods.pf_fusion); None otherwise.
+    split: SplitState | None = None
 
 
 @dataclass(frozen=True)
@@ -250,12 +254,15 @@ def icp_da_pf_step(
     state: PfState, next_id: int, frame: Frame, params: IcpParams, lc: LcParams, pf: PfParams,
     known_association: np.ndarray | None = None, workspace: KernelWorkspace | None = None,
     existence: TrackExistence | None = None, detection: DetectionModel | None = None,
+    fusion: CoopFusion | None = None,
 ) -> tuple[PfState, int, PfStepInfo, StepEstimate]:
     """One ICP-DA-PF step (pure). ``known_association`` (O,) stable feature ids: the known-DA
     variant used by tests (association BP skipped, tracks keyed by the given ids). ``existence``: the
     tracks' existence after the previous step (``lc.track_existence``; the new one is
     ``info.existence``); ``detection``: the vehicles' sensors, for a P_D per (vehicle, track) (None:
-    ``lc.detection_probability``). Both as ICP-DA-LC's steps 3 and 9 (:mod:`coloc.methods.icp_da_lc`)."""
+    ``lc.detection_probability``). Both as ICP-DA-LC's steps 3 and 9 (:mod:`coloc.methods.icp_da_lc`).
+    ``fusion``: ``[fusion]``, the vehicles localized by split CI with the receiver model
+    (:mod:`coloc.methods.pf_fusion`); None: the paper's particle BPA-L."""
     jv, jf = pf.vehicle_particles, pf.feature_particles
     step = int(round(frame.t / frame.dt)) if frame.dt > 0 else 0
     n = frame.n_vehicles
@@ -272,6 +279,8 @@ def icp_da_pf_step(
     # previous belief's mean velocity (coloc.core.inertial.estimator_input), for both particle sets.
     prev_velocity = (state.particles[:, :, 2:].mean(axis=1) if frame.imu is not None and state.particles.shape[0]
                      else np.empty((0, 2)))
+    if fusion is not None and state.split is not None and frame.imu is not None:
+        prev_velocity = state.split.mean[:, 2:4]  # the previous belief's mean velocity, as ICP-DA-LC
     accel, heading = estimator_input(frame, idx, prev_velocity, state.heading, params.motion.heading_min_speed)
 
     # Model (1)'s driving noise for the vehicle particles: [motion]'s, or the PF's own (PfParams).
@@ -301,23 +310,36 @@ def icp_da_pf_step(
             ll[once] = 0.0
         return normalize_log(ll)
 
-    particles = vehicle_sets(state.particles, "vehicle_predict", "vehicle_prior")
-    log_gnss = gnss_weights(particles) if n else np.empty((0, jv))
-    v_mean, v_cov = weighted_moments(particles, log_gnss) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
-    if latest:  # the own-sensor sets carry no feature evidence; they run BPA-L, the belief sets get its messages
-        own = vehicle_sets(state.own_particles, "own_predict", "own_prior")
-        log_own = gnss_weights(own) if n else np.empty((0, jv))
-        own_mean, own_cov = weighted_moments(own, log_own) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
-        # eta and births as LC: the mean of b_i^(0), the spread of the own-sensor belief.
-        assoc_particles = own + (v_mean - own_mean)[:, None, :]
-        assoc_logw, assoc_cov = log_own, own_cov
-    else:
-        own, log_own = particles, log_gnss
+    split = None
+    if fusion is not None:
+        # [fusion] (coloc.methods.pf_fusion): the 6-D filters carried and updated by the fix; the particle
+        # sets drawn from their kinematic marginals, equally weighted; the association gates on b^(0)'s
+        # consistent covariance, as ICP-DA-LC.
+        split = split_prior(state.split, frame, idx, frame.accel if accel is None else accel, params.motion,
+                            fusion.model, fusion.params.common_mode_gnss)
+        v_mean, v_cov, own_mean, own_cov = split.marginal()
+        particles, log_gnss = gaussian_sets(v_mean, v_cov, ents, step, pf.seed, "split_belief", jv)
+        own, log_own = (gaussian_sets(own_mean, own_cov, ents, step, pf.seed, "split_own", jv) if latest
+                        else (particles, log_gnss))
         assoc_particles, assoc_logw, assoc_cov = particles, log_gnss, v_cov
+    else:
+        particles = vehicle_sets(state.particles, "vehicle_predict", "vehicle_prior")
+        log_gnss = gnss_weights(particles) if n else np.empty((0, jv))
+        v_mean, v_cov = weighted_moments(particles, log_gnss) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+        if latest:  # the own-sensor sets carry no feature evidence; they run BPA-L, the belief sets get its messages
+            own = vehicle_sets(state.own_particles, "own_predict", "own_prior")
+            log_own = gnss_weights(own) if n else np.empty((0, jv))
+            own_mean, own_cov = weighted_moments(own, log_own) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+            # eta and births as LC: the mean of b_i^(0), the spread of the own-sensor belief.
+            assoc_particles = own + (v_mean - own_mean)[:, None, :]
+            assoc_logw, assoc_cov = log_own, own_cov
+        else:
+            own, log_own = particles, log_gnss
+            assoc_particles, assoc_logw, assoc_cov = particles, log_gnss, v_cov
     # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor sets' moments
     # at t (the belief's with the "belief" recursion; coloc.core.detections, as coloc.methods.icp_known_da).
     if frame.v2f_sensor is not None:
-        h_mean, h_cov = (own_mean, own_cov) if latest else (v_mean, v_cov)
+        h_mean, h_cov = (own_mean, own_cov) if (latest or fusion is not None) else (v_mean, v_cov)
         frame, sensor_heading = with_net_detections(frame, h_mean, h_cov, idx, state.sensor_heading,
                                                     params.motion.heading_min_speed)
         z, r = np.asarray(frame.v2f_z, float), np.asarray(frame.v2f_R, float)
@@ -529,6 +551,12 @@ def icp_da_pf_step(
         t_carry[seen] = res.first_feature_logw[res.track_entry[seen]]
         kept_messages = res.first_message_logw
     mean, cov = weighted_moments(particles, res.vehicle_logw) if n else (np.empty((0, 4)), np.empty((0, 4, 4)))
+    split_after = None
+    if split is not None:  # the vehicles by split CI on the rows paired with a confirmed track
+        loc_track = np.where(ex.confirmed(row_track, lc.confirm_existence), row_track, -1) if with_existence \
+            else row_track
+        mean, cov, split_after = pf_split_localization(split, frame, owner, loc_track, z, r, params,
+                                                       fusion.params.feature_ci)
     f_mean, f_cov = weighted_moments(t_particles, t_post) if t_ids.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
     # Tracks observed this step: a detected option (belief >= 0.5) or a birth.
     observed_ids = np.unique(row_track[row_track >= 0])
@@ -546,6 +574,11 @@ def icp_da_pf_step(
     new_particles = np.empty_like(particles)
     new_own = np.empty_like(own) if latest else np.empty((n, 0, 4))
     for i in range(n):
+        if split is not None:  # the sets are drawn afresh from the filters next step
+            new_particles[i] = particles[i]
+            if latest:
+                new_own[i] = own[i]
+            continue
         g = entity_rng(pf.seed, "vehicle_resample", ents[i], step)
         new_particles[i] = regularized_resample(particles[i], res.vehicle_logw[i],
                                                 systematic_resample(res.vehicle_logw[i], g), g, pf.regularize)
@@ -596,7 +629,7 @@ def icp_da_pf_step(
         msg_track, msg_vehicle, msg_logv, msg_time = msg_track[keep_m], msg_vehicle[keep_m], msg_logv[keep_m], msg_time[keep_m]
     new_state = PfState(vids.copy(), new_particles, new_own, t_ids[keep_t], new_t_particles[keep_t], new_t_logw[keep_t],
                         t_last[keep_t], msg_track, msg_vehicle, msg_logv, msg_time, t_folded[keep_t], heading,
-                        sensor_heading)
+                        sensor_heading, split_after)
     info = PfStepInfo(row_track, int(birth_rows.size), int((row_track < 0).sum()), merged, res.iterations,
                       res.pair_evaluations,
                       pf_step_comm(entry_vehicle, entry_track, frame.neighbors, owner[announced],
@@ -620,6 +653,7 @@ class IcpDaPf:
     # The vehicles' sensors (field of view, range, detection profile), for a P_D per (vehicle,
     # track); None: lc.detection_probability everywhere in range.
     detection: DetectionModel | None = None
+    fusion: CoopFusion | None = None  # [fusion] (coloc.methods.pf_fusion); None: the paper's particle BPA-L
 
     def step(self, frame: Frame) -> StepEstimate:
         existence = self.last.existence if self.last is not None else None
@@ -627,7 +661,8 @@ class IcpDaPf:
         frame, kept = without_vehicle_rows(frame)  # vehicle-class rows are not landmarks (coloc.core.vehicle_rows)
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
                                                                    self.lc, self.pf, workspace=self.workspace,
-                                                                   existence=existence, detection=self.detection)
+                                                                   existence=existence, detection=self.detection,
+                                                                   fusion=self.fusion)
         if kept is None:
             return est
         return replace(est, v2f_assignment=expand_rows(est.v2f_assignment, kept, n_rows))
@@ -636,5 +671,5 @@ class IcpDaPf:
         """Known-DA variant (``icp_known_da_pf``; tests: PF against the Kalman bound)."""
         self.state, self.next_id, self.last, est = icp_da_pf_step(self.state, self.next_id, frame, self.params,
                                                                    self.lc, self.pf, known_association=v2f_feature,
-                                                                   workspace=self.workspace)
+                                                                   workspace=self.workspace, fusion=self.fusion)
         return est

@@ -51,7 +51,8 @@ class MethodParams:
     # What the joint_oracle is told of the world ([gnss_error], [scenario] start; the oracle only);
     # None: the paper's white GNSS and fast-start prior.
     oracle_world: OracleWorld | None = None
-    # [fusion] with its receiver model: split-CI fusion in icp_known_da and icp_da_lc; None: the paper's BPA-L.
+    # [fusion] with its receiver model: split-CI fusion in icp_known_da, icp_da_lc and icp_da_pf (and
+    # icp_known_da_pf); None: the paper's BPA-L.
     fusion: CoopFusion | None = None
 
 
@@ -109,7 +110,8 @@ def _icp_da_lc(p: MethodParams):
 def _icp_da_pf(p: MethodParams):
     from coloc.methods.icp_da_pf import IcpDaPf
 
-    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, detection=p.detection if p.lc.sensor_fov else None)
+    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, detection=p.detection if p.lc.sensor_fov else None,
+                   fusion=p.fusion)
 
 
 def _icp_known_da_pf(p: MethodParams):
@@ -117,7 +119,7 @@ def _icp_known_da_pf(p: MethodParams):
 
     # The same estimator told the true association by the runner: it separates PF's Monte
     # Carlo error from its association.
-    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, name=ICP_KNOWN_DA_PF.name)
+    return IcpDaPf(params=p.icp, lc=p.lc, pf=p.pf, name=ICP_KNOWN_DA_PF.name, fusion=p.fusion)
 
 
 def _joint_oracle(p: MethodParams):
