@@ -23,12 +23,13 @@ run: $(STAMP)
 	$(VENV)/bin/coloc report $(OUT)/arterial_tlr $(OUT)/arterial_vsr --out $(OUT)/compare
 	@echo "Open $(OUT)/compare/report.html (per-run reports: $(OUT)/arterial_tlr/report.html, $(OUT)/arterial_vsr/report.html)"
 
-## make test: the whole test suite, slow tests included
+## make test: the whole test suite, slow tests included, on two processes (pytest-xdist; a test file stays on one
+## process, so its module fixtures are built once)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 bench: $(STAMP)
 	$(PY) bench/coupled_vs_sumo.py
