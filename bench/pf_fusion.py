@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from coloc.methods.coop_fusion import FusionParams  # noqa: E402
+from coloc.methods.registry import GNSS, ICP_DA_PF  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from experiments.runner import build_estimators, frame_source  # noqa: E402
 
@@ -37,13 +38,13 @@ def main() -> None:
     ap.add_argument("--warmup", type=float, default=60.0)
     ap.add_argument("--particles", type=int, default=0)
     args = ap.parse_args()
-    over = {"run.duration_s": args.duration, "run.seed": args.seed, "run.methods": ["gnss", "icp_da_pf"]}
+    over = {"run.duration_s": args.duration, "run.seed": args.seed, "run.methods": [GNSS.name, ICP_DA_PF.name]}
     if args.particles:
         over.update({"pf.vehicle_particles": args.particles, "pf.feature_particles": args.particles})
     cfg = load_config(Path(args.config), over)
     gnss, paper = build_estimators(dataclasses.replace(cfg, fusion=None))
     fused = build_estimators(dataclasses.replace(cfg, fusion=cfg.fusion or FusionParams()))[1]
-    arms = {"gnss": gnss, "icp_da_pf": paper, "icp_da_pf+fusion": fused}
+    arms = {GNSS.name: gnss, ICP_DA_PF.name: paper, ICP_DA_PF.name + "+fusion": fused}
     err = {k: [] for k in arms}
     nees = {k: [] for k in arms}
     cpu = dict.fromkeys(arms, 0.0)

@@ -34,6 +34,8 @@ import numpy as np
 # this checkout's packages, not an installed copy (a script's own folder is first on sys.path)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from coloc.methods.registry import JOINT_ORACLE  # noqa: E402
+
 CHI2_2_95 = 5.991464547107979
 
 
@@ -101,7 +103,7 @@ def _score(err: np.ndarray, nees: np.ndarray) -> str:
 
 
 def score(args) -> None:
-    from coloc.methods.registry import build_method
+    from coloc.methods.registry import GNSS, build_method
     from experiments.runner import method_params
 
     with open(args.frames, "rb") as fh:
@@ -125,7 +127,7 @@ def score(args) -> None:
         cpu = time.process_time()
         for f in frames:
             clean = f.without_truth()
-            if getattr(est, "step_with_association", None) is not None and name != "gnss":
+            if getattr(est, "step_with_association", None) is not None and name != GNSS.name:
                 out = est.step_with_association(clean, f.truth.v2f_feature)
             else:
                 out = est.step(clean)
@@ -170,7 +172,7 @@ def main(argv=None) -> None:
     r.add_argument("--out", required=True)
     s = sub.add_parser("score")
     s.add_argument("frames")
-    s.add_argument("--methods", default="joint_oracle")
+    s.add_argument("--methods", default=JOINT_ORACLE.name)
     s.add_argument("--from", dest="t_from", type=float, default=120.0)
     s.add_argument("--until", type=float, default=1e9)
     s.add_argument("--over-time", type=float, default=0.0)

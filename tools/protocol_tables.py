@@ -25,10 +25,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from coloc.methods import registry
 from experiments.sweep.consistency import anees_band
 from experiments.sweep.paired import paired_ci
 
-GNSS, KNOWN, LC = "gnss", "icp_known_da", "icp_da_lc"
+GNSS, KNOWN, LC = (m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC))
 PAIRS = ((LC, GNSS), (KNOWN, GNSS))
 SHORT = {GNSS: "GNSS", KNOWN: "known DA", LC: "LC"}
 ARMS = {"split_ci": "after (split CI, as shipped)", "bp": "before (paper BP)"}
