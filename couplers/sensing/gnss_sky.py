@@ -240,6 +240,14 @@ def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.n
 
 
 @njit(cache=True)
+def _cell_span(px, py, radius, x0, y0, cell, nx, ny):
+    """The grid cells (first and last column, first and last row) that a disc of ``radius`` about (px, py)
+    touches, clipped to the grid."""
+    return (max(int(math.floor((px - radius - x0) / cell)), 0), min(int(math.floor((px + radius - x0) / cell)), nx - 1),
+            max(int(math.floor((py - radius - y0) / cell)), 0), min(int(math.floor((py + radius - y0) / cell)), ny - 1))
+
+
+@njit(cache=True)
 def _box_distance(px, py, box):
     dx = max(box[0] - px, 0.0, px - box[2])
     dy = max(box[1] - py, 0.0, py - box[3])
@@ -255,10 +263,7 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
     seen = np.full(heights.size, -1, dtype=np.int64)  # the vehicle that last looked at each building
     for i in range(n):
         px, py = xy[i, 0], xy[i, 1]
-        cx0 = max(int(math.floor((px - radius - x0) / cell)), 0)
-        cx1 = min(int(math.floor((px + radius - x0) / cell)), nx - 1)
-        cy0 = max(int(math.floor((py - radius - y0) / cell)), 0)
-        cy1 = min(int(math.floor((py + radius - y0) / cell)), ny - 1)
+        cx0, cx1, cy0, cy1 = _cell_span(px, py, radius, x0, y0, cell, nx, ny)
         for cy in range(cy0, cy1 + 1):
             for cx in range(cx0, cx1 + 1):
                 c = cy * nx + cx
@@ -346,10 +351,7 @@ def reflections(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.nda
 @njit(cache=True)
 def _candidates(px, py, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen, stamp, out):
     """Buildings taller than the antenna whose box is within ``radius`` of (px, py), into ``out``; their count."""
-    cx0 = max(int(math.floor((px - radius - x0) / cell)), 0)
-    cx1 = min(int(math.floor((px + radius - x0) / cell)), nx - 1)
-    cy0 = max(int(math.floor((py - radius - y0) / cell)), 0)
-    cy1 = min(int(math.floor((py + radius - y0) / cell)), ny - 1)
+    cx0, cx1, cy0, cy1 = _cell_span(px, py, radius, x0, y0, cell, nx, ny)
     m = 0
     for cy in range(cy0, cy1 + 1):
         for cx in range(cx0, cx1 + 1):
