@@ -142,6 +142,12 @@ def _sweep_or_stop(run):
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"coloc: {_stopped(exc)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
         return None, _stop_code(exc)
+    except SystemError as exc:  # the signal's exception raised inside a C callback (_stop_in_chain)
+        stop = _stop_in_chain(exc)
+        if stop is None:
+            raise
+        print(f"coloc: {_stopped(stop)}; completed runs are kept: rerun the same command to resume", file=sys.stderr)
+        return None, _stop_code(stop)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -462,6 +468,19 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _stop_in_chain(exc: BaseException) -> BaseException | None:
+    """The Terminated or KeyboardInterrupt that ``exc`` was raised from, if any: a signal handler's exception
+    raised while a C callback runs (numba's ``_numba_unpickle`` when a cached kernel is first called) reaches
+    Python as a SystemError whose cause is that exception."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def _stopped(exc: BaseException) -> str:
     return "terminated" if isinstance(exc, Terminated) else "interrupted"
 
@@ -508,6 +527,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"coloc: {_stopped(exc)}; nothing was written", file=sys.stderr)
         return _stop_code(exc)
     except Exception as exc:
+        stop = _stop_in_chain(exc)
+        if stop is not None:
+            print(f"coloc: {_stopped(stop)}; nothing was written", file=sys.stderr)
+            return _stop_code(stop)
         if not _from_a_worker(exc):
             raise
         return _worker_failed(exc)

@@ -1516,6 +1516,23 @@ def test_sigterm_cleans_up_and_exits_143(cross_net, tmp_path, run_dir):
     assert not partial.exists() and snapshot(out) == before
 
 
+def test_sigterm_raised_inside_a_c_callback_still_ends_in_one_line(monkeypatch, tmp_path, capsys):
+    """A SIGTERM that lands while numba unpickles a cached kernel's constants (a C callback) reaches Python as a
+    SystemError caused by Terminated: still one line and exit 143, no traceback."""
+    import experiments.cli as cli
+
+    def stopped_in_callback(args):
+        try:
+            raise cli.Terminated()
+        except cli.Terminated as exc:
+            raise SystemError("<function _numba_unpickle> returned a result with an exception set") from exc
+
+    monkeypatch.setattr(cli, "cmd_run", stopped_in_callback)
+    assert cli.main(["run", str(tmp_path / "x.toml"), "--out", str(tmp_path / "out")]) == 143
+    assert capsys.readouterr().err.strip().splitlines() == ["coloc: terminated; nothing was written"]
+    assert cli._stop_in_chain(SystemError("unrelated")) is None
+
+
 def test_rebuilt_signal_programs_are_plausible(tmp_path, capsys):
     """--rebuild-signals: netconvert's static programs replace the game net's 1000 s phases."""
     from couplers.net.importer.geometry import implausible_signal_programs
