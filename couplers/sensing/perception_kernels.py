@@ -125,6 +125,21 @@ def _clutter_rows(origins, owner, sensor, r, cos_a, sin_a, x_true, cw, range_m, 
 
 
 @njit(cache=True)
+def _range_fraction_and_sigma(d, s, range_m, sigma_p_m, sigma_growth):
+    """A detection at distance ``d`` by sensor ``s``: its share of the sensor's range (clipped to [0, 1]) and
+    its position sigma, sigma_p (1 + growth x share)."""
+    frac = min(max(d / range_m[s], 0.0), 1.0)
+    return frac, sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+
+
+@njit(cache=True)
+def _sharper(c, b, sig, sensor):
+    """Candidate ``c`` replaces the pair's best so far ``b`` (-1: none): smaller sigma, ties to the sensor
+    listed first."""
+    return b < 0 or sig[c] < sig[b] or (sig[c] == sig[b] and sensor[c] < sensor[b])
+
+
+@njit(cache=True)
 def _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, pd_far, sigma_p_m, sigma_growth,
                       u, visible):
     """P_D and sigma_p of every candidate (per its sensor), the detections (visible and u < P_D), and
@@ -135,13 +150,10 @@ def _merge_detections(pair, dist, sensor, detected, n_pairs, range_m, pd_near, p
     best = np.full(n_pairs, -1, dtype=np.int64)
     for c in range(c_total):
         s = sensor[c]
-        frac = min(max(dist[c] / range_m[s], 0.0), 1.0)
-        sig[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+        frac, sig[c] = _range_fraction_and_sigma(dist[c], s, range_m, sigma_p_m, sigma_growth)
         detected[c] = visible[c] and u[c] < pd_near[s] + (pd_far[s] - pd_near[s]) * frac
-        if detected[c]:
-            b = best[pair[c]]
-            if b < 0 or sig[c] < sig[b] or (sig[c] == sig[b] and s < sensor[b]):
-                best[pair[c]] = c
+        if detected[c] and _sharper(c, best[pair[c]], sig, sensor):
+            best[pair[c]] = c
     count = 0
     for p in range(n_pairs):
         if best[p] >= 0:

@@ -43,7 +43,8 @@ from numba import njit
 
 from couplers.sensing.occlusion import OccluderIndex, _segments_occluded_by_buildings, _segments_occluded_by_vehicles
 from couplers.sensing.perception import _fov_params, effect_rng
-from couplers.sensing.perception_kernels import CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _sight_lines
+from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _range_fraction_and_sigma,
+                                                _sharper, _sight_lines)
 from couplers.sensing.rows import shuffle_within_owner
 
 #: Class the classifier reports for a vehicle (``Frame.v2f_class``; 0 static, 1 pedestrian).
@@ -182,17 +183,14 @@ def _target_rows(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_targ
     best = np.full(n_pairs, -1, dtype=np.int64)
     for c in range(c_total):
         s = sensor[c]
-        frac = min(max(dist[c] / range_m[s], 0.0), 1.0)
-        sig[c] = sigma_p_m[s] * (1.0 + sigma_growth[s] * frac)
+        frac, sig[c] = _range_fraction_and_sigma(dist[c], s, range_m, sigma_p_m, sigma_growth)
         fixed = target_pd[pair_target[pair[c]]]
         if fixed >= 0:
             det = clear[line_of[c]] and u[first_of[pair[c]]] < fixed
         else:
             det = clear[line_of[c]] and u[c] < pd_near[s] + (pd_far[s] - pd_near[s]) * frac
-        if det:
-            b = best[pair[c]]
-            if b < 0 or sig[c] < sig[b] or (sig[c] == sig[b] and s < sensor[b]):
-                best[pair[c]] = c
+        if det and _sharper(c, best[pair[c]], sig, sensor):
+            best[pair[c]] = c
     d = 0
     for p in range(n_pairs):
         if best[p] >= 0:
