@@ -58,7 +58,9 @@ def _choose_bin(t: np.ndarray, preferred: float) -> float:
 
 def _binned_rmse(df: pd.DataFrame, cols: list[str], width: float,
                  by: str = "method") -> pd.DataFrame:
-    """RMSE of each column in ``cols`` per (by, time bin); index (by, t_mid_s). Bins are
+    """RMSE of each column in ``cols`` per (by, time bin); index (by, t_mid_s); a frame of per-step sums
+    (columns ``sq`` and ``n``, :func:`experiments.report.load._read_feature_steps`) gives the RMSE of the
+    one column in ``cols`` from them. Bins are
     [k width, (k + 1) width); a last bin that ends after the last estimate is partial (an hour sampled
     up to t = 3600 s has a 13th bin holding t = 3600 s only) and is dropped: never an interval."""
     t = df["t"].to_numpy(dtype=float)
@@ -70,6 +72,10 @@ def _binned_rmse(df: pd.DataFrame, cols: list[str], width: float,
         if full.any():  # a run shorter than one bin keeps its only bin
             df, t, start = df[full], t[full], start[full]
     tmp = pd.DataFrame({by: df[by], "bin": start + width / 2.0})
+    if "sq" in df.columns and "n" in df.columns:  # sums per step (load._read_feature_steps): sum sq / sum n
+        tmp["sq"], tmp["n"] = df["sq"].to_numpy(dtype=float), df["n"].to_numpy(dtype=float)
+        s = tmp.groupby([by, "bin"], observed=True, sort=True)[["sq", "n"]].sum()
+        return pd.DataFrame({cols[0]: np.sqrt(s["sq"] / s["n"])}, index=s.index)
     for c in cols:
         v = df[c].to_numpy(dtype=float)
         tmp[c] = v * v

@@ -61,12 +61,100 @@ def _read_parquet(path: Path, wanted: list[str]) -> pd.DataFrame | None:
     except (pa.ArrowException, OSError) as exc:
         raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
                                      "is the run folder complete?") from None
-    df = table.to_pandas()
+    return _labels_as_categories(table.to_pandas(), cat_cols)
+
+
+def _labels_as_categories(df: pd.DataFrame, cat_cols: list[str]) -> pd.DataFrame:
     for c in cat_cols:
         if not isinstance(df[c].dtype, pd.CategoricalDtype) or not all(
                 isinstance(v, str) for v in df[c].cat.categories):
             df[c] = df[c].astype("string").astype("category")
     return df
+
+
+#: Rows read at a time where a file is read in batches (the row groups coloc writes hold 1 Mi rows).
+BATCH_ROWS = 1 << 18
+
+
+def _batches(path: Path, wanted: list[str], cat_cols: list[str]):
+    """(columns read, iterator of record batches) of ``path``, the :data:`REQUIRED_COLUMNS` checked; the
+    label columns dictionary-encoded."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        pf = pq.ParquetFile(path, read_dictionary=cat_cols)
+        names = set(pf.schema_arrow.names)
+        require_columns(path, names, [c for c in REQUIRED_COLUMNS.get(path.name, ()) if c in wanted])
+        cols = [c for c in wanted if c in names]
+        batches = pf.iter_batches(batch_size=BATCH_ROWS, columns=cols)
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
+                                     "is the run folder complete?") from None
+    return cols, batches
+
+
+def _read_estimates(path: Path, wanted: list[str], nees: bool) -> pd.DataFrame | None:
+    """The wanted columns of estimates.parquet (None when absent), read batch by batch; with ``nees``
+    and a file that has the :data:`_NEES_COLS`, a ``nees`` column (the 2-D position NEES,
+    :func:`experiments.rowstream.position_nees`) computed per batch, the seven columns it comes from
+    never held for the whole file (a city hour: 2.4 M rows, 130 MB of them)."""
+    if not path.exists():
+        return None
+    import pyarrow as pa
+
+    from experiments.rowstream import position_nees
+
+    cat_cols = [c for c in ("method", "zone", "area", "run") if c in wanted]
+    cols, batches = _batches(path, wanted + (_NEES_COLS if nees else []), cat_cols)
+    with_nees = nees and set(_NEES_COLS) <= set(cols)
+    keep = [c for c in cols if c not in _NEES_COLS]
+    parts = []
+    try:
+        for b in batches:
+            part = pa.Table.from_batches([b]).select(keep)
+            if with_nees:
+                v = {c: b.column(c).to_numpy(zero_copy_only=False).astype(float) for c in _NEES_COLS}
+                part = part.append_column("nees", pa.array(position_nees(
+                    v["px"] - v["px_true"], v["py"] - v["py_true"], v["var_px"], v["var_py"], v["cov_pxy"])))
+            parts.append(part)
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
+                                     "is the run folder complete?") from None
+    if not parts:
+        return _read_parquet(path, keep)  # no row: the empty frame with its columns
+    table = pa.concat_tables(parts)
+    return _labels_as_categories(table.to_pandas(), cat_cols)
+
+
+def _read_feature_steps(path: Path) -> pd.DataFrame | None:
+    """features.parquet reduced to one row per (method, t): ``sq`` the sum of the squared finite
+    position errors and ``n`` their count (None when absent). What the reports draw of the feature
+    tracks (RMSE per time bin) needs no more; an hour of a city's tracks is 14 M rows, this a few
+    thousand."""
+    if not path.exists():
+        return None
+    import pyarrow as pa
+
+    _cols, batches = _batches(path, ["method", "t", "err_pos"], ["method"])
+    parts = []
+    try:
+        for b in batches:
+            df = b.to_pandas()
+            e = df["err_pos"].to_numpy(dtype=float)
+            ok = np.isfinite(e)
+            parts.append(pd.DataFrame({"method": df["method"].astype(str)[ok], "t": df["t"].to_numpy(dtype=float)[ok],
+                                       "sq": e[ok] * e[ok], "n": np.ones(int(ok.sum()), dtype=np.int64)})
+                         .groupby(["method", "t"], sort=False).sum())
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
+                                     "is the run folder complete?") from None
+    if not parts:
+        return pd.DataFrame({"method": pd.Categorical([]), "t": np.empty(0), "sq": np.empty(0),
+                             "n": np.empty(0, dtype=np.int64)})
+    out = pd.concat(parts).groupby(level=[0, 1], sort=False).sum().reset_index()
+    out["method"] = out["method"].astype("category")
+    return out
 
 
 @dataclass
@@ -122,17 +210,8 @@ def _load_run(run_dir: Path, *, need_areas: bool = True) -> _Run:
             raise InputError(run_dir / "summary.json", None, "not a coloc summary (expected a JSON object)")
     cols = _EST_COLS if need_areas else ["method", "t", "err_pos", "err_vel"]
     run = _Run(run_dir=run_dir, config=config, summary=summary)
-    run.estimates = _read_parquet(run_dir / "estimates.parquet", cols + (_NEES_COLS if need_areas else []))
-    if run.estimates is not None and need_areas:
-        est = run.estimates
-        if set(_NEES_COLS) <= set(est.columns):
-            from experiments.rowstream import position_nees
-
-            col = {c: est[c].to_numpy(dtype=float) for c in _NEES_COLS}
-            est["nees"] = position_nees(col["px"] - col["px_true"], col["py"] - col["py_true"], col["var_px"],
-                                        col["var_py"], col["cov_pxy"])
-        run.estimates = est.drop(columns=[c for c in _NEES_COLS if c in est.columns])
-    run.features = _read_parquet(run_dir / "features.parquet", ["method", "t", "err_pos"])
+    run.estimates = _read_estimates(run_dir / "estimates.parquet", cols, nees=need_areas)
+    run.features = _read_feature_steps(run_dir / "features.parquet")
     run.traffic = _read_parquet(
         run_dir / "traffic.parquet",
         ["interval_start_s", "interval_end_s", "mean_vehicles", "exit_flow_vph",
