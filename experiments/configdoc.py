@@ -293,6 +293,13 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "whatever its innovation (a lasting discrepancy is more likely the "
                                     "tracker's own drift than a fault; a gate that never reopens diverges). "
                                     "Default 10 (assumption: NLOS episodes last seconds)."),
+        "adaptive_window_s": ("s", "Adaptive fading of `gnss` (coloc/methods/gnss_bias.py; Xia et al., "
+                                   "Automatica 1994): the predicted covariance is scaled by m where m passes "
+                                   "a 99 % test of consistency (else 1), m the "
+                                   "vehicle's exponentially weighted average (this time constant) of its "
+                                   "position innovations' NIS per degree of freedom (each capped at the "
+                                   "gate's threshold). Not yet in the cooperative methods' own-sensor track. "
+                                   "0: off (default)."),
     },
     "fusion": {
         "rule": ("", "How the cooperative methods fuse what they receive: `split_ci` (split covariance "

@@ -33,6 +33,24 @@ velocity drifts, the position error outgrows the predicted covariance and the ga
 (docs/validation/gnss_benchmark.md). For the same reason, after ``max_exclusions`` consecutive
 exclusions the next fix is taken. A fresh vehicle's first fix is never gated (its prior comes from it).
 
+Adaptive fading (``adaptive_window_s`` = T > 0; opt-in, off by default): the predicted covariance is
+multiplied by ``alpha_k = m_k`` where ``m_k`` exceeds its 99 % quantile under consistency
+(:func:`fading_threshold`: the excess is significant), by 1 elsewhere;
+``m_k = beta m_{k-1} + (1 - beta) min(NIS_k, thr) / 2`` is
+the vehicle's exponentially weighted average of its position innovations' NIS per degree of freedom
+(``beta = exp(-Ts / T)``, ``m = 1`` for a fresh vehicle, ``thr`` the gate's threshold: an excluded fault
+counts as at most a fix at the gate). The rule is the fading factor of the adaptive fading Kalman filter
+(Xia, Rao, Ying, Shen, "Adaptive fading Kalman filter with an application", Automatica 30(8), 1994: the
+predicted covariance is scaled until the filter's predicted innovation covariance matches the observed
+one; here with the normalized form E[NIS] = 2 of a consistent filter, Bar-Shalom et al., "Estimation with
+Applications to Tracking and Navigation", 2001, Sec. 5.4). Why: correlated receiver errors the model does
+not carry (NLOS episodes of seconds, errors common to many receivers) make the innovations larger than
+predicted for many steps in a row; a single fix's gate sees only the largest, the average sees the lasting
+excess. With a consistent model the average rarely passes the test (1 % of steps), and since alpha >= 1
+compounds through the recursion, fading without the test (``max(1, m_k)``) made a filter whose model is the
+truth conservative (mean NEES 1.1 instead of 2, tests/coloc/test_gnss_bias_adaptive.py). Counted before the
+gate; the gate then tests the innovation against the inflated covariance.
+
 Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a frame as one numpy
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
 """
@@ -43,6 +61,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
@@ -73,6 +92,9 @@ class GnssModelParams:
     # discrepancy that lasts is more likely the tracker's own drift (e.g. an IMU bias) than a fault,
     # and a gate that never reopens would let it diverge. Assumption: NLOS episodes last seconds.
     max_exclusions: int = 10
+    # Time constant (s) of the average of normalized innovations that sets the adaptive fading factor
+    # (module docstring; Xia et al., Automatica 1994). 0: off (the plain filter).
+    adaptive_window_s: float = 0.0
 
     def __post_init__(self):
         if not (isinstance(self.bias_share, (int, float)) and 0.0 <= self.bias_share < 1.0):
@@ -82,6 +104,10 @@ class GnssModelParams:
             raise ValueError(f"must be positive and finite (the bias correlation time, s), got {self.bias_tau_s!r}")
         if not (isinstance(self.max_exclusions, int) and self.max_exclusions >= 0):
             raise ValueError(f"must be a non-negative integer (consecutive excluded fixes), got {self.max_exclusions!r}")
+        if not (isinstance(self.adaptive_window_s, (int, float)) and math.isfinite(self.adaptive_window_s)
+                and self.adaptive_window_s >= 0):
+            raise ValueError(f"must be >= 0 and finite (the adaptive fading's time constant, s; 0: off), "
+                             f"got {self.adaptive_window_s!r}")
         if not (isinstance(self.innovation_gate, (int, float)) and 0.0 <= self.innovation_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (the chi-square gate's level; 0: no exclusion), "
                              f"got {self.innovation_gate!r}")
@@ -109,12 +135,29 @@ def entry_fix_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndar
     return once
 
 
+#: Level of the test that starts the fading: the average normalized innovation must exceed what a
+#: consistent filter exceeds with probability 1 - FADING_LEVEL (a conventional 1 % false-alarm level).
+FADING_LEVEL = 0.99
+
+
+def fading_threshold(beta: float) -> float:
+    """The FADING_LEVEL quantile of the exponentially weighted average m = sum (1 - beta) beta^j x_j of
+    independent x_j = NIS_j / 2 ~ Exp(1) (a consistent filter's 2-dof innovations): mean 1, variance
+    (1 - beta) / (1 + beta), approximated by chi2(2 n) / (2 n) with n = (1 + beta) / (1 - beta) the
+    effective number of averaged innovations."""
+    n = (1.0 + beta) / (1.0 - beta)
+    return float(chi2.ppf(FADING_LEVEL, 2.0 * n) / (2.0 * n))
+
+
 def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
-                        streak=None):
+                        streak=None, nis_avg=None):
     """One step for a batch of 6-D states (N, 6), (N, 6, 6): predict where ``predict_mask``, then the
     update by each fix that passes the gate (a fresh row, ``~predict_mask``, is never gated; nor is a
     row whose ``streak`` of consecutive exclusions has reached ``model.max_exclusions``); an excluded
-    fix updates the velocity only. Returns (mean, cov, excluded (N,) bool)."""
+    fix updates the velocity only. With ``model.adaptive_window_s`` > 0, ``nis_avg`` (N,) is each row's
+    average normalized innovation before this step (1 for a fresh row) and the predicted covariance of the
+    predicted rows is scaled by the fading factor (module docstring). Returns (mean, cov, excluded (N,)
+    bool), and the rows' new ``nis_avg`` as a fourth item when adaptive fading is on."""
     n = mean.shape[0]
     s = model.bias_share
     r = np.asarray(r, dtype=float)
@@ -143,6 +186,19 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
     ph = p @ H.T  # (N, 6, 4)
     sm = H @ ph + rn  # (N, 4, 4)
     innov = z - m @ H.T
+    adaptive = model.adaptive_window_s > 0
+    if adaptive:
+        nis_avg = np.ones(n) if nis_avg is None else np.asarray(nis_avg, dtype=float).copy()
+        nu = innov[:, :2]
+        nis0 = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        beta = math.exp(-dt / model.adaptive_window_s)
+        upd = beta * nis_avg + (1.0 - beta) * 0.5 * np.minimum(nis0, model.gate_threshold)
+        nis_avg = np.where(predict_mask, upd, 1.0)
+        alpha = np.where(predict_mask & (nis_avg > fading_threshold(beta)), nis_avg, 1.0)
+        if (alpha > 1.0).any():
+            p = p * alpha[:, None, None]
+            ph = p @ H.T
+            sm = H @ ph + rn
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]
@@ -163,6 +219,8 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         ikh = np.eye(6) - gain @ hs
         pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
         p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+    if adaptive:
+        return m, p, excluded, nis_avg
     return m, p, excluded
 
 
@@ -181,6 +239,7 @@ class GnssBiasTracker:
     last_excluded: np.ndarray | None = None  # (N,) bool: fixes skipped by the gate this step
     _heading: np.ndarray | None = None  # kept heading per vehicle row ([inertial] only)
     _streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # consecutive exclusions
+    _nis: np.ndarray = field(default_factory=lambda: np.empty(0))  # average normalized innovation (adaptive)
 
     def step(self, frame: Frame) -> StepEstimate:
         idx = match_ids(self._ids, frame.vehicle_ids)
@@ -201,9 +260,16 @@ class GnssBiasTracker:
             cov[fresh, 4:, 4:] = self.model.bias_share * r[fresh, :2, :2]
         streak = np.zeros(n, dtype=np.int64)
         streak[keep] = self._streak[idx[keep]]
-        mean, cov, self.last_excluded = bias_predict_update(
+        nis = None
+        if self.model.adaptive_window_s > 0:
+            nis = np.ones(n)
+            nis[keep] = self._nis[idx[keep]]
+        out = bias_predict_update(
             mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
-            float(frame.dt), self.motion, self.model, streak)
+            float(frame.dt), self.motion, self.model, streak, nis)
+        mean, cov, self.last_excluded = out[:3]
+        if nis is not None:
+            self._nis = out[3]
         entry_fix_posterior(mean, cov, frame, fresh, r, self.model.bias_share)
         self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
