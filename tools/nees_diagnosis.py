@@ -5,8 +5,8 @@ runs' ``estimates.parquet``, binned by one covariate at a time, per method (and 
 
 Covariates (all from the files, nothing rerun):
 * ``since_on``: t minus the switch-on time (``--switch-on``, the end of a traffic-only warm-up);
-* ``since_entry``: t minus the vehicle's first row in the run; vehicles present at switch-on are
-  labelled ``on`` (their first row is the switch-on, not an entry);
+* ``since_entry``: t minus the vehicle's first row in the run; vehicles present at the run's first
+  estimated step (the switch-on) are labelled ``on`` (that row is the switch-on, not an entry);
 * ``speed``: the true speed |v_true| (m/s);
 * ``gnss_err``: the ``gnss`` method's own NEES for the same vehicle and step (a proxy for the receiver's
   error state, e.g. NLOS episodes: the fixes themselves are not in the outputs).
@@ -39,7 +39,8 @@ def load(runs: list[Path], switch_on: float) -> pd.DataFrame:
     d["speed"] = np.hypot(d.vx_true, d.vy_true)
     first = d.groupby(["run", "method", "vehicle"]).t.transform("min")
     d["since_on"] = d.t - switch_on
-    d["since_entry"] = np.where(first <= switch_on + 1e-6, np.nan, d.t - first)
+    start = d.groupby("run").t.transform("min")  # the first estimated step: switch-on (or the run's start)
+    d["since_entry"] = np.where(first <= start + 1e-6, np.nan, d.t - first)
     g = d[d.method == "gnss"][["run", "t", "vehicle", "nees"]].rename(columns={"nees": "gnss_nees"})
     d = d.merge(g, on=["run", "t", "vehicle"], how="left")
     return d

@@ -17,7 +17,7 @@ def _run(tmp_path: Path, rng: np.random.Generator) -> Path:
     rows = []
     cov = np.array([[4.0, 1.5], [1.5, 2.0]])
     chol = np.linalg.cholesky(cov)
-    for t in np.arange(600.0, 900.0, 0.75):
+    for t in np.arange(600.75, 900.0, 0.75):  # the first estimated step after a switch-on at 600
         for v, t0 in (("a", 600.0), ("b", 650.0)):
             if t < t0:
                 continue
@@ -41,7 +41,7 @@ def test_nees_covariates_and_bins(tmp_path):
     assert d[d.vehicle == "a"].since_entry.isna().all()  # present at switch-on: not an entry
     b = d[d.vehicle == "b"]
     assert b.since_entry.min() == 0.0 and np.allclose(b.since_entry, b.t - 650.25)  # first step on or after 650
-    assert np.allclose(d.since_on, d.t - 600.0)
+    assert np.allclose(d.since_on, d.t - 600.0) and d.since_on.min() == 0.75
     # the gnss method's own NEES joins on (run, t, vehicle)
     g = d[d.method == "gnss"]
     assert np.allclose(g.nees, g.gnss_nees)
