@@ -293,6 +293,19 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "whatever its innovation (a lasting discrepancy is more likely the "
                                     "tracker's own drift than a fault; a gate that never reopens diverges). "
                                     "Default 10 (assumption: NLOS episodes last seconds)."),
+        "bias_follows_report": ("", "When a vehicle's reported position covariance changes (a zone change), "
+                                    "its bias is mapped by the change of the report's Cholesky factor, so the "
+                                    "bias variance is share x the new report at once (a position error is the "
+                                    "range errors times the geometry: Kaplan and Hegarty 2017, Sec. 7.3). "
+                                    "`gnss` only for now. Default false: the bias carries over and its "
+                                    "variance relaxes with `bias_tau_s`."),
+        "adaptive_window_s": ("s", "Adaptive receiver covariance of `gnss` (coloc/methods/gnss_bias.py; "
+                                   "Mohamed and Schwarz, J. Geodesy 1999): the reported position covariance "
+                                   "is scaled by m where m passes a 99 % test of consistency (else 1), m the "
+                                   "vehicle's exponentially weighted average (this time constant) of its "
+                                   "position innovations' NIS per degree of freedom (each capped at the "
+                                   "gate's threshold). Not yet in the cooperative methods' own-sensor track. "
+                                   "0: off (default)."),
     },
     "fusion": {
         "rule": ("", "How the cooperative methods fuse what they receive: `split_ci` (split covariance "

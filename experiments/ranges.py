@@ -267,6 +267,7 @@ RANGES: dict[str, Range] = {
                                    "noise", high_open=True),
     "gnss_model.bias_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
     "gnss_model.max_exclusions": Range(0, 1_000_000, NO_UNIT, "consecutive excluded fixes"),
+    "gnss_model.adaptive_window_s": Range(0.0, WEEK_S, "s", "a time constant of at most 7 days (0: off)"),
     "gnss_model.innovation_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would gate nothing",
                                         high_open=True),
 }

@@ -33,6 +33,37 @@ velocity drifts, the position error outgrows the predicted covariance and the ga
 (docs/validation/gnss_benchmark.md). For the same reason, after ``max_exclusions`` consecutive
 exclusions the next fix is taken. A fresh vehicle's first fix is never gated (its prior comes from it).
 
+The bias follows the report (``bias_follows_report``; opt-in): where a vehicle's reported position
+covariance changes between steps (a zone change: a new geometry and environment), the bias is mapped,
+``b_k = a T_k b_{k-1}``, ``T_k = L_k L_{k-1}^-1`` with ``L`` the Cholesky factor of the report, so that
+the bias's stationary covariance ``s R`` becomes ``s R_k`` at once (the white tracker's noise does the same).
+Why: a position error is the range errors mapped by the geometry (sigma_pos = DOP x sigma_UERE: Kaplan and
+Hegarty, "Understanding GPS/GNSS", 3rd ed., 2017, Sec. 7.3); what is slow is in the ranges, so a
+position bias scales with the reported sigma. Without it (the default), a vehicle entering a zone whose
+report is five times larger keeps its small bias variance for about ``bias_tau_s``, and a long
+``bias_tau_s`` carries the variance of the zones before into the next (measured, tuning seeds 101-103:
+docs/validation/consistency.md).
+
+Adaptive receiver covariance (``adaptive_window_s`` = T > 0; opt-in, off by default): the covariance the
+receiver reports is taken as ``alpha_k R_pos`` for the step's white fix noise and the bias's driving noise,
+with ``alpha_k = m_k`` where ``m_k`` exceeds its 99 % quantile under consistency (:func:`fading_threshold`:
+the excess is significant), 1 elsewhere; ``m_k = beta m_{k-1} + (1 - beta) min(NIS_k, thr) / 2`` is the
+vehicle's exponentially weighted average of its position innovations' NIS per degree of freedom, each
+computed with the reported (unscaled) covariance (``beta = exp(-Ts / T)``, ``m = 1`` for a fresh vehicle,
+``thr`` the gate's threshold: an excluded fault counts as at most a fix at the gate). The rule is
+innovation-based adaptive estimation of the measurement covariance (Mehra, IEEE TAC 17(5), 1972;
+Mohamed and Schwarz, "Adaptive Kalman filtering for INS/GPS", J. Geodesy 73, 1999: R estimated from the
+innovations over a window), here as a scale on the reported covariance and in the normalized form
+E[NIS] = 2 of a consistent filter (Bar-Shalom et al., "Estimation with Applications to Tracking and
+Navigation", 2001, Sec. 5.4). Why: receiver errors the model does not carry (NLOS episodes of seconds,
+errors common to many receivers) make the innovations larger than predicted for many steps in a row; a
+single fix's gate sees only the largest, the average sees the lasting excess. With a consistent model the
+average rarely passes the test (1 % of steps). Scaling the predicted state covariance instead (the
+fading factor of Xia et al., Automatica 30(8), 1994) was tried first: it compounds through the recursion,
+and on the realistic arterial (tuning seeds 101-103) it let the trackers follow the fixes' noise (RMSE
+26-42 m against 9 m; docs/validation/consistency.md). The gate tests the innovation against the scaled
+covariance.
+
 Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a frame as one numpy
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
 """
@@ -43,6 +74,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2
 
 from coloc.core.frame import Frame, StepEstimate
 from coloc.core.inertial import estimator_input
@@ -73,6 +105,13 @@ class GnssModelParams:
     # discrepancy that lasts is more likely the tracker's own drift (e.g. an IMU bias) than a fault,
     # and a gate that never reopens would let it diverge. Assumption: NLOS episodes last seconds.
     max_exclusions: int = 10
+    # Time constant (s) of the average of normalized innovations that scales the reported covariance
+    # (module docstring; Mohamed and Schwarz, J. Geodesy 1999). 0: off (the plain filter).
+    adaptive_window_s: float = 0.0
+    # The bias follows the reported covariance: when the report changes (a zone change: the receiver's
+    # geometry and environment), the bias is mapped by the change of its square root (module docstring).
+    # False: the bias carries over unchanged and its variance relaxes with bias_tau_s.
+    bias_follows_report: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.bias_share, (int, float)) and 0.0 <= self.bias_share < 1.0):
@@ -82,6 +121,12 @@ class GnssModelParams:
             raise ValueError(f"must be positive and finite (the bias correlation time, s), got {self.bias_tau_s!r}")
         if not (isinstance(self.max_exclusions, int) and self.max_exclusions >= 0):
             raise ValueError(f"must be a non-negative integer (consecutive excluded fixes), got {self.max_exclusions!r}")
+        if not (isinstance(self.adaptive_window_s, (int, float)) and math.isfinite(self.adaptive_window_s)
+                and self.adaptive_window_s >= 0):
+            raise ValueError(f"must be >= 0 and finite (the adaptive covariance time constant, s; 0: off), "
+                             f"got {self.adaptive_window_s!r}")
+        if not isinstance(self.bias_follows_report, bool):
+            raise ValueError(f"must be true or false, got {self.bias_follows_report!r}")
         if not (isinstance(self.innovation_gate, (int, float)) and 0.0 <= self.innovation_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (the chi-square gate's level; 0: no exclusion), "
                              f"got {self.innovation_gate!r}")
@@ -109,12 +154,42 @@ def entry_fix_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndar
     return once
 
 
+#: Level of the test that starts the scaling: the average normalized innovation must exceed what a
+#: consistent filter exceeds with probability 1 - FADING_LEVEL (a conventional 1 % false-alarm level).
+FADING_LEVEL = 0.99
+
+
+def fading_threshold(beta: float) -> float:
+    """The FADING_LEVEL quantile of the exponentially weighted average m = sum (1 - beta) beta^j x_j of
+    independent x_j = NIS_j / 2 ~ Exp(1) (a consistent filter's 2-dof innovations): mean 1, variance
+    (1 - beta) / (1 + beta), approximated by chi2(2 n) / (2 n) with n = (1 + beta) / (1 - beta) the
+    effective number of averaged innovations."""
+    n = (1.0 + beta) / (1.0 - beta)
+    return float(chi2.ppf(FADING_LEVEL, 2.0 * n) / (2.0 * n))
+
+
+def report_map(r_prev: np.ndarray, r_now: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) maps T = L_now L_prev^-1 of the bias between two reported position covariances (L the
+    lower Cholesky factors): T r_prev T^T = r_now; the identity (exactly) where the two are equal."""
+    l_prev = np.linalg.cholesky(r_prev)
+    l_now = np.linalg.cholesky(r_now)
+    t = np.swapaxes(np.linalg.solve(np.swapaxes(l_prev, -1, -2), np.swapaxes(l_now, -1, -2)), -1, -2)
+    same = np.all(r_prev == r_now, axis=(-1, -2))
+    t[same] = np.eye(2)
+    return t
+
+
 def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
-                        streak=None):
+                        streak=None, nis_avg=None, r_prev=None):
     """One step for a batch of 6-D states (N, 6), (N, 6, 6): predict where ``predict_mask``, then the
     update by each fix that passes the gate (a fresh row, ``~predict_mask``, is never gated; nor is a
     row whose ``streak`` of consecutive exclusions has reached ``model.max_exclusions``); an excluded
-    fix updates the velocity only. Returns (mean, cov, excluded (N,) bool)."""
+    fix updates the velocity only. With ``model.adaptive_window_s`` > 0, ``nis_avg`` (N,) is each row's
+    average normalized innovation before this step (1 for a fresh row) and the predicted rows' reported
+    position covariance is scaled by the adaptive factor (module docstring). With
+    ``model.bias_follows_report``, ``r_prev`` (N, 2, 2) is each row's reported position covariance of its
+    previous step (any value for a fresh row) and the bias is mapped to this step's report. Returns (mean, cov, excluded (N,)
+    bool), and the rows' new ``nis_avg`` as a fourth item when the adaptive covariance is on."""
     n = mean.shape[0]
     s = model.bias_share
     r = np.asarray(r, dtype=float)
@@ -134,7 +209,17 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         q = np.zeros((n, 6, 6))
         q[:, :4, :4] = q4
         q[:, 4:, 4:] = (1.0 - a * a) * s * r_pos
-        pp = f @ p @ f.T + q
+        if model.bias_follows_report and r_prev is not None:
+            # b_k = a T_k b_{k-1}: T_k = L_k L_{k-1}^-1, L the Cholesky factor of the reported position
+            # covariance (module docstring); T = I where the report did not change
+            fr = np.broadcast_to(f, (n, 6, 6)).copy()
+            fr[:, 4:, 4:] = a * report_map(r_prev, r_pos)
+            mp = np.einsum("nij,nj->ni", fr, m)
+            mp[:, 0:2] += h * accel
+            mp[:, 2:4] += dt * accel
+            pp = fr @ p @ np.swapaxes(fr, -1, -2) + q
+        else:
+            pp = f @ p @ f.T + q
         pp = 0.5 * (pp + np.swapaxes(pp, -1, -2))
         m[predict_mask] = mp[predict_mask]
         p[predict_mask] = pp[predict_mask]
@@ -143,6 +228,23 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
     ph = p @ H.T  # (N, 6, 4)
     sm = H @ ph + rn  # (N, 4, 4)
     innov = z - m @ H.T
+    adaptive = model.adaptive_window_s > 0
+    if adaptive:
+        nis_avg = np.ones(n) if nis_avg is None else np.asarray(nis_avg, dtype=float).copy()
+        nu = innov[:, :2]
+        nis0 = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        beta = math.exp(-dt / model.adaptive_window_s)
+        upd = beta * nis_avg + (1.0 - beta) * 0.5 * np.minimum(nis0, model.gate_threshold)
+        nis_avg = np.where(predict_mask, upd, 1.0)
+        alpha = np.where(predict_mask & (nis_avg > fading_threshold(beta)), nis_avg, 1.0)
+        if (alpha > 1.0).any():
+            # R_pos -> alpha R_pos: the white part of the fix and the bias's driving noise of this step
+            extra = (alpha - 1.0)[:, None, None]
+            rn[:, :2, :2] += extra * (1.0 - s) * r_pos
+            a = math.exp(-dt / model.bias_tau_s)
+            p[:, 4:, 4:] += extra * (1.0 - a * a) * s * r_pos
+            ph = p @ H.T
+            sm = H @ ph + rn
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]
@@ -163,6 +265,8 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         ikh = np.eye(6) - gain @ hs
         pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
         p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+    if adaptive:
+        return m, p, excluded, nis_avg
     return m, p, excluded
 
 
@@ -181,6 +285,8 @@ class GnssBiasTracker:
     last_excluded: np.ndarray | None = None  # (N,) bool: fixes skipped by the gate this step
     _heading: np.ndarray | None = None  # kept heading per vehicle row ([inertial] only)
     _streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # consecutive exclusions
+    _nis: np.ndarray = field(default_factory=lambda: np.empty(0))  # average normalized innovation (adaptive)
+    _rpos: np.ndarray = field(default_factory=lambda: np.empty((0, 2, 2)))  # last reported position covariance
 
     def step(self, frame: Frame) -> StepEstimate:
         idx = match_ids(self._ids, frame.vehicle_ids)
@@ -201,9 +307,21 @@ class GnssBiasTracker:
             cov[fresh, 4:, 4:] = self.model.bias_share * r[fresh, :2, :2]
         streak = np.zeros(n, dtype=np.int64)
         streak[keep] = self._streak[idx[keep]]
-        mean, cov, self.last_excluded = bias_predict_update(
+        nis = None
+        if self.model.adaptive_window_s > 0:
+            nis = np.ones(n)
+            nis[keep] = self._nis[idx[keep]]
+        r_prev = None
+        if self.model.bias_follows_report:
+            r_prev = r[:, :2, :2].copy()
+            r_prev[keep] = self._rpos[idx[keep]]
+            self._rpos = r[:, :2, :2].copy()
+        out = bias_predict_update(
             mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
-            float(frame.dt), self.motion, self.model, streak)
+            float(frame.dt), self.motion, self.model, streak, nis, r_prev)
+        mean, cov, self.last_excluded = out[:3]
+        if nis is not None:
+            self._nis = out[3]
         entry_fix_posterior(mean, cov, frame, fresh, r, self.model.bias_share)
         self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov

@@ -1347,6 +1347,18 @@ def run_gnss_model_zero_tau(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_model.adaptive_window_s", ">= 0")
+def run_gnss_model_negative_adaptive_window(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nadaptive_window_s = -3.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.bias_follows_report", "true or false")
+def run_gnss_model_follow_not_bool(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_follows_report = \"yes\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.innovation_gate", "[0, 1)")
 def run_gnss_model_gate_above_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\ninnovation_gate = 1.5\n")
@@ -1436,7 +1448,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 187
+    assert len(CASES) >= 189
 
 
 # ----------------------------------------------------------------------------- what --out may replace
