@@ -516,6 +516,13 @@ def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
     return s + (1.0 - s) * f * np.exp(-np.asarray(d, dtype=float) / params.field_corr_length_m)
 
 
+#: The field model's cell lookup array (:meth:`FieldErrorProcess._lut_add`): margin in cells around the cells seen,
+#: largest size, and the largest cell key it holds (beyond: the dict alone). Speed only: rows are the dict's.
+LUT_MARGIN = 8
+LUT_MAX_CELLS = 1_000_000
+LUT_KEY_BOUND = 1 << 40
+
+
 class FieldErrorProcess:
     """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
 
@@ -547,6 +554,8 @@ class FieldErrorProcess:
         self._bias_now = np.empty((0, 2))
         # NLOS cells, created at their first visit and evolved every step from then on
         self._cells: dict[tuple[int, int], int] = {}
+        self._lut = np.empty((0, 0), dtype=np.int64)  # the same map as a plain array over the cells' range
+        self._lut_origin = (0, 0)  # cell key of the array's [0, 0]
         self._cell_p = np.empty(0)  # start probability per step
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
@@ -558,15 +567,19 @@ class FieldErrorProcess:
 
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
-        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it)."""
+        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it).
+        Known cells are looked up in a plain array over the cells' range (:meth:`_lut_rows`); only the vehicles
+        in a cell not seen before go through the dict, in vehicle order (rows are numbered by first visit)."""
         p, cells = self.params, self._cells
         keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
-        rows = np.empty(len(keys), dtype=np.int64)
+        rows = self._lut_rows(keys)
         new_p = []
-        for i, key in enumerate(map(tuple, keys.tolist())):
+        for i in np.flatnonzero(rows < 0).tolist():
+            key = (int(keys[i, 0]), int(keys[i, 1]))
             r = cells.get(key)
             if r is None:
                 r = cells[key] = len(cells)
+                self._lut_add(key, r)
                 if self.density is not None:
                     centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
                     rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
@@ -580,6 +593,36 @@ class FieldErrorProcess:
             self._cell_end = np.concatenate([self._cell_end, np.full(k, -np.inf)])
             self._cell_bias = np.concatenate([self._cell_bias, np.zeros((k, 2))])
         return rows
+
+    def _lut_rows(self, keys: np.ndarray) -> np.ndarray:
+        """(N,) row of each cell key (N, 2) in the lookup array, -1 where the key is outside it or not a cell yet."""
+        rows = np.full(len(keys), -1, dtype=np.int64)
+        lut, (kx0, ky0) = self._lut, self._lut_origin
+        if lut.size == 0 or len(keys) == 0:
+            return rows
+        ix, iy = keys[:, 0] - kx0, keys[:, 1] - ky0
+        inside = (ix >= 0) & (ix < lut.shape[0]) & (iy >= 0) & (iy < lut.shape[1])
+        rows[inside] = lut[ix[inside], iy[inside]]
+        return rows
+
+    def _lut_add(self, key: tuple[int, int], row: int) -> None:
+        """Enter cell ``key`` -> ``row`` into the lookup array, growing it (with a margin of LUT_MARGIN cells) to
+        the range of every cell so far; past LUT_MAX_CELLS cells the array stops growing and the dict answers."""
+        lut, (kx0, ky0) = self._lut, self._lut_origin
+        ix, iy = key[0] - kx0, key[1] - ky0
+        if lut.size and 0 <= ix < lut.shape[0] and 0 <= iy < lut.shape[1]:
+            lut[ix, iy] = row
+            return
+        ks = np.array(list(self._cells), dtype=np.int64)  # every cell, this one included
+        if (ks < -LUT_KEY_BOUND).any() or (ks > LUT_KEY_BOUND).any():
+            return  # a position far off the net (or not finite): the dict alone
+        lo, hi = ks.min(axis=0) - LUT_MARGIN, ks.max(axis=0) + LUT_MARGIN + 1
+        if int(np.prod(hi - lo)) > LUT_MAX_CELLS:
+            return
+        self._lut = np.full(tuple(hi - lo), -1, dtype=np.int64)
+        self._lut[ks[:, 0] - lo[0], ks[:, 1] - lo[1]] = np.fromiter(self._cells.values(), dtype=np.int64,
+                                                                     count=len(self._cells))
+        self._lut_origin = (int(lo[0]), int(lo[1]))
 
     def _step_cells(self, t: float) -> None:
         """Episodes of every known cell: those past their end stop; a cell outside one starts one with its

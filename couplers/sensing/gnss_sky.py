@@ -29,7 +29,9 @@ crossing of a footprint is its lowest point there: one test per building. Candid
 bounding box lies within the distance at which a ray at the elevation mask clears the tallest roof, found through
 a grid of square cells of that size listing the buildings whose box meets each cell (one numba kernel, no
 per-pair Python); per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
-the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h).
+the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h), or when the
+satellite's horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`): no edge can be crossed then, so the result is
+the same as testing every edge.
 """
 
 from __future__ import annotations
@@ -228,15 +230,16 @@ def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mas
 
 
 def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.ndarray, antenna_height_m: float,
-                  radius: float) -> tuple[np.ndarray, np.ndarray]:
+                  radius: float, box_test: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(blocked (N, S) bool, d (N, S): horizontal distance to the first blocking crossing, inf where clear) for
-    antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring)."""
+    antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring). ``box_test``
+    False: every edge of every candidate building is tested (the reference of the ray-box skip)."""
     xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     if edges.heights.size == 0 or radius <= 0:
         return np.zeros((len(xy), az.size), dtype=bool), np.full((len(xy), az.size), np.inf)
     x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
     return _los_kernel(xy, x0, y0, cell, nx, ny, start, ids, float(radius), edges.edges, edges.start, edges.boxes,
-                       edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m))
+                       edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m), bool(box_test))
 
 
 @njit(cache=True)
@@ -256,7 +259,7 @@ def _box_distance(px, py, box):
 
 @njit(cache=True)
 def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn, tan_el,
-                h_ant):
+                h_ant, box_test):
     n, s = xy.shape[0], de.size
     blocked = np.zeros((n, s), dtype=np.bool_)
     dist = np.full((n, s), np.inf)
@@ -273,12 +276,37 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                         continue
                     seen[b] = i
                     _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius,
-                                  blocked, dist)
+                                  blocked, dist, box_test)
     return blocked, dist
 
 
+#: Margin (m) by which a building's box is grown before a ray is tested against it: the ray-box test only skips
+#: footprints whose edges the ray cannot cross, and a crossing computed in floating point lies within far less than
+#: this of its edge (coordinates of a few km: rounding of order 1e-12 m).
+BOX_MARGIN_M = 1e-3
+
+
 @njit(cache=True)
-def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius, blocked, dist):
+def _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+    """True when the horizontal ray (px, py) + t (dx, dy), t >= 0, meets the box [bx0, bx1] x [by0, by1] (slabs)."""
+    t_lo, t_hi = 0.0, np.inf
+    if dx == 0.0:
+        if px < bx0 or px > bx1:
+            return False
+    else:
+        t1, t2 = (bx0 - px) / dx, (bx1 - px) / dx
+        t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
+    if dy == 0.0:
+        if py < by0 or py > by1:
+            return False
+    else:
+        t1, t2 = (by0 - py) / dy, (by1 - py) / dy
+        t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
+    return t_lo <= t_hi
+
+
+@njit(cache=True)
+def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius, blocked, dist, box_test):
     """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``)."""
     s = de.size
     hb = heights[b]
@@ -287,10 +315,14 @@ def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h
     bd = _box_distance(px, py, boxes[b])
     if bd > radius:
         return
+    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
+    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
     for k in range(s):
         if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
             continue  # under the horizon (not used), or the box is already cleared at this elevation
         dx, dy = de[k], dn[k]
+        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+            continue  # no edge of the footprint can be crossed: every crossing lies in the box
         crossings = 0
         tmin = np.inf
         for e in range(estart[b], estart[b + 1]):
