@@ -552,6 +552,8 @@ class FieldErrorProcess:
         self._xy = np.empty((0, 2))
         self._u = np.empty((0, 2))
         self._bias_now = np.empty((0, 2))
+        m = self.omega.shape[0]
+        self._phase, self._cos, self._sin = np.empty((0, m)), np.empty((0, m)), np.empty((0, m))  # field_at's
         # NLOS cells, created at their first visit and evolved every step from then on
         self._cells: dict[tuple[int, int], int] = {}
         self._lut = np.empty((0, 0), dtype=np.int64)  # the same map as a plain array over the cells' range
@@ -560,10 +562,25 @@ class FieldErrorProcess:
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
 
-    def field_at(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) unit field F at the points ``xy`` with the current coefficients (one column per axis)."""
+    def field_at(self, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) unit field F at the points ``xy`` with the current coefficients (one column per axis).
+        ``idx`` (the rows of these vehicles at the previous call, -1 new): a row whose phases equal, bit for bit,
+        those of its previous row takes that row's cosines and sines instead of computing them again (vehicles
+        standing still); the result is the same."""
         phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ self.omega.T  # (N, M)
-        return (np.cos(phase) @ self.coef[0] + np.sin(phase) @ self.coef[1]) / math.sqrt(self.omega.shape[0])
+        if idx is None:
+            cos, sin = np.cos(phase), np.sin(phase)
+        else:
+            cos, sin = np.empty_like(phase), np.empty_like(phase)
+            same = np.zeros(len(phase), dtype=bool)
+            carried = np.flatnonzero(idx >= 0)
+            if carried.size:
+                same[carried] = (phase[carried] == self._phase[idx[carried]]).all(axis=1)
+            old, new = np.flatnonzero(same), np.flatnonzero(~same)
+            cos[old], sin[old] = self._cos[idx[old]], self._sin[idx[old]]
+            cos[new], sin[new] = np.cos(phase[new]), np.sin(phase[new])
+            self._phase, self._cos, self._sin = phase, cos, sin
+        return (cos @ self.coef[0] + sin @ self.coef[1]) / math.sqrt(self.omega.shape[0])
 
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
@@ -636,7 +653,8 @@ class FieldErrorProcess:
         mag = self.nlos_cell_bias.exponential(p.nlos_bias_mean_m, size=k) if p.nlos_bias_mean_m > 0 else np.zeros(k)
         ang = self.nlos_cell_bias.uniform(-np.pi, np.pi, size=k)
         self._cell_end[start] = t + dur[start]
-        self._cell_bias[start] = np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)[start]
+        mag, ang = mag[start], ang[start]  # elementwise: the same values as over every cell, then selected
+        self._cell_bias[start] = np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)
 
     def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
              zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
@@ -666,7 +684,7 @@ class FieldErrorProcess:
         self._step_cells(float(t))
         bias = self._cell_bias[rows]
         s, f = p.common_share, p.field_share
-        local = math.sqrt(f) * self.field_at(xy) + math.sqrt(1.0 - f) * u
+        local = math.sqrt(f) * self.field_at(xy, idx) + math.sqrt(1.0 - f) * u
         unit = math.sqrt(s) * self.c[None, :] + math.sqrt(1.0 - s) * local
         error = np.asarray(sigma_p, dtype=float)[:, None] * unit + bias
         self._ids, self._xy, self._u, self._bias_now = np.asarray(ids, dtype=object), xy, u, bias

@@ -160,22 +160,27 @@ def test_nlos_episodes_belong_to_cells():
 
 
 @pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")  # the NaN position's key
-def test_cell_lookup_array_gives_the_rows_of_the_dict():
-    """The NLOS cells' lookup array (speed only) changes nothing: with it disabled (every vehicle through the dict,
-    the reference) the rows, cells and errors are the same bit for bit; the vehicles roam far (the array grows),
-    one jumps 1e13 m off the net (beyond the array: the dict answers) and one is NaN."""
+def test_cell_lookup_array_and_field_reuse_change_nothing():
+    """The NLOS cells' lookup array and the field's reuse of a standing vehicle's cosines (speed only) change
+    nothing: with both disabled (every vehicle through the dict, every phase's cosine computed: the reference)
+    the rows, cells and errors are the same bit for bit; the vehicles roam far (the array grows), half of them
+    stand still every other step, one jumps 1e13 m off the net (beyond the array: the dict answers), one is NaN."""
     p = GnssErrorParams(model="field", nlos_zones=("B", "C"), nlos_rate_per_min=(6.0, 30.0), nlos_cell_m=50.0)
     n, runs = 20, []
     for reference in (False, True):
         proc = FieldErrorProcess(p, 5, 0.75)
         if reference:
             proc._lut_rows = lambda keys: np.full(len(keys), -1, dtype=np.int64)
+            proc.field_at = lambda xy, idx=None, proc=proc: FieldErrorProcess.field_at(proc, xy)
         rng = np.random.default_rng(9)
         zone = np.array(["A", "B", "C", "C"] * (n // 4), dtype=object)
         xy = rng.uniform(-300, 300, (n, 2))
         out = []
         for k in range(120):
-            xy = xy + rng.normal(0, 40, (n, 2))
+            move = rng.normal(0, 40, (n, 2))
+            if k % 2:
+                move[: n // 2] = 0.0
+            xy = xy + move
             step_xy = xy.copy()
             if k == 60:
                 step_xy[0] = (1e13, -1e13)
