@@ -27,11 +27,12 @@ crossing) where d tan(el) + h_ant < h_building, or the antenna stands inside the
 are vertical and roofs flat (the footprint extruded to ``height``). The ray's height grows with d, so the first
 crossing of a footprint is its lowest point there: one test per building. Candidate buildings per vehicle: those whose
 bounding box lies within the distance at which a ray at the elevation mask clears the tallest roof, found through
-a grid of square cells of that size listing the buildings whose box meets each cell (one numba kernel, no
-per-pair Python); per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
-the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h), or when the
-satellite's horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`): no edge can be crossed then, so the result is
-the same as testing every edge.
+a grid of square cells (a quarter of that size, :data:`LOS_GRID_DIVISIONS`) listing the buildings whose box meets each
+cell (one numba kernel, no per-pair Python); per (vehicle, building) the satellites are visited by rising elevation and
+the building is left at the first satellite whose ray its bounding box is already too close to the ground to block
+(a box at distance b cannot block when b tan(el) + h_ant >= h, nor then at any higher elevation); a satellite whose
+horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`) is skipped: no edge can be crossed. Blocked sets and
+distances are those of testing every satellite against every edge (``line_of_sight(..., box_test=False)``, tested).
 """
 
 from __future__ import annotations
@@ -202,12 +203,13 @@ class BuildingEdges:
                    boxes=np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64),
                    heights=np.asarray(buildings.heights, dtype=np.float64))
 
-    def grid(self, radius: float) -> tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
-        """(x0, y0, cell, nx, ny, CSR start, building ids) of square cells of side ``radius`` (at least 10 m)
-        listing the buildings whose box meets each cell; cached per radius."""
+    def grid(self, radius: float, divisions: int = 1) -> tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
+        """(x0, y0, cell, nx, ny, CSR start, building ids) of square cells of side ``radius / divisions`` (at least
+        10 m) listing the buildings whose box meets each cell; cached per (radius, divisions)."""
         cache = self.__dict__.setdefault("_grids", {})
-        if radius not in cache:
-            cell = max(float(radius), 10.0)
+        key = (radius, divisions)
+        if key not in cache:
+            cell = max(float(radius) / divisions, 10.0)
             b = self.boxes
             x0, y0 = float(b[:, 0].min()), float(b[:, 1].min())
             nx = int((b[:, 2].max() - x0) // cell) + 1
@@ -217,8 +219,8 @@ class BuildingEdges:
             ix1 = np.minimum(np.floor((b[:, 2] - x0) / cell).astype(np.int64), nx - 1)
             iy1 = np.minimum(np.floor((b[:, 3] - y0) / cell).astype(np.int64), ny - 1)
             start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
-            cache[radius] = (x0, y0, cell, nx, ny, start, ids)
-        return cache[radius]
+            cache[key] = (x0, y0, cell, nx, ny, start, ids)
+        return cache[key]
 
 
 def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mask_deg: float) -> float:
@@ -233,11 +235,13 @@ def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.n
                   radius: float, box_test: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(blocked (N, S) bool, d (N, S): horizontal distance to the first blocking crossing, inf where clear) for
     antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring). ``box_test``
-    False: every edge of every candidate building is tested (the reference of the ray-box skip)."""
+    False: the reference of the speed-ups (every satellite in index order against every edge of every candidate
+    building, on a grid of one cell per radius); True: the ray-box skip, satellites by rising elevation up to the
+    first that clears the building's box, and a grid of :data:`LOS_GRID_DIVISIONS` cells per radius."""
     xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     if edges.heights.size == 0 or radius <= 0:
         return np.zeros((len(xy), az.size), dtype=bool), np.full((len(xy), az.size), np.inf)
-    x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
+    x0, y0, cell, nx, ny, start, ids = edges.grid(radius, LOS_GRID_DIVISIONS if box_test else 1)
     return _los_kernel(xy, x0, y0, cell, nx, ny, start, ids, float(radius), edges.edges, edges.start, edges.boxes,
                        edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m), bool(box_test))
 
@@ -264,6 +268,8 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
     blocked = np.zeros((n, s), dtype=np.bool_)
     dist = np.full((n, s), np.inf)
     seen = np.full(heights.size, -1, dtype=np.int64)  # the vehicle that last looked at each building
+    # satellites by rising elevation (finite: arcsin of a clipped cosine); the reference: in index order
+    order = np.argsort(tan_el) if box_test else np.arange(tan_el.size)
     for i in range(n):
         px, py = xy[i, 0], xy[i, 1]
         cx0, cx1, cy0, cy1 = _cell_span(px, py, radius, x0, y0, cell, nx, ny)
@@ -275,10 +281,14 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                     if seen[b] == i:
                         continue
                     seen[b] = i
-                    _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius,
-                                  blocked, dist, box_test)
+                    _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, order, h_ant,
+                                  radius, blocked, dist, box_test)
     return blocked, dist
 
+
+#: Cells per clearance radius of the line-of-sight grid (speed only: a finer grid lists fewer buildings outside
+#: a vehicle's disc; the buildings' results are combined by "or" and "min", whatever their order).
+LOS_GRID_DIVISIONS = 4
 
 #: Margin (m) by which a building's box is grown before a ray is tested against it: the ray-box test only skips
 #: footprints whose edges the ray cannot cross, and a crossing computed in floating point lies within far less than
@@ -306,8 +316,12 @@ def _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
 
 
 @njit(cache=True)
-def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius, blocked, dist, box_test):
-    """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``)."""
+def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, order, h_ant, radius, blocked, dist,
+                  box_test):
+    """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``). The
+    satellites are visited by rising elevation (``order``): once the box is cleared at one elevation it is at
+    every higher one (b tan(el) + h_ant is monotone in tan(el), in floating point too), so the rest are
+    skipped; each satellite's result does not depend on the order."""
     s = de.size
     hb = heights[b]
     if not hb > h_ant:
@@ -317,9 +331,14 @@ def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h
         return
     bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
     bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
-    for k in range(s):
-        if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
-            continue  # under the horizon (not used), or the box is already cleared at this elevation
+    for kk in range(s):
+        k = order[kk]
+        if tan_el[k] <= 0.0:
+            continue  # under the horizon (not used)
+        if bd * tan_el[k] + h_ant >= hb:
+            if box_test:
+                break  # the box is already cleared at this elevation, and at every higher one
+            continue
         dx, dy = de[k], dn[k]
         if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
             continue  # no edge of the footprint can be crossed: every crossing lies in the box
