@@ -264,6 +264,10 @@ def _box_distance(px, py, box):
 @njit(cache=True)
 def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn, tan_el,
                 h_ant, box_test):
+    """Every (vehicle, candidate building, satellite) (module docstring). Per (vehicle, building) the satellites
+    are visited by rising elevation (``order``): once the box is cleared at one elevation it is at every higher
+    one (b tan(el) + h_ant is monotone in tan(el), in floating point too), so the rest are skipped; each
+    satellite's result does not depend on the order. ``box_test`` False: the reference (module docstring)."""
     n, s = xy.shape[0], de.size
     blocked = np.zeros((n, s), dtype=np.bool_)
     dist = np.full((n, s), np.inf)
@@ -281,8 +285,49 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                     if seen[b] == i:
                         continue
                     seen[b] = i
-                    _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, order, h_ant,
-                                  radius, blocked, dist, box_test)
+                    hb = heights[b]
+                    if not hb > h_ant:
+                        continue
+                    bd = _box_distance(px, py, boxes[b])
+                    if bd > radius:
+                        continue
+                    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
+                    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
+                    for kk in range(s):
+                        k = order[kk]
+                        if tan_el[k] <= 0.0:
+                            continue  # under the horizon (not used)
+                        if bd * tan_el[k] + h_ant >= hb:
+                            if box_test:
+                                break  # the box is already cleared at this elevation, and at every higher one
+                            continue
+                        dx, dy = de[k], dn[k]
+                        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+                            continue  # no edge of the footprint can be crossed: every crossing lies in the box
+                        crossings = 0
+                        tmin = np.inf
+                        for e in range(estart[b], estart[b + 1]):
+                            ax, ay = edges[e, 0] - px, edges[e, 1] - py
+                            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+                            den = dx * ey - dy * ex  # cross(dir, edge)
+                            if den == 0.0:
+                                continue  # parallel
+                            t = (ax * ey - ay * ex) / den  # distance along the ray
+                            u = (ax * dy - ay * dx) / den  # fraction along the edge
+                            if t >= 0.0 and 0.0 <= u < 1.0:
+                                crossings += 1
+                                if t < tmin:
+                                    tmin = t
+                        if crossings == 0:
+                            continue
+                        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
+                            hit = True
+                        else:
+                            hit = tmin * tan_el[k] + h_ant < hb
+                        if hit:
+                            blocked[i, k] = True
+                            if tmin < dist[i, k]:
+                                dist[i, k] = tmin
     return blocked, dist
 
 
@@ -313,59 +358,6 @@ def _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
         t1, t2 = (by0 - py) / dy, (by1 - py) / dy
         t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
     return t_lo <= t_hi
-
-
-@njit(cache=True)
-def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, order, h_ant, radius, blocked, dist,
-                  box_test):
-    """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``). The
-    satellites are visited by rising elevation (``order``): once the box is cleared at one elevation it is at
-    every higher one (b tan(el) + h_ant is monotone in tan(el), in floating point too), so the rest are
-    skipped; each satellite's result does not depend on the order."""
-    s = de.size
-    hb = heights[b]
-    if not hb > h_ant:
-        return
-    bd = _box_distance(px, py, boxes[b])
-    if bd > radius:
-        return
-    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
-    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
-    for kk in range(s):
-        k = order[kk]
-        if tan_el[k] <= 0.0:
-            continue  # under the horizon (not used)
-        if bd * tan_el[k] + h_ant >= hb:
-            if box_test:
-                break  # the box is already cleared at this elevation, and at every higher one
-            continue
-        dx, dy = de[k], dn[k]
-        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
-            continue  # no edge of the footprint can be crossed: every crossing lies in the box
-        crossings = 0
-        tmin = np.inf
-        for e in range(estart[b], estart[b + 1]):
-            ax, ay = edges[e, 0] - px, edges[e, 1] - py
-            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
-            den = dx * ey - dy * ex  # cross(dir, edge)
-            if den == 0.0:
-                continue  # parallel
-            t = (ax * ey - ay * ex) / den  # distance along the ray
-            u = (ax * dy - ay * dx) / den  # fraction along the edge
-            if t >= 0.0 and 0.0 <= u < 1.0:
-                crossings += 1
-                if t < tmin:
-                    tmin = t
-        if crossings == 0:
-            continue
-        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
-            hit = True
-        else:
-            hit = tmin * tan_el[k] + h_ant < hb
-        if hit:
-            blocked[i, k] = True
-            if tmin < dist[i, k]:
-                dist[i, k] = tmin
 
 
 # --- single-bounce reflections (``nlos = "reflect"``) ------------------------------------------------------------
