@@ -121,12 +121,21 @@ class Sky:
         u = self.u0 + self.n * t
         raan = self.raan0 - OMEGA_EARTH * t  # the node's longitude in the rotating frame
         cu, su = np.cos(u), np.sin(u)
-        ci, si = np.cos(self.inc), np.sin(self.inc)
+        ci, si = self._constants()[:2]
         cr, sr = np.cos(raan), np.sin(raan)
         x = self.a * (cr * cu - sr * su * ci)
         y = self.a * (sr * cu + cr * su * ci)
         z = self.a * (su * si)
         return np.stack([x, y, z], axis=1)
+
+    def _constants(self) -> tuple:
+        """(cos, sin of the inclinations, :meth:`receiver_ecef`, :meth:`enu_rotation` transposed): the same arrays
+        every step, computed at the first call."""
+        c = self.__dict__.get("_consts")
+        if c is None:
+            c = self.__dict__["_consts"] = (np.cos(self.inc), np.sin(self.inc), self.receiver_ecef(),
+                                            self.enu_rotation().T)
+        return c
 
     def receiver_ecef(self) -> np.ndarray:
         """The reference point on the WGS 84 ellipsoid (height 0)."""
@@ -144,7 +153,7 @@ class Sky:
 
     def look(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(unit line-of-sight vectors (S, 3) in ENU, azimuth (S,) rad clockwise from north, elevation (S,) rad)."""
-        d = (self.ecef(t) - self.receiver_ecef()) @ self.enu_rotation().T
+        d = (self.ecef(t) - self._constants()[2]) @ self._constants()[3]
         los = d / np.linalg.norm(d, axis=1)[:, None]
         az = np.arctan2(los[:, 0], los[:, 1])
         el = np.arcsin(np.clip(los[:, 2], -1.0, 1.0))
