@@ -51,3 +51,23 @@ def test_merged_rows_equal_the_numpy_reference(class_error):
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
         if sizes:
             assert (new.feature == -1).sum() >= sum(sizes)
+
+
+def test_satellite_receiver_kernels_equal_the_numpy_expressions():
+    """The receivers' multipath update and pseudorange sum (couplers.sensing.gnss_satellites) against the numpy
+    expressions they replace, bit for bit."""
+    from couplers.sensing.gnss_satellites import _carried_multipath, _pseudorange_sum
+
+    rng = np.random.default_rng(8)
+    n, s = 40, 48
+    z, u_prev, white = rng.standard_normal((n, s)), rng.standard_normal((n + 5, s)), rng.standard_normal((n, s))
+    carried = rng.random(n) < 0.7
+    prev = rng.permutation(n + 5)[:n][carried]
+    a = np.exp(-rng.uniform(0, 30, carried.sum()) / 5.0)
+    ref = z.copy()
+    ref[carried] = a[:, None] * u_prev[prev] + np.sqrt(1.0 - a[:, None] * a[:, None]) * z[carried]
+    u = _carried_multipath(np.flatnonzero(carried), prev, a, u_prev, z)
+    assert u.tobytes() == ref.tobytes()
+    common, sig_n, mp = rng.normal(0, 3, s), rng.uniform(0.2, 2, s), rng.uniform(0.3, 6, s)
+    ref_eps = common[None, :] + sig_n[None, :] * white + mp[None, :] * u
+    assert _pseudorange_sum(common, sig_n, white, mp, u).tobytes() == ref_eps.tobytes()
