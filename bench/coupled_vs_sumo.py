@@ -22,9 +22,11 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      --satellites also times the idealised frames with [gnss_error] model = "satellites" (the receiver at
      pseudorange level, couplers/sensing/gnss_satellites.py, on the arterial's buildings) and prints them against
      the idealised frames: the target is at most 2x (with --realistic, the realistic preset with model =
-     "satellites" is timed too; --repeat alternates every variant). Measured 2026-11-27 (TLR, 300 s, CPU,
-     loaded machine, docs/validation/realistic_sensing.md "After the frame speed-ups"): realistic
-     preset about 2.3x the idealised frames, realistic preset with "satellites" about 3x: not met;
+     "satellites" is timed too; --repeat alternates every variant). Measured 2026-11-28 (TLR, 300 s,
+     --repeat 3, CPU medians of the pairs, load 10-13, docs/validation/realistic_sensing.md "Second round of
+     frame speed-ups"): idealised + "satellites" 2.20x -> 1.52x the idealised frames, realistic preset (field
+     model) 2.34x -> 1.96x, realistic preset with "satellites" 2.73x -> 2.14x: 2x met by the first, at the
+     edge for the second, not met by the third (pairs spread 1.7-2.35x at this load);
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)

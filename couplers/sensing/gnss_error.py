@@ -516,6 +516,13 @@ def expected_correlation(params: GnssErrorParams, d: np.ndarray) -> np.ndarray:
     return s + (1.0 - s) * f * np.exp(-np.asarray(d, dtype=float) / params.field_corr_length_m)
 
 
+#: The field model's cell lookup array (:meth:`FieldErrorProcess._lut_add`): margin in cells around the cells seen,
+#: largest size, and the largest cell key it holds (beyond: the dict alone). Speed only: rows are the dict's.
+LUT_MARGIN = 8
+LUT_MAX_CELLS = 1_000_000
+LUT_KEY_BOUND = 1 << 40
+
+
 class FieldErrorProcess:
     """``[gnss_error] model = "field"``: receiver errors that nearby vehicles share (module docstring).
 
@@ -545,28 +552,51 @@ class FieldErrorProcess:
         self._xy = np.empty((0, 2))
         self._u = np.empty((0, 2))
         self._bias_now = np.empty((0, 2))
+        m = self.omega.shape[0]
+        self._phase, self._cos, self._sin = np.empty((0, m)), np.empty((0, m)), np.empty((0, m))  # field_at's
         # NLOS cells, created at their first visit and evolved every step from then on
         self._cells: dict[tuple[int, int], int] = {}
+        self._lut = np.empty((0, 0), dtype=np.int64)  # the same map as a plain array over the cells' range
+        self._lut_origin = (0, 0)  # cell key of the array's [0, 0]
         self._cell_p = np.empty(0)  # start probability per step
         self._cell_end = np.empty(0)  # episode end (s), -inf outside one
         self._cell_bias = np.empty((0, 2))
 
-    def field_at(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) unit field F at the points ``xy`` with the current coefficients (one column per axis)."""
+    def field_at(self, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) unit field F at the points ``xy`` with the current coefficients (one column per axis).
+        ``idx`` (the rows of these vehicles at the previous call, -1 new): a row whose phases equal, bit for bit,
+        those of its previous row takes that row's cosines and sines instead of computing them again (vehicles
+        standing still); the result is the same."""
         phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ self.omega.T  # (N, M)
-        return (np.cos(phase) @ self.coef[0] + np.sin(phase) @ self.coef[1]) / math.sqrt(self.omega.shape[0])
+        if idx is None:
+            cos, sin = np.cos(phase), np.sin(phase)
+        else:
+            cos, sin = np.empty_like(phase), np.empty_like(phase)
+            same = np.zeros(len(phase), dtype=bool)
+            carried = np.flatnonzero(idx >= 0)
+            if carried.size:
+                same[carried] = (phase[carried] == self._phase[idx[carried]]).all(axis=1)
+            old, new = np.flatnonzero(same), np.flatnonzero(~same)
+            cos[old], sin[old] = self._cos[idx[old]], self._sin[idx[old]]
+            cos[new], sin[new] = np.cos(phase[new]), np.sin(phase[new])
+            self._phase, self._cos, self._sin = phase, cos, sin
+        return (cos @ self.coef[0] + sin @ self.coef[1]) / math.sqrt(self.omega.shape[0])
 
     def _cell_rows(self, zone: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Row of each vehicle's NLOS cell; new cells get their start probability (building density at the
-        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it)."""
+        cell centre when the net has buildings, else the rate of the zone of the first vehicle seen in it).
+        Known cells are looked up in a plain array over the cells' range (:meth:`_lut_rows`); only the vehicles
+        in a cell not seen before go through the dict, in vehicle order (rows are numbered by first visit)."""
         p, cells = self.params, self._cells
         keys = np.floor(np.asarray(xy, dtype=float) / p.nlos_cell_m).astype(np.int64)
-        rows = np.empty(len(keys), dtype=np.int64)
+        rows = self._lut_rows(keys)
         new_p = []
-        for i, key in enumerate(map(tuple, keys.tolist())):
+        for i in np.flatnonzero(rows < 0).tolist():
+            key = (int(keys[i, 0]), int(keys[i, 1]))
             r = cells.get(key)
             if r is None:
                 r = cells[key] = len(cells)
+                self._lut_add(key, r)
                 if self.density is not None:
                     centre = (np.array(key, dtype=float) + 0.5) * p.nlos_cell_m
                     rate = p.nlos_rate_per_density_per_min * float(self.density.at(centre[None])[0])
@@ -581,6 +611,36 @@ class FieldErrorProcess:
             self._cell_bias = np.concatenate([self._cell_bias, np.zeros((k, 2))])
         return rows
 
+    def _lut_rows(self, keys: np.ndarray) -> np.ndarray:
+        """(N,) row of each cell key (N, 2) in the lookup array, -1 where the key is outside it or not a cell yet."""
+        rows = np.full(len(keys), -1, dtype=np.int64)
+        lut, (kx0, ky0) = self._lut, self._lut_origin
+        if lut.size == 0 or len(keys) == 0:
+            return rows
+        ix, iy = keys[:, 0] - kx0, keys[:, 1] - ky0
+        inside = (ix >= 0) & (ix < lut.shape[0]) & (iy >= 0) & (iy < lut.shape[1])
+        rows[inside] = lut[ix[inside], iy[inside]]
+        return rows
+
+    def _lut_add(self, key: tuple[int, int], row: int) -> None:
+        """Enter cell ``key`` -> ``row`` into the lookup array, growing it (with a margin of LUT_MARGIN cells) to
+        the range of every cell so far; past LUT_MAX_CELLS cells the array stops growing and the dict answers."""
+        lut, (kx0, ky0) = self._lut, self._lut_origin
+        ix, iy = key[0] - kx0, key[1] - ky0
+        if lut.size and 0 <= ix < lut.shape[0] and 0 <= iy < lut.shape[1]:
+            lut[ix, iy] = row
+            return
+        ks = np.array(list(self._cells), dtype=np.int64)  # every cell, this one included
+        if (ks < -LUT_KEY_BOUND).any() or (ks > LUT_KEY_BOUND).any():
+            return  # a position far off the net (or not finite): the dict alone
+        lo, hi = ks.min(axis=0) - LUT_MARGIN, ks.max(axis=0) + LUT_MARGIN + 1
+        if int(np.prod(hi - lo)) > LUT_MAX_CELLS:
+            return
+        self._lut = np.full(tuple(hi - lo), -1, dtype=np.int64)
+        self._lut[ks[:, 0] - lo[0], ks[:, 1] - lo[1]] = np.fromiter(self._cells.values(), dtype=np.int64,
+                                                                     count=len(self._cells))
+        self._lut_origin = (int(lo[0]), int(lo[1]))
+
     def _step_cells(self, t: float) -> None:
         """Episodes of every known cell: those past their end stop; a cell outside one starts one with its
         probability (draws for every cell, so the streams do not depend on which cells are in one)."""
@@ -593,7 +653,8 @@ class FieldErrorProcess:
         mag = self.nlos_cell_bias.exponential(p.nlos_bias_mean_m, size=k) if p.nlos_bias_mean_m > 0 else np.zeros(k)
         ang = self.nlos_cell_bias.uniform(-np.pi, np.pi, size=k)
         self._cell_end[start] = t + dur[start]
-        self._cell_bias[start] = np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)[start]
+        mag, ang = mag[start], ang[start]  # elementwise: the same values as over every cell, then selected
+        self._cell_bias[start] = np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)
 
     def step(self, t: float, ids: np.ndarray, entered: np.ndarray, w: np.ndarray, sigma_p: np.ndarray,
              zone: np.ndarray, xy: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
@@ -623,7 +684,7 @@ class FieldErrorProcess:
         self._step_cells(float(t))
         bias = self._cell_bias[rows]
         s, f = p.common_share, p.field_share
-        local = math.sqrt(f) * self.field_at(xy) + math.sqrt(1.0 - f) * u
+        local = math.sqrt(f) * self.field_at(xy, idx) + math.sqrt(1.0 - f) * u
         unit = math.sqrt(s) * self.c[None, :] + math.sqrt(1.0 - s) * local
         error = np.asarray(sigma_p, dtype=float)[:, None] * unit + bias
         self._ids, self._xy, self._u, self._bias_now = np.asarray(ids, dtype=object), xy, u, bias

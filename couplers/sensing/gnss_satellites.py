@@ -270,6 +270,30 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
     return err, cov, used, excluded, ok, usedm
 
 
+@njit(cache=True)
+def _carried_multipath(rows, prev, a, u_prev, z):
+    """The multipath draws ``z`` (N, S) with the rows ``rows`` carried from ``u_prev[prev]``: u = a u_prev +
+    sqrt(1 - a^2) z, row by row (numpy's a * u_prev + np.sqrt(1.0 - a * a) * z, the same operations)."""
+    u = z.copy()
+    for r in range(rows.size):
+        i, q, ar = rows[r], prev[r], a[r]
+        b = np.sqrt(1.0 - ar * ar)
+        for k in range(z.shape[1]):
+            u[i, k] = ar * u_prev[q, k] + b * z[i, k]
+    return u
+
+
+@njit(cache=True)
+def _pseudorange_sum(common, sig_n, white, mp, u):
+    """eps = common + sig_n white + mp u per (receiver, satellite), added in that order (numpy's broadcast sum)."""
+    n, s = white.shape
+    eps = np.empty((n, s))
+    for i in range(n):
+        for k in range(s):
+            eps[i, k] = (common[k] + sig_n[k] * white[i, k]) + mp[k] * u[i, k]
+    return eps
+
+
 class SatelliteErrorProcess:
     """``[gnss_error] model = "satellites"`` (module docstring). Same ``step`` interface as
     :class:`couplers.sensing.gnss_error.GnssErrorProcess`; after each step ``reported_cov`` (N, 2, 2) is the
@@ -323,7 +347,8 @@ class SatelliteErrorProcess:
         common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
                   + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
         sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
-        eps = common[None, :] + sig_n[None, :] * white + (p.multipath_m / sin_el)[None, :] * u
+        eps = _pseudorange_sum(common, sig_n, np.ascontiguousarray(white, dtype=np.float64), p.multipath_m / sin_el,
+                               np.ascontiguousarray(u, dtype=np.float64))
         n = len(xy)
         blocked = np.zeros((n, el.size), dtype=bool)
         if self.edges is not None and n:
@@ -370,14 +395,16 @@ class SatelliteErrorProcess:
         z = self.multipath.standard_normal((n, s))
         # multipath: correlated over the distance travelled this step
         carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
-        u = z.copy()
         fix_prev = np.full((n, 2), np.nan)
         if carried.any():
-            prev = idx[carried]
-            d = np.hypot(*(xy[carried] - self._xy[prev]).T)
-            a = np.exp(-d / p.multipath_corr_length_m)[:, None]
-            u[carried] = a * self._u[prev] + np.sqrt(1.0 - a * a) * z[carried]
-            fix_prev[carried] = self._fix[prev]
+            rows = np.flatnonzero(carried)
+            prev = idx[rows]
+            d = np.hypot(*(xy[rows] - self._xy[prev]).T)
+            a = np.exp(-d / p.multipath_corr_length_m)
+            u = _carried_multipath(rows, prev, a, self._u, z)
+            fix_prev[rows] = self._fix[prev]
+        else:
+            u = z.copy()
         rate: list = []
         eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
         var_rx = receiver_variance(p, el)

@@ -27,9 +27,12 @@ crossing) where d tan(el) + h_ant < h_building, or the antenna stands inside the
 are vertical and roofs flat (the footprint extruded to ``height``). The ray's height grows with d, so the first
 crossing of a footprint is its lowest point there: one test per building. Candidate buildings per vehicle: those whose
 bounding box lies within the distance at which a ray at the elevation mask clears the tallest roof, found through
-a grid of square cells of that size listing the buildings whose box meets each cell (one numba kernel, no
-per-pair Python); per (vehicle, building, satellite) the building is skipped when its bounding box is already too close to
-the ground for that satellite's elevation (a box at distance b cannot block when b tan(el) + h_ant >= h).
+a grid of square cells (a quarter of that size, :data:`LOS_GRID_DIVISIONS`) listing the buildings whose box meets each
+cell (one numba kernel, no per-pair Python); per (vehicle, building) the satellites are visited by rising elevation and
+the building is left at the first satellite whose ray its bounding box is already too close to the ground to block
+(a box at distance b cannot block when b tan(el) + h_ant >= h, nor then at any higher elevation); a satellite whose
+horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`) is skipped: no edge can be crossed. Blocked sets and
+distances are those of testing every satellite against every edge (``line_of_sight(..., box_test=False)``, tested).
 """
 
 from __future__ import annotations
@@ -118,12 +121,21 @@ class Sky:
         u = self.u0 + self.n * t
         raan = self.raan0 - OMEGA_EARTH * t  # the node's longitude in the rotating frame
         cu, su = np.cos(u), np.sin(u)
-        ci, si = np.cos(self.inc), np.sin(self.inc)
+        ci, si = self._constants()[:2]
         cr, sr = np.cos(raan), np.sin(raan)
         x = self.a * (cr * cu - sr * su * ci)
         y = self.a * (sr * cu + cr * su * ci)
         z = self.a * (su * si)
         return np.stack([x, y, z], axis=1)
+
+    def _constants(self) -> tuple:
+        """(cos, sin of the inclinations, :meth:`receiver_ecef`, :meth:`enu_rotation` transposed): the same arrays
+        every step, computed at the first call."""
+        c = self.__dict__.get("_consts")
+        if c is None:
+            c = self.__dict__["_consts"] = (np.cos(self.inc), np.sin(self.inc), self.receiver_ecef(),
+                                            self.enu_rotation().T)
+        return c
 
     def receiver_ecef(self) -> np.ndarray:
         """The reference point on the WGS 84 ellipsoid (height 0)."""
@@ -141,7 +153,7 @@ class Sky:
 
     def look(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(unit line-of-sight vectors (S, 3) in ENU, azimuth (S,) rad clockwise from north, elevation (S,) rad)."""
-        d = (self.ecef(t) - self.receiver_ecef()) @ self.enu_rotation().T
+        d = (self.ecef(t) - self._constants()[2]) @ self._constants()[3]
         los = d / np.linalg.norm(d, axis=1)[:, None]
         az = np.arctan2(los[:, 0], los[:, 1])
         el = np.arcsin(np.clip(los[:, 2], -1.0, 1.0))
@@ -200,12 +212,13 @@ class BuildingEdges:
                    boxes=np.ascontiguousarray(shapely.bounds(buildings.polygons), dtype=np.float64),
                    heights=np.asarray(buildings.heights, dtype=np.float64))
 
-    def grid(self, radius: float) -> tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
-        """(x0, y0, cell, nx, ny, CSR start, building ids) of square cells of side ``radius`` (at least 10 m)
-        listing the buildings whose box meets each cell; cached per radius."""
+    def grid(self, radius: float, divisions: int = 1) -> tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
+        """(x0, y0, cell, nx, ny, CSR start, building ids) of square cells of side ``radius / divisions`` (at least
+        10 m) listing the buildings whose box meets each cell; cached per (radius, divisions)."""
         cache = self.__dict__.setdefault("_grids", {})
-        if radius not in cache:
-            cell = max(float(radius), 10.0)
+        key = (radius, divisions)
+        if key not in cache:
+            cell = max(float(radius) / divisions, 10.0)
             b = self.boxes
             x0, y0 = float(b[:, 0].min()), float(b[:, 1].min())
             nx = int((b[:, 2].max() - x0) // cell) + 1
@@ -215,8 +228,8 @@ class BuildingEdges:
             ix1 = np.minimum(np.floor((b[:, 2] - x0) / cell).astype(np.int64), nx - 1)
             iy1 = np.minimum(np.floor((b[:, 3] - y0) / cell).astype(np.int64), ny - 1)
             start, ids = _cell_lists(ix0, iy0, ix1, iy1, nx, ny)
-            cache[radius] = (x0, y0, cell, nx, ny, start, ids)
-        return cache[radius]
+            cache[key] = (x0, y0, cell, nx, ny, start, ids)
+        return cache[key]
 
 
 def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mask_deg: float) -> float:
@@ -228,15 +241,18 @@ def clearance_radius(heights: np.ndarray, antenna_height_m: float, elevation_mas
 
 
 def line_of_sight(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.ndarray, antenna_height_m: float,
-                  radius: float) -> tuple[np.ndarray, np.ndarray]:
+                  radius: float, box_test: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(blocked (N, S) bool, d (N, S): horizontal distance to the first blocking crossing, inf where clear) for
-    antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring)."""
+    antennas at ``xy`` and satellites at azimuth ``az`` / elevation ``el`` (rad) (module docstring). ``box_test``
+    False: the reference of the speed-ups (every satellite in index order against every edge of every candidate
+    building, on a grid of one cell per radius); True: the ray-box skip, satellites by rising elevation up to the
+    first that clears the building's box, and a grid of :data:`LOS_GRID_DIVISIONS` cells per radius."""
     xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     if edges.heights.size == 0 or radius <= 0:
         return np.zeros((len(xy), az.size), dtype=bool), np.full((len(xy), az.size), np.inf)
-    x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
+    x0, y0, cell, nx, ny, start, ids = edges.grid(radius, LOS_GRID_DIVISIONS if box_test else 1)
     return _los_kernel(xy, x0, y0, cell, nx, ny, start, ids, float(radius), edges.edges, edges.start, edges.boxes,
-                       edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m))
+                       edges.heights, np.sin(az), np.cos(az), np.tan(el), float(antenna_height_m), bool(box_test))
 
 
 @njit(cache=True)
@@ -256,11 +272,17 @@ def _box_distance(px, py, box):
 
 @njit(cache=True)
 def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn, tan_el,
-                h_ant):
+                h_ant, box_test):
+    """Every (vehicle, candidate building, satellite) (module docstring). Per (vehicle, building) the satellites
+    are visited by rising elevation (``order``): once the box is cleared at one elevation it is at every higher
+    one (b tan(el) + h_ant is monotone in tan(el), in floating point too), so the rest are skipped; each
+    satellite's result does not depend on the order. ``box_test`` False: the reference (module docstring)."""
     n, s = xy.shape[0], de.size
     blocked = np.zeros((n, s), dtype=np.bool_)
     dist = np.full((n, s), np.inf)
     seen = np.full(heights.size, -1, dtype=np.int64)  # the vehicle that last looked at each building
+    # satellites by rising elevation (finite: arcsin of a clipped cosine); the reference: in index order
+    order = np.argsort(tan_el) if box_test else np.arange(tan_el.size)
     for i in range(n):
         px, py = xy[i, 0], xy[i, 1]
         cx0, cx1, cy0, cy1 = _cell_span(px, py, radius, x0, y0, cell, nx, ny)
@@ -272,49 +294,79 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                     if seen[b] == i:
                         continue
                     seen[b] = i
-                    _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius,
-                                  blocked, dist)
+                    hb = heights[b]
+                    if not hb > h_ant:
+                        continue
+                    bd = _box_distance(px, py, boxes[b])
+                    if bd > radius:
+                        continue
+                    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
+                    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
+                    for kk in range(s):
+                        k = order[kk]
+                        if tan_el[k] <= 0.0:
+                            continue  # under the horizon (not used)
+                        if bd * tan_el[k] + h_ant >= hb:
+                            if box_test:
+                                break  # the box is already cleared at this elevation, and at every higher one
+                            continue
+                        dx, dy = de[k], dn[k]
+                        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+                            continue  # no edge of the footprint can be crossed: every crossing lies in the box
+                        crossings = 0
+                        tmin = np.inf
+                        for e in range(estart[b], estart[b + 1]):
+                            ax, ay = edges[e, 0] - px, edges[e, 1] - py
+                            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+                            den = dx * ey - dy * ex  # cross(dir, edge)
+                            if den == 0.0:
+                                continue  # parallel
+                            t = (ax * ey - ay * ex) / den  # distance along the ray
+                            u = (ax * dy - ay * dx) / den  # fraction along the edge
+                            if t >= 0.0 and 0.0 <= u < 1.0:
+                                crossings += 1
+                                if t < tmin:
+                                    tmin = t
+                        if crossings == 0:
+                            continue
+                        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
+                            hit = True
+                        else:
+                            hit = tmin * tan_el[k] + h_ant < hb
+                        if hit:
+                            blocked[i, k] = True
+                            if tmin < dist[i, k]:
+                                dist[i, k] = tmin
     return blocked, dist
 
 
+#: Cells per clearance radius of the line-of-sight grid (speed only: a finer grid lists fewer buildings outside
+#: a vehicle's disc; the buildings' results are combined by "or" and "min", whatever their order).
+LOS_GRID_DIVISIONS = 4
+
+#: Margin (m) by which a building's box is grown before a ray is tested against it: the ray-box test only skips
+#: footprints whose edges the ray cannot cross, and a crossing computed in floating point lies within far less than
+#: this of its edge (coordinates of a few km: rounding of order 1e-12 m).
+BOX_MARGIN_M = 1e-3
+
+
 @njit(cache=True)
-def _building_los(i, b, px, py, edges, estart, boxes, heights, de, dn, tan_el, h_ant, radius, blocked, dist):
-    """Building ``b`` against every satellite's ray from vehicle ``i`` (in place in ``blocked`` / ``dist``)."""
-    s = de.size
-    hb = heights[b]
-    if not hb > h_ant:
-        return
-    bd = _box_distance(px, py, boxes[b])
-    if bd > radius:
-        return
-    for k in range(s):
-        if tan_el[k] <= 0.0 or bd * tan_el[k] + h_ant >= hb:
-            continue  # under the horizon (not used), or the box is already cleared at this elevation
-        dx, dy = de[k], dn[k]
-        crossings = 0
-        tmin = np.inf
-        for e in range(estart[b], estart[b + 1]):
-            ax, ay = edges[e, 0] - px, edges[e, 1] - py
-            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
-            den = dx * ey - dy * ex  # cross(dir, edge)
-            if den == 0.0:
-                continue  # parallel
-            t = (ax * ey - ay * ex) / den  # distance along the ray
-            u = (ax * dy - ay * dx) / den  # fraction along the edge
-            if t >= 0.0 and 0.0 <= u < 1.0:
-                crossings += 1
-                if t < tmin:
-                    tmin = t
-        if crossings == 0:
-            continue
-        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
-            hit = True
-        else:
-            hit = tmin * tan_el[k] + h_ant < hb
-        if hit:
-            blocked[i, k] = True
-            if tmin < dist[i, k]:
-                dist[i, k] = tmin
+def _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+    """True when the horizontal ray (px, py) + t (dx, dy), t >= 0, meets the box [bx0, bx1] x [by0, by1] (slabs)."""
+    t_lo, t_hi = 0.0, np.inf
+    if dx == 0.0:
+        if px < bx0 or px > bx1:
+            return False
+    else:
+        t1, t2 = (bx0 - px) / dx, (bx1 - px) / dx
+        t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
+    if dy == 0.0:
+        if py < by0 or py > by1:
+            return False
+    else:
+        t1, t2 = (by0 - py) / dy, (by1 - py) / dy
+        t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
+    return t_lo <= t_hi
 
 
 # --- single-bounce reflections (``nlos = "reflect"``) ------------------------------------------------------------

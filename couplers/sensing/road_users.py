@@ -244,7 +244,58 @@ def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarr
 def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float):
     """The perception's rows ``det`` (:class:`couplers.sensing.perception.Detections`) and the ``extra`` rows
     ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each
-    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set."""
+    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set. The
+    gathers and the extra rows' covariances run in one numba pass (:func:`_merge_gather`);
+    :func:`merged_rows_reference` is the numpy reference."""
+    owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64)
+    perm = shuffle_within_owner(owner, noise.shuffle)
+    ex = [np.concatenate(c) for c in zip(*extra)] if extra else [np.empty(0)] * 7
+    m = ex[0].size
+    z, R, feature, sensor, klass, kind = _merge_gather(
+        perm, np.ascontiguousarray(det.z, dtype=np.float64).reshape(-1, 4),
+        np.ascontiguousarray(det.R, dtype=np.float64).reshape(-1, 4, 4),
+        np.ascontiguousarray(det.feature, dtype=np.int64), np.ascontiguousarray(det.sensor, dtype=np.int64),
+        np.ascontiguousarray(det.klass, dtype=np.int8), np.ascontiguousarray(det.kind, dtype=np.int8),
+        np.ascontiguousarray(ex[1], dtype=np.float64).reshape(m, 4), np.ascontiguousarray(ex[2], dtype=np.float64),
+        np.ascontiguousarray(ex[3], dtype=np.float64), np.ascontiguousarray(ex[4], dtype=np.int64),
+        np.ascontiguousarray(ex[5], dtype=np.int8), np.ascontiguousarray(ex[6], dtype=np.int8))
+    klass = confuse_classes(klass, class_error, getattr(noise, "class"))
+    return replace(det, z=z, owner=owner[perm], R=R, feature=feature, sensor=sensor, klass=klass, kind=kind)
+
+
+@njit(cache=True)
+def _merge_gather(perm, z0, R0, feature0, sensor0, klass0, kind0, z1, sp1, sv1, sensor1, klass1, kind1):
+    """Row r of the merged rows is row perm[r] of the perception's rows followed by the extra rows (feature -1,
+    covariance diag(sp^2, sp^2, sv^2, sv^2)): :func:`merged_rows_reference`'s concatenations and gathers."""
+    n0, o = z0.shape[0], perm.size
+    z = np.empty((o, 4))
+    R = np.empty((o, 4, 4))
+    feature = np.empty(o, dtype=np.int64)
+    sensor = np.empty(o, dtype=np.int64)
+    klass = np.empty(o, dtype=np.int8)
+    kind = np.empty(o, dtype=np.int8)
+    for r in range(o):
+        q = perm[r]
+        if q < n0:
+            for j in range(4):
+                z[r, j] = z0[q, j]
+                for c in range(4):
+                    R[r, j, c] = R0[q, j, c]
+            feature[r], sensor[r], klass[r], kind[r] = feature0[q], sensor0[q], klass0[q], kind0[q]
+            continue
+        e = q - n0
+        for j in range(4):
+            z[r, j] = z1[e, j]
+            for c in range(4):
+                R[r, j, c] = 0.0
+        R[r, 0, 0] = R[r, 1, 1] = sp1[e] ** 2
+        R[r, 2, 2] = R[r, 3, 3] = sv1[e] ** 2
+        feature[r], sensor[r], klass[r], kind[r] = -1, sensor1[e], klass1[e], kind1[e]
+    return z, R, feature, sensor, klass, kind
+
+
+def merged_rows_reference(det, extra: list, noise: RoadUserNoise, class_error: float):
+    """:func:`merged_rows` in numpy (its reference in the tests)."""
     owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64)
     z = np.concatenate([det.z] + [e[1] for e in extra])
     R_extra = []
@@ -265,4 +316,5 @@ def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float):
 
 
 __all__ = ["CLASS_VEHICLE", "CLASS_STATIC", "CLASS_PEDESTRIAN", "KIND_NAMES", "RoadUserNoise",
-           "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "merged_rows"]
+           "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "merged_rows",
+           "merged_rows_reference"]

@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from numba import njit
 
 from coloc.core.detections import SensorDetections
 from coloc.core.frame import Frame
@@ -72,7 +73,38 @@ def sensor_frame_rows(
 def relative_states(det: Detections, x_true: np.ndarray, features_true: np.ndarray) -> np.ndarray:
     """(O, 4) x_F - x_V of every row without noise: the true feature state of a detection, the drawn point
     (its net-frame row) and zero velocity of a false detection; another road user (a row without a feature)
-    keeps its net-frame row, whose position and velocity noise it then carries as well."""
+    keeps its net-frame row, whose position and velocity noise it then carries as well. One numba pass
+    (:func:`_relative_states`); :func:`relative_states_reference` is the numpy reference."""
+    kind = getattr(det, "kind", None)
+    return _relative_states(np.ascontiguousarray(det.owner, dtype=np.int64),
+                            np.ascontiguousarray(det.feature, dtype=np.int64),
+                            np.ascontiguousarray(det.z, dtype=np.float64).reshape(-1, 4),
+                            np.ascontiguousarray(x_true, dtype=np.float64).reshape(-1, 4),
+                            np.ascontiguousarray(features_true, dtype=np.float64).reshape(-1, 4),
+                            np.zeros(0, dtype=np.int8) if kind is None else np.ascontiguousarray(kind, dtype=np.int8),
+                            kind is not None)
+
+
+@njit(cache=True)
+def _relative_states(owner, feat, z, x_true, features_true, kind, has_kind):
+    """:func:`relative_states_reference` row by row (the same subtractions and copies)."""
+    rel = np.empty((owner.size, 4))
+    for k in range(owner.size):
+        i, f = owner[k], feat[k]
+        if f >= 0:
+            for j in range(4):
+                rel[k, j] = features_true[f, j] - x_true[i, j]
+            continue
+        rel[k, 0], rel[k, 1] = z[k, 0], z[k, 1]
+        if has_kind and (kind[k] == KIND_VEHICLE or kind[k] == KIND_PEDESTRIAN):
+            rel[k, 2], rel[k, 3] = z[k, 2], z[k, 3]
+        else:
+            rel[k, 2], rel[k, 3] = -x_true[i, 2], -x_true[i, 3]
+    return rel
+
+
+def relative_states_reference(det: Detections, x_true: np.ndarray, features_true: np.ndarray) -> np.ndarray:
+    """:func:`relative_states` in numpy (its reference in the tests)."""
     owner = np.asarray(det.owner, dtype=np.int64)
     feat = np.asarray(det.feature, dtype=np.int64)
     rel = np.empty((owner.size, 4))

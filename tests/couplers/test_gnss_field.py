@@ -159,6 +159,44 @@ def test_nlos_episodes_belong_to_cells():
     assert len(proc._cells) == 2
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")  # the NaN position's key
+def test_cell_lookup_array_and_field_reuse_change_nothing():
+    """The NLOS cells' lookup array and the field's reuse of a standing vehicle's cosines (speed only) change
+    nothing: with both disabled (every vehicle through the dict, every phase's cosine computed: the reference)
+    the rows, cells and errors are the same bit for bit; the vehicles roam far (the array grows), half of them
+    stand still every other step, one jumps 1e13 m off the net (beyond the array: the dict answers), one is NaN."""
+    p = GnssErrorParams(model="field", nlos_zones=("B", "C"), nlos_rate_per_min=(6.0, 30.0), nlos_cell_m=50.0)
+    n, runs = 20, []
+    for reference in (False, True):
+        proc = FieldErrorProcess(p, 5, 0.75)
+        if reference:
+            proc._lut_rows = lambda keys: np.full(len(keys), -1, dtype=np.int64)
+            proc.field_at = lambda xy, idx=None, proc=proc: FieldErrorProcess.field_at(proc, xy)
+        rng = np.random.default_rng(9)
+        zone = np.array(["A", "B", "C", "C"] * (n // 4), dtype=object)
+        xy = rng.uniform(-300, 300, (n, 2))
+        out = []
+        for k in range(120):
+            move = rng.normal(0, 40, (n, 2))
+            if k % 2:
+                move[: n // 2] = 0.0
+            xy = xy + move
+            step_xy = xy.copy()
+            if k == 60:
+                step_xy[0] = (1e13, -1e13)
+            if k == 70:
+                step_xy[1] = np.nan
+            e = proc.step(k * 0.75, _ids(n), np.full(n, k == 0), rng.standard_normal((n, 2)), np.full(n, 8.0),
+                          zone, step_xy)
+            out.append(np.concatenate([e.ravel(), proc._bias_now.ravel()]))
+        runs.append((np.stack(out), dict(proc._cells), proc._cell_p.copy()))
+        if not reference:
+            assert proc._lut.size > 0 and len(proc._cells) > 100
+    assert runs[0][0].tobytes() == runs[1][0].tobytes()
+    assert runs[0][1] == runs[1][1]
+    assert runs[0][2].tobytes() == runs[1][2].tobytes()
+
+
 def test_same_seed_same_errors_and_streams_per_effect():
     p = GnssErrorParams(model="field")
     n = 12
