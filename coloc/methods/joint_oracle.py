@@ -132,6 +132,14 @@ class OracleWorld:
     # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
     # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
     field_omega: tuple | None = field(default=None, compare=False, repr=False)
+    # The world's vehicle position is the front bumper and its heading the body axis (SUMO: getPosition, getAngle),
+    # so while it turns at yaw rate w the bumper moves across the heading at about front_lever_m w besides the
+    # velocity v = speed u(heading) (:func:`_front_slip`). 0: no such term (model (1) as the paper's).
+    front_lever_m: float = 0.0
+    # the per-step residual of that term, std front_slip_sigma_per_rad |w| Ts (m per rad turned), at most
+    # front_slip_sigma_max_m (docs/validation/oracle.md, "Kinematics of the world")
+    front_slip_sigma_per_rad: float = 2.5
+    front_slip_sigma_max_m: float = 0.25
     # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
     # than independent per row.
     shared_heading: bool = True
@@ -396,6 +404,11 @@ class JointOracle:
         p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
         xv = np.einsum("nij,nj->ni", fv, xv)
         xv[:, :4] += accel[surv] @ input_matrix(dt).T
+        if w.front_lever_m > 0 and ns:
+            slip, q_slip = _front_slip(w, frame, surv, x[:vd * ns].reshape(ns, vd)[:, 2:4], heading, accel, dt,
+                                       p_icp.motion.heading_min_speed)
+            xv[:, :2] += slip
+            qv[:, :2, :2] += q_slip
         xf = xf @ a4.T
         xc = a_c * x[vd * ns + 4 * k_prev:]
         pv = p[:vd * ns, :vd * ns].reshape(ns, vd, ns, vd)
@@ -652,6 +665,30 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
+
+
+def _front_slip(w: OracleWorld, frame: Frame, surv: np.ndarray, v0: np.ndarray, heading, accel: np.ndarray,
+                dt: float, min_speed: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean (ns, 2), covariance (ns, 2, 2)) the survivors' positions move across their heading in a step besides
+    model (1): the world reports the front bumper's position and the body axis as the heading (SUMO), so a
+    vehicle turning at yaw rate w has its bumper moving sideways at about l w, l = ``front_lever_m`` (half the
+    vehicle's length). w: the IMU's measured yaw rate, or without the IMU the rate the net-frame input turns
+    the velocity at t-1, (v x a) / |v|^2 (0 below ``min_speed``). The direction: the normal of the mid-step
+    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across."""
+    if frame.imu is not None:
+        om = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+        psi_mid = np.asarray(heading, dtype=float)[surv] - 0.5 * om * dt
+    else:
+        a = np.asarray(accel, dtype=float)[surv]
+        s2 = v0[:, 0] ** 2 + v0[:, 1] ** 2
+        fast = s2 >= min_speed * min_speed
+        om = np.where(fast, (v0[:, 0] * a[:, 1] - v0[:, 1] * a[:, 0]) / np.maximum(s2, 1e-300), 0.0)
+        psi_mid = np.arctan2(v0[:, 1], v0[:, 0]) + 0.5 * om * dt
+    nrm = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1)
+    turn = np.abs(om) * dt
+    sd = np.minimum(w.front_slip_sigma_per_rad * turn, w.front_slip_sigma_max_m)
+    return ((w.front_lever_m * om * dt)[:, None] * nrm,
+            (sd * sd)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
 
 
 def _heading_gradient(det, psi_row) -> np.ndarray:
