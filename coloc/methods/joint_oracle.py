@@ -147,6 +147,15 @@ class OracleWorld:
     # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
     # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
     heading_from_state: bool = True
+    # Iterated EKF on the sensor-frame rows with heading_from_state: relinearized this many times at the posterior
+    # velocity (0: one EKF update)
+    heading_iterations: int = 0
+    # heading_from_state rows also carry the heading's variance from the state's covariance as noise (conservative:
+    # the heading's information is then counted once through H and its uncertainty once more in R)
+    heading_row_inflation: bool = False
+    # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
+    # out (heading_from_state rows only)
+    range_rate_rows: bool = True
     # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
     # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
     imu_heading_from_state: bool = True
@@ -490,11 +499,25 @@ class JointOracle:
         self.last_excluded = excluded
 
         # --- V2F (4) rows with the true association.
+        iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
+        if iterate:
+            lam0, eta0 = lam.copy(), eta.copy()
         sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, mean_pred, p, surv, st)
 
         lam = symmetrize(lam)
         cov = spd_inverse(lam)
         mean = cov @ eta
+        for _ in range(w.heading_iterations if iterate else 0):
+            # iterated EKF (Gauss-Newton on the rows): the sensor-frame rows relinearized at the posterior velocity;
+            # z = C(psi(v_i)) with H at v_i is the Gauss-Newton step of 0 = x_F - x_V - C(psi(v)) (g_v^T v_i = 0)
+            lin = mean_pred.copy()
+            vi = _idx(vd * np.arange(n) + 2, 2)
+            lin[vi] = mean[vi]
+            lam, eta = lam0.copy(), eta0.copy()
+            self._v2f_information(lam, eta, frame, assoc, fids, idx_c, lin, p, surv, st)
+            lam = symmetrize(lam)
+            cov = spd_inverse(lam)
+            mean = cov @ eta
         last_seen = np.concatenate([st.feature_last_seen, np.full(new_ids.size, float(frame.t))])
         if seen.size:
             last_seen[_positions(fids, seen)] = float(frame.t)
@@ -655,8 +678,9 @@ class JointOracle:
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
         if det is not None and self.world.heading_from_state:
+            hvar = var[own] if self.world.heading_row_inflation else np.zeros(m)
             _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,
-                                       to_net_frame(sub, psi[own], np.zeros(m))[1])
+                                       to_net_frame(sub, psi[own], hvar)[1], self.world.range_rate_rows)
             return memory
         if det is not None and self.world.shared_heading:
             _shared_heading_information(lam, eta, ind, sub, psi[own], var, own, z, r)
@@ -701,7 +725,7 @@ def _heading_gradient(det, psi_row) -> np.ndarray:
     return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
 
 
-def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> None:
+def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0, range_rate: bool = True) -> None:
     """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
     z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
     at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
@@ -713,6 +737,8 @@ def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> Non
     h[:, :, :4] = -np.eye(4)
     h[:, :, 4:] = np.eye(4)
     h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
+    if not range_rate:
+        h, r0, z = h[:, :2], r0[:, :2, :2], z[:, :2]
     hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
     _scatter(lam, eta, ind, hth, htz)
 
