@@ -201,7 +201,10 @@ def score(args) -> None:
         params = dataclasses.replace(params, oracle_world=dataclasses.replace(params.oracle_world, **kw))
     if args.motion:
         kw = {k: float(v) for k, v in (item.split("=") for item in args.motion)}
-        params = dataclasses.replace(params, motion=dataclasses.replace(params.motion, **kw))
+        icp = params.icp
+        params = dataclasses.replace(params, icp=dataclasses.replace(icp, motion=dataclasses.replace(icp.motion, **kw)))
+        if getattr(params, "motion", None) is not None:
+            params = dataclasses.replace(params, motion=dataclasses.replace(params.motion, **kw))
     frames = [f for f in rec["frames"] if f.t <= args.until + 1e-9]
     diag = _Diagnostics(args.diag or ())
     for name in args.methods.split(","):

@@ -70,6 +70,11 @@ noise from ``[motion]``; the gyroscope's biases are not states. With ``imu_headi
 vehicle whose heading at t-1 is its velocity's direction has the input's dependence on that velocity in the
 transition instead (EKF, g_v^T v_hat = 0 so the mean is unchanged) and no heading term in Q.
 
+World kinematics (``front_lever_m`` > 0; the runner sets it for SUMO traffic): the world's position is the front
+bumper and its heading the body axis, so a turning vehicle's bumper moves across the heading at about
+``front_lever_m`` times the yaw rate; :func:`_front_slip` adds that to the position prediction with a residual
+in Q (docs/validation/oracle.md, "Kinematics of the world").
+
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
 the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
