@@ -7,7 +7,10 @@
 
 from __future__ import annotations
 
+import gzip
 import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
 
 from coloc.methods.registry import JOINT_ORACLE
 from couplers.errors import InputError
@@ -25,6 +28,7 @@ def oracle_world(cfg):
         i = cfg.inertial
         imu = dict(accel_turn_on_sigma=i.accel_turn_on_sigma, accel_bias_sigma=i.accel_bias_sigma,
                    accel_bias_tau_s=i.accel_bias_tau_s, accel_noise_density=i.accel_noise_density)
+    imu["front_lever_m"] = front_lever(cfg)
     ge = cfg.gnss_error
     if ge is None:
         return OracleWorld(**imu)
@@ -49,3 +53,37 @@ def oracle_world(cfg):
         field_tau_s=ge.field_tau_s, local_corr_length_m=ge.local_corr_length_m if field else math.inf,
         nlos=bool(rates and ge.nlos_bias_mean_m > 0), field_omega=omega, **imu,
     )
+
+
+#: SUMO's default vehicle length (m), vClass passenger (SUMO documentation, "Vehicle Type Parameter Defaults")
+SUMO_DEFAULT_LENGTH_M = 5.0
+
+
+def _route_vtype_lengths(path: Path) -> list[float]:
+    """Lengths of the vehicle types (not pedestrians) declared in a SUMO route file before its first vehicle,
+    trip, flow or person (where route files declare them)."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    out = []
+    with opener(path, "rb") as fh:
+        for _, el in ET.iterparse(fh, events=("end",)):
+            if el.tag == "vType" and el.get("vClass", "passenger") != "pedestrian":
+                out.append(float(el.get("length", SUMO_DEFAULT_LENGTH_M)))
+            elif el.tag in ("vehicle", "trip", "flow", "person", "personFlow"):
+                break
+    return out
+
+
+def front_lever(cfg) -> float:
+    """What the oracle is told of the world's kinematics (OracleWorld.front_lever_m): SUMO reports the front
+    bumper's position and the body axis as the heading, so a turning vehicle's bumper moves sideways at about
+    half its length times the yaw rate (docs/validation/oracle.md, "Kinematics of the world"). Half the mean
+    length of the net folder's vehicle types (SUMO's default length without one); 0 for a scenario without
+    SUMO (its trajectories are model (1))."""
+    if getattr(cfg.scenario, "kind", "sumo") != "sumo" or not cfg.scenario.net_dir:
+        return 0.0
+    from couplers.net.folder import load_net_folder
+
+    lengths = []
+    for f in load_net_folder(cfg.scenario.net_dir).route_files:
+        lengths += _route_vtype_lengths(Path(f))
+    return 0.5 * (sum(lengths) / len(lengths) if lengths else SUMO_DEFAULT_LENGTH_M)

@@ -102,6 +102,85 @@ def _score(err: np.ndarray, nees: np.ndarray) -> str:
             f"(med {np.median(nees):7.2f})  in95 {100 * np.mean(nees <= CHI2_2_95):5.1f} %  n {e.size}")
 
 
+class _Diagnostics:
+    """Truth-reading diagnostics of the oracle's heading (never part of a method: they patch the oracle's
+    module for this process only). ``heading_stats``: the heading the rows are converted with against the
+    true heading, normalized by its claimed variance, by speed; ``true_heading``: rows converted with the true
+    heading at variance 0 (the rows' information then carries no heading term); ``true_imu_heading``: the IMU
+    input rotated by the true heading of t-1."""
+
+    def __init__(self, which):
+        import coloc.core.detections as cd
+        import coloc.methods.joint_oracle as jo
+
+        self.which = set(which)
+        self.truth = None
+        self.frame = None
+        self.stats = []  # (speed, error, var)
+        self._prev = {}
+        if not self.which:
+            return
+        orig = jo.vehicle_headings
+
+        def patched(frame, mean, cov, idx, memory, min_speed):
+            psi, var, mem = orig(frame, mean, cov, idx, memory, min_speed)
+            tr = self.truth
+            if tr is not None and tr.heading is not None:
+                th = np.asarray(tr.heading, dtype=float)
+                sp = np.hypot(tr.x_true[:, 2], tr.x_true[:, 3])
+                err = (psi - th + np.pi) % (2 * np.pi) - np.pi
+                self.stats.append(np.stack([sp, err, var, np.hypot(mean[:, 2], mean[:, 3])], axis=1))
+                if "true_heading" in self.which:
+                    psi, var = th.copy(), np.full_like(var, 1e-12)
+            return psi, var, mem
+
+        jo.vehicle_headings = patched
+        if "true_imu_heading" in self.which:
+            orig_h = cd.heading_from_velocity
+
+            orig_imu = jo.JointOracle._imu_input
+            self._in_imu = False
+
+            def patched_h(v, p):
+                psi, var = orig_h(v, p)
+                f = self.frame
+                if self._in_imu and f is not None and psi.shape[0] == f.n_vehicles:
+                    prev = np.array([self._prev.get(i, np.nan) for i in f.vehicle_ids])
+                    ok = np.isfinite(prev)
+                    psi = np.where(ok, prev, psi)
+                    var = np.where(ok, 1e-12, var)
+                return psi, var
+
+            def patched_imu(est, *a):
+                self._in_imu = True
+                try:
+                    return orig_imu(est, *a)
+                finally:
+                    self._in_imu = False
+
+            cd.heading_from_velocity = patched_h
+            jo.JointOracle._imu_input = patched_imu
+
+    def after_step(self):
+        f = self.frame
+        if f is not None and f.truth.heading is not None:
+            self._prev = dict(zip(f.vehicle_ids, f.truth.heading))
+
+    def report(self):
+        if not self.stats:
+            return
+        s = np.concatenate(self.stats)
+        self.stats = []
+        edges = [1.0, 2.0, 4.0, 8.0, 1e9]
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = (s[:, 3] >= lo) & (s[:, 3] < hi)
+            if m.any():
+                e, v = s[m, 1], s[m, 2]
+                print(f"   heading, est. speed {lo:3.0f}-{min(hi, 99):3.0f}: RMS {np.degrees(np.sqrt(np.mean(e ** 2))):6.2f} deg, "
+                      f"claimed {np.degrees(np.sqrt(np.mean(v))):6.2f} deg, mean e^2/var {np.mean(e ** 2 / np.maximum(v, 1e-30)):8.1f}, "
+                      f"n {m.sum()}")
+
+
 def score(args) -> None:
     from coloc.methods.registry import GNSS, build_method
     from experiments.runner import method_params
@@ -120,17 +199,27 @@ def score(args) -> None:
             else:
                 kw[k] = type(old)(v) if not isinstance(old, bool) else v.lower() in ("1", "true", "yes")
         params = dataclasses.replace(params, oracle_world=dataclasses.replace(params.oracle_world, **kw))
+    if args.motion:
+        kw = {k: float(v) for k, v in (item.split("=") for item in args.motion)}
+        icp = params.icp
+        params = dataclasses.replace(params, icp=dataclasses.replace(icp, motion=dataclasses.replace(icp.motion, **kw)))
+        if getattr(params, "motion", None) is not None:
+            params = dataclasses.replace(params, motion=dataclasses.replace(params.motion, **kw))
     frames = [f for f in rec["frames"] if f.t <= args.until + 1e-9]
+    diag = _Diagnostics(args.diag or ())
     for name in args.methods.split(","):
         est = build_method(name, params)
-        errs, nees, zones, ts, excl = [], [], [], [], []
+        errs, nees, zones, ts, excl, speeds = [], [], [], [], [], []
         cpu = time.process_time()
         for f in frames:
+            diag.truth = f.truth
+            diag.frame = f
             clean = f.without_truth()
             if getattr(est, "step_with_association", None) is not None and name != GNSS.name:
                 out = est.step_with_association(clean, f.truth.v2f_feature)
             else:
                 out = est.step(clean)
+            diag.after_step()
             if getattr(est, "last_excluded", None) is not None:
                 excl.append(float(np.mean(est.last_excluded)) if est.last_excluded.size else 0.0)
             if args.verbose and len(excl) % 40 == 0:
@@ -142,6 +231,7 @@ def score(args) -> None:
             pc = out.cov[:, :2, :2]
             nees.append(np.einsum("ni,ni->n", e, np.linalg.solve(pc, e[..., None])[..., 0]))
             errs.append(e)
+            speeds.append(np.hypot(f.truth.x_true[:, 2], f.truth.x_true[:, 3]))
             zones.append(np.asarray(f.truth.zone))
             ts.append(np.full(e.shape[0], f.t))
         cpu = time.process_time() - cpu
@@ -152,6 +242,14 @@ def score(args) -> None:
         for z in np.unique(zone):
             m = zone == z
             print(f"   zone {z}       {_score(err[m], nee[m])}")
+        if args.by_speed:
+            sp = np.concatenate(speeds)
+            edges = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 1e9]
+            for lo, hi in zip(edges[:-1], edges[1:]):
+                m = (sp >= lo) & (sp < hi)
+                if m.any():
+                    print(f"   speed {lo:3.1f}-{min(hi, 99):4.1f} {_score(err[m], nee[m])}")
+        diag.report()
         if args.over_time:
             t = np.concatenate(ts)
             for lo in np.arange(args.t_from, args.until, args.over_time):
@@ -178,6 +276,10 @@ def main(argv=None) -> None:
     s.add_argument("--over-time", type=float, default=0.0)
     s.add_argument("--verbose", action="store_true")
     s.add_argument("--oracle", nargs="*", help="OracleWorld overrides key=value")
+    s.add_argument("--motion", nargs="*", help="[motion] overrides key=value (e.g. heading_min_speed=3)")
+    s.add_argument("--by-speed", action="store_true", help="scores by the vehicle's true speed")
+    s.add_argument("--diag", nargs="*", help="diagnostics that read truth (never a method): heading_stats, "
+                   "true_heading (rows converted with the true heading, no heading error), true_imu_heading")
     args = ap.parse_args(argv)
     record(args) if args.cmd == "record" else score(args)
 

@@ -70,6 +70,11 @@ noise from ``[motion]``; the gyroscope's biases are not states. With ``imu_headi
 vehicle whose heading at t-1 is its velocity's direction has the input's dependence on that velocity in the
 transition instead (EKF, g_v^T v_hat = 0 so the mean is unchanged) and no heading term in Q.
 
+World kinematics (``front_lever_m`` > 0; the runner sets it for SUMO traffic): the world's position is the front
+bumper and its heading the body axis, so a turning vehicle's bumper moves across the heading at about
+``front_lever_m`` times the yaw rate; :func:`_front_slip` adds that to the position prediction with a residual
+in Q (docs/validation/oracle.md, "Kinematics of the world").
+
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
 the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
@@ -132,6 +137,14 @@ class OracleWorld:
     # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
     # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
     field_omega: tuple | None = field(default=None, compare=False, repr=False)
+    # The world's vehicle position is the front bumper and its heading the body axis (SUMO: getPosition, getAngle),
+    # so while it turns at yaw rate w the bumper moves across the heading at about front_lever_m w besides the
+    # velocity v = speed u(heading) (:func:`_front_slip`). 0: no such term (model (1) as the paper's).
+    front_lever_m: float = 0.0
+    # the per-step residual of that term, std front_slip_sigma_per_rad |w| Ts (m per rad turned), at most
+    # front_slip_sigma_max_m (docs/validation/oracle.md, "Kinematics of the world")
+    front_slip_sigma_per_rad: float = 2.5
+    front_slip_sigma_max_m: float = 0.25
     # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
     # than independent per row.
     shared_heading: bool = True
@@ -139,6 +152,15 @@ class OracleWorld:
     # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
     # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
     heading_from_state: bool = True
+    # Iterated EKF on the sensor-frame rows with heading_from_state: relinearized this many times at the posterior
+    # velocity (0: one EKF update)
+    heading_iterations: int = 0
+    # heading_from_state rows also carry the heading's variance from the state's covariance as noise (conservative:
+    # the heading's information is then counted once through H and its uncertainty once more in R)
+    heading_row_inflation: bool = False
+    # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
+    # out (heading_from_state rows only)
+    range_rate_rows: bool = True
     # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
     # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
     imu_heading_from_state: bool = True
@@ -396,6 +418,11 @@ class JointOracle:
         p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
         xv = np.einsum("nij,nj->ni", fv, xv)
         xv[:, :4] += accel[surv] @ input_matrix(dt).T
+        if w.front_lever_m > 0 and ns:
+            slip, q_slip = _front_slip(w, frame, surv, x[:vd * ns].reshape(ns, vd)[:, 2:4], heading, accel, dt,
+                                       p_icp.motion.heading_min_speed)
+            xv[:, :2] += slip
+            qv[:, :2, :2] += q_slip
         xf = xf @ a4.T
         xc = a_c * x[vd * ns + 4 * k_prev:]
         pv = p[:vd * ns, :vd * ns].reshape(ns, vd, ns, vd)
@@ -477,11 +504,25 @@ class JointOracle:
         self.last_excluded = excluded
 
         # --- V2F (4) rows with the true association.
+        iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
+        if iterate:
+            lam0, eta0 = lam.copy(), eta.copy()
         sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, mean_pred, p, surv, st)
 
         lam = symmetrize(lam)
         cov = spd_inverse(lam)
         mean = cov @ eta
+        for _ in range(w.heading_iterations if iterate else 0):
+            # iterated EKF (Gauss-Newton on the rows): the sensor-frame rows relinearized at the posterior velocity;
+            # z = C(psi(v_i)) with H at v_i is the Gauss-Newton step of 0 = x_F - x_V - C(psi(v)) (g_v^T v_i = 0)
+            lin = mean_pred.copy()
+            vi = _idx(vd * np.arange(n) + 2, 2)
+            lin[vi] = mean[vi]
+            lam, eta = lam0.copy(), eta0.copy()
+            self._v2f_information(lam, eta, frame, assoc, fids, idx_c, lin, p, surv, st)
+            lam = symmetrize(lam)
+            cov = spd_inverse(lam)
+            mean = cov @ eta
         last_seen = np.concatenate([st.feature_last_seen, np.full(new_ids.size, float(frame.t))])
         if seen.size:
             last_seen[_positions(fids, seen)] = float(frame.t)
@@ -642,8 +683,9 @@ class JointOracle:
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
         if det is not None and self.world.heading_from_state:
+            hvar = var[own] if self.world.heading_row_inflation else np.zeros(m)
             _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,
-                                       to_net_frame(sub, psi[own], np.zeros(m))[1])
+                                       to_net_frame(sub, psi[own], hvar)[1], self.world.range_rate_rows)
             return memory
         if det is not None and self.world.shared_heading:
             _shared_heading_information(lam, eta, ind, sub, psi[own], var, own, z, r)
@@ -652,6 +694,30 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
+
+
+def _front_slip(w: OracleWorld, frame: Frame, surv: np.ndarray, v0: np.ndarray, heading, accel: np.ndarray,
+                dt: float, min_speed: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean (ns, 2), covariance (ns, 2, 2)) the survivors' positions move across their heading in a step besides
+    model (1): the world reports the front bumper's position and the body axis as the heading (SUMO), so a
+    vehicle turning at yaw rate w has its bumper moving sideways at about l w, l = ``front_lever_m`` (half the
+    vehicle's length). w: the IMU's measured yaw rate, or without the IMU the rate the net-frame input turns
+    the velocity at t-1, (v x a) / |v|^2 (0 below ``min_speed``). The direction: the normal of the mid-step
+    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across."""
+    if frame.imu is not None:
+        om = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+        psi_mid = np.asarray(heading, dtype=float)[surv] - 0.5 * om * dt
+    else:
+        a = np.asarray(accel, dtype=float)[surv]
+        s2 = v0[:, 0] ** 2 + v0[:, 1] ** 2
+        fast = s2 >= min_speed * min_speed
+        om = np.where(fast, (v0[:, 0] * a[:, 1] - v0[:, 1] * a[:, 0]) / np.maximum(s2, 1e-300), 0.0)
+        psi_mid = np.arctan2(v0[:, 1], v0[:, 0]) + 0.5 * om * dt
+    nrm = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1)
+    turn = np.abs(om) * dt
+    sd = np.minimum(w.front_slip_sigma_per_rad * turn, w.front_slip_sigma_max_m)
+    return ((w.front_lever_m * om * dt)[:, None] * nrm,
+            (sd * sd)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
 
 
 def _heading_gradient(det, psi_row) -> np.ndarray:
@@ -664,7 +730,7 @@ def _heading_gradient(det, psi_row) -> np.ndarray:
     return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
 
 
-def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> None:
+def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0, range_rate: bool = True) -> None:
     """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
     z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
     at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
@@ -676,6 +742,8 @@ def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0) -> Non
     h[:, :, :4] = -np.eye(4)
     h[:, :, 4:] = np.eye(4)
     h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
+    if not range_rate:
+        h, r0, z = h[:, :2], r0[:, :2, :2], z[:, :2]
     hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
     _scatter(lam, eta, ind, hth, htz)
 

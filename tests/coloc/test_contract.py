@@ -39,7 +39,7 @@ FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf",
 RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"] + FUSED
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, accel_turn_on_sigma=0.196,
-                           accel_bias_sigma=0.0735, accel_noise_density=0.004)
+                           accel_bias_sigma=0.0735, accel_noise_density=0.004, front_lever_m=2.25)
 
 
 def _method(name: str):

@@ -374,3 +374,35 @@ def test_heading_from_state_rows_linearize_the_conversion():
         h_built = np.linalg.solve(np.linalg.inv(r0[j]), lam[4:, 2:4])
         h_built[2:4] += np.eye(2)  # model (4)'s -I on the relative velocity; the rest is the heading's part
         assert np.allclose(h_built @ dv, hvel, rtol=1e-4, atol=1e-9)
+
+
+def test_front_slip_moves_a_turning_vehicle_across_its_heading():
+    """The world reports the front bumper and the body axis (SUMO): turning at yaw rate w, the bumper moves
+    sideways by about l w Ts a step. The term is across the mid-step heading, proportional to w, zero when
+    driving straight, and its residual covariance is rank one across, capped; without the IMU the rate is the
+    one the net-frame input turns the velocity at."""
+    from types import SimpleNamespace
+
+    from coloc.methods.joint_oracle import _front_slip
+
+    w = OracleWorld(front_lever_m=2.25, front_slip_sigma_per_rad=2.5, front_slip_sigma_max_m=0.25)
+    om = np.array([0.0, 0.2, -0.2, 1.0])
+    psi_end = np.array([0.3, 1.0, -2.0, 0.5])  # heading at t (the IMU input's heading: at t-1 plus w Ts)
+    frame = SimpleNamespace(imu=SimpleNamespace(yaw_rate=om))
+    surv = np.arange(4)
+    mean, cov = _front_slip(w, frame, surv, np.zeros((4, 2)), psi_end, np.zeros((4, 2)), DT, 1.0)
+    mid = psi_end - 0.5 * om * DT
+    nrm = np.stack([-np.sin(mid), np.cos(mid)], axis=1)
+    assert np.allclose(mean, (2.25 * om * DT)[:, None] * nrm)
+    assert np.allclose(mean[0], 0.0) and np.allclose(cov[0], 0.0)
+    along = np.stack([np.cos(mid), np.sin(mid)], axis=1)
+    assert np.allclose(np.einsum("ni,nij,nj->n", along, cov, along), 0.0)
+    sd = np.sqrt(np.einsum("ni,nij,nj->n", nrm, cov, nrm))
+    assert np.allclose(sd, np.minimum(2.5 * np.abs(om) * DT, 0.25))
+    # without the IMU: w = (v x a) / |v|^2 of the velocity at t-1 and the net-frame input
+    v0 = np.array([[10.0, 0.0], [0.5, 0.0]])
+    acc = np.array([[0.0, 2.0], [0.0, 2.0]])
+    mean, _ = _front_slip(w, SimpleNamespace(imu=None), np.arange(2), v0, None, acc, DT, 1.0)
+    mid0 = 0.5 * 0.2 * DT  # heading of v0 (0) plus half the step's turn
+    assert np.allclose(mean[0], 2.25 * 0.2 * DT * np.array([-math.sin(mid0), math.cos(mid0)]))
+    assert np.allclose(mean[1], 0.0)  # below the minimum speed the rate is not known: no term

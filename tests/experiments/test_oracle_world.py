@@ -35,6 +35,20 @@ def test_paper_config_is_white_and_only_with_the_oracle():
     assert (w.gnss, w.nlos, w.vehicle_dim, w.common_dim, w.imu) == ("white", False, 4, 0, False)
 
 
+def test_front_lever_is_half_the_net_folders_vehicle_length(tmp_path):
+    """The oracle is told the world's kinematics: SUMO reports the front bumper and the body axis, so a turning
+    bumper moves sideways at half the vehicle's length times the yaw rate. The arterial's vType car is 4.5 m
+    long (sumo_nets/arterial/demand.rou.xml); a route file without a vType gets SUMO's default 5 m."""
+    from experiments.oracle_world import _route_vtype_lengths
+
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml", overrides={"run.methods": ["joint_oracle"]})
+    assert oracle_world(cfg).front_lever_m == 2.25
+    f = tmp_path / "r.rou.xml"
+    f.write_text('<routes><vType id="a" length="4.0"/><vType id="p" vClass="pedestrian" length="0.2"/>'
+                 '<vType id="b"/><vehicle id="x" depart="0"/><vType id="late" length="99"/></routes>')
+    assert _route_vtype_lengths(f) == [4.0, 5.0]
+
+
 def test_per_vehicle_world_has_no_shared_part():
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
                       overrides={"run.methods": ["joint_oracle"], "gnss_error.model": "per_vehicle",
