@@ -83,10 +83,10 @@ def _batches(path: Path, wanted: list[str], cat_cols: list[str]):
     import pyarrow.parquet as pq
 
     try:
-        pf = pq.ParquetFile(path, read_dictionary=cat_cols)
-        names = set(pf.schema_arrow.names)
+        names = set(pq.read_schema(path).names)
         require_columns(path, names, [c for c in REQUIRED_COLUMNS.get(path.name, ()) if c in wanted])
         cols = [c for c in wanted if c in names]
+        pf = pq.ParquetFile(path, read_dictionary=[c for c in cat_cols if c in names])
         batches = pf.iter_batches(batch_size=BATCH_ROWS, columns=cols)
     except (pa.ArrowException, OSError) as exc:
         raise InputError(path, None, f"not a readable Parquet file ({str(exc).splitlines()[0]}): "
@@ -107,6 +107,7 @@ def _read_estimates(path: Path, wanted: list[str], nees: bool) -> pd.DataFrame |
 
     cat_cols = [c for c in ("method", "zone", "area", "run") if c in wanted]
     cols, batches = _batches(path, wanted + (_NEES_COLS if nees else []), cat_cols)
+    cat_cols = [c for c in cat_cols if c in cols]
     with_nees = nees and set(_NEES_COLS) <= set(cols)
     keep = [c for c in cols if c not in _NEES_COLS]
     parts = []
