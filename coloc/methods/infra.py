@@ -86,9 +86,10 @@ from coloc.core.models import (
     symmetrize,
     transition_matrix,
 )
-from coloc.core.vehicles import carry_states, entry_fix_rows, match_ids
+from coloc.core.vehicles import carry_states, entry_fix_rows, fresh_rows, match_ids
 from coloc.inference.topology import sum_sq_pairwise, sum_sq_pairwise_grad, topology_bias, topology_variance
 from coloc.methods.gnss import GnssTracker
+from coloc.methods.gnss_bias import GnssBiasTracker, GnssModelParams, bias_predict
 from coloc.methods.registry import RSU_BP, SME
 from coloc.methods.rsu_bp import RsuBpParams, init_particles, rsu_bp_step_open
 
@@ -126,9 +127,12 @@ class _InfraBase:
 
     name = "infra"
 
-    def __init__(self, params: InfraMethodParams):
+    def __init__(self, params: InfraMethodParams, gnss_model: GnssModelParams | None = None):
         self.params = params
-        self.gnss = GnssTracker(motion=params.motion)
+        # [gnss_model]: the internal tracker is the gnss benchmark's bias-state tracker (6-D states).
+        self.model = gnss_model
+        self.gnss = (GnssTracker(motion=params.motion) if gnss_model is None
+                     else GnssBiasTracker(motion=params.motion, model=gnss_model))
         self.stats = {"topology_updates": 0, "topology_skipped": 0}
         self._sensor_heading = None  # sensor-frame detections: coloc.core.detections.HeadingMemory
 
@@ -145,6 +149,35 @@ class _InfraBase:
             q = driving_noise_cov(m[old, 2:], frame.dt, self.params.motion)
             m[old], c[old] = predict(m[old], c[old], frame.accel[rows[old]], frame.dt, q)
         return m, c, entry_fix_rows(frame, fresh, rows)
+
+    def _start_beliefs6(self, frame: Frame, rows: np.ndarray, prev) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_start_beliefs` on the 6-D states [p, v, b] of the ``[gnss_model]`` tracker
+        (:class:`coloc.methods.gnss_bias.GnssBiasTracker`): its posterior of t-1 predicted
+        (:func:`coloc.methods.gnss_bias.bias_predict`), or the prior with the bias at 0 and its
+        stationary covariance s R_pos. A prior that is this step's fix (``held``) gets the one-fix
+        posterior's Cov(p, b) = -s R_pos (:func:`coloc.methods.gnss_bias.entry_fix_posterior`)."""
+        ids, mean, cov = prev
+        s = self.model.bias_share
+        idx = match_ids(ids, frame.vehicle_ids[rows])
+        prior_z = np.asarray(frame.prior_z, dtype=float)[rows]
+        fresh = fresh_rows(idx, frame.entered[rows], prior_z)
+        r_pos = np.asarray(frame.gnss_R, dtype=float)[rows, :2, :2]
+        n = rows.size
+        m = np.zeros((n, 6))
+        c = np.zeros((n, 6, 6))
+        old = ~fresh
+        m[old], c[old] = mean[idx[old]], cov[idx[old]]
+        m[fresh, :4] = prior_z[fresh]
+        c[fresh, :4, :4] = np.asarray(frame.prior_R, dtype=float)[rows][fresh]
+        c[fresh, 4:, 4:] = s * r_pos[fresh]
+        if old.any():
+            m[old], c[old] = bias_predict(m[old], c[old], np.asarray(frame.accel, dtype=float)[rows[old]],
+                                          r_pos[old], float(frame.dt), self.params.motion, self.model)
+        held = entry_fix_rows(frame, fresh, rows)
+        if held.any():
+            cross = -s * r_pos[held]
+            c[held, :2, 4:], c[held, 4:, :2] = cross, np.swapaxes(cross, -1, -2)
+        return m, c, held
 
     def step(self, frame: Frame) -> StepEstimate:
         prev = (self.gnss._ids, self.gnss._mean, self.gnss._cov)

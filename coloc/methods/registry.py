@@ -149,7 +149,7 @@ def _sme(p: MethodParams):
 def _fg_topology_new(p: MethodParams):
     from coloc.methods.fg_topology import FgTopologyInfra
 
-    return FgTopologyInfra(_infra_params(p))
+    return FgTopologyInfra(_infra_params(p), gnss_model=p.gnss_model)
 
 
 GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True, cost=0.1)
