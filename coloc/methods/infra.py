@@ -261,43 +261,118 @@ def joint_labelled_update(mean, cov, z, r_blocks, use=None):
     return new_mean, symmetrize(ikh @ cov @ ikh.T + gain @ r @ gain.T)
 
 
-def topology_update(mean, cov, radar_points, radar_var):
+def topology_update(mean, cov, radar_points, radar_var, dim: int = 4):
     """Scalar EKF update with Zhang's (10) / Gulati's (8): sum of squared pairwise distances of the
-    detections (pose- and order-free), bias-corrected; variance (15) + second-order term at the prediction."""
-    n = mean.shape[0] // 4
-    pos = mean.reshape(n, 4)[:, :2]
+    detections (pose- and order-free), bias-corrected; variance (15) + second-order term at the prediction.
+    ``dim``: entries per vehicle in the joint state, its position first (4: [p, v]; 6: [p, v, b])."""
+    n = mean.shape[0] // dim
+    pos = mean.reshape(n, dim)[:, :2]
     y = float(sum_sq_pairwise(radar_points)) - topology_bias(n, radar_var)
     h = float(sum_sq_pairwise(pos))
-    jac = np.zeros(4 * n)
+    jac = np.zeros(dim * n)
     grad = sum_sq_pairwise_grad(pos)
-    jac[4 * np.arange(n)] = grad[:, 0]
-    jac[4 * np.arange(n) + 1] = grad[:, 1]
+    jac[dim * np.arange(n)] = grad[:, 0]
+    jac[dim * np.arange(n) + 1] = grad[:, 1]
     r = float(topology_variance(h, n, radar_var))
     ph = cov @ jac
     s = float(jac @ ph) + r
     gain = ph / s
     new_mean = mean + gain * (y - h)
-    ikh = np.eye(4 * n) - np.outer(gain, jac)
+    ikh = np.eye(dim * n) - np.outer(gain, jac)
     return new_mean, symmetrize(ikh @ cov @ ikh.T + r * np.outer(gain, gain))
 
 
+def joint_predict_bias(mean, cov, accel, r_pos, dt, motion: MotionParams, model: GnssModelParams, moving):
+    """:func:`joint_predict` on 6-D blocks [p, v, b] (``[gnss_model]``): model (1) on [p, v] and the
+    Gauss-Markov bias ``b' = a b + w``, ``Var(w) = (1 - a^2) s R_pos`` (:func:`coloc.methods.gnss_bias.bias_predict`);
+    blocks with ``moving`` False stay."""
+    n = mean.shape[0] // 6
+    x = mean.reshape(n, 6)
+    out, qs = bias_predict(x, np.zeros((n, 6, 6)), accel, r_pos, dt, motion, model)  # qs: Q of each block
+    a1 = np.eye(6)
+    a1[0, 2] = a1[1, 3] = dt
+    a1[4, 4] = a1[5, 5] = np.exp(-dt / model.bias_tau_s)
+    a = np.zeros((6 * n, 6 * n))
+    q = np.zeros((6 * n, 6 * n))
+    for i in range(n):
+        sl = slice(6 * i, 6 * i + 6)
+        a[sl, sl] = a1 if moving[i] else np.eye(6)
+        if moving[i]:
+            q[sl, sl] = qs[i]
+    out = np.where(np.asarray(moving, bool)[:, None], out, x)
+    return out.reshape(-1), symmetrize(a @ cov @ a.T + q)
+
+
+def joint_fix_update_bias(mean, cov, z, r_blocks, share, use, pos_ok):
+    """Kalman update of the 6-D-block joint state by each used vehicle's fix: z_pos = p + b (noise (1 - s)
+    R_pos), z_vel = v; ``pos_ok`` (n,) False: the fix's position is excluded (velocity rows only)."""
+    n = mean.shape[0] // 6
+    rows, blocks = [], []
+    for i in np.flatnonzero(use):
+        comp = np.arange(4) if pos_ok[i] else np.arange(2, 4)
+        rows.append((i, comp))
+        rb = np.array(r_blocks[i], dtype=float)
+        rb[:2, :2] *= 1.0 - share
+        blocks.append(rb[np.ix_(comp, comp)])
+    if not rows:
+        return mean, cov
+    m = sum(c.size for _, c in rows)
+    h = np.zeros((m, 6 * n))
+    r = np.zeros((m, m))
+    y = np.empty(m)
+    k = 0
+    for (i, comp), rb in zip(rows, blocks):
+        for a, c in enumerate(comp):
+            h[k + a, 6 * i + c] = 1.0
+            if c < 2:
+                h[k + a, 6 * i + 4 + c] = 1.0
+            y[k + a] = z[i][c]
+        r[k:k + comp.size, k:k + comp.size] = rb
+        k += comp.size
+    s = h @ cov @ h.T + r
+    gain = np.linalg.solve(s, h @ cov).T
+    new_mean = mean + gain @ (y - h @ mean)
+    ikh = np.eye(6 * n) - gain @ h
+    return new_mean, symmetrize(ikh @ cov @ ikh.T + gain @ r @ gain.T)
+
+
+def ci_reentry(cov, dim, carried, dependent):
+    """Covariance intersection of the joint state's carried block with the start beliefs of ``dependent``
+    entering vehicles (their cross-covariances unknown, set to 0): the blocks scaled by 1 / w_k with
+    sum w_k = 1 bound every cross-covariance (Julier & Uhlmann 2001); w_k proportional to the square root
+    of each block's position trace, which minimises sum tr_k / w_k (the trace of the positions' bound, m^2).
+    Returns the new covariance."""
+    groups = [np.concatenate([dim * i + np.arange(dim) for i in carried])] + [dim * i + np.arange(dim) for i in dependent]
+    tr = np.array([sum(cov[j, j] for j in g if j % dim < 2) for g in groups])
+    w = np.sqrt(tr) / np.sum(np.sqrt(tr))
+    out = cov.copy()
+    for g, wk in zip(groups, w):
+        out[np.ix_(g, g)] /= wk
+    return out
+
+
 class SmeInfra(_InfraBase):
-    """``sme`` per RSU (module doc)."""
+    """``sme`` per RSU (module doc). ``gnss_model`` ([gnss_model]): 6-D blocks [p, v, b] with the receiver's
+    Gauss-Markov bias and the own tracker's fault exclusion; ``fusion`` ([fusion]): covariance intersection
+    for a vehicle that re-enters the joint state (:func:`ci_reentry`)."""
 
     name = SME.name
 
-    def __init__(self, params: InfraMethodParams):
-        super().__init__(params)
-        self._state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # r -> (ids, mean (4n,), cov)
+    def __init__(self, params: InfraMethodParams, gnss_model: GnssModelParams | None = None, fusion=None):
+        super().__init__(params, gnss_model)
+        self.fusion = fusion
+        self._state: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # r -> (ids, mean (dn,), cov)
+        self._seen: dict[int, set] = {}  # [fusion]: r -> ids whose information a topology update spread
 
     def _rsu_step(self, frame, r, rows, prev, fallback):
         infra = frame.infra
+        d = 4 if self.model is None else 6
         if rows.size == 0:
             self._state.pop(r, None)
             return None
         if rows.size > self.params.sme_max_vehicles:
-            d = np.hypot(*(fallback.mean[rows, :2] - infra.rsu_xy[r]).T)
-            rows = np.sort(rows[np.argsort(d, kind="stable")[: self.params.sme_max_vehicles]])
+            dist = np.hypot(*(fallback.mean[rows, :2] - infra.rsu_xy[r]).T)
+            rows = np.sort(rows[np.argsort(dist, kind="stable")[: self.params.sme_max_vehicles]])
         ids = frame.vehicle_ids[rows]
         n = rows.size
         old_ids, old_mean, old_cov = self._state.get(r, (np.empty(0, dtype=object), np.empty(0), np.empty((0, 0))))
@@ -308,35 +383,53 @@ class SmeInfra(_InfraBase):
             mean, cov = old_mean, old_cov  # same vehicles, same order: keep the joint covariance
             moving = np.ones(n, dtype=bool)
         else:
-            mean = np.empty(4 * n)
-            cov = np.zeros((4 * n, 4 * n))
+            mean = np.empty(d * n)
+            cov = np.zeros((d * n, d * n))
             moving = idx >= 0
             carried = np.flatnonzero(moving)
             for i in carried:
                 j = idx[i]
-                mean[4 * i:4 * i + 4] = old_mean[4 * j:4 * j + 4]
+                mean[d * i:d * i + d] = old_mean[d * j:d * j + d]
                 for i2 in carried:
                     j2 = idx[i2]
-                    cov[4 * i:4 * i + 4, 4 * i2:4 * i2 + 4] = old_cov[4 * j:4 * j + 4, 4 * j2:4 * j2 + 4]
+                    cov[d * i:d * i + d, d * i2:d * i2 + d] = old_cov[d * j:d * j + d, d * j2:d * j2 + d]
             new = np.flatnonzero(~moving)
             if new.size:
-                m0, c0, held = self._start_beliefs(frame, rows[new], prev)  # already at t
+                start = self._start_beliefs if self.model is None else self._start_beliefs6
+                m0, c0, held = start(frame, rows[new], prev)  # already at t
                 for a, i in enumerate(new):
-                    mean[4 * i:4 * i + 4] = m0[a]
-                    cov[4 * i:4 * i + 4, 4 * i:4 * i + 4] = c0[a]
+                    mean[d * i:d * i + d] = m0[a]
+                    cov[d * i:d * i + d, d * i:d * i + d] = c0[a]
                 fixed[new[held]] = False  # their prior is this step's fix
-        mean, cov = joint_predict(mean, cov, frame.accel[rows], frame.dt, self.params.motion, moving)
-        mean, cov = joint_labelled_update(mean, cov, frame.gnss_z[rows], frame.gnss_R[rows], fixed)
+                if self.fusion is not None and carried.size:
+                    seen = self._seen.get(r, set())
+                    dependent = [i for i in new if ids[i] in seen]
+                    if dependent:
+                        cov = ci_reentry(cov, d, carried, dependent)
+                        self.stats["ci_reentries"] = self.stats.get("ci_reentries", 0) + len(dependent)
+        if self.model is None:
+            mean, cov = joint_predict(mean, cov, frame.accel[rows], frame.dt, self.params.motion, moving)
+            mean, cov = joint_labelled_update(mean, cov, frame.gnss_z[rows], frame.gnss_R[rows], fixed)
+        else:
+            r_pos = np.asarray(frame.gnss_R, dtype=float)[rows, :2, :2]
+            mean, cov = joint_predict_bias(mean, cov, np.asarray(frame.accel, dtype=float)[rows], r_pos, frame.dt,
+                                           self.params.motion, self.model, moving)
+            ex = self.gnss.last_excluded
+            pos_ok = np.ones(n, dtype=bool) if ex is None else ~np.asarray(ex, bool)[rows]
+            mean, cov = joint_fix_update_bias(mean, cov, frame.gnss_z[rows], frame.gnss_R[rows],
+                                              self.model.bias_share, fixed, pos_ok)
         if n >= 2:
             pts = infra.radar_z[infra.radar_owner == r]
             if pts.shape[0] == n:
-                mean, cov = topology_update(mean, cov, pts, infra.radar_var)
+                mean, cov = topology_update(mean, cov, pts, infra.radar_var, d)
                 self.stats["topology_updates"] += 1
+                if self.fusion is not None:
+                    self._seen.setdefault(r, set()).update(ids)
             else:
                 self.stats["topology_skipped"] += 1
         self._state[r] = (ids, mean, cov)
-        m = mean.reshape(n, 4)
-        c = np.stack([cov[4 * i:4 * i + 4, 4 * i:4 * i + 4] for i in range(n)])
+        m = mean.reshape(n, d)[:, :4]
+        c = np.stack([cov[d * i:d * i + 4, d * i:d * i + 4] for i in range(n)])
         return rows, m.copy(), c
 
 

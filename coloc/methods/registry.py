@@ -143,7 +143,7 @@ def _rsu_bp(p: MethodParams):
 def _sme(p: MethodParams):
     from coloc.methods.infra import SmeInfra
 
-    return SmeInfra(_infra_params(p))
+    return SmeInfra(_infra_params(p), gnss_model=p.gnss_model, fusion=p.fusion)
 
 
 def _fg_topology_new(p: MethodParams):
