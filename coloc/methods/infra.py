@@ -74,6 +74,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from coloc.core.detections import with_net_detections
 from coloc.core.frame import Frame, StepEstimate
@@ -448,8 +449,11 @@ class RsuBpInfra(_InfraBase):
 
     name = RSU_BP.name
 
-    def __init__(self, params: InfraMethodParams):
-        super().__init__(params)
+    def __init__(self, params: InfraMethodParams, fusion=None):
+        # [fusion] (coloc.methods.coop_fusion.CoopFusion): the own track is the 6-D filter of its receiver model.
+        super().__init__(params, None if fusion is None else fusion.model)
+        self.fusion = fusion
+        self._split: dict[int, dict] = {}  # [fusion]: r -> id -> (mean, cov, independent part, streak), 6-D
         self.bp = RsuBpParams(n_particles=params.rsu_bp_particles)
         self.rng = np.random.default_rng(np.random.SeedSequence([int(params.seed), 0x25B]))
         self._veh: dict[int, dict[str, np.ndarray]] = {}  # r -> id -> particles (Np, 4)
@@ -463,6 +467,8 @@ class RsuBpInfra(_InfraBase):
         return {"assign": np.full(o, -1, dtype=np.int64), "fm": [], "fc": [], "fid": []}
 
     def _rsu_step(self, frame, r, rows, prev, fallback):
+        if self.fusion is not None:
+            return self._rsu_step_fused(frame, r, rows, prev)
         p = self.params
         infra = frame.infra
         store = self._veh.setdefault(r, {})
@@ -514,7 +520,84 @@ class RsuBpInfra(_InfraBase):
         informed = visible.any(axis=1) & (np.bincount(owner, minlength=rows.size) > 0)
         vmean_out = np.where(informed[:, None], res.vehicle_mean, m)
         vcov_out = np.where(informed[:, None, None], res.vehicle_cov, c)
-        # Association output and feature upkeep.
+        self._upkeep(frame, r, feats, res, fs, owner, vz, vr, sel, vmean_out, vcov_out)
+        self._veh[r] = {vid: (vmean_out[a], vcov_out[a]) for a, vid in enumerate(ids)}
+        return rows, vmean_out, vcov_out
+
+    def _rsu_step_fused(self, frame, r, rows, prev):
+        """The step under ``[fusion]``, by the rule of :mod:`coloc.methods.pf_fusion`: per vehicle at the RSU the
+        cooperative 6-D belief with its independent part (:mod:`coloc.methods.coop_fusion`; an entering vehicle
+        from its own track's predicted belief, :meth:`_start_beliefs6`), predicted and updated by the fix; the
+        particle step (association, feature clouds) runs on draws from the vehicles' own tracks, so the
+        clouds hold own-sensor messages only; the belief is b^(0) fused by split CI with the evidence of this
+        step's other observers of the tracks its rows were paired with (the row's most probable existing
+        track), the tracks' earlier content left out (:func:`coloc.methods.pf_fusion.track_prior_information`)."""
+        from coloc.inference.params import IcpParams
+        from coloc.methods.coop_fusion import SplitPrior, _gnss6, split_localization
+        from coloc.methods.pf_fusion import track_prior_information
+
+        p, fu, model = self.params, self.fusion.params, self.model
+        infra = frame.infra
+        feats = self._feat.get(r)
+        if feats is None:
+            feats = _RsuFeatures(np.empty((0, self.bp.n_particles, 4)), np.empty(0, dtype=np.int64), np.empty(0))
+        if rows.size == 0:
+            self._split[r] = {}
+            self._feat[r] = self._drop_features(feats, frame, r)
+            return None
+        store = self._split.get(r, {})
+        ids = frame.vehicle_ids[rows]
+        n = rows.size
+        entered = np.asarray(frame.entered[rows], bool)
+        old = np.array([(vid in store) and not entered[a] for a, vid in enumerate(ids)], dtype=bool)
+        m, c, ci = np.zeros((n, 6)), np.zeros((n, 6, 6)), np.zeros((n, 6, 6))
+        streak = np.zeros(n, dtype=np.int64)
+        for a in np.flatnonzero(old):
+            m[a], c[a], ci[a], streak[a] = store[ids[a]]
+        held = np.zeros(n, dtype=bool)
+        if (~old).any():
+            m[~old], c[~old], held[~old] = self._start_beliefs6(frame, rows[~old], prev)
+            ci[~old] = 0.0 if fu.common_mode_gnss else c[~old]  # the own receiver's (dependent if shared)
+        m1, c1, ci1, ex = _gnss6(m, c, ci, np.asarray(frame.accel, float)[rows], frame.gnss_z[rows], frame.gnss_R[rows],
+                                 old, float(frame.dt), p.motion, model, streak, fu.common_mode_gnss)
+        m1[held], c1[held], ci1[held] = m[held], c[held], ci[held]  # a prior that is the step's fix: not again
+        own_m, own_c = self.gnss._mean[rows], self.gnss._cov[rows]  # own tracks at t (after their fixes)
+        z = self.rng.standard_normal((n, self.bp.n_particles, 4))
+        chol = np.linalg.cholesky(own_c[:, :4, :4] + 1e-12 * np.eye(4))
+        xs = own_m[:, None, :4] + np.einsum("sij,spj->spi", chol, z)
+        fs = feats.particles.copy()
+        if fs.shape[0]:
+            fs[:, :, :2] += p.feature_walk_sigma * self.rng.standard_normal(fs[:, :, :2].shape)
+        local = np.full(frame.n_vehicles, -1, dtype=np.int64)
+        local[rows] = np.arange(n)
+        sel = np.flatnonzero(local[frame.v2f_owner] >= 0) if frame.v2f_owner.size else np.empty(0, dtype=np.int64)
+        owner = local[frame.v2f_owner[sel]]
+        vz, vr = frame.v2f_z[sel, :2], frame.v2f_R[sel, :2, :2]
+        vmean = xs[:, :, :2].mean(axis=1)
+        fmean0 = fs[:, :, :2].mean(axis=1) if fs.shape[0] else np.empty((0, 2))
+        d = np.hypot(*(vmean[:, None, :] - fmean0[None, :, :]).transpose(2, 0, 1)) if fs.shape[0] else np.empty((n, 0))
+        visible = d <= p.v2f_range_m + p.visibility_margin_m
+        res = rsu_bp_step_open(xs, fs, None, None, vz, vr, owner, visible,
+                               p.detection_prob, 1.0 / (np.pi * p.v2f_range_m**2), self.bp, self.rng)
+        k = fs.shape[0]
+        assoc = res.v2f_association
+        best = assoc.argmax(axis=1) if assoc.shape[0] else np.empty(0, dtype=np.int64)
+        row_track = np.where(best < k, feats.track_ids[np.minimum(best, max(k - 1, 0))] if k else -1, -1)
+        icp = IcpParams(motion=p.motion)
+        fids = np.unique(row_track[row_track >= 0])
+        lam0, eta0 = track_prior_information(fids, icp)
+        adjacency = sp.csr_matrix(~np.eye(n, dtype=bool))  # every vehicle in range talks to the RSU
+        prior = SplitPrior(m1, c1, ci1, np.where(ex, streak + 1, 0), own_m, own_c, np.zeros(n, dtype=np.int64))
+        out, split = split_localization(prior, owner, row_track, frame.v2f_z[sel], frame.v2f_R[sel], adjacency,
+                                        lam0, eta0, icp, feature_ci=fu.feature_ci)
+        vmean_out, vcov_out = out.mean, out.cov
+        self._upkeep(frame, r, feats, res, fs, owner, vz, vr, sel, vmean_out, vcov_out)
+        self._split[r] = {vid: (split.mean[a], split.cov[a], split.ind[a], split.streak[a]) for a, vid in enumerate(ids)}
+        return rows, vmean_out, vcov_out
+
+    def _upkeep(self, frame, r, feats, res, fs, owner, vz, vr, sel, vmean_out, vcov_out):
+        """Association output and feature upkeep (births from ``vmean_out`` / ``vcov_out``, drops)."""
+        p = self.params
         assoc = res.v2f_association  # (O_r, K + 1)
         k = fs.shape[0]
         last_hit = feats.last_hit.copy()
@@ -556,8 +639,6 @@ class RsuBpInfra(_InfraBase):
             extra["fm"].append(f.particles.mean(axis=1))
             extra["fc"].append(np.stack([np.cov(x.T) for x in f.particles]))
             extra["fid"].append(f.track_ids)
-        self._veh[r] = {vid: (vmean_out[a], vcov_out[a]) for a, vid in enumerate(ids)}
-        return rows, vmean_out, vcov_out
 
     def _drop_features(self, f: _RsuFeatures, frame, r) -> _RsuFeatures:
         if f.track_ids.size == 0:

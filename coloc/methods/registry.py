@@ -137,7 +137,7 @@ def _infra_params(p: MethodParams) -> InfraMethodParams:
 def _rsu_bp(p: MethodParams):
     from coloc.methods.infra import RsuBpInfra
 
-    return RsuBpInfra(_infra_params(p))
+    return RsuBpInfra(_infra_params(p), fusion=p.fusion)
 
 
 def _sme(p: MethodParams):
