@@ -67,6 +67,21 @@ Per-method decisions (the papers describe a fixed set of vehicles):
   (VSR), which (11) alone skipped. Velocity is not in the graph: the reported velocity is the
   tracker's, and so is the reported covariance (the batch fixed-lag smoother does not expose
   marginals cheaply; the scores use the means only).
+
+Receiver model and consistent fusion (opt-in; docs/validation/consistency.md, "Infrastructure methods"):
+
+* ``[gnss_model]`` (``fg_topology_new``, ``sme``): the internal tracker is the bias-state tracker of
+  :mod:`coloc.methods.gnss_bias` and an entering vehicle starts from its 6-D belief
+  (:meth:`_InfraBase._start_beliefs6`). ``sme`` carries [p, v, b] blocks in the joint EKF
+  (:func:`joint_predict_bias`, :func:`joint_fix_update_bias`); ``fg_topology_new`` the bias as a
+  Gauss-Markov chain of factors (:mod:`coloc.methods.fg_bias`) and reports the smoother's position
+  marginal. A fix the vehicle's own tracker excluded (its chi-square rule) is not used.
+* ``[fusion]`` in ``sme``: a vehicle whose earlier information a topology update of this RSU spread into
+  the others' states re-enters with its tracker's belief, correlated with theirs by an unknown amount:
+  covariance intersection of the carried block and the re-entering beliefs (:func:`ci_reentry`). A
+  vehicle never in the set enters exactly (zero cross-covariance).
+* ``[fusion]`` in ``rsu_bp``: the rule of :mod:`coloc.methods.pf_fusion` at the RSU
+  (:meth:`RsuBpInfra._rsu_step_fused`).
 """
 
 from __future__ import annotations
