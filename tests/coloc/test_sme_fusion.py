@@ -40,41 +40,61 @@ def flicker_frames(seed: int, n_veh: int, n_steps: int, p_in: float, gnss_sigma:
 
 
 class CentralizedEkf:
-    """Every vehicle's [p, v] in one state, every fix, the RSU's topology measurement (10) on the vehicles in
-    its set, linearized at this filter's own prediction: the joint information the RSU could have had."""
+    """Every vehicle's [p, v] (with ``model``: [p, v, b], the receiver's Gauss-Markov bias) in one state, every
+    fix, the RSU's topology measurement (10) on the vehicles in its set, linearized at this filter's own
+    prediction: the joint information the RSU could have had."""
 
-    def __init__(self):
+    def __init__(self, model: GnssModelParams | None = None):
+        self.model = model
+        self.d = 4 if model is None else 6
         self.mean = self.cov = None
 
     def step(self, f):
-        n = f.n_vehicles
+        n, d = f.n_vehicles, self.d
+        s = 0.0 if self.model is None else self.model.bias_share
+        r_pos = np.asarray(f.gnss_R, float)[:, :2, :2]
         if self.mean is None:
-            m, c = f.prior_z.copy(), np.array(f.prior_R, float)
-            self.mean, self.cov = m.reshape(-1), np.zeros((4 * n, 4 * n))
+            self.mean, self.cov = np.zeros(d * n), np.zeros((d * n, d * n))
             for i in range(n):
-                self.cov[4 * i:4 * i + 4, 4 * i:4 * i + 4] = c[i]
+                self.mean[d * i:d * i + 4] = f.prior_z[i]
+                self.cov[d * i:d * i + 4, d * i:d * i + 4] = f.prior_R[i]
+                if d == 6:
+                    self.cov[6 * i + 4:6 * i + 6, 6 * i + 4:6 * i + 6] = s * r_pos[i]
         else:
-            x = self.mean.reshape(n, 4)
-            q = driving_noise_cov(x[:, 2:], f.dt, MOTION)
-            a = np.eye(4)
+            x = self.mean.reshape(n, d)
+            q = driving_noise_cov(x[:, 2:4], f.dt, MOTION)
+            a = np.eye(d)
             a[0, 2] = a[1, 3] = f.dt
-            big_a, big_q = np.kron(np.eye(n), a), np.zeros((4 * n, 4 * n))
+            decay = 1.0 if d == 4 else np.exp(-f.dt / self.model.bias_tau_s)
+            if d == 6:
+                a[4, 4] = a[5, 5] = decay
+            big_a, big_q = np.kron(np.eye(n), a), np.zeros((d * n, d * n))
             for i in range(n):
-                big_q[4 * i:4 * i + 4, 4 * i:4 * i + 4] = q[i]
-            xm, _ = predict(x, np.zeros((n, 4, 4)), f.accel, f.dt, q)
-            self.mean, self.cov = xm.reshape(-1), big_a @ self.cov @ big_a.T + big_q
-        r = np.zeros((4 * n, 4 * n))
+                big_q[d * i:d * i + 4, d * i:d * i + 4] = q[i]
+                if d == 6:
+                    big_q[6 * i + 4:6 * i + 6, 6 * i + 4:6 * i + 6] = (1 - decay**2) * s * r_pos[i]
+            xm, _ = predict(x[:, :4], np.zeros((n, 4, 4)), f.accel, f.dt, q)
+            x = x.copy()
+            x[:, :4] = xm
+            if d == 6:
+                x[:, 4:] *= decay
+            self.mean, self.cov = x.reshape(-1), big_a @ self.cov @ big_a.T + big_q
+        h, r = np.zeros((4 * n, d * n)), np.zeros((4 * n, 4 * n))
         for i in range(n):
+            h[4 * i:4 * i + 4, d * i:d * i + 4] = np.eye(4)
+            if d == 6:
+                h[4 * i:4 * i + 2, 6 * i + 4:6 * i + 6] = np.eye(2)
             r[4 * i:4 * i + 4, 4 * i:4 * i + 4] = f.gnss_R[i]
-        self._update(np.eye(4 * n), f.gnss_z.reshape(-1), r)
+            r[4 * i:4 * i + 2, 4 * i:4 * i + 2] *= 1 - s
+        self._update(h, f.gnss_z.reshape(-1), r)
         inside = np.flatnonzero(f.infra.v2i.toarray()[0])
         if inside.size >= 2 and f.infra.radar_z.shape[0] == inside.size:
-            pos = self.mean.reshape(n, 4)[inside, :2]
+            pos = self.mean.reshape(n, d)[inside, :2]
             y = float(sum_sq_pairwise(f.infra.radar_z)) - topology_bias(inside.size, f.infra.radar_var)
             h0 = float(sum_sq_pairwise(pos))
-            jac = np.zeros((1, 4 * n))
+            jac = np.zeros((1, d * n))
             g = sum_sq_pairwise_grad(pos)
-            jac[0, 4 * inside], jac[0, 4 * inside + 1] = g[:, 0], g[:, 1]
+            jac[0, d * inside], jac[0, d * inside + 1] = g[:, 0], g[:, 1]
             rt = np.array([[topology_variance(h0, inside.size, f.infra.radar_var)]])
             self._update(jac, np.array([y - h0]) + jac @ self.mean, rt)
 
@@ -87,16 +107,17 @@ class CentralizedEkf:
         self.cov = 0.5 * (self.cov + self.cov.T)
 
 
-def _min_gap(est, frames) -> tuple[float, int]:
+def _min_gap(est, frames, model=None) -> tuple[float, int]:
     """Smallest eigenvalue over steps and covered vehicles of P_est,pos - P_central,pos, relative to the
     central one's trace, and the number of comparisons."""
-    ref = CentralizedEkf()
+    ref = CentralizedEkf(model)
+    d = ref.d
     worst, count = np.inf, 0
     for f in frames:
         out = est.step(f.without_truth())
         ref.step(f)
         for i in np.flatnonzero(out.covered):
-            pc = ref.cov[4 * i:4 * i + 2, 4 * i:4 * i + 2]
+            pc = ref.cov[d * i:d * i + 2, d * i:d * i + 2]
             gap = np.linalg.eigvalsh(out.cov[i, :2, :2] - pc)[0] / np.trace(pc)
             worst, count = min(worst, gap), count + 1
     return worst, count
@@ -153,3 +174,19 @@ def test_bias_model_and_fusion_off_is_the_paper_sme():
     for f in frames:
         x, y = a.step(f.without_truth()), b.step(f.without_truth())
         assert x.mean.tobytes() == y.mean.tobytes() and x.cov.tobytes() == y.cov.tobytes()
+
+
+def test_reentry_ci_with_the_bias_model_is_never_below_the_centralized_joint_ekf():
+    """As above with [gnss_model] (s = 0.8, tau = 60 s, no gate) in both the sme and the centralized EKF, on 6
+    of the scenes (measured: fused worst -7e-5 of the trace; paper below by more than 1e-2 on 5 of 6, down
+    to -0.156)."""
+    model = GnssModelParams(innovation_gate=0.0)
+    below = 0
+    for seed, n_veh, p_in, sigma in SCENES[:6]:
+        frames = flicker_frames(seed, n_veh, 25, p_in, sigma)
+        fused, count = _min_gap(_sme(True, model), frames, model)
+        paper, _ = _min_gap(_sme(False, model), frames, model)
+        assert count > 20
+        assert fused >= -5e-3, (seed, fused)
+        below += paper < -1e-2
+    assert below >= 4
