@@ -230,11 +230,12 @@ class Config:
     # [estimator_sensors], optional: the estimators' own sensor model (experiments.estimator_sensors); not
     # handed to the coupler.
     estimator_sensors: EstimatorSensors | None = None
-    # [gnss_model], optional: the integrator's receiver error model for the gnss method
+    # [gnss_model], optional: the integrator's receiver error model for the gnss method (and fg_topology_new, sme)
     # (coloc.methods.gnss_bias); never read from [gnss_error], the world's table.
     gnss_model: GnssModelParams | None = None
-    # [fusion], optional: consistent (split covariance intersection) fusion in icp_known_da, icp_da_lc and
-    # icp_da_pf, with [gnss_model]'s receiver model (coloc.methods.coop_fusion, coloc.methods.pf_fusion).
+    # [fusion], optional: consistent (split covariance intersection) fusion in icp_known_da, icp_da_lc,
+    # icp_da_pf and rsu_bp, with [gnss_model]'s receiver model (coloc.methods.coop_fusion, coloc.methods.pf_fusion);
+    # in sme, covariance intersection for a re-entering vehicle (coloc.methods.infra).
     fusion: FusionParams | None = None
     # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
     analysis: AnalysisSection | None = None

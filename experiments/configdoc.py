@@ -124,8 +124,10 @@ TABLE_DOCS: dict[str, str] = {
                   "takes `bias_share` of the receiver's reported position variance (`frame.gnss_R`, per step and "
                   "vehicle), and a chi-square gate that excludes the position of a fix whose position innovation "
                   "is improbable. Never read from `[gnss_error]` (the world's table): its values are what an "
-                  "integrator would assume. Reports and NEES use the 4-D kinematic marginal. Absent: the white "
-                  "tracker of the paper, exactly as before.",
+                  "integrator would assume. Reports and NEES use the 4-D kinematic marginal. The infrastructure "
+                  "methods `fg_topology_new` (the bias as a Gauss-Markov chain of factors, `coloc/methods/fg_bias.py`) "
+                  "and `sme` (a bias block per vehicle in the joint EKF) take it too, and their internal tracker is "
+                  "then this one. Absent: the white tracker of the paper, exactly as before.",
     "fusion": "Consistent cooperative fusion (optional table; `coloc/inference/split_ci.py`, "
               "`coloc/methods/coop_fusion.py`): `icp_known_da` and `icp_da_lc` exchange only their own-sensor "
               "messages and fuse the feature evidence by split covariance intersection (the step's V2F noise "
@@ -133,8 +135,10 @@ TABLE_DOCS: dict[str, str] = {
               "ICP-DA-LC's association, births and existence then gate on that covariance. With `bias_state` "
               "they also carry `[gnss_model]`'s receiver model. `icp_da_pf` (and `icp_known_da_pf`) localize "
               "their vehicles the same way, on 6-D split filters, and keep their particles for the association "
-              "and the feature tracks (`coloc/methods/pf_fusion.py`). Absent: the paper's Gaussian BPA-L and "
-              "particle BPA-L, exactly as before.",
+              "and the feature tracks (`coloc/methods/pf_fusion.py`); `rsu_bp` does so at its RSUs. `sme` "
+              "takes a vehicle that re-enters an RSU's joint state by covariance intersection "
+              "(`coloc/methods/infra.py`). Absent: the paper's Gaussian BPA-L and particle BPA-L, and the "
+              "paper's `rsu_bp` and `sme`, exactly as before.",
     "infra": "Infrastructure mode (optional table, SUMO only): road-side units at junctions of the net, "
              "their radar and the settings of the infrastructure methods "
              f"({', '.join(f'`{m}`' for m in INFRA_METHODS)}), which need this table. A config without it "

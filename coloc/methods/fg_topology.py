@@ -64,6 +64,8 @@ from coloc.inference.topology import (
     topology_pseudo_measurement,
     topology_variance_eq16_literal,
 )
+from coloc.methods.fg_bias import chain_factor, fix_factor, start_factor
+from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.infra import InfraMethodParams, _InfraBase
 from coloc.methods.registry import FG_TOPOLOGY_NEW
 
@@ -263,8 +265,8 @@ class FgTopologyInfra(_InfraBase):
 
     name = FG_TOPOLOGY_NEW.name
 
-    def __init__(self, params: InfraMethodParams):
-        super().__init__(params)
+    def __init__(self, params: InfraMethodParams, gnss_model: GnssModelParams | None = None):
+        super().__init__(params, gnss_model)
         import gtsam  # only this method needs it
 
         self._gtsam = gtsam
@@ -273,6 +275,7 @@ class FgTopologyInfra(_InfraBase):
                       "topology_skipped": 0}
         self._smoother: dict[int, object] = {}
         self._keys: dict[int, dict[str, int]] = {}  # r -> vehicle id -> key of its state at the last step
+        self._bias_keys: dict[int, dict[str, int]] = {}  # [gnss_model]: r -> vehicle id -> key of its bias
         self._next_key = 0
 
     def _new_smoother(self, dt):
@@ -282,6 +285,8 @@ class FgTopologyInfra(_InfraBase):
         return gtsam.BatchFixedLagSmoother(float(self.params.fg_window_steps * dt), lm)
 
     def _rsu_step(self, frame, r, rows, prev, fallback):
+        if self.model is not None:
+            return self._rsu_step_bias(frame, r, rows, prev, fallback)
         gtsam = self._gtsam
         infra = frame.infra
         keys_prev = self._keys.get(r, {})
@@ -360,6 +365,107 @@ class FgTopologyInfra(_InfraBase):
         for a, vid in enumerate(ids):
             key = keys_now[vid]
             m[a, :2] = result.atPoint2(key)
+        return rows, m, c
+
+    def _rsu_step_bias(self, frame, r, rows, prev, fallback):
+        """The step under ``[gnss_model]``: the factors of :meth:`_rsu_step` with the receiver bias as a
+        per-vehicle Gauss-Markov chain (:mod:`coloc.methods.fg_bias`); the start belief is the bias
+        tracker's joint (p, b). A fix the vehicle's own tracker excluded (its chi-square rule,
+        :mod:`coloc.methods.gnss_bias`) is not a factor. The reported position covariance is the
+        smoother's marginal (gtsam.Marginals on its window); velocity as the tracker's, Cov(p, v) = 0."""
+        gtsam = self._gtsam
+        infra = frame.infra
+        share = self.model.bias_share
+        biased = share > 0.0
+        decay = float(np.exp(-frame.dt / self.model.bias_tau_s))
+        keys_prev = self._keys.get(r, {})
+        bkeys_prev = self._bias_keys.get(r, {})
+        if rows.size == 0:
+            self._keys[r], self._bias_keys[r] = {}, {}
+            return None
+        if r not in self._smoother:
+            self._smoother[r] = self._new_smoother(frame.dt)
+        smoother = self._smoother[r]
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        stamps = {}
+        ids = frame.vehicle_ids[rows]
+        entered = np.asarray(frame.entered[rows], bool)
+        odom = infra.odom[rows]
+        excluded = self.gnss.last_excluded
+        excluded = np.zeros(frame.n_vehicles, bool) if excluded is None else np.asarray(excluded, bool)
+        keys_now, bkeys_now = {}, {}
+        new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
+        start_m, start_c, held = (self._start_beliefs6(frame, rows[new_rows], prev) if new_rows
+                                  else (np.empty((0, 6)), np.empty((0, 6, 6)), np.empty(0, dtype=bool)))
+        start = {a: b for b, a in enumerate(new_rows)}
+        for a, vid in enumerate(ids):
+            key, bkey = self._next_key, self._next_key + 1
+            self._next_key += 2 if biased else 1
+            keys_now[vid] = key
+            z = frame.gnss_z[rows[a], :2]
+            rz = np.asarray(frame.gnss_R[rows[a], :2, :2], float)
+            own_fix = not (a in start and held[start[a]]) and not excluded[rows[a]]
+            if biased:
+                bkeys_now[vid] = bkey
+                if own_fix:
+                    graph.add(fix_factor(gtsam, key, bkey, z, rz, share))
+            elif own_fix:
+                graph.add(gtsam.PriorFactorPoint2(key, z, gtsam.noiseModel.Gaussian.Covariance(rz)))
+            if a in start:
+                b = start[a]
+                if biased:
+                    graph.add(start_factor(gtsam, key, bkey, start_m[b], start_c[b]))
+                    values.insert(bkey, np.asarray(start_m[b, 4:], float))
+                    stamps[bkey] = float(frame.t)
+                else:
+                    graph.add(gtsam.PriorFactorPoint2(key, start_m[b, :2],
+                                                      gtsam.noiseModel.Gaussian.Covariance(start_c[b, :2, :2])))
+                init = start_m[b, :2]
+            else:
+                kp = keys_prev[vid]
+                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
+                graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
+                                                    gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
+                init = self._estimate_point(smoother, kp) + d
+                if biased:
+                    kb = bkeys_prev[vid]
+                    graph.add(chain_factor(gtsam, kb, bkey, decay, rz, share))
+                    values.insert(bkey, decay * self._estimate_point(smoother, kb))
+                    stamps[bkey] = float(frame.t)
+            values.insert(key, np.asarray(init, float))
+            stamps[key] = float(frame.t)
+        n = rows.size
+        if n >= 2:  # the topology factor of step t, as in _rsu_step
+            pts = infra.radar_z[infra.radar_owner == r]
+            if pts.shape[0] != n:
+                self.stats["topology_skipped"] += 1
+            else:
+                z2, var = topology_pseudo_measurement(pts, infra.radar_var)
+                noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
+                if not new_rows and np.all(np.isfinite(odom)):
+                    kp = [keys_prev[vid] for vid in ids]
+                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
+                    self.stats["topology_updates_new"] += 1
+                else:
+                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
+                    self.stats["topology_updates_old"] += 1
+                self.stats["topology_updates"] += 1
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for k, t in stamps.items():
+            ts.insert((k, t))
+        smoother.update(graph, values, ts)
+        self._keys[r], self._bias_keys[r] = keys_now, bkeys_now
+        result = smoother.calculateEstimate()
+        marginals = gtsam.Marginals(smoother.getFactors(), result)
+        m = fallback.mean[rows].copy()
+        c = fallback.cov[rows].copy()
+        for a, vid in enumerate(ids):
+            key = keys_now[vid]
+            m[a, :2] = result.atPoint2(key)
+            c[a, :2, :2] = marginals.marginalCovariance(key)
+            c[a, :2, 2:] = 0.0
+            c[a, 2:, :2] = 0.0
         return rows, m, c
 
     @staticmethod

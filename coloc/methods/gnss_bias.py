@@ -327,3 +327,22 @@ class GnssBiasTracker:
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)
         return StepEstimate(mean=mean[:, :4].copy(), cov=cov[:, :4, :4].copy())
+
+
+def bias_predict(mean, cov, accel, r_pos, dt, motion: MotionParams, model: GnssModelParams):
+    """The prediction of :func:`bias_predict_update` alone, for a batch of 6-D states (N, 6), (N, 6, 6):
+    model (1) on [p, v] (velocity-oriented driving noise) and ``b' = a b + w_b``, ``Var(w_b) = (1 - a^2) s
+    R_pos`` with ``R_pos`` (N, 2, 2) the reported position covariance. Returns new (mean, cov)."""
+    n = mean.shape[0]
+    a = math.exp(-dt / model.bias_tau_s)
+    f = np.eye(6)
+    f[0, 2] = f[1, 3] = dt
+    f[4, 4] = f[5, 5] = a
+    q = np.zeros((n, 6, 6))
+    q[:, :4, :4] = driving_noise_cov(mean[:, 2:4], dt, motion)
+    q[:, 4:, 4:] = (1.0 - a * a) * model.bias_share * np.asarray(r_pos, dtype=float)
+    m = mean @ f.T
+    m[:, 0:2] += 0.5 * dt * dt * accel
+    m[:, 2:4] += dt * accel
+    p = f @ cov @ f.T + q
+    return m, 0.5 * (p + np.swapaxes(p, -1, -2))

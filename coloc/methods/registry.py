@@ -137,19 +137,19 @@ def _infra_params(p: MethodParams) -> InfraMethodParams:
 def _rsu_bp(p: MethodParams):
     from coloc.methods.infra import RsuBpInfra
 
-    return RsuBpInfra(_infra_params(p))
+    return RsuBpInfra(_infra_params(p), fusion=p.fusion)
 
 
 def _sme(p: MethodParams):
     from coloc.methods.infra import SmeInfra
 
-    return SmeInfra(_infra_params(p))
+    return SmeInfra(_infra_params(p), gnss_model=p.gnss_model, fusion=p.fusion)
 
 
 def _fg_topology_new(p: MethodParams):
     from coloc.methods.fg_topology import FgTopologyInfra
 
-    return FgTopologyInfra(_infra_params(p))
+    return FgTopologyInfra(_infra_params(p), gnss_model=p.gnss_model)
 
 
 GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True, cost=0.1)

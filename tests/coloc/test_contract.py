@@ -36,7 +36,12 @@ from scenes import infra_frames, road_frames, scrambled, select_vehicles
 # ``X+fusion``: X with [fusion] (coloc.methods.coop_fusion, white receiver); ``X+fusion+gnss_model``: with both tables.
 FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf")
          for tail in ("", "+gnss_model")]
-RUNNABLE = [m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"] + FUSED
+# Infrastructure methods with the receiver model (fg_topology_new, sme), sme with [fusion] (re-entry CI) and
+# rsu_bp with [fusion] (the PF rule of coloc.methods.pf_fusion).
+INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", "sme+fusion+gnss_model",
+                  "rsu_bp+fusion", "rsu_bp+fusion+gnss_model"]
+RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"] + FUSED
+            + INFRA_VARIANTS)
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, accel_turn_on_sigma=0.196,
                            accel_bias_sigma=0.0735, accel_noise_density=0.004, front_lever_m=2.25)
