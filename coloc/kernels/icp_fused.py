@@ -36,7 +36,7 @@ from coloc.kernels.track_index import candidate_tracks
 FUSED = True
 
 #: Relative margin of the gate bound of :func:`association_terms_kernel`: a pair is left unsolved only if
-#: |nu|^2 > gate * tr S * (1 + margin). The computed d2 of such a pair is above the gate too unless its
+#: |nu_b|^2 > gate * tr S_bb * (1 + margin) for a block b. The computed d2 of such a pair is above the gate too unless its
 #: relative rounding error exceeds the margin (that takes a condition number of S near 1e10; the
 #: covariances here span position and velocity variances within about 1e6).
 GATE_PRUNE_MARGIN = 1e-6
@@ -56,9 +56,12 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
     not all of them: on a city the vehicles x tracks test grew with the square of the vehicles.
     ``gate``: the log-likelihood of a pair with d2 > gate is not computed (0 is returned; the
     caller gives such a pair weight 0 whatever it is); ``inf``: every pair's. A pair that the
-    bound d2 >= |nu|^2 / tr S (tr S >= the largest eigenvalue of S) puts beyond the gate by
-    :data:`GATE_PRUNE_MARGIN` is not solved at all: log N = 0 and d2 = inf (on a city under clutter
-    most (track, row) pairs of a vehicle are such pairs).
+    bound d2 >= |nu_b|^2 / tr S_bb puts beyond the gate by :data:`GATE_PRUNE_MARGIN` is not solved
+    at all: log N = 0 and d2 = inf (on a city under clutter most (track, row) pairs of a vehicle are
+    such pairs). b is the position or the velocity block: the squared Mahalanobis distance of a
+    block (its marginal) is at most d2 (Schur complement), and tr S_bb >= the block's largest
+    eigenvalue. Per block, as the velocity variances (hundreds of m^2/s^2 on a city) would
+    otherwise loosen the bound on the positions.
     Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
     n = v_mean.shape[0]
     start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
@@ -83,12 +86,17 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
                 q = rows[a]
                 pv[p], pt[p], pr[p] = i, k, q
                 if prune:
-                    nn, tr = 0.0, 0.0
-                    for c in range(4):
-                        x = z[q, c] - (t_mean[k, c] - v_mean[i, c])
-                        nn += x * x
-                        tr += (t_cov[k, c, c] + v_cov[i, c, c]) + r[q, c, c]
-                    if nn > bound * tr:  # False with NaN: solved as before
+                    # per block (position, velocity): d2 >= the block's own d2 >= |nu_b|^2 / tr S_bb
+                    cut = False
+                    for blk in range(2):
+                        nn, tr = 0.0, 0.0
+                        for c in range(2 * blk, 2 * blk + 2):
+                            x = z[q, c] - (t_mean[k, c] - v_mean[i, c])
+                            nn += x * x
+                            tr += (t_cov[k, c, c] + v_cov[i, c, c]) + r[q, c, c]
+                        if nn > bound * tr:  # False with NaN: solved as before
+                            cut = True
+                    if cut:
                         solve[p] = False
                         p += 1
                         continue
