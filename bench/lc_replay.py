@@ -20,7 +20,8 @@ doubled Berlin at 5000 trips per hour with its import's ``city_tlr_realistic.tom
 city / arterial 1.58x before, 1.41x after (both runs), with the same estimate hashes before and after. The
 same Berlin at 2500 trips per hour (174 vehicles, 20 tracks per vehicle): 634.0 us after, 1.90-1.98x. With the gate
 bound per block as well (one later run of each, load 4-8): arterial 285.4 us, the 364-vehicle city 299.8 us (1.05x),
-the 174-vehicle city 413.8 us (1.45x), same hashes.
+the 174-vehicle city 413.8 us (1.45x); a second run (load 1-3): arterial 222.9 us, the 174-vehicle city 343.7 us
+(1.54x), the 364-vehicle city 268.8 us (1.21x); same hashes.
 """
 
 from __future__ import annotations
