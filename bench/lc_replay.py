@@ -13,6 +13,15 @@ mean vehicles in the net, V2F rows per vehicle-step, the tracks at the end and a
 
 Run ``run`` from each checkout to compare (it imports the checkout it is run from). The frames of a
 300-vehicle city take about 0.5 MB each. Not a test.
+
+Measured (seed 1, CPU per vehicle-step of the steps from t = 300 to 420 s, warm-up 300 s on both nets, docs/performance.md
+"Cities within 1.5x the arterial"): the arterial's realistic preset (152.5 vehicles) 326.9 us before, 320.8 / 333.6 after (two runs); the
+doubled Berlin at 5000 trips per hour with its import's ``city_tlr_realistic.toml`` (363.9 vehicles) 517.0 us before, 452.3 / 470.8 after;
+city / arterial 1.58x before, 1.41x after (both runs), with the same estimate hashes before and after. The
+same Berlin at 2500 trips per hour (174 vehicles, 20 tracks per vehicle): 634.0 us after, 1.90-1.98x. With the gate
+bound per block as well (one later run of each, load 4-8): arterial 285.4 us, the 364-vehicle city 299.8 us (1.05x),
+the 174-vehicle city 413.8 us (1.45x); a second run (load 1-3): arterial 222.9 us, the 174-vehicle city 343.7 us
+(1.54x), the 364-vehicle city 268.8 us (1.21x); same hashes.
 """
 
 from __future__ import annotations

@@ -30,12 +30,13 @@ from numba import njit
 from coloc.kernels.bpa_rows import cholesky4_soa, information_rows, predict_no_input_rows
 from coloc.kernels.icp import log_gauss_kernel, rows_by_key
 from coloc.kernels.kalman import gnss_step_rows
+from coloc.kernels.track_index import candidate_tracks
 
 #: Run the fused kernels (False: the batched numpy reference at every dispatch site).
 FUSED = True
 
 #: Relative margin of the gate bound of :func:`association_terms_kernel`: a pair is left unsolved only if
-#: |nu|^2 > gate * tr S * (1 + margin). The computed d2 of such a pair is above the gate too unless its
+#: |nu_b|^2 > gate * tr S_bb * (1 + margin) for a block b. The computed d2 of such a pair is above the gate too unless its
 #: relative rounding error exceeds the margin (that takes a condition number of S near 1e10; the
 #: covariances here span position and velocity variances within about 1e6).
 GATE_PRUNE_MARGIN = 1e-6
@@ -51,81 +52,25 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
 
     Candidates: hypot(m_i - m_k) <= Rs + 3 sqrt(tr P_i,pos + tr P_k,pos); pairs ordered by
     vehicle, then track, then row (``np.nonzero`` order, rows by a stable sort on the owner). Each
-    vehicle tests the tracks within its reach along x (from the tracks sorted by x), not all of them:
-    on a city the vehicles x tracks test grew with the square of the vehicles.
+    vehicle tests only the tracks an index puts within its reach (:func:`coloc.kernels.track_index.candidate_tracks`),
+    not all of them: on a city the vehicles x tracks test grew with the square of the vehicles.
     ``gate``: the log-likelihood of a pair with d2 > gate is not computed (0 is returned; the
     caller gives such a pair weight 0 whatever it is); ``inf``: every pair's. A pair that the
-    bound d2 >= |nu|^2 / tr S (tr S >= the largest eigenvalue of S) puts beyond the gate by
-    :data:`GATE_PRUNE_MARGIN` is not solved at all: log N = 0 and d2 = inf (on a city under clutter
-    most (track, row) pairs of a vehicle are such pairs).
+    bound d2 >= |nu_b|^2 / tr S_bb puts beyond the gate by :data:`GATE_PRUNE_MARGIN` is not solved
+    at all: log N = 0 and d2 = inf (on a city under clutter most (track, row) pairs of a vehicle are
+    such pairs). b is the position or the velocity block: the squared Mahalanobis distance of a
+    block (its marginal) is at most d2 (Schur complement), and tr S_bb >= the block's largest
+    eigenvalue. Per block, as the velocity variances (hundreds of m^2/s^2 on a city) would
+    otherwise loosen the bound on the positions.
     Returns (pair_vehicle, pair_track, pair_row, log_lik, d2)."""
-    n, nt, o = v_mean.shape[0], t_mean.shape[0], owner.size
+    n = v_mean.shape[0]
     start, rows = rows_by_key(owner, n)  # rows of each vehicle, ascending (stable argsort of owner)
-    tr_t = np.empty(nt)
-    tr_max = -np.inf
-    for k in range(nt):
-        tr_t[k] = t_cov[k, 0, 0] + t_cov[k, 1, 1]
-        tr_max = max(tr_max, tr_t[k])
-    # the tracks by x: each vehicle tests only those within its reach along x (and the tracks
-    # without a finite x, which the test below treats as the full scan did), in ascending order
-    finite_x = np.zeros(nt, dtype=np.bool_)
-    n_fin = 0
-    for k in range(nt):
-        if np.isfinite(t_mean[k, 0]):
-            finite_x[k] = True
-            n_fin += 1
-    fin = np.empty(n_fin, dtype=np.int64)
-    other = np.empty(nt - n_fin, dtype=np.int64)
-    a, b = 0, 0
-    for k in range(nt):
-        if finite_x[k]:
-            fin[a] = k
-            a += 1
-        else:
-            other[b] = k
-            b += 1
-    by_x = fin[np.argsort(t_mean[fin, 0], kind="mergesort")]
-    xs = t_mean[by_x, 0].copy()
-    c_start = np.zeros(n + 1, dtype=np.int64)
-    c_track = np.empty(max(8 * n, 16), dtype=np.int64)
-    window = np.empty(nt, dtype=np.int64)
+    # F_i,t from the tracks indexed by spread class and x (coloc.kernels.track_index): the pairs of the
+    # full test, in its order
+    c_start, c_track = candidate_tracks(v_mean, v_cov, t_mean, t_cov, sensing_range)
     total = 0
     for i in range(n):
-        m_i = start[i + 1] - start[i]
-        tr_v = v_cov[i, 0, 0] + v_cov[i, 1, 1]
-        # a bound on every track's threshold (each rounding step is monotone), with a margin far
-        # above hypot's error: a track farther than it along x or y is surely out of range
-        reach = (sensing_range + 3.0 * np.sqrt(tr_v + tr_max)) * (1.0 + 1e-9)
-        vx = v_mean[i, 0]
-        w = 0
-        if np.isfinite(vx) and np.isfinite(reach):
-            # every track that passes |x_i - x_k| <= reach is inside (margin far above the rounding)
-            pad = reach + 1e-6 * (abs(vx) + reach) + 1e-6
-            for j in range(np.searchsorted(xs, vx - pad), np.searchsorted(xs, vx + pad, side="right")):
-                window[w] = by_x[j]
-                w += 1
-            for j in range(other.size):
-                window[w] = other[j]
-                w += 1
-            window[:w].sort()
-        else:  # the full scan
-            for k in range(nt):
-                window[w] = k
-                w += 1
-        c_start[i + 1] = c_start[i]
-        for j in range(w):
-            k = window[j]
-            if abs(v_mean[i, 0] - t_mean[k, 0]) > reach or abs(v_mean[i, 1] - t_mean[k, 1]) > reach:
-                continue
-            d = np.hypot(v_mean[i, 0] - t_mean[k, 0], v_mean[i, 1] - t_mean[k, 1])
-            if d <= sensing_range + 3.0 * np.sqrt(tr_v + tr_t[k]):
-                if c_start[i + 1] == c_track.size:
-                    grown = np.empty(2 * c_track.size, dtype=np.int64)
-                    grown[:c_track.size] = c_track
-                    c_track = grown
-                c_track[c_start[i + 1]] = k
-                c_start[i + 1] += 1
-                total += m_i
+        total += (c_start[i + 1] - c_start[i]) * (start[i + 1] - start[i])
     pv = np.empty(total, dtype=np.int64)
     pt = np.empty(total, dtype=np.int64)
     pr = np.empty(total, dtype=np.int64)
@@ -141,12 +86,17 @@ def association_terms_kernel(v_mean, v_cov, t_mean, t_cov, owner, z, r, sensing_
                 q = rows[a]
                 pv[p], pt[p], pr[p] = i, k, q
                 if prune:
-                    nn, tr = 0.0, 0.0
-                    for c in range(4):
-                        x = z[q, c] - (t_mean[k, c] - v_mean[i, c])
-                        nn += x * x
-                        tr += (t_cov[k, c, c] + v_cov[i, c, c]) + r[q, c, c]
-                    if nn > bound * tr:  # False with NaN: solved as before
+                    # per block (position, velocity): d2 >= the block's own d2 >= |nu_b|^2 / tr S_bb
+                    cut = False
+                    for blk in range(2):
+                        nn, tr = 0.0, 0.0
+                        for c in range(2 * blk, 2 * blk + 2):
+                            x = z[q, c] - (t_mean[k, c] - v_mean[i, c])
+                            nn += x * x
+                            tr += (t_cov[k, c, c] + v_cov[i, c, c]) + r[q, c, c]
+                        if nn > bound * tr:  # False with NaN: solved as before
+                            cut = True
+                    if cut:
                         solve[p] = False
                         p += 1
                         continue

@@ -116,6 +116,8 @@ from coloc.inference.gaussian import chi2_ppf, log_gauss, relative_message, to_i
 from coloc.inference.params import PAIRING_RULES, IcpParams, LcParams
 from coloc.kernels import icp_fused
 from coloc.kernels.birth import birth_greedy_kernel
+from coloc.kernels.detection import detection_probability_pairs
+from coloc.kernels.track_index import candidate_pairs_kernel
 from coloc.kernels.icp_fused import (
     any_pair_within,
     association_log_weights_kernel,
@@ -150,6 +152,8 @@ def candidate_pairs(
     """(vehicle, track) index pairs with the track predicted in the vehicle's sensing range (+3 sigma)."""
     if v_mean.shape[0] == 0 or t_mean.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
+    if icp_fused.FUSED:  # the tracks indexed by spread and x, the same pairs (coloc.kernels.track_index)
+        return candidate_pairs_kernel(*_f64(v_mean, v_cov, t_mean, t_cov), float(lc.sensing_range_m))
     tr_v = np.trace(v_cov[:, :2, :2], axis1=1, axis2=2)
     tr_t = np.trace(t_cov[:, :2, :2], axis1=1, axis2=2)
     if v_mean.shape[0] * t_mean.shape[0] > DENSE_PAIRS_MAX:
@@ -267,10 +271,18 @@ def association_weights(
         # P_D only of the pairs that can get a weight: _gated_weights gives 0 to those beyond the gate
         pd = np.zeros(pr.size)
         need = ~(d2 > chi2_ppf(lc.gate_probability, 4)) if lc.pairing == "gated" else np.ones(pr.size, dtype=bool)
-        pd[need] = expected_detection_probability(v_mean[pv[need]], t_mean[pt[need], :2], detection)
+        pd[need] = pair_detection_probability(v_mean, t_mean, pv[need], pt[need], detection)
         with np.errstate(divide="ignore", invalid="ignore"):
             log_w = np.log(pd) + log_lik - log_new
     return pv, pt, pr, _gated_weights(log_w, d2, lc)
+
+
+def pair_detection_probability(v_mean, t_mean, vi, ti, detection: DetectionModel) -> np.ndarray:
+    """P_D of the (vehicle ``vi``, track ``ti``) pairs: ``expected_detection_probability(v_mean[vi],
+    t_mean[ti, :2], detection)``, by one numba pass when fused (the same numbers)."""
+    if icp_fused.FUSED:
+        return detection_probability_pairs(v_mean, t_mean, vi, ti, detection)
+    return expected_detection_probability(v_mean[vi], t_mean[ti, :2], detection)
 
 
 def _gated_weights(log_w: np.ndarray, d2: np.ndarray, lc: LcParams) -> np.ndarray:
@@ -604,7 +616,7 @@ def icp_da_lc_step(
         """P_D of (vehicle, predicted track) pairs."""
         if detection is None:
             return np.full(vi.size, lc.detection_probability)
-        return expected_detection_probability(b0_mean[vi], t_mean[ti, :2], detection)
+        return pair_detection_probability(b0_mean, t_mean, vi, ti, detection)
 
     # (13)-(17); step 9: eta with the tracks' predicted existence r and the pairs' P_D.
     missed, r_pred = None, None

@@ -1,5 +1,5 @@
 """The gate bound of ``association_terms_kernel`` (coloc/kernels/icp_fused.py): pairs that
-d2 >= |nu|^2 / tr S puts beyond the chi-square gate are not solved, and nothing else changes: the
+d2 >= |nu_b|^2 / tr S_bb (b the position or the velocity block) puts beyond the chi-square gate are not solved, and nothing else changes: the
 solved pairs' terms are those of the kernel without a gate, and ICP-DA-LC's weights equal the numpy
 reference's, byte for byte, on clutter-heavy scenes (most rows far from every track)."""
 

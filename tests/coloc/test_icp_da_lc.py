@@ -226,8 +226,10 @@ def test_vectorised_map_pairing_equals_the_per_vehicle_loop(eta_th):
 
 
 def test_candidate_pairs_indexed_as_dense(monkeypatch):
-    """On a city (vehicles x tracks above DENSE_PAIRS_MAX) the tracks are found with a k-d tree: the same
-    pairs, in the same order, as the dense test of every (vehicle, track)."""
+    """On a city (vehicles x tracks above DENSE_PAIRS_MAX) the numpy reference finds the tracks with a k-d
+    tree, and the fused path with the spread-class index (coloc.kernels.track_index): the same pairs, in the
+    same order, as the dense test of every (vehicle, track)."""
+    from coloc.kernels import icp_fused
     from coloc.methods import icp_da_lc as lcmod
 
     rng = np.random.default_rng(3)
@@ -237,10 +239,13 @@ def test_candidate_pairs_indexed_as_dense(monkeypatch):
         vm[0, :2] = tm[0, :2] + [lc.sensing_range_m, 0.0]  # on the edge of the reach
         vc = np.eye(4) * rng.uniform(0.01, 40.0, (nv, 1, 1))
         tc = np.eye(4) * rng.uniform(0.0, 3.0, (nt, 1, 1))
+        monkeypatch.setattr(icp_fused, "FUSED", False)
         monkeypatch.setattr(lcmod, "DENSE_PAIRS_MAX", 10**12)
         dense = lcmod.candidate_pairs(vm, vc, tm, tc, lc)
         monkeypatch.setattr(lcmod, "DENSE_PAIRS_MAX", 0)
         tree = lcmod.candidate_pairs(vm, vc, tm, tc, lc)
+        monkeypatch.setattr(icp_fused, "FUSED", True)
+        indexed = lcmod.candidate_pairs(vm, vc, tm, tc, lc)
         assert dense[0].size > 0
-        for a, b in zip(dense, tree):
-            assert a.dtype == b.dtype == np.int64 and np.array_equal(a, b)
+        for a, b, c in zip(dense, tree, indexed):
+            assert a.dtype == b.dtype == c.dtype == np.int64 and np.array_equal(a, b) and np.array_equal(a, c)
