@@ -331,33 +331,8 @@ class FgTopologyInfra(_InfraBase):
                 init = p_prev + d
             values.insert(key, np.asarray(init, float))
             stamps[key] = float(frame.t)
-        # Topology factor of step t from this RSU's radar scan (pseudo-measurement z_t^2 and its
-        # variance (15)-(16), coloc.inference.topology; the same for both factors below).
-        n = rows.size
-        if n >= 2:
-            pts = infra.radar_z[infra.radar_owner == r]
-            if pts.shape[0] != n:
-                # The scan's points are not the vehicles in range: neither (8) nor (11) holds.
-                self.stats["topology_skipped"] += 1
-            else:
-                z2, var = topology_pseudo_measurement(pts, infra.radar_var)
-                noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
-                if not new_rows and np.all(np.isfinite(odom)):
-                    # New factor (11)-(13): sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2
-                    # on the N previous states (every vehicle in range has one here, and odometry d_t).
-                    kp = [keys_prev[vid] for vid in ids]
-                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
-                    self.stats["topology_updates_new"] += 1
-                else:
-                    # Fallback, old factor (8): sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2 on the N current
-                    # states, which every vehicle in range has (an entering one from its start belief).
-                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
-                    self.stats["topology_updates_old"] += 1
-                self.stats["topology_updates"] += 1
-        ts = gtsam.FixedLagSmootherKeyTimestampMap()
-        for k, t in stamps.items():
-            ts.insert((k, t))
-        smoother.update(graph, values, ts)
+        self._add_topology(graph, infra, r, rows.size, ids, new_rows, odom, keys_prev, keys_now)
+        self._update(smoother, graph, values, stamps)
         self._keys[r] = keys_now
         result = smoother.calculateEstimate()
         m = fallback.mean[rows].copy()
@@ -435,26 +410,8 @@ class FgTopologyInfra(_InfraBase):
                     stamps[bkey] = float(frame.t)
             values.insert(key, np.asarray(init, float))
             stamps[key] = float(frame.t)
-        n = rows.size
-        if n >= 2:  # the topology factor of step t, as in _rsu_step
-            pts = infra.radar_z[infra.radar_owner == r]
-            if pts.shape[0] != n:
-                self.stats["topology_skipped"] += 1
-            else:
-                z2, var = topology_pseudo_measurement(pts, infra.radar_var)
-                noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
-                if not new_rows and np.all(np.isfinite(odom)):
-                    kp = [keys_prev[vid] for vid in ids]
-                    graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
-                    self.stats["topology_updates_new"] += 1
-                else:
-                    graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
-                    self.stats["topology_updates_old"] += 1
-                self.stats["topology_updates"] += 1
-        ts = gtsam.FixedLagSmootherKeyTimestampMap()
-        for k, t in stamps.items():
-            ts.insert((k, t))
-        smoother.update(graph, values, ts)
+        self._add_topology(graph, infra, r, rows.size, ids, new_rows, odom, keys_prev, keys_now)
+        self._update(smoother, graph, values, stamps)
         self._keys[r], self._bias_keys[r] = keys_now, bkeys_now
         result = smoother.calculateEstimate()
         marginals = gtsam.Marginals(smoother.getFactors(), result)
@@ -467,6 +424,39 @@ class FgTopologyInfra(_InfraBase):
             c[a, :2, 2:] = 0.0
             c[a, 2:, :2] = 0.0
         return rows, m, c
+
+    def _add_topology(self, graph, infra, r, n, ids, new_rows, odom, keys_prev, keys_now) -> None:
+        """The topology factor of step t from RSU ``r``'s radar scan of its ``n`` vehicles ``ids``
+        (pseudo-measurement z_t^2 and its variance (15)-(16), coloc.inference.topology)."""
+        if n < 2:
+            return
+        pts = infra.radar_z[infra.radar_owner == r]
+        if pts.shape[0] != n:
+            # The scan's points are not the vehicles in range: neither (8) nor (11) holds.
+            self.stats["topology_skipped"] += 1
+            return
+        gtsam = self._gtsam
+        z2, var = topology_pseudo_measurement(pts, infra.radar_var)
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, float(np.sqrt(var)))
+        if not new_rows and np.all(np.isfinite(odom)):
+            # New factor (11)-(13): sum_{i<j} |(p_{t-1}^i + d_t^i) - (p_{t-1}^j + d_t^j)|^2 - z_t^2
+            # on the N previous states (every vehicle in range has one here, and odometry d_t).
+            kp = [keys_prev[vid] for vid in ids]
+            graph.add(gtsam.CustomFactor(noise, kp, _new_topology_error(z2, np.array(odom, float))))
+            self.stats["topology_updates_new"] += 1
+        else:
+            # Fallback, old factor (8): sum_{i<j} |p_t^i - p_t^j|^2 - z_t^2 on the N current
+            # states, which every vehicle in range has (an entering one from its start belief).
+            graph.add(gtsam.CustomFactor(noise, [keys_now[vid] for vid in ids], _old_topology_error(z2)))
+            self.stats["topology_updates_old"] += 1
+        self.stats["topology_updates"] += 1
+
+    def _update(self, smoother, graph, values, stamps) -> None:
+        """The fixed-lag smoother's update with the step's new factors, values and their time stamps."""
+        ts = self._gtsam.FixedLagSmootherKeyTimestampMap()
+        for k, t in stamps.items():
+            ts.insert((k, t))
+        smoother.update(graph, values, ts)
 
     @staticmethod
     def _estimate_point(smoother, key):
