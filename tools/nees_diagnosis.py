@@ -15,11 +15,15 @@ Covariates (all from the files, nothing rerun):
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy.stats import chi2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from coloc.methods.registry import GNSS  # noqa: E402
 
 GATE = chi2.ppf(0.95, 2)
 
@@ -41,7 +45,7 @@ def load(runs: list[Path], switch_on: float) -> pd.DataFrame:
     d["since_on"] = d.t - switch_on
     start = d.groupby("run").t.transform("min")  # the first estimated step: switch-on (or the run's start)
     d["since_entry"] = np.where(first <= start + 1e-6, np.nan, d.t - first)
-    g = d[d.method == "gnss"][["run", "t", "vehicle", "nees"]].rename(columns={"nees": "gnss_nees"})
+    g = d[d.method == GNSS.name][["run", "t", "vehicle", "nees"]].rename(columns={"nees": "gnss_nees"})
     d = d.merge(g, on=["run", "t", "vehicle"], how="left")
     return d
 
