@@ -29,13 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from coloc.core.frame import Frame
-from coloc.core.models import MotionParams, driving_noise_cov
+from coloc.core.models import MotionParams
 from coloc.core.vehicles import fresh_rows
 from coloc.inference.bpa import BpaResult
 from coloc.inference.params import IcpParams
 from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_ci_update
 from coloc.kernels.gnss6 import gnss6_step
-from coloc.methods.gnss_bias import H, GnssModelParams, entry_fix_posterior
+from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -149,16 +149,7 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     r_pos = r[:, :2, :2]
     m, p, pi = mean.copy(), cov.copy(), ind.copy()
     if predict_mask.any():
-        a = math.exp(-dt / model.bias_tau_s)
-        f = np.eye(6)
-        f[0, 2] = f[1, 3] = dt
-        f[4, 4] = f[5, 5] = a
-        q = np.zeros((n, 6, 6))
-        q[:, :4, :4] = driving_noise_cov(m[:, 2:4], dt, motion)
-        q[:, 4:, 4:] = (1.0 - a * a) * s * r_pos
-        mp = m @ f.T
-        mp[:, 0:2] += 0.5 * dt * dt * accel
-        mp[:, 2:4] += dt * accel
+        _a, f, mp, q = bias_transition(m, accel, r_pos, dt, motion, model)
         sel = predict_mask
         m[sel] = mp[sel]
         p[sel] = f @ p[sel] @ f.T + q[sel]

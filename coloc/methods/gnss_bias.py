@@ -197,25 +197,14 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
     m = mean.copy()
     p = cov.copy()
     if predict_mask.any():
-        a = math.exp(-dt / model.bias_tau_s)
-        q4 = driving_noise_cov(m[:, 2:4], dt, motion)
-        f = np.eye(6)
-        f[0, 2] = f[1, 3] = dt
-        f[4, 4] = f[5, 5] = a
-        h = 0.5 * dt * dt
-        mp = m @ f.T
-        mp[:, 0:2] += h * accel
-        mp[:, 2:4] += dt * accel
-        q = np.zeros((n, 6, 6))
-        q[:, :4, :4] = q4
-        q[:, 4:, 4:] = (1.0 - a * a) * s * r_pos
+        a, f, mp, q = bias_transition(m, accel, r_pos, dt, motion, model)
         if model.bias_follows_report and r_prev is not None:
             # b_k = a T_k b_{k-1}: T_k = L_k L_{k-1}^-1, L the Cholesky factor of the reported position
             # covariance (module docstring); T = I where the report did not change
             fr = np.broadcast_to(f, (n, 6, 6)).copy()
             fr[:, 4:, 4:] = a * report_map(r_prev, r_pos)
             mp = np.einsum("nij,nj->ni", fr, m)
-            mp[:, 0:2] += h * accel
+            mp[:, 0:2] += 0.5 * dt * dt * accel
             mp[:, 2:4] += dt * accel
             pp = fr @ p @ np.swapaxes(fr, -1, -2) + q
         else:
@@ -333,6 +322,17 @@ def bias_predict(mean, cov, accel, r_pos, dt, motion: MotionParams, model: GnssM
     """The prediction of :func:`bias_predict_update` alone, for a batch of 6-D states (N, 6), (N, 6, 6):
     model (1) on [p, v] (velocity-oriented driving noise) and ``b' = a b + w_b``, ``Var(w_b) = (1 - a^2) s
     R_pos`` with ``R_pos`` (N, 2, 2) the reported position covariance. Returns new (mean, cov)."""
+    _a, f, m, q = bias_transition(mean, accel, np.asarray(r_pos, dtype=float), dt, motion, model)
+    p = f @ cov @ f.T + q
+    return m, 0.5 * (p + np.swapaxes(p, -1, -2))
+
+
+def bias_transition(mean, accel, r_pos, dt, motion: MotionParams, model: GnssModelParams):
+    """The 6-state model's pieces for a batch (N, 6): ``a = exp(-dt / tau)``, the transition F (6, 6), the
+    predicted means F x + B accel (N, 6), and Q (N, 6, 6): model (1)'s velocity-oriented driving noise on [p, v]
+    and ``Var(w_b) = (1 - a^2) s R_pos`` on the bias (``R_pos`` (N, 2, 2) the reported position covariance).
+    Shared by :func:`bias_predict_update`, :func:`bias_predict` and the split filters of
+    :mod:`coloc.methods.coop_fusion`."""
     n = mean.shape[0]
     a = math.exp(-dt / model.bias_tau_s)
     f = np.eye(6)
@@ -340,9 +340,8 @@ def bias_predict(mean, cov, accel, r_pos, dt, motion: MotionParams, model: GnssM
     f[4, 4] = f[5, 5] = a
     q = np.zeros((n, 6, 6))
     q[:, :4, :4] = driving_noise_cov(mean[:, 2:4], dt, motion)
-    q[:, 4:, 4:] = (1.0 - a * a) * model.bias_share * np.asarray(r_pos, dtype=float)
+    q[:, 4:, 4:] = (1.0 - a * a) * model.bias_share * r_pos
     m = mean @ f.T
     m[:, 0:2] += 0.5 * dt * dt * accel
     m[:, 2:4] += dt * accel
-    p = f @ cov @ f.T + q
-    return m, 0.5 * (p + np.swapaxes(p, -1, -2))
+    return a, f, m, q
