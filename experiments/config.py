@@ -169,6 +169,7 @@ class InfraSection:
     rsu_bp_particles: int = 200
     rsu_bp_detection_prob: float = 0.9
     rsu_bp_feature_drop_s: float = 5.0
+    rsu_bp_birth_max_std_m: float = 1.5
     sme_max_vehicles: int = 12
     fg_window_steps: int = 8
 
@@ -477,7 +478,8 @@ def _validate_infra(cfg: Config) -> None:
         raise InputError(p, "infra.rsu_junctions", "at least one junction is needed")
     if len(set(inf.rsu_junctions)) != len(inf.rsu_junctions):
         raise InputError(p, "infra.rsu_junctions", "a junction is listed twice")
-    for name in ("rsu_range_m", "radar_sigma_m", "odom_sigma_m", "rsu_bp_feature_drop_s"):
+    for name in ("rsu_range_m", "radar_sigma_m", "odom_sigma_m", "rsu_bp_feature_drop_s",
+                 "rsu_bp_birth_max_std_m"):
         if not getattr(inf, name) > 0 or math.isinf(getattr(inf, name)):
             raise InputError(p, f"infra.{name}", "must be positive and finite")
     if inf.radar_pose_offset_sigma_m < 0:

@@ -576,6 +576,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "rsu_bp_particles": (NO_UNIT, "Particles per vehicle and feature of `rsu_bp`."),
         "rsu_bp_detection_prob": (NO_UNIT, "`rsu_bp`'s P_D of a visible feature."),
         "rsu_bp_feature_drop_s": ("s", "`rsu_bp` drops a feature cloud unseen for this long."),
+        "rsu_bp_birth_max_std_m": ("m", "`rsu_bp` starts a feature cloud only from a vehicle whose position "
+                                   "standard deviation (per-axis rms of its own covariance) is below this."),
         "sme_max_vehicles": (NO_UNIT, "`sme` skips the radar update when more vehicles are in range."),
         "fg_window_steps": (NO_UNIT, "Window of `fg_topology_new`'s fixed-lag smoother."),
     },

@@ -190,6 +190,7 @@ RANGES: dict[str, Range] = {
     "infra.rsu_bp_particles": Range(2, PARTICLES_MAX, NO_UNIT, PARTICLES_WHY),
     "infra.rsu_bp_detection_prob": PROB,
     "infra.rsu_bp_feature_drop_s": DURATION,
+    "infra.rsu_bp_birth_max_std_m": Range(0.0, 1e4, "m", "10 km, beyond any position error", low_open=True),
     "infra.sme_max_vehicles": Range(1, 10_000, NO_UNIT, "vehicles in one RSU's range"),
     "infra.fg_window_steps": Range(2, 100_000, NO_UNIT, "a smoother window of at most 1e5 steps"),
     "perception.sensors.fov_deg": Range(0.0, 360.0, "deg", "a full turn"),

@@ -192,7 +192,8 @@ def infra_method_params(cfg: Config) -> InfraMethodParams:
     return InfraMethodParams(
         motion=cfg.motion, seed=cfg.run.seed, rsu_bp_particles=inf.rsu_bp_particles,
         detection_prob=inf.rsu_bp_detection_prob, v2f_range_m=cfg.sensors.v2f_range_m,
-        feature_drop_s=inf.rsu_bp_feature_drop_s, feature_keep_radius_m=inf.rsu_range_m + cfg.sensors.v2f_range_m + 30.0,
+        feature_drop_s=inf.rsu_bp_feature_drop_s, feature_birth_max_std_m=inf.rsu_bp_birth_max_std_m,
+        feature_keep_radius_m=inf.rsu_range_m + cfg.sensors.v2f_range_m + 30.0,
         sme_max_vehicles=inf.sme_max_vehicles, fg_window_steps=inf.fg_window_steps,
     )
 

@@ -72,6 +72,7 @@ def test_infra_method_needs_infra_table(cross_net, tmp_path, capsys, method):
     ('[infra]\nrsu_junctions = ["C"]\nrsu_range_m = -1.0\n', "infra.rsu_range_m"),
     ('[infra]\nrsu_junctions = ["C"]\nrsu_bp_detection_prob = 1.5\n', "infra.rsu_bp_detection_prob"),
     ('[infra]\nrsu_junctions = ["C"]\nbogus = 1\n', "infra.bogus"),
+    ('[infra]\nrsu_junctions = ["C"]\nrsu_bp_birth_max_std_m = 0.0\n', "infra.rsu_bp_birth_max_std_m"),
 ])
 def test_bad_infra_values(cross_net, tmp_path, capsys, table, needle):
     cfg = write(tmp_path, cross_net, methods='["gnss"]', infra=False, extra=table)
@@ -121,6 +122,18 @@ def test_every_infra_method_runs_and_is_scored_within_coverage(infra_runs):
 def test_infra_runs_byte_identical(infra_runs):
     a, b, _ = infra_runs
     assert (a / "estimates.parquet").read_bytes() == (b / "estimates.parquet").read_bytes()
+
+
+def test_birth_gate_reaches_the_method(cross_net, tmp_path):
+    """[infra] rsu_bp_birth_max_std_m is rsu_bp's birth gate; its default is the method's own 1.5 m."""
+    from coloc.methods.infra import InfraMethodParams
+    from experiments.runner import infra_method_params
+
+    default = infra_method_params(load_config(write(tmp_path, cross_net)))
+    assert default.feature_birth_max_std_m == InfraMethodParams().feature_birth_max_std_m == 1.5
+    cfg = write(tmp_path, cross_net, infra=False,
+                extra='[infra]\nrsu_junctions = ["C"]\nrsu_bp_birth_max_std_m = 4.0\n')
+    assert infra_method_params(load_config(cfg)).feature_birth_max_std_m == 4.0
 
 
 def test_shipped_infra_configs_validate():
