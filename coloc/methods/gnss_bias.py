@@ -127,22 +127,26 @@ class GnssModelParams:
     # [gnss_model] keep the single model (bias_share, bias_tau_s).
     bias_model: str = "single"
     # Two-state model, common-mode bias (atmosphere, orbit, clock): its share of the reported position
-    # variance and its correlation time. Assumption: half of the slow error (the single model's 0.8
-    # split in two); residuals of the broadcast ionosphere, troposphere and orbit/clock models change over
-    # tens of minutes (Kaplan and Hegarty, "Understanding GPS/GNSS", 3rd ed., 2017, Sec. 7.2).
-    common_share: float = 0.4
+    # variance and its correlation time. Assumption: the slow error is most of the reported variance
+    # (decimetre code noise against metres), about half of it common-mode; residuals of the broadcast
+    # ionosphere, troposphere and orbit/clock models change over tens of minutes (Kaplan and Hegarty,
+    # "Understanding GPS/GNSS", 3rd ed., 2017, Sec. 7.2). Shares 0.5 / 0.45 chosen over 0.4 / 0.4 and
+    # 0.6 / 0.35 on the tuning seeds 101-103 (docs/validation/consistency.md, "Two bias states").
+    common_share: float = 0.5
     common_tau_s: float = 1800.0
     # Two-state model, local bias (multipath): its share, its correlation length in distance travelled
     # (m; multipath decorrelates over metres to tens of metres of travel: Braasch, in Parkinson and
-    # Spilker, "Global Positioning System: Theory and Applications" Vol. I, 1996, ch. 14) and its
-    # correlation time at rest (s; static multipath repeats with the satellites' motion over minutes,
-    # ibid.).
-    local_share: float = 0.4
-    local_length_m: float = 10.0
+    # Spilker, "Global Positioning System: Theory and Applications" Vol. I, 1996, ch. 14; 30 m chosen over
+    # 10 m on the tuning seeds) and its correlation time at rest (s; static multipath changes with the
+    # satellites' motion over minutes, ibid.).
+    local_share: float = 0.45
+    local_length_m: float = 30.0
     local_tau_s: float = 120.0
     # Two-state model: the common-mode bias as a state of the filter ("augmented") or a Schmidt consider
-    # state ("consider": carried, never updated; coloc.methods.gnss_bias2).
-    common_update: str = "augmented"
+    # state ("consider": carried, never updated; coloc.methods.gnss_bias2). Consider: the more consistent
+    # in every candidate on the tuning seeds (a single receiver cannot tell its common-mode error from its
+    # position).
+    common_update: str = "consider"
 
     @property
     def two_state(self) -> bool:

@@ -35,7 +35,8 @@ A fresh vehicle: the kinematic part from its prior, both biases at 0 with their 
 the entry protocol (prior = this step's fix) gives the one-fix posterior: p = z with the reported covariance,
 Cov(p, c) = -s_c R, Cov(p, l) = -s_l R, c and l uncorrelated. Fault exclusion, ``max_exclusions`` and
 ``bias_follows_report`` (both biases mapped) as in the 6-state model. With ``local_share = 0`` it is the
-6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s`` (tests: to 1e-12).
+6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s`` when ``common_update = "augmented"``
+(tests: to 1e-12).
 """
 
 from __future__ import annotations

@@ -117,7 +117,8 @@ def test_two_state_tracker_equals_a_textbook_kalman_filter(gate, update):
 @pytest.mark.parametrize("kw", [{}, {"innovation_gate": 0.999, "max_exclusions": 2}, {"bias_follows_report": True}])
 def test_no_local_share_is_the_single_model(kw):
     single = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, **{"innovation_gate": 0.0, **kw})
-    two = replace(single, bias_model="two_state", common_share=0.7, common_tau_s=40.0, local_share=0.0)
+    two = replace(single, bias_model="two_state", common_share=0.7, common_tau_s=40.0, local_share=0.0,
+                  common_update="augmented")
     a, b = GnssBiasTracker(motion=MOTION, model=single), GnssBiasTracker(motion=MOTION, model=two)
     for fr in scripted_run(8, 200, single, jumps=0.03):
         x, y = a.step(fr), b.step(fr)
