@@ -11,7 +11,8 @@
 2-D position error pooled over the seeds, the mean over seeds of each run's mean 2-D NEES (with the cross term),
 and the share of samples inside the 95 % ellipse. Every frame after the traffic-only warm-up is scored, as
 ``coloc run`` scores these runs (same numbers as the sweep of ``experiments/sweeps/realistic_tuning_gnss_tau.toml``
-for the preset's values: RMSE, NEES and inside shares equal, p95 within 0.1 m). ``--detail``: per seed, zone C's share inside by time since switch-on.
+for the preset's values: RMSE, NEES and inside shares equal, p95 within 0.1 m). ``--detail``: per seed, zone C's
+share inside by time since switch-on.
 Tuning seeds only (docs/protocol.md). Not a test.
 """
 

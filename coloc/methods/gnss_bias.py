@@ -328,8 +328,8 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
 
 @dataclass
 class GnssBiasTracker:
-    """``gnss`` with ``[gnss_model]``: keeps each vehicle's 6-D (two-state model: 8-D) posterior between frames and reports
-    the 4-D kinematic marginal."""
+    """``gnss`` with ``[gnss_model]``: keeps each vehicle's 6-D (two-state model: 8-D) posterior between frames
+    and reports the 4-D kinematic marginal."""
 
     motion: MotionParams = field(default_factory=MotionParams)
     model: GnssModelParams = field(default_factory=GnssModelParams)
