@@ -303,6 +303,31 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "range errors times the geometry: Kaplan and Hegarty 2017, Sec. 7.3). "
                                     "`gnss` only for now. Default false: the bias carries over and its "
                                     "variance relaxes with `bias_tau_s`."),
+        "bias_model": ("", "The receiver's error as one bias (`single`: `bias_share`, `bias_tau_s`) or two "
+                           "(`two_state`, coloc/methods/gnss_bias2.py): a common-mode bias slow in time "
+                           "(atmosphere, orbit, clock) and a local one decorrelating with the distance the "
+                           "estimator believes it travelled (multipath); fix z = p + c + l + n. `gnss` only: the "
+                           "cooperative and infrastructure methods keep the single bias. Default `single`."),
+        "common_share": (NO_UNIT, "Two-state model: share of the reported position variance that is the "
+                                  "common-mode bias, in [0, 1); with `local_share` below 1 together. Default 0.5 "
+                                  "(assumption: most of the reported variance is slow, about half of it "
+                                  "common-mode; chosen on the tuning seeds 101-103)."),
+        "common_tau_s": ("s", "Two-state model: correlation time of the common-mode bias. Default 1800 s "
+                              "(residuals of the broadcast atmosphere and orbit/clock models change over tens of "
+                              "minutes: Kaplan and Hegarty 2017, Sec. 7.2)."),
+        "local_share": (NO_UNIT, "Two-state model: share of the reported position variance that is the local "
+                                 "bias, in [0, 1). Default 0.45 (assumption; chosen on the tuning seeds 101-103)."),
+        "local_length_m": ("m", "Two-state model: correlation length of the local bias in distance travelled, "
+                                "a = exp(-Ts / local_tau_s - |v| Ts / length) with |v| the estimator's own speed "
+                                "estimate. Default 30 m (multipath decorrelates over metres to tens of metres of "
+                                "travel: Braasch, in Parkinson and Spilker 1996, ch. 14; 30 m chosen over 10 m on "
+                                "the tuning seeds 101-103)."),
+        "local_tau_s": ("s", "Two-state model: correlation time of the local bias at rest. Default 120 s "
+                             "(static multipath changes with the satellites' motion over minutes: ibid.)."),
+        "common_update": ("", "Two-state model: the common-mode bias as a state of the filter (`augmented`) or "
+                              "a Schmidt consider state (`consider`: its correlations carried, its estimate never "
+                              "updated; Simon 2006, Sec. 7.5). Default `consider` (the more consistent on the "
+                              "tuning seeds 101-103). Use with `bias_follows_report = true`."),
         "adaptive_window_s": ("s", "Adaptive receiver covariance of `gnss` (coloc/methods/gnss_bias.py; "
                                    "Mohamed and Schwarz, J. Geodesy 1999): the reported position covariance "
                                    "is scaled by m where m passes a 99 % test of consistency (else 1), m the "

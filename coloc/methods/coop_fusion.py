@@ -86,7 +86,8 @@ class CoopFusion:
         """None without ``[fusion]``; the receiver model of ``[gnss_model]`` when ``bias_state``."""
         if params is None or params.rule == "bp":
             return None
-        model = gnss_model if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
+        # the single bias of [gnss_model] (bias_share, bias_tau_s): the two-state model is gnss's only
+        model = gnss_model.single_model() if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
         return CoopFusion(params, model)
 
 

@@ -66,12 +66,16 @@ covariance.
 
 Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a frame as one numpy
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
+
+``bias_model = "two_state"``: a common-mode bias slow in time and a local bias decorrelating with the distance
+travelled, an 8-D state (:mod:`coloc.methods.gnss_bias2`); ``gnss`` only (the cooperative and infrastructure
+methods keep this module's single bias: :meth:`GnssModelParams.single_model`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import chi2
@@ -81,11 +85,16 @@ from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
+from coloc.methods.gnss_bias2 import two_state_entry_posterior, two_state_predict_update, two_state_start
 from coloc.methods.registry import GNSS
 
 #: H of the fix for the state [p, v, b]: z_pos = p + b, z_vel = v.
 H = np.zeros((4, 6))
 H[0, 0] = H[1, 1] = H[2, 2] = H[3, 3] = H[0, 4] = H[1, 5] = 1.0
+
+#: ``[gnss_model] bias_model`` values; ``common_update`` values (coloc.methods.gnss_bias2).
+BIAS_MODELS = ("single", "two_state")
+COMMON_UPDATES = ("augmented", "consider")
 
 
 @dataclass(frozen=True)
@@ -112,8 +121,66 @@ class GnssModelParams:
     # geometry and environment), the bias is mapped by the change of its square root (module docstring).
     # False: the bias carries over unchanged and its variance relaxes with bias_tau_s.
     bias_follows_report: bool = False
+    # The receiver's error as one bias ("single": bias_share, bias_tau_s above) or two
+    # ("two_state": a common-mode bias slow in time and a local one decorrelating with the distance
+    # travelled; coloc.methods.gnss_bias2). Only `gnss` takes "two_state"; the other methods that take
+    # [gnss_model] keep the single model (bias_share, bias_tau_s).
+    bias_model: str = "single"
+    # Two-state model, common-mode bias (atmosphere, orbit, clock): its share of the reported position
+    # variance and its correlation time. Assumption: the slow error is most of the reported variance
+    # (decimetre code noise against metres), about half of it common-mode; residuals of the broadcast
+    # ionosphere, troposphere and orbit/clock models change over tens of minutes (Kaplan and Hegarty,
+    # "Understanding GPS/GNSS", 3rd ed., 2017, Sec. 7.2). Shares 0.5 / 0.45 chosen over 0.4 / 0.4 and
+    # 0.6 / 0.35 on the tuning seeds 101-103 (docs/validation/consistency.md, "Two bias states").
+    common_share: float = 0.5
+    common_tau_s: float = 1800.0
+    # Two-state model, local bias (multipath): its share, its correlation length in distance travelled
+    # (m; multipath decorrelates over metres to tens of metres of travel: Braasch, in Parkinson and
+    # Spilker, "Global Positioning System: Theory and Applications" Vol. I, 1996, ch. 14; 30 m chosen over
+    # 10 m on the tuning seeds) and its correlation time at rest (s; static multipath changes with the
+    # satellites' motion over minutes, ibid.).
+    local_share: float = 0.45
+    local_length_m: float = 30.0
+    local_tau_s: float = 120.0
+    # Two-state model: the common-mode bias as a state of the filter ("augmented") or a Schmidt consider
+    # state ("consider": carried, never updated; coloc.methods.gnss_bias2). Consider: the more consistent
+    # in every candidate on the tuning seeds (a single receiver cannot tell its common-mode error from its
+    # position).
+    common_update: str = "consider"
+
+    @property
+    def two_state(self) -> bool:
+        return self.bias_model == "two_state"
+
+    @property
+    def state_dim(self) -> int:
+        """6 ([p, v, b]) or 8 ([p, v, c, l])."""
+        return 8 if self.two_state else 6
+
+    def single_model(self) -> "GnssModelParams":
+        """The model for the methods that take the single bias only: this one with ``bias_model = "single"``."""
+        return self if not self.two_state else replace(self, bias_model="single")
 
     def __post_init__(self):
+        if self.bias_model not in BIAS_MODELS:
+            raise ValueError(f"must be one of {', '.join(map(repr, BIAS_MODELS))}, got {self.bias_model!r}")
+        if self.common_update not in COMMON_UPDATES:
+            raise ValueError(f"must be one of {', '.join(map(repr, COMMON_UPDATES))}, got {self.common_update!r}")
+        for name, what in (("common_tau_s", "the common-mode bias's correlation time, s"),
+                           ("local_length_m", "the local bias's correlation length, m"),
+                           ("local_tau_s", "the local bias's correlation time at rest, s")):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                raise ValueError(f"must be positive and finite ({what}), got {v!r}")
+        for name in ("common_share", "local_share"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v < 1.0):
+                raise ValueError(f"must be in [0, 1) (a share of the reported variance), got {v!r}")
+        if self.two_state and not self.common_share + self.local_share < 1.0:
+            raise ValueError(f"common_share + local_share must be below 1 (the rest is the white noise), got "
+                             f"{self.common_share!r} + {self.local_share!r}")
+        if self.two_state and self.adaptive_window_s > 0:
+            raise ValueError("adaptive_window_s applies to the single model only (bias_model = \"single\")")
         if not (isinstance(self.bias_share, (int, float)) and 0.0 <= self.bias_share < 1.0):
             raise ValueError(f"must be in [0, 1) (the share of the reported variance that is a bias), "
                              f"got {self.bias_share!r}")
@@ -261,8 +328,8 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
 
 @dataclass
 class GnssBiasTracker:
-    """``gnss`` with ``[gnss_model]``: keeps each vehicle's 6-D posterior between frames and reports
-    the 4-D kinematic marginal."""
+    """``gnss`` with ``[gnss_model]``: keeps each vehicle's 6-D (two-state model: 8-D) posterior between frames
+    and reports the 4-D kinematic marginal."""
 
     motion: MotionParams = field(default_factory=MotionParams)
     model: GnssModelParams = field(default_factory=GnssModelParams)
@@ -277,6 +344,10 @@ class GnssBiasTracker:
     _nis: np.ndarray = field(default_factory=lambda: np.empty(0))  # average normalized innovation (adaptive)
     _rpos: np.ndarray = field(default_factory=lambda: np.empty((0, 2, 2)))  # last reported position covariance
 
+    def __post_init__(self):
+        if self.model.two_state and self._mean.shape[1] != 8:
+            self._mean, self._cov = np.empty((0, 8)), np.empty((0, 8, 8))
+
     def step(self, frame: Frame) -> StepEstimate:
         idx = match_ids(self._ids, frame.vehicle_ids)
         accel, self._heading = estimator_input(frame, idx, self._mean[:, 2:4], self._heading,
@@ -285,15 +356,19 @@ class GnssBiasTracker:
         fresh = fresh_rows(idx, frame.entered, prior_z)
         r = np.asarray(frame.gnss_R, dtype=float)
         n = len(frame.vehicle_ids)
-        mean = np.zeros((n, 6))
-        cov = np.zeros((n, 6, 6))
+        d = self.model.state_dim
+        mean = np.zeros((n, d))
+        cov = np.zeros((n, d, d))
         keep = ~fresh
         mean[keep] = self._mean[idx[keep]]
         cov[keep] = self._cov[idx[keep]]
         if fresh.any():
             mean[fresh, :4] = prior_z[fresh]
             cov[fresh, :4, :4] = np.asarray(frame.prior_R, dtype=float)[fresh]
-            cov[fresh, 4:, 4:] = self.model.bias_share * r[fresh, :2, :2]
+            if self.model.two_state:
+                two_state_start(cov, fresh, r[:, :2, :2], self.model)
+            else:
+                cov[fresh, 4:, 4:] = self.model.bias_share * r[fresh, :2, :2]
         streak = np.zeros(n, dtype=np.int64)
         streak[keep] = self._streak[idx[keep]]
         nis = None
@@ -305,13 +380,21 @@ class GnssBiasTracker:
             r_prev = r[:, :2, :2].copy()
             r_prev[keep] = self._rpos[idx[keep]]
             self._rpos = r[:, :2, :2].copy()
-        out = bias_predict_update(
-            mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
-            float(frame.dt), self.motion, self.model, streak, nis, r_prev)
+        if self.model.two_state:
+            out = two_state_predict_update(
+                mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
+                float(frame.dt), self.motion, self.model, streak, r_prev)
+        else:
+            out = bias_predict_update(
+                mean, cov, np.asarray(accel, dtype=float), np.asarray(frame.gnss_z, dtype=float), r, keep,
+                float(frame.dt), self.motion, self.model, streak, nis, r_prev)
         mean, cov, self.last_excluded = out[:3]
         if nis is not None:
             self._nis = out[3]
-        entry_fix_posterior(mean, cov, frame, fresh, r, self.model.bias_share)
+        if self.model.two_state:
+            two_state_entry_posterior(mean, cov, frame, fresh, r, self.model)
+        else:
+            entry_fix_posterior(mean, cov, frame, fresh, r, self.model.bias_share)
         self._streak = np.where(self.last_excluded, streak + 1, 0)
         self._ids, self._mean, self._cov = frame.vehicle_ids, mean, cov
         self.last_comm = CommCount.zeros(frame.n_vehicles)

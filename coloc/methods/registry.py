@@ -85,6 +85,11 @@ class Method:
         return self.build is not None
 
 
+def _single(model):
+    """The infrastructure methods take [gnss_model]'s single bias only (bias_share, bias_tau_s)."""
+    return None if model is None else model.single_model()
+
+
 def _gnss(p: MethodParams):
     if p.gnss_model is not None:
         from coloc.methods.gnss_bias import GnssBiasTracker
@@ -143,13 +148,13 @@ def _rsu_bp(p: MethodParams):
 def _sme(p: MethodParams):
     from coloc.methods.infra import SmeInfra
 
-    return SmeInfra(_infra_params(p), gnss_model=p.gnss_model, fusion=p.fusion)
+    return SmeInfra(_infra_params(p), gnss_model=_single(p.gnss_model), fusion=p.fusion)
 
 
 def _fg_topology_new(p: MethodParams):
     from coloc.methods.fg_topology import FgTopologyInfra
 
-    return FgTopologyInfra(_infra_params(p), gnss_model=p.gnss_model)
+    return FgTopologyInfra(_infra_params(p), gnss_model=_single(p.gnss_model))
 
 
 GNSS = Method("gnss", "GNSS", "tab:blue", _gnss, feature_classes=True, light=True, cost=0.1)

@@ -1365,6 +1365,36 @@ def run_gnss_model_gate_above_one(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_model.bias_model", "one of")
+def run_gnss_model_unknown_bias_model(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_model = \"double\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.common_update", "one of")
+def run_gnss_model_unknown_common_update(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ncommon_update = \"kalman\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.local_length_m", "positive")
+def run_gnss_model_zero_local_length(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_model = \"two_state\"\nlocal_length_m = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.common_share", "[0, 1)")
+def run_gnss_model_common_share_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ncommon_share = 1.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model", "must be below 1")
+def run_gnss_model_shares_above_one(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\nbias_model = \"two_state\"\ncommon_share = 0.6\nlocal_share = 0.5\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_tau_s", "number")
 def run_gnss_model_text_value(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_tau_s = 'a minute'\n")
@@ -1448,7 +1478,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 189
+    assert len(CASES) >= 194
 
 
 # ----------------------------------------------------------------------------- what --out may replace

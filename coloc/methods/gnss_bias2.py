@@ -1,0 +1,153 @@
+"""The two-state receiver model of ``[gnss_model]`` (``bias_model = "two_state"``): the 8-D state
+``[px, py, vx, vy, cx, cy, lx, ly]`` per vehicle, for :class:`coloc.methods.gnss_bias.GnssBiasTracker`.
+
+The position error of a single-frequency fix has parts with different correlation structure (Kaplan and
+Hegarty, "Understanding GPS/GNSS", 3rd ed., 2017, Sec. 7.2-7.3 and 7.4): the atmospheric, orbit and clock
+residuals change over tens of minutes and are shared by receivers kilometres apart; multipath depends on the
+reflecting surroundings, so it decorrelates over the metres to tens of metres a moving receiver travels
+(Braasch, "Multipath effects", in Parkinson and Spilker, "Global Positioning System: Theory and
+Applications" Vol. I, 1996, ch. 14) and over minutes at rest, as the satellites move. One Gauss-Markov state
+with one time constant cannot carry both: with a short one the filter forgets the slow part, with a long one
+it trusts the local part to stay (docs/validation/consistency.md, "Under realism").
+
+Model (s_c = ``common_share``, s_l = ``local_share``, R_pos,k the position block the receiver reports):
+
+* kinematics: model (1), as the 6-state tracker;
+* common-mode bias: ``c_k = a_c c_{k-1} + w_c``, ``a_c = exp(-Ts / common_tau_s)``,
+  ``Var(w_c) = (1 - a_c^2) s_c R_pos,k``;
+* local bias: ``l_k = a_l l_{k-1} + w_l``, ``a_l = exp(-Ts / local_tau_s - |v| Ts / local_length_m)`` with
+  |v| the estimator's OWN speed estimate (the prior mean's velocity, never the truth): a first-order
+  Gauss-Markov process in the distance travelled, with a time constant at rest; ``Var(w_l) = (1 - a_l^2)
+  s_l R_pos,k``;
+* fix: ``z_pos = p + c + l + n``, ``Var(n) = (1 - s_c - s_l) R_pos``; ``z_vel = v + n_v``.
+
+``common_update`` chooses how the common-mode state is estimated:
+
+* ``"augmented"``: a state of the Kalman filter like any other;
+* ``"consider"``: a Schmidt (consider) state (Schmidt, "Application of state-space methods to navigation
+  problems", Advances in Control Systems 3, 1966; Simon, "Optimal State Estimation", 2006, Sec. 7.5): its
+  correlations with the other states are carried and enter every gain, but its own estimate is never updated
+  (its gain rows are zero; the covariance update is the Joseph form of that gain, exact for any gain). A
+  single receiver cannot tell its common-mode error from its position; the consider state keeps the filter
+  from believing it did.
+
+A fresh vehicle: the kinematic part from its prior, both biases at 0 with their stationary covariances;
+the entry protocol (prior = this step's fix) gives the one-fix posterior: p = z with the reported covariance,
+Cov(p, c) = -s_c R, Cov(p, l) = -s_l R, c and l uncorrelated. Fault exclusion, ``max_exclusions`` and
+``bias_follows_report`` (both biases mapped) as in the 6-state model. With ``local_share = 0`` it is the
+6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s`` when ``common_update = "augmented"``
+(tests: to 1e-12).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coloc.core.models import MotionParams, driving_noise_cov
+from coloc.core.vehicles import keep_entry_fix
+
+#: H of the fix for the state [p, v, c, l]: z_pos = p + c + l, z_vel = v.
+H8 = np.zeros((4, 8))
+H8[0, 0] = H8[1, 1] = H8[2, 2] = H8[3, 3] = 1.0
+H8[0, 4] = H8[1, 5] = H8[0, 6] = H8[1, 7] = 1.0
+
+
+def two_state_start(cov: np.ndarray, rows: np.ndarray, r_pos: np.ndarray, model) -> None:
+    """In place: the rows' bias blocks of an (N, 8, 8) covariance at their stationary values."""
+    cov[rows, 4:6, 4:6] = model.common_share * r_pos[rows]
+    cov[rows, 6:8, 6:8] = model.local_share * r_pos[rows]
+
+
+def two_state_transition(mean, accel, r_pos, dt, motion: MotionParams, model):
+    """The 8-state model's pieces for a batch (N, 8): the transitions F (N, 8, 8) (the local bias's decay
+    depends on each row's own speed estimate), the predicted means (N, 8) and Q (N, 8, 8)."""
+    n = mean.shape[0]
+    a_c = math.exp(-dt / model.common_tau_s)
+    speed = np.hypot(mean[:, 2], mean[:, 3])
+    a_l = np.exp(-dt / model.local_tau_s - speed * dt / model.local_length_m)
+    f = np.broadcast_to(np.eye(8), (n, 8, 8)).copy()
+    f[:, 0, 2] = f[:, 1, 3] = dt
+    f[:, 4, 4] = f[:, 5, 5] = a_c
+    f[:, 6, 6] = f[:, 7, 7] = a_l
+    q = np.zeros((n, 8, 8))
+    q[:, :4, :4] = driving_noise_cov(mean[:, 2:4], dt, motion)
+    q[:, 4:6, 4:6] = (1.0 - a_c * a_c) * model.common_share * r_pos
+    q[:, 6:8, 6:8] = ((1.0 - a_l * a_l) * model.local_share)[:, None, None] * r_pos
+    m = np.einsum("nij,nj->ni", f, mean)
+    m[:, 0:2] += 0.5 * dt * dt * accel
+    m[:, 2:4] += dt * accel
+    return f, m, q
+
+
+def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model,
+                             streak=None, r_prev=None):
+    """:func:`coloc.methods.gnss_bias.bias_predict_update` for the 8-D states (N, 8), (N, 8, 8). Returns
+    (mean, cov, excluded (N,) bool)."""
+    from coloc.methods.gnss_bias import report_map
+
+    n = mean.shape[0]
+    white = 1.0 - model.common_share - model.local_share
+    r = np.asarray(r, dtype=float)
+    r_pos = r[:, :2, :2]
+    m = mean.copy()
+    p = cov.copy()
+    if predict_mask.any():
+        f, mp, q = two_state_transition(m, accel, r_pos, dt, motion, model)
+        if model.bias_follows_report and r_prev is not None:
+            t = report_map(r_prev, r_pos)
+            f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
+            f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
+            mp = np.einsum("nij,nj->ni", f, m)
+            mp[:, 0:2] += 0.5 * dt * dt * accel
+            mp[:, 2:4] += dt * accel
+        pp = f @ p @ np.swapaxes(f, -1, -2) + q
+        pp = 0.5 * (pp + np.swapaxes(pp, -1, -2))
+        m[predict_mask] = mp[predict_mask]
+        p[predict_mask] = pp[predict_mask]
+    rn = r.copy()
+    rn[:, :2, :2] *= white
+    ph = p @ H8.T  # (N, 8, 4)
+    sm = H8 @ ph + rn
+    innov = z - m @ H8.T
+    excluded = np.zeros(n, dtype=bool)
+    if model.innovation_gate > 0:
+        nu = innov[:, :2]
+        nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        excluded = predict_mask & (nis > model.gate_threshold)
+        if streak is not None:
+            excluded &= streak < model.max_exclusions
+    consider = model.common_update == "consider"
+    for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
+        if not sel.any():
+            continue
+        hs = H8[rows]
+        rs = rn[sel][:, rows, rows]
+        phs = ph[sel][:, :, rows]
+        ss = sm[sel][:, rows, rows]
+        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, 8, k)
+        if consider:
+            gain[:, 4:6, :] = 0.0  # Schmidt: the common-mode state is never updated
+        m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
+        ikh = np.eye(8) - gain @ hs
+        pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
+        p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+    return m, p, excluded
+
+
+def two_state_entry_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndarray, r: np.ndarray,
+                              model) -> np.ndarray:
+    """:func:`coloc.methods.gnss_bias.entry_fix_posterior` for the 8-D states (module docstring)."""
+    once = keep_entry_fix(mean, cov, frame, fresh)
+    if once.any():
+        rp = r[once, :2, :2]
+        cov[once, :4, 4:] = 0.0
+        cov[once, 4:, :4] = 0.0
+        cov[once, 4:, 4:] = 0.0
+        mean[once, 4:] = 0.0
+        for sl, share in ((slice(4, 6), model.common_share), (slice(6, 8), model.local_share)):
+            cross = -share * rp
+            cov[once, :2, sl], cov[once, sl, :2] = cross, np.swapaxes(cross, -1, -2)
+            cov[once, sl, sl] = share * rp
+    return once

@@ -1,0 +1,196 @@
+"""``[gnss_model] bias_model = "two_state"`` (coloc.methods.gnss_bias2): the 8-D tracker against a textbook
+augmented Kalman filter (and a textbook Schmidt filter for ``common_update = "consider"``) per vehicle,
+against the single model at ``local_share = 0``, and its consistency where its model is the truth."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from coloc.core.models import MotionParams, driving_noise_cov
+from coloc.methods.gnss_bias import GnssBiasTracker, GnssModelParams
+from tests.coloc.test_gnss_bias import MOTION, make_frame, scripted_run
+
+TWO = GnssModelParams(bias_model="two_state", common_share=0.45, common_tau_s=300.0, local_share=0.35,
+                      local_length_m=15.0, local_tau_s=90.0, innovation_gate=0.0)
+
+
+class ReferenceKF8:
+    """A textbook Kalman filter on [p, v, c, l] (filterpy.kalman.KalmanFilter's equations, P = (I - K H) P);
+    ``consider``: the Schmidt-Kalman filter (Simon 2006, Sec. 7.5: K of the estimated states, zero rows for
+    the considered c, P = (I - K H) P (I - K H)^T + K R K^T)."""
+
+    def __init__(self, x, p, consider=False):
+        self.x, self.P, self.consider = x.copy(), p.copy(), consider
+
+    def predict(self, u, b, f, q):
+        self.x = f @ self.x + b @ u
+        self.P = f @ self.P @ f.T + q
+
+    def nis_pos(self, z, r, h):
+        s = h @ self.P @ h.T + r
+        nu = (z - h @ self.x)[:2]
+        return float(nu @ np.linalg.solve(s[:2, :2], nu))
+
+    def update(self, z, r, h):
+        s = h @ self.P @ h.T + r
+        k = self.P @ h.T @ np.linalg.inv(s)
+        if self.consider:
+            k[4:6] = 0.0
+        self.x = self.x + k @ (z - h @ self.x)
+        ikh = np.eye(8) - k @ h
+        self.P = ikh @ self.P @ ikh.T + k @ r @ k.T if self.consider else ikh @ self.P
+        self.P = 0.5 * (self.P + self.P.T)
+
+
+def reference_matrices(x, r, dt, model: GnssModelParams):
+    """F, B, Q (Q and the local decay from the prior velocity x[2:4]), H and the fix's white covariance."""
+    a_c = math.exp(-dt / model.common_tau_s)
+    a_l = math.exp(-dt / model.local_tau_s - math.hypot(x[2], x[3]) * dt / model.local_length_m)
+    f = np.eye(8)
+    f[0, 2] = f[1, 3] = dt
+    f[4, 4] = f[5, 5] = a_c
+    f[6, 6] = f[7, 7] = a_l
+    b = np.zeros((8, 2))
+    b[0, 0] = b[1, 1] = 0.5 * dt * dt
+    b[2, 0] = b[3, 1] = dt
+    q = np.zeros((8, 8))
+    q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
+    q[4:6, 4:6] = (1 - a_c * a_c) * model.common_share * r[:2, :2]
+    q[6:8, 6:8] = (1 - a_l * a_l) * model.local_share * r[:2, :2]
+    h = np.zeros((4, 8))
+    h[:, :4] = np.eye(4)
+    h[0, 4] = h[1, 5] = h[0, 6] = h[1, 7] = 1.0
+    rn = r.copy()
+    rn[:2, :2] *= 1 - model.common_share - model.local_share
+    return f, b, q, h, rn
+
+
+@pytest.mark.parametrize("gate,update", [(0.0, "augmented"), (0.999, "augmented"), (0.999, "consider")])
+def test_two_state_tracker_equals_a_textbook_kalman_filter(gate, update):
+    model = replace(TWO, innovation_gate=gate, max_exclusions=2, common_update=update)
+    frames = scripted_run(5, 300, model, jumps=0.03 if gate else 0.0)
+    est = GnssBiasTracker(motion=MOTION, model=model)
+    refs: dict[str, ReferenceKF8] = {}
+    streak: dict[str, int] = {}
+    threshold = chi2.ppf(gate, 2) if gate else math.inf
+    n_excluded = entries = 0
+    for fr in frames:
+        out = est.step(fr)
+        for i, vid in enumerate(fr.vehicle_ids):
+            r = fr.gnss_R[i]
+            if fr.entered[i]:
+                entries += 1
+                p0 = np.zeros((8, 8))
+                p0[:4, :4] = fr.prior_R[i]
+                p0[4:6, 4:6] = model.common_share * r[:2, :2]
+                p0[6:8, 6:8] = model.local_share * r[:2, :2]
+                refs[vid] = ReferenceKF8(np.concatenate([fr.prior_z[i], np.zeros(4)]), p0, update == "consider")
+                _f, _b, _q, h, rn = reference_matrices(refs[vid].x, r, fr.dt, model)
+                refs[vid].update(fr.gnss_z[i], rn, h)
+                streak[vid] = 0
+            else:
+                kf = refs[vid]
+                f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
+                kf.predict(fr.accel[i], b, f, q)
+                if kf.nis_pos(fr.gnss_z[i], rn, h) > threshold and streak[vid] < model.max_exclusions:
+                    n_excluded += 1
+                    streak[vid] += 1
+                    assert est.last_excluded[i]
+                    kf.update(fr.gnss_z[i][2:], rn[2:, 2:], h[2:])
+                else:
+                    streak[vid] = 0
+                    assert not est.last_excluded[i]
+                    kf.update(fr.gnss_z[i], rn, h)
+            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(est._cov[i], refs[vid].P, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(est._mean[i], refs[vid].x, rtol=0, atol=1e-9)
+    assert entries > 10
+    assert (n_excluded > 3) == (gate > 0)
+
+
+@pytest.mark.parametrize("kw", [{}, {"innovation_gate": 0.999, "max_exclusions": 2}, {"bias_follows_report": True}])
+def test_no_local_share_is_the_single_model(kw):
+    single = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, **{"innovation_gate": 0.0, **kw})
+    two = replace(single, bias_model="two_state", common_share=0.7, common_tau_s=40.0, local_share=0.0,
+                  common_update="augmented")
+    a, b = GnssBiasTracker(motion=MOTION, model=single), GnssBiasTracker(motion=MOTION, model=two)
+    for fr in scripted_run(8, 200, single, jumps=0.03):
+        x, y = a.step(fr), b.step(fr)
+        np.testing.assert_allclose(y.mean, x.mean, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(y.cov, x.cov, rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(a.last_excluded, b.last_excluded)
+
+
+def simulate_two(seed, steps, model, sigma_p=4.0, sigma_v=0.2, sigma_a=0.2, dt=1.0):
+    """One vehicle by model (1) with a fix whose position error is the two-state model exactly: the local
+    bias's decay uses the tracker's own prior speed estimate, as the model defines it. Returns the last
+    step's (truth, mean, covariance)."""
+    rng = np.random.default_rng(seed)
+    motion = MotionParams(sigma_along=sigma_a, sigma_cross=sigma_a)
+    est = GnssBiasTracker(motion=motion, model=model)
+    r = np.diag([sigma_p**2, sigma_p**2, sigma_v**2, sigma_v**2])[None]
+    sc, sl = model.common_share, model.local_share
+    a_c = math.exp(-dt / model.common_tau_s)
+    p0 = np.diag([25.0, 25.0, 1.0, 1.0])
+    x = rng.multivariate_normal([0, 0, 10, 0], p0)
+    c = rng.normal(0, math.sqrt(sc) * sigma_p, 2)
+    loc = rng.normal(0, math.sqrt(sl) * sigma_p, 2)
+    out = None
+    for t in range(steps):
+        u = rng.normal(0, 0.5, 2)
+        if t > 0:
+            speed = math.hypot(*est._mean[0, 2:4])
+            a_l = math.exp(-dt / model.local_tau_s - speed * dt / model.local_length_m)
+            acc = u + rng.normal(0, sigma_a, 2)
+            x = np.array([x[0] + dt * x[2] + 0.5 * dt * dt * acc[0], x[1] + dt * x[3] + 0.5 * dt * dt * acc[1],
+                          x[2] + dt * acc[0], x[3] + dt * acc[1]])
+            c = a_c * c + rng.normal(0, math.sqrt((1 - a_c * a_c) * sc) * sigma_p, 2)
+            loc = a_l * loc + rng.normal(0, math.sqrt((1 - a_l * a_l) * sl) * sigma_p, 2)
+        z = x.copy()
+        z[:2] += c + loc + rng.normal(0, math.sqrt(1 - sc - sl) * sigma_p, 2)
+        z[2:] += rng.normal(0, sigma_v, 2)
+        prior_z = (x + rng.multivariate_normal(np.zeros(4), p0))[None] if t == 0 else np.full((1, 4), np.nan)
+        fr = make_frame(float(t), dt, ["v"], [t == 0], u[None], z[None], r, prior_z,
+                        p0[None] if t == 0 else np.full((1, 4, 4), np.nan))
+        out = est.step(fr)
+    return x, out.mean[0], out.cov[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("update", ["augmented", "consider"])
+def test_consistent_where_its_model_is_the_truth(update):
+    model = replace(TWO, common_update=update)
+    runs = 100
+    nees2, nees4 = [], []
+    for seed in range(runs):
+        truth, mean, cov = simulate_two(seed, 150, model)
+        e = truth - mean
+        nees2.append(e[:2] @ np.linalg.solve(cov[:2, :2], e[:2]))
+        nees4.append(e @ np.linalg.solve(cov, e))
+    for nees, dof in ((nees2, 2), (nees4, 4)):
+        lo, hi = chi2.ppf([0.005, 0.995], dof * runs) / runs
+        assert lo < np.mean(nees) < hi, (update, dof, np.mean(nees), lo, hi)
+
+
+@pytest.mark.parametrize("kw", [{"bias_model": "double"}, {"common_update": "schmidt"}, {"common_tau_s": 0.0},
+                                {"local_length_m": -1.0}, {"local_tau_s": math.inf}, {"common_share": 1.0},
+                                {"local_share": -0.1},
+                                {"bias_model": "two_state", "common_share": 0.6, "local_share": 0.4},
+                                {"bias_model": "two_state", "adaptive_window_s": 10.0}])
+def test_two_state_params_refuse_values_that_break_the_model(kw):
+    with pytest.raises(ValueError):
+        GnssModelParams(**kw)
+
+
+def test_the_other_methods_keep_the_single_model():
+    two = replace(TWO, bias_share=0.6, bias_tau_s=50.0)
+    single = two.single_model()
+    assert single.bias_model == "single" and single.state_dim == 6
+    assert (single.bias_share, single.bias_tau_s) == (0.6, 50.0)
+    assert TWO.state_dim == 8 and GnssModelParams().single_model() == GnssModelParams()
