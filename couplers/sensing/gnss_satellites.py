@@ -197,9 +197,12 @@ def _inv_spd4(a, out):
 
 
 @njit(cache=True)
-def _wls_kernel(los, usable, eps, var_rx, thr):
+def _wls_kernel(los, usable, eps, var_rx, thr, posterior=False):
     """Per vehicle: the WLS fix error (east, north) of the usable satellites with fault exclusion, the reported
-    2 x 2 covariance, satellites used, satellites excluded, whether there is a fix (module docstring)."""
+    2 x 2 covariance, satellites used, satellites excluded, whether there is a fix (module docstring).
+    ``posterior``: the reported covariance scaled by the a-posteriori variance factor r^T W r / (m - 4) when
+    above 1 and m > 4, the larger of the final fit's and the fit's before any exclusion
+    (``reported_covariance = "residual"``, module docstring)."""
     n, s = usable.shape
     err = np.zeros((n, 2))
     cov = np.zeros((n, 2, 2))
@@ -216,6 +219,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
     b = np.empty(4)
     x = np.empty(4)
     for i in range(n):
+        f0 = 1.0
         m = 0
         for k in range(s):
             if usable[i, k]:
@@ -243,7 +247,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
             usedm[i, :] = False
             for j in range(m):
                 usedm[i, idx[j]] = True
-            if m == 4 or not np.isfinite(thr[m - 4]):
+            if m == 4 or not (posterior or np.isfinite(thr[m - 4])):
                 break
             wsse = 0.0
             worst, worst_w = -1, -1.0
@@ -259,8 +263,17 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
                 wj = r * r / cr if cr > 1e-12 else 0.0
                 if wj > worst_w:
                     worst, worst_w = j, wj
-            if wsse <= thr[m - 4] or m <= 5:
-                break  # consistent, or too few satellites to exclude one and test again
+            if posterior:  # the final fit's variance factor, never below the one before any exclusion
+                f = wsse / (m - 4)
+                if excluded[i] == 0:
+                    f0 = f
+                f = max(f, f0)
+                if f > 1.0:
+                    for r in range(2):
+                        for c in range(2):
+                            cov[i, r, c] = f * p[r, c]
+            if not np.isfinite(thr[m - 4]) or wsse <= thr[m - 4] or m <= 5:
+                break  # no test, consistent, or too few satellites to exclude one and test again
             for j in range(worst, m - 1):
                 idx[j] = idx[j + 1]
             m -= 1
@@ -330,6 +343,12 @@ class SatelliteErrorProcess:
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
         self._geom: tuple = ()  # this step's (los, el, used satellites, NLOS range-rate coefficients, fix)
+
+    @property
+    def posterior(self) -> bool:
+        """The receivers scale their reported covariance by their residuals (``reported_covariance =
+        "residual"``)."""
+        return self.params.reported_covariance == "residual"
 
     @property
     def doppler(self) -> bool:
@@ -409,7 +428,7 @@ class SatelliteErrorProcess:
         eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
         var_rx = receiver_variance(p, el)
         err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
-                                                   var_rx, self.thr)
+                                                   var_rx, self.thr, self.posterior)
         if not ok.all():  # no fix: hold the last one, or one drawn at NO_FIX_SIGMA_M around a newcomer
             lost = np.flatnonzero(~ok)
             held = np.isfinite(fix_prev[lost, 0])
@@ -443,7 +462,7 @@ class SatelliteErrorProcess:
         var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
         err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
-                                                var_rr, self.thr)
+                                                var_rr, self.thr, self.posterior)
         return err, cov, solved & ok
 
     @property
