@@ -52,7 +52,19 @@ Fault exclusion (RAIM): the weighted sum of squared residuals against the chi-sq
 with m - 4 degrees of freedom (RTKLIB's table is alpha = 0.001, our default); while it fails and at least six
 satellites remain, the satellite of the largest normalised residual (r_j^2 / (sigma_j^2 - h_j P h_j^T), Baarda's
 w-test) is excluded and the fix recomputed. ``raim_pfa = 0``: no test. The reported covariance is the 2 x 2
-east-north block of (H^T W H)^-1 of the satellites used. Fewer than four satellites: no fix; the receiver holds
+east-north block of (H^T W H)^-1 of the satellites used (``reported_covariance = "dop"``, the default: RTKLIB's
+pntpos reports this Qr). ``reported_covariance = "residual"``: that block times the a-posteriori variance factor
+of the weighted least squares, s0^2 = r^T W r / (m - 4) (r the residuals, m the satellites used; the estimate of
+the unit weight's variance of least-squares adjustment: the residuals tell the receiver how far its budget
+understates its errors. A receiver that reports it: Trimble's GSOF "Position VCV" record gives the inverted
+normal matrix with the solution's "unit variance" and the range residual RMS over the degrees of freedom
+(help.fieldsystems.trimble.com/alloy/gsof-messages-position-vcv.htm); the residual-based consistency of P. D.
+Groves, Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems, 2nd ed. 2013, ch. 17, is
+quoted from memory), when above 1 and m > 4
+(never below the budget's; four satellites leave no residual). After a fault exclusion the factor is the larger
+of the final fit's and the fit's before the first exclusion (our rule, an assumption: a receiver that had to
+exclude a satellite keeps the evidence that its set was contaminated, as NLOS signals come in groups in a
+street). The fix itself is the same under both values. Fewer than four satellites: no fix; the receiver holds
 its last fix (the vehicle has moved on) and reports :data:`NO_FIX_SIGMA_M` per axis; a vehicle with no fix yet
 gets a fix drawn at that sigma around it (its own stream).
 
@@ -62,7 +74,8 @@ range-rate error white with sigma^2 = ``doppler_noise_mps``^2 (1 + 1 / sin el) p
 rate of its extra path g . v (the antenna's image moves with the mirrored velocity: moving toward the reflecting
 wall shortens the path); weights and the reported 2 x 2 covariance from the receiver's ``rx_doppler_mps`` in the
 same form, with the fix's fault exclusion (chi-square residual test at ``raim_pfa``, worst range rate excluded
-while at least six remain; an assumption: a receiver screening its range rates as its ranges). 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
+while at least six remain; an assumption: a receiver screening its range rates as its ranges), and under
+``reported_covariance = "residual"`` the same variance factor of its range-rate residuals. 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
 0.05 m/s at 50 %, quoted from memory) with the elevation form of the code noise (assumption). Vehicles without
 a fix keep the zone's Doppler error.
 
