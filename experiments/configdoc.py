@@ -481,6 +481,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "doppler_noise_mps": ("m/s", "satellites, doppler: range-rate noise, white, sigma^2 = s^2 (1 + 1 / sin(el))."),
         "rx_doppler_mps": ("m/s", "satellites, doppler, receiver budget: the s of `doppler_noise_mps` the receiver "
                                   "weights with and reports."),
+        "reported_covariance": ("", "satellites: the covariance the receiver reports (fix and Doppler velocity) is "
+                                    "`\"dop\"`: its budget through the geometry, (H^T W H)^-1, or `\"residual\"`: "
+                                    "that times the fit's a-posteriori variance factor r^T W r / (m - 4) when above "
+                                    "1 (m > 4 satellites)."),
     },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),

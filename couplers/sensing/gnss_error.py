@@ -126,6 +126,9 @@ NLOS_MODES = ("block", "delay", "reflect")
 #: The ``[gnss_error] velocity`` values under "satellites": the zone's white Doppler error, or a range-rate
 #: least-squares velocity from the same satellites as the fix.
 VELOCITY_MODES = ("zone", "doppler")
+#: The ``[gnss_error] reported_covariance`` values under "satellites": the receiver's budget through the
+#: geometry (DOP), or that scaled by the fit's a-posteriori variance factor (couplers.sensing.gnss_satellites).
+REPORTED_COVARIANCE_MODES = ("dop", "residual")
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,7 @@ class GnssErrorParams:
     velocity: str = "zone"
     doppler_noise_mps: float = 0.05
     rx_doppler_mps: float = 0.05
+    reported_covariance: str = "dop"
 
     def __post_init__(self):
         def finite(v):
@@ -188,6 +192,9 @@ class GnssErrorParams:
         if self.velocity not in VELOCITY_MODES:
             raise InputError(None, "velocity",
                              f"unknown value {self.velocity!r} (available: {', '.join(VELOCITY_MODES)})")
+        if self.reported_covariance not in REPORTED_COVARIANCE_MODES:
+            raise InputError(None, "reported_covariance", f"unknown value {self.reported_covariance!r} "
+                                                          f"(available: {', '.join(REPORTED_COVARIANCE_MODES)})")
         for key in ("antenna_height_m", "multipath_corr_length_m"):
             if not (finite(getattr(self, key)) and getattr(self, key) > 0):
                 raise InputError(None, key, f"must be positive and finite, got {getattr(self, key)!r}")

@@ -52,7 +52,19 @@ Fault exclusion (RAIM): the weighted sum of squared residuals against the chi-sq
 with m - 4 degrees of freedom (RTKLIB's table is alpha = 0.001, our default); while it fails and at least six
 satellites remain, the satellite of the largest normalised residual (r_j^2 / (sigma_j^2 - h_j P h_j^T), Baarda's
 w-test) is excluded and the fix recomputed. ``raim_pfa = 0``: no test. The reported covariance is the 2 x 2
-east-north block of (H^T W H)^-1 of the satellites used. Fewer than four satellites: no fix; the receiver holds
+east-north block of (H^T W H)^-1 of the satellites used (``reported_covariance = "dop"``, the default: RTKLIB's
+pntpos reports this Qr). ``reported_covariance = "residual"``: that block times the a-posteriori variance factor
+of the weighted least squares, s0^2 = r^T W r / (m - 4) (r the residuals, m the satellites used; the estimate of
+the unit weight's variance of least-squares adjustment: the residuals tell the receiver how far its budget
+understates its errors. A receiver that reports it: Trimble's GSOF "Position VCV" record gives the inverted
+normal matrix with the solution's "unit variance" and the range residual RMS over the degrees of freedom
+(help.fieldsystems.trimble.com/alloy/gsof-messages-position-vcv.htm); the residual-based consistency of P. D.
+Groves, Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems, 2nd ed. 2013, ch. 17, is
+quoted from memory), when above 1 and m > 4
+(never below the budget's; four satellites leave no residual). After a fault exclusion the factor is the larger
+of the final fit's and the fit's before the first exclusion (our rule, an assumption: a receiver that had to
+exclude a satellite keeps the evidence that its set was contaminated, as NLOS signals come in groups in a
+street). The fix itself is the same under both values. Fewer than four satellites: no fix; the receiver holds
 its last fix (the vehicle has moved on) and reports :data:`NO_FIX_SIGMA_M` per axis; a vehicle with no fix yet
 gets a fix drawn at that sigma around it (its own stream).
 
@@ -62,7 +74,8 @@ range-rate error white with sigma^2 = ``doppler_noise_mps``^2 (1 + 1 / sin el) p
 rate of its extra path g . v (the antenna's image moves with the mirrored velocity: moving toward the reflecting
 wall shortens the path); weights and the reported 2 x 2 covariance from the receiver's ``rx_doppler_mps`` in the
 same form, with the fix's fault exclusion (chi-square residual test at ``raim_pfa``, worst range rate excluded
-while at least six remain; an assumption: a receiver screening its range rates as its ranges). 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
+while at least six remain; an assumption: a receiver screening its range rates as its ranges), and under
+``reported_covariance = "residual"`` the same variance factor of its range-rate residuals. 0.05 m/s for both: a mass-market receiver's datasheet velocity accuracy (u-blox NEO-M8 data sheet,
 0.05 m/s at 50 %, quoted from memory) with the elevation form of the code noise (assumption). Vehicles without
 a fix keep the zone's Doppler error.
 
@@ -197,9 +210,12 @@ def _inv_spd4(a, out):
 
 
 @njit(cache=True)
-def _wls_kernel(los, usable, eps, var_rx, thr):
+def _wls_kernel(los, usable, eps, var_rx, thr, posterior=False):
     """Per vehicle: the WLS fix error (east, north) of the usable satellites with fault exclusion, the reported
-    2 x 2 covariance, satellites used, satellites excluded, whether there is a fix (module docstring)."""
+    2 x 2 covariance, satellites used, satellites excluded, whether there is a fix (module docstring).
+    ``posterior``: the reported covariance scaled by the a-posteriori variance factor r^T W r / (m - 4) when
+    above 1 and m > 4, the larger of the final fit's and the fit's before any exclusion
+    (``reported_covariance = "residual"``, module docstring)."""
     n, s = usable.shape
     err = np.zeros((n, 2))
     cov = np.zeros((n, 2, 2))
@@ -216,6 +232,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
     b = np.empty(4)
     x = np.empty(4)
     for i in range(n):
+        f0 = 1.0
         m = 0
         for k in range(s):
             if usable[i, k]:
@@ -243,7 +260,7 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
             usedm[i, :] = False
             for j in range(m):
                 usedm[i, idx[j]] = True
-            if m == 4 or not np.isfinite(thr[m - 4]):
+            if m == 4 or not (posterior or np.isfinite(thr[m - 4])):
                 break
             wsse = 0.0
             worst, worst_w = -1, -1.0
@@ -259,8 +276,17 @@ def _wls_kernel(los, usable, eps, var_rx, thr):
                 wj = r * r / cr if cr > 1e-12 else 0.0
                 if wj > worst_w:
                     worst, worst_w = j, wj
-            if wsse <= thr[m - 4] or m <= 5:
-                break  # consistent, or too few satellites to exclude one and test again
+            if posterior:  # the final fit's variance factor, never below the one before any exclusion
+                f = wsse / (m - 4)
+                if excluded[i] == 0:
+                    f0 = f
+                f = max(f, f0)
+                if f > 1.0:
+                    for r in range(2):
+                        for c in range(2):
+                            cov[i, r, c] = f * p[r, c]
+            if not np.isfinite(thr[m - 4]) or wsse <= thr[m - 4] or m <= 5:
+                break  # no test, consistent, or too few satellites to exclude one and test again
             for j in range(worst, m - 1):
                 idx[j] = idx[j + 1]
             m -= 1
@@ -330,6 +356,12 @@ class SatelliteErrorProcess:
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
         self._geom: tuple = ()  # this step's (los, el, used satellites, NLOS range-rate coefficients, fix)
+
+    @property
+    def posterior(self) -> bool:
+        """The receivers scale their reported covariance by their residuals (``reported_covariance =
+        "residual"``)."""
+        return self.params.reported_covariance == "residual"
 
     @property
     def doppler(self) -> bool:
@@ -409,7 +441,7 @@ class SatelliteErrorProcess:
         eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
         var_rx = receiver_variance(p, el)
         err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
-                                                   var_rx, self.thr)
+                                                   var_rx, self.thr, self.posterior)
         if not ok.all():  # no fix: hold the last one, or one drawn at NO_FIX_SIGMA_M around a newcomer
             lost = np.flatnonzero(~ok)
             held = np.isfinite(fix_prev[lost, 0])
@@ -443,7 +475,7 @@ class SatelliteErrorProcess:
         var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
         err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
-                                                var_rr, self.thr)
+                                                var_rr, self.thr, self.posterior)
         return err, cov, solved & ok
 
     @property

@@ -8,9 +8,12 @@ against footprints and against the net folder's buildings.
   segment/rectangle tests (edges included), skipped for a footprint that lies wholly to one side of the
   line (:func:`_occluded_by_quads_bucketed`); :func:`_occluded_by_quads` is the plain loop over every
   footprint they are tested against.
-* Buildings: the polygons of ``buildings.geojson``; only sight lines that meet a building's bounding box
-  (:func:`_needs_building_test`, boxes listed per 4 m cell, :class:`couplers.net.buildings.BuildingBoxes`) go to shapely 2's
-  STRtree ``query(..., predicate="intersects")``, all at once.
+* Buildings: the polygons of ``buildings.geojson``; a sight line walks the 4 m cells near a building
+  (boxes listed per cell, :class:`couplers.net.buildings.BuildingBoxes`) and meets a building when it meets its
+  widened box and, exactly, its footprint: a ring edge (closed segments) or, wholly inside, the polygon (even-odd),
+  in numba (:func:`_building_hits`). Its reference, shapely 2's STRtree ``query(..., predicate="intersects")`` on
+  the sight lines that meet a box (:func:`_needs_building_test`), is kept for the tests and for sight lines that
+  are not finite.
 """
 
 from __future__ import annotations
@@ -430,6 +433,103 @@ def _needs_building_test(seg, x0, y0, cell, near, start, ids, boxes, margin):
     return out
 
 
+@njit(cache=True)
+def _orient(ax, ay, bx, by, cx, cy):
+    """Sign of the turn a -> b -> c: 1 left, -1 right, 0 collinear (the cross product's sign)."""
+    v = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    return 1 if v > 0.0 else (-1 if v < 0.0 else 0)
+
+
+@njit(cache=True)
+def _on_segment(ax, ay, bx, by, px, py):
+    """p, collinear with a-b, lies on the closed segment a-b (its bounding box)."""
+    return min(ax, bx) <= px <= max(ax, bx) and min(ay, by) <= py <= max(ay, by)
+
+
+@njit(cache=True)
+def _segments_meet(ax, ay, bx, by, cx, cy, dx, dy):
+    """The closed segments a-b and c-d share a point (crossing, touching or overlapping)."""
+    o1, o2 = _orient(ax, ay, bx, by, cx, cy), _orient(ax, ay, bx, by, dx, dy)
+    o3, o4 = _orient(cx, cy, dx, dy, ax, ay), _orient(cx, cy, dx, dy, bx, by)
+    if o1 * o2 < 0 and o3 * o4 < 0:
+        return True
+    return ((o1 == 0 and _on_segment(ax, ay, bx, by, cx, cy)) or (o2 == 0 and _on_segment(ax, ay, bx, by, dx, dy))
+            or (o3 == 0 and _on_segment(cx, cy, dx, dy, ax, ay)) or (o4 == 0 and _on_segment(cx, cy, dx, dy, bx, by)))
+
+
+@njit(cache=True)
+def _segment_meets_polygon(ax, ay, bx, by, edges, e0, e1):
+    """The closed segment a-b meets the closed polygon whose ring edges are ``edges[e0:e1]`` (x0, y0, x1, y1;
+    exterior and holes, of every part): it meets an edge, or else lies wholly inside, so a is inside (even-odd
+    crossings of a horizontal ray from a over all rings)."""
+    inside = False
+    for q in range(e0, e1):
+        x0, y0, x1, y1 = edges[q, 0], edges[q, 1], edges[q, 2], edges[q, 3]
+        if _segments_meet(ax, ay, bx, by, x0, y0, x1, y1):
+            return True
+        if (y0 > ay) != (y1 > ay) and ax < (x1 - x0) * (ay - y0) / (y1 - y0) + x0:
+            inside = not inside
+    return inside
+
+
+@njit(cache=True)
+def _building_hits(seg, x0, y0, cell, near, start, ids, boxes, margin, edge_start, edges):
+    """(M,) int8 per segment: 0 it misses every building, 1 it meets one, 2 not finite (left to shapely).
+    The walk of :func:`_needs_building_test`; each building whose widened box a segment meets goes to the exact
+    closed segment / polygon test (:func:`_segment_meets_polygon`, shapely's ``intersects``) at once."""
+    m = seg.shape[0]
+    ny, nx = near.shape
+    out = np.zeros(m, dtype=np.int8)
+    seen = np.full(boxes.shape[0], -1, dtype=np.int64)
+    for i in range(m):
+        ax, ay, bx, by = seg[i, 0], seg[i, 1], seg[i, 2], seg[i, 3]
+        gx, gy, sx, sy, k_max = _sampling(ax, ay, bx, by, x0, y0, cell)
+        if k_max < 0:
+            out[i] = 2
+            continue
+        for k in range(k_max + 1):
+            fx = math.floor(gx + sx * k)
+            fy = math.floor(gy + sy * k)
+            if not (0 <= fx < nx and 0 <= fy < ny) or not near[int(fy), int(fx)]:
+                continue
+            c = int(fy) * nx + int(fx)
+            for q in range(start[c], start[c + 1]):
+                b = ids[q]
+                if seen[b] == i:
+                    continue
+                seen[b] = i
+                if _segment_meets_box(ax, ay, bx, by, boxes[b, 0] - margin, boxes[b, 1] - margin,
+                                      boxes[b, 2] + margin, boxes[b, 3] + margin) \
+                        and _segment_meets_polygon(ax, ay, bx, by, edges, edge_start[b], edge_start[b + 1]):
+                    out[i] = 1
+                    break
+            if out[i]:
+                break
+    return out
+
+
+def building_edges(buildings: Buildings) -> tuple[np.ndarray, np.ndarray]:
+    """(CSR start (B + 1,), ring edges (E, 4)) of the footprints, every ring of every part (built once per
+    ``buildings``)."""
+    cache = buildings.__dict__
+    if "_ring_edges" not in cache:
+        starts, edges = [0], []
+        for poly in buildings.polygons:
+            k = 0
+            for part in shapely.get_parts(poly):
+                rings = [shapely.get_exterior_ring(part)] + [shapely.get_interior_ring(part, j) for j in
+                                                            range(shapely.get_num_interior_rings(part))]
+                for ring in rings:
+                    c = shapely.get_coordinates(ring)
+                    if len(c) >= 2:
+                        edges.append(np.hstack([c[:-1], c[1:]]))
+                        k += len(c) - 1
+            starts.append(starts[-1] + k)
+        e = np.ascontiguousarray(np.vstack(edges) if edges else np.empty((0, 4)), dtype=np.float64)
+        cache["_ring_edges"] = (np.asarray(starts, dtype=np.int64), e)
+    return cache["_ring_edges"]
+
+
 def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildings | None) -> np.ndarray:
     """(M,) bool: the sight line start[i] -> end[i] intersects a building (one STRtree query for all
     sight lines that meet a building's bounding box: ``buildings.cells`` and ``buildings.boxes`` clear the
@@ -438,7 +538,25 @@ def occluded_by_buildings(start: np.ndarray, end: np.ndarray, buildings: Buildin
 
 
 def _segments_occluded_by_buildings(seg: np.ndarray, buildings: Buildings | None) -> np.ndarray:
-    """:func:`occluded_by_buildings` of the segments ``seg`` (M, 4): start x, y, end x, y."""
+    """:func:`occluded_by_buildings` of the segments ``seg`` (M, 4): start x, y, end x, y: the exact test in
+    numba (:func:`_building_hits`), shapely for segments that are not finite."""
+    m = seg.shape[0]
+    if m == 0 or buildings is None or len(buildings) == 0:
+        return np.zeros(m, dtype=bool)
+    g, bb = buildings.cells, buildings.boxes
+    edge_start, edges = building_edges(buildings)
+    seg = np.ascontiguousarray(seg, dtype=np.float64)
+    hits = _building_hits(seg, g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin, edge_start, edges)
+    out = hits == 1
+    odd = np.flatnonzero(hits == 2)
+    if odd.size:
+        out[odd] = _segments_occluded_by_buildings_shapely(seg[odd], buildings)
+    return out
+
+
+def _segments_occluded_by_buildings_shapely(seg: np.ndarray, buildings: Buildings | None) -> np.ndarray:
+    """:func:`_segments_occluded_by_buildings` with shapely 2's STRtree ``intersects`` for the segments that may
+    meet a building (:func:`_needs_building_test`): the reference of the numba test."""
     m = seg.shape[0]
     out = np.zeros(m, dtype=bool)
     if m == 0 or buildings is None or len(buildings) == 0:

@@ -71,3 +71,40 @@ def test_satellite_receiver_kernels_equal_the_numpy_expressions():
     common, sig_n, mp = rng.normal(0, 3, s), rng.uniform(0.2, 2, s), rng.uniform(0.3, 6, s)
     ref_eps = common[None, :] + sig_n[None, :] * white + mp[None, :] * u
     assert _pseudorange_sum(common, sig_n, white, mp, u).tobytes() == ref_eps.tobytes()
+
+
+def test_building_sight_lines_in_numba_equal_shapely():
+    """The numba segment / footprint test (couplers.sensing.occlusion._building_hits) gives shapely's
+    ``intersects`` on every segment: random segments over random rectangles, L shapes with holes and
+    multi-polygons, with segments ending inside footprints, on their corners and along their edges (segments
+    that are not finite go to shapely as before)."""
+    import shapely
+    from shapely import affinity
+
+    from couplers.net.buildings import Buildings
+    from couplers.sensing.occlusion import _segments_occluded_by_buildings, _segments_occluded_by_buildings_shapely
+
+    rng = np.random.default_rng(3)
+    polys = []
+    for _ in range(40):
+        x, y = rng.uniform(0, 300, 2)
+        w, h = rng.uniform(3, 30, 2)
+        kind = rng.integers(3)
+        if kind == 0:
+            p = shapely.box(x, y, x + w, y + h)
+        elif kind == 1:  # an L shape with a courtyard
+            p = shapely.difference(shapely.union(shapely.box(x, y, x + w, y + h / 3), shapely.box(x, y, x + w / 3, y + h)),
+                                   shapely.box(x + 0.3, y + 0.3, x + w / 6, y + h / 6))
+        else:  # two parts
+            p = shapely.MultiPolygon([shapely.box(x, y, x + w / 3, y + h), shapely.box(x + 2 * w / 3, y, x + w, y + h)])
+        polys.append(affinity.rotate(p, float(rng.uniform(0, 90)), origin="centroid"))
+    b = Buildings.from_polygons(polys, np.full(len(polys), 10.0))
+    corners = np.vstack([shapely.get_coordinates(p) for p in polys])
+    a = rng.uniform(-20, 320, (3000, 2))
+    e = np.vstack([rng.uniform(-20, 320, (1500, 2)), a[1500:2500] + rng.normal(0, 5, (1000, 2)),
+                   corners[rng.integers(len(corners), size=500)]])
+    seg = np.hstack([a, e])
+    seg[:200, 2:] = seg[:200, :2] + [25.0, 0.0]  # axis-parallel, like the rectangles' edges before rotation
+    got, ref = _segments_occluded_by_buildings(seg, b), _segments_occluded_by_buildings_shapely(seg, b)
+    assert got.dtype == bool and (got == ref).all()
+    assert 0.2 < got.mean() < 0.9  # both kinds of segment are tested

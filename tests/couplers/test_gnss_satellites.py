@@ -255,6 +255,10 @@ def test_elevation_mask_outside_0_90_and_unknown_nlos_are_refused():
     with pytest.raises(InputError) as exc:
         GnssErrorParams(**SAT, doppler_noise_mps=-1.0)
     assert exc.value.field == "doppler_noise_mps"
+    for bad in ("RAIM", "", 1):
+        with pytest.raises(InputError) as exc:
+            GnssErrorParams(**SAT, reported_covariance=bad)
+        assert exc.value.field == "reported_covariance"
 
 
 def test_a_building_without_height_is_refused_with_its_file_and_field(tmp_path):
@@ -468,3 +472,54 @@ def test_doppler_velocity_of_a_reflected_signal_carries_the_image_velocity():
         assert ok.all() and proc.last["nlos_received"].sum() > 0
         out[name] = np.abs(err).max()
     assert out["along"] < 1e-9 < 0.05 < out["across"]
+
+
+def _canyon_nees(nlos, mode, steps=200):
+    """Mean position NEES and share inside the 95 % ellipse of 40 receivers driving along ``_canyon()``, and
+    the run's errors and reported covariances."""
+    proc = SatelliteErrorProcess(GnssErrorParams(**SAT, nlos=nlos, reported_covariance=mode), 9, 0.75, _canyon())
+    xy = np.c_[np.linspace(-250, 100, 40), np.zeros(40)]
+    errs, covs = [], []
+    for k in range(steps):
+        errs.append(proc.step(k * 0.75, _ids(40), np.full(40, k == 0), None, None, None, xy + [k * 0.5, 0]))
+        covs.append(proc.reported_cov.copy())
+    e, c = np.array(errs), np.array(covs)
+    nees = np.einsum("kni,knij,knj->kn", e, np.linalg.inv(c), e)
+    return nees.mean(), (nees <= chi2.ppf(0.95, 2)).mean(), e, c
+
+
+def test_residual_covariance_covers_the_open_sky_fix_at_its_chi_square_level():
+    """reported_covariance = "residual", open sky, world errors exactly the receiver's budget (as the "dop"
+    test above): the fix is inside the reported 95 % ellipse at least 95 % of the time (less 3.3 binomial
+    sigma of 30000 fixes); the factor, never below 1, only widens the "dop" covariance, by little in the open
+    (mean NEES between 1 and 2); the errors are the "dop" receiver's, byte for byte."""
+    kw = dict(model="satellites", sv_clock_orbit_m=0.0, iono_vertical_m=0.0, tropo_zenith_m=0.0, multipath_m=0.0,
+              code_noise_a_m=0.8, code_noise_b_m=0.6, rx_ure_m=0.0, rx_iono_m=0.0, rx_tropo_m=0.0, rx_code_a_m=0.8,
+              rx_code_b_m=0.6)
+    out = {}
+    for mode in ("dop", "residual"):
+        proc = SatelliteErrorProcess(GnssErrorParams(**kw, reported_covariance=mode), 11, 0.75)
+        out[mode] = _run(proc, 20, 1500, np.random.default_rng(5))
+    (e0, c0), (e, c) = out["dop"], out["residual"]
+    assert e.tobytes() == e0.tobytes()
+    nees = np.einsum("kni,knij,knj->kn", e, np.linalg.inv(c), e).ravel()
+    n = nees.size
+    assert (nees <= chi2.ppf(0.95, 2)).mean() > 0.95 - 3.3 * math.sqrt(0.05 * 0.95 / n)
+    assert 1.0 < nees.mean() < 2.0
+    ratio = c[..., 0, 0] / c0[..., 0, 0]
+    np.testing.assert_allclose(c, c0 * ratio[..., None, None], rtol=1e-12)  # a scale of the DOP covariance
+    assert ratio.min() >= 1.0 and (ratio > 1.0).mean() > 0.2
+
+
+def test_residual_covariance_brings_canyon_nees_toward_two():
+    """In the street canyon the NLOS delays are not in the receiver's budget: with "dop" it is overconfident
+    (mean NEES far above 2), with "residual" its residuals widen what it reports: the NEES much nearer 2
+    (under a third of "dop"'s, below 6 with facade reflections, below 3 with "delay"), while "block", whose
+    fix has no NLOS, stays consistent."""
+    res = {(nlos, mode): _canyon_nees(nlos, mode) for nlos in ("reflect", "delay", "block")
+           for mode in ("dop", "residual")}
+    for nlos, bound in (("reflect", 6.0), ("delay", 3.0)):
+        dop, resid = res[(nlos, "dop")][0], res[(nlos, "residual")][0]
+        assert dop > 10.0 and resid < min(bound, dop / 3), (nlos, dop, resid)
+        assert res[(nlos, "residual")][1] > res[(nlos, "dop")][1] + 0.4  # inside the 95 % ellipse far more often
+    assert res[("block", "residual")][0] < 2.0 and res[("block", "residual")][1] > 0.95

@@ -562,6 +562,12 @@ def run_gnss_satellites_unknown_velocity(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_error.reported_covariance", "residual")
+def run_gnss_satellites_unknown_reported_covariance(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nreported_covariance = 'raim'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_error.rx_doppler_mps")
 def run_gnss_satellites_zero_doppler_budget(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nvelocity = 'doppler'\nrx_doppler_mps = 0.0\n")
@@ -1478,7 +1484,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 194
+    assert len(CASES) >= 195
 
 
 # ----------------------------------------------------------------------------- what --out may replace
