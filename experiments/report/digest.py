@@ -47,7 +47,7 @@ class ErrorHistogram:
     def quantiles(self, grid: np.ndarray) -> np.ndarray:
         """``np.quantile`` of the errors at ``grid``, to the bin: the order statistics at (n - 1) q
         placed evenly within their bin (the i-th of a bin's c values at its (i + 1/2)/c), then
-        interpolated as numpy does; clipped to the smallest and largest error."""
+        interpolated as numpy does; the first and last are the smallest and largest error."""
         n = self.n
         edges = bin_edges(CDF_BITS)
         ends = np.cumsum(self.counts)
@@ -60,7 +60,8 @@ class ErrorHistogram:
             below = ends[b] - c
             lo, hi = edges[b], np.minimum(edges[b + 1], self.hi)
             lo = np.maximum(lo, self.lo)
-            return lo + (hi - lo) * (r - below + 0.5) / np.maximum(c, 1)
+            x = lo + (hi - lo) * (r - below + 0.5) / np.maximum(c, 1)
+            return np.where(r == 0, self.lo, np.where(r == n - 1, self.hi, x))  # the extremes are known
 
         a = order_stat(np.minimum(k, n - 1))
         b = order_stat(np.minimum(k + 1, n - 1))
