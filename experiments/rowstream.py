@@ -16,21 +16,20 @@ that depends on the chunks; checked with pyarrow 23), so the files are written t
 one row group, made contiguous before it is written (two row groups in memory for that moment,
 about 2 x 220 MB of estimates rows).
 
-The summary blocks are computed from the spill files, equal to the whole-table ones (the same
-numpy reductions over the same arrays, in the same order):
+The summary blocks are computed from the spill files, equal to the whole-table ones, bit for bit
+(:mod:`experiments.streamstats`: numpy's pairwise sums in numpy's order, the percentiles from the
+values of their histogram bins), each method's file read twice, batch by batch: memory after the loop
+does not grow with the rows:
 
-* per method, after the loop: err_pos, err_vel, err_along, err_cross (float64), the position NEES
-  (float64, computed per flush by :func:`position_nees` from the file's var_px, var_py, cov_pxy),
-  zone and area codes (int32), and under ``[infra]`` covered (bool) and rsu codes (int32): 48 bytes
-  per row of one method (53 with ``[infra]``), about twice that while pandas groups them, while its
-  summary is computed; RMSE and percentiles need the samples;
+* estimates: err_pos, err_vel, err_along, err_cross and the position NEES (computed per flush by
+  :func:`position_nees` from the file's var_px, var_py, cov_pxy), per method, per zone and per area
+  (under ``[infra]`` on the covered rows, per area and per RSU);
 * association: the (track, true feature) pair counts are summed per flush (the track labels come
   from the counts only), then the spilled V2F rows are scored batch by batch: per step counts (24
   bytes per step and method) and per-zone counts;
-* feature errors: the spilled track rows are scored batch by batch with the labels; their err_pos
-  (8 bytes per row of one method) is kept for the method's summary. The true feature positions are
-  kept in memory only when they change (static landmarks: once; moving or appearing features: one
-  copy per step, as before).
+* feature errors: the spilled track rows are scored batch by batch with the labels, twice. The true
+  feature positions are kept in memory only when they change (static landmarks: once; moving or
+  appearing features: one copy per step, as before).
 """
 
 from __future__ import annotations
@@ -52,11 +51,8 @@ from experiments.scoring import (
     _correct_rows,
     along_cross_errors,
     association_summary,
-    coverage_summary,
-    feature_summary,
-    method_summary,
-    nees_summary,
 )
+from experiments.streamstats import Sample
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -412,51 +408,50 @@ class StreamLog:
     def write_estimates(self, path: Path) -> dict:
         """Write estimates.parquet; returns per method its summary blocks (method_summary with
         ``nees_pos``) and, under ``[infra]``, summary["within_rsu_coverage"] as ``"_coverage"``."""
-        import pandas as pd
         import pyarrow as pa
+
+        from experiments.streamstats import EstimateStats
 
         out = RowGroupWriter(path)
         blocks: dict = {}
         coverage = {"methods": {}, "rsu_vehicle_steps": {}}
-        cols = ("err_pos", "err_vel", "err_along", "err_cross", "nees", "t")
         for method in self.methods:
             if method not in self._est_spill:
                 continue
-            kept: dict[str, list] = {c: [] for c in (*cols, "zone", "area", "covered", "rsu")}
-            for batch in self._est_spill[method].batches():
-                names = [c for c in batch.schema.names if c not in ESTIMATE_EXTRA]
-                out.append(pa.Table.from_batches([batch.select(names)]))
-                for c in cols:
-                    kept[c].append(batch.column(c).to_numpy())
-                kept["zone"].append(self.zones.encode(batch.column("zone").to_numpy(zero_copy_only=False)))
-                kept["area"].append(self.areas.encode(batch.column("area").to_numpy(zero_copy_only=False)))
-                if self.infra:
-                    kept["covered"].append(batch.column("covered").to_numpy(zero_copy_only=False))
-                    kept["rsu"].append(self.rsus.encode(batch.column("rsu").to_numpy(zero_copy_only=False)))
-            arrays = {c: np.concatenate(v) for c, v in kept.items() if v}
-            if self.scored_from is not None:  # [analysis] warmup_s: the rows the statistics score
-                scored = scored_mask(arrays.pop("t"), self.scored_from)
-                arrays = {c: v[scored] for c, v in arrays.items()}
-            zone = self.zones.categorical(arrays.pop("zone"))
-            df = pd.DataFrame({"err_pos": arrays["err_pos"], "err_vel": arrays["err_vel"],
-                               "err_along": arrays["err_along"], "err_cross": arrays["err_cross"],
-                               "zone": zone, "area": self.areas.categorical(arrays.pop("area"))})
-            block = method_summary(df)
-            block["nees_pos"] = nees_summary(arrays["nees"], zone)
+            stats = EstimateStats(self.infra)
+            # two passes over the method's spill file: the first writes the rows and counts (sizes,
+            # histograms), the second sums in numpy's order and keeps the values at the percentiles
+            # (experiments.streamstats): the statistics of the whole array, in memory independent of the rows
+            for second in (False, True):
+                for batch in self._est_spill[method].batches():
+                    if not second:
+                        names = [c for c in batch.schema.names if c not in ESTIMATE_EXTRA]
+                        out.append(pa.Table.from_batches([batch.select(names)]))
+                    stats.feed(self._scored_columns(batch), second)
+            block, cov, rsu_steps = stats.blocks(self.zones.names, self.areas.names, self.rsus.names)
             blocks[method] = block
             if self.infra:
-                df["method"] = pd.Categorical.from_codes(np.zeros(len(df), dtype=np.int8), [method])
-                df["covered"] = arrays["covered"]
-                df["rsu"] = self.rsus.categorical(arrays["rsu"])
-                cov = coverage_summary(df, [method])
-                coverage["methods"][method] = cov["methods"][method]
+                coverage["methods"][method] = cov
                 if method == self.methods[0]:
-                    coverage["rsu_vehicle_steps"] = cov["rsu_vehicle_steps"]
-            del df, arrays, kept
+                    coverage["rsu_vehicle_steps"] = rsu_steps
         out.close()
         if self.infra:
             blocks["_coverage"] = coverage
         return blocks
+
+    def _scored_columns(self, batch) -> dict:
+        """The columns of an estimates spill batch the statistics need, on the scored rows only
+        ([analysis] warmup_s); zone, area and rsu as codes of :class:`_Codes`."""
+        cols = {c: batch.column(c).to_numpy() for c in ("err_pos", "err_vel", "err_along", "err_cross", "nees")}
+        cols["zone"] = self.zones.encode(batch.column("zone").to_numpy(zero_copy_only=False))
+        cols["area"] = self.areas.encode(batch.column("area").to_numpy(zero_copy_only=False))
+        if self.infra:
+            cols["covered"] = batch.column("covered").to_numpy(zero_copy_only=False)
+            cols["rsu"] = self.rsus.encode(batch.column("rsu").to_numpy(zero_copy_only=False))
+        if self.scored_from is not None:
+            scored = scored_mask(batch.column("t").to_numpy(), self.scored_from)
+            cols = {c: v[scored] for c, v in cols.items()}
+        return cols
 
     def write_features(self, path: Path, scores: dict, known: frozenset) -> dict[str, dict]:
         """Write features.parquet (not written when there is no row; the rules of
@@ -477,34 +472,47 @@ class StreamLog:
                     continue
             else:
                 continue  # tracks without any pairing cannot be scored
-            errs = []
-            for batch in self._track_spill[m].batches():
-                t, ids, x, y, version = (batch.column(c).to_numpy() for c in ("t", "track", "x", "y", "truth"))
-                if label_of is None:
-                    feat = ids
-                    ok = np.ones(ids.size, dtype=bool)
-                else:
-                    ok, feat = labelled(ids, *label_of)
-                # SUMO pedestrians: a label registered after this step (couplers.sensing.pedestrians)
-                ok &= feat < sizes[version]
-                tx = np.full((ids.size, 2), np.nan)
-                for v in np.unique(version[ok]).tolist():
-                    sel = ok & (version == v)
-                    tx[sel] = self._feature_truth[v][feat[sel]]
-                # SUMO pedestrians: a person that has left (NaN state) has no error to score
-                ok &= np.isfinite(tx).all(axis=1)
-                if not ok.any():
-                    continue
-                ex, ey = x[ok] - tx[ok, 0], y[ok] - tx[ok, 1]
-                err = np.hypot(ex, ey)
-                errs.append(err[scored_mask(t[ok], self.scored_from)])  # [analysis] warmup_s: the scored rows
-                out.append(_arrow_table(pd.DataFrame({
-                    "method": np.full(err.size, m, dtype=object), "t": t[ok], "track": ids[ok], "feature": feat[ok],
-                    "err_pos": err}).astype(FEATURE_COLUMNS)))
-            if errs and sum(e.size for e in errs):
-                blocks[m] = feature_summary(np.concatenate(errs))
+            sample = Sample(quantiles=(0.95,))
+            # two passes (experiments.streamstats): the first writes the rows and counts, the second sums
+            for second in (False, True):
+                for t, ids, feat, err in self._scored_tracks(m, label_of, sizes):
+                    scored = err[scored_mask(t, self.scored_from)]  # [analysis] warmup_s: the scored rows
+                    if second:
+                        sample.second(scored)
+                        continue
+                    sample.first(scored)
+                    out.append(_arrow_table(pd.DataFrame({
+                        "method": np.full(err.size, m, dtype=object), "t": t, "track": ids, "feature": feat,
+                        "err_pos": err}).astype(FEATURE_COLUMNS)))
+            if sample.n:
+                sample.finish()
+                # experiments.scoring.feature_summary
+                blocks[m] = {"rmse_pos_m": sample.rmse(), "p95_pos_m": sample.quantile(0.95), "n": int(sample.n)}
         out.close()
         return blocks
+
+    def _scored_tracks(self, m: str, label_of, sizes: np.ndarray):
+        """Per spill batch of method ``m``'s feature tracks: (t, track, feature, err_pos) of the rows that
+        can be scored (the rules of :meth:`write_features`)."""
+        for batch in self._track_spill[m].batches():
+            t, ids, x, y, version = (batch.column(c).to_numpy() for c in ("t", "track", "x", "y", "truth"))
+            if label_of is None:
+                feat = ids
+                ok = np.ones(ids.size, dtype=bool)
+            else:
+                ok, feat = labelled(ids, *label_of)
+            # SUMO pedestrians: a label registered after this step (couplers.sensing.pedestrians)
+            ok &= feat < sizes[version]
+            tx = np.full((ids.size, 2), np.nan)
+            for v in np.unique(version[ok]).tolist():
+                sel = ok & (version == v)
+                tx[sel] = self._feature_truth[v][feat[sel]]
+            # SUMO pedestrians: a person that has left (NaN state) has no error to score
+            ok &= np.isfinite(tx).all(axis=1)
+            if not ok.any():
+                continue
+            ex, ey = x[ok] - tx[ok, 0], y[ok] - tx[ok, 1]
+            yield t[ok], ids[ok], feat[ok], np.hypot(ex, ey)
 
     def discard(self) -> None:
         """Close and remove the spill files."""

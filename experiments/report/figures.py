@@ -170,20 +170,41 @@ def _time_axis(ax, runs: list[_Run]) -> None:
     ax.set_xlabel("time of day [hh:mm] (the scenario's clock)")
 
 
+def _has_est(run: _Run) -> bool:
+    est = run.digest if run.digest is not None else run.estimates
+    return est is not None and len(est) > 0
+
+
+def _est_times(run: _Run) -> np.ndarray:
+    """The times of a run's estimates (each step once with a digest: the same span and steps)."""
+    est = run.digest.steps if run.digest is not None else run.estimates
+    return est["t"].to_numpy(dtype=float)
+
+
+def _binned_rmse_steps(steps: pd.DataFrame, cols: dict[str, str], width: float, by: str = "method") -> pd.DataFrame:
+    """:func:`_binned_rmse` of per-step sums ``sq_<name>`` / ``n_<name>`` (experiments.report.digest) of each
+    column ``cols`` maps to a name; the columns the steps lack are left out."""
+    parts = [_binned_rmse(steps[[by, "t"]].assign(sq=steps[f"sq_{name}"], n=steps[f"n_{name}"]), [col], width, by)
+             for col, name in cols.items() if f"sq_{name}" in steps.columns]
+    return pd.concat(parts, axis=1)
+
+
 def _fig_rmse_time(runs: list[_Run], path: Path, linestyles: list[str] | None = None) -> str:
-    width = min(_choose_bin(r.estimates["t"].to_numpy(dtype=float), RMSE_BIN_S)
-                for r in runs if r.estimates is not None)
+    width = min(_choose_bin(_est_times(r), RMSE_BIN_S) for r in runs if _has_est(r))
     fig = _new_fig(8.0, 6.0)
     ax_p, ax_v = fig.subplots(2, 1, sharex=True)
     multi = len(runs) > 1
     for k, run in enumerate(runs):
         ls = (linestyles or _RUN_LINESTYLES)[k % len(_RUN_LINESTYLES)]
         suffix = f" [{_run_label(run, runs)}]" if multi else ""
-        est = run.estimates
-        if est is None or not len(est):
+        if not _has_est(run):
             continue
-        cols = ["err_pos"] + (["err_vel"] if "err_vel" in est.columns else [])
-        r = _binned_rmse(est, cols, width)
+        if run.digest is not None:  # per-step sums (experiments.report.digest)
+            r = _binned_rmse_steps(run.digest.steps, {"err_pos": "pos", "err_vel": "vel"}, width)
+        else:
+            est = run.estimates
+            cols = ["err_pos"] + (["err_vel"] if "err_vel" in est.columns else [])
+            r = _binned_rmse(est, cols, width)
         for m in order_methods(r.index.get_level_values(0).unique()):
             sub = r.loc[m]
             x = sub.index.to_numpy() / 60.0
@@ -216,16 +237,15 @@ def _fig_nees_time(run: _Run, path: Path) -> str:
     """(a) mean 2-D position NEES and (b) the share of samples inside the 95 % ellipse per time bin, one line
     per method (the ``nees`` column :mod:`experiments.report.load` computes from cov_pxy); the warm-up, where
     the summary does not score, is shaded. Returns the bin width in seconds."""
-    from experiments.scoring import CHI2_2_95
-
-    est = run.estimates
-    width = _choose_bin(est["t"].to_numpy(dtype=float), RMSE_BIN_S)
-    t = est["t"].to_numpy(dtype=float)
-    nees = est["nees"].to_numpy(dtype=float)
-    ok = np.isfinite(nees)
-    tmp = pd.DataFrame({"method": est["method"][ok], "bin": np.floor(t[ok] / width) * width + width / 2.0,
-                        "nees": nees[ok], "inside": (nees[ok] <= CHI2_2_95).astype(float)})
-    g = tmp.groupby(["method", "bin"], observed=True, sort=True)[["nees", "inside"]].mean()
+    steps = run.digest.steps  # per-step sums of the finite NEES (experiments.report.digest)
+    t = steps["t"].to_numpy(dtype=float)
+    width = _choose_bin(t, RMSE_BIN_S)
+    tmp = pd.DataFrame({"method": steps["method"], "bin": np.floor(t / width) * width + width / 2.0,
+                        "nees": steps["nees"].to_numpy(dtype=float), "inside": steps["inside"].to_numpy(dtype=float),
+                        "n": steps["n_nees"].to_numpy(dtype=float)})
+    s = tmp.groupby(["method", "bin"], observed=True, sort=True)[["nees", "inside", "n"]].sum()
+    s = s[s["n"] > 0]
+    g = pd.DataFrame({"nees": s["nees"] / s["n"], "inside": s["inside"] / s["n"]}, index=s.index)
     fig = _new_fig(8.0, 6.0)
     ax_n, ax_s = fig.subplots(2, 1, sharex=True)
     for m in order_methods(g.index.get_level_values(0).unique()):
@@ -257,13 +277,12 @@ def _fig_nees_time(run: _Run, path: Path) -> str:
 
 
 def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str]:
-    est = run.estimates
-    # [analysis] warmup_s: the CDFs score what summary.json scores (t >= scored_from_s)
-    t0 = (run.summary.get("analysis") or {}).get("scored_from_s")
-    if t0 is not None and est is not None:
-        est = est[est["t"].to_numpy(dtype=float) >= t0 - 1e-9]
-    counts: dict[tuple[str, str], int] = {}
-    curves = _quantile_curves(est, group_col, counts)
+    # histograms of the scored rows ([analysis] warmup_s: t >= scored_from_s, what summary.json scores),
+    # experiments.report.digest: each CDF point in the bin of the exact quantile
+    hists = run.digest.cdf.get(group_col, {})
+    curves = {k: h.quantiles(_CDF_GRID) for k, h in hists.items()}
+    counts = {k: h.n for k, h in hists.items()}
+    by_label = {m: (b.get(f"by_{group_col}") or {}) for m, b in (run.summary.get("methods") or {}).items()}
     # every method's samples (finite errors with a label): the share of each panel
     totals: dict[str, int] = {}
     for (_lab, m), k in counts.items():
@@ -283,6 +302,9 @@ def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str
         for m in ms:
             q = curves[(lab, m)]
             p95 = float(q[i95])
+            exact = by_label.get(m, {}).get(lab) or {}
+            if exact.get("n") == counts[(lab, m)] and exact.get("p95_pos_m") is not None:
+                p95 = float(exact["p95_pos_m"])  # summary.json's (exact) p95 of the same rows
             c = method_color(m)
             n_m = counts[(lab, m)]
             ax.plot(q, _CDF_GRID, color=c, lw=1.4, label=f"{method_label(m)} (p95 {p95:.2f} m"
@@ -308,13 +330,13 @@ def _fig_cdf(run: _Run, group_col: str, path: Path, title_word: str) -> list[str
 
 
 def _fig_track(run: _Run, area: str, path: Path) -> float:
-    est = run.estimates
-    sub = est[(est["area"] == area).to_numpy(dtype=bool)] if "area" in est.columns else est.iloc[:0]
-    width = min(_choose_bin(est["t"].to_numpy(dtype=float), TRACK_BIN_S), TRACK_BIN_S)
+    steps = run.digest.area_steps  # per (method, area, step) sums (experiments.report.digest)
+    sub = steps[(steps["area"] == area).to_numpy(dtype=bool)] if "area" in steps.columns else steps.iloc[:0]
+    width = min(_choose_bin(_est_times(run), TRACK_BIN_S), TRACK_BIN_S)
     fig = _new_fig(8.0, 5.6)
     ax_a, ax_c = fig.subplots(2, 1, sharex=True)
     if len(sub):
-        r = _binned_rmse(sub, ["err_along", "err_cross"], width)
+        r = _binned_rmse_steps(sub, {"err_along": "along", "err_cross": "cross"}, width)
         for m in order_methods(r.index.get_level_values(0).unique()):
             s = r.loc[m]
             x = s.index.to_numpy() / 60.0

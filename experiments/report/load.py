@@ -167,6 +167,8 @@ class _Run:
     features: pd.DataFrame | None = None
     traffic: pd.DataFrame | None = None
     association: pd.DataFrame | None = None
+    #: estimates.parquet reduced for the run report (experiments.report.digest); comparisons read ``estimates``
+    digest: Any = None
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -193,6 +195,8 @@ class _Run:
         ms: set[str] = set(self.summary.get("methods", {}) or {})
         if self.estimates is not None and len(self.estimates):
             ms |= {str(m) for m in self.estimates["method"].unique()}
+        if self.digest is not None:
+            ms |= set(self.digest.methods)
         return order_methods(ms)
 
 
@@ -209,9 +213,14 @@ def _load_run(run_dir: Path, *, need_areas: bool = True) -> _Run:
                 from None
         if not isinstance(summary, dict):
             raise InputError(run_dir / "summary.json", None, "not a coloc summary (expected a JSON object)")
-    cols = _EST_COLS if need_areas else ["method", "t", "err_pos", "err_vel"]
     run = _Run(run_dir=run_dir, config=config, summary=summary)
-    run.estimates = _read_estimates(run_dir / "estimates.parquet", cols, nees=need_areas)
+    if need_areas:  # the run report: per-step sums and histograms, read batch by batch (not the rows)
+        from experiments.report.digest import digest_estimates
+
+        t0 = (summary.get("analysis") or {}).get("scored_from_s")
+        run.digest = digest_estimates(run_dir / "estimates.parquet", t0)
+    else:
+        run.estimates = _read_estimates(run_dir / "estimates.parquet", ["method", "t", "err_pos", "err_vel"], nees=False)
     run.features = _read_feature_steps(run_dir / "features.parquet")
     run.traffic = _read_parquet(
         run_dir / "traffic.parquet",
@@ -221,10 +230,11 @@ def _load_run(run_dir: Path, *, need_areas: bool = True) -> _Run:
     run.association = _read_parquet(
         run_dir / "association.parquet", ["method", "t", "correct", "wrong", "discarded"]
     )
-    if run.estimates is None:
+    if not (run_dir / "estimates.parquet").exists():
         run.notes.append("estimates.parquet is missing: no accuracy figures.")
-    if not run.summary.get("methods") and run.estimates is not None and need_areas:
-        run.summary.setdefault("methods", _summary_from_estimates(run.estimates))
+    elif not run.summary.get("methods") and need_areas:
+        run.summary.setdefault("methods", _summary_from_estimates(
+            _read_estimates(run_dir / "estimates.parquet", _EST_COLS, nees=False)))
         run.notes.append("summary.json has no per-method statistics: computed from estimates.parquet.")
     return run
 

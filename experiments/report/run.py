@@ -96,7 +96,7 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
     jobs: list[tuple[float, Callable[[], _Drawn]]] = []
     what = _what_was_run(run)
     stand_in = run_placeholders(run)  # zones / areas that are a default layout, not derived from data
-    est = run.estimates
+    est = run.digest  # experiments.report.digest.EstimateDigest
     has_est = est is not None and len(est) > 0
 
     tr = run.traffic
@@ -203,7 +203,7 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
     control = str((run.config.get("scenario") or {}).get("control", "")).upper()
     paper_fig = "Fig. 19" if control == "VSR" else "Fig. 18"
     # The labels present, from the column's distinct values (not a Python string per row: 1.77M on an hour).
-    present = {str(v) for v in est["area"].unique()} if "area" in est.columns else set()
+    present = set(est.labels.get("area", []))
     for area in areas:
         if not ({"err_along", "err_cross"} <= set(est.columns) and area in present):
             continue
@@ -223,10 +223,8 @@ def _figure_jobs(run: _Run, figdir: Path) -> list[tuple[float, Callable[[], _Dra
 
 
 def _cdf_weight(est, col: str) -> float:
-    """A CDF figure's weight: one per panel (label), from the column's categories (no pass over the rows)."""
-    dtype = est[col].dtype
-    n = len(dtype.categories) if hasattr(dtype, "categories") else 6
-    return 0.5 + float(n)
+    """A CDF figure's weight: one per panel (label)."""
+    return 0.5 + float(len(est.labels.get(col, [])))
 
 
 def _file_part(label: str) -> str:

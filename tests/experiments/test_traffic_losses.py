@@ -233,6 +233,7 @@ def test_default_areas_keep_a_cell_that_holds_only_a_footpath():
 
 def test_cdf_panels_show_the_sample_count(monkeypatch, tmp_path):
     from experiments.report import figures
+    from experiments.report.digest import digest_estimates
     from experiments.report.load import _Run
 
     rng = np.random.default_rng(0)
@@ -240,10 +241,11 @@ def test_cdf_panels_show_the_sample_count(monkeypatch, tmp_path):
     rows = []
     for zone, k in n.items():
         for m in ("gnss", "icp_da_lc"):
-            rows.append(pd.DataFrame({"zone": zone, "method": m, "err_pos": rng.random(k)}))
+            rows.append(pd.DataFrame({"zone": zone, "method": m, "t": np.arange(k) * 0.75, "err_pos": rng.random(k)}))
     est = pd.concat(rows, ignore_index=True)
+    est.to_parquet(tmp_path / "estimates.parquet", index=False)
     run = _Run(run_dir=tmp_path, config={}, summary={})
-    run.estimates = est
+    run.digest = digest_estimates(tmp_path / "estimates.parquet", None)
     drawn = {}
     monkeypatch.setattr(figures, "_save", lambda fig, path: drawn.setdefault("fig", fig))
     figures._fig_cdf(run, "zone", tmp_path / "cdf.png", "zone")
