@@ -52,14 +52,6 @@ _DRIVE, _FEATURE_INIT, _FEATURE_DRIVE = 0, 1, 2
 FEATURE_LAYOUTS = ("sidewalks", "disc")
 #: How a vehicle's first fix is drawn (``_Common.start``).
 STARTS = ("fast_start", "gnss_fix")
-# The point of a vehicle that the world reports (its position in the frames, the truth, every sensor):
-# "front_bumper", SUMO's vehicle.getPosition (the centre of the front bumper; SUMO documentation, TraCI
-# "Vehicle Value Retrieval", position), or "centre", the middle of the body axis, half the vehicle's length
-# behind the bumper along SUMO's angle (the chord from the rear to the front bumper, both on the lane path).
-# The velocity is speed x body direction either way: the chord midpoint's velocity to second order, while the
-# bumper slides sideways at about length / 2 x yaw rate in a turn (docs/validation/consistency.md
-# "Kinematics of the world").
-REFERENCE_POINTS = ("front_bumper", "centre")
 
 
 def _stream(seed: int, purpose: int) -> np.random.Generator:

@@ -67,7 +67,8 @@ from couplers.sensing.gnss_error import GnssErrorParams
 from couplers.sensing.inertial import InertialParams
 from couplers.sensing.pedestrians import FeaturesParams
 from couplers.sensing.perception import PerceptionParams
-from couplers.scenarios import REFERENCE_POINTS, STARTS, CrossroadParams, SingleRoadParams
+from couplers.scenarios import STARTS, CrossroadParams, SingleRoadParams
+from couplers.traffic.reference_point import REFERENCE_POINTS
 from experiments.estimator_sensors import EstimatorSensors
 from experiments.occlusion import check_building_occlusion
 from couplers.sensing.sensors import SensorParams

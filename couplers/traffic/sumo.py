@@ -20,7 +20,7 @@ from numba import njit
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net import gridlock as jam
-from couplers.scenarios import REFERENCE_POINTS
+from couplers.traffic.reference_point import REFERENCE_POINTS, centre_from_front
 
 try:  # imported lazily by callers that only need the pure parts of couplers
     import libsumo
@@ -355,12 +355,6 @@ class SumoTraffic:
         for i in np.flatnonzero(~seen).tolist():  # new vehicles only
             half[i] = 0.5 * get_length(ids[i])
         return half
-
-
-def centre_from_front(front: np.ndarray, direction: np.ndarray, half_length: np.ndarray) -> np.ndarray:
-    """(N, 2) centres of vehicles whose front bumpers are at ``front`` (N, 2): half their length
-    ``half_length`` (N,) back along the unit body directions ``direction`` (N, 2)."""
-    return front - half_length[:, None] * direction
 
 
 @njit(cache=True)

@@ -15,7 +15,8 @@ from couplers.net.folder import load_net_folder
 from couplers.sensing.perception import PerceptionParams
 from couplers.sensing.sensors import SensorParams
 from couplers.sumo_coupler import SumoCoupler, SumoScenario, _front_bumpers
-from couplers.traffic.sumo import SumoTraffic, centre_from_front
+from couplers.traffic.reference_point import centre_from_front
+from couplers.traffic.sumo import SumoTraffic
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
 from world_residual import SHARP_TURN_RAD, residuals  # noqa: E402
