@@ -44,7 +44,7 @@ class SumoScenario:
     # Seconds after begin_s that SUMO simulates alone before the first frame (a traffic-only warm-up,
     # [analysis] warmup_start = "traffic"): sensing, its random streams and the estimators start then.
     traffic_only_s: float = 0.0
-    # The point of a vehicle the world reports (couplers.traffic.sumo.REFERENCE_POINTS): "front_bumper"
+    # The point of a vehicle the world reports (couplers.traffic.reference_point.REFERENCE_POINTS): "front_bumper"
     # (SUMO's position) or "centre"; sensor mounts ([perception] mount_x_m) are measured from it.
     reference_point: str = "front_bumper"
 

@@ -106,7 +106,7 @@ class ScenarioSection:
     # start): "fast_start" (N(truth, sensors.prior_sigma_p/v), the paper's) or "gnss_fix" (its receiver's fix
     # of that step, error included, with the covariance the receiver reports).
     start: str = "fast_start"
-    # The point of a vehicle the world reports (SUMO scenarios; couplers.traffic.sumo.REFERENCE_POINTS):
+    # The point of a vehicle the world reports (SUMO scenarios; couplers.traffic.reference_point.REFERENCE_POINTS):
     # "front_bumper" (SUMO's position, the paper configs') or "centre" (half the length behind it).
     reference_point: str = "front_bumper"
 
