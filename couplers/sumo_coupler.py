@@ -44,6 +44,9 @@ class SumoScenario:
     # Seconds after begin_s that SUMO simulates alone before the first frame (a traffic-only warm-up,
     # [analysis] warmup_start = "traffic"): sensing, its random streams and the estimators start then.
     traffic_only_s: float = 0.0
+    # The point of a vehicle the world reports (couplers.traffic.reference_point.REFERENCE_POINTS): "front_bumper"
+    # (SUMO's position) or "centre"; sensor mounts ([perception] mount_x_m) are measured from it.
+    reference_point: str = "front_bumper"
 
     def sumo_options(self) -> SumoOptions:
         if self.control not in self.net.tls_off:
@@ -105,7 +108,7 @@ class SumoCoupler:
             raise InputError(scenario.net.root / "scenario.toml", "files.persons",
                              "[features] pedestrians = true needs a persons file (e.g. sumo_nets/arterial_ped)")
         self.registry = FeatureRegistry(feats.ids, self.features_true) if self.pedestrians else None
-        self.traffic = SumoTraffic(scenario.sumo_options())
+        self.traffic = SumoTraffic(scenario.sumo_options(), scenario.reference_point)
         buildings = scenario.net.buildings
         self.perception = sensors.perception
         self.perception_noise = PerceptionNoise(scenario.seed) if self.perception is not None else None
@@ -233,9 +236,10 @@ class SumoCoupler:
         corners, dims = None, None
         if p.occlusion_vehicles or p.road_users:
             dims = self._vehicle_dims(road.ids, road.prev_row)
-        if p.occlusion_vehicles:
-            corners = (_footprints(road.xy, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
-                       else vehicle_footprints(road.xy, road.heading, dims[:, 0], dims[:, 1]))
+        if p.occlusion_vehicles:  # footprints behind the front bumper (couplers.sensing.occlusion)
+            front = _front_bumpers(road)
+            corners = (_footprints(front, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
+                       else vehicle_footprints(front, road.heading, dims[:, 0], dims[:, 1]))
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
@@ -274,7 +278,7 @@ class SumoCoupler:
         parts = []  # (targets (M, 4), P_D (-1: the sensor's), footprint row, class, kind)
         if p.road_users:
             direction = road.direction if road.direction is not None else ru_unit(road.heading)
-            centre = road.xy - 0.5 * dims[:, :1] * direction
+            centre = _front_bumpers(road) - 0.5 * dims[:, :1] * direction  # the body's middle, whatever road.xy is
             m = len(road.ids)
             parts.append((np.hstack([centre, road.velocity]), np.full(m, -1.0), np.arange(m),
                           np.full(m, ru.CLASS_VEHICLE), np.full(m, ru.KIND_VEHICLE)))
@@ -309,6 +313,14 @@ class SumoCoupler:
         return ru.merged_rows(det, extra, self.road_noise, p.class_error)
 
 
+def _front_bumpers(states: VehicleStates) -> np.ndarray:
+    """(N, 2) front bumper centres of ``states`` (their ``xy`` itself unless the reference point is another)."""
+    if states.front_offset is None:
+        return states.xy
+    direction = states.direction if states.direction is not None else ru_unit(states.heading)
+    return states.xy + states.front_offset[:, None] * direction
+
+
 def ru_unit(heading: np.ndarray) -> np.ndarray:
     """(N, 2) unit vectors of the headings."""
     return np.stack([np.cos(heading), np.sin(heading)], axis=1).reshape(-1, 2)
@@ -334,4 +346,5 @@ def _subset(states: VehicleStates, keep: np.ndarray) -> VehicleStates:
     if keep.all():
         return states
     return VehicleStates(t=states.t, ids=states.ids[keep], xy=states.xy[keep], velocity=states.velocity[keep],
-                         heading=states.heading[keep], accel=states.accel[keep], entered=states.entered[keep])
+                         heading=states.heading[keep], accel=states.accel[keep], entered=states.entered[keep],
+                         front_offset=None if states.front_offset is None else states.front_offset[keep])

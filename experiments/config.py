@@ -68,6 +68,7 @@ from couplers.sensing.inertial import InertialParams
 from couplers.sensing.pedestrians import FeaturesParams
 from couplers.sensing.perception import PerceptionParams
 from couplers.scenarios import STARTS, CrossroadParams, SingleRoadParams
+from couplers.traffic.reference_point import REFERENCE_POINTS
 from experiments.estimator_sensors import EstimatorSensors
 from experiments.occlusion import check_building_occlusion
 from couplers.sensing.sensors import SensorParams
@@ -80,7 +81,7 @@ from experiments.warmup_start import validate_warmup_start
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
 #: scenario kind -> the table (and dataclass) describing it; "sumo" uses [scenario] net_dir.
 SCENARIO_TABLES: dict[str, type] = {"single_road": SingleRoadParams, "crossroad": CrossroadParams}
-SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic", "begin_s", "start")
+SUMO_ONLY_KEYS = ("net_dir", "control", "ballistic", "begin_s", "start", "reference_point")
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,9 @@ class ScenarioSection:
     # start): "fast_start" (N(truth, sensors.prior_sigma_p/v), the paper's) or "gnss_fix" (its receiver's fix
     # of that step, error included, with the covariance the receiver reports).
     start: str = "fast_start"
+    # The point of a vehicle the world reports (SUMO scenarios; couplers.traffic.reference_point.REFERENCE_POINTS):
+    # "front_bumper" (SUMO's position, the paper configs') or "centre" (half the length behind it).
+    reference_point: str = "front_bumper"
 
 
 @dataclass(frozen=True)
@@ -435,6 +439,9 @@ def _validate(cfg: Config) -> None:
         _check_begin_against_demand(cfg)
         if cfg.scenario.start not in STARTS:
             raise InputError(p, "scenario.start", f"unknown value {cfg.scenario.start!r} (available: {', '.join(STARTS)})")
+        if cfg.scenario.reference_point not in REFERENCE_POINTS:
+            raise InputError(p, "scenario.reference_point", f"unknown value {cfg.scenario.reference_point!r} "
+                             f"(available: {', '.join(REFERENCE_POINTS)})")
     validate_warmup_start(cfg)
     _validate_pedestrians(cfg)
     _validate_infra(cfg)

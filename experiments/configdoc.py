@@ -218,6 +218,13 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "start": ("", "SUMO only: the prior of an entering (or teleported) vehicle. `\"fast_start\"`: N(truth, "
                       "`sensors.prior_sigma_p/v`), the paper's; `\"gnss_fix\"`: its receiver's fix of that step and "
                       "the covariance the receiver reports (nothing of its truth)."),
+        "reference_point": ("", "SUMO only: the point of a vehicle the world reports (frames, truth, GNSS error, "
+                                "sensor mounts, V2V ranges). `\"front_bumper\"`: SUMO's position, the centre of "
+                                "the front bumper (the paper configs'); `\"centre\"`: half the vehicle's SUMO "
+                                "length behind it along its angle, whose velocity is the reported speed x heading "
+                                "(a bumper slides sideways at about length / 2 x yaw rate in a turn; "
+                                "docs/validation/consistency.md \"Kinematics of the world\"). "
+                                "`perception.sensors.mount_x_m` is measured from this point."),
     },
     "single_road": {
         **_SCENARIO_COMMON,
@@ -403,7 +410,9 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "fov_deg": ("deg", "Opening of the field of view, in (0, 360]."),
         "range_m": ("m", "Range of the sensor."),
         "yaw_deg": ("deg", "Boresight relative to the heading, counter-clockwise."),
-        "mount_x_m": ("m", "Mount point along the heading from the front bumper centre (negative: rearward)."),
+        "mount_x_m": ("m", "Mount point along the heading from the vehicle's reference point (negative: "
+                           "rearward): the front bumper centre, or the vehicle's centre with `[scenario] "
+                           "reference_point = \"centre\"` (a sensor on the bumper of a 4.5 m car: 2.25)."),
         "pd_near": (NO_UNIT, "Detection probability at 0 m."),
         "pd_far": (NO_UNIT, "Detection probability at the range (the fall-off follows Eclipse MOSAIC's "
                             "distance modifier)."),

@@ -63,7 +63,8 @@ class EstimatorSensors:
 
 
 def _sector(s: SensorSpec):
-    """The field of view of ``s`` in the vehicle frame (bumper at the origin, heading +x)."""
+    """The field of view of ``s`` in the vehicle frame (the reference point, [scenario] reference_point, at the
+    origin, heading +x)."""
     n = max(2, int(math.ceil(s.fov_deg / 0.25)))
     ang = np.radians(s.yaw_deg + np.linspace(-s.fov_deg / 2.0, s.fov_deg / 2.0, n + 1))
     arc = np.stack([s.mount_x_m + s.range_m * np.cos(ang), s.range_m * np.sin(ang)], axis=1)

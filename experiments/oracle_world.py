@@ -78,8 +78,11 @@ def front_lever(cfg) -> float:
     bumper's position and the body axis as the heading, so a turning vehicle's bumper moves sideways at about
     half its length times the yaw rate (docs/validation/oracle.md, "Kinematics of the world"). Half the mean
     length of the net folder's vehicle types (SUMO's default length without one); 0 for a scenario without
-    SUMO (its trajectories are model (1))."""
+    SUMO (its trajectories are model (1)) and for a world that reports the vehicles' centres ([scenario]
+    reference_point = "centre": no slip to model)."""
     if getattr(cfg.scenario, "kind", "sumo") != "sumo" or not cfg.scenario.net_dir:
+        return 0.0
+    if getattr(cfg.scenario, "reference_point", "front_bumper") == "centre":
         return 0.0
     from couplers.net.folder import load_net_folder
 

@@ -447,7 +447,8 @@ def sumo_scenario(cfg: Config, net=None) -> SumoScenario:
     return SumoScenario(net=net if net is not None else load_net_folder(cfg.net_dir), control=cfg.scenario.control,
                         seed=cfg.run.seed, step_length=cfg.scenario.step_s, duration_s=cfg.run.duration_s,
                         ballistic=cfg.scenario.ballistic, begin_s=cfg.scenario.begin_s or 0.0,
-                        start=cfg.scenario.start, traffic_only_s=traffic_only_s(cfg))
+                        start=cfg.scenario.start, traffic_only_s=traffic_only_s(cfg),
+                        reference_point=cfg.scenario.reference_point)
 
 
 def folder_scenario(net_dir: str | Path, control: str, seed: int, duration_s: float | None = None) -> SumoScenario:

@@ -38,7 +38,8 @@ def vehicle_footprints(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, 
                        direction: np.ndarray | None = None) -> np.ndarray:
     """(N, 4, 2) corners of the vehicles' rectangles, counter-clockwise.
 
-    SUMO's position is the centre of the front bumper; the body extends ``length`` behind it along
+    ``xy``: the centres of the front bumpers (SUMO's position; the coupler moves a vehicle's centre
+    forward first, couplers.sumo_coupler._front_bumpers); the body extends ``length`` behind it along
     the heading and ``width`` / 2 to each side. ``direction``: ``unit_heading(heading)`` when the caller has it."""
     return _footprints(np.ascontiguousarray(xy, dtype=np.float64),
                        unit_heading(heading) if direction is None else np.ascontiguousarray(direction),

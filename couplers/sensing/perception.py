@@ -6,9 +6,10 @@ idealised V2F (every feature within Rs, P_D = 1, no clutter) exactly as before.
 
 Model, per step, for every vehicle i and every sensor s of :class:`PerceptionParams` ``sensors``:
 
-* Mount point: the sensor sits ``mount_x_m`` metres along vehicle i's heading from SUMO's position
-  (the centre of the front bumper; ``mount_x_m = 0``, the default, is the bumper itself, negative
-  values lie toward the rear). Range and field of view are measured from the mount point; the
+* Mount point: the sensor sits ``mount_x_m`` metres along vehicle i's heading from the vehicle's
+  reported position (``[scenario] reference_point``: SUMO's, the centre of the front bumper, where
+  ``mount_x_m = 0``, the default, is the bumper itself; or the vehicle's centre, where a bumper sensor
+  sits at half the length; negative values lie toward the rear). Range and field of view are measured from the mount point; the
   measurement is still reported relative to the vehicle position (model (4), z = x_F - x_V + n:
   the mounting offset is a known calibration).
 * Field of view: a circular sector of radius ``range_m`` and opening ``fov_deg`` centred on the
@@ -112,7 +113,7 @@ class SensorSpec:
     fov_deg: float = 120.0  # opening of the field of view, (0, 360]
     range_m: float = 80.0
     yaw_deg: float = 0.0  # boresight relative to the heading, counter-clockwise
-    mount_x_m: float = 0.0  # along the heading from the front bumper centre (negative: rearward)
+    mount_x_m: float = 0.0  # along the heading from the reference point (front bumper or centre; negative: rearward)
     pd_near: float = 0.95  # detection probability at 0 m
     pd_far: float = 0.7  # detection probability at range_m
     clutter_per_scan: float = 1.0  # mean false detections per scan (Poisson)
@@ -282,7 +283,7 @@ class Detections:
 
 
 def sensor_origins(xy: np.ndarray, heading: np.ndarray, spec: SensorSpec) -> np.ndarray:
-    """(N, 2) mount points of ``spec`` on vehicles at front-bumper positions ``xy``."""
+    """(N, 2) mount points of ``spec`` on vehicles reported at ``xy`` (their reference point)."""
     return np.asarray(xy, dtype=float) + spec.mount_x_m * unit_heading(heading)
 
 

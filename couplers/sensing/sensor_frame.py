@@ -5,7 +5,7 @@ bearing and range rate in each sensor's own frame, with noise in those coordinat
 P_D, occlusion, merge, clutter, shuffle) exactly as with ``detections = "net_xy"``; this module then
 re-expresses every row in the frame of the sensor that reported it and replaces the net-frame noise by
 the sensor's own (``sigma_r_m``, ``sigma_b_deg``, ``sigma_rdot_mps`` of each ``[[perception.sensors]]``).
-Per row k of vehicle i (front-bumper position x_i, true heading psi_i, velocity v_i), sensor s (mount
+Per row k of vehicle i (position x_i, [scenario] reference_point, true heading psi_i, velocity v_i), sensor s (mount
 ``mount_x_m`` along the heading, boresight yaw ``yaw_deg``):
 
     o   = x_i + mount_x u(psi_i)                         (the sensor's mount point)
@@ -17,8 +17,8 @@ Per row k of vehicle i (front-bumper position x_i, true heading psi_i, velocity 
 with x_F, v_F the true feature state for a detected feature; for a false detection (clutter) the point the
 perception drew (its net-frame row, noise included: a uniformly drawn false alarm moved by a small
 Gaussian is still a false alarm) and v_F = 0 (clutter looks like a static object). The sensor's velocity
-is the vehicle's: the lever arm's rotation (yaw rate x mount_x) is neglected (zero for the default mount
-at the front bumper). n ~ N(0, I3) per row from the perception's "range_bearing" stream
+is the vehicle's: the lever arm's rotation (yaw rate x mount_x) is neglected (zero for a mount at the
+reference point). n ~ N(0, I3) per row from the perception's "range_bearing" stream
 (:func:`couplers.sensing.perception.effect_rng`), drawn in row order after the shuffle: every other
 stream, and so every other measurement, is unchanged.
 

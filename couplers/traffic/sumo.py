@@ -20,6 +20,7 @@ from numba import njit
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net import gridlock as jam
+from couplers.traffic.reference_point import REFERENCE_POINTS, centre_from_front
 
 try:  # imported lazily by callers that only need the pure parts of couplers
     import libsumo
@@ -95,7 +96,7 @@ class VehicleStates:
 
     t: float
     ids: np.ndarray  # (N,) str
-    xy: np.ndarray  # (N, 2) front-bumper position, m
+    xy: np.ndarray  # (N, 2) position of the reference point (REFERENCE_POINTS; SumoTraffic.reference_point), m
     velocity: np.ndarray  # (N, 2) m/s
     heading: np.ndarray  # (N,) rad from +x, counter-clockwise
     accel: np.ndarray  # (N, 2) mean acceleration over the last step, m/s^2
@@ -103,6 +104,9 @@ class VehicleStates:
     # Derived per step by SumoTraffic.step so that the coupler does not recompute them (None: not given).
     direction: np.ndarray | None = None  # (N, 2) unit heading [cos, sin] (the values velocity was built from)
     prev_row: np.ndarray | None = None  # (N,) int, row of each vehicle in the previous step's states, -1 if new
+    # (N,) distance from ``xy`` forward along ``direction`` to the front bumper, m (half the length with the
+    # reference point "centre"); None: ``xy`` is the front bumper.
+    front_offset: np.ndarray | None = None
 
 
 @dataclass
@@ -165,8 +169,12 @@ class SumoTraffic:
     # discontinuity (teleport, re-route onto another lane): treat it as a re-entry.
     JUMP_SPEED = 40.0  # m/s
 
-    def __init__(self, options: SumoOptions):
+    def __init__(self, options: SumoOptions, reference_point: str = "front_bumper"):
+        if reference_point not in REFERENCE_POINTS:
+            raise ValueError(f"reference_point must be one of {REFERENCE_POINTS}, got {reference_point!r}")
         self.options = options
+        self.reference_point = reference_point
+        self._prev_half_length = np.empty(0)  # "centre": half the length of each vehicle of the previous step
         self.stats = TrafficStats(step_length=options.step_length, origin=options.begin)
         self._prev_ids = np.empty(0, dtype=object)
         self._prev_xy = np.empty((0, 2))
@@ -310,6 +318,10 @@ class SumoTraffic:
         velocity = speed[:, None] * direction
 
         idx = match_ids(self._prev_ids, ids_arr)
+        half = None
+        if self.reference_point == "centre":
+            half = self._half_lengths(ids, idx)
+            xy = centre_from_front(xy, direction, half)
         back = np.zeros(n, dtype=bool)
         if self._back_from_teleport:
             back = np.array([v in self._back_from_teleport for v in ids], dtype=bool)
@@ -328,8 +340,21 @@ class SumoTraffic:
         if self._steps % self._every == 0:
             self.jam.check(t, halting, n, len(sim.getPendingVehicles()), self.departed)
         self._prev_ids, self._prev_xy, self._prev_vel = ids_arr, xy, velocity
+        if half is not None:
+            self._prev_half_length = half
         return VehicleStates(t=t, ids=ids_arr, xy=xy, velocity=velocity, heading=heading, accel=accel, entered=entered,
-                             direction=direction, prev_row=idx)
+                             direction=direction, prev_row=idx, front_offset=half)
+
+    def _half_lengths(self, ids: list, idx: np.ndarray) -> np.ndarray:
+        """(N,) half of each vehicle's SUMO length (vehicle.getLength, asked once per vehicle: it does not
+        change; the others carried from the previous step's rows ``idx``)."""
+        half = np.empty(len(ids))
+        seen = idx >= 0
+        half[seen] = self._prev_half_length[idx[seen]]
+        get_length = libsumo.vehicle.getLength
+        for i in np.flatnonzero(~seen).tolist():  # new vehicles only
+            half[i] = 0.5 * get_length(ids[i])
+        return half
 
 
 @njit(cache=True)

@@ -601,6 +601,22 @@ def run_unknown_sumo_start(tmp, net, run):
     return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "scenario.reference_point", "centre")
+def run_unknown_reference_point(tmp, net, run):
+    path = tmp / "cfg.toml"
+    path.write_text(CONFIG.format(net=net, extra="").replace('control = "tlr"',
+                                                              'control = "tlr"\nreference_point = "rear_axle"'))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("sr.toml", "scenario.reference_point", "only for scenario.kind")
+def run_reference_point_without_sumo(tmp, net, run):
+    text = (PROJECT / "experiments" / "single_road.toml").read_text()
+    path = tmp / "sr.toml"
+    path.write_text(text.replace("[scenario]\n", '[scenario]\nreference_point = "centre"\n'))
+    return ["run", str(path), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "inertial.accel_noise_density", ">= 0")
 def run_inertial_negative_noise(tmp, net, run):
     cfg = _config(tmp, net, "[inertial]\naccel_noise_density = -0.004\n")
@@ -1484,7 +1500,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 195
+    assert len(CASES) >= 197
 
 
 # ----------------------------------------------------------------------------- what --out may replace

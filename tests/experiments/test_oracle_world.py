@@ -49,6 +49,16 @@ def test_front_lever_is_half_the_net_folders_vehicle_length(tmp_path):
     assert _route_vtype_lengths(f) == [4.0, 5.0]
 
 
+def test_no_front_lever_when_the_world_reports_the_centre():
+    """[scenario] reference_point = "centre" (the realistic presets): the reported point moves with the
+    reported velocity, no slip to model."""
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml",
+                      overrides={"run.methods": ["joint_oracle"], "scenario.reference_point": "centre"})
+    assert oracle_world(cfg).front_lever_m == 0.0
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", overrides={"run.methods": ["joint_oracle"]})
+    assert cfg.scenario.reference_point == "centre" and oracle_world(cfg).front_lever_m == 0.0
+
+
 def test_per_vehicle_world_has_no_shared_part():
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
                       overrides={"run.methods": ["joint_oracle"], "gnss_error.model": "per_vehicle",
