@@ -86,7 +86,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import lapack
 
 from coloc.core.detections import HeadingMemory, to_net_frame, vehicle_headings
 from coloc.core.frame import Frame, StepEstimate
@@ -97,162 +96,21 @@ from coloc.core.vehicles import entry_fix_rows, match_ids
 from coloc.inference.bpa import validate_association
 from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
+from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _information: imported from here by tests)
+    _front_slip,
+    _heading_state_information,
+    _idx,
+    _information,
+    _left_multiply,
+    _positions,
+    _scatter,
+    _shared_heading_information,
+    spd_inverse,
+)
+from coloc.methods.joint_oracle_world import GNSS_WORLDS, OracleWorld  # noqa: F401
 from coloc.methods.registry import JOINT_ORACLE
 
 __all__ = ["OracleWorld", "JointOracle", "OracleState", "spd_inverse"]
-
-GNSS_WORLDS = ("white", "per_vehicle", "field")
-
-
-@dataclass(frozen=True)
-class OracleWorld:
-    """What the oracle is told of the world (``[gnss_error]``, ``[scenario] start``), plus its gate.
-
-    Names and meanings as in ``couplers.sensing.gnss_error.GnssErrorParams`` (the oracle is in ``coloc`` and
-    does not import ``couplers``: the runner copies the values)."""
-
-    gnss: str = "white"  # "white" (no [gnss_error]), "per_vehicle" or "field"
-    tau_s: float = 30.0
-    common_share: float = 0.0
-    common_tau_s: float = 600.0
-    field_share: float = 0.0
-    field_corr_length_m: float = 50.0
-    field_tau_s: float = 300.0
-    local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
-    nlos: bool = False  # the world has NLOS episodes: gate the fixes
-    # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
-    # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
-    accel_turn_on_sigma: float | None = None
-    accel_bias_sigma: float = 0.0
-    accel_bias_tau_s: float = 300.0
-    accel_noise_density: float = 0.0
-    # Oracle settings (not the world's): the chi-square level of the NLOS gate, the consecutive exclusions
-    # after which a fix is taken, the white share of the fix's variance, how long unseen features are kept.
-    gate_level: float = 0.999
-    max_exclusions: int = 40  # 30 s at 0.75 s: three mean episode lengths (10 s, the world's default)
-    fix_noise_share: float = 1e-4
-    feature_keep_s: float = 120.0
-    # The world's field F as it draws it (couplers/sensing/gnss_error.py, FieldErrorProcess): its random Fourier
-    # frequencies (M, 2) rad/m, F(p) = sum_m (cos(omega_m . p) a_m + sin(omega_m . p) b_m) / sqrt(M) per axis with
-    # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
-    # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
-    field_omega: tuple | None = field(default=None, compare=False, repr=False)
-    # The world's vehicle position is the front bumper and its heading the body axis (SUMO: getPosition, getAngle),
-    # so while it turns at yaw rate w the bumper moves across the heading at about front_lever_m w besides the
-    # velocity v = speed u(heading) (:func:`_front_slip`). 0: no such term (model (1) as the paper's).
-    front_lever_m: float = 0.0
-    # the per-step residual of that term, std front_slip_sigma_per_rad |w| Ts (m per rad turned), at most
-    # front_slip_sigma_max_m (docs/validation/oracle.md, "Kinematics of the world")
-    front_slip_sigma_per_rad: float = 2.5
-    front_slip_sigma_max_m: float = 0.25
-    # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
-    # than independent per row.
-    shared_heading: bool = True
-    # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
-    # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
-    # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
-    heading_from_state: bool = True
-    # Iterated EKF on the sensor-frame rows with heading_from_state: relinearized this many times at the posterior
-    # velocity (0: one EKF update)
-    heading_iterations: int = 0
-    # heading_from_state rows also carry the heading's variance from the state's covariance as noise (conservative:
-    # the heading's information is then counted once through H and its uncertainty once more in R)
-    heading_row_inflation: bool = False
-    # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
-    # out (heading_from_state rows only)
-    range_rate_rows: bool = True
-    # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
-    # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
-    imu_heading_from_state: bool = True
-
-    def __post_init__(self):
-        if self.gnss not in GNSS_WORLDS:
-            raise ValueError(f"gnss must be one of {GNSS_WORLDS}, got {self.gnss!r}")
-        for key in ("common_share", "field_share"):
-            if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ValueError(f"{key} must be in [0, 1]")
-        if not 0.0 < self.fix_noise_share <= 1.0:
-            raise ValueError("fix_noise_share must be in (0, 1]")
-        if not 0.0 <= self.gate_level < 1.0:
-            raise ValueError("gate_level must be in [0, 1) (0: no gate)")
-
-    @property
-    def correlated(self) -> bool:
-        return self.gnss != "white"
-
-    @property
-    def imu(self) -> bool:
-        return self.accel_turn_on_sigma is not None
-
-    @property
-    def bias_offset(self) -> int:
-        """Index of the accelerometer bias in a vehicle block."""
-        return 6 if self.correlated else 4
-
-    @property
-    def vehicle_dim(self) -> int:
-        return self.bias_offset + (2 if self.imu else 0)
-
-    @property
-    def common_dim(self) -> int:
-        return 2 if self.correlated and self.common_share > 0 else 0
-
-    @property
-    def field_dim(self) -> int:
-        """4 M coefficient states of the exact field (``field_omega`` given), else 0."""
-        if self.gnss != "field" or self.field_share == 0 or self.field_omega is None:
-            return 0
-        return 4 * len(self.field_omega)
-
-    @property
-    def tail_dim(self) -> int:
-        """The shared states after the features: common (``common_dim``), then field coefficients."""
-        return self.common_dim + self.field_dim
-
-    def tail_coefficients(self, dt: float) -> np.ndarray:
-        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, then field)."""
-        a_c = math.exp(-dt / self.common_tau_s) if self.common_tau_s > 0 else 0.0
-        a_f = math.exp(-dt / self.field_tau_s) if self.field_tau_s > 0 else 0.0
-        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f)])
-
-    def field_basis(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's
-        ``coef`` (cos/sin, feature, axis) flattened)."""
-        om = np.asarray(self.field_omega, dtype=float).reshape(-1, 2)
-        m = om.shape[0]
-        phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ om.T  # (N, M)
-        basis = np.stack([np.cos(phase), np.sin(phase)], axis=1) / math.sqrt(m)  # (N, 2 cos/sin, M)
-        out = np.zeros((phase.shape[0], 2, 2, m, 2))
-        out[:, 0, :, :, 0] = basis
-        out[:, 1, :, :, 1] = basis
-        return out.reshape(phase.shape[0], 2, 4 * m)
-
-    @property
-    def gate_threshold(self) -> float:
-        return math.inf if (not self.nlos or self.gate_level == 0) else -2.0 * math.log1p(-self.gate_level)
-
-    def local_coefficient(self, dist: np.ndarray, dt: float) -> np.ndarray:
-        """a_l per vehicle for a step of ``dt`` in which it moved ``dist`` (module docstring)."""
-        d = np.asarray(dist, dtype=float)
-        own = np.exp(-d / self.local_corr_length_m - (dt / self.tau_s if self.tau_s > 0 else np.inf))
-        if self.gnss != "field" or self.field_share == 0 or self.field_dim:
-            return own
-        fld = np.exp(-d / self.field_corr_length_m - (dt / self.field_tau_s if self.field_tau_s > 0 else np.inf))
-        return self.field_share * fld + (1.0 - self.field_share) * own
-
-
-def spd_inverse(a: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix by Cholesky (LAPACK potrf / potri), symmetric."""
-    if a.shape[0] == 0:
-        return a.copy()
-    c, info = lapack.dpotrf(a, lower=1, clean=0, overwrite_a=0)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"joint_oracle: matrix not positive definite (potrf info {info})")
-    inv, info = lapack.dpotri(c, lower=1, overwrite_c=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"joint_oracle: potri info {info}")
-    low = np.tril(inv)
-    return low + np.tril(inv, -1).T
 
 
 @dataclass(frozen=True)
@@ -267,42 +125,6 @@ class OracleState:
     heading: np.ndarray | None = None  # [inertial]: kept heading per vehicle row
     sensor_heading: HeadingMemory | None = None
     streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
-
-
-def _idx(starts: np.ndarray, width: int) -> np.ndarray:
-    """(len(starts), width) state indices of blocks starting at ``starts``."""
-    return np.asarray(starts, dtype=np.int64)[:, None] + np.arange(width)
-
-
-def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa: np.ndarray, a_c) -> np.ndarray:
-    """F p for block-diagonal F: ``fv`` (nv, vdim, vdim) vehicle blocks, ``fa`` (4, 4) every feature block,
-    ``a_c`` (one per row, or a scalar) on the shared block (the rest of the rows)."""
-    out = np.empty_like(p)
-    cols = p.shape[1]
-    nvr = nv * vdim
-    if nv:
-        out[:nvr] = np.einsum("nij,njc->nic", fv, p[:nvr].reshape(nv, vdim, cols)).reshape(nvr, cols)
-    if k:
-        out[nvr:nvr + 4 * k] = np.einsum("ij,njc->nic", fa, p[nvr:nvr + 4 * k].reshape(k, 4, cols)).reshape(4 * k, cols)
-    out[nvr + 4 * k:] = np.asarray(a_c, dtype=float).reshape(-1, 1) * p[nvr + 4 * k:]
-    return out
-
-
-def _scatter(lam: np.ndarray, eta: np.ndarray, ind: np.ndarray, hth: np.ndarray, htz: np.ndarray) -> None:
-    """lam[ind_r, ind_r] += hth[r], eta[ind_r] += htz[r] for every row-group r (duplicates add up)."""
-    if ind.shape[0] == 0:
-        return
-    w = ind.shape[1]
-    rr = np.broadcast_to(ind[:, :, None], (ind.shape[0], w, w))
-    cc = np.broadcast_to(ind[:, None, :], (ind.shape[0], w, w))
-    np.add.at(lam, (rr, cc), hth)
-    np.add.at(eta, ind, htz)
-
-
-def _information(h: np.ndarray, rinv: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """H^T R^-1 H and H^T R^-1 z for a batch: h (M, m, w), rinv (M, m, m), z (M, m)."""
-    htr = np.swapaxes(h, -1, -2) @ rinv
-    return htr @ h, np.einsum("nij,nj->ni", htr, z)
 
 
 @dataclass
@@ -694,107 +516,3 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
-
-
-def _front_slip(w: OracleWorld, frame: Frame, surv: np.ndarray, v0: np.ndarray, heading, accel: np.ndarray,
-                dt: float, min_speed: float) -> tuple[np.ndarray, np.ndarray]:
-    """(mean (ns, 2), covariance (ns, 2, 2)) the survivors' positions move across their heading in a step besides
-    model (1): the world reports the front bumper's position and the body axis as the heading (SUMO), so a
-    vehicle turning at yaw rate w has its bumper moving sideways at about l w, l = ``front_lever_m`` (half the
-    vehicle's length). w: the IMU's measured yaw rate, or without the IMU the rate the net-frame input turns
-    the velocity at t-1, (v x a) / |v|^2 (0 below ``min_speed``). The direction: the normal of the mid-step
-    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across."""
-    if frame.imu is not None:
-        om = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
-        psi_mid = np.asarray(heading, dtype=float)[surv] - 0.5 * om * dt
-    else:
-        a = np.asarray(accel, dtype=float)[surv]
-        s2 = v0[:, 0] ** 2 + v0[:, 1] ** 2
-        fast = s2 >= min_speed * min_speed
-        om = np.where(fast, (v0[:, 0] * a[:, 1] - v0[:, 1] * a[:, 0]) / np.maximum(s2, 1e-300), 0.0)
-        psi_mid = np.arctan2(v0[:, 1], v0[:, 0]) + 0.5 * om * dt
-    nrm = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1)
-    turn = np.abs(om) * dt
-    sd = np.minimum(w.front_slip_sigma_per_rad * turn, w.front_slip_sigma_max_m)
-    return ((w.front_lever_m * om * dt)[:, None] * nrm,
-            (sd * sd)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
-
-
-def _heading_gradient(det, psi_row) -> np.ndarray:
-    """(m, 4) d z / d psi of sensor-frame rows converted with heading ``psi_row``
-    (:func:`coloc.core.detections.to_net_frame`): [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]."""
-    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
-    g = (np.asarray(det.mount_x, dtype=float)[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1)
-         + np.asarray(det.range, dtype=float)[:, None] * n_perp)
-    return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
-
-
-def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0, range_rate: bool = True) -> None:
-    """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
-    z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
-    at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
-    unchanged; ``r0`` is the row covariance without the heading's term."""
-    gz = _heading_gradient(det, psi_row)
-    s2 = np.maximum(np.einsum("ni,ni->n", v_row, v_row), 1e-12)
-    gv = np.stack([-v_row[:, 1], v_row[:, 0]], axis=1) / s2[:, None]
-    h = np.zeros((psi_row.shape[0], 4, 8))
-    h[:, :, :4] = -np.eye(4)
-    h[:, :, 4:] = np.eye(4)
-    h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
-    if not range_rate:
-        h, r0, z = h[:, :2], r0[:, :2, :2], z[:, :2]
-    hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
-    _scatter(lam, eta, ind, hth, htz)
-
-
-def _shared_heading_information(lam, eta, ind, det, psi_row, var, own, z, r) -> None:
-    """Sensor-frame rows with one heading error per vehicle and step, shared by all its rows.
-
-    Every row of vehicle i is rotated by the same estimated heading, so its error dpsi_i ~ N(0, var_i) enters
-    each row j as gz_j dpsi_i, gz_j = d z_j / d psi = [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]
-    (:func:`coloc.core.detections.to_net_frame`, whose R_j holds var_i gz_j gz_j^T). The rows of one vehicle
-    then have the joint covariance D + var_i G G^T (D block-diagonal, R_j without that term), whose inverse
-    by the matrix inversion lemma is D^-1 - alpha_i (D^-1 G)(D^-1 G)^T, alpha_i = 1 / (1 / var_i + sum_j
-    gz_j^T D_j^-1 gz_j): the information of the rows as independent, less one rank-one term per vehicle.
-    H_j = [-I (vehicle) | +I (feature)] as model (4)."""
-    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
-    mount = np.asarray(det.mount_x, dtype=float)
-    rr = np.asarray(det.range, dtype=float)
-    g = mount[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1) + rr[:, None] * n_perp
-    gz = np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)  # (m, 4)
-    v_row = var[own]
-    d_rows = symmetrize(r - v_row[:, None, None] * gz[:, :, None] * gz[:, None, :])
-    dinv = symmetrize(np.linalg.inv(d_rows))
-    h = np.zeros((own.size, 4, 8))
-    h[:, :, :4] = -np.eye(4)
-    h[:, :, 4:] = np.eye(4)
-    hth, htz = _information(h, dinv, z)
-    _scatter(lam, eta, ind, hth, htz)
-    a = np.einsum("nij,nj->ni", dinv, gz)  # D_j^-1 gz_j
-    u = np.concatenate([-a, a], axis=1)  # H_j^T D_j^-1 gz_j on ind_j
-    c = np.einsum("ni,ni->n", gz, a)
-    e = np.einsum("ni,ni->n", a, z)
-    nv = var.shape[0]
-    csum = np.bincount(own, weights=c, minlength=nv)
-    esum = np.bincount(own, weights=e, minlength=nv)
-    alpha = 1.0 / (1.0 / np.maximum(var, 1e-300) + csum)
-    # every ordered pair (j, j') of rows of one vehicle: - alpha_i u_j u_j'^T on (ind_j, ind_j')
-    order = np.argsort(own, kind="stable")
-    counts = np.bincount(own, minlength=nv)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    m_row = counts[own[order]]
-    left = np.repeat(order, m_row)
-    offs = np.arange(left.size) - np.repeat(np.cumsum(m_row) - m_row, m_row)
-    right = order[starts[own[order]].repeat(m_row) + offs]
-    wgt = alpha[own[left]]
-    blk = -wgt[:, None, None] * u[left][:, :, None] * u[right][:, None, :]
-    np.add.at(lam, (ind[left][:, :, None], ind[right][:, None, :]), blk)
-    np.add.at(eta, ind, -(alpha * esum)[own][:, None] * u)
-
-
-def _positions(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """Position of each of ``wanted`` in ``ids`` (all present)."""
-    order = np.argsort(ids, kind="stable")
-    return order[np.searchsorted(ids[order], wanted)]
