@@ -57,6 +57,14 @@ independent rows; ``heading_from_state`` instead makes the heading the direction
 heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
 again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
 heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
+With ``heading_state`` (and the gyroscope's model told, ``[inertial]``) the heading psi and the gyroscope's bias b_g
+are states of every vehicle instead: psi_t = psi_{t-1} + (r - b_g) Ts + white (density^2 Ts), b_g a random walk of
+the drift's one-step variance, prior N(0, turn_on^2 + drift^2); the velocity is held along the heading by
+0 = u_perp(psi)^T v + n (std ``course_sigma_mps``, :func:`_course_information`; the world's velocity is the speed
+along the body axis); the sensor-frame rows are converted with the predicted psi and linearized in it
+(H = [-I | +I | -dz/dpsi]), rows of slow vehicles kept (the heading's error across a stop is the state's); the IMU
+input is rotated by psi_{t-1} + (r - b_g) Ts / 2 and linearized in psi and b_g. An entering vehicle's heading
+starts unknown (pi^2 / 3) about its fix's course.
 
 Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
 oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
@@ -97,7 +105,9 @@ from coloc.inference.bpa import validate_association
 from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
 from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _information: imported from here by tests)
+    _course_information,
     _front_slip,
+    _heading_gradient,
     _heading_state_information,
     _idx,
     _information,
@@ -125,6 +135,7 @@ class OracleState:
     heading: np.ndarray | None = None  # [inertial]: kept heading per vehicle row
     sensor_heading: HeadingMemory | None = None
     streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    v_first: np.ndarray | None = None  # (N, 2) each vehicle's velocity as first estimated (predicted) at its step
 
 
 @dataclass
@@ -171,10 +182,11 @@ class JointOracle:
         idx = match_ids(st.vehicle_ids, frame.vehicle_ids)
         fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
         idx_c = np.where(fresh, -1, idx)
+        yaw = None  # the yaw rate the prediction uses: the gyroscope's, less the bias state's mean (heading_state)
         if frame.imu is None:
             accel, heading = np.asarray(frame.accel, dtype=float), None
         else:
-            accel, heading, psi_var = self._imu_input(frame, idx, fresh, st)
+            accel, heading, psi_var, yaw = self._imu_input(frame, idx, fresh, st)
 
         # --- predict survivors, old features and the common state (block-diagonal F, Q).
         surv = np.flatnonzero(~fresh)
@@ -185,6 +197,7 @@ class JointOracle:
         ns = surv.size
         a4 = transition_matrix(dt)
         xv = x[:vd * ns].reshape(ns, vd)
+        fv_mean = None
         fv = np.zeros((ns, vd, vd))
         fv[:, :4, :4] = a4
         qv = np.zeros((ns, vd, vd))
@@ -200,7 +213,7 @@ class JointOracle:
             bo = w.bias_offset
             fv[:, bo, bo] = fv[:, bo + 1, bo + 1] = 1.0
             if frame.imu is not None:  # a frame without the IMU leaves the bias out of the input
-                r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+                r = yaw[surv]
                 psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
                 c, s_ = np.cos(psi_mid), np.sin(psi_mid)
                 rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
@@ -215,7 +228,7 @@ class JointOracle:
             ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
             amag2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
             hh = wrap_angle(np.asarray(heading, dtype=float)[surv]
-                            - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
+                            - 0.5 * yaw[surv] * dt)  # psi_mid
             u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
             bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
             pvar = psi_var[surv]
@@ -225,24 +238,52 @@ class JointOracle:
                 # so the predicted mean is unchanged); the heading's variance leaves Q for those vehicles.
                 fast = self._imu_fast[surv]
                 v0 = xv[:, 2:4]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * yaw[surv] * dt
+                if w.first_estimate_jacobians and st.v_first is not None:
+                    # FEJ: the Jacobian at the velocity the rows of t-1 were linearized at (mean: the posterior)
+                    v0 = st.v_first[sp]
+                    ang = ang - np.arctan2(xv[:, 3], xv[:, 2]) + np.arctan2(v0[:, 1], v0[:, 0])
                 s2 = np.maximum(v0[:, 0] ** 2 + v0[:, 1] ** 2, 1e-12)
                 gv = np.stack([-v0[:, 1], v0[:, 0]], axis=1) / s2[:, None]
-                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
                 c2, s2_ = np.cos(ang), np.sin(ang)
                 da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
                 jac = np.einsum("ij,nj->ni", input_matrix(dt), da)[:, :, None] * gv[:, None, :]  # (ns, 4, 2)
                 fv[fast, 0:4, 2:4] += jac[fast]
+                if w.first_estimate_jacobians:  # g_v^T v_hat != 0 at another point: the mean without the Jacobian
+                    fv_mean = fv.copy()
+                    fv_mean[fast, 0:4, 2:4] -= jac[fast]
                 pvar = np.where(fast, 0.0, pvar)
             qv[:, :4, :4] += (amag2 * pvar)[:, None, None] * bu[:, :, None] * bu[:, None, :]
+        if w.heading_dim:
+            # heading psi and gyroscope bias b_g: psi_t = psi_{t-1} + (r - b_g) Ts + white (density^2 Ts), b_g a
+            # random walk of the drift's one-step variance; the input a_net = Rot(psi_{t-1} + (r - b_g) Ts / 2) a_body
+            # (the world's psi_mid, couplers/sensing/inertial.py) linearized in psi and b_g (its mean: the state's).
+            ho = w.heading_offset
+            fv[:, ho, ho] = fv[:, ho + 1, ho + 1] = 1.0
+            a_g = math.exp(-dt / w.gyro_bias_tau_s)
+            qv[:, ho + 1, ho + 1] = (1.0 - a_g * a_g) * math.radians(w.gyro_bias_sigma) ** 2
+            if frame.imu is not None:
+                fv[:, ho, ho + 1] = -dt
+                qv[:, ho, ho] = math.radians(w.gyro_noise_density) ** 2 * dt
+                ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * yaw[surv] * dt
+                c2, s2_ = np.cos(ang), np.sin(ang)
+                da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
+                jac = np.einsum("ij,nj->ni", input_matrix(dt), da)  # (ns, 4) d x / d psi_mid
+                fv_mean = fv.copy()  # the mean: the input at the state's mean (above), not through the Jacobian
+                fv[:, 0:4, ho] = jac
+                fv[:, 0:4, ho + 1] = -0.5 * dt * jac
         a_c = w.tail_coefficients(dt)
         xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
         p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
         p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
-        xv = np.einsum("nij,nj->ni", fv, xv)
+        xv = np.einsum("nij,nj->ni", fv if fv_mean is None else fv_mean, xv)
         xv[:, :4] += accel[surv] @ input_matrix(dt).T
+        if w.heading_dim and frame.imu is not None:
+            xv[:, w.heading_offset] += np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
         if w.front_lever_m > 0 and ns:
             slip, q_slip = _front_slip(w, frame, surv, x[:vd * ns].reshape(ns, vd)[:, 2:4], heading, accel, dt,
-                                       p_icp.motion.heading_min_speed)
+                                       p_icp.motion.heading_min_speed, yaw)
             xv[:, :2] += slip
             qv[:, :2, :2] += q_slip
         xf = xf @ a4.T
@@ -263,7 +304,7 @@ class JointOracle:
         # again each step made the map overconfident (docs/validation/oracle.md).
         n = frame.n_vehicles
         zg = np.asarray(frame.gnss_z, dtype=float)
-        if frame.v2f_sensor is not None and assoc.size:
+        if frame.v2f_sensor is not None and assoc.size and not w.heading_dim:
             speed = np.hypot(zg[:, 2], zg[:, 3])
             speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
             slow = speed < p_icp.motion.heading_min_speed
@@ -311,6 +352,17 @@ class JointOracle:
                 _scatter(lam, eta, ind, np.broadcast_to(ib, (fr.size, 2, 2)), np.zeros((fr.size, 2)))
             # linearization points of fresh vehicles: their fix
             mean_pred[:vd * n].reshape(n, vd)[fr, :4] = zg[fr]
+            if w.heading_dim:  # heading: unknown (pi^2 / 3), about the fix's course; the gyroscope's bias switched on
+                from coloc.core.detections import HEADING_VAR_UNKNOWN
+
+                ho = w.heading_offset
+                psi0 = np.arctan2(zg[fr, 3], zg[fr, 2])
+                mean_pred[:vd * n].reshape(n, vd)[fr, ho] = psi0
+                ib = 1.0 / (math.radians(w.gyro_turn_on_sigma) ** 2 + math.radians(w.gyro_bias_sigma) ** 2)
+                ih = np.zeros((fr.size, 2, 2))
+                ih[:, 0, 0], ih[:, 1, 1] = 1.0 / HEADING_VAR_UNKNOWN, ib
+                _scatter(lam, eta, _idx(vd * fr + ho, 2), ih,
+                         np.stack([psi0 / HEADING_VAR_UNKNOWN, np.zeros(fr.size)], axis=1))
         if new_ids.size and p_icp.feature_velocity_prior_sigma:
             ind = _idx(vd * n + 4 * np.arange(k_prev, k) + 2, 2)
             iv = np.eye(2) / p_icp.feature_velocity_prior_sigma ** 2
@@ -324,6 +376,8 @@ class JointOracle:
             streak[have] = st.streak[idx_c[have]] if st.streak.size else 0
             excluded = self._gnss_information(lam, eta, p, frame, fresh, surv, mean_pred, sig, zg, rg, streak)
         self.last_excluded = excluded
+        if w.heading_dim and n:
+            _course_information(lam, eta, mean_pred, n, vd, w.heading_offset, w.course_sigma_mps)
 
         # --- V2F (4) rows with the true association.
         iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
@@ -358,12 +412,12 @@ class JointOracle:
         return OracleState(
             vehicle_ids=np.asarray(frame.vehicle_ids), feature_ids=fids[keep_f], feature_last_seen=last_seen[keep_f],
             mean=mean, cov=cov, heading=heading, sensor_heading=sensor_heading,
-            streak=np.where(excluded, streak + 1, 0),
+            streak=np.where(excluded, streak + 1, 0), v_first=mean_pred[:vd * n].reshape(n, vd)[:, 2:4].copy(),
         )
 
     def _imu_input(self, frame: Frame, idx: np.ndarray, fresh: np.ndarray, st: OracleState):
-        """The input a_{t-1} of model (1) from the body-frame IMU, the mid-step heading kept, and the variance
-        of the heading used. The heading at t-1 is the direction of the oracle's velocity at t-1 when the
+        """The input a_{t-1} of model (1) from the body-frame IMU, the heading at t kept, the variance
+        of the heading used and the yaw rate used (the gyroscope's; less the bias state with ``heading_state``). The heading at t-1 is the direction of the oracle's velocity at t-1 when the
         vehicle was above ``heading_min_speed`` (variance g P_vv g^T), else the heading the sensor-frame rows
         keep for it (:class:`coloc.core.detections.HeadingMemory`: held, not dead-reckoned by the gyroscope,
         whose turn-on bias would turn a queued vehicle by tens of degrees a minute); unknown (pi^2 / 3) without
@@ -395,9 +449,19 @@ class JointOracle:
         # heading from the velocity at t-1 (not held, not unknown): the EKF input of imu_heading_from_state
         self._imu_fast = have & (np.hypot(pv[:, 0], pv[:, 1]) >= self.params.motion.heading_min_speed)
         r = np.asarray(frame.imu.yaw_rate, dtype=float)
+        if self.world.heading_dim:  # the heading and the gyroscope bias states at t-1 (variance: in the Jacobian)
+            ho = self.world.heading_offset
+            if n_prev and have.any():
+                blk = st.mean[:vd * n_prev].reshape(n_prev, vd)
+                psi = np.where(have, 0.0, psi)
+                psi[have] = blk[idx[have], ho]
+                r = r.copy()
+                r[have] = r[have] - blk[idx[have], ho + 1]
+            var = np.where(have, 0.0, var)
+            self._imu_fast = np.zeros(n, dtype=bool)
         step = np.where(fresh, 0.0, r * float(frame.dt))
         accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
-        return accel, wrap_angle(psi + step), var
+        return accel, wrap_angle(psi + step), var, r
 
     def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
         """Add every fix's information; returns which fixes' positions the gate left out."""
@@ -486,6 +550,9 @@ class JointOracle:
                 vcov[surv] = p_pred[ii[:, :, None], ii[:, None, :]]
             psi, var, memory = vehicle_headings(frame, vmean, vcov, idx_c, st.sensor_heading,
                                                 self.params.motion.heading_min_speed)
+            if self.world.heading_dim:  # the heading state, its error in H (below)
+                psi = mean_pred[:vd * n].reshape(n, vd)[:, self.world.heading_offset].copy()
+                var = np.zeros(n)
         if used.size == 0:
             return memory
         own = owner[used]
@@ -504,6 +571,15 @@ class JointOracle:
                 "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
+        if det is not None and self.world.heading_dim:
+            # z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise: H = [-I | +I | -gz on psi], z' = z - gz psi_hat
+            gz = _heading_gradient(sub, psi[own])
+            h9 = np.concatenate([h, -gz[:, :, None]], axis=2)
+            z9 = z - gz * psi[own][:, None]
+            ind9 = np.concatenate([ind, (vd * own + self.world.heading_offset)[:, None]], axis=1)
+            hth, htz = _information(h9, symmetrize(np.linalg.inv(r)), z9)
+            _scatter(lam, eta, ind9, hth, htz)
+            return memory
         if det is not None and self.world.heading_from_state:
             hvar = var[own] if self.world.heading_row_inflation else np.zeros(m)
             _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,

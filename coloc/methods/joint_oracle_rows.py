@@ -63,15 +63,16 @@ def _information(h: np.ndarray, rinv: np.ndarray, z: np.ndarray) -> tuple[np.nda
 
 
 def _front_slip(w: OracleWorld, frame: Frame, surv: np.ndarray, v0: np.ndarray, heading, accel: np.ndarray,
-                dt: float, min_speed: float) -> tuple[np.ndarray, np.ndarray]:
+                dt: float, min_speed: float, yaw_rate: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(mean (ns, 2), covariance (ns, 2, 2)) the survivors' positions move across their heading in a step besides
     model (1): the world reports the front bumper's position and the body axis as the heading (SUMO), so a
     vehicle turning at yaw rate w has its bumper moving sideways at about l w, l = ``front_lever_m`` (half the
     vehicle's length). w: the IMU's measured yaw rate, or without the IMU the rate the net-frame input turns
     the velocity at t-1, (v x a) / |v|^2 (0 below ``min_speed``). The direction: the normal of the mid-step
-    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across."""
+    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across.
+    ``yaw_rate``: the IMU's rate as the oracle uses it (all vehicles; default the frame's)."""
     if frame.imu is not None:
-        om = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+        om = np.asarray(frame.imu.yaw_rate if yaw_rate is None else yaw_rate, dtype=float)[surv]
         psi_mid = np.asarray(heading, dtype=float)[surv] - 0.5 * om * dt
     else:
         a = np.asarray(accel, dtype=float)[surv]
@@ -164,3 +165,18 @@ def _positions(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     """Position of each of ``wanted`` in ``ids`` (all present)."""
     order = np.argsort(ids, kind="stable")
     return order[np.searchsorted(ids[order], wanted)]
+
+
+def _course_information(lam, eta, mean_lin, n, vd, ho, sigma) -> None:
+    """The velocity along the heading: 0 = u_perp(psi)^T v + noise (std ``sigma``) for every vehicle, linearized at
+    ``mean_lin`` (psi_hat, v_hat): H = [-sin psi_hat, cos psi_hat on v | -u(psi_hat)^T v_hat on psi],
+    z = H x_hat - u_perp(psi_hat)^T v_hat = -(u(psi_hat)^T v_hat) psi_hat."""
+    blk = mean_lin[:vd * n].reshape(n, vd)
+    psi = blk[:, ho]
+    c, s = np.cos(psi), np.sin(psi)
+    along = c * blk[:, 2] + s * blk[:, 3]
+    h = np.stack([-s, c, -along], axis=1)  # (n, 3)
+    z = -along * psi
+    ind = vd * np.arange(n)[:, None] + np.array([2, 3, ho])
+    w = 1.0 / (sigma * sigma)
+    _scatter(lam, eta, ind, w * h[:, :, None] * h[:, None, :], (w * z)[:, None] * h)

@@ -74,6 +74,22 @@ class OracleWorld:
     # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
     # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
     imu_heading_from_state: bool = True
+    # First-estimate Jacobians (Huang, Mourikis & Roumeliotis 2010): the IMU input's Jacobian on the velocity at t-1
+    # (imu_heading_from_state) taken at that velocity's first estimate, the prediction the sensor-frame rows of t-1
+    # were linearized at, not at its posterior; the mean is propagated at the posterior.
+    first_estimate_jacobians: bool = False
+    # [inertial] gyroscope (couplers/sensing/inertial.py, its units: deg/s, deg/s/sqrt(Hz), s; None: not told). With
+    # heading_state the heading and the gyroscope's bias (turn-on plus drift, a random walk of the drift's one-step
+    # variance as for the accelerometer) are states per vehicle: the heading is predicted by the measured yaw rate
+    # less the bias, the velocity is held along it by a constraint of std course_sigma_mps (the world's velocity is
+    # the speed along the body axis, couplers/traffic/sumo.py; the std only regularizes), and the sensor-frame rows and
+    # the IMU input are linearized in it (module docstring of joint_oracle).
+    gyro_turn_on_sigma: float | None = None
+    gyro_bias_sigma: float = 0.0
+    gyro_bias_tau_s: float = 1000.0
+    gyro_noise_density: float = 0.0
+    heading_state: bool = False
+    course_sigma_mps: float = 0.01
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -100,8 +116,18 @@ class OracleWorld:
         return 6 if self.correlated else 4
 
     @property
-    def vehicle_dim(self) -> int:
+    def heading_offset(self) -> int:
+        """Index of the heading (then the gyroscope bias) in a vehicle block."""
         return self.bias_offset + (2 if self.imu else 0)
+
+    @property
+    def heading_dim(self) -> int:
+        """2 (heading, gyroscope bias) with ``heading_state`` and a gyroscope model, else 0."""
+        return 2 if (self.heading_state and self.imu and self.gyro_turn_on_sigma is not None) else 0
+
+    @property
+    def vehicle_dim(self) -> int:
+        return self.heading_offset + self.heading_dim
 
     @property
     def common_dim(self) -> int:
