@@ -417,7 +417,8 @@ class JointOracle:
 
     def _imu_input(self, frame: Frame, idx: np.ndarray, fresh: np.ndarray, st: OracleState):
         """The input a_{t-1} of model (1) from the body-frame IMU, the heading at t kept, the variance
-        of the heading used and the yaw rate used (the gyroscope's; less the bias state with ``heading_state``). The heading at t-1 is the direction of the oracle's velocity at t-1 when the
+        of the heading used and the yaw rate used (the gyroscope's; less the bias state with
+        ``heading_state``). The heading at t-1 is the direction of the oracle's velocity at t-1 when the
         vehicle was above ``heading_min_speed`` (variance g P_vv g^T), else the heading the sensor-frame rows
         keep for it (:class:`coloc.core.detections.HeadingMemory`: held, not dead-reckoned by the gyroscope,
         whose turn-on bias would turn a queued vehicle by tens of degrees a minute); unknown (pi^2 / 3) without

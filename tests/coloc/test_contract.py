@@ -335,7 +335,8 @@ def _enter_from_fix(frame, k: int, first: bool):
     return f
 
 
-@pytest.mark.parametrize("name", [n for n in RUNNABLE if n not in ("joint_oracle+world", "joint_oracle+heading")])
+@pytest.mark.parametrize("name", [n for n in RUNNABLE
+                                  if n not in ("joint_oracle+world", "joint_oracle+heading")])
 def test_first_belief_is_the_receiver_fix(name):
     """The entry protocol (start = "gnss_fix"): a vehicle whose prior is its receiver's fix of the step has,
     as its belief written at that step, the fix and the covariance the receiver reports (position part),
