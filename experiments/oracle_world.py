@@ -27,7 +27,9 @@ def oracle_world(cfg):
     if getattr(cfg, "inertial", None) is not None:
         i = cfg.inertial
         imu = dict(accel_turn_on_sigma=i.accel_turn_on_sigma, accel_bias_sigma=i.accel_bias_sigma,
-                   accel_bias_tau_s=i.accel_bias_tau_s, accel_noise_density=i.accel_noise_density)
+                   accel_bias_tau_s=i.accel_bias_tau_s, accel_noise_density=i.accel_noise_density,
+                   gyro_turn_on_sigma=i.gyro_turn_on_sigma, gyro_bias_sigma=i.gyro_bias_sigma,
+                   gyro_bias_tau_s=i.gyro_bias_tau_s, gyro_noise_density=i.gyro_noise_density)
     imu["front_lever_m"] = front_lever(cfg)
     ge = cfg.gnss_error
     if ge is None:

@@ -57,6 +57,14 @@ independent rows; ``heading_from_state`` instead makes the heading the direction
 heading a stopped vehicle keeps has the same error at every step of its stop, and counting its rows
 again at each step made the landmark map overconfident (docs/validation/oracle.md). An EKF taking the
 heading as a function of the velocity state was tried and did worse on the realistic arterial (same page).
+With ``heading_state`` (and the gyroscope's model told, ``[inertial]``) the heading psi and the gyroscope's bias b_g
+are states of every vehicle instead: psi_t = psi_{t-1} + (r - b_g) Ts + white (density^2 Ts), b_g a random walk of
+the drift's one-step variance, prior N(0, turn_on^2 + drift^2); the velocity is held along the heading by
+0 = u_perp(psi)^T v + n (std ``course_sigma_mps``, :func:`_course_information`; the world's velocity is the speed
+along the body axis); the sensor-frame rows are converted with the predicted psi and linearized in it
+(H = [-I | +I | -dz/dpsi]), rows of slow vehicles kept (the heading's error across a stop is the state's); the IMU
+input is rotated by psi_{t-1} + (r - b_g) Ts / 2 and linearized in psi and b_g. An entering vehicle's heading
+starts unknown (pi^2 / 3) about its fix's course.
 
 Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
 oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
@@ -86,7 +94,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import lapack
 
 from coloc.core.detections import HeadingMemory, to_net_frame, vehicle_headings
 from coloc.core.frame import Frame, StepEstimate
@@ -97,162 +104,23 @@ from coloc.core.vehicles import entry_fix_rows, match_ids
 from coloc.inference.bpa import validate_association
 from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
+from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _information: imported from here by tests)
+    _course_information,
+    _front_slip,
+    _heading_gradient,
+    _heading_state_information,
+    _idx,
+    _information,
+    _left_multiply,
+    _positions,
+    _scatter,
+    _shared_heading_information,
+    spd_inverse,
+)
+from coloc.methods.joint_oracle_world import GNSS_WORLDS, OracleWorld  # noqa: F401
 from coloc.methods.registry import JOINT_ORACLE
 
 __all__ = ["OracleWorld", "JointOracle", "OracleState", "spd_inverse"]
-
-GNSS_WORLDS = ("white", "per_vehicle", "field")
-
-
-@dataclass(frozen=True)
-class OracleWorld:
-    """What the oracle is told of the world (``[gnss_error]``, ``[scenario] start``), plus its gate.
-
-    Names and meanings as in ``couplers.sensing.gnss_error.GnssErrorParams`` (the oracle is in ``coloc`` and
-    does not import ``couplers``: the runner copies the values)."""
-
-    gnss: str = "white"  # "white" (no [gnss_error]), "per_vehicle" or "field"
-    tau_s: float = 30.0
-    common_share: float = 0.0
-    common_tau_s: float = 600.0
-    field_share: float = 0.0
-    field_corr_length_m: float = 50.0
-    field_tau_s: float = 300.0
-    local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
-    nlos: bool = False  # the world has NLOS episodes: gate the fixes
-    # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
-    # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
-    accel_turn_on_sigma: float | None = None
-    accel_bias_sigma: float = 0.0
-    accel_bias_tau_s: float = 300.0
-    accel_noise_density: float = 0.0
-    # Oracle settings (not the world's): the chi-square level of the NLOS gate, the consecutive exclusions
-    # after which a fix is taken, the white share of the fix's variance, how long unseen features are kept.
-    gate_level: float = 0.999
-    max_exclusions: int = 40  # 30 s at 0.75 s: three mean episode lengths (10 s, the world's default)
-    fix_noise_share: float = 1e-4
-    feature_keep_s: float = 120.0
-    # The world's field F as it draws it (couplers/sensing/gnss_error.py, FieldErrorProcess): its random Fourier
-    # frequencies (M, 2) rad/m, F(p) = sum_m (cos(omega_m . p) a_m + sin(omega_m . p) b_m) / sqrt(M) per axis with
-    # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
-    # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
-    field_omega: tuple | None = field(default=None, compare=False, repr=False)
-    # The world's vehicle position is the front bumper and its heading the body axis (SUMO: getPosition, getAngle),
-    # so while it turns at yaw rate w the bumper moves across the heading at about front_lever_m w besides the
-    # velocity v = speed u(heading) (:func:`_front_slip`). 0: no such term (model (1) as the paper's).
-    front_lever_m: float = 0.0
-    # the per-step residual of that term, std front_slip_sigma_per_rad |w| Ts (m per rad turned), at most
-    # front_slip_sigma_max_m (docs/validation/oracle.md, "Kinematics of the world")
-    front_slip_sigma_per_rad: float = 2.5
-    front_slip_sigma_max_m: float = 0.25
-    # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
-    # than independent per row.
-    shared_heading: bool = True
-    # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
-    # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
-    # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
-    heading_from_state: bool = True
-    # Iterated EKF on the sensor-frame rows with heading_from_state: relinearized this many times at the posterior
-    # velocity (0: one EKF update)
-    heading_iterations: int = 0
-    # heading_from_state rows also carry the heading's variance from the state's covariance as noise (conservative:
-    # the heading's information is then counted once through H and its uncertainty once more in R)
-    heading_row_inflation: bool = False
-    # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
-    # out (heading_from_state rows only)
-    range_rate_rows: bool = True
-    # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
-    # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
-    imu_heading_from_state: bool = True
-
-    def __post_init__(self):
-        if self.gnss not in GNSS_WORLDS:
-            raise ValueError(f"gnss must be one of {GNSS_WORLDS}, got {self.gnss!r}")
-        for key in ("common_share", "field_share"):
-            if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ValueError(f"{key} must be in [0, 1]")
-        if not 0.0 < self.fix_noise_share <= 1.0:
-            raise ValueError("fix_noise_share must be in (0, 1]")
-        if not 0.0 <= self.gate_level < 1.0:
-            raise ValueError("gate_level must be in [0, 1) (0: no gate)")
-
-    @property
-    def correlated(self) -> bool:
-        return self.gnss != "white"
-
-    @property
-    def imu(self) -> bool:
-        return self.accel_turn_on_sigma is not None
-
-    @property
-    def bias_offset(self) -> int:
-        """Index of the accelerometer bias in a vehicle block."""
-        return 6 if self.correlated else 4
-
-    @property
-    def vehicle_dim(self) -> int:
-        return self.bias_offset + (2 if self.imu else 0)
-
-    @property
-    def common_dim(self) -> int:
-        return 2 if self.correlated and self.common_share > 0 else 0
-
-    @property
-    def field_dim(self) -> int:
-        """4 M coefficient states of the exact field (``field_omega`` given), else 0."""
-        if self.gnss != "field" or self.field_share == 0 or self.field_omega is None:
-            return 0
-        return 4 * len(self.field_omega)
-
-    @property
-    def tail_dim(self) -> int:
-        """The shared states after the features: common (``common_dim``), then field coefficients."""
-        return self.common_dim + self.field_dim
-
-    def tail_coefficients(self, dt: float) -> np.ndarray:
-        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, then field)."""
-        a_c = math.exp(-dt / self.common_tau_s) if self.common_tau_s > 0 else 0.0
-        a_f = math.exp(-dt / self.field_tau_s) if self.field_tau_s > 0 else 0.0
-        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f)])
-
-    def field_basis(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's
-        ``coef`` (cos/sin, feature, axis) flattened)."""
-        om = np.asarray(self.field_omega, dtype=float).reshape(-1, 2)
-        m = om.shape[0]
-        phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ om.T  # (N, M)
-        basis = np.stack([np.cos(phase), np.sin(phase)], axis=1) / math.sqrt(m)  # (N, 2 cos/sin, M)
-        out = np.zeros((phase.shape[0], 2, 2, m, 2))
-        out[:, 0, :, :, 0] = basis
-        out[:, 1, :, :, 1] = basis
-        return out.reshape(phase.shape[0], 2, 4 * m)
-
-    @property
-    def gate_threshold(self) -> float:
-        return math.inf if (not self.nlos or self.gate_level == 0) else -2.0 * math.log1p(-self.gate_level)
-
-    def local_coefficient(self, dist: np.ndarray, dt: float) -> np.ndarray:
-        """a_l per vehicle for a step of ``dt`` in which it moved ``dist`` (module docstring)."""
-        d = np.asarray(dist, dtype=float)
-        own = np.exp(-d / self.local_corr_length_m - (dt / self.tau_s if self.tau_s > 0 else np.inf))
-        if self.gnss != "field" or self.field_share == 0 or self.field_dim:
-            return own
-        fld = np.exp(-d / self.field_corr_length_m - (dt / self.field_tau_s if self.field_tau_s > 0 else np.inf))
-        return self.field_share * fld + (1.0 - self.field_share) * own
-
-
-def spd_inverse(a: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix by Cholesky (LAPACK potrf / potri), symmetric."""
-    if a.shape[0] == 0:
-        return a.copy()
-    c, info = lapack.dpotrf(a, lower=1, clean=0, overwrite_a=0)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"joint_oracle: matrix not positive definite (potrf info {info})")
-    inv, info = lapack.dpotri(c, lower=1, overwrite_c=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"joint_oracle: potri info {info}")
-    low = np.tril(inv)
-    return low + np.tril(inv, -1).T
 
 
 @dataclass(frozen=True)
@@ -267,42 +135,7 @@ class OracleState:
     heading: np.ndarray | None = None  # [inertial]: kept heading per vehicle row
     sensor_heading: HeadingMemory | None = None
     streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
-
-
-def _idx(starts: np.ndarray, width: int) -> np.ndarray:
-    """(len(starts), width) state indices of blocks starting at ``starts``."""
-    return np.asarray(starts, dtype=np.int64)[:, None] + np.arange(width)
-
-
-def _left_multiply(p: np.ndarray, nv: int, vdim: int, fv: np.ndarray, k: int, fa: np.ndarray, a_c) -> np.ndarray:
-    """F p for block-diagonal F: ``fv`` (nv, vdim, vdim) vehicle blocks, ``fa`` (4, 4) every feature block,
-    ``a_c`` (one per row, or a scalar) on the shared block (the rest of the rows)."""
-    out = np.empty_like(p)
-    cols = p.shape[1]
-    nvr = nv * vdim
-    if nv:
-        out[:nvr] = np.einsum("nij,njc->nic", fv, p[:nvr].reshape(nv, vdim, cols)).reshape(nvr, cols)
-    if k:
-        out[nvr:nvr + 4 * k] = np.einsum("ij,njc->nic", fa, p[nvr:nvr + 4 * k].reshape(k, 4, cols)).reshape(4 * k, cols)
-    out[nvr + 4 * k:] = np.asarray(a_c, dtype=float).reshape(-1, 1) * p[nvr + 4 * k:]
-    return out
-
-
-def _scatter(lam: np.ndarray, eta: np.ndarray, ind: np.ndarray, hth: np.ndarray, htz: np.ndarray) -> None:
-    """lam[ind_r, ind_r] += hth[r], eta[ind_r] += htz[r] for every row-group r (duplicates add up)."""
-    if ind.shape[0] == 0:
-        return
-    w = ind.shape[1]
-    rr = np.broadcast_to(ind[:, :, None], (ind.shape[0], w, w))
-    cc = np.broadcast_to(ind[:, None, :], (ind.shape[0], w, w))
-    np.add.at(lam, (rr, cc), hth)
-    np.add.at(eta, ind, htz)
-
-
-def _information(h: np.ndarray, rinv: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """H^T R^-1 H and H^T R^-1 z for a batch: h (M, m, w), rinv (M, m, m), z (M, m)."""
-    htr = np.swapaxes(h, -1, -2) @ rinv
-    return htr @ h, np.einsum("nij,nj->ni", htr, z)
+    v_first: np.ndarray | None = None  # (N, 2) each vehicle's velocity as first estimated (predicted) at its step
 
 
 @dataclass
@@ -349,10 +182,11 @@ class JointOracle:
         idx = match_ids(st.vehicle_ids, frame.vehicle_ids)
         fresh = (idx < 0) | np.asarray(frame.entered, dtype=bool)
         idx_c = np.where(fresh, -1, idx)
+        yaw = None  # the yaw rate the prediction uses: the gyroscope's, less the bias state's mean (heading_state)
         if frame.imu is None:
             accel, heading = np.asarray(frame.accel, dtype=float), None
         else:
-            accel, heading, psi_var = self._imu_input(frame, idx, fresh, st)
+            accel, heading, psi_var, yaw = self._imu_input(frame, idx, fresh, st)
 
         # --- predict survivors, old features and the common state (block-diagonal F, Q).
         surv = np.flatnonzero(~fresh)
@@ -363,6 +197,7 @@ class JointOracle:
         ns = surv.size
         a4 = transition_matrix(dt)
         xv = x[:vd * ns].reshape(ns, vd)
+        fv_mean = None
         fv = np.zeros((ns, vd, vd))
         fv[:, :4, :4] = a4
         qv = np.zeros((ns, vd, vd))
@@ -378,7 +213,7 @@ class JointOracle:
             bo = w.bias_offset
             fv[:, bo, bo] = fv[:, bo + 1, bo + 1] = 1.0
             if frame.imu is not None:  # a frame without the IMU leaves the bias out of the input
-                r = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
+                r = yaw[surv]
                 psi_mid = wrap_angle(np.asarray(heading, dtype=float)[surv] - 0.5 * r * dt)
                 c, s_ = np.cos(psi_mid), np.sin(psi_mid)
                 rot = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)  # (ns, 2, 2)
@@ -393,7 +228,7 @@ class JointOracle:
             ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
             amag2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
             hh = wrap_angle(np.asarray(heading, dtype=float)[surv]
-                            - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt)  # psi_mid
+                            - 0.5 * yaw[surv] * dt)  # psi_mid
             u = np.stack([-np.sin(hh), np.cos(hh)], axis=1)
             bu = np.einsum("ij,nj->ni", input_matrix(dt), u)  # (ns, 4)
             pvar = psi_var[surv]
@@ -403,24 +238,52 @@ class JointOracle:
                 # so the predicted mean is unchanged); the heading's variance leaves Q for those vehicles.
                 fast = self._imu_fast[surv]
                 v0 = xv[:, 2:4]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * yaw[surv] * dt
+                if w.first_estimate_jacobians and st.v_first is not None:
+                    # FEJ: the Jacobian at the velocity the rows of t-1 were linearized at (mean: the posterior)
+                    v0 = st.v_first[sp]
+                    ang = ang - np.arctan2(xv[:, 3], xv[:, 2]) + np.arctan2(v0[:, 1], v0[:, 0])
                 s2 = np.maximum(v0[:, 0] ** 2 + v0[:, 1] ** 2, 1e-12)
                 gv = np.stack([-v0[:, 1], v0[:, 0]], axis=1) / s2[:, None]
-                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
                 c2, s2_ = np.cos(ang), np.sin(ang)
                 da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
                 jac = np.einsum("ij,nj->ni", input_matrix(dt), da)[:, :, None] * gv[:, None, :]  # (ns, 4, 2)
                 fv[fast, 0:4, 2:4] += jac[fast]
+                if w.first_estimate_jacobians:  # g_v^T v_hat != 0 at another point: the mean without the Jacobian
+                    fv_mean = fv.copy()
+                    fv_mean[fast, 0:4, 2:4] -= jac[fast]
                 pvar = np.where(fast, 0.0, pvar)
             qv[:, :4, :4] += (amag2 * pvar)[:, None, None] * bu[:, :, None] * bu[:, None, :]
+        if w.heading_dim:
+            # heading psi and gyroscope bias b_g: psi_t = psi_{t-1} + (r - b_g) Ts + white (density^2 Ts), b_g a
+            # random walk of the drift's one-step variance; the input a_net = Rot(psi_{t-1} + (r - b_g) Ts / 2) a_body
+            # (the world's psi_mid, couplers/sensing/inertial.py) linearized in psi and b_g (its mean: the state's).
+            ho = w.heading_offset
+            fv[:, ho, ho] = fv[:, ho + 1, ho + 1] = 1.0
+            a_g = math.exp(-dt / w.gyro_bias_tau_s)
+            qv[:, ho + 1, ho + 1] = (1.0 - a_g * a_g) * math.radians(w.gyro_bias_sigma) ** 2
+            if frame.imu is not None:
+                fv[:, ho, ho + 1] = -dt
+                qv[:, ho, ho] = math.radians(w.gyro_noise_density) ** 2 * dt
+                ab = np.asarray(frame.imu.accel_body, dtype=float)[surv]
+                ang = np.asarray(heading, dtype=float)[surv] - 0.5 * yaw[surv] * dt
+                c2, s2_ = np.cos(ang), np.sin(ang)
+                da = np.stack([-s2_ * ab[:, 0] - c2 * ab[:, 1], c2 * ab[:, 0] - s2_ * ab[:, 1]], axis=1)
+                jac = np.einsum("ij,nj->ni", input_matrix(dt), da)  # (ns, 4) d x / d psi_mid
+                fv_mean = fv.copy()  # the mean: the input at the state's mean (above), not through the Jacobian
+                fv[:, 0:4, ho] = jac
+                fv[:, 0:4, ho + 1] = -0.5 * dt * jac
         a_c = w.tail_coefficients(dt)
         xf = x[vd * ns:vd * ns + 4 * k_prev].reshape(k_prev, 4)
         p = _left_multiply(p, ns, vd, fv, k_prev, a4, a_c)
         p = _left_multiply(np.ascontiguousarray(p.T), ns, vd, fv, k_prev, a4, a_c)
-        xv = np.einsum("nij,nj->ni", fv, xv)
+        xv = np.einsum("nij,nj->ni", fv if fv_mean is None else fv_mean, xv)
         xv[:, :4] += accel[surv] @ input_matrix(dt).T
+        if w.heading_dim and frame.imu is not None:
+            xv[:, w.heading_offset] += np.asarray(frame.imu.yaw_rate, dtype=float)[surv] * dt
         if w.front_lever_m > 0 and ns:
             slip, q_slip = _front_slip(w, frame, surv, x[:vd * ns].reshape(ns, vd)[:, 2:4], heading, accel, dt,
-                                       p_icp.motion.heading_min_speed)
+                                       p_icp.motion.heading_min_speed, yaw)
             xv[:, :2] += slip
             qv[:, :2, :2] += q_slip
         xf = xf @ a4.T
@@ -441,7 +304,7 @@ class JointOracle:
         # again each step made the map overconfident (docs/validation/oracle.md).
         n = frame.n_vehicles
         zg = np.asarray(frame.gnss_z, dtype=float)
-        if frame.v2f_sensor is not None and assoc.size:
+        if frame.v2f_sensor is not None and assoc.size and not w.heading_dim:
             speed = np.hypot(zg[:, 2], zg[:, 3])
             speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
             slow = speed < p_icp.motion.heading_min_speed
@@ -489,6 +352,17 @@ class JointOracle:
                 _scatter(lam, eta, ind, np.broadcast_to(ib, (fr.size, 2, 2)), np.zeros((fr.size, 2)))
             # linearization points of fresh vehicles: their fix
             mean_pred[:vd * n].reshape(n, vd)[fr, :4] = zg[fr]
+            if w.heading_dim:  # heading: unknown (pi^2 / 3), about the fix's course; the gyroscope's bias switched on
+                from coloc.core.detections import HEADING_VAR_UNKNOWN
+
+                ho = w.heading_offset
+                psi0 = np.arctan2(zg[fr, 3], zg[fr, 2])
+                mean_pred[:vd * n].reshape(n, vd)[fr, ho] = psi0
+                ib = 1.0 / (math.radians(w.gyro_turn_on_sigma) ** 2 + math.radians(w.gyro_bias_sigma) ** 2)
+                ih = np.zeros((fr.size, 2, 2))
+                ih[:, 0, 0], ih[:, 1, 1] = 1.0 / HEADING_VAR_UNKNOWN, ib
+                _scatter(lam, eta, _idx(vd * fr + ho, 2), ih,
+                         np.stack([psi0 / HEADING_VAR_UNKNOWN, np.zeros(fr.size)], axis=1))
         if new_ids.size and p_icp.feature_velocity_prior_sigma:
             ind = _idx(vd * n + 4 * np.arange(k_prev, k) + 2, 2)
             iv = np.eye(2) / p_icp.feature_velocity_prior_sigma ** 2
@@ -502,6 +376,8 @@ class JointOracle:
             streak[have] = st.streak[idx_c[have]] if st.streak.size else 0
             excluded = self._gnss_information(lam, eta, p, frame, fresh, surv, mean_pred, sig, zg, rg, streak)
         self.last_excluded = excluded
+        if w.heading_dim and n:
+            _course_information(lam, eta, mean_pred, n, vd, w.heading_offset, w.course_sigma_mps)
 
         # --- V2F (4) rows with the true association.
         iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
@@ -536,12 +412,13 @@ class JointOracle:
         return OracleState(
             vehicle_ids=np.asarray(frame.vehicle_ids), feature_ids=fids[keep_f], feature_last_seen=last_seen[keep_f],
             mean=mean, cov=cov, heading=heading, sensor_heading=sensor_heading,
-            streak=np.where(excluded, streak + 1, 0),
+            streak=np.where(excluded, streak + 1, 0), v_first=mean_pred[:vd * n].reshape(n, vd)[:, 2:4].copy(),
         )
 
     def _imu_input(self, frame: Frame, idx: np.ndarray, fresh: np.ndarray, st: OracleState):
-        """The input a_{t-1} of model (1) from the body-frame IMU, the mid-step heading kept, and the variance
-        of the heading used. The heading at t-1 is the direction of the oracle's velocity at t-1 when the
+        """The input a_{t-1} of model (1) from the body-frame IMU, the heading at t kept, the variance
+        of the heading used and the yaw rate used (the gyroscope's; less the bias state with
+        ``heading_state``). The heading at t-1 is the direction of the oracle's velocity at t-1 when the
         vehicle was above ``heading_min_speed`` (variance g P_vv g^T), else the heading the sensor-frame rows
         keep for it (:class:`coloc.core.detections.HeadingMemory`: held, not dead-reckoned by the gyroscope,
         whose turn-on bias would turn a queued vehicle by tens of degrees a minute); unknown (pi^2 / 3) without
@@ -573,9 +450,19 @@ class JointOracle:
         # heading from the velocity at t-1 (not held, not unknown): the EKF input of imu_heading_from_state
         self._imu_fast = have & (np.hypot(pv[:, 0], pv[:, 1]) >= self.params.motion.heading_min_speed)
         r = np.asarray(frame.imu.yaw_rate, dtype=float)
+        if self.world.heading_dim:  # the heading and the gyroscope bias states at t-1 (variance: in the Jacobian)
+            ho = self.world.heading_offset
+            if n_prev and have.any():
+                blk = st.mean[:vd * n_prev].reshape(n_prev, vd)
+                psi = np.where(have, 0.0, psi)
+                psi[have] = blk[idx[have], ho]
+                r = r.copy()
+                r[have] = r[have] - blk[idx[have], ho + 1]
+            var = np.where(have, 0.0, var)
+            self._imu_fast = np.zeros(n, dtype=bool)
         step = np.where(fresh, 0.0, r * float(frame.dt))
         accel = rotate(np.asarray(frame.imu.accel_body, dtype=float).reshape(-1, 2), psi + 0.5 * step)
-        return accel, wrap_angle(psi + step), var
+        return accel, wrap_angle(psi + step), var, r
 
     def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
         """Add every fix's information; returns which fixes' positions the gate left out."""
@@ -664,6 +551,9 @@ class JointOracle:
                 vcov[surv] = p_pred[ii[:, :, None], ii[:, None, :]]
             psi, var, memory = vehicle_headings(frame, vmean, vcov, idx_c, st.sensor_heading,
                                                 self.params.motion.heading_min_speed)
+            if self.world.heading_dim:  # the heading state, its error in H (below)
+                psi = mean_pred[:vd * n].reshape(n, vd)[:, self.world.heading_offset].copy()
+                var = np.zeros(n)
         if used.size == 0:
             return memory
         own = owner[used]
@@ -682,6 +572,15 @@ class JointOracle:
                 "range", "bearing", "range_rate", "mount_x", "yaw", "sigma_range", "sigma_bearing", "sigma_range_rate")})
             z, r = to_net_frame(sub, psi[own], var[own])
         ind = np.concatenate([_idx(vd * own, 4), _idx(vd * n + 4 * fpos, 4)], axis=1)
+        if det is not None and self.world.heading_dim:
+            # z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise: H = [-I | +I | -gz on psi], z' = z - gz psi_hat
+            gz = _heading_gradient(sub, psi[own])
+            h9 = np.concatenate([h, -gz[:, :, None]], axis=2)
+            z9 = z - gz * psi[own][:, None]
+            ind9 = np.concatenate([ind, (vd * own + self.world.heading_offset)[:, None]], axis=1)
+            hth, htz = _information(h9, symmetrize(np.linalg.inv(r)), z9)
+            _scatter(lam, eta, ind9, hth, htz)
+            return memory
         if det is not None and self.world.heading_from_state:
             hvar = var[own] if self.world.heading_row_inflation else np.zeros(m)
             _heading_state_information(lam, eta, ind, sub, psi[own], mean_pred[:vd * n].reshape(n, vd)[own, 2:4], z,
@@ -694,107 +593,3 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
-
-
-def _front_slip(w: OracleWorld, frame: Frame, surv: np.ndarray, v0: np.ndarray, heading, accel: np.ndarray,
-                dt: float, min_speed: float) -> tuple[np.ndarray, np.ndarray]:
-    """(mean (ns, 2), covariance (ns, 2, 2)) the survivors' positions move across their heading in a step besides
-    model (1): the world reports the front bumper's position and the body axis as the heading (SUMO), so a
-    vehicle turning at yaw rate w has its bumper moving sideways at about l w, l = ``front_lever_m`` (half the
-    vehicle's length). w: the IMU's measured yaw rate, or without the IMU the rate the net-frame input turns
-    the velocity at t-1, (v x a) / |v|^2 (0 below ``min_speed``). The direction: the normal of the mid-step
-    heading. Residual std ``front_slip_sigma_per_rad`` |w| Ts (at most ``front_slip_sigma_max_m``) across."""
-    if frame.imu is not None:
-        om = np.asarray(frame.imu.yaw_rate, dtype=float)[surv]
-        psi_mid = np.asarray(heading, dtype=float)[surv] - 0.5 * om * dt
-    else:
-        a = np.asarray(accel, dtype=float)[surv]
-        s2 = v0[:, 0] ** 2 + v0[:, 1] ** 2
-        fast = s2 >= min_speed * min_speed
-        om = np.where(fast, (v0[:, 0] * a[:, 1] - v0[:, 1] * a[:, 0]) / np.maximum(s2, 1e-300), 0.0)
-        psi_mid = np.arctan2(v0[:, 1], v0[:, 0]) + 0.5 * om * dt
-    nrm = np.stack([-np.sin(psi_mid), np.cos(psi_mid)], axis=1)
-    turn = np.abs(om) * dt
-    sd = np.minimum(w.front_slip_sigma_per_rad * turn, w.front_slip_sigma_max_m)
-    return ((w.front_lever_m * om * dt)[:, None] * nrm,
-            (sd * sd)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
-
-
-def _heading_gradient(det, psi_row) -> np.ndarray:
-    """(m, 4) d z / d psi of sensor-frame rows converted with heading ``psi_row``
-    (:func:`coloc.core.detections.to_net_frame`): [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]."""
-    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
-    g = (np.asarray(det.mount_x, dtype=float)[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1)
-         + np.asarray(det.range, dtype=float)[:, None] * n_perp)
-    return np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)
-
-
-def _heading_state_information(lam, eta, ind, det, psi_row, v_row, z, r0, range_rate: bool = True) -> None:
-    """Sensor-frame rows with the heading a function of the owner's velocity state, psi = atan2(vy, vx):
-    z(psi_hat) = x_F - x_V + gz (psi_hat - psi) + noise, psi - psi_hat = g_v^T (v - v_hat), g_v = [-vy, vx] / |v|^2
-    at the predicted velocity, so H = [-I - gz g_v^T on v | +I] and, as g_v^T v_hat = 0, the row's z is
-    unchanged; ``r0`` is the row covariance without the heading's term."""
-    gz = _heading_gradient(det, psi_row)
-    s2 = np.maximum(np.einsum("ni,ni->n", v_row, v_row), 1e-12)
-    gv = np.stack([-v_row[:, 1], v_row[:, 0]], axis=1) / s2[:, None]
-    h = np.zeros((psi_row.shape[0], 4, 8))
-    h[:, :, :4] = -np.eye(4)
-    h[:, :, 4:] = np.eye(4)
-    h[:, :, 2:4] -= gz[:, :, None] * gv[:, None, :]
-    if not range_rate:
-        h, r0, z = h[:, :2], r0[:, :2, :2], z[:, :2]
-    hth, htz = _information(h, symmetrize(np.linalg.inv(r0)), z)
-    _scatter(lam, eta, ind, hth, htz)
-
-
-def _shared_heading_information(lam, eta, ind, det, psi_row, var, own, z, r) -> None:
-    """Sensor-frame rows with one heading error per vehicle and step, shared by all its rows.
-
-    Every row of vehicle i is rotated by the same estimated heading, so its error dpsi_i ~ N(0, var_i) enters
-    each row j as gz_j dpsi_i, gz_j = d z_j / d psi = [mount u_perp(psi) + r u_perp(phi); rdot u_perp(phi)]
-    (:func:`coloc.core.detections.to_net_frame`, whose R_j holds var_i gz_j gz_j^T). The rows of one vehicle
-    then have the joint covariance D + var_i G G^T (D block-diagonal, R_j without that term), whose inverse
-    by the matrix inversion lemma is D^-1 - alpha_i (D^-1 G)(D^-1 G)^T, alpha_i = 1 / (1 / var_i + sum_j
-    gz_j^T D_j^-1 gz_j): the information of the rows as independent, less one rank-one term per vehicle.
-    H_j = [-I (vehicle) | +I (feature)] as model (4)."""
-    phi = psi_row + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    n_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=1)
-    mount = np.asarray(det.mount_x, dtype=float)
-    rr = np.asarray(det.range, dtype=float)
-    g = mount[:, None] * np.stack([-np.sin(psi_row), np.cos(psi_row)], axis=1) + rr[:, None] * n_perp
-    gz = np.concatenate([g, np.asarray(det.range_rate, dtype=float)[:, None] * n_perp], axis=1)  # (m, 4)
-    v_row = var[own]
-    d_rows = symmetrize(r - v_row[:, None, None] * gz[:, :, None] * gz[:, None, :])
-    dinv = symmetrize(np.linalg.inv(d_rows))
-    h = np.zeros((own.size, 4, 8))
-    h[:, :, :4] = -np.eye(4)
-    h[:, :, 4:] = np.eye(4)
-    hth, htz = _information(h, dinv, z)
-    _scatter(lam, eta, ind, hth, htz)
-    a = np.einsum("nij,nj->ni", dinv, gz)  # D_j^-1 gz_j
-    u = np.concatenate([-a, a], axis=1)  # H_j^T D_j^-1 gz_j on ind_j
-    c = np.einsum("ni,ni->n", gz, a)
-    e = np.einsum("ni,ni->n", a, z)
-    nv = var.shape[0]
-    csum = np.bincount(own, weights=c, minlength=nv)
-    esum = np.bincount(own, weights=e, minlength=nv)
-    alpha = 1.0 / (1.0 / np.maximum(var, 1e-300) + csum)
-    # every ordered pair (j, j') of rows of one vehicle: - alpha_i u_j u_j'^T on (ind_j, ind_j')
-    order = np.argsort(own, kind="stable")
-    counts = np.bincount(own, minlength=nv)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    m_row = counts[own[order]]
-    left = np.repeat(order, m_row)
-    offs = np.arange(left.size) - np.repeat(np.cumsum(m_row) - m_row, m_row)
-    right = order[starts[own[order]].repeat(m_row) + offs]
-    wgt = alpha[own[left]]
-    blk = -wgt[:, None, None] * u[left][:, :, None] * u[right][:, None, :]
-    np.add.at(lam, (ind[left][:, :, None], ind[right][:, None, :]), blk)
-    np.add.at(eta, ind, -(alpha * esum)[own][:, None] * u)
-
-
-def _positions(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """Position of each of ``wanted`` in ``ids`` (all present)."""
-    order = np.argsort(ids, kind="stable")
-    return order[np.searchsorted(ids[order], wanted)]

@@ -40,11 +40,15 @@ FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf",
 # rsu_bp with [fusion] (the PF rule of coloc.methods.pf_fusion).
 INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", "sme+fusion+gnss_model",
                   "rsu_bp+fusion", "rsu_bp+fusion+gnss_model"]
-RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world"] + FUSED
+RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world",
+                                                                   "joint_oracle+heading"] + FUSED
             + INFRA_VARIANTS)
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, accel_turn_on_sigma=0.196,
                            accel_bias_sigma=0.0735, accel_noise_density=0.004, front_lever_m=2.25)
+# ``joint_oracle+heading``: that world with the heading and the gyroscope bias as states (the [inertial] defaults)
+ORACLE_HEADING = replace(ORACLE_WORLD, gyro_turn_on_sigma=0.5, gyro_bias_sigma=0.0497,
+                         gyro_noise_density=0.01944, heading_state=True)
 
 
 def _method(name: str):
@@ -62,7 +66,7 @@ def build(name: str):
         pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
         gnss_model=GnssModelParams() if name.endswith("+gnss_model") else None,
-        oracle_world=ORACLE_WORLD if name.endswith("+world") else None,
+        oracle_world=ORACLE_WORLD if name.endswith("+world") else ORACLE_HEADING if name.endswith("+heading") else None,
         fusion=(CoopFusion.from_config(FusionParams(), GnssModelParams() if name.endswith("+gnss_model") else None)
                 if "+fusion" in name else None),
     )
@@ -331,7 +335,8 @@ def _enter_from_fix(frame, k: int, first: bool):
     return f
 
 
-@pytest.mark.parametrize("name", [n for n in RUNNABLE if n != "joint_oracle+world"])
+@pytest.mark.parametrize("name", [n for n in RUNNABLE
+                                  if n not in ("joint_oracle+world", "joint_oracle+heading")])
 def test_first_belief_is_the_receiver_fix(name):
     """The entry protocol (start = "gnss_fix"): a vehicle whose prior is its receiver's fix of the step has,
     as its belief written at that step, the fix and the covariance the receiver reports (position part),

@@ -406,3 +406,95 @@ def test_front_slip_moves_a_turning_vehicle_across_its_heading():
     mid0 = 0.5 * 0.2 * DT  # heading of v0 (0) plus half the step's turn
     assert np.allclose(mean[0], 2.25 * 0.2 * DT * np.array([-math.sin(mid0), math.cos(mid0)]))
     assert np.allclose(mean[1], 0.0)  # below the minimum speed the rate is not known: no term
+
+
+def test_course_constraint_linearizes_the_velocity_along_the_heading():
+    """heading_state: 0 = u_perp(psi)^T v. The row's H is the gradient of h(psi, v) = -sin psi vx + cos psi vy at the
+    linearization point (finite differences), and H x_hat - z = h(x_hat)."""
+    from coloc.methods.joint_oracle import _course_information
+
+    rng = np.random.default_rng(11)
+    n, vd, ho = 3, 6, 4
+    mean = rng.normal(0, 5, n * vd)
+    lam, eta = np.zeros((n * vd, n * vd)), np.zeros(n * vd)
+    _course_information(lam, eta, mean, n, vd, ho, 1.0)
+    blk = mean.reshape(n, vd)
+
+    def h(psi, v):
+        return -math.sin(psi) * v[0] + math.cos(psi) * v[1]
+
+    for i in range(n):
+        cols = vd * i + np.array([2, 3, ho])
+        sub = lam[np.ix_(cols, cols)]  # = H^T H (unit noise): rank one
+        psi, v = blk[i, ho], blk[i, 2:4]
+        eps = 1e-6
+        grad = np.array([(h(psi, v + [eps, 0]) - h(psi, v - [eps, 0])) / (2 * eps),
+                         (h(psi, v + [0, eps]) - h(psi, v - [0, eps])) / (2 * eps),
+                         (h(psi + eps, v) - h(psi - eps, v)) / (2 * eps)])
+        assert np.allclose(sub, np.outer(grad, grad), atol=1e-8)
+        z = (eta[cols] @ grad) / (grad @ grad)  # eta = H^T z
+        assert abs(grad @ mean[cols] - z - h(psi, v)) < 1e-6  # grad: finite differences
+
+
+def _turning_run(rng, world: OracleWorld, steps: int):
+    """One vehicle driving curves at 8-14 m/s, kinematics of the world (velocity along the heading, psi_mid =
+    psi_{t-1} + r Ts / 2, couplers/sensing/inertial.py), a gyroscope with a turn-on bias and white noise, white GNSS
+    fixes of std 3 m (velocity 0.1 m/s). Returns the frames and the true heading and gyroscope bias at the end."""
+    from coloc.core.inertial import ImuFrame
+
+    psi, speed = rng.uniform(-math.pi, math.pi), 10.0
+    v = speed * np.array([math.cos(psi), math.sin(psi)])
+    p = np.zeros(2)
+    bias = math.radians(world.gyro_turn_on_sigma) * rng.standard_normal()
+    frames = []
+    for step in range(steps):
+        r = 0.15 * math.sin(0.05 * step) if step else 0.0
+        if step:
+            psi_prev, v_prev = psi, v
+            psi = psi_prev + r * DT
+            speed = float(np.clip(speed + rng.normal(0, 0.2), 8.0, 14.0))
+            v = speed * np.array([math.cos(psi), math.sin(psi)])
+            a_net = (v - v_prev) / DT
+            p = p + 0.5 * DT * (v + v_prev)
+            mid = psi_prev + 0.5 * r * DT
+            c, s = math.cos(mid), math.sin(mid)
+            a_body = np.array([c * a_net[0] + s * a_net[1], -s * a_net[0] + c * a_net[1]])
+        else:
+            a_body = np.zeros(2)
+        gyro = r + bias + rng.normal(0, math.radians(world.gyro_noise_density) / math.sqrt(DT))
+        zg = np.concatenate([p + rng.normal(0, 3.0, 2), v + rng.normal(0, 0.1, 2)])[None, :]
+        prior_r = np.diag([9.0, 9.0, 0.01, 0.01])[None] if step == 0 else None
+        f = _frame(step * DT, 1, rng, np.array([step == 0]), np.array([3.0]), zg, np.array([0.1]),
+                   np.empty(0, dtype=np.int64), np.empty((0, 4)), np.empty((0, 4, 4)),
+                   zg.copy() if step == 0 else None, prior_r)
+        frames.append(Frame(**{**f.__dict__, "accel": np.zeros((1, 2)),
+                               "imu": ImuFrame(accel_body=a_body[None, :], yaw_rate=np.array([gyro]))}))
+    return frames, psi, bias
+
+
+@pytest.mark.slow  # 20 runs of 200 steps: about a minute on the 2-core machine
+def test_heading_state_tracks_the_heading_and_the_gyroscope_bias():
+    """heading_state: over 20 runs of 200 steps with a biased gyroscope (turn-on 0.5 deg/s, the world's default), the
+    heading and the bias are recovered from the fixes' course and the yaw rate, their normalized squared errors
+    average near 1 (1 dof each; band of 20 runs at 99 % with a factor 2 margin), and the state's heading is better
+    than the fixes' course."""
+    world = OracleWorld(accel_turn_on_sigma=0.0, accel_bias_sigma=1e-3, gyro_turn_on_sigma=0.5, gyro_bias_sigma=0.0497,
+                       gyro_noise_density=0.01944, heading_state=True)
+    assert world.vehicle_dim == 8 and world.heading_offset == 6
+    ho = world.heading_offset
+    e_psi, e_b, n_psi, n_b = [], [], [], []
+    for seed in range(20):
+        frames, psi, bias = _turning_run(np.random.default_rng(300 + seed), world, 200)
+        est = JointOracle(params=PARAMS, world=world)
+        for f in frames:
+            est.step_with_association(f, np.empty(0, dtype=np.int64))
+        m, c = est.state.mean, est.state.cov
+        d = (m[ho] - psi + math.pi) % (2 * math.pi) - math.pi
+        e_psi.append(d)
+        e_b.append(m[ho + 1] - bias)
+        n_psi.append(d * d / c[ho, ho])
+        n_b.append((m[ho + 1] - bias) ** 2 / c[ho + 1, ho + 1])
+    hi = chi2.ppf(0.995, 20) / 20
+    assert np.mean(n_psi) <= 2 * hi and np.mean(n_b) <= 2 * hi, (np.mean(n_psi), np.mean(n_b))
+    assert np.sqrt(np.mean(np.square(e_b))) < math.radians(0.1)  # against the 0.5 deg/s turn-on bias
+    assert np.sqrt(np.mean(np.square(e_psi))) < 0.1 / 10.0  # the fixes' course: 0.1 m/s / 10 m/s

@@ -1,0 +1,177 @@
+"""What ``joint_oracle`` is told of the world: :class:`OracleWorld` (``[gnss_error]``, ``[scenario] start``,
+``[inertial]``, the world's kinematics) and its own settings, with the layout of a vehicle's state block that
+follows from them (docs/validation/oracle.md)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["GNSS_WORLDS", "OracleWorld"]
+
+GNSS_WORLDS = ("white", "per_vehicle", "field")
+
+
+@dataclass(frozen=True)
+class OracleWorld:
+    """What the oracle is told of the world (``[gnss_error]``, ``[scenario] start``), plus its gate.
+
+    Names and meanings as in ``couplers.sensing.gnss_error.GnssErrorParams`` (the oracle is in ``coloc`` and
+    does not import ``couplers``: the runner copies the values)."""
+
+    gnss: str = "white"  # "white" (no [gnss_error]), "per_vehicle" or "field"
+    tau_s: float = 30.0
+    common_share: float = 0.0
+    common_tau_s: float = 600.0
+    field_share: float = 0.0
+    field_corr_length_m: float = 50.0
+    field_tau_s: float = 300.0
+    local_corr_length_m: float = math.inf  # "per_vehicle": no decorrelation by distance
+    nlos: bool = False  # the world has NLOS episodes: gate the fixes
+    # [inertial] (couplers/sensing/inertial.py): the accelerometer's turn-on and drift biases as states (None:
+    # no [inertial], no bias states); the white noise density adds to model (1)'s driving noise.
+    accel_turn_on_sigma: float | None = None
+    accel_bias_sigma: float = 0.0
+    accel_bias_tau_s: float = 300.0
+    accel_noise_density: float = 0.0
+    # Oracle settings (not the world's): the chi-square level of the NLOS gate, the consecutive exclusions
+    # after which a fix is taken, the white share of the fix's variance, how long unseen features are kept.
+    gate_level: float = 0.999
+    max_exclusions: int = 40  # 30 s at 0.75 s: three mean episode lengths (10 s, the world's default)
+    fix_noise_share: float = 1e-4
+    feature_keep_s: float = 120.0
+    # The world's field F as it draws it (couplers/sensing/gnss_error.py, FieldErrorProcess): its random Fourier
+    # frequencies (M, 2) rad/m, F(p) = sum_m (cos(omega_m . p) a_m + sin(omega_m . p) b_m) / sqrt(M) per axis with
+    # unit Gauss-Markov coefficients (field_tau_s). Given (the runner copies the world's draw), the oracle carries
+    # the 4 M coefficients as shared states and the field is exact; None: the per-vehicle approximation above.
+    field_omega: tuple | None = field(default=None, compare=False, repr=False)
+    # The world's vehicle position is the front bumper and its heading the body axis (SUMO: getPosition, getAngle),
+    # so while it turns at yaw rate w the bumper moves across the heading at about front_lever_m w besides the
+    # velocity v = speed u(heading) (:func:`_front_slip`). 0: no such term (model (1) as the paper's).
+    front_lever_m: float = 0.0
+    # the per-step residual of that term, std front_slip_sigma_per_rad |w| Ts (m per rad turned), at most
+    # front_slip_sigma_max_m (docs/validation/oracle.md, "Kinematics of the world")
+    front_slip_sigma_per_rad: float = 2.5
+    front_slip_sigma_max_m: float = 0.25
+    # Sensor-frame rows: one heading error per vehicle and step shared by all its rows (exact joint term), rather
+    # than independent per row.
+    shared_heading: bool = True
+    # Sensor-frame rows of a moving vehicle: its heading is the direction of its velocity state (the world's heading
+    # is the velocity's direction, couplers/traffic/sumo.py), linearized at the predicted velocity (EKF), so the
+    # heading error is the velocity state's, carried across steps. Rows of slow vehicles stay out (module docstring).
+    heading_from_state: bool = True
+    # Iterated EKF on the sensor-frame rows with heading_from_state: relinearized this many times at the posterior
+    # velocity (0: one EKF update)
+    heading_iterations: int = 0
+    # heading_from_state rows also carry the heading's variance from the state's covariance as noise (conservative:
+    # the heading's information is then counted once through H and its uncertainty once more in R)
+    heading_row_inflation: bool = False
+    # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
+    # out (heading_from_state rows only)
+    range_rate_rows: bool = True
+    # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
+    # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
+    imu_heading_from_state: bool = True
+    # First-estimate Jacobians (Huang, Mourikis & Roumeliotis 2010): the IMU input's Jacobian on the velocity at t-1
+    # (imu_heading_from_state) taken at that velocity's first estimate, the prediction the sensor-frame rows of t-1
+    # were linearized at, not at its posterior; the mean is propagated at the posterior.
+    first_estimate_jacobians: bool = False
+    # [inertial] gyroscope (couplers/sensing/inertial.py, its units: deg/s, deg/s/sqrt(Hz), s; None: not told). With
+    # heading_state the heading and the gyroscope's bias (turn-on plus drift, a random walk of the drift's one-step
+    # variance as for the accelerometer) are states per vehicle: the heading is predicted by the measured yaw rate
+    # less the bias, the velocity is held along it by a constraint of std course_sigma_mps (the world's velocity is
+    # the speed along the body axis, couplers/traffic/sumo.py; the std stands for what the model leaves out), and
+    # the sensor-frame rows and the IMU input are linearized in it (module docstring of joint_oracle).
+    gyro_turn_on_sigma: float | None = None
+    gyro_bias_sigma: float = 0.0
+    gyro_bias_tau_s: float = 1000.0
+    gyro_noise_density: float = 0.0
+    heading_state: bool = False
+    course_sigma_mps: float = 0.1  # chosen on tuning seed 101 among 0.01, 0.1, 0.3 (docs/validation/oracle.md)
+
+    def __post_init__(self):
+        if self.gnss not in GNSS_WORLDS:
+            raise ValueError(f"gnss must be one of {GNSS_WORLDS}, got {self.gnss!r}")
+        for key in ("common_share", "field_share"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"{key} must be in [0, 1]")
+        if not 0.0 < self.fix_noise_share <= 1.0:
+            raise ValueError("fix_noise_share must be in (0, 1]")
+        if not 0.0 <= self.gate_level < 1.0:
+            raise ValueError("gate_level must be in [0, 1) (0: no gate)")
+
+    @property
+    def correlated(self) -> bool:
+        return self.gnss != "white"
+
+    @property
+    def imu(self) -> bool:
+        return self.accel_turn_on_sigma is not None
+
+    @property
+    def bias_offset(self) -> int:
+        """Index of the accelerometer bias in a vehicle block."""
+        return 6 if self.correlated else 4
+
+    @property
+    def heading_offset(self) -> int:
+        """Index of the heading (then the gyroscope bias) in a vehicle block."""
+        return self.bias_offset + (2 if self.imu else 0)
+
+    @property
+    def heading_dim(self) -> int:
+        """2 (heading, gyroscope bias) with ``heading_state`` and a gyroscope model, else 0."""
+        return 2 if (self.heading_state and self.imu and self.gyro_turn_on_sigma is not None) else 0
+
+    @property
+    def vehicle_dim(self) -> int:
+        return self.heading_offset + self.heading_dim
+
+    @property
+    def common_dim(self) -> int:
+        return 2 if self.correlated and self.common_share > 0 else 0
+
+    @property
+    def field_dim(self) -> int:
+        """4 M coefficient states of the exact field (``field_omega`` given), else 0."""
+        if self.gnss != "field" or self.field_share == 0 or self.field_omega is None:
+            return 0
+        return 4 * len(self.field_omega)
+
+    @property
+    def tail_dim(self) -> int:
+        """The shared states after the features: common (``common_dim``), then field coefficients."""
+        return self.common_dim + self.field_dim
+
+    def tail_coefficients(self, dt: float) -> np.ndarray:
+        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, then field)."""
+        a_c = math.exp(-dt / self.common_tau_s) if self.common_tau_s > 0 else 0.0
+        a_f = math.exp(-dt / self.field_tau_s) if self.field_tau_s > 0 else 0.0
+        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f)])
+
+    def field_basis(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's
+        ``coef`` (cos/sin, feature, axis) flattened)."""
+        om = np.asarray(self.field_omega, dtype=float).reshape(-1, 2)
+        m = om.shape[0]
+        phase = np.asarray(xy, dtype=float).reshape(-1, 2) @ om.T  # (N, M)
+        basis = np.stack([np.cos(phase), np.sin(phase)], axis=1) / math.sqrt(m)  # (N, 2 cos/sin, M)
+        out = np.zeros((phase.shape[0], 2, 2, m, 2))
+        out[:, 0, :, :, 0] = basis
+        out[:, 1, :, :, 1] = basis
+        return out.reshape(phase.shape[0], 2, 4 * m)
+
+    @property
+    def gate_threshold(self) -> float:
+        return math.inf if (not self.nlos or self.gate_level == 0) else -2.0 * math.log1p(-self.gate_level)
+
+    def local_coefficient(self, dist: np.ndarray, dt: float) -> np.ndarray:
+        """a_l per vehicle for a step of ``dt`` in which it moved ``dist`` (module docstring)."""
+        d = np.asarray(dist, dtype=float)
+        own = np.exp(-d / self.local_corr_length_m - (dt / self.tau_s if self.tau_s > 0 else np.inf))
+        if self.gnss != "field" or self.field_share == 0 or self.field_dim:
+            return own
+        fld = np.exp(-d / self.field_corr_length_m - (dt / self.field_tau_s if self.field_tau_s > 0 else np.inf))
+        return self.field_share * fld + (1.0 - self.field_share) * own
