@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from experiments.scoring import CHI2_2_95
+from experiments.scoring import CHI2_2_95, _nan_to_none
 
 #: Histogram bins per power of two of the value (the float64 exponent and its 7 leading mantissa bits:
 #: a bin is at most 2^-7 = 0.78 % of its lower edge wide).
@@ -261,14 +261,6 @@ class Sample:
         n = self.n
         a, b = self._stat[(n - 1) // 2], self._stat[n // 2]
         return a if n % 2 else float(np.mean(np.array([a, b])))
-
-
-def _nan_to_none(d):
-    if isinstance(d, dict):
-        return {k: _nan_to_none(v) for k, v in d.items()}
-    if isinstance(d, float) and not np.isfinite(d):
-        return None
-    return d
 
 
 class EstimateStats:
