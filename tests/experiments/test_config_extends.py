@@ -35,7 +35,8 @@ OVERLAYS = {
         "run.name", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
         "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
-        "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start", "scenario.reference_point"}),
+        "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start", "scenario.reference_point",
+        "motion.sigma_cross"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
@@ -234,6 +235,7 @@ def test_preset_resolves_as_its_full_copy_did(name):
         lc = dataclasses.replace(old_cfg.lc, **{k: getattr(new_cfg.lc, k) for k in CHANGED_SINCE[name]})
         old_cfg = dataclasses.replace(
             old_cfg, lc=lc, perception=new_cfg.perception, estimator_sensors=new_cfg.estimator_sensors,
+            motion=new_cfg.motion,  # [motion] sigma_cross set by the realistic presets since the copies
             gnss_error=new_cfg.gnss_error, scenario=dataclasses.replace(old_cfg.scenario, start=new_cfg.scenario.start,
                                                                         reference_point=new_cfg.scenario.reference_point),
             sensors=dataclasses.replace(old_cfg.sensors, perception=new_cfg.perception, gnss_error=new_cfg.gnss_error))
