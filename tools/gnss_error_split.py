@@ -23,6 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from coloc.methods.registry import GNSS  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from tools import gnss_model_replay as replay_tool  # noqa: E402
 
@@ -70,11 +71,11 @@ def main() -> None:
         path = args.dir / f"frames_{s}.pkl"
         print(f"seed {s}, zone C")
         print("  " + line("raw fixes", *raw_fix(path)))
-        print("  " + line("gnss", *replay_tool.replay(path, cfg.gnss_model, cfg.motion)[:3]))
+        print("  " + line(GNSS.name, *replay_tool.replay(path, cfg.gnss_model, cfg.motion)[:3]))
         orig = replay_tool.frames
         replay_tool.frames = lambda p: shared_removed(orig(p))
         try:
-            print("  " + line("gnss, shared error removed", *replay_tool.replay(path, cfg.gnss_model, cfg.motion)[:3]))
+            print("  " + line(f"{GNSS.name}, shared error removed", *replay_tool.replay(path, cfg.gnss_model, cfg.motion)[:3]))
         finally:
             replay_tool.frames = orig
 
