@@ -3,10 +3,10 @@
 The tables and keys, their types and defaults come from the loader's own schema
 (:data:`experiments.config.SECTIONS` and :data:`~experiments.config.OPTIONAL_SECTIONS`:
 the frozen dataclasses every TOML table is validated against). Only the unit and
-the meaning of each key are written here, in :data:`KEY_DOCS`, because the
-dataclasses (some of them in ``coloc`` and ``couplers``) carry them only as
-scattered comments. A key the loader accepts without an entry here makes
-:func:`render` fail, and with it ``tests/experiments/test_configuration_doc.py``.
+the meaning of each key are written by hand, in :data:`KEY_DOCS` of
+:mod:`experiments.configdoc_text` (importable from here too). A key the loader
+accepts without an entry there makes :func:`render` fail, and with it
+``tests/experiments/test_configuration_doc.py``.
 
     python -m experiments.configdoc            # rewrite docs/configuration.md
     python -m experiments.configdoc --check    # exit 1 if the committed page is stale
@@ -121,7 +121,7 @@ def render() -> str:
     """The whole of docs/configuration.md. Raises ValueError if a key lacks documentation."""
     missing, extra = undocumented(), stale()
     if missing or extra:
-        raise ValueError("config keys without documentation in experiments/configdoc.py KEY_DOCS: "
+        raise ValueError("config keys without documentation in experiments/configdoc_text.py KEY_DOCS: "
                          + ", ".join(missing) + ("; documented but not accepted: " + ", ".join(extra) if extra else ""))
     out = [
         "# Configuration reference",
