@@ -293,15 +293,7 @@ class FgTopologyInfra(_InfraBase):
         if rows.size == 0:
             self._keys[r] = {}
             return None
-        if r not in self._smoother:
-            self._smoother[r] = self._new_smoother(frame.dt)
-        smoother = self._smoother[r]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        stamps = {}
-        ids = frame.vehicle_ids[rows]
-        entered = np.asarray(frame.entered[rows], bool)
-        odom = infra.odom[rows]
+        smoother, graph, values, stamps, ids, entered, odom = self._open_step(frame, r, rows)
         keys_now = {}
         new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
         start_m, start_c, held = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
@@ -358,15 +350,7 @@ class FgTopologyInfra(_InfraBase):
         if rows.size == 0:
             self._keys[r], self._bias_keys[r] = {}, {}
             return None
-        if r not in self._smoother:
-            self._smoother[r] = self._new_smoother(frame.dt)
-        smoother = self._smoother[r]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        stamps = {}
-        ids = frame.vehicle_ids[rows]
-        entered = np.asarray(frame.entered[rows], bool)
-        odom = infra.odom[rows]
+        smoother, graph, values, stamps, ids, entered, odom = self._open_step(frame, r, rows)
         excluded = self.gnss.last_excluded
         excluded = np.zeros(frame.n_vehicles, bool) if excluded is None else np.asarray(excluded, bool)
         keys_now, bkeys_now = {}, {}
@@ -424,6 +408,14 @@ class FgTopologyInfra(_InfraBase):
             c[a, :2, 2:] = 0.0
             c[a, 2:, :2] = 0.0
         return rows, m, c
+
+    def _open_step(self, frame, r, rows):
+        """RSU ``r``'s smoother (made at its first step), an empty graph, values and time stamps for the
+        step's factors, and the ids, entered flags and odometry of its vehicles ``rows``."""
+        if r not in self._smoother:
+            self._smoother[r] = self._new_smoother(frame.dt)
+        return (self._smoother[r], self._gtsam.NonlinearFactorGraph(), self._gtsam.Values(), {},
+                frame.vehicle_ids[rows], np.asarray(frame.entered[rows], bool), frame.infra.odom[rows])
 
     def _add_topology(self, graph, infra, r, n, ids, new_rows, odom, keys_prev, keys_now) -> None:
         """The topology factor of step t from RSU ``r``'s radar scan of its ``n`` vehicles ``ids``
