@@ -92,24 +92,33 @@ def match_reference(est, frames, model, matrices, shares, new_filter=filterpy_kf
     return entries, leaves, n_excluded
 
 
-def reference_matrices(x, r, dt, model: GnssModelParams):
-    """The 6-D F, B, Q (Q from the prior velocity x[2:4]), H and fix covariance of the tracker's model."""
-    a = math.exp(-dt / model.bias_tau_s)
-    f = np.eye(6)
+def augmented_matrices(x, r, dt, blocks):
+    """F, B, Q, H and the fix's white covariance on [p, v, b_1, ...]: each (decay a, share s) of ``blocks``
+    a 2-D Gauss-Markov bias with stationary covariance s R_pos (Q = (1 - a^2) s R_pos), added to the
+    position fix, whose white part keeps (1 - sum s) R_pos; Q of [p, v] from the prior velocity x[2:4]."""
+    n = 4 + 2 * len(blocks)
+    f = np.eye(n)
     f[0, 2] = f[1, 3] = dt
-    f[4, 4] = f[5, 5] = a
-    b = np.zeros((6, 2))
+    b = np.zeros((n, 2))
     b[0, 0] = b[1, 1] = 0.5 * dt * dt
     b[2, 0] = b[3, 1] = dt
-    q = np.zeros((6, 6))
+    q = np.zeros((n, n))
     q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
-    q[4:, 4:] = (1 - a * a) * model.bias_share * r[:2, :2]
-    h = np.zeros((4, 6))
+    h = np.zeros((4, n))
     h[:, :4] = np.eye(4)
-    h[0, 4] = h[1, 5] = 1.0
+    for k, (a, share) in enumerate(blocks):
+        i = 4 + 2 * k
+        f[i, i] = f[i + 1, i + 1] = a
+        q[i:i + 2, i:i + 2] = (1 - a * a) * share * r[:2, :2]
+        h[0, i] = h[1, i + 1] = 1.0
     rn = r.copy()
-    rn[:2, :2] *= 1 - model.bias_share
+    rn[:2, :2] *= 1 - sum(share for _, share in blocks)
     return f, b, q, h, rn
+
+
+def reference_matrices(x, r, dt, model: GnssModelParams):
+    """The tracker's model on [p, v, b]: one bias of decay exp(-dt / bias_tau_s) and share bias_share."""
+    return augmented_matrices(x, r, dt, [(math.exp(-dt / model.bias_tau_s), model.bias_share)])
 
 
 def random_r(rng):

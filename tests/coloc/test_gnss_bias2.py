@@ -13,9 +13,10 @@ import pytest
 from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2
 
-from coloc.core.models import MotionParams, driving_noise_cov
+from coloc.core.models import MotionParams
 from coloc.methods.gnss_bias import GnssBiasTracker, GnssModelParams
-from tests.coloc.test_gnss_bias import MOTION, filterpy_kf, make_frame, match_reference, scripted_run
+from tests.coloc.test_gnss_bias import (MOTION, augmented_matrices, filterpy_kf, make_frame, match_reference,
+                                        scripted_run)
 
 TWO = GnssModelParams(bias_model="two_state", common_share=0.45, common_tau_s=300.0, local_share=0.35,
                       local_length_m=15.0, local_tau_s=90.0, innovation_gate=0.0)
@@ -42,26 +43,11 @@ def schmidt_kf(x, p) -> SchmidtKF:
 
 
 def reference_matrices(x, r, dt, model: GnssModelParams):
-    """F, B, Q (Q and the local decay from the prior velocity x[2:4]), H and the fix's white covariance."""
+    """The tracker's model on [p, v, c, l]: the common bias decays with common_tau_s, the local one with
+    local_tau_s and the distance driven at the prior speed over local_length_m."""
     a_c = math.exp(-dt / model.common_tau_s)
     a_l = math.exp(-dt / model.local_tau_s - math.hypot(x[2], x[3]) * dt / model.local_length_m)
-    f = np.eye(8)
-    f[0, 2] = f[1, 3] = dt
-    f[4, 4] = f[5, 5] = a_c
-    f[6, 6] = f[7, 7] = a_l
-    b = np.zeros((8, 2))
-    b[0, 0] = b[1, 1] = 0.5 * dt * dt
-    b[2, 0] = b[3, 1] = dt
-    q = np.zeros((8, 8))
-    q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
-    q[4:6, 4:6] = (1 - a_c * a_c) * model.common_share * r[:2, :2]
-    q[6:8, 6:8] = (1 - a_l * a_l) * model.local_share * r[:2, :2]
-    h = np.zeros((4, 8))
-    h[:, :4] = np.eye(4)
-    h[0, 4] = h[1, 5] = h[0, 6] = h[1, 7] = 1.0
-    rn = r.copy()
-    rn[:2, :2] *= 1 - model.common_share - model.local_share
-    return f, b, q, h, rn
+    return augmented_matrices(x, r, dt, [(a_c, model.common_share), (a_l, model.local_share)])
 
 
 @pytest.mark.parametrize("gate,update", [(0.0, "augmented"), (0.999, "augmented"), (0.999, "consider")])
