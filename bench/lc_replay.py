@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import cProfile
 import hashlib
-import pickle
 import pstats
 import sys
 import time
@@ -44,22 +43,13 @@ from coloc.methods.registry import ICP_DA_LC  # noqa: E402
 from couplers.sumo_coupler import SumoCoupler  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from experiments.runner import build_estimators, sumo_scenario  # noqa: E402
+from tools.frame_recording import read_frames as frames, write_frames  # noqa: E402
 
 
 def record(cfg, path: Path) -> None:
     """Every frame of the config's coupled run, without truth, pickled one after the other."""
-    with SumoCoupler(sumo_scenario(cfg), cfg.sensors) as coupler, open(path, "wb") as f:
-        for frame in coupler.frames():
-            pickle.dump(frame.without_truth(), f, protocol=5)
-
-
-def frames(path: Path):
-    with open(path, "rb") as f:
-        while True:
-            try:
-                yield pickle.load(f)
-            except EOFError:
-                return
+    with SumoCoupler(sumo_scenario(cfg), cfg.sensors) as coupler:
+        write_frames((frame.without_truth() for frame in coupler.frames()), path)
 
 
 def replay(cfg, path: Path, warmup: float, until: float, prof: cProfile.Profile | None) -> dict:

@@ -252,6 +252,18 @@ def _merge_pair_counts(acc: tuple[np.ndarray, np.ndarray], track: np.ndarray, fe
     return pairs[starts], np.add.reduceat(counts, starts)
 
 
+def association_rows(method: str, frame: Frame, est: StepEstimate):
+    """(assignment (O,), true feature (O,), GNSS zone of each row's vehicle (O,)) of the V2F rows of a method
+    that reports a pairing, else None; a pairing of the wrong shape raises ValueError."""
+    if est.v2f_assignment is None:
+        return None
+    assign = np.asarray(est.v2f_assignment, dtype=np.int64)
+    truth = np.asarray(frame.truth.v2f_feature, dtype=np.int64)
+    if assign.shape != truth.shape:
+        raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
+    return assign, truth, np.asarray(frame.truth.zone)[np.asarray(frame.v2f_owner)]
+
+
 class StreamLog:
     """Per-step rows of one run, streamed to spill files in ``folder`` (created; removed by
     :meth:`finish` or :meth:`discard`). ``methods``: the order of the methods in the files."""
@@ -308,14 +320,11 @@ class StreamLog:
 
     def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
-        if est.v2f_assignment is None:
+        rows = association_rows(method, frame, est)
+        if rows is None:
             return
-        assign = np.asarray(est.v2f_assignment, dtype=np.int64)
-        truth = np.asarray(frame.truth.v2f_feature, dtype=np.int64)
-        if assign.shape != truth.shape:
-            raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
+        assign, truth, zone = rows
         steps = self._assoc_t.setdefault(method, [])
-        zone = np.asarray(frame.truth.zone)[np.asarray(frame.v2f_owner)]
         self._assoc.setdefault(method, []).append((len(steps), assign, truth, zone))
         steps.append(frame.t)
         self._buffered += assign.size

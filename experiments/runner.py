@@ -59,7 +59,7 @@ from experiments.config_toml import config_to_toml
 from experiments.gnss_world import GnssWorldTally
 from experiments.oracle_world import oracle_world
 from experiments.pipeline import BATCH, estimator_stats, step_batch
-from experiments.rowstream import StreamLog, concat_steps, estimate_rows, position_nees
+from experiments.rowstream import StreamLog, association_rows, concat_steps, estimate_rows, position_nees
 from experiments.run_checks import _empty_run, _nothing_to_estimate, check_finite_estimate  # noqa: F401
 from experiments.scoring import (
     DETECTION_KINDS,
@@ -271,14 +271,12 @@ class EstimateLog:
 
     def add_association(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Keep the V2F pairing of a method that reports one, with the truth, for scoring at the end."""
-        if est.v2f_assignment is None:
+        rows = association_rows(method, frame, est)
+        if rows is None:
             return
-        assign = np.asarray(est.v2f_assignment, dtype=np.int64)
-        truth = np.asarray(frame.truth.v2f_feature, dtype=np.int64)
-        if assign.shape != truth.shape:
-            raise ValueError(f"{method}: v2f_assignment has shape {assign.shape}, the frame has {truth.shape[0]} V2F rows")
+        assign, truth, zone = rows
         self.assoc_parts.setdefault(method, []).append((frame.t, assign, truth))
-        self.assoc_zone_parts.setdefault(method, []).append(np.asarray(frame.truth.zone)[np.asarray(frame.v2f_owner)])
+        self.assoc_zone_parts.setdefault(method, []).append(zone)
 
     def add_features(self, method: str, frame: Frame, est: StepEstimate) -> None:
         """Feature-track estimates; scored against the truth once the track labels are known."""

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import pickle
 import sys
 from pathlib import Path
 
@@ -32,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 from coloc.methods.gnss_bias import GnssBiasTracker  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from experiments.runner import frame_source  # noqa: E402
+from tools.frame_recording import read_frames as frames, write_frames  # noqa: E402
 
 INSIDE_95 = 5.991464547107979  # chi-square quantile, 2 dof, 0.95
 TIME_BINS = (0.0, 15.0, 60.0, 120.0, np.inf)
@@ -45,18 +45,8 @@ def protocol_config(base: Path, seed: int, folder: Path):
 
 
 def record(cfg, path: Path) -> None:
-    with frame_source(cfg) as src, open(path, "wb") as f:
-        for frame in src.frames():
-            pickle.dump(frame, f, protocol=5)
-
-
-def frames(path: Path):
-    with open(path, "rb") as f:
-        while True:
-            try:
-                yield pickle.load(f)
-            except EOFError:
-                return
+    with frame_source(cfg) as src:
+        write_frames(src.frames(), path)
 
 
 def replay(path: Path, model, motion):

@@ -31,6 +31,8 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.sparse.csgraph import connected_components as _cc
 
+from coloc.kernels.icp import weighted_row_sum
+
 __all__ = [
     "metropolis_weights",
     "average_consensus",
@@ -93,19 +95,12 @@ def metropolis_weights(adjacency: sp.spmatrix) -> sp.csr_matrix:
 @njit(cache=True)
 def _average_kernel(indptr, indices, data, x, iterations):
     """``iterations`` rounds of x <- W x (W in CSR), x (N, D)."""
-    n, d = x.shape
+    n = x.shape[0]
     cur = x.copy()
     nxt = np.empty_like(x)
     for _ in range(iterations):
         for i in range(n):
-            for c in range(d):
-                nxt[i, c] = 0.0
-            for p in range(indptr[i], indptr[i + 1]):
-                w = data[p]
-                if w != 0.0:
-                    j = indices[p]
-                    for c in range(d):
-                        nxt[i, c] += w * cur[j, c]
+            weighted_row_sum(indptr, indices, data, cur, i, nxt)
         cur, nxt = nxt, cur
     return cur
 

@@ -222,6 +222,22 @@ def feature_to_vehicle_kernel(owner, ext_lam, ext_eta, z, r_inv, v_lam0, v_eta0,
     return m_lam, m_eta, in_lam, in_eta, v_lam, v_eta, new_mean, dpos, dvel
 
 
+@njit(cache=True, inline="always")
+def weighted_row_sum(indptr, indices, data, src, i, dst):
+    """dst[i] = sum_p data[p] src[indices[p]] over row i of a CSR matrix (one consensus round of row i,
+    x_i <- sum_j W_ij x_j), zero weights skipped, in the row's stored order: every consensus kernel sums
+    this way, so that they agree to the last bit."""
+    d = src.shape[1]
+    for c in range(d):
+        dst[i, c] = 0.0
+    for p in range(indptr[i], indptr[i + 1]):
+        w = data[p]
+        if w != 0.0:
+            j = indices[p]
+            for c in range(d):
+                dst[i, c] += w * src[j, c]
+
+
 @njit(cache=True)
 def complete_component_consensus(indptr, indices, data, x, iterations, complete):
     """``iterations`` rounds of x <- W x (Metropolis weights, CSR with the diagonal), where every
@@ -243,14 +259,7 @@ def complete_component_consensus(indptr, indices, data, x, iterations, complete)
     slow = np.empty(o, dtype=np.int64)
     n_slow = 0
     for i in range(o):
-        for c in range(d):
-            out[i, c] = 0.0
-        for p in range(indptr[i], indptr[i + 1]):
-            w = data[p]
-            if w != 0.0:
-                j = indices[p]
-                for c in range(d):
-                    out[i, c] += w * x[j, c]
+        weighted_row_sum(indptr, indices, data, x, i, out)
         if not complete[i]:
             slow[n_slow] = i
             n_slow += 1
@@ -261,15 +270,7 @@ def complete_component_consensus(indptr, indices, data, x, iterations, complete)
     nxt = out.copy()
     for _ in range(iterations - 1):
         for a in range(n_slow):
-            i = slow[a]
-            for c in range(d):
-                nxt[i, c] = 0.0
-            for p in range(indptr[i], indptr[i + 1]):
-                w = data[p]
-                if w != 0.0:
-                    j = indices[p]
-                    for c in range(d):
-                        nxt[i, c] += w * cur[j, c]
+            weighted_row_sum(indptr, indices, data, cur, slow[a], nxt)
         cur, nxt = nxt, cur
     for a in range(n_slow):
         i = slow[a]

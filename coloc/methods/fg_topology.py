@@ -293,15 +293,7 @@ class FgTopologyInfra(_InfraBase):
         if rows.size == 0:
             self._keys[r] = {}
             return None
-        if r not in self._smoother:
-            self._smoother[r] = self._new_smoother(frame.dt)
-        smoother = self._smoother[r]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        stamps = {}
-        ids = frame.vehicle_ids[rows]
-        entered = np.asarray(frame.entered[rows], bool)
-        odom = infra.odom[rows]
+        smoother, graph, values, stamps, ids, entered, odom = self._open_step(frame, r, rows)
         keys_now = {}
         new_rows = [a for a, vid in enumerate(ids) if vid not in keys_prev or entered[a]]
         start_m, start_c, held = (self._start_beliefs(frame, rows[new_rows], prev) if new_rows
@@ -323,9 +315,7 @@ class FgTopologyInfra(_InfraBase):
                 init = start_m[b, :2]
             else:
                 kp = keys_prev[vid]
-                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
-                graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
-                                                    gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
+                d = self._add_odometry(graph, kp, key, odom[a], infra.odom_var)
                 p_prev = self._estimate_point(smoother, kp)
                 est_prev[vid] = p_prev
                 init = p_prev + d
@@ -358,15 +348,7 @@ class FgTopologyInfra(_InfraBase):
         if rows.size == 0:
             self._keys[r], self._bias_keys[r] = {}, {}
             return None
-        if r not in self._smoother:
-            self._smoother[r] = self._new_smoother(frame.dt)
-        smoother = self._smoother[r]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        stamps = {}
-        ids = frame.vehicle_ids[rows]
-        entered = np.asarray(frame.entered[rows], bool)
-        odom = infra.odom[rows]
+        smoother, graph, values, stamps, ids, entered, odom = self._open_step(frame, r, rows)
         excluded = self.gnss.last_excluded
         excluded = np.zeros(frame.n_vehicles, bool) if excluded is None else np.asarray(excluded, bool)
         keys_now, bkeys_now = {}, {}
@@ -399,9 +381,7 @@ class FgTopologyInfra(_InfraBase):
                 init = start_m[b, :2]
             else:
                 kp = keys_prev[vid]
-                d = odom[a] if np.all(np.isfinite(odom[a])) else np.zeros(2)  # no odometry: zero displacement
-                graph.add(gtsam.BetweenFactorPoint2(kp, key, np.asarray(d, float),
-                                                    gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(infra.odom_var)))))
+                d = self._add_odometry(graph, kp, key, odom[a], infra.odom_var)
                 init = self._estimate_point(smoother, kp) + d
                 if biased:
                     kb = bkeys_prev[vid]
@@ -424,6 +404,22 @@ class FgTopologyInfra(_InfraBase):
             c[a, :2, 2:] = 0.0
             c[a, 2:, :2] = 0.0
         return rows, m, c
+
+    def _open_step(self, frame, r, rows):
+        """RSU ``r``'s smoother (made at its first step), an empty graph, values and time stamps for the
+        step's factors, and the ids, entered flags and odometry of its vehicles ``rows``."""
+        if r not in self._smoother:
+            self._smoother[r] = self._new_smoother(frame.dt)
+        return (self._smoother[r], self._gtsam.NonlinearFactorGraph(), self._gtsam.Values(), {},
+                frame.vehicle_ids[rows], np.asarray(frame.entered[rows], bool), frame.infra.odom[rows])
+
+    def _add_odometry(self, graph, key_prev, key, odom, odom_var) -> np.ndarray:
+        """The odometry factor p_t - p_{t-1} = d_t (variance ``odom_var`` per axis) between a vehicle's
+        last and current state; returns d_t, zero when the step has no odometry."""
+        d = odom if np.all(np.isfinite(odom)) else np.zeros(2)
+        noise = self._gtsam.noiseModel.Isotropic.Sigma(2, float(np.sqrt(odom_var)))
+        graph.add(self._gtsam.BetweenFactorPoint2(key_prev, key, np.asarray(d, float), noise))
+        return d
 
     def _add_topology(self, graph, infra, r, n, ids, new_rows, odom, keys_prev, keys_now) -> None:
         """The topology factor of step t from RSU ``r``'s radar scan of its ``n`` vehicles ``ids``

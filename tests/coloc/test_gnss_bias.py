@@ -1,6 +1,6 @@
-"""``gnss`` with ``[gnss_model]`` (coloc.methods.gnss_bias): the 6-D bias-state tracker against a
-textbook Kalman filter per vehicle, against the white tracker at bias_share = 0, its consistency where
-its model is the truth, and the fault exclusion."""
+"""``gnss`` with ``[gnss_model]`` (coloc.methods.gnss_bias): the 6-D bias-state tracker against
+filterpy's Kalman filter on the augmented state [p, v, b] per vehicle, against the white tracker at
+bias_share = 0, its consistency where its model is the truth, and the fault exclusion."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from filterpy.kalman import KalmanFilter
+from scipy.linalg import block_diag
 from scipy.stats import chi2
 
 from coloc.core.frame import empty_frame
@@ -29,48 +31,94 @@ def make_frame(t, dt, ids, entered, accel, gnss_z, gnss_R, prior_z=None, prior_R
     )
 
 
-class ReferenceKF:
-    """A textbook Kalman filter (x, P; predict with F, B u, Q; update with H, R; P = (I - K H) P, the
-    short form, unlike the tracker's Joseph form): filterpy.kalman.KalmanFilter's equations."""
+def filterpy_kf(x, p) -> KalmanFilter:
+    """filterpy's linear Kalman filter on the augmented state, started at (x, p); F, B, Q, H and R are
+    given to it per step (predict(u, B, F, Q), update(z, R, H): its Joseph-form update)."""
+    kf = KalmanFilter(dim_x=len(x), dim_z=4)
+    kf.x, kf.P = x.copy(), p.copy()
+    return kf
 
-    def __init__(self, x, p):
-        self.x, self.P = x.copy(), p.copy()
 
-    def predict(self, u, b, f, q):
-        self.x = f @ self.x + b @ u
-        self.P = f @ self.P @ f.T + q
+def nis_pos(kf, z, r, h) -> float:
+    """The gate's statistic: the position part of the fix's normalised innovation squared, on the prior."""
+    s = h @ kf.P @ h.T + r
+    nu = (z - h @ kf.x)[:2]
+    return float(nu @ np.linalg.solve(s[:2, :2], nu))
 
-    def nis_pos(self, z, r, h):
-        s = h @ self.P @ h.T + r
-        nu = (z - h @ self.x)[:2]
-        return float(nu @ np.linalg.solve(s[:2, :2], nu))
 
-    def update(self, z, r, h):
-        s = h @ self.P @ h.T + r
-        k = self.P @ h.T @ np.linalg.inv(s)
-        self.x = self.x + k @ (z - h @ self.x)
-        self.P = (np.eye(6) - k @ h) @ self.P
-        self.P = 0.5 * (self.P + self.P.T)
+def match_reference(est, frames, model, matrices, shares, new_filter=filterpy_kf):
+    """Step ``est`` over ``frames`` beside one reference filter per vehicle (``new_filter(x0, p0)``; the
+    bias states start at zero with ``share * R_pos`` each) and assert mean, covariance and the full
+    augmented state equal to 1e-9 after every step. A vehicle's first fix is an update without
+    prediction; the gate excludes a fix's position (the velocity is still used) while its statistic
+    exceeds chi2(gate, 2), at most ``max_exclusions`` times in a row. ``matrices(x, r, dt, model)``
+    gives the step's (F, B, Q, H, R). Returns (entries, leaves, exclusions)."""
+    refs: dict[str, KalmanFilter] = {}
+    streak: dict[str, int] = {}
+    threshold = chi2.ppf(model.innovation_gate, 2) if model.innovation_gate else math.inf
+    entries = leaves = n_excluded = 0
+    previous: set[str] = set()
+    for fr in frames:
+        out = est.step(fr)
+        ids = list(fr.vehicle_ids)
+        leaves += len(previous - set(ids))
+        previous = set(ids)
+        for i, vid in enumerate(ids):
+            r = fr.gnss_R[i]
+            if fr.entered[i]:
+                entries += 1
+                p0 = block_diag(fr.prior_R[i], *(s * r[:2, :2] for s in shares))
+                refs[vid] = new_filter(np.concatenate([fr.prior_z[i], np.zeros(2 * len(shares))]), p0)
+                _f, _b, _q, h, rn = matrices(refs[vid].x, r, fr.dt, model)
+                refs[vid].update(fr.gnss_z[i], R=rn, H=h)
+                streak[vid] = 0
+            else:
+                kf = refs[vid]
+                f, b, q, h, rn = matrices(kf.x, r, fr.dt, model)
+                kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
+                if nis_pos(kf, fr.gnss_z[i], rn, h) > threshold and streak[vid] < model.max_exclusions:
+                    n_excluded += 1
+                    streak[vid] += 1
+                    assert est.last_excluded[i]
+                    kf.update(fr.gnss_z[i][2:], R=rn[2:, 2:], H=h[2:])  # the velocity only
+                else:
+                    streak[vid] = 0
+                    assert not est.last_excluded[i]
+                    kf.update(fr.gnss_z[i], R=rn, H=h)
+            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(est._cov[i], refs[vid].P, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(est._mean[i], refs[vid].x, rtol=0, atol=1e-9)
+    return entries, leaves, n_excluded
+
+
+def augmented_matrices(x, r, dt, blocks):
+    """F, B, Q, H and the fix's white covariance on [p, v, b_1, ...]: each (decay a, share s) of ``blocks``
+    a 2-D Gauss-Markov bias with stationary covariance s R_pos (Q = (1 - a^2) s R_pos), added to the
+    position fix, whose white part keeps (1 - sum s) R_pos; Q of [p, v] from the prior velocity x[2:4]."""
+    n = 4 + 2 * len(blocks)
+    f = np.eye(n)
+    f[0, 2] = f[1, 3] = dt
+    b = np.zeros((n, 2))
+    b[0, 0] = b[1, 1] = 0.5 * dt * dt
+    b[2, 0] = b[3, 1] = dt
+    q = np.zeros((n, n))
+    q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
+    h = np.zeros((4, n))
+    h[:, :4] = np.eye(4)
+    for k, (a, share) in enumerate(blocks):
+        i = 4 + 2 * k
+        f[i, i] = f[i + 1, i + 1] = a
+        q[i:i + 2, i:i + 2] = (1 - a * a) * share * r[:2, :2]
+        h[0, i] = h[1, i + 1] = 1.0
+    rn = r.copy()
+    rn[:2, :2] *= 1 - sum(share for _, share in blocks)
+    return f, b, q, h, rn
 
 
 def reference_matrices(x, r, dt, model: GnssModelParams):
-    """The 6-D F, B, Q (Q from the prior velocity x[2:4]), H and fix covariance of the tracker's model."""
-    a = math.exp(-dt / model.bias_tau_s)
-    f = np.eye(6)
-    f[0, 2] = f[1, 3] = dt
-    f[4, 4] = f[5, 5] = a
-    b = np.zeros((6, 2))
-    b[0, 0] = b[1, 1] = 0.5 * dt * dt
-    b[2, 0] = b[3, 1] = dt
-    q = np.zeros((6, 6))
-    q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
-    q[4:, 4:] = (1 - a * a) * model.bias_share * r[:2, :2]
-    h = np.zeros((4, 6))
-    h[:, :4] = np.eye(4)
-    h[0, 4] = h[1, 5] = 1.0
-    rn = r.copy()
-    rn[:2, :2] *= 1 - model.bias_share
-    return f, b, q, h, rn
+    """The tracker's model on [p, v, b]: one bias of decay exp(-dt / bias_tau_s) and share bias_share."""
+    return augmented_matrices(x, r, dt, [(math.exp(-dt / model.bias_tau_s), model.bias_share)])
 
 
 def random_r(rng):
@@ -121,48 +169,11 @@ def scripted_run(seed, steps, model, jumps=0.0):
 
 
 @pytest.mark.parametrize("gate", [0.0, 0.999])
-def test_bias_tracker_equals_a_textbook_kalman_filter(gate):
+def test_bias_tracker_equals_filterpy_on_the_augmented_state(gate):
     model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=gate, max_exclusions=2)
     frames = scripted_run(5, 300, model, jumps=0.03 if gate else 0.0)
     est = GnssBiasTracker(motion=MOTION, model=model)
-    refs: dict[str, ReferenceKF] = {}
-    streak: dict[str, int] = {}
-    n_excluded = 0
-    threshold = chi2.ppf(gate, 2) if gate else math.inf
-    entries = leaves = 0
-    previous: set[str] = set()
-    for fr in frames:
-        out = est.step(fr)
-        ids = list(fr.vehicle_ids)
-        leaves += len(previous - set(ids))
-        previous = set(ids)
-        for i, vid in enumerate(ids):
-            r = fr.gnss_R[i]
-            if fr.entered[i]:
-                entries += 1
-                p0 = np.zeros((6, 6))
-                p0[:4, :4] = fr.prior_R[i]
-                p0[4:, 4:] = model.bias_share * r[:2, :2]
-                refs[vid] = ReferenceKF(np.concatenate([fr.prior_z[i], [0.0, 0.0]]), p0)
-                f, b, q, h, rn = reference_matrices(refs[vid].x, r, fr.dt, model)
-                refs[vid].update(fr.gnss_z[i], rn, h)
-                streak[vid] = 0
-            else:
-                kf = refs[vid]
-                f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
-                kf.predict(fr.accel[i], b, f, q)
-                if kf.nis_pos(fr.gnss_z[i], rn, h) > threshold and streak[vid] < model.max_exclusions:
-                    n_excluded += 1
-                    streak[vid] += 1
-                    assert est.last_excluded[i]
-                    kf.update(fr.gnss_z[i][2:], rn[2:, 2:], h[2:])  # the velocity only
-                else:
-                    streak[vid] = 0
-                    assert not est.last_excluded[i]
-                    kf.update(fr.gnss_z[i], rn, h)
-            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(est._cov[i], refs[vid].P, rtol=0, atol=1e-9)
+    entries, leaves, n_excluded = match_reference(est, frames, model, reference_matrices, [model.bias_share])
     assert entries > 10 and leaves > 5
     assert (n_excluded > 3) == (gate > 0)
     if gate:

@@ -1,6 +1,7 @@
-"""``[gnss_model] bias_model = "two_state"`` (coloc.methods.gnss_bias2): the 8-D tracker against a textbook
-augmented Kalman filter (and a textbook Schmidt filter for ``common_update = "consider"``) per vehicle,
-against the single model at ``local_share = 0``, and its consistency where its model is the truth."""
+"""``[gnss_model] bias_model = "two_state"`` (coloc.methods.gnss_bias2): the 8-D tracker against filterpy's
+Kalman filter on the augmented state [p, v, c, l] (and, for ``common_update = "consider"``, which filterpy has
+no form of, a Schmidt filter whose update is written out here) per vehicle, against the single model at
+``local_share = 0``, and its consistency where its model is the truth."""
 
 from __future__ import annotations
 
@@ -9,107 +10,54 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2
 
-from coloc.core.models import MotionParams, driving_noise_cov
+from coloc.core.models import MotionParams
 from coloc.methods.gnss_bias import GnssBiasTracker, GnssModelParams
-from tests.coloc.test_gnss_bias import MOTION, make_frame, scripted_run
+from tests.coloc.test_gnss_bias import (MOTION, augmented_matrices, filterpy_kf, make_frame, match_reference,
+                                        scripted_run)
 
 TWO = GnssModelParams(bias_model="two_state", common_share=0.45, common_tau_s=300.0, local_share=0.35,
                       local_length_m=15.0, local_tau_s=90.0, innovation_gate=0.0)
 
 
-class ReferenceKF8:
-    """A textbook Kalman filter on [p, v, c, l] (filterpy.kalman.KalmanFilter's equations, P = (I - K H) P);
-    ``consider``: the Schmidt-Kalman filter (Simon 2006, Sec. 7.5: K of the estimated states, zero rows for
-    the considered c, P = (I - K H) P (I - K H)^T + K R K^T)."""
+class SchmidtKF(KalmanFilter):
+    """The Schmidt-Kalman (consider) filter on [p, v, c, l] (Simon 2006, Sec. 7.5): filterpy's prediction,
+    and an update written out here because filterpy has none: the gain of the estimated states, zero rows
+    for the considered common bias c, P = (I - K H) P (I - K H)^T + K R K^T."""
 
-    def __init__(self, x, p, consider=False):
-        self.x, self.P, self.consider = x.copy(), p.copy(), consider
+    def update(self, z, R=None, H=None):
+        s = H @ self.P @ H.T + R
+        k = self.P @ H.T @ np.linalg.inv(s)
+        k[4:6] = 0.0
+        self.x = self.x + k @ (z - H @ self.x)
+        ikh = np.eye(len(self.x)) - k @ H
+        self.P = ikh @ self.P @ ikh.T + k @ R @ k.T
 
-    def predict(self, u, b, f, q):
-        self.x = f @ self.x + b @ u
-        self.P = f @ self.P @ f.T + q
 
-    def nis_pos(self, z, r, h):
-        s = h @ self.P @ h.T + r
-        nu = (z - h @ self.x)[:2]
-        return float(nu @ np.linalg.solve(s[:2, :2], nu))
-
-    def update(self, z, r, h):
-        s = h @ self.P @ h.T + r
-        k = self.P @ h.T @ np.linalg.inv(s)
-        if self.consider:
-            k[4:6] = 0.0
-        self.x = self.x + k @ (z - h @ self.x)
-        ikh = np.eye(8) - k @ h
-        self.P = ikh @ self.P @ ikh.T + k @ r @ k.T if self.consider else ikh @ self.P
-        self.P = 0.5 * (self.P + self.P.T)
+def schmidt_kf(x, p) -> SchmidtKF:
+    kf = SchmidtKF(dim_x=len(x), dim_z=4)
+    kf.x, kf.P = x.copy(), p.copy()
+    return kf
 
 
 def reference_matrices(x, r, dt, model: GnssModelParams):
-    """F, B, Q (Q and the local decay from the prior velocity x[2:4]), H and the fix's white covariance."""
+    """The tracker's model on [p, v, c, l]: the common bias decays with common_tau_s, the local one with
+    local_tau_s and the distance driven at the prior speed over local_length_m."""
     a_c = math.exp(-dt / model.common_tau_s)
     a_l = math.exp(-dt / model.local_tau_s - math.hypot(x[2], x[3]) * dt / model.local_length_m)
-    f = np.eye(8)
-    f[0, 2] = f[1, 3] = dt
-    f[4, 4] = f[5, 5] = a_c
-    f[6, 6] = f[7, 7] = a_l
-    b = np.zeros((8, 2))
-    b[0, 0] = b[1, 1] = 0.5 * dt * dt
-    b[2, 0] = b[3, 1] = dt
-    q = np.zeros((8, 8))
-    q[:4, :4] = driving_noise_cov(x[None, 2:4], dt, MOTION)[0]
-    q[4:6, 4:6] = (1 - a_c * a_c) * model.common_share * r[:2, :2]
-    q[6:8, 6:8] = (1 - a_l * a_l) * model.local_share * r[:2, :2]
-    h = np.zeros((4, 8))
-    h[:, :4] = np.eye(4)
-    h[0, 4] = h[1, 5] = h[0, 6] = h[1, 7] = 1.0
-    rn = r.copy()
-    rn[:2, :2] *= 1 - model.common_share - model.local_share
-    return f, b, q, h, rn
+    return augmented_matrices(x, r, dt, [(a_c, model.common_share), (a_l, model.local_share)])
 
 
 @pytest.mark.parametrize("gate,update", [(0.0, "augmented"), (0.999, "augmented"), (0.999, "consider")])
-def test_two_state_tracker_equals_a_textbook_kalman_filter(gate, update):
+def test_two_state_tracker_equals_filterpy_on_the_augmented_state(gate, update):
     model = replace(TWO, innovation_gate=gate, max_exclusions=2, common_update=update)
     frames = scripted_run(5, 300, model, jumps=0.03 if gate else 0.0)
     est = GnssBiasTracker(motion=MOTION, model=model)
-    refs: dict[str, ReferenceKF8] = {}
-    streak: dict[str, int] = {}
-    threshold = chi2.ppf(gate, 2) if gate else math.inf
-    n_excluded = entries = 0
-    for fr in frames:
-        out = est.step(fr)
-        for i, vid in enumerate(fr.vehicle_ids):
-            r = fr.gnss_R[i]
-            if fr.entered[i]:
-                entries += 1
-                p0 = np.zeros((8, 8))
-                p0[:4, :4] = fr.prior_R[i]
-                p0[4:6, 4:6] = model.common_share * r[:2, :2]
-                p0[6:8, 6:8] = model.local_share * r[:2, :2]
-                refs[vid] = ReferenceKF8(np.concatenate([fr.prior_z[i], np.zeros(4)]), p0, update == "consider")
-                _f, _b, _q, h, rn = reference_matrices(refs[vid].x, r, fr.dt, model)
-                refs[vid].update(fr.gnss_z[i], rn, h)
-                streak[vid] = 0
-            else:
-                kf = refs[vid]
-                f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
-                kf.predict(fr.accel[i], b, f, q)
-                if kf.nis_pos(fr.gnss_z[i], rn, h) > threshold and streak[vid] < model.max_exclusions:
-                    n_excluded += 1
-                    streak[vid] += 1
-                    assert est.last_excluded[i]
-                    kf.update(fr.gnss_z[i][2:], rn[2:, 2:], h[2:])
-                else:
-                    streak[vid] = 0
-                    assert not est.last_excluded[i]
-                    kf.update(fr.gnss_z[i], rn, h)
-            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(est._cov[i], refs[vid].P, rtol=0, atol=1e-9)
-            np.testing.assert_allclose(est._mean[i], refs[vid].x, rtol=0, atol=1e-9)
+    entries, _, n_excluded = match_reference(est, frames, model, reference_matrices,
+                                             [model.common_share, model.local_share],
+                                             schmidt_kf if update == "consider" else filterpy_kf)
     assert entries > 10
     assert (n_excluded > 3) == (gate > 0)
 
