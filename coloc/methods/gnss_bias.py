@@ -85,7 +85,8 @@ from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
-from coloc.methods.gnss_bias2 import two_state_entry_posterior, two_state_predict_update, two_state_start
+from coloc.methods.gnss_bias2 import (gated_joseph_update, two_state_entry_posterior, two_state_predict_update,
+                                      two_state_start)
 from coloc.methods.registry import GNSS
 
 #: H of the fix for the state [p, v, b]: z_pos = p + b, z_vel = v.
@@ -309,18 +310,7 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         if streak is not None:
             excluded &= streak < model.max_exclusions
     # A full update where the fix passes, a velocity-only update (rows 2-3 of H) where it is excluded.
-    for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
-        if not sel.any():
-            continue
-        hs = H[rows]
-        rs = rn[sel][:, rows, rows]
-        phs = ph[sel][:, :, rows]
-        ss = sm[sel][:, rows, rows]
-        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, 6, k)
-        m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
-        ikh = np.eye(6) - gain @ hs
-        pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
-        p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+    gated_joseph_update(m, p, ph, sm, rn, innov, excluded, H)
     if adaptive:
         return m, p, excluded, nis_avg
     return m, p, excluded
