@@ -68,8 +68,9 @@ Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a 
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
 
 ``bias_model = "two_state"``: a common-mode bias slow in time and a local bias decorrelating with the distance
-travelled, an 8-D state (:mod:`coloc.methods.gnss_bias2`); ``gnss`` only (the cooperative and infrastructure
-methods keep this module's single bias: :meth:`GnssModelParams.single_model`).
+travelled, an 8-D state (:mod:`coloc.methods.gnss_bias2`); ``gnss`` and the cooperative methods of
+:mod:`coloc.methods.coop_fusion` (the infrastructure methods keep this module's single bias:
+:meth:`GnssModelParams.single_model`).
 """
 
 from __future__ import annotations
@@ -124,8 +125,9 @@ class GnssModelParams:
     bias_follows_report: bool = False
     # The receiver's error as one bias ("single": bias_share, bias_tau_s above) or two
     # ("two_state": a common-mode bias slow in time and a local one decorrelating with the distance
-    # travelled; coloc.methods.gnss_bias2). Only `gnss` takes "two_state"; the other methods that take
-    # [gnss_model] keep the single model (bias_share, bias_tau_s).
+    # travelled; coloc.methods.gnss_bias2). `gnss` and, with [fusion], icp_known_da, icp_da_lc and icp_da_pf
+    # take "two_state" (coloc.methods.coop_fusion); the infrastructure methods keep the single model
+    # (bias_share, bias_tau_s).
     bias_model: str = "single"
     # Two-state model, common-mode bias (atmosphere, orbit, clock): its share of the reported position
     # variance and its correlation time. Assumption: the slow error is most of the reported variance
