@@ -10,7 +10,9 @@ driving noise; the common-mode bias ``c' = a_c c + w_c``, ``Var(w_c) = (1 - a_c^
 ``l' = a_l l + w_l``, ``a_l = exp(-Ts / local_tau_s - |v| Ts / local_length_m)`` with |v| the row's own prior
 speed estimate, ``Var(w_l) = (1 - a_l^2) s_l R_pos``; fix ``z_pos = p + c + l + n``, ``Var(n) = (1 - s_c - s_l)
 R_pos``, ``z_vel = v + n_v``; the 2-dof chi-square gate on the position innovation (velocity-only update when
-excluded); ``consider``: the common-mode gain rows are zero (Schmidt); Joseph-form covariance update.
+excluded); ``consider``: the common-mode gain rows are zero (Schmidt); Joseph-form covariance update. With
+``bias_follows_report`` both biases are mapped by the row's report map T (``c' = a_c T c``, ``l' = a_l T l``;
+:func:`coloc.methods.gnss_bias.report_map`, computed by the caller).
 
 The independent part (``with_ind``; the split of :mod:`coloc.inference.split_ci`): the common-mode bias's
 driving noise is always in it (the rule of :mod:`coloc.methods.coop_fusion`: the feature evidence is taken in
@@ -51,13 +53,13 @@ def _sandwich8(a, p, out, tmp):
 @njit(cache=True)
 def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, common_share,
                local_share, decay_c, local_tau_s, local_length_m, consider, gate_threshold, max_exclusions,
-               common_mode, with_ind, sym_predict):
+               common_mode, with_ind, sym_predict, tmap, mapped):
     """One step of the 8-state filter for every row: predict where ``predict`` (``decay_c`` = exp(-dt /
     common_tau_s); the local decay per row from its prior speed), then the fix with the gate (a row that does
     not predict is never gated; nor one whose ``streak`` reached ``max_exclusions``; ``gate_threshold`` inf:
     no gate). ``with_ind``: the independent part ``ind`` carried (module docstring); ``sym_predict``: the
-    predicted covariance symmetrized as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does.
-    Returns new (mean, cov, ind, excluded); inputs are not modified."""
+    predicted covariance symmetrized as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does;
+    ``mapped``: the biases mapped by ``tmap`` (N, 2, 2) (``bias_follows_report``). Returns new (mean, cov, ind, excluded); inputs are not modified."""
     n = mean.shape[0]
     m = mean.copy()
     p = cov.copy()
@@ -66,8 +68,6 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
     f = np.eye(D)
     f[0, 2] = dt
     f[1, 3] = dt
-    f[4, 4] = decay_c
-    f[5, 5] = decay_c
     h = 0.5 * dt * dt
     q = np.zeros((D, D))
     qk = np.zeros((4, 4))
@@ -89,8 +89,11 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             speed = math.hypot(m[i, 2], m[i, 3])
             a_l = math.exp(-dt / local_tau_s - speed * dt / local_length_m)
             ql = (1.0 - a_l * a_l) * local_share
-            f[6, 6] = a_l
-            f[7, 7] = a_l
+            for a in range(2):
+                for b in range(2):
+                    t_ab = tmap[i, a, b] if mapped else (1.0 if a == b else 0.0)
+                    f[4 + a, 4 + b] = decay_c * t_ab
+                    f[6 + a, 6 + b] = a_l * t_ab
             _driving_q(m[i, 2], m[i, 3], dt, s_along, s_cross, min_speed, qk)
             q[:, :] = 0.0
             for a in range(4):
@@ -105,10 +108,17 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             m[i, 1] = m1 + dt * m3 + h * accel[i, 1]
             m[i, 2] = m2 + dt * accel[i, 0]
             m[i, 3] = m3 + dt * accel[i, 1]
-            m[i, 4] = decay_c * m[i, 4]
-            m[i, 5] = decay_c * m[i, 5]
-            m[i, 6] = a_l * m[i, 6]
-            m[i, 7] = a_l * m[i, 7]
+            if mapped:
+                c0, c1, l0, l1 = m[i, 4], m[i, 5], m[i, 6], m[i, 7]
+                m[i, 4] = f[4, 4] * c0 + f[4, 5] * c1
+                m[i, 5] = f[5, 4] * c0 + f[5, 5] * c1
+                m[i, 6] = f[6, 6] * l0 + f[6, 7] * l1
+                m[i, 7] = f[7, 6] * l0 + f[7, 7] * l1
+            else:
+                m[i, 4] = decay_c * m[i, 4]
+                m[i, 5] = decay_c * m[i, 5]
+                m[i, 6] = a_l * m[i, 6]
+                m[i, 7] = a_l * m[i, 7]
             _sandwich8(f, p[i], out, tmp)
             for a in range(D):
                 for b in range(D):

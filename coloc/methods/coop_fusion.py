@@ -33,8 +33,9 @@ between them), so the fusion's covariance intersection never inflates c either: 
 "consider"`` the cooperative belief's common-mode covariance is the own track's, the consider bound, at
 every step (tests). With ``common_mode_gnss`` the local bias's driving noise and the fix's noise go to the
 dependent part, as the 6-state bias and fix do. What is sent to the features stays the own track's position
-marginal (its covariance holds Var(c): conservative for the common-mode frame). ``bias_follows_report`` is
-not applied here (as in the 6-state filters). Nothing here reads the world: only the covariance the receiver reports,
+marginal (its covariance holds Var(c): conservative for the common-mode frame). ``bias_follows_report`` maps
+both biases of both filters as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does (the 6-state
+filters do not apply it). Nothing here reads the world: only the covariance the receiver reports,
 the V2F rows and the ``[gnss_model]`` / ``[fusion]`` values.
 """
 
@@ -53,7 +54,7 @@ from coloc.inference.params import IcpParams
 from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_ci_update
 from coloc.kernels.gnss6 import gnss6_step
 from coloc.kernels.gnss8 import gnss8_step
-from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior
+from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior, report_map
 from coloc.methods.gnss_bias2 import H8, two_state_entry_posterior, two_state_start, two_state_transition
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
@@ -120,19 +121,21 @@ class SplitState:
     own_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 6)))  # own-sensor track
     own_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 6, 6)))
     own_streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    # each row's reported position covariance of its last step (two-state model with bias_follows_report)
+    rpos: np.ndarray | None = None
 
     @staticmethod
     def empty(d: int) -> "SplitState":
         """No vehicle, states of dimension ``d``."""
         e, ee = np.empty((0, d)), np.empty((0, d, d))
         z = np.empty(0, dtype=np.int64)
-        return SplitState(e, ee, ee, z, e, ee, z)
+        return SplitState(e, ee, ee, z, e, ee, z, np.empty((0, 2, 2)))
 
     def reset_to_own(self, rows: np.ndarray) -> "SplitState":
         """The cooperative belief of ``rows`` (bool) replaced by the own-sensor track (ICP-DA-LC's step 10)."""
         mean, cov, ind = self.mean.copy(), self.cov.copy(), self.ind.copy()
         mean[rows], cov[rows], ind[rows] = self.own_mean[rows], self.own_cov[rows], self.own_cov[rows]
-        return SplitState(mean, cov, ind, self.streak, self.own_mean, self.own_cov, self.own_streak)
+        return SplitState(mean, cov, ind, self.streak, self.own_mean, self.own_cov, self.own_streak, self.rpos)
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,7 @@ class SplitPrior:
     own_mean: np.ndarray
     own_cov: np.ndarray
     own_streak: np.ndarray
+    rpos: np.ndarray | None = None  # this step's reported position covariances (SplitState.rpos)
 
     def marginal(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(b0_mean, b0_cov, own_mean, own_cov): the 4-D kinematic marginals."""
@@ -162,7 +166,7 @@ def _carry(prev, match, fresh, n, shape, fill=0.0):
 
 
 def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
-                     streak, common_mode: bool = False):
+                     streak, common_mode: bool = False, r_prev=None):
     """The cooperative belief's model (1) prediction and fix (3), with the independent part carried
     along: P' = F P F^T + Q and P_i' = F P_i F^T + Q (the driving and bias noise are the vehicle's own),
     then the fix in Joseph form on both, K from the total (the fix's noise is independent; with
@@ -171,8 +175,9 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     (velocity-only update, at most ``max_exclusions`` in a row; a fresh row is never gated), as
     :func:`coloc.methods.gnss_bias.bias_predict_update` does for the own track. The two-state model (8-D
     states): as :func:`coloc.methods.gnss_bias2.two_state_predict_update` (consider: zero common-mode gain
-    rows), the common-mode bias's driving noise always independent (module docstring), with ``common_mode``
-    the local bias's and the fix's noise dependent."""
+    rows; ``r_prev``: the biases mapped to this step's report, ``bias_follows_report``), the common-mode bias's
+    driving noise always independent (module docstring), with ``common_mode`` the local bias's and the fix's
+    noise dependent."""
     n = mean.shape[0]
     r_pos = r[:, :2, :2]
     m, p, pi = mean.copy(), cov.copy(), ind.copy()
@@ -182,6 +187,13 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
         fixed = slice(4, 6) if model.common_update == "consider" else None
         if predict_mask.any():
             f, mp, q = two_state_transition(m, accel, r_pos, dt, motion, model)
+            if model.bias_follows_report and r_prev is not None:
+                t = report_map(r_prev, r_pos)
+                f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
+                f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
+                mp = np.einsum("nij,nj->ni", f, m)
+                mp[:, 0:2] += 0.5 * dt * dt * accel
+                mp[:, 2:4] += dt * accel
             sel = predict_mask
             ft = np.swapaxes(f[sel], -1, -2)
             m[sel] = mp[sel]
@@ -242,20 +254,23 @@ def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
 
 
 def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,
-           common_mode: bool = False, with_ind: bool = True):
+           common_mode: bool = False, with_ind: bool = True, r_prev=None):
     """The numba kernel :func:`coloc.kernels.gnss8.gnss8_step` of the two-state model: ``with_ind`` the
     cooperative belief as :func:`_split_gnss_step`, else the own track as
-    :func:`coloc.methods.gnss_bias2.two_state_predict_update` (equal to 1e-12; tests). Returns (mean, cov, ind,
-    excluded)."""
+    :func:`coloc.methods.gnss_bias2.two_state_predict_update` (equal to 1e-12; tests; ``r_prev`` as there).
+    Returns (mean, cov, ind, excluded)."""
     c = np.ascontiguousarray
     ind = c(ind, dtype=float) if with_ind else np.empty((0, 8, 8))
+    mapped = bool(model.bias_follows_report and r_prev is not None)
+    r = np.asarray(r, dtype=float)
+    tmap = report_map(np.asarray(r_prev, dtype=float), r[:, :2, :2]) if mapped else np.empty((0, 2, 2))
     return gnss8_step(c(mean, dtype=float), c(cov, dtype=float), ind, c(accel, dtype=float), c(z, dtype=float),
                       c(r, dtype=float), c(predict_mask, dtype=np.bool_), c(streak, dtype=np.int64), float(dt),
                       float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
                       float(model.common_share), float(model.local_share), math.exp(-dt / model.common_tau_s),
                       float(model.local_tau_s), float(model.local_length_m), model.common_update == "consider",
                       float(model.gate_threshold), int(model.max_exclusions), bool(common_mode), bool(with_ind),
-                      not with_ind)
+                      not with_ind, c(tmap), mapped)
 
 
 def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -302,7 +317,15 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
             two_state_start(init_p, fresh, r[:, :2, :2], model)
         else:
             init_p[fresh, 4:, 4:] = model.bias_share * r[fresh, :2, :2]
-    step = _gnss8 if two else _gnss6
+    r_prev = None
+    if two and model.bias_follows_report:
+        # the report of each row's previous step; a fresh row's is this one's (no map)
+        r_prev = r[:, :2, :2].copy()
+        if state.rpos is not None and len(state.rpos) == len(state.mean):
+            r_prev[~fresh] = state.rpos[match[~fresh]]
+
+    def step(*args, **kw):
+        return _gnss8(*args, **kw, r_prev=r_prev) if two else _gnss6(*args, **kw)
 
     def entry(mean, cov):
         if two:
@@ -338,7 +361,8 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
         pi[once] = _common_part(r[once, :2, :2], model.common_share) if two else 0.0
     else:
         pi[once] = p[once]
-    return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0))
+    return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0),
+                      r[:, :2, :2].copy() if r_prev is not None else None)
 
 
 def fuse_evidence(mean, cov, ind, y_f, p_f, r_f, has):
@@ -373,4 +397,4 @@ def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray
     mean, cov, ind = fuse_evidence(prior.mean, prior.cov, prior.ind, y_f, p_f, r_f, has)
     used = np.asarray(feature, dtype=np.int64) >= 0
     res = BpaResult(mean[:, :4].copy(), cov[:, :4, :4].copy(), used, msg_lam, msg_eta, 1, True, comm=comm)
-    return res, SplitState(mean, cov, ind, prior.streak, prior.own_mean, prior.own_cov, prior.own_streak)
+    return res, SplitState(mean, cov, ind, prior.streak, prior.own_mean, prior.own_cov, prior.own_streak, prior.rpos)

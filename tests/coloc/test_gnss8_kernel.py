@@ -15,7 +15,9 @@ MODELS = (GnssModelParams(bias_model="two_state"),
           GnssModelParams(bias_model="two_state", common_update="augmented"),
           GnssModelParams(bias_model="two_state", innovation_gate=0.0, common_share=0.3, local_share=0.2),
           GnssModelParams(bias_model="two_state", innovation_gate=0.99, max_exclusions=3, local_length_m=5.0,
-                          local_tau_s=10.0, common_tau_s=40.0))
+                          local_tau_s=10.0, common_tau_s=40.0),
+          GnssModelParams(bias_model="two_state", bias_follows_report=True),
+          GnssModelParams(bias_model="two_state", bias_follows_report=True, common_update="augmented"))
 
 
 def spd(rng, n, k, scale):
@@ -35,7 +37,10 @@ def inputs(seed, n=300):
     accel = rng.normal(size=(n, 2))
     predict = rng.random(n) < 0.8
     streak = rng.integers(0, 12, size=n)
-    return mean, cov, ind, accel, z, r, predict, streak
+    r_prev = spd(rng, n, 2, 2.0)
+    same = rng.random(n) < 0.5
+    r_prev[same] = r[same, :2, :2]  # an unchanged report: no map
+    return mean, cov, ind, accel, z, r, predict, streak, r_prev
 
 
 def close(a, b):
@@ -46,10 +51,10 @@ def close(a, b):
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("common_mode", [False, True])
 def test_cooperative_belief_kernel_equals_numpy(seed, model, common_mode):
-    mean, cov, ind, accel, z, r, predict, streak = inputs(seed)
+    mean, cov, ind, accel, z, r, predict, streak, r_prev = inputs(seed)
     before = [a.copy() for a in (mean, cov, ind)]
-    ref = _split_gnss_step(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, common_mode)
-    got = _gnss8(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, common_mode)
+    ref = _split_gnss_step(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, common_mode, r_prev)
+    got = _gnss8(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, common_mode, r_prev=r_prev)
     np.testing.assert_array_equal(got[3], ref[3])
     if model.innovation_gate > 0:
         assert 0 < ref[3].sum() < predict.sum()  # both update kinds are exercised
@@ -62,16 +67,17 @@ def test_cooperative_belief_kernel_equals_numpy(seed, model, common_mode):
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("model", MODELS)
 def test_own_track_kernel_equals_two_state_predict_update(seed, model):
-    mean, cov, _, accel, z, r, predict, streak = inputs(seed)
-    m, p, ex = two_state_predict_update(mean, cov, accel, z, r, predict, 0.1, MOTION, model, streak)
-    gm, gp, _, gex = _gnss8(mean, cov, None, accel, z, r, predict, 0.1, MOTION, model, streak, with_ind=False)
+    mean, cov, _, accel, z, r, predict, streak, r_prev = inputs(seed)
+    m, p, ex = two_state_predict_update(mean, cov, accel, z, r, predict, 0.1, MOTION, model, streak, r_prev)
+    gm, gp, _, gex = _gnss8(mean, cov, None, accel, z, r, predict, 0.1, MOTION, model, streak, with_ind=False,
+                            r_prev=r_prev)
     np.testing.assert_array_equal(gex, ex)
     close(gm, m)
     close(gp, p)
 
 
 def test_consider_leaves_the_common_mode_estimate():
-    mean, cov, ind, accel, z, r, predict, streak = inputs(3)
+    mean, cov, ind, accel, z, r, predict, streak, r_prev = inputs(3)
     model = GnssModelParams(bias_model="two_state")
     m, _, _, _ = _gnss8(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak)
     decay = np.where(predict, np.exp(-0.1 / model.common_tau_s), 1.0)
