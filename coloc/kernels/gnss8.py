@@ -59,7 +59,8 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
     not predict is never gated; nor one whose ``streak`` reached ``max_exclusions``; ``gate_threshold`` inf:
     no gate). ``with_ind``: the independent part ``ind`` carried (module docstring); ``sym_predict``: the
     predicted covariance symmetrized as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does;
-    ``mapped``: the biases mapped by ``tmap`` (N, 2, 2) (``bias_follows_report``). Returns new (mean, cov, ind, excluded); inputs are not modified."""
+    ``mapped``: the biases mapped by ``tmap`` (N, 2, 2) (``bias_follows_report``). Returns new (mean, cov, ind,
+    excluded); inputs are not modified."""
     n = mean.shape[0]
     m = mean.copy()
     p = cov.copy()

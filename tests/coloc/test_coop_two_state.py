@@ -3,7 +3,8 @@ common-mode bias (the feature evidence in the common-mode frame, c a consider st
 can neither move c nor shrink its variance) and the methods' consistency where the model is the truth.
 
 Synthetic scenes: :func:`scenes.road_frames` with the fix's position error replaced by the two-state model
-exactly: one common-mode bias c shared by every vehicle, a local bias per vehicle, white noise (:func:`two_state_frames`).
+exactly: one common-mode bias c shared by every vehicle, a local bias per vehicle, white noise
+(:func:`two_state_frames`).
 """
 
 import math
@@ -141,7 +142,8 @@ def test_the_common_mode_variance_is_the_consider_bound_at_every_step(common_mod
         np.testing.assert_allclose(s.cov[:, C, C], s.own_cov[:, C, C], rtol=1e-10)
         np.testing.assert_allclose((s.cov - s.ind)[:, C, :], 0.0, atol=1e-9)
         tol = 1e-9 * np.abs(s.cov).max()
-        assert min_eig(s.cov) > 0 and min_eig(s.ind) > -tol and min_eig(s.cov - s.ind) > -tol  # ind: PSD, may be singular
+        # the independent part is PSD and may be singular (common-mode fixes: only c's part is in it)
+        assert min_eig(s.cov) > 0 and min_eig(s.ind) > -tol and min_eig(s.cov - s.ind) > -tol
 
 
 def nees_runs(make, runs=100, steps=15):
