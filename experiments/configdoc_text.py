@@ -293,8 +293,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "bias_model": ("", "The receiver's error as one bias (`single`: `bias_share`, `bias_tau_s`) or two "
                            "(`two_state`, coloc/methods/gnss_bias2.py): a common-mode bias slow in time "
                            "(atmosphere, orbit, clock) and a local one decorrelating with the distance the "
-                           "estimator believes it travelled (multipath); fix z = p + c + l + n. `gnss` only: the "
-                           "cooperative and infrastructure methods keep the single bias. Default `single`."),
+                           "estimator believes it travelled (multipath); fix z = p + c + l + n. `gnss` and, with "
+                           "`[fusion]`, the cooperative methods (coloc/methods/coop_fusion.py: the feature "
+                           "evidence in the common-mode frame, c a consider state of the fusion); the "
+                           "infrastructure methods keep the single bias. Default `single`."),
         "common_share": (NO_UNIT, "Two-state model: share of the reported position variance that is the "
                                   "common-mode bias, in [0, 1); with `local_share` below 1 together. Default 0.5 "
                                   "(assumption: most of the reported variance is slow, about half of it "

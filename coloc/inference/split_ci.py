@@ -228,13 +228,15 @@ def _objective(pd, pi, fd, fi, w, a, b):
 
 
 @njit(cache=True)
-def split_ci_update(mean, cov, ind, y_f, p_f, r_f, has, iterations):
+def split_ci_update(mean, cov, ind, y_f, p_f, r_f, has, iterations, fixed_lo=0, fixed_hi=0):
     """Split CI of each vehicle's prior (mean (n, d), total covariance ``cov`` (n, d, d), independent
     part ``ind``; d >= 4, the first 4 states the kinematics [p, v]) with its combined feature evidence
     (y_F, P_F, R_F of :func:`combine_messages`, observing x[:4]), where ``has``. The weight w of the
     prior minimises the log det of the posterior kinematic covariance (golden section on [1e-4,
-    1 - 1e-4], ``iterations`` steps; the end points are candidates too). Returns (mean, cov, ind,
-    weight (n,), NaN where nothing was fused)."""
+    1 - 1e-4], ``iterations`` steps; the end points are candidates too). States ``fixed_lo`` to ``fixed_hi`` - 1
+    are not updated (zero gain rows; the Joseph form below holds for any gain): a consider state of the
+    fusion (:mod:`coloc.methods.coop_fusion`, the common-mode bias). Returns (mean, cov, ind, weight (n,), NaN
+    where nothing was fused)."""
     n, d = mean.shape
     m_out = mean.copy()
     c_out = cov.copy()
@@ -295,6 +297,9 @@ def split_ci_update(mean, cov, ind, y_f, p_f, r_f, has, iterations):
                 for e in range(4):
                     v += p1[r, e] * s_inv[e, c]
                 k_gain[r, c] = v
+        for r in range(fixed_lo, fixed_hi):
+            for c in range(4):
+                k_gain[r, c] = 0.0
         for r in range(d):
             v = 0.0
             for c in range(4):

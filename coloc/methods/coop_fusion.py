@@ -17,7 +17,25 @@ without a bias model its variance is 0 and the filters are the white ones of the
 
 A fresh vehicle starts both from ``frame.prior_z`` / ``prior_R`` with the bias at 0 and its stationary
 covariance (as :class:`coloc.methods.gnss_bias.GnssBiasTracker`), all of it independent. Reports use
-the 4-D kinematic marginal. Nothing here reads the world: only the covariance the receiver reports,
+the 4-D kinematic marginal.
+
+The two-state receiver model (``[gnss_model] bias_model = "two_state"``, :mod:`coloc.methods.gnss_bias2`): both
+filters on the 8-D state [p, v, c, l] (c the common-mode bias, l the local one; numba kernel
+:func:`coloc.kernels.gnss8.gnss8_step`, equal to the numpy references to 1e-12). The common-mode bias is, by the
+model's own assumption, shared by the receivers around: the other vehicles' own-sensor messages carry the same
+c, so the features they place, and the evidence their messages give this vehicle, are in the frame shifted by
+c. The rule: **the feature evidence observes the kinematics in the common-mode frame**, [p + c, v], and **c is a
+consider state of the fusion** (zero gain rows): the evidence cannot move c's estimate nor shrink its
+variance; it refines p + c, and p only as far as c allows (with perfect evidence, Var(p) -> Var(c)). Since
+nothing of the evidence is then correlated with c, what c puts in a belief is in the independent part (its
+prior, its driving noise, and the part of the one-fix entry posterior it drives: s_c R on p and c, -s_c R
+between them), so the fusion's covariance intersection never inflates c either: under ``common_update =
+"consider"`` the cooperative belief's common-mode covariance is the own track's, the consider bound, at
+every step (tests). With ``common_mode_gnss`` the local bias's driving noise and the fix's noise go to the
+dependent part, as the 6-state bias and fix do. What is sent to the features stays the own track's position
+marginal (its covariance holds Var(c): conservative for the common-mode frame). ``bias_follows_report`` maps
+both biases of both filters as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does (the 6-state
+filters do not apply it). Nothing here reads the world: only the covariance the receiver reports,
 the V2F rows and the ``[gnss_model]`` / ``[fusion]`` values.
 """
 
@@ -35,7 +53,9 @@ from coloc.inference.bpa import BpaResult
 from coloc.inference.params import IcpParams
 from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_ci_update
 from coloc.kernels.gnss6 import gnss6_step
-from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior
+from coloc.kernels.gnss8 import gnss8_step
+from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior, report_map
+from coloc.methods.gnss_bias2 import H8, two_state_entry_posterior, two_state_start, two_state_transition
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -86,14 +106,13 @@ class CoopFusion:
         """None without ``[fusion]``; the receiver model of ``[gnss_model]`` when ``bias_state``."""
         if params is None or params.rule == "bp":
             return None
-        # the single bias of [gnss_model] (bias_share, bias_tau_s): the two-state model is gnss's only
-        model = gnss_model.single_model() if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
+        model = gnss_model if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
         return CoopFusion(params, model)
 
 
 @dataclass(frozen=True)
 class SplitState:
-    """The 6-D filters of every vehicle (rows in the method's ``ids`` order)."""
+    """The 6-D (two-state model: 8-D) filters of every vehicle (rows in the method's ``ids`` order)."""
 
     mean: np.ndarray = field(default_factory=lambda: np.empty((0, 6)))  # cooperative belief
     cov: np.ndarray = field(default_factory=lambda: np.empty((0, 6, 6)))  # its total covariance
@@ -102,12 +121,21 @@ class SplitState:
     own_mean: np.ndarray = field(default_factory=lambda: np.empty((0, 6)))  # own-sensor track
     own_cov: np.ndarray = field(default_factory=lambda: np.empty((0, 6, 6)))
     own_streak: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    # each row's reported position covariance of its last step (two-state model with bias_follows_report)
+    rpos: np.ndarray | None = None
+
+    @staticmethod
+    def empty(d: int) -> "SplitState":
+        """No vehicle, states of dimension ``d``."""
+        e, ee = np.empty((0, d)), np.empty((0, d, d))
+        z = np.empty(0, dtype=np.int64)
+        return SplitState(e, ee, ee, z, e, ee, z, np.empty((0, 2, 2)))
 
     def reset_to_own(self, rows: np.ndarray) -> "SplitState":
         """The cooperative belief of ``rows`` (bool) replaced by the own-sensor track (ICP-DA-LC's step 10)."""
         mean, cov, ind = self.mean.copy(), self.cov.copy(), self.ind.copy()
         mean[rows], cov[rows], ind[rows] = self.own_mean[rows], self.own_cov[rows], self.own_cov[rows]
-        return SplitState(mean, cov, ind, self.streak, self.own_mean, self.own_cov, self.own_streak)
+        return SplitState(mean, cov, ind, self.streak, self.own_mean, self.own_cov, self.own_streak, self.rpos)
 
 
 @dataclass(frozen=True)
@@ -122,6 +150,7 @@ class SplitPrior:
     own_mean: np.ndarray
     own_cov: np.ndarray
     own_streak: np.ndarray
+    rpos: np.ndarray | None = None  # this step's reported position covariances (SplitState.rpos)
 
     def marginal(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(b0_mean, b0_cov, own_mean, own_cov): the 4-D kinematic marginals."""
@@ -137,31 +166,57 @@ def _carry(prev, match, fresh, n, shape, fill=0.0):
 
 
 def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams,
-                     streak, common_mode: bool = False):
+                     streak, common_mode: bool = False, r_prev=None):
     """The cooperative belief's model (1) prediction and fix (3), with the independent part carried
     along: P' = F P F^T + Q and P_i' = F P_i F^T + Q (the driving and bias noise are the vehicle's own),
     then the fix in Joseph form on both, K from the total (the fix's noise is independent; with
     ``common_mode`` the fix's noise and the bias's driving noise go to the dependent part). The fix's
     position is excluded by :class:`GnssModelParams`'s chi-square rule on this belief's innovation
     (velocity-only update, at most ``max_exclusions`` in a row; a fresh row is never gated), as
-    :func:`coloc.methods.gnss_bias.bias_predict_update` does for the own track."""
+    :func:`coloc.methods.gnss_bias.bias_predict_update` does for the own track. The two-state model (8-D
+    states): as :func:`coloc.methods.gnss_bias2.two_state_predict_update` (consider: zero common-mode gain
+    rows; ``r_prev``: the biases mapped to this step's report, ``bias_follows_report``), the common-mode bias's
+    driving noise always independent (module docstring), with ``common_mode`` the local bias's and the fix's
+    noise dependent."""
     n = mean.shape[0]
-    s = model.bias_share
     r_pos = r[:, :2, :2]
     m, p, pi = mean.copy(), cov.copy(), ind.copy()
-    if predict_mask.any():
-        _a, f, mp, q = bias_transition(m, accel, r_pos, dt, motion, model)
-        sel = predict_mask
-        m[sel] = mp[sel]
-        p[sel] = f @ p[sel] @ f.T + q[sel]
-        q_ind = q[sel].copy()
-        if common_mode:
-            q_ind[:, 4:, 4:] = 0.0
-        pi[sel] = f @ pi[sel] @ f.T + q_ind
+    fixed = None
+    if model.two_state:
+        h, white = H8, 1.0 - model.common_share - model.local_share
+        fixed = slice(4, 6) if model.common_update == "consider" else None
+        if predict_mask.any():
+            f, mp, q = two_state_transition(m, accel, r_pos, dt, motion, model)
+            if model.bias_follows_report and r_prev is not None:
+                t = report_map(r_prev, r_pos)
+                f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
+                f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
+                mp = np.einsum("nij,nj->ni", f, m)
+                mp[:, 0:2] += 0.5 * dt * dt * accel
+                mp[:, 2:4] += dt * accel
+            sel = predict_mask
+            ft = np.swapaxes(f[sel], -1, -2)
+            m[sel] = mp[sel]
+            p[sel] = f[sel] @ p[sel] @ ft + q[sel]
+            q_ind = q[sel].copy()
+            if common_mode:
+                q_ind[:, 6:, 6:] = 0.0
+            pi[sel] = f[sel] @ pi[sel] @ ft + q_ind
+    else:
+        h, white = H, 1.0 - model.bias_share
+        if predict_mask.any():
+            _a, f, mp, q = bias_transition(m, accel, r_pos, dt, motion, model)
+            sel = predict_mask
+            m[sel] = mp[sel]
+            p[sel] = f @ p[sel] @ f.T + q[sel]
+            q_ind = q[sel].copy()
+            if common_mode:
+                q_ind[:, 4:, 4:] = 0.0
+            pi[sel] = f @ pi[sel] @ f.T + q_ind
     rn = r.copy()
-    rn[:, :2, :2] *= 1.0 - s
-    innov = z - m @ H.T
-    sm = H @ p @ H.T + rn
+    rn[:, :2, :2] *= white
+    innov = z - m @ h.T
+    sm = h @ p @ h.T + rn
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]
@@ -170,11 +225,13 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
         if not sel.any():
             continue
-        hs = H[rows]
+        hs = h[rows]
         rs = rn[sel][:, rows, rows]
         gain = np.swapaxes(np.linalg.solve(sm[sel][:, rows, rows], hs @ p[sel]), -1, -2)  # P H^T S^-1
+        if fixed is not None:
+            gain[:, fixed, :] = 0.0
         m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
-        ikh = np.eye(6) - gain @ hs
+        ikh = np.eye(h.shape[1]) - gain @ hs
         noise = gain @ rs @ np.swapaxes(gain, -1, -2)
         for arr in (p, pi):
             u = ikh @ arr[sel] @ np.swapaxes(ikh, -1, -2) + (0.0 if common_mode and arr is pi else noise)
@@ -196,45 +253,134 @@ def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind)
 
 
+def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,
+           common_mode: bool = False, with_ind: bool = True, r_prev=None):
+    """The numba kernel :func:`coloc.kernels.gnss8.gnss8_step` of the two-state model: ``with_ind`` the
+    cooperative belief as :func:`_split_gnss_step`, else the own track as
+    :func:`coloc.methods.gnss_bias2.two_state_predict_update` (equal to 1e-12; tests; ``r_prev`` as there).
+    Returns (mean, cov, ind, excluded)."""
+    c = np.ascontiguousarray
+    ind = c(ind, dtype=float) if with_ind else np.empty((0, 8, 8))
+    mapped = bool(model.bias_follows_report and r_prev is not None)
+    r = np.asarray(r, dtype=float)
+    tmap = report_map(np.asarray(r_prev, dtype=float), r[:, :2, :2]) if mapped else np.empty((0, 2, 2))
+    return gnss8_step(c(mean, dtype=float), c(cov, dtype=float), ind, c(accel, dtype=float), c(z, dtype=float),
+                      c(r, dtype=float), c(predict_mask, dtype=np.bool_), c(streak, dtype=np.int64), float(dt),
+                      float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
+                      float(model.common_share), float(model.local_share), math.exp(-dt / model.common_tau_s),
+                      float(model.local_tau_s), float(model.local_length_m), model.common_update == "consider",
+                      float(model.gate_threshold), int(model.max_exclusions), bool(common_mode), bool(with_ind),
+                      not with_ind, c(tmap), mapped)
+
+
+def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T, T^-1) for 8-D states: y = T x = [p + c, v, c, l], the kinematics in the common-mode frame
+    (module docstring); identities for ``d`` = 6."""
+    t = np.eye(d)
+    if d == 8:
+        t[0, 4] = t[1, 5] = 1.0
+    ti = 2.0 * np.eye(d) - t
+    return t, ti
+
+
+def _common_part(r_pos: np.ndarray, share: float) -> np.ndarray:
+    """(K, 8, 8): the covariance of the common-mode-driven error of the one-fix posterior (p = z: e_p = c + ...,
+    e_c = -c): s_c R on the position and on c, -s_c R between them."""
+    k = r_pos.shape[0]
+    out = np.zeros((k, 8, 8))
+    b = share * r_pos
+    out[:, :2, :2] = out[:, 4:6, 4:6] = b
+    out[:, :2, 4:6] = out[:, 4:6, :2] = -b
+    return out
+
+
 def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel: np.ndarray, motion: MotionParams,
                 model: GnssModelParams, common_mode: bool = False) -> SplitPrior:
     """Both filters carried to this frame (``match`` = ``match_ids(previous ids, frame.vehicle_ids)``),
     predicted with the input ``accel`` (frame order) and updated by the step's fix (``common_mode``:
-    :attr:`FusionParams.common_mode_gnss`)."""
-    state = state or SplitState()
+    :attr:`FusionParams.common_mode_gnss`). The two-state model: 8-D filters (module docstring)."""
+    d = model.state_dim
+    two = model.two_state
+    state = state if state is not None else SplitState.empty(d)
     prior_z = np.asarray(frame.prior_z, dtype=float)
     fresh = fresh_rows(match, frame.entered, prior_z)
     r = np.asarray(frame.gnss_R, dtype=float)
     z = np.asarray(frame.gnss_z, dtype=float)
     accel = np.asarray(accel, dtype=float)
     n = len(frame.vehicle_ids)
-    init_m = np.zeros((n, 6))
-    init_p = np.zeros((n, 6, 6))
+    init_m = np.zeros((n, d))
+    init_p = np.zeros((n, d, d))
     if fresh.any():
         init_m[fresh, :4] = prior_z[fresh]
         init_p[fresh, :4, :4] = np.asarray(frame.prior_R, dtype=float)[fresh]
-        init_p[fresh, 4:, 4:] = model.bias_share * r[fresh, :2, :2]
+        if two:
+            two_state_start(init_p, fresh, r[:, :2, :2], model)
+        else:
+            init_p[fresh, 4:, 4:] = model.bias_share * r[fresh, :2, :2]
+    r_prev = None
+    if two and model.bias_follows_report:
+        # the report of each row's previous step; a fresh row's is this one's (no map)
+        r_prev = r[:, :2, :2].copy()
+        if state.rpos is not None and len(state.rpos) == len(state.mean):
+            r_prev[~fresh] = state.rpos[match[~fresh]]
+
+    def step(*args, **kw):
+        return _gnss8(*args, **kw, r_prev=r_prev) if two else _gnss6(*args, **kw)
+
+    def entry(mean, cov):
+        if two:
+            return two_state_entry_posterior(mean, cov, frame, fresh, r, model)
+        return entry_fix_posterior(mean, cov, frame, fresh, r, model.bias_share)
 
     def carried(prev_m, prev_p):
-        m, p = _carry(prev_m, match, fresh, n, (6,)), _carry(prev_p, match, fresh, n, (6, 6))
+        m, p = _carry(prev_m, match, fresh, n, (d,)), _carry(prev_p, match, fresh, n, (d, d))
         m[fresh], p[fresh] = init_m[fresh], init_p[fresh]
         return m, p
 
     keep = ~fresh
     own_m, own_p = carried(state.own_mean, state.own_cov)
     own_streak = _carry(state.own_streak, match, fresh, n, ())
-    own_m, own_p, _, own_ex = _gnss6(own_m, own_p, None, accel, z, r, keep, float(frame.dt), motion, model,
-                                     own_streak, with_ind=False)
-    entry_fix_posterior(own_m, own_p, frame, fresh, r, model.bias_share)  # the entry protocol, as gnss_bias
+    own_m, own_p, _, own_ex = step(own_m, own_p, None, accel, z, r, keep, float(frame.dt), motion, model,
+                                   own_streak, with_ind=False)
+    entry(own_m, own_p)  # the entry protocol, as gnss_bias
     m, p = carried(state.mean, state.cov)
-    pi = _carry(state.ind, match, fresh, n, (6, 6))
-    # A new vehicle's prior is its own receiver's: independent (dependent with common-mode errors).
-    pi[fresh] = 0.0 if common_mode else init_p[fresh]
+    pi = _carry(state.ind, match, fresh, n, (d, d))
+    # A new vehicle's prior is its own receiver's: independent (dependent with common-mode errors; the
+    # two-state model's common-mode bias stays independent: module docstring).
+    if common_mode:
+        pi[fresh] = 0.0
+        if two:
+            pi[fresh, 4:6, 4:6] = init_p[fresh, 4:6, 4:6]
+    else:
+        pi[fresh] = init_p[fresh]
     streak = _carry(state.streak, match, fresh, n, ())
-    m, p, pi, ex = _gnss6(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
-    once = entry_fix_posterior(m, p, frame, fresh, r, model.bias_share)
-    pi[once] = 0.0 if common_mode else p[once]  # the receiver's fix, once: independent unless errors are shared
-    return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0))
+    m, p, pi, ex = step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
+    once = entry(m, p)
+    # the receiver's fix, once: independent unless errors are shared (then only its common-mode-driven part)
+    if common_mode:
+        pi[once] = _common_part(r[once, :2, :2], model.common_share) if two else 0.0
+    else:
+        pi[once] = p[once]
+    return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0),
+                      r[:, :2, :2].copy() if r_prev is not None else None)
+
+
+def fuse_evidence(mean, cov, ind, y_f, p_f, r_f, has):
+    """Split CI of the beliefs (mean (n, d), total ``cov``, independent part ``ind``) with the step's feature
+    evidence (:func:`coloc.inference.split_ci.combine_messages`), where ``has``. 6-D states:
+    :func:`coloc.inference.split_ci.split_ci_update` as it is. 8-D (two-state model): the evidence observes
+    the kinematics in the common-mode frame, y = T x = [p + c, v, c, l], and the common-mode bias is a
+    consider state of the fusion (its gain rows zero): its estimate and its variance leave the fusion as they
+    came (module docstring). Returns (mean, cov, ind)."""
+    c = np.ascontiguousarray
+    if mean.shape[1] != 8:
+        out = split_ci_update(c(mean), c(cov), c(ind), y_f, p_f, r_f, has, SEARCH_ITERATIONS)
+        return out[0], out[1], out[2]
+    t, ti = common_frame(8)
+    my, py, iy, _ = split_ci_update(c(mean @ t.T), c(t @ cov @ t.T), c(t @ ind @ t.T), y_f, p_f, r_f, has,
+                                    SEARCH_ITERATIONS, 4, 6)
+    cov, ind = ti @ py @ ti.T, ti @ iy @ ti.T
+    return my @ ti.T, 0.5 * (cov + np.swapaxes(cov, -1, -2)), 0.5 * (ind + np.swapaxes(ind, -1, -2))
 
 
 def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray, z: np.ndarray, r: np.ndarray,
@@ -248,8 +394,7 @@ def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray
     msg_lam, msg_eta, y_f, p_f, r_f, has, comm = feature_evidence(
         np.ascontiguousarray(own_mean), np.ascontiguousarray(own_cov), owner, feature, z, r, adjacency,
         feature_prior_lam, feature_prior_eta, params, v2x, feature_ci)
-    mean, cov, ind, _ = split_ci_update(np.ascontiguousarray(prior.mean), np.ascontiguousarray(prior.cov),
-                                        np.ascontiguousarray(prior.ind), y_f, p_f, r_f, has, SEARCH_ITERATIONS)
+    mean, cov, ind = fuse_evidence(prior.mean, prior.cov, prior.ind, y_f, p_f, r_f, has)
     used = np.asarray(feature, dtype=np.int64) >= 0
     res = BpaResult(mean[:, :4].copy(), cov[:, :4, :4].copy(), used, msg_lam, msg_eta, 1, True, comm=comm)
-    return res, SplitState(mean, cov, ind, prior.streak, prior.own_mean, prior.own_cov, prior.own_streak)
+    return res, SplitState(mean, cov, ind, prior.streak, prior.own_mean, prior.own_cov, prior.own_streak, prior.rpos)

@@ -68,8 +68,9 @@ Outputs are the 4-D kinematic marginal (mean and covariance). All vehicles of a 
 batch. With ``bias_share = 0`` and no gate it is the white tracker (tests: to 1e-12).
 
 ``bias_model = "two_state"``: a common-mode bias slow in time and a local bias decorrelating with the distance
-travelled, an 8-D state (:mod:`coloc.methods.gnss_bias2`); ``gnss`` only (the cooperative and infrastructure
-methods keep this module's single bias: :meth:`GnssModelParams.single_model`).
+travelled, an 8-D state (:mod:`coloc.methods.gnss_bias2`); ``gnss`` and the cooperative methods of
+:mod:`coloc.methods.coop_fusion` (the infrastructure methods keep this module's single bias:
+:meth:`GnssModelParams.single_model`).
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
-from coloc.methods.gnss_bias2 import two_state_entry_posterior, two_state_predict_update, two_state_start
+from coloc.methods.gnss_bias2 import (gated_joseph_update, two_state_entry_posterior, two_state_predict_update,
+                                      two_state_start)
 from coloc.methods.registry import GNSS
 
 #: H of the fix for the state [p, v, b]: z_pos = p + b, z_vel = v.
@@ -123,8 +125,9 @@ class GnssModelParams:
     bias_follows_report: bool = False
     # The receiver's error as one bias ("single": bias_share, bias_tau_s above) or two
     # ("two_state": a common-mode bias slow in time and a local one decorrelating with the distance
-    # travelled; coloc.methods.gnss_bias2). Only `gnss` takes "two_state"; the other methods that take
-    # [gnss_model] keep the single model (bias_share, bias_tau_s).
+    # travelled; coloc.methods.gnss_bias2). `gnss` and, with [fusion], icp_known_da, icp_da_lc and icp_da_pf
+    # take "two_state" (coloc.methods.coop_fusion); the infrastructure methods keep the single model
+    # (bias_share, bias_tau_s).
     bias_model: str = "single"
     # Two-state model, common-mode bias (atmosphere, orbit, clock): its share of the reported position
     # variance and its correlation time. Assumption: the slow error is most of the reported variance
@@ -309,18 +312,7 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
         if streak is not None:
             excluded &= streak < model.max_exclusions
     # A full update where the fix passes, a velocity-only update (rows 2-3 of H) where it is excluded.
-    for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
-        if not sel.any():
-            continue
-        hs = H[rows]
-        rs = rn[sel][:, rows, rows]
-        phs = ph[sel][:, :, rows]
-        ss = sm[sel][:, rows, rows]
-        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, 6, k)
-        m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
-        ikh = np.eye(6) - gain @ hs
-        pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
-        p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
+    gated_joseph_update(m, p, ph, sm, rn, innov, excluded, H)
     if adaptive:
         return m, p, excluded, nis_avg
     return m, p, excluded

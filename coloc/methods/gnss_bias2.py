@@ -118,22 +118,34 @@ def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: M
         excluded = predict_mask & (nis > model.gate_threshold)
         if streak is not None:
             excluded &= streak < model.max_exclusions
-    consider = model.common_update == "consider"
+    fixed = slice(4, 6) if model.common_update == "consider" else None
+    gated_joseph_update(m, p, ph, sm, rn, innov, excluded, H8, fixed)
+    return m, p, excluded
+
+
+def gated_joseph_update(m, p, ph, sm, rn, innov, excluded, h, fixed=None) -> None:
+    """In place on a batch of states m (N, d), P (N, d, d): the fix's update of every row, the full fix
+    (rows 0-3 of ``h``, [z_pos, z_vel]) where not ``excluded``, the velocity only (rows 2-3) where it is.
+    ``ph`` = P H^T (N, d, 4), ``sm`` = H P H^T + R_n (N, 4, 4), ``rn`` the fix's noise R_n, ``innov`` z - H m.
+    K = P H_s^T S_s^-1; ``fixed`` (a slice of states, or None): their gain rows are zero, a Schmidt consider
+    state (module docstring). Joseph form, P = (I - K H) P (I - K H)^T + K R K^T (exact for any gain: Simon,
+    "Optimal State Estimation", 2006, Sec. 5.2), then symmetrized. Shared by the 6-state
+    (:func:`coloc.methods.gnss_bias.bias_predict_update`) and the 8-state model."""
+    d = p.shape[-1]
     for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
         if not sel.any():
             continue
-        hs = H8[rows]
+        hs = h[rows]
         rs = rn[sel][:, rows, rows]
         phs = ph[sel][:, :, rows]
         ss = sm[sel][:, rows, rows]
-        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, 8, k)
-        if consider:
-            gain[:, 4:6, :] = 0.0  # Schmidt: the common-mode state is never updated
+        gain = np.swapaxes(np.linalg.solve(ss, np.swapaxes(phs, -1, -2)), -1, -2)  # (U, d, k)
+        if fixed is not None:
+            gain[:, fixed, :] = 0.0
         m[sel] = m[sel] + np.einsum("nij,nj->ni", gain, innov[sel][:, rows])
-        ikh = np.eye(8) - gain @ hs
+        ikh = np.eye(d) - gain @ hs
         pu = ikh @ p[sel] @ np.swapaxes(ikh, -1, -2) + gain @ rs @ np.swapaxes(gain, -1, -2)
         p[sel] = 0.5 * (pu + np.swapaxes(pu, -1, -2))
-    return m, p, excluded
 
 
 def two_state_entry_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndarray, r: np.ndarray,

@@ -33,14 +33,16 @@ from scenes import infra_frames, road_frames, scrambled, select_vehicles
 
 # ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias); ``joint_oracle+world``: the
 # oracle told a correlated GNSS world, first fixes and an IMU (coloc.methods.joint_oracle.OracleWorld);
-# ``X+fusion``: X with [fusion] (coloc.methods.coop_fusion, white receiver); ``X+fusion+gnss_model``: with both tables.
+# ``X+fusion``: X with [fusion] (coloc.methods.coop_fusion, white receiver); ``X+fusion+gnss_model``: with both tables;
+# ``+two_state``: [gnss_model] with bias_model = "two_state" (coloc.methods.gnss_bias2).
 FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf")
-         for tail in ("", "+gnss_model")]
+         for tail in ("", "+gnss_model", "+two_state")]
 # Infrastructure methods with the receiver model (fg_topology_new, sme), sme with [fusion] (re-entry CI) and
 # rsu_bp with [fusion] (the PF rule of coloc.methods.pf_fusion).
 INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", "sme+fusion+gnss_model",
                   "rsu_bp+fusion", "rsu_bp+fusion+gnss_model"]
-RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "joint_oracle+world",
+RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "gnss+two_state",
+                                                                   "joint_oracle+world",
                                                                    "joint_oracle+heading"] + FUSED
             + INFRA_VARIANTS)
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
@@ -58,6 +60,13 @@ ROAD_MOTION = MotionParams(sigma_along=0.08, sigma_cross=0.08)
 INFRA_MOTION = MotionParams(sigma_cross=0.1)
 
 
+def _receiver(name: str):
+    """[gnss_model] of a parametrization name: the single model, the two-state one, or None."""
+    if name.endswith("+gnss_model"):
+        return GnssModelParams()
+    return GnssModelParams(bias_model="two_state") if name.endswith("+two_state") else None
+
+
 def build(name: str):
     method = _method(name)
     motion = INFRA_MOTION if method.infrastructure else ROAD_MOTION
@@ -65,10 +74,9 @@ def build(name: str):
         motion=motion, icp=IcpParams(motion=motion), lc=LcParams(),
         pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
-        gnss_model=GnssModelParams() if name.endswith("+gnss_model") else None,
+        gnss_model=_receiver(name),
         oracle_world=ORACLE_WORLD if name.endswith("+world") else ORACLE_HEADING if name.endswith("+heading") else None,
-        fusion=(CoopFusion.from_config(FusionParams(), GnssModelParams() if name.endswith("+gnss_model") else None)
-                if "+fusion" in name else None),
+        fusion=CoopFusion.from_config(FusionParams(), _receiver(name)) if "+fusion" in name else None,
     )
     est = build_method(method.name, params)
     assert est.name == method.name
