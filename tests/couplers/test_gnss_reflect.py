@@ -95,3 +95,27 @@ def test_fast_reflections_equal_the_reference_on_the_arterial():
     el = np.radians(rng.uniform(10, 88, 48))
     f, b = _same(edges, xy, az, el, 1.5, 10.0)
     assert 0 < f < b
+
+
+@pytest.mark.parametrize("nlos", ["block", "delay", "reflect"])
+def test_pseudorange_assembly_equals_its_numpy_reference(nlos):
+    """SatelliteErrorProcess.pseudorange_errors (trigonometry once, the kernels called directly, one assembly
+    kernel) against pseudorange_errors_reference: every array bit for bit, the reflections' rate coefficients
+    too, receivers inside and outside the shared-wall canyon, and with no receiver."""
+    from couplers.sensing.gnss_error import GnssErrorParams
+    from couplers.sensing.gnss_satellites import SatelliteErrorProcess
+
+    proc = SatelliteErrorProcess(GnssErrorParams(model="satellites", nlos=nlos), 3, 0.75, _shared_wall_canyon())
+    rng = np.random.default_rng(6)
+    for n in (60, 0):
+        xy = np.c_[rng.uniform(-260, 260, n), rng.uniform(-12, 12, n)]
+        u, white = rng.standard_normal((n, proc.sky.size)), rng.standard_normal((n, proc.sky.size))
+        for t in (0.0, 1800.0):
+            fast, slow = [], []
+            a = proc.pseudorange_errors(t, xy, u, white, fast)
+            b = proc.pseudorange_errors_reference(t, xy, u, white, slow)
+            for x, y in zip(a, b):
+                assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+            assert len(fast) == len(slow) and all(x.tobytes() == y.tobytes() for x, y in zip(fast, slow))
+            if n:
+                assert a[4].any()  # something is blocked
