@@ -362,6 +362,33 @@ def _assemble(common, sig_n, white, mp, u, above, cols, mode, b, d, cos_c, found
     return eps, usable, blocked, full
 
 
+@njit(cache=True)
+def _nlos_counts(blocked, above, usedm):
+    """Per receiver: blocked satellites above the mask, and blocked satellites used in its fix."""
+    n, s = blocked.shape
+    nlos = np.zeros(n, dtype=np.int64)
+    received = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        for k in range(s):
+            if blocked[i, k]:
+                nlos[i] += above[k]
+                received[i] += usedm[i, k]
+    return nlos, received
+
+
+@njit(cache=True)
+def _range_rate_errors(sig, w, rate, v):
+    """(N, S) range-rate errors sig w + rate . v (``rate`` (N, S, 2), or (0, S, 2): no reflected signal)."""
+    n, s = w.shape
+    out = np.empty((n, s))
+    for i in range(n):
+        for k in range(s):
+            out[i, k] = sig[k] * w[i, k]
+            if rate.shape[0]:
+                out[i, k] = out[i, k] + (rate[i, k, 0] * v[i, 0] + rate[i, k, 1] * v[i, 1])
+    return out
+
+
 class SatelliteErrorProcess:
     """``[gnss_error] model = "satellites"`` (module docstring). Same ``step`` interface as
     :class:`couplers.sensing.gnss_error.GnssErrorProcess`; after each step ``reported_cov`` (N, 2, 2) is the
@@ -537,9 +564,9 @@ class SatelliteErrorProcess:
             err[lost[~held]] = NO_FIX_SIGMA_M * self.no_fix.standard_normal((k, 2))
             cov[lost] = np.eye(2) * NO_FIX_SIGMA_M ** 2
         above = el >= self.mask
+        nlos, nlos_received = _nlos_counts(blocked, above, usedm)
         self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
-                     "nlos": (blocked & above[None, :]).sum(axis=1),
-                     "nlos_received": (blocked & usedm).sum(axis=1)}
+                     "nlos": nlos, "nlos_received": nlos_received}
         self._geom = (los, el, usedm, rate[0] if rate else None, ok)
         self.reported_cov = cov
         self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
@@ -556,9 +583,10 @@ class SatelliteErrorProcess:
         w = self.doppler_noise.standard_normal((n, s))
         sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
         sig = p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el)
-        eps_rate = sig[None, :] * w
-        if rate is not None:  # a reflected signal's Doppler is the antenna image's: g . v
-            eps_rate = eps_rate + np.einsum("nsk,nk->ns", rate, np.asarray(v_true, dtype=float).reshape(-1, 2))
+        # sig w, plus a reflected signal's Doppler, the antenna image's: g . v (numpy's einsum differs from the
+        # kernel's sum only in the sign of a zero, which the addition to sig w removes; tested)
+        eps_rate = _range_rate_errors(sig, w, np.zeros((0, s, 2)) if rate is None else rate,
+                                      np.ascontiguousarray(v_true, dtype=np.float64).reshape(-1, 2))
         var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
         err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),

@@ -119,3 +119,24 @@ def test_pseudorange_assembly_equals_its_numpy_reference(nlos):
             assert len(fast) == len(slow) and all(x.tobytes() == y.tobytes() for x, y in zip(fast, slow))
             if n:
                 assert a[4].any()  # something is blocked
+
+
+def test_receiver_kernels_equal_the_numpy_expressions_they_replaced():
+    """The NLOS counts and the range-rate errors (sig w + einsum("nsk,nk->ns", rate, v), whose zeros may carry
+    another sign than the kernel's: the sum with sig w is the same) bit for bit on random inputs with zeros."""
+    from couplers.sensing.gnss_satellites import _nlos_counts, _range_rate_errors
+
+    rng = np.random.default_rng(12)
+    for n in (0, 1, 37, 150):
+        s = 48
+        blocked, usedm, above = rng.random((n, s)) < 0.3, rng.random((n, s)) < 0.6, rng.random(s) < 0.4
+        got = _nlos_counts(blocked, above, usedm)
+        want = ((blocked & above[None, :]).sum(axis=1), (blocked & usedm).sum(axis=1))
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype and g.tobytes() == w.tobytes()
+        sig, w = rng.uniform(0.05, 0.2, s), rng.standard_normal((n, s))
+        rate = rng.standard_normal((n, s, 2)) * (rng.random((n, s, 1)) < 0.2)
+        v = rng.standard_normal((n, 2)) * 10 * (rng.random((n, 1)) < 0.8)
+        assert _range_rate_errors(sig, w, np.zeros((0, s, 2)), v).tobytes() == (sig[None, :] * w).tobytes()
+        want = sig[None, :] * w + np.einsum("nsk,nk->ns", rate, v)
+        assert _range_rate_errors(sig, w, rate, v).tobytes() == want.tobytes()
