@@ -28,7 +28,9 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      --repeat 3, CPU medians of the pairs, load 10-13, docs/validation/realistic_sensing.md "Second round of
      frame speed-ups"): idealised + "satellites" 2.20x -> 1.52x the idealised frames, realistic preset (field
      model) 2.34x -> 1.96x, realistic preset with "satellites" 2.73x -> 2.14x: 2x met by the first, at the
-     edge for the second, not met by the third (pairs spread 1.7-2.35x at this load);
+     edge for the second, not met by the third (pairs spread 1.7-2.35x at this load); with the tuning overlay,
+     after the reflection and assembly kernels (docs/performance.md, "The satellite receiver's frame cost"):
+     2.29x (pairs 2.47, 2.29, 2.29, load 17-20) against 2.55x / 2.61x before, the realistic preset 1.9-2.1x;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)
