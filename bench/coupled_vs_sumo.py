@@ -31,6 +31,8 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      edge for the second, not met by the third (pairs spread 1.7-2.35x at this load); with the tuning overlay,
      after the reflection and assembly kernels (docs/performance.md, "The satellite receiver's frame cost"):
      2.29x (pairs 2.47, 2.29, 2.29, load 17-20) against 2.55x / 2.61x before, the realistic preset 1.9-2.1x;
+     on a quieter machine (load 2-6) 3.54x against 3.44x, the realistic preset 2.8-2.9x: the ratios follow the
+     load, the idealised frames (mostly SUMO) speeding up more than the realistic ones;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)
