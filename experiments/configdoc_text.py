@@ -386,6 +386,12 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                            "frame (model (4)); `\"range_bearing\"`: range, bearing and range rate in the sensor's "
                            "frame with the sigma_r_m / sigma_b_deg / sigma_rdot_mps noise, and every estimator "
                            "rotates them with its own heading estimate (`coloc/core/detections.py`)."),
+        "lever_arm_range_rate": ("", "With `detections = \"range_bearing\"`: `true`, the range rate is the "
+                                     "sensor's own, its mount point moving with the vehicle's velocity plus yaw "
+                                     "rate x `mount_x_m` (the true yaw rate from the heading's change over the "
+                                     "step), and the estimators add back that term with their own gyroscope's "
+                                     "yaw rate (`[inertial]`; without it, none); `false` (default): relative to "
+                                     "the vehicle's velocity (`couplers/sensing/sensor_frame.py`)."),
     },
     "perception.sensors": {
         "name": ("", "Name of the sensor (the row's sensor in the detections)."),

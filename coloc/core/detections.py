@@ -24,6 +24,20 @@ The last term is second order in the heading error: z is a body-frame vector rot
 rotates z by d, and the part along z, (cos d - 1) z, is missed by J (a bias of r heading_var / 2 toward the
 vehicle, 0.05 m at 80 m and 2 deg, against sigma_r = 0.1 m).
 
+Lever arm (:class:`MountSensorDetections`, the frames of ``[perception] lever_arm_range_rate = true``): the
+range rate is then the sensor's own, relative to its mount point, which moves with the vehicle's velocity plus
+omega mount_x u_perp(psi) (omega the yaw rate). The radial component of the relative velocity of model (4) is
+then
+
+    rdot_c = rdot + omega mount_x sin(yaw + b)           (u(phi) . u_perp(psi) = sin(phi - psi))
+
+and z_v = rdot_c u(phi) + 0 u_perp(phi); the Jacobian gains d z_v / d omega = [0; mount_x sin(yaw + b) u(phi)]
+and, in the bearing's column, omega mount_x cos(yaw + b) u(phi) in the velocity part, with rdot_c in place of
+rdot everywhere else. omega is the estimator's own: the IMU's gyroscope ``Frame.imu.yaw_rate`` with variance
+:data:`GYRO_YAW_RATE_SIGMA` ^2 carried into R through that Jacobian, like the heading's. A frame without an IMU
+gives the estimator no yaw rate of its own: omega is taken as 0 without variance, i.e. the rows are converted
+as without the lever arm (up to 2.25 m x 0.3 rad/s = 0.7 m/s of radial velocity missed in a sharp turn).
+
 Tangential velocity: a radar measures the radial component only. Model (4) needs a 2-D relative
 velocity, so the tangential component is carried as 0 with std :data:`TANGENTIAL_SIGMA_MPS` = 30 m/s: the
 relative velocity of anything in view in urban traffic is bounded by two vehicles closing at 50 km/h
@@ -47,15 +61,16 @@ the line of sight.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
 if TYPE_CHECKING:  # coloc.core.frame imports this module for SensorDetections
     from coloc.core.frame import Frame
 
-__all__ = ["SensorDetections", "TANGENTIAL_SIGMA_MPS", "to_net_frame", "heading_from_velocity", "HeadingMemory",
-           "with_net_detections", "HEADING_VAR_UNKNOWN"]
+__all__ = ["SensorDetections", "MountSensorDetections", "TANGENTIAL_SIGMA_MPS", "to_net_frame",
+           "heading_from_velocity", "HeadingMemory", "with_net_detections", "HEADING_VAR_UNKNOWN",
+           "GYRO_YAW_RATE_SIGMA"]
 
 #: Std of the unobserved tangential relative velocity (m/s): see the module docstring.
 TANGENTIAL_SIGMA_MPS = 30.0
@@ -63,6 +78,10 @@ TANGENTIAL_SIGMA_MPS = 30.0
 HEADING_VAR_UNKNOWN = float(np.pi ** 2 / 3.0)
 #: Yaw rate (rad/s) whose square times Ts^2 the kept heading's variance of a slow vehicle grows by per step.
 YAW_RATE_SIGMA = 0.01
+#: Std (rad/s) an estimator assumes for its gyroscope's yaw rate in the lever-arm term of the range rate: the
+#: turn-on bias of 0.5 deg/s (RotorS' default gyroscope, the value the heading rule below also cites), which
+#: dominates the white noise of a step's mean rate.
+GYRO_YAW_RATE_SIGMA = float(np.radians(0.5))
 
 
 @dataclass(frozen=True)
@@ -78,14 +97,32 @@ class SensorDetections:
     sigma_bearing: np.ndarray  # (O,) rad
     sigma_range_rate: np.ndarray  # (O,) m/s
 
+    #: The range rate is relative to the sensor's own mount point (yaw rate x lever arm included): False here.
+    range_rate_at_mount: ClassVar[bool] = False
+
+
+@dataclass(frozen=True)
+class MountSensorDetections(SensorDetections):
+    """:class:`SensorDetections` whose range rate is relative to the sensor's mount point, which moves with the
+    vehicle's yaw rate times the lever arm (module docstring, "Lever arm")."""
+
+    range_rate_at_mount: ClassVar[bool] = True
+
 
 def to_net_frame(
     det: SensorDetections, heading: np.ndarray, heading_var: np.ndarray,
-    tangential_sigma: float = TANGENTIAL_SIGMA_MPS,
+    tangential_sigma: float = TANGENTIAL_SIGMA_MPS, yaw_rate: np.ndarray | None = None,
+    yaw_rate_var: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Model (4)'s (z (O, 4), R (O, 4, 4)) from sensor-frame rows and the owner's heading estimate per
     row (``heading``, ``heading_var`` (O,)); the equations are in the module docstring. Vectorised over
-    the rows."""
+    the rows. ``yaw_rate``, ``yaw_rate_var`` (O,): the owner's yaw rate estimate and its variance, for rows
+    whose range rate is the sensor's own (:func:`to_net_frame_lever_arm`); None: the range rate is taken as
+    relative to the vehicle."""
+    if yaw_rate is not None:
+        return to_net_frame_lever_arm(det, heading, heading_var, yaw_rate,
+                                      np.zeros_like(np.asarray(yaw_rate, dtype=float)) if yaw_rate_var is None
+                                      else yaw_rate_var, tangential_sigma)
     r = np.asarray(det.range, dtype=float)
     rdot = np.asarray(det.range_rate, dtype=float)
     mount = np.asarray(det.mount_x, dtype=float)
@@ -120,6 +157,59 @@ def to_net_frame(
     # Jacobian misses; its mean square E[(cos d - 1)^2] for d ~ N(0, heading_var) is added along z (it
     # matters once r heading_var / 2 nears sigma_r: 2 deg at 80 m).
     k2 = 0.5 * (1.0 + np.exp(-2.0 * hv)) - 2.0 * np.exp(-0.5 * hv) + 1.0
+    R += k2[:, None, None] * z[:, :, None] * z[:, None, :]
+    return z, R
+
+
+def to_net_frame_lever_arm(
+    det: SensorDetections, heading: np.ndarray, heading_var: np.ndarray, yaw_rate: np.ndarray,
+    yaw_rate_var: np.ndarray, tangential_sigma: float = TANGENTIAL_SIGMA_MPS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`to_net_frame` for a range rate relative to the sensor's mount point (module docstring, "Lever
+    arm"): rdot_c = rdot + omega mount_x sin(yaw + b), and the yaw rate's variance through its Jacobian."""
+    r = np.asarray(det.range, dtype=float)
+    mount = np.asarray(det.mount_x, dtype=float)
+    psi = np.asarray(heading, dtype=float)
+    hv = np.asarray(heading_var, dtype=float)
+    om = np.asarray(yaw_rate, dtype=float)
+    ov = np.asarray(yaw_rate_var, dtype=float)
+    ab = np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)  # phi - psi
+    sab, cab = np.sin(ab), np.cos(ab)
+    rdot = np.asarray(det.range_rate, dtype=float) + om * mount * sab  # the vehicle's radial component
+    q = om * mount * cab  # d rdot_c / d b
+    arm = mount * sab  # d rdot_c / d omega
+    phi = psi + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)  # as to_net_frame
+    c, s = np.cos(phi), np.sin(phi)
+    ch, sh = np.cos(psi), np.sin(psi)
+    o = r.shape[0]
+    z = np.empty((o, 4))
+    z[:, 0] = mount * ch + r * c
+    z[:, 1] = mount * sh + r * s
+    z[:, 2] = rdot * c
+    z[:, 3] = rdot * s
+    e = np.stack([c, s], axis=1)
+    n = np.stack([-s, c], axis=1)
+    g = np.stack([-mount * sh - r * s, mount * ch + r * c], axis=1)
+    ee = e[:, :, None] * e[:, None, :]
+    nn = n[:, :, None] * n[:, None, :]
+    en = e[:, :, None] * n[:, None, :]
+    ne = n[:, :, None] * e[:, None, :]
+    var_r = np.asarray(det.sigma_range, dtype=float) ** 2
+    var_b = np.asarray(det.sigma_bearing, dtype=float) ** 2
+    var_rd = np.asarray(det.sigma_range_rate, dtype=float) ** 2
+
+    def col(v):
+        return v[:, None, None]
+
+    R = np.empty((o, 4, 4))
+    R[:, :2, :2] = col(var_r) * ee + col(var_b * r * r) * nn + col(hv) * g[:, :, None] * g[:, None, :]
+    # velocity: bearing column rdot_c n + q e, heading column rdot_c n, range rate e, yaw rate arm e
+    R[:, 2:, 2:] = (col(var_rd + var_b * q * q + ov * arm * arm) * ee + col(var_b * rdot * q) * (en + ne)
+                    + col((var_b + hv) * rdot * rdot + float(tangential_sigma) ** 2) * nn)
+    R[:, :2, 2:] = (col(var_b * r * rdot) * nn + col(var_b * r * q) * ne
+                    + col(hv * rdot) * g[:, :, None] * n[:, None, :])
+    R[:, 2:, :2] = R[:, :2, 2:].transpose(0, 2, 1)
+    k2 = 0.5 * (1.0 + np.exp(-2.0 * hv)) - 2.0 * np.exp(-0.5 * hv) + 1.0  # as in to_net_frame
     R += k2[:, None, None] * z[:, :, None] * z[:, None, :]
     return z, R
 
@@ -196,5 +286,10 @@ def with_net_detections(
     psi, var, memory = vehicle_headings(frame, np.asarray(mean, dtype=float), np.asarray(cov, dtype=float),
                                         np.asarray(idx, dtype=np.int64), memory, min_speed)
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
-    z, R = to_net_frame(det, psi[owner], var[owner])
+    if det.range_rate_at_mount and frame.imu is not None:  # the lever arm with the estimator's own gyroscope
+        om = np.asarray(frame.imu.yaw_rate, dtype=float)[owner]
+        z, R = to_net_frame(det, psi[owner], var[owner], yaw_rate=om,
+                            yaw_rate_var=np.full(om.shape, GYRO_YAW_RATE_SIGMA ** 2))
+    else:  # no yaw rate of its own: omega = 0 without variance (module docstring)
+        z, R = to_net_frame(det, psi[owner], var[owner])
     return replace(frame, v2f_z=z, v2f_R=R), memory

@@ -95,7 +95,9 @@ from numba import njit
 from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net.buildings import Buildings
-from couplers.sensing.gnss_sky import BuildingEdges, Sky, clearance_radius, line_of_sight, net_origin, reflections
+from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
+from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, _los_kernel, clearance_radius,
+                                       line_of_sight, net_origin, reflections)
 from couplers.sensing.perception import effect_rng
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
@@ -320,6 +322,73 @@ def _pseudorange_sum(common, sig_n, white, mp, u):
     return eps
 
 
+@njit(cache=True)
+def _assemble(common, sig_n, white, mp, u, above, cols, mode, b, d, cos_c, found, ex, g, want_rate):
+    """The (N, S) arrays of :meth:`SatelliteErrorProcess.pseudorange_errors_reference` from its per-satellite
+    terms and the line of sight of the columns ``cols`` (the satellites above the mask): eps (the sum of
+    :func:`_pseudorange_sum`, plus the extra path where the reference adds one: ``mode`` 2 "delay", 2 d cos(el)
+    where blocked, 3 "reflect", the reflection's ``ex``), usable (above the mask, and not blocked under 1
+    "block", not blocked without a reflection under 3), blocked, and under 3 with ``want_rate`` the (N, S, 2)
+    range-rate coefficients (else (0, S, 2)). ``mode`` 0: no buildings or no receiver."""
+    n, s = white.shape
+    eps = np.empty((n, s))
+    usable = np.empty((n, s), dtype=np.bool_)
+    blocked = np.zeros((n, s), dtype=np.bool_)
+    full = np.zeros((n if want_rate else 0, s, 2))
+    extra = np.zeros(s)
+    for i in range(n):
+        for k in range(s):
+            eps[i, k] = (common[k] + sig_n[k] * white[i, k]) + mp[k] * u[i, k]
+            usable[i, k] = above[k]
+        if mode == 0:
+            continue
+        if mode >= 2:  # the reference adds an (N, S) array of extra paths, zero off the columns
+            for j in range(cols.size):
+                if mode == 2:
+                    extra[cols[j]] = 2.0 * d[i, j] * cos_c[j] if b[i, j] else 0.0
+                else:
+                    extra[cols[j]] = ex[i, j]
+            for k in range(s):
+                eps[i, k] = eps[i, k] + extra[k]
+        for j in range(cols.size):
+            k = cols[j]
+            blocked[i, k] = b[i, j]
+            if mode == 1:
+                usable[i, k] = usable[i, k] and not b[i, j]
+            elif mode == 3:
+                usable[i, k] = usable[i, k] and not (b[i, j] and not found[i, j])
+                if want_rate:
+                    full[i, k, 0], full[i, k, 1] = g[i, j, 0], g[i, j, 1]
+    return eps, usable, blocked, full
+
+
+@njit(cache=True)
+def _nlos_counts(blocked, above, usedm):
+    """Per receiver: blocked satellites above the mask, and blocked satellites used in its fix."""
+    n, s = blocked.shape
+    nlos = np.zeros(n, dtype=np.int64)
+    received = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        for k in range(s):
+            if blocked[i, k]:
+                nlos[i] += above[k]
+                received[i] += usedm[i, k]
+    return nlos, received
+
+
+@njit(cache=True)
+def _range_rate_errors(sig, w, rate, v):
+    """(N, S) range-rate errors sig w + rate . v (``rate`` (N, S, 2), or (0, S, 2): no reflected signal)."""
+    n, s = w.shape
+    out = np.empty((n, s))
+    for i in range(n):
+        for k in range(s):
+            out[i, k] = sig[k] * w[i, k]
+            if rate.shape[0]:
+                out[i, k] = out[i, k] + (rate[i, k, 0] * v[i, 0] + rate[i, k, 1] * v[i, 1])
+    return out
+
+
 class SatelliteErrorProcess:
     """``[gnss_error] model = "satellites"`` (module docstring). Same ``step`` interface as
     :class:`couplers.sensing.gnss_error.GnssErrorProcess`; after each step ``reported_cov`` (N, 2, 2) is the
@@ -371,7 +440,52 @@ class SatelliteErrorProcess:
     def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
         common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
-        the (N, S, 2) range-rate coefficients of the received reflections (zero elsewhere)."""
+        the (N, S, 2) range-rate coefficients of the received reflections (zero elsewhere). The values of
+        :meth:`pseudorange_errors_reference` (tested): numpy's trigonometry on the same arrays, the line of sight
+        and reflection kernels called directly, and the (N, S) sums and masks in one kernel
+        (:func:`_assemble`)."""
+        p = self.params
+        los, az, el = self.sky.look(p.constellation_time_s + t)
+        above = el >= self.mask
+        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
+        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
+                  + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
+        sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
+        xy = np.ascontiguousarray(xy, dtype=np.float64)
+        n, s = len(xy), el.size
+        mode = 0  # no buildings (or no receiver): every satellite above the mask, no extra path
+        cols = np.flatnonzero(above)
+        m = cols.size
+        b = found = np.zeros((n, m), dtype=np.bool_)
+        d = ex = np.zeros((n, m))
+        g = np.zeros((n, m, 2))
+        cos_c = np.zeros(m)
+        if self.edges is not None and n:
+            mode = {"block": 1, "delay": 2, "reflect": 3}[p.nlos]
+            if self.radius > 0:  # else nothing is blocked (line_of_sight and reflections return before their kernels)
+                e = self.edges
+                az_c, el_c = az[cols], el[cols]
+                sa, ca, te = np.sin(az_c), np.cos(az_c), np.tan(el_c)  # as line_of_sight and reflections take them
+                grid = e.grid(self.radius, LOS_GRID_DIVISIONS)
+                b, d = _los_kernel(xy, *grid, float(self.radius), e.edges, e.start, e.boxes, e.heights, sa, ca, te,
+                                   float(p.antenna_height_m), True)
+                if mode >= 2:
+                    cos_c = np.cos(el_c)
+                if mode == 3:
+                    found, ex, g = reflect_kernel(xy, b, *e.grid(self.radius), float(self.radius), e.edges, e.start,
+                                                  e.boxes, e.heights, sa, ca, te, cos_c, float(p.antenna_height_m),
+                                                  facade_lines(e), *grid)
+        eps, usable, blocked, full = _assemble(common, sig_n, np.ascontiguousarray(white, dtype=np.float64),
+                                               p.multipath_m / sin_el, np.ascontiguousarray(u, dtype=np.float64),
+                                               above, cols, mode, b, d, cos_c, found, ex, g,
+                                               mode == 3 and rate is not None)
+        if mode == 3 and rate is not None:
+            rate.append(full)
+        return eps, usable, los, el, blocked
+
+    def pseudorange_errors_reference(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray,
+                                     rate: list | None = None):
+        """:meth:`pseudorange_errors` in numpy around the line of sight and reflection functions (its reference)."""
         p = self.params
         los, az, el = self.sky.look(p.constellation_time_s + t)
         above = el >= self.mask
@@ -450,9 +564,9 @@ class SatelliteErrorProcess:
             err[lost[~held]] = NO_FIX_SIGMA_M * self.no_fix.standard_normal((k, 2))
             cov[lost] = np.eye(2) * NO_FIX_SIGMA_M ** 2
         above = el >= self.mask
+        nlos, nlos_received = _nlos_counts(blocked, above, usedm)
         self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
-                     "nlos": (blocked & above[None, :]).sum(axis=1),
-                     "nlos_received": (blocked & usedm).sum(axis=1)}
+                     "nlos": nlos, "nlos_received": nlos_received}
         self._geom = (los, el, usedm, rate[0] if rate else None, ok)
         self.reported_cov = cov
         self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
@@ -469,9 +583,10 @@ class SatelliteErrorProcess:
         w = self.doppler_noise.standard_normal((n, s))
         sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
         sig = p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el)
-        eps_rate = sig[None, :] * w
-        if rate is not None:  # a reflected signal's Doppler is the antenna image's: g . v
-            eps_rate = eps_rate + np.einsum("nsk,nk->ns", rate, np.asarray(v_true, dtype=float).reshape(-1, 2))
+        # sig w, plus a reflected signal's Doppler, the antenna image's: g . v (numpy's einsum differs from the
+        # kernel's sum only in the sign of a zero, which the addition to sig w removes; tested)
+        eps_rate = _range_rate_errors(sig, w, np.zeros((0, s, 2)) if rate is None else rate,
+                                      np.ascontiguousarray(v_true, dtype=np.float64).reshape(-1, 2))
         var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
         err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),

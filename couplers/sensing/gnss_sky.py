@@ -373,7 +373,8 @@ def _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
 
 
 def reflections(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.ndarray, blocked: np.ndarray,
-                antenna_height_m: float, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                antenna_height_m: float, radius: float,
+                reference: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(found (N, S) bool, extra path (N, S) m, rate coefficient g (N, S, 2)) of the shortest single-bounce
     specular reflection off a building facade for every ``blocked`` (vehicle, satellite) pair.
 
@@ -389,15 +390,24 @@ def reflections(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.nda
     shortest extra path is taken (the earliest replica, which a code tracking loop locks to when the direct
     signal is absent). ``g``: the extra path's rate for a receiver velocity v is g . v, g = -2 cos(el) cos(dphi)
     n (moving toward the wall shortens it): the Doppler error of the reflected signal. No valid facade: the
-    signal is not received (multiple bounces and diffraction are not modelled)."""
+    signal is not received (multiple bounces and diffraction are not modelled).
+
+    ``reference`` True: the kernel before its speed-ups (every facade's geometry per satellite, both legs tested
+    against every edge of every candidate building), which :func:`couplers.sensing.gnss_reflect.reflect_kernel`
+    reproduces exactly (tested)."""
     xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     n, s = len(xy), az.size
     if edges.heights.size == 0 or radius <= 0 or n == 0:
         return np.zeros((n, s), dtype=bool), np.zeros((n, s)), np.zeros((n, s, 2))
     x0, y0, cell, nx, ny, start, ids = edges.grid(radius)
-    return _reflect_kernel(xy, np.ascontiguousarray(blocked, dtype=np.bool_), x0, y0, cell, nx, ny, start, ids,
-                           float(radius), edges.edges, edges.start, edges.boxes, edges.heights, np.sin(az),
-                           np.cos(az), np.tan(el), np.cos(el), float(antenna_height_m))
+    args = (xy, np.ascontiguousarray(blocked, dtype=np.bool_), x0, y0, cell, nx, ny, start, ids, float(radius),
+            edges.edges, edges.start, edges.boxes, edges.heights, np.sin(az), np.cos(az), np.tan(el), np.cos(el),
+            float(antenna_height_m))
+    if reference:
+        return _reflect_kernel_reference(*args)
+    from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
+
+    return reflect_kernel(*args, facade_lines(edges), *edges.grid(radius, LOS_GRID_DIVISIONS))
 
 
 @njit(cache=True)
@@ -443,7 +453,7 @@ def _ray_hits(px, py, dx, dy, tan_el, h_ant, t_lo, t_hi, skip_edge, cand, m, edg
 
 
 @njit(cache=True)
-def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn,
+def _reflect_kernel_reference(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn,
                     tan_el, cos_el, h_ant):
     n, s = blocked.shape
     found = np.zeros((n, s), dtype=np.bool_)
@@ -534,3 +544,4 @@ def _reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edg
                 rate[i, k, 1] = -2.0 * cos_el[k] * cphi * nyw
                 break
     return found, extra, rate
+

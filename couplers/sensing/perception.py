@@ -187,11 +187,21 @@ class PerceptionParams:
     # What a detection reports: "net_xy", the relative state in the net frame (model (4) as the papers);
     # "range_bearing", range, bearing and range rate in the sensor's frame (couplers.sensing.sensor_frame).
     detections: str = "net_xy"
+    # With "range_bearing": the range rate is the sensor's own, relative to its mount point moving with the
+    # vehicle's velocity plus yaw rate x lever arm (mount_x_m ahead of the reference point), and estimators
+    # convert it back with their own yaw rate (couplers.sensing.sensor_frame, coloc.core.detections). False:
+    # relative to the vehicle's velocity (the lever arm's rotation neglected), as before.
+    lever_arm_range_rate: bool = False
 
     def __post_init__(self):
         if self.detections not in DETECTION_KINDS:
             raise InputError(None, "detections", f"must be one of {', '.join(map(repr, DETECTION_KINDS))}, "
                                                  f"got {self.detections!r}")
+        if self.lever_arm_range_rate is not False and self.lever_arm_range_rate is not True:
+            raise InputError(None, "lever_arm_range_rate", f"must be true or false, got {self.lever_arm_range_rate!r}")
+        if self.lever_arm_range_rate and self.detections != "range_bearing":
+            raise InputError(None, "lever_arm_range_rate", "needs detections = \"range_bearing\" (a range rate in "
+                                                           f"the sensor's frame), got detections = {self.detections!r}")
         if not isinstance(self.sensors, tuple) or not self.sensors:
             raise InputError(None, "sensors", "at least one sensor is needed")
         if not (_finite(self.persistent_clutter_per_km) and self.persistent_clutter_per_km >= 0):

@@ -18,7 +18,16 @@ with x_F, v_F the true feature state for a detected feature; for a false detecti
 perception drew (its net-frame row, noise included: a uniformly drawn false alarm moved by a small
 Gaussian is still a false alarm) and v_F = 0 (clutter looks like a static object). The sensor's velocity
 is the vehicle's: the lever arm's rotation (yaw rate x mount_x) is neglected (zero for a mount at the
-reference point). n ~ N(0, I3) per row from the perception's "range_bearing" stream
+reference point), unless ``[perception] lever_arm_range_rate = true``: then the sensor moves with its mount
+point, v_o = v_i + omega_i mount_x u_perp(psi_i) (u_perp(a) = [-sin a, cos a]), and
+
+    rdot = p . (v_F - v_o) / |p| + sigma_rdot n_rdot
+
+with omega_i the true yaw rate over the step, wrap(psi_i(t) - psi_i(t - Ts)) / Ts from SUMO's headings of
+this step and the previous one (the rate :mod:`couplers.sensing.inertial` gives the IMU; 0 for a vehicle
+that entered this step). The rows then come as :class:`coloc.core.detections.MountSensorDetections`, which
+tells an estimator the range rate is the sensor's own. n ~ N(0, I3) per row from the perception's
+"range_bearing" stream
 (:func:`couplers.sensing.perception.effect_rng`), drawn in row order after the shuffle: every other
 stream, and so every other measurement, is unchanged.
 
@@ -39,8 +48,10 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
-from coloc.core.detections import SensorDetections
+from coloc.core.detections import MountSensorDetections, SensorDetections
+from coloc.core.vehicles import match_ids
 from coloc.core.frame import Frame
+from couplers.sensing.inertial import true_body_motion
 from couplers.sensing.road_users import KIND_PEDESTRIAN, KIND_VEHICLE
 from couplers.sensing.perception import PERCEPTION_STREAM_TAG, Detections, PerceptionParams, effect_rng
 
@@ -54,18 +65,24 @@ def wrap(a: np.ndarray) -> np.ndarray:
 
 def sensor_frame_rows(
     rel: np.ndarray, heading: np.ndarray, mount_x: np.ndarray, yaw: np.ndarray, w: np.ndarray,
-    sigma_r: np.ndarray, sigma_b: np.ndarray, sigma_rdot: np.ndarray,
+    sigma_r: np.ndarray, sigma_b: np.ndarray, sigma_rdot: np.ndarray, yaw_rate: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(range, bearing, range rate) (O,) of relative states ``rel`` (O, 4) = x_F - x_V (from the vehicle
     position), seen by a sensor ``mount_x`` (O,) along ``heading`` (O,) with boresight ``heading + yaw``;
-    ``w`` (O, 3) standard normal draws scaled by the sigmas (module docstring)."""
+    ``w`` (O, 3) standard normal draws scaled by the sigmas (module docstring). ``yaw_rate`` (O,): the owner's
+    yaw rate, whose lever arm moves the sensor (``lever_arm_range_rate``); None: the vehicle's velocity."""
     rel = np.asarray(rel, dtype=float)
     psi = np.asarray(heading, dtype=float)
-    px = rel[:, 0] - mount_x * np.cos(psi)
-    py = rel[:, 1] - mount_x * np.sin(psi)
+    cp, sp = np.cos(psi), np.sin(psi)
+    px = rel[:, 0] - mount_x * cp
+    py = rel[:, 1] - mount_x * sp
     d = np.hypot(px, py)
     safe = np.maximum(d, 1e-300)
-    rdot = (px * rel[:, 2] + py * rel[:, 3]) / safe
+    if yaw_rate is None:
+        rdot = (px * rel[:, 2] + py * rel[:, 3]) / safe
+    else:  # v_F - v_o = (v_F - v_i) - omega mount_x u_perp(psi)
+        arm = np.asarray(yaw_rate, dtype=float) * mount_x
+        rdot = (px * (rel[:, 2] + arm * sp) + py * (rel[:, 3] - arm * cp)) / safe
     b = wrap(np.arctan2(py, px) - psi - yaw)
     return d + sigma_r * w[:, 0], b + sigma_b * w[:, 1], rdot + sigma_rdot * w[:, 2]
 
@@ -132,23 +149,43 @@ class SensorFrameRows:
         self._sr = np.array([s.sigma_r_m for s in specs], dtype=float)
         self._sb = np.deg2rad([s.sigma_b_deg for s in specs])
         self._srd = np.array([s.sigma_rdot_mps for s in specs], dtype=float)
+        self.lever_arm = bool(params.lever_arm_range_rate)
+        self._ids = np.empty(0, dtype=object)  # the previous step's vehicles and true headings (lever arm only)
+        self._heading = np.empty(0)
 
     def detections(self, det: Detections, x_true: np.ndarray, heading: np.ndarray,
-                   features_true: np.ndarray) -> SensorDetections:
+                   features_true: np.ndarray, yaw_rate: np.ndarray | None = None) -> SensorDetections:
+        """The rows in the sensors' frames; ``yaw_rate`` (N,) per vehicle: the sensors move with their lever arm
+        (:class:`MountSensorDetections`), None: with the vehicle."""
         sensor = np.asarray(det.sensor, dtype=np.int64)
         owner = np.asarray(det.owner, dtype=np.int64)
         w = self.rng.standard_normal((owner.size, 3))
         rel = relative_states(det, x_true, features_true)
         mount, yaw = self._mount[sensor], self._yaw[sensor]
         sr, sb, srd = self._sr[sensor], self._sb[sensor], self._srd[sensor]
-        r, b, rdot = sensor_frame_rows(rel, np.asarray(heading, dtype=float)[owner], mount, yaw, w, sr, sb, srd)
-        return SensorDetections(range=r, bearing=b, range_rate=rdot, mount_x=mount, yaw=yaw, sigma_range=sr,
-                                sigma_bearing=sb, sigma_range_rate=srd)
+        om = None if yaw_rate is None else np.asarray(yaw_rate, dtype=float)[owner]
+        r, b, rdot = sensor_frame_rows(rel, np.asarray(heading, dtype=float)[owner], mount, yaw, w, sr, sb, srd, om)
+        cls = SensorDetections if yaw_rate is None else MountSensorDetections
+        return cls(range=r, bearing=b, range_rate=rdot, mount_x=mount, yaw=yaw, sigma_range=sr, sigma_bearing=sb,
+                   sigma_range_rate=srd)
+
+    def true_yaw_rate(self, ids: np.ndarray, entered: np.ndarray, heading: np.ndarray, dt: float) -> np.ndarray:
+        """(N,) wrap(psi - psi_prev) / dt per vehicle from this step's and the previous call's true headings (0 for
+        a vehicle that entered or was not there; module docstring), and the headings kept for the next call."""
+        heading = np.asarray(heading, dtype=float)
+        idx = match_ids(self._ids, ids)
+        prev = np.full(heading.shape, np.nan)
+        ok = (idx >= 0) & ~np.asarray(entered, dtype=bool)
+        prev[ok] = self._heading[idx[ok]]
+        self._ids, self._heading = np.asarray(ids, dtype=object), heading.copy()
+        return true_body_motion(np.zeros((heading.size, 2)), heading, prev, dt)[1]
 
     def apply(self, frame: Frame, det: Detections, x_true: np.ndarray, heading: np.ndarray,
               features_true: np.ndarray) -> Frame:
         """``frame`` with ``v2f_sensor`` set and ``v2f_z`` / ``v2f_R`` NaN (rows in ``det``'s order, which is
         the frame's)."""
-        sd = self.detections(det, x_true, heading, features_true)
+        om = (self.true_yaw_rate(frame.vehicle_ids, frame.entered, heading, float(frame.dt)) if self.lever_arm
+              else None)
+        sd = self.detections(det, x_true, heading, features_true, om)
         return replace(frame, v2f_sensor=sd, v2f_z=np.full_like(frame.v2f_z, np.nan),
                        v2f_R=np.full_like(frame.v2f_R, np.nan))
