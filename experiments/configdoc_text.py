@@ -288,8 +288,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "its bias is mapped by the change of the report's Cholesky factor, so the "
                                     "bias variance is share x the new report at once (a position error is the "
                                     "range errors times the geometry: Kaplan and Hegarty 2017, Sec. 7.3). "
-                                    "`gnss`, and the cooperative methods under `two_state`. Default false: the bias carries over and its "
-                                    "variance relaxes with `bias_tau_s`."),
+                                    "`gnss`, and the cooperative methods under `two_state`. Default false: "
+                                    "the bias carries over and its variance relaxes with `bias_tau_s`."),
         "bias_model": ("", "The receiver's error as one bias (`single`: `bias_share`, `bias_tau_s`) or two "
                            "(`two_state`, coloc/methods/gnss_bias2.py): a common-mode bias slow in time "
                            "(atmosphere, orbit, clock) and a local one decorrelating with the distance the "
