@@ -10,11 +10,14 @@ from experiments.config import load_config
 from experiments.oracle_world import oracle_world
 
 ROOT = Path(__file__).resolve().parents[2]
+#: The realistic presets' world before they took the satellite receiver: the "field" model, every field key at
+#: its default (the values the presets wrote out).
+FIELD_WORLD = {"gnss_error.model": "field"}
 
 
 def test_realistic_preset_tells_the_field_model_and_the_first_fix():
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
-                      overrides={"run.methods": ["gnss", "joint_oracle"]})
+                      overrides={"run.methods": ["gnss", "joint_oracle"], **FIELD_WORLD})
     w = oracle_world(cfg)
     ge = cfg.gnss_error
     assert (w.gnss, w.nlos) == ("field", True)
@@ -55,7 +58,8 @@ def test_no_front_lever_when_the_world_reports_the_centre():
     cfg = load_config(ROOT / "experiments" / "arterial_tlr.toml",
                       overrides={"run.methods": ["joint_oracle"], "scenario.reference_point": "centre"})
     assert oracle_world(cfg).front_lever_m == 0.0
-    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", overrides={"run.methods": ["joint_oracle"]})
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
+                      overrides={"run.methods": ["joint_oracle"], **FIELD_WORLD})
     assert cfg.scenario.reference_point == "centre" and oracle_world(cfg).front_lever_m == 0.0
 
 
@@ -77,7 +81,7 @@ def test_field_coefficient_states_reproduce_the_worlds_field():
     from couplers.sensing.gnss_error import FieldErrorProcess
 
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
-                      overrides={"run.methods": ["joint_oracle"], "run.seed": 7})
+                      overrides={"run.methods": ["joint_oracle"], "run.seed": 7, **FIELD_WORLD})
     w = oracle_world(cfg)
     assert w.field_dim == 4 * cfg.gnss_error.field_features and w.tail_dim == 2 + w.field_dim
     proc = FieldErrorProcess(cfg.gnss_error, 7, 0.75)
@@ -88,3 +92,17 @@ def test_field_coefficient_states_reproduce_the_worlds_field():
     other = FieldErrorProcess(cfg.gnss_error, 8, 0.75)
     assert not np.allclose(np.einsum("nak,k->na", w.field_basis(xy), other.coef.ravel()), other.field_at(xy),
                            atol=1e-3)
+
+
+def test_satellite_world_is_refused_in_one_line():
+    """The presets' satellite receiver has no oracle yet (its structure is per satellite, not per vehicle): a
+    run that asks for joint_oracle there gets the file and field, not a wrong reference."""
+    import pytest
+
+    from couplers.errors import InputError
+
+    cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", overrides={"run.methods": ["joint_oracle"]})
+    assert cfg.gnss_error.model == "satellites"
+    with pytest.raises(InputError) as err:
+        oracle_world(cfg)
+    assert "gnss_error.model" in str(err.value) and "satellites" in str(err.value)
