@@ -33,7 +33,8 @@ GNSS, KNOWN, LC = (m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, regist
 PAIRS = ((LC, GNSS), (KNOWN, GNSS))
 SHORT = {GNSS: "GNSS", KNOWN: "known DA", LC: "LC"}
 ARMS = {"split_ci": "after (split CI, as shipped)", "bp": "before (paper BP)"}
-_ID = re.compile(r"rule=(?P<rule>[^,]+),control=(?P<control>[^,]+),seed=(?P<seed>\d+)$")
+# A sweep without the fusion arm (the presets as shipped only) names its runs control=...,seed=...: arm split_ci.
+_ID = re.compile(r"(?:rule=(?P<rule>[^,]+),)?control=(?P<control>[^,]+),seed=(?P<seed>\d+)$")
 
 
 def seeds_for_half_width(sd: float, half: float = 0.15, level: float = 0.95, n_max: int = 100000) -> int:
@@ -71,7 +72,7 @@ def run_rows(folder: Path) -> pd.DataFrame:
                 zn = (nees.get("by_zone") or {}).get(z)
                 zones[z] = (zb, zn if isinstance(zn, dict) else {})
             for zone, (st, ns) in zones.items():
-                rows.append({"rule": m["rule"], "control": m["control"], "seed": int(m["seed"]), "method": method,
+                rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]), "method": method,
                              "zone": zone, "rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
                              "n": int(st.get("n") or 0), "nees": _f(ns.get("mean")),
                              "inside_95": _f(ns.get("inside_95")),
