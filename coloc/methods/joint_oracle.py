@@ -108,6 +108,7 @@ from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _in
     _course_information,
     _front_slip,
     _heading_gradient,
+    _heading_linearization,
     _heading_state_information,
     _idx,
     _information,
@@ -309,6 +310,11 @@ class JointOracle:
             speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
             slow = speed < p_icp.motion.heading_min_speed
             assoc = np.where(slow[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
+        psi_lin = None  # heading_state: where the heading is linearized, when not at its predicted mean
+        if w.heading_dim and n and math.isfinite(w.heading_row_max_std_deg):
+            psi_lin, row_out = _heading_linearization(w, p, xv, surv, fresh, zg, np.asarray(frame.gnss_R, dtype=float))
+            if frame.v2f_sensor is not None and assoc.size:
+                assoc = np.where(row_out[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
 
         # --- layout after the update: vehicles (frame order), old features, new features, common.
         used = assoc >= 0
@@ -376,14 +382,19 @@ class JointOracle:
             streak[have] = st.streak[idx_c[have]] if st.streak.size else 0
             excluded = self._gnss_information(lam, eta, p, frame, fresh, surv, mean_pred, sig, zg, rg, streak)
         self.last_excluded = excluded
+        lin = mean_pred  # the linearization point of the constraint and the sensor-frame rows
+        if psi_lin is not None:
+            lin = mean_pred.copy()
+            lin[vd * np.arange(n) + w.heading_offset] = np.where(np.isfinite(psi_lin), psi_lin,
+                                                                 mean_pred[vd * np.arange(n) + w.heading_offset])
         if w.heading_dim and n:
-            _course_information(lam, eta, mean_pred, n, vd, w.heading_offset, w.course_sigma_mps)
+            _course_information(lam, eta, lin, n, vd, w.heading_offset, w.course_sigma_mps)
 
         # --- V2F (4) rows with the true association.
         iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
         if iterate:
             lam0, eta0 = lam.copy(), eta.copy()
-        sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, mean_pred, p, surv, st)
+        sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, lin, p, surv, st)
 
         lam = symmetrize(lam)
         cov = spd_inverse(lam)
@@ -578,6 +589,8 @@ class JointOracle:
             h9 = np.concatenate([h, -gz[:, :, None]], axis=2)
             z9 = z - gz * psi[own][:, None]
             ind9 = np.concatenate([ind, (vd * own + self.world.heading_offset)[:, None]], axis=1)
+            if not self.world.range_rate_rows:  # diagnostic: the position half only
+                h9, z9, r = h9[:, :2], z9[:, :2], r[:, :2, :2]
             hth, htz = _information(h9, symmetrize(np.linalg.inv(r)), z9)
             _scatter(lam, eta, ind9, hth, htz)
             return memory
