@@ -292,7 +292,7 @@ def score(args) -> None:
                 diag.oracle_state(est, f, f.t + 1e-9 >= args.t_from)
             if getattr(est, "last_excluded", None) is not None:
                 excl.append(float(np.mean(est.last_excluded)) if est.last_excluded.size else 0.0)
-            if args.verbose and len(excl) % 40 == 0:
+            if args.verbose and excl and len(excl) % 40 == 0:
                 print(f"  t {f.t:.0f} cpu {time.process_time() - cpu:.0f} s excluded {np.mean(excl[-40:]):.3f}",
                       file=sys.stderr, flush=True)
             if f.t + 1e-9 < args.t_from or f.n_vehicles == 0:
