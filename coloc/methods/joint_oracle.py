@@ -106,6 +106,7 @@ from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
 from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _information: imported from here by tests)
     _course_information,
+    _field_read_share,
     _front_slip,
     _heading_gradient,
     _heading_linearization,
@@ -501,7 +502,10 @@ class JointOracle:
                 hp[:, :, 4 + cd:] = ((sig * math.sqrt((1.0 - s) * w.field_share))[:, None, None]
                                      * w.field_basis(xy))
             pcols = np.concatenate(cols, axis=1)
-            rp = (w.fix_noise_share * sig * sig)[:, None, None] * np.eye(2)
+            share = np.full(n, w.fix_noise_share)
+            if fd and w.field_read_noise:
+                share = share + _field_read_share(w, p_pred, surv, sig, s)
+            rp = (share * sig * sig)[:, None, None] * np.eye(2)
         else:
             pcols = vd * np.arange(n)[:, None] + np.array([0, 1])
             hp = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
@@ -532,7 +536,7 @@ class JointOracle:
             np.put_along_axis(hd, np.broadcast_to(pcols[tk][:, None, :], hd.shape[:2] + (pcols.shape[1],)),
                               hp[tk], axis=2)
             hd = hd.reshape(2 * tk.size, d)
-            wts = 1.0 / np.repeat(w.fix_noise_share * sig[tk] ** 2, 2)
+            wts = 1.0 / np.repeat(rp[tk, 0, 0], 2)
             lam += hd.T @ (wts[:, None] * hd)
             eta += hd.T @ (wts * zp[tk].ravel())
         elif take.any():

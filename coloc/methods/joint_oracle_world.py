@@ -94,6 +94,11 @@ class OracleWorld:
     # one std) stay out, and a wide predicted heading is linearized at the velocity's direction when that is
     # narrower (:func:`coloc.methods.joint_oracle_rows._heading_linearization`); inf: every row in, at the mean.
     heading_row_max_std_deg: float = math.inf
+    # With the field states: each fix also carries, as white noise, the field's increment between the predicted and
+    # the true position (the exponential kernel's field is not smooth: 2 (1 - exp(-r / L)) of its variance over r,
+    # r the predicted position's RMS error; :func:`coloc.methods.joint_oracle_rows._field_read_share`); False: the
+    # field read at the predicted position as exact.
+    field_read_noise: bool = False
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:

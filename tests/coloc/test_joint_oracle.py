@@ -528,3 +528,29 @@ def test_heading_linearization_point_and_row_gate():
     assert out.tolist() == [False, False, True, False, True]
     wide = OracleWorld(**{**world.__dict__, "heading_row_max_std_deg": 60.0})
     assert not _heading_linearization(wide, p, xv, np.arange(3), fresh, zg, rg)[1][:4].any()
+
+
+def test_field_read_share_is_the_field_increment_over_the_position_error():
+    """field_read_noise: the fix's extra variance share is (1 - s) f 2 (1 - exp(-r / L)), r the predicted position's
+    RMS error (survivors) or sqrt(2) sigma (entering vehicles); it grows with r and is 0 for an exact position. The
+    increment variance of the world's field (random Fourier features of the exponential kernel) over a distance
+    r is that of the kernel, 2 (1 - exp(-r / L)), within the 64 frequencies' spread (a factor 1.5)."""
+    from coloc.methods.joint_oracle_rows import _field_read_share
+    from couplers.sensing.gnss_error import exponential_kernel_frequencies
+
+    world = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
+                        local_corr_length_m=20.0, field_read_noise=True)
+    vd = world.vehicle_dim
+    p = np.zeros((2 * vd, 2 * vd))
+    p[0, 0] = p[1, 1] = 2.0  # survivor 0: r = 2 m
+    sig = np.array([3.0, 3.0, 4.0])
+    out = _field_read_share(world, p, np.array([0, 1]), sig, 0.5)
+    assert out[0] == pytest.approx(0.25 * 2.0 * (1.0 - math.exp(-2.0 / 50.0)))
+    assert out[1] == 0.0  # survivor 1: exact position
+    assert out[2] == pytest.approx(0.25 * 2.0 * (1.0 - math.exp(-math.sqrt(2.0) * 4.0 / 50.0)))
+    rng = np.random.default_rng(5)
+    om = exponential_kernel_frequencies(rng, 64, 50.0)
+    for r in (2.0, 5.0):
+        ang = rng.uniform(0, 2 * math.pi, 4000)
+        inc = np.mean(2.0 * (1.0 - np.cos(r * np.stack([np.cos(ang), np.sin(ang)], 1) @ om.T)))
+        assert 1 / 1.5 < inc / (2.0 * (1.0 - math.exp(-r / 50.0))) < 1.5, (r, inc)
