@@ -64,7 +64,9 @@ the drift's one-step variance, prior N(0, turn_on^2 + drift^2); the velocity is 
 along the body axis); the sensor-frame rows are converted with the predicted psi and linearized in it
 (H = [-I | +I | -dz/dpsi]), rows of slow vehicles kept (the heading's error across a stop is the state's); the IMU
 input is rotated by psi_{t-1} + (r - b_g) Ts / 2 and linearized in psi and b_g. An entering vehicle's heading
-starts unknown (pi^2 / 3) about its fix's course.
+starts unknown (pi^2 / 3) about its fix's course. ``heading_row_max_std_deg`` (opt-in) leaves out the sensor-frame
+rows of a vehicle whose heading is too uncertain to linearize at, and ``field_read_noise`` (opt-in) gives each fix
+the field's increment between the predicted and the true position as white noise (docs/validation/oracle.md).
 
 Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
 oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
