@@ -538,7 +538,7 @@ class JointOracle:
             np.put_along_axis(hd, np.broadcast_to(pcols[tk][:, None, :], hd.shape[:2] + (pcols.shape[1],)),
                               hp[tk], axis=2)
             hd = hd.reshape(2 * tk.size, d)
-            wts = 1.0 / np.repeat(rp[tk, 0, 0], 2)
+            wts = 1.0 / np.repeat(share[tk] * sig[tk] ** 2, 2)
             lam += hd.T @ (wts[:, None] * hd)
             eta += hd.T @ (wts * zp[tk].ravel())
         elif take.any():
