@@ -66,7 +66,7 @@ def _edit(data: dict, variant: str) -> dict:
     return data
 
 
-def load_variant(path: str, variant: str, seed: int, duration: float, methods: str):
+def load_variant(path: str, variant: str, seed: int, duration: float, methods: str, warmup: float = 0.0):
     from experiments.config import config_from_dict
     from experiments.config_extends import resolve_extends
 
@@ -76,13 +76,17 @@ def load_variant(path: str, variant: str, seed: int, duration: float, methods: s
     data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
     data = _edit(data, variant)
     data["run"] = {**data["run"], "seed": seed, "duration_s": duration, "methods": methods.split(",")}
+    if warmup > 0:
+        # the protocol's warm-up: SUMO alone fills the net, sensing and estimation start at begin + warmup
+        data["analysis"] = {**data.get("analysis", {}), "warmup_s": warmup, "warmup_start": "traffic"}
     return config_from_dict(data, p)
 
 
 def record(args) -> None:
     from experiments.runner import frame_source
 
-    cfg = load_variant(args.config, args.variant, args.seed, args.duration, "gnss,icp_known_da,joint_oracle")
+    cfg = load_variant(args.config, args.variant, args.seed, args.duration, "gnss,icp_known_da,joint_oracle",
+                       args.warmup)
     frames = []
     t0 = time.process_time()
     with frame_source(cfg) as src:
@@ -90,9 +94,10 @@ def record(args) -> None:
             frames.append(f)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    dest = out / f"{args.variant}_s{args.seed}.pkl"
+    dest = out / f"{args.variant}_s{args.seed}{'_w%g' % args.warmup if args.warmup else ''}.pkl"
     with open(dest, "wb") as fh:
-        pickle.dump({"config": args.config, "variant": args.variant, "seed": args.seed, "frames": frames}, fh)
+        pickle.dump({"config": args.config, "variant": args.variant, "seed": args.seed, "warmup": args.warmup,
+                     "frames": frames}, fh)
     print(f"{dest}: {len(frames)} frames, {time.process_time() - t0:.0f} s CPU", file=sys.stderr)
 
 
@@ -161,6 +166,62 @@ class _Diagnostics:
             cd.heading_from_velocity = patched_h
             jo.JointOracle._imu_input = patched_imu
 
+    def oracle_state(self, est, f, scored: bool) -> None:
+        """``state``: the oracle's joint state against the frame's truth (never part of a method): the error of
+        the vehicles' mean position (the part every vehicle shares: common GNSS error, the map's offset) with its
+        claimed covariance, each vehicle's error less that mean, the landmarks' positions and, with the heading
+        state, the heading by true speed."""
+        if "state" not in self.which or not scored or est.state.mean is None or f.n_vehicles < 2:
+            return
+        st, w = est.state, est.world
+        n, vd = st.vehicle_ids.shape[0], w.vehicle_dim
+        pi = vd * np.arange(n)[:, None] + np.arange(2)
+        e = st.mean[pi] - f.truth.x_true[:, :2]
+        pp = st.cov[pi.reshape(-1)[:, None], pi.reshape(-1)[None, :]].reshape(n, 2, n, 2)
+        colsum = pp.sum(axis=2) / n  # (n, 2, 2): (1/n) sum_j P_ij
+        pbar = colsum.sum(axis=0) / n
+        ebar = e.mean(axis=0)
+        rel = e - ebar
+        prel = pp[np.arange(n), :, np.arange(n), :] - colsum - np.swapaxes(colsum, 1, 2) + pbar
+        st_ = self.__dict__.setdefault("_state", {"mean": [], "rel": [], "feat": [], "head": []})
+        st_["mean"].append((ebar @ np.linalg.solve(pbar, ebar), float(np.hypot(*ebar)), float(np.sqrt(np.trace(pbar)))))
+        st_["rel"].append(np.einsum("ni,ni->n", rel, np.linalg.solve(prel, rel[..., None])[..., 0]))
+        k = st.feature_ids.size
+        if k:
+            fi = vd * n + 4 * np.arange(k)[:, None] + np.arange(2)
+            ef = st.mean[fi] - np.asarray(f.truth.features_true, dtype=float)[st.feature_ids, :2]
+            pf = st.cov[fi[:, :, None], fi[:, None, :]]
+            st_["feat"].append(np.stack([np.hypot(ef[:, 0], ef[:, 1]),
+                                         np.einsum("ni,ni->n", ef, np.linalg.solve(pf, ef[..., None])[..., 0])], 1))
+        if w.heading_dim and f.truth.heading is not None:
+            ho = w.heading_offset
+            eh = (st.mean[vd * np.arange(n) + ho] - f.truth.heading + np.pi) % (2 * np.pi) - np.pi
+            vh = st.cov[vd * np.arange(n) + ho, vd * np.arange(n) + ho]
+            sp = np.hypot(f.truth.x_true[:, 2], f.truth.x_true[:, 3])
+            st_["head"].append(np.stack([sp, eh, vh], 1))
+
+    def report_state(self) -> None:
+        st_ = self.__dict__.pop("_state", None)
+        if not st_:
+            return
+        m = np.array(st_["mean"])
+        print(f"   mean over vehicles: error {np.sqrt(np.mean(m[:, 1] ** 2)):.2f} m RMS, claimed {np.sqrt(np.mean(m[:, 2] ** 2)):.2f} m, "
+              f"NEES {m[:, 0].mean():.2f} (med {np.median(m[:, 0]):.2f}), in95 {100 * np.mean(m[:, 0] <= CHI2_2_95):.1f} %")
+        r = np.concatenate(st_["rel"])
+        print(f"   vehicle less the mean: NEES {r.mean():.2f} (med {np.median(r):.2f}), in95 {100 * np.mean(r <= CHI2_2_95):.1f} %")
+        if st_["feat"]:
+            fe = np.concatenate(st_["feat"])
+            print(f"   landmarks: RMSE {np.sqrt(np.mean(fe[:, 0] ** 2)):.2f} m, NEES {fe[:, 1].mean():.2f} "
+                  f"(med {np.median(fe[:, 1]):.2f}), in95 {100 * np.mean(fe[:, 1] <= CHI2_2_95):.1f} %")
+        if st_["head"]:
+            h = np.concatenate(st_["head"])
+            for lo, hi in zip([0.0, 1.0, 4.0, 8.0], [1.0, 4.0, 8.0, 1e9]):
+                k = (h[:, 0] >= lo) & (h[:, 0] < hi)
+                if k.any():
+                    e, v = h[k, 1], h[k, 2]
+                    print(f"   heading state, true speed {lo:3.0f}-{min(hi, 99):3.0f}: RMS {np.degrees(np.sqrt(np.mean(e ** 2))):6.3f} deg, "
+                          f"claimed {np.degrees(np.sqrt(np.mean(v))):6.3f} deg, mean e^2/var {np.mean(e ** 2 / np.maximum(v, 1e-30)):7.2f}, n {k.sum()}")
+
     def after_step(self):
         f = self.frame
         if f is not None and f.truth.heading is not None:
@@ -187,7 +248,8 @@ def score(args) -> None:
 
     with open(args.frames, "rb") as fh:
         rec = pickle.load(fh)
-    cfg = load_variant(rec["config"], rec["variant"], rec["seed"], 1.0, args.methods)
+    w = rec.get("warmup", 0.0)
+    cfg = load_variant(rec["config"], rec["variant"], rec["seed"], w + 1.0, args.methods, w)
     params = method_params(cfg)
     if args.oracle and params.oracle_world is not None:
         kw = {}
@@ -205,6 +267,12 @@ def score(args) -> None:
         params = dataclasses.replace(params, icp=dataclasses.replace(icp, motion=dataclasses.replace(icp.motion, **kw)))
         if getattr(params, "motion", None) is not None:
             params = dataclasses.replace(params, motion=dataclasses.replace(params.motion, **kw))
+    if args.icp:
+        kw = {}
+        for item in args.icp:
+            k, v = item.split("=")
+            kw[k] = None if v == "none" else float(v)
+        params = dataclasses.replace(params, icp=dataclasses.replace(params.icp, **kw))
     frames = [f for f in rec["frames"] if f.t <= args.until + 1e-9]
     diag = _Diagnostics(args.diag or ())
     for name in args.methods.split(","):
@@ -220,9 +288,11 @@ def score(args) -> None:
             else:
                 out = est.step(clean)
             diag.after_step()
+            if name != GNSS.name and hasattr(est, "world"):
+                diag.oracle_state(est, f, f.t + 1e-9 >= args.t_from)
             if getattr(est, "last_excluded", None) is not None:
                 excl.append(float(np.mean(est.last_excluded)) if est.last_excluded.size else 0.0)
-            if args.verbose and len(excl) % 40 == 0:
+            if args.verbose and excl and len(excl) % 40 == 0:
                 print(f"  t {f.t:.0f} cpu {time.process_time() - cpu:.0f} s excluded {np.mean(excl[-40:]):.3f}",
                       file=sys.stderr, flush=True)
             if f.t + 1e-9 < args.t_from or f.n_vehicles == 0:
@@ -250,6 +320,7 @@ def score(args) -> None:
                 if m.any():
                     print(f"   speed {lo:3.1f}-{min(hi, 99):4.1f} {_score(err[m], nee[m])}")
         diag.report()
+        diag.report_state()
         if args.over_time:
             t = np.concatenate(ts)
             for lo in np.arange(args.t_from, args.until, args.over_time):
@@ -268,6 +339,9 @@ def main(argv=None) -> None:
     r.add_argument("--seed", type=int, default=1)
     r.add_argument("--duration", type=float, default=300.0)
     r.add_argument("--out", required=True)
+    r.add_argument("--warmup", type=float, default=0.0,
+                   help="seconds of SUMO alone before sensing starts ([analysis] warmup_start = \"traffic\"); "
+                        "--duration counts them")
     s = sub.add_parser("score")
     s.add_argument("frames")
     s.add_argument("--methods", default=JOINT_ORACLE.name)
@@ -277,9 +351,11 @@ def main(argv=None) -> None:
     s.add_argument("--verbose", action="store_true")
     s.add_argument("--oracle", nargs="*", help="OracleWorld overrides key=value")
     s.add_argument("--motion", nargs="*", help="[motion] overrides key=value (e.g. heading_min_speed=3)")
+    s.add_argument("--icp", nargs="*", help="[icp] overrides key=value (e.g. feature_velocity_prior_sigma=1e-4)")
     s.add_argument("--by-speed", action="store_true", help="scores by the vehicle's true speed")
     s.add_argument("--diag", nargs="*", help="diagnostics that read truth (never a method): heading_stats, "
-                   "true_heading (rows converted with the true heading, no heading error), true_imu_heading")
+                   "true_heading (rows converted with the true heading, no heading error), true_imu_heading, "
+                   "state (the oracle's joint state: shared and relative error, landmarks, heading state)")
     args = ap.parse_args(argv)
     record(args) if args.cmd == "record" else score(args)
 

@@ -64,7 +64,9 @@ the drift's one-step variance, prior N(0, turn_on^2 + drift^2); the velocity is 
 along the body axis); the sensor-frame rows are converted with the predicted psi and linearized in it
 (H = [-I | +I | -dz/dpsi]), rows of slow vehicles kept (the heading's error across a stop is the state's); the IMU
 input is rotated by psi_{t-1} + (r - b_g) Ts / 2 and linearized in psi and b_g. An entering vehicle's heading
-starts unknown (pi^2 / 3) about its fix's course.
+starts unknown (pi^2 / 3) about its fix's course. ``heading_row_max_std_deg`` (opt-in) leaves out the sensor-frame
+rows of a vehicle whose heading is too uncertain to linearize at, and ``field_read_noise`` (opt-in) gives each fix
+the field's increment between the predicted and the true position as white noise (docs/validation/oracle.md).
 
 Inertial input (``[inertial]``, couplers/sensing/inertial.py): the body-frame acceleration rotated by the
 oracle's heading at t-1 (its velocity's direction, or while slow the heading the rows keep, held rather
@@ -106,8 +108,10 @@ from coloc.inference.feature_store import feature_track_q
 from coloc.inference.params import IcpParams
 from coloc.methods.joint_oracle_rows import (  # noqa: F401  (_front_slip .. _information: imported from here by tests)
     _course_information,
+    _field_read_share,
     _front_slip,
     _heading_gradient,
+    _heading_linearization,
     _heading_state_information,
     _idx,
     _information,
@@ -309,6 +313,11 @@ class JointOracle:
             speed[surv] = np.hypot(xv[:, 2], xv[:, 3])
             slow = speed < p_icp.motion.heading_min_speed
             assoc = np.where(slow[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
+        psi_lin = None  # heading_state: where the heading is linearized, when not at its predicted mean
+        if w.heading_dim and n and math.isfinite(w.heading_row_max_std_deg):
+            psi_lin, row_out = _heading_linearization(w, p, xv, surv, fresh, zg, np.asarray(frame.gnss_R, dtype=float))
+            if frame.v2f_sensor is not None and assoc.size:
+                assoc = np.where(row_out[np.asarray(frame.v2f_owner, dtype=np.int64)], -1, assoc)
 
         # --- layout after the update: vehicles (frame order), old features, new features, common.
         used = assoc >= 0
@@ -376,14 +385,19 @@ class JointOracle:
             streak[have] = st.streak[idx_c[have]] if st.streak.size else 0
             excluded = self._gnss_information(lam, eta, p, frame, fresh, surv, mean_pred, sig, zg, rg, streak)
         self.last_excluded = excluded
+        lin = mean_pred  # the linearization point of the constraint and the sensor-frame rows
+        if psi_lin is not None:
+            lin = mean_pred.copy()
+            lin[vd * np.arange(n) + w.heading_offset] = np.where(np.isfinite(psi_lin), psi_lin,
+                                                                 mean_pred[vd * np.arange(n) + w.heading_offset])
         if w.heading_dim and n:
-            _course_information(lam, eta, mean_pred, n, vd, w.heading_offset, w.course_sigma_mps)
+            _course_information(lam, eta, lin, n, vd, w.heading_offset, w.course_sigma_mps)
 
         # --- V2F (4) rows with the true association.
         iterate = w.heading_iterations > 0 and frame.v2f_sensor is not None and w.heading_from_state
         if iterate:
             lam0, eta0 = lam.copy(), eta.copy()
-        sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, mean_pred, p, surv, st)
+        sensor_heading = self._v2f_information(lam, eta, frame, assoc, fids, idx_c, lin, p, surv, st)
 
         lam = symmetrize(lam)
         cov = spd_inverse(lam)
@@ -490,7 +504,10 @@ class JointOracle:
                 hp[:, :, 4 + cd:] = ((sig * math.sqrt((1.0 - s) * w.field_share))[:, None, None]
                                      * w.field_basis(xy))
             pcols = np.concatenate(cols, axis=1)
-            rp = (w.fix_noise_share * sig * sig)[:, None, None] * np.eye(2)
+            share = np.full(n, w.fix_noise_share)
+            if fd and w.field_read_noise:
+                share = share + _field_read_share(w, p_pred, surv, sig, s)
+            rp = (share * sig * sig)[:, None, None] * np.eye(2)
         else:
             pcols = vd * np.arange(n)[:, None] + np.array([0, 1])
             hp = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
@@ -521,7 +538,7 @@ class JointOracle:
             np.put_along_axis(hd, np.broadcast_to(pcols[tk][:, None, :], hd.shape[:2] + (pcols.shape[1],)),
                               hp[tk], axis=2)
             hd = hd.reshape(2 * tk.size, d)
-            wts = 1.0 / np.repeat(w.fix_noise_share * sig[tk] ** 2, 2)
+            wts = 1.0 / np.repeat(share[tk] * sig[tk] ** 2, 2)
             lam += hd.T @ (wts[:, None] * hd)
             eta += hd.T @ (wts * zp[tk].ravel())
         elif take.any():
@@ -578,6 +595,8 @@ class JointOracle:
             h9 = np.concatenate([h, -gz[:, :, None]], axis=2)
             z9 = z - gz * psi[own][:, None]
             ind9 = np.concatenate([ind, (vd * own + self.world.heading_offset)[:, None]], axis=1)
+            if not self.world.range_rate_rows:  # diagnostic: the position half only
+                h9, z9, r = h9[:, :2], z9[:, :2], r[:, :2, :2]
             hth, htz = _information(h9, symmetrize(np.linalg.inv(r)), z9)
             _scatter(lam, eta, ind9, hth, htz)
             return memory

@@ -180,3 +180,52 @@ def _course_information(lam, eta, mean_lin, n, vd, ho, sigma) -> None:
     ind = vd * np.arange(n)[:, None] + np.array([2, 3, ho])
     w = 1.0 / (sigma * sigma)
     _scatter(lam, eta, ind, w * h[:, :, None] * h[:, None, :], (w * z)[:, None] * h)
+
+
+def _heading_linearization(w: OracleWorld, p_pred: np.ndarray, xv: np.ndarray, surv: np.ndarray, fresh: np.ndarray,
+                           zg: np.ndarray, rg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the heading state is linearized, and whose sensor-frame rows stay out (``heading_row_max_std_deg``).
+
+    The constraint and the rows are linear in the heading only near the linearization point: a vehicle that entered
+    standing (its fix's course is noise) or stopped since has a heading known to tens of degrees, and rows
+    linearized there put wrong information into the map. Returns (psi_lin (N,), NaN where the predicted mean is
+    kept; out (N,) bool, rows left out). The linearization point's std: the predicted heading's (survivors), the
+    fix's course, g R_v g^T (fresh vehicles, whose mean is that course). A survivor whose predicted heading is
+    wider than the gate but whose predicted velocity's direction is narrower is linearized at that direction
+    (an EKF may linearize anywhere; the prior mean is unchanged). Rows of a vehicle whose linearization point is
+    wider than the gate are left out."""
+    from coloc.core.detections import heading_from_velocity
+
+    n = fresh.size
+    ho, vd = w.heading_offset, w.vehicle_dim
+    gate = np.radians(w.heading_row_max_std_deg) ** 2
+    psi_lin = np.full(n, np.nan)
+    var = np.empty(n)
+    fr = np.flatnonzero(fresh)
+    if fr.size:
+        var[fr] = heading_from_velocity(zg[fr, 2:4], rg[fr, 2:, 2:])[1]
+    if surv.size:
+        ii = vd * np.arange(surv.size)
+        var_psi = p_pred[ii + ho, ii + ho]
+        vv = _idx(ii + 2, 2)
+        dirn, var_dir = heading_from_velocity(xv[:, 2:4], p_pred[vv[:, :, None], vv[:, None, :]])
+        relin = (var_psi > gate) & (var_dir < var_psi)
+        psi_lin[surv[relin]] = dirn[relin]
+        var[surv] = np.where(relin, var_dir, var_psi)
+    return psi_lin, var > gate
+
+
+def _field_read_share(w: OracleWorld, p_pred: np.ndarray, surv: np.ndarray, sig: np.ndarray, common_share: float,
+                      ) -> np.ndarray:
+    """(N,) the fix's extra white variance, as a share of sigma_i^2, for reading the field at the predicted position
+    rather than the true one (``field_read_noise``): the world's field has an exponential correlation, so it is not
+    smooth and its increment over a distance r has variance 2 (1 - exp(-r / L)) (unit field; on the world's random
+    Fourier features, 64 frequencies, L = 50 m: 0.074 at 2 m, 0.13 at 3 m, against 0.078, 0.116), not of the
+    gradient's r^2 order. In the fix it is scaled by (1 - s) f; r is the predicted position's RMS error,
+    sqrt(trace P_pp) (survivors), or the fix's own, sqrt(2) sigma_i (an entering vehicle is linearized at its fix)."""
+    vd = w.vehicle_dim
+    r = np.sqrt(2.0) * np.asarray(sig, dtype=float)
+    if surv.size:
+        ii = vd * np.arange(surv.size)
+        r[surv] = np.sqrt(np.maximum(p_pred[ii, ii] + p_pred[ii + 1, ii + 1], 0.0))
+    return (1.0 - common_share) * w.field_share * 2.0 * (1.0 - np.exp(-r / w.field_corr_length_m))

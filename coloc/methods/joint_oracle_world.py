@@ -69,7 +69,7 @@ class OracleWorld:
     # the heading's information is then counted once through H and its uncertainty once more in R)
     heading_row_inflation: bool = False
     # Diagnostic (docs/validation/oracle.md, ablations): False leaves the range-rate half of every sensor-frame row
-    # out (heading_from_state rows only)
+    # out (heading_from_state and heading_state rows)
     range_rate_rows: bool = True
     # The IMU input of a moving vehicle rotated by the direction of its velocity state at t-1, linearized (EKF: the
     # input's dependence on that velocity enters the transition), rather than by a heading taken as independent noise.
@@ -90,6 +90,15 @@ class OracleWorld:
     gyro_noise_density: float = 0.0
     heading_state: bool = False
     course_sigma_mps: float = 0.1  # chosen on tuning seed 101 among 0.01, 0.1, 0.3 (docs/validation/oracle.md)
+    # heading_state: the sensor-frame rows of a vehicle whose heading's linearization point is wider than this (deg,
+    # one std) stay out, and a wide predicted heading is linearized at the velocity's direction when that is
+    # narrower (:func:`coloc.methods.joint_oracle_rows._heading_linearization`); inf: every row in, at the mean.
+    heading_row_max_std_deg: float = math.inf
+    # With the field states: each fix also carries, as white noise, the field's increment between the predicted and
+    # the true position (the exponential kernel's field is not smooth: 2 (1 - exp(-r / L)) of its variance over r,
+    # r the predicted position's RMS error; :func:`coloc.methods.joint_oracle_rows._field_read_share`); False: the
+    # field read at the predicted position as exact.
+    field_read_noise: bool = False
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:

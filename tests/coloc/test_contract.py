@@ -42,8 +42,8 @@ FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf",
 INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", "sme+fusion+gnss_model",
                   "rsu_bp+fusion", "rsu_bp+fusion+gnss_model"]
 RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "gnss+two_state",
-                                                                   "joint_oracle+world",
-                                                                   "joint_oracle+heading"] + FUSED
+                                                                   "joint_oracle+world", "joint_oracle+heading",
+                                                                   "joint_oracle+heading+gate"] + FUSED
             + INFRA_VARIANTS)
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, accel_turn_on_sigma=0.196,
@@ -51,6 +51,8 @@ ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, fiel
 # ``joint_oracle+heading``: that world with the heading and the gyroscope bias as states (the [inertial] defaults)
 ORACLE_HEADING = replace(ORACLE_WORLD, gyro_turn_on_sigma=0.5, gyro_bias_sigma=0.0497,
                          gyro_noise_density=0.01944, heading_state=True)
+# ``joint_oracle+heading+gate``: the heading state with the linearization gate (heading_row_max_std_deg)
+ORACLE_HEADING_GATE = replace(ORACLE_HEADING, heading_row_max_std_deg=2.0)
 
 
 def _method(name: str):
@@ -75,7 +77,8 @@ def build(name: str):
         pf=PfParams(vehicle_particles=300, feature_particles=300, seed=3),
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
         gnss_model=_receiver(name),
-        oracle_world=ORACLE_WORLD if name.endswith("+world") else ORACLE_HEADING if name.endswith("+heading") else None,
+        oracle_world=ORACLE_WORLD if name.endswith("+world") else ORACLE_HEADING if name.endswith("+heading")
+        else ORACLE_HEADING_GATE if name.endswith("+heading+gate") else None,
         fusion=CoopFusion.from_config(FusionParams(), _receiver(name)) if "+fusion" in name else None,
     )
     est = build_method(method.name, params)
@@ -344,7 +347,8 @@ def _enter_from_fix(frame, k: int, first: bool):
 
 
 @pytest.mark.parametrize("name", [n for n in RUNNABLE
-                                  if n not in ("joint_oracle+world", "joint_oracle+heading")])
+                                  if n not in ("joint_oracle+world", "joint_oracle+heading",
+                                               "joint_oracle+heading+gate")])
 def test_first_belief_is_the_receiver_fix(name):
     """The entry protocol (start = "gnss_fix"): a vehicle whose prior is its receiver's fix of the step has,
     as its belief written at that step, the fix and the covariance the receiver reports (position part),

@@ -498,3 +498,59 @@ def test_heading_state_tracks_the_heading_and_the_gyroscope_bias():
     assert np.mean(n_psi) <= 2 * hi and np.mean(n_b) <= 2 * hi, (np.mean(n_psi), np.mean(n_b))
     assert np.sqrt(np.mean(np.square(e_b))) < math.radians(0.1)  # against the 0.5 deg/s turn-on bias
     assert np.sqrt(np.mean(np.square(e_psi))) < 0.1 / 10.0  # the fixes' course: 0.1 m/s / 10 m/s
+
+
+def test_heading_linearization_point_and_row_gate():
+    """heading_row_max_std_deg: a survivor with a narrow predicted heading keeps its mean as the linearization point
+    and its rows; one with a wide heading but a well-known velocity is linearized at the velocity's direction (and
+    keeps its rows); one with both wide (standing) loses its rows; a fresh vehicle's point is its fix's course, its
+    rows kept only when that course is narrow (fast fix) and the gate is a std in degrees."""
+    from coloc.methods.joint_oracle_rows import _heading_linearization
+
+    world = OracleWorld(accel_turn_on_sigma=0.0, gyro_turn_on_sigma=0.5, heading_state=True,
+                        heading_row_max_std_deg=2.0)
+    vd, ho = world.vehicle_dim, world.heading_offset
+    ns = 3
+    p = np.eye(vd * ns) * 1e-4
+    xv = np.zeros((ns, vd))
+    xv[:, 2:4] = [[10.0, 0.0], [0.0, 10.0], [0.05, 0.0]]
+    p[ho, ho] = math.radians(1.0) ** 2  # vehicle 0: narrow heading
+    p[vd + ho, vd + ho] = 1.0  # vehicle 1: wide heading, velocity known to 1 cm/s at 10 m/s
+    p[2 * vd + ho, 2 * vd + ho] = 1.0  # vehicle 2: wide heading, standing
+    p[2 * vd + 2:2 * vd + 4, 2 * vd + 2:2 * vd + 4] = np.eye(2) * 0.01
+    fresh = np.array([False, False, False, True, True])
+    zg = np.zeros((5, 4))
+    zg[3, 2:] = [10.0, 0.0]  # fresh and fast: course to 0.1 / 10 rad
+    zg[4, 2:] = [0.3, 0.0]  # fresh and slow
+    rg = np.tile(np.diag([9.0, 9.0, 0.01, 0.01]), (5, 1, 1))
+    psi_lin, out = _heading_linearization(world, p, xv, np.arange(3), fresh, zg, rg)
+    assert np.isnan(psi_lin[[0, 2, 3, 4]]).all() and psi_lin[1] == pytest.approx(math.pi / 2)
+    assert out.tolist() == [False, False, True, False, True]
+    wide = OracleWorld(**{**world.__dict__, "heading_row_max_std_deg": 60.0})
+    assert not _heading_linearization(wide, p, xv, np.arange(3), fresh, zg, rg)[1][:4].any()
+
+
+def test_field_read_share_is_the_field_increment_over_the_position_error():
+    """field_read_noise: the fix's extra variance share is (1 - s) f 2 (1 - exp(-r / L)), r the predicted position's
+    RMS error (survivors) or sqrt(2) sigma (entering vehicles); it grows with r and is 0 for an exact position. The
+    increment variance of the world's field (random Fourier features of the exponential kernel) over a distance
+    r is that of the kernel, 2 (1 - exp(-r / L)), within the 64 frequencies' spread (a factor 1.5)."""
+    from coloc.methods.joint_oracle_rows import _field_read_share
+    from couplers.sensing.gnss_error import exponential_kernel_frequencies
+
+    world = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
+                        local_corr_length_m=20.0, field_read_noise=True)
+    vd = world.vehicle_dim
+    p = np.zeros((2 * vd, 2 * vd))
+    p[0, 0] = p[1, 1] = 2.0  # survivor 0: r = 2 m
+    sig = np.array([3.0, 3.0, 4.0])
+    out = _field_read_share(world, p, np.array([0, 1]), sig, 0.5)
+    assert out[0] == pytest.approx(0.25 * 2.0 * (1.0 - math.exp(-2.0 / 50.0)))
+    assert out[1] == 0.0  # survivor 1: exact position
+    assert out[2] == pytest.approx(0.25 * 2.0 * (1.0 - math.exp(-math.sqrt(2.0) * 4.0 / 50.0)))
+    rng = np.random.default_rng(5)
+    om = exponential_kernel_frequencies(rng, 64, 50.0)
+    for r in (2.0, 5.0):
+        ang = rng.uniform(0, 2 * math.pi, 4000)
+        inc = np.mean(2.0 * (1.0 - np.cos(r * np.stack([np.cos(ang), np.sin(ang)], 1) @ om.T)))
+        assert 1 / 1.5 < inc / (2.0 * (1.0 - math.exp(-r / 50.0))) < 1.5, (r, inc)
