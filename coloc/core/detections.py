@@ -109,6 +109,28 @@ class MountSensorDetections(SensorDetections):
     range_rate_at_mount: ClassVar[bool] = True
 
 
+def _rows_and_directions(det: SensorDetections, heading: np.ndarray, rdot: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The net-frame rows z (O, 4) of model (4) from range, bearing, the mounting and the range rate ``rdot``
+    (the vehicle's radial component), and the directions of R = J diag(...) J^T written out: e = u(phi),
+    n = u_perp(phi), g = d z_p / d psi = mount u_perp(psi) + r n (each (O, 2))."""
+    r = np.asarray(det.range, dtype=float)
+    mount = np.asarray(det.mount_x, dtype=float)
+    psi = np.asarray(heading, dtype=float)
+    phi = psi + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
+    c, s = np.cos(phi), np.sin(phi)
+    ch, sh = np.cos(psi), np.sin(psi)
+    z = np.empty((r.shape[0], 4))
+    z[:, 0] = mount * ch + r * c
+    z[:, 1] = mount * sh + r * s
+    z[:, 2] = rdot * c
+    z[:, 3] = rdot * s
+    e = np.stack([c, s], axis=1)
+    n = np.stack([-s, c], axis=1)
+    g = np.stack([-mount * sh - r * s, mount * ch + r * c], axis=1)
+    return z, e, n, g
+
+
 def to_net_frame(
     det: SensorDetections, heading: np.ndarray, heading_var: np.ndarray,
     tangential_sigma: float = TANGENTIAL_SIGMA_MPS, yaw_rate: np.ndarray | None = None,
@@ -125,22 +147,9 @@ def to_net_frame(
                                       else yaw_rate_var, tangential_sigma)
     r = np.asarray(det.range, dtype=float)
     rdot = np.asarray(det.range_rate, dtype=float)
-    mount = np.asarray(det.mount_x, dtype=float)
-    psi = np.asarray(heading, dtype=float)
     hv = np.asarray(heading_var, dtype=float)
-    phi = psi + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)
-    c, s = np.cos(phi), np.sin(phi)
-    ch, sh = np.cos(psi), np.sin(psi)
+    z, e, n, g = _rows_and_directions(det, heading, rdot)
     o = r.shape[0]
-    z = np.empty((o, 4))
-    z[:, 0] = mount * ch + r * c
-    z[:, 1] = mount * sh + r * s
-    z[:, 2] = rdot * c
-    z[:, 3] = rdot * s
-    # R = J diag(...) J^T written out: e = u(phi), n = u_perp(phi), g = d z_p / d psi = mount u_perp(psi) + r n.
-    e = np.stack([c, s], axis=1)
-    n = np.stack([-s, c], axis=1)
-    g = np.stack([-mount * sh - r * s, mount * ch + r * c], axis=1)
     ee = e[:, :, None] * e[:, None, :]
     nn = n[:, :, None] * n[:, None, :]
     var_r = np.asarray(det.sigma_range, dtype=float) ** 2
@@ -169,7 +178,6 @@ def to_net_frame_lever_arm(
     arm"): rdot_c = rdot + omega mount_x sin(yaw + b), and the yaw rate's variance through its Jacobian."""
     r = np.asarray(det.range, dtype=float)
     mount = np.asarray(det.mount_x, dtype=float)
-    psi = np.asarray(heading, dtype=float)
     hv = np.asarray(heading_var, dtype=float)
     om = np.asarray(yaw_rate, dtype=float)
     ov = np.asarray(yaw_rate_var, dtype=float)
@@ -178,18 +186,8 @@ def to_net_frame_lever_arm(
     rdot = np.asarray(det.range_rate, dtype=float) + om * mount * sab  # the vehicle's radial component
     q = om * mount * cab  # d rdot_c / d b
     arm = mount * sab  # d rdot_c / d omega
-    phi = psi + np.asarray(det.yaw, dtype=float) + np.asarray(det.bearing, dtype=float)  # as to_net_frame
-    c, s = np.cos(phi), np.sin(phi)
-    ch, sh = np.cos(psi), np.sin(psi)
+    z, e, n, g = _rows_and_directions(det, heading, rdot)
     o = r.shape[0]
-    z = np.empty((o, 4))
-    z[:, 0] = mount * ch + r * c
-    z[:, 1] = mount * sh + r * s
-    z[:, 2] = rdot * c
-    z[:, 3] = rdot * s
-    e = np.stack([c, s], axis=1)
-    n = np.stack([-s, c], axis=1)
-    g = np.stack([-mount * sh - r * s, mount * ch + r * c], axis=1)
     ee = e[:, :, None] * e[:, None, :]
     nn = n[:, :, None] * n[:, None, :]
     en = e[:, :, None] * n[:, None, :]
