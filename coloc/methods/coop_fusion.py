@@ -55,7 +55,7 @@ from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_
 from coloc.kernels.gnss6 import gnss6_step
 from coloc.kernels.gnss8 import gnss8_step
 from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior, report_map
-from coloc.methods.gnss_bias2 import H8, two_state_entry_posterior, two_state_start, two_state_transition
+from coloc.methods.gnss_bias2 import H8, mapped_two_state_transition, two_state_entry_posterior, two_state_start
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -186,14 +186,7 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
         h, white = H8, 1.0 - model.common_share - model.local_share
         fixed = slice(4, 6) if model.common_update == "consider" else None
         if predict_mask.any():
-            f, mp, q = two_state_transition(m, accel, r_pos, dt, motion, model)
-            if model.bias_follows_report and r_prev is not None:
-                t = report_map(r_prev, r_pos)
-                f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
-                f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
-                mp = np.einsum("nij,nj->ni", f, m)
-                mp[:, 0:2] += 0.5 * dt * dt * accel
-                mp[:, 2:4] += dt * accel
+            f, mp, q = mapped_two_state_transition(m, accel, r_pos, r_prev, dt, motion, model)
             sel = predict_mask
             ft = np.swapaxes(f[sel], -1, -2)
             m[sel] = mp[sel]

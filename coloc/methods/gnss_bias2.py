@@ -81,12 +81,27 @@ def two_state_transition(mean, accel, r_pos, dt, motion: MotionParams, model):
     return f, m, q
 
 
+def mapped_two_state_transition(mean, accel, r_pos, r_prev, dt, motion: MotionParams, model):
+    """:func:`two_state_transition`, with both biases mapped by the report's change (``bias_follows_report``
+    and a previous report ``r_prev``: c' = a_c T c, l' = a_l T l, T from
+    :func:`coloc.methods.gnss_bias.report_map`)."""
+    from coloc.methods.gnss_bias import report_map
+
+    f, mp, q = two_state_transition(mean, accel, r_pos, dt, motion, model)
+    if model.bias_follows_report and r_prev is not None:
+        t = report_map(r_prev, r_pos)
+        f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
+        f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
+        mp = np.einsum("nij,nj->ni", f, mean)
+        mp[:, 0:2] += 0.5 * dt * dt * accel
+        mp[:, 2:4] += dt * accel
+    return f, mp, q
+
+
 def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: MotionParams, model,
                              streak=None, r_prev=None):
     """:func:`coloc.methods.gnss_bias.bias_predict_update` for the 8-D states (N, 8), (N, 8, 8). Returns
     (mean, cov, excluded (N,) bool)."""
-    from coloc.methods.gnss_bias import report_map
-
     n = mean.shape[0]
     white = 1.0 - model.common_share - model.local_share
     r = np.asarray(r, dtype=float)
@@ -94,14 +109,7 @@ def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: M
     m = mean.copy()
     p = cov.copy()
     if predict_mask.any():
-        f, mp, q = two_state_transition(m, accel, r_pos, dt, motion, model)
-        if model.bias_follows_report and r_prev is not None:
-            t = report_map(r_prev, r_pos)
-            f[:, 4:6, 4:6] = f[:, 4:6, 4:6] @ t
-            f[:, 6:8, 6:8] = f[:, 6:8, 6:8] @ t
-            mp = np.einsum("nij,nj->ni", f, m)
-            mp[:, 0:2] += 0.5 * dt * dt * accel
-            mp[:, 2:4] += dt * accel
+        f, mp, q = mapped_two_state_transition(m, accel, r_pos, r_prev, dt, motion, model)
         pp = f @ p @ np.swapaxes(f, -1, -2) + q
         pp = 0.5 * (pp + np.swapaxes(pp, -1, -2))
         m[predict_mask] = mp[predict_mask]
