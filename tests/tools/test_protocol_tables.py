@@ -74,3 +74,17 @@ def test_tables_from_a_folder(tmp_path):
     assert r.seeds_needed == seeds_for_half_width(float(d.std(ddof=1)))
     text = markdown(rows)
     assert "seeds 11-15 (5)" in text and "LC - GNSS" in text and "known DA - GNSS" in text
+
+
+def test_a_sweep_without_the_fusion_arm_is_the_shipped_arm(tmp_path):
+    """experiments/sweeps/realistic_protocol.toml without a fusion.rule grid names its runs control=...,seed=...:
+    they are read as the shipped (split CI) arm, side by side with a folder that names the arm."""
+    r = {"gnss": 5.0, "icp_known_da": 4.0, "icp_da_lc": 4.5}
+    s = _summary(r, {k: 2 * v for k, v in r.items()}, {k: 2.0 for k in r}, {k: 0.95 for k in r})
+    for name in ("control=vsr,seed=12", "rule=bp,control=tlr,seed=12"):
+        d = tmp_path / "runs" / name
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps(s))
+    rows = run_rows(tmp_path)
+    assert set(zip(rows["rule"], rows["control"])) == {("split_ci", "vsr"), ("bp", "tlr")}
+    assert set(rows["seed"]) == {12}
