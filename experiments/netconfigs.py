@@ -51,6 +51,7 @@ def realistic_values(net_dir: Path, track_area: str, seed: int, seconds: float, 
     from experiments.occlusion import measure_occlusion, visibility_of  # noqa: PLC0415
 
     buildings = has_buildings(net_dir)
+    gnss = _gnss_world_lines(net_dir, buildings)
     out = {}
     for control in CONTROLS:
         preset = f"experiments/arterial_{control}_realistic.toml"
@@ -78,8 +79,28 @@ def realistic_values(net_dir: Path, track_area: str, seed: int, seconds: float, 
         perception = ("" if buildings else
                       "\n[perception]\n# the net folder has no buildings.geojson: only vehicles occlude (the preset's "
                       "true is refused on it)\nocclusion_buildings = false\n")
-        out[control] = "\n[lc]\n" + lc + perception
+        out[control] = "\n[lc]\n" + lc + perception + gnss
     return out
+
+
+def _gnss_world_lines(net_dir: Path, buildings: bool) -> str:
+    """The realistic overlay's [gnss_error] lines: none when every building of the folder has a height (the
+    preset's satellite receiver then takes its error from them); the field model over the zones when the folder
+    has no buildings or some without a height (the satellite receiver refuses a building without one)."""
+    from couplers.net.folder import load_net_folder  # noqa: PLC0415
+    from couplers.sensing.gnss_satellites import missing_heights  # noqa: PLC0415
+
+    if not buildings:
+        why = "# the net folder has no buildings.geojson: no building to take the receivers' error from"
+    else:
+        known = load_net_folder(net_dir).buildings
+        missing = int(missing_heights(known).size)
+        if missing == 0:
+            return ""
+        why = (f"# {missing} of {len(known)} buildings have no height (OSM height or building:levels): the\n"
+               "# preset's satellite receiver needs every one (each satellite's line of sight)")
+    return ("\n[gnss_error]\n" + why + "; the field model over the zones instead\n"
+            "# (docs/validation/realistic_sensing.md \"GNSS error model and its calibration\")\nmodel = \"field\"\n")
 
 
 def net_config_text(name: str, control: str, net_dir: Path, experiments_dir: Path, track_area: str,

@@ -76,7 +76,10 @@ def measure_occlusion(net_dir: Path, control: str, seed: int, seconds: float, tr
     preset = HERE / f"arterial_{control}_realistic.toml"
     cfg = load_config(preset, {"scenario.net_dir": str(Path(net_dir).resolve()), "run.seed": seed,
                                "run.duration_s": float(seconds), "run.methods": [GNSS.name],
-                               "report.track_areas": [track_area], "perception.occlusion_buildings": buildings})
+                               "report.track_areas": [track_area], "perception.occlusion_buildings": buildings,
+                               # no GNSS is simulated here (below): the field model, which needs no building
+                               # heights, so that the preset's satellite receiver does not refuse the folder
+                               "gnss_error.model": "field"})
     keep = {"perception": cfg.sensors.perception, "features": cfg.sensors.features}
     sensors = dataclasses.replace(cfg.sensors, gnss_error=None, v2x=None, inertial=None, **keep)
     scenario = dataclasses.replace(sumo_scenario(cfg), start="fast_start")  # no GNSS fix needed to start

@@ -11,6 +11,7 @@ model is the truth.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -359,7 +360,7 @@ def test_heading_from_state_rows_linearize_the_conversion():
     z, r0 = to_net_frame(det, psi, np.zeros(m))
     # one row at a time, one vehicle (cols 0-3) and one feature (cols 4-7): recover H from the information
     for j in range(m):
-        sub = SensorDetections(**{k: np.asarray(getattr(det, k))[j:j + 1] for k in det.__dataclass_fields__})
+        sub = SensorDetections(**{k: np.asarray(getattr(det, k))[j:j + 1] for k in (f.name for f in dataclasses.fields(det))})
         lam, eta = np.zeros((8, 8)), np.zeros(8)
         ind = np.arange(8)[None, :]
         _heading_state_information(lam, eta, ind, sub, psi[j:j + 1], v[j:j + 1], z[j:j + 1], r0[j:j + 1])

@@ -50,8 +50,12 @@ def test_import_writes_folder_and_both_configs(tmp_path, capsys):
         vis = tomllib.loads(text_real)["lc"]["visibility"]
         assert "measured by `coloc net import` on this net's own" in text_real and 0.05 <= vis <= 1.0
         assert real.perception.occlusion_buildings and "occlusion_buildings" not in text_real
+        # and [gnss_error]: a building of the synthetic OSM has no height, which the preset's satellite
+        # receiver refuses, so the overlay takes the field model and says why
+        assert "have no height" in text_real and tomllib.loads(text_real)["gnss_error"]["model"] == "field"
         assert (real.perception, real.gnss_error, real.inertial, real.lc) == (
-            art.perception, art.gnss_error, art.inertial, dataclasses.replace(art.lc, visibility=vis))
+            art.perception, dataclasses.replace(art.gnss_error, model="field"), art.inertial,
+            dataclasses.replace(art.lc, visibility=vis))
     assert main(["net", "check", str(out)]) == 0
     assert "ok (" in capsys.readouterr().out
     # a second import without --force refuses and changes nothing
