@@ -437,6 +437,18 @@ class SatelliteErrorProcess:
         """The receivers' velocity comes from their range rates (``velocity = "doppler"``)."""
         return self.params.velocity == "doppler"
 
+    def _sky_terms(self, t: float):
+        """(los (S, 3), az, el, above the mask, sin el floored, the common-mode error (S,), the receiver noise
+        sigma (S,)) of every satellite at run time ``t``: what every receiver of the step shares."""
+        p = self.params
+        los, az, el = self.sky.look(p.constellation_time_s + t)
+        above = el >= self.mask
+        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
+        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
+                  + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
+        sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
+        return los, az, el, above, sin_el, common, sig_n
+
     def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
         common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
@@ -445,12 +457,7 @@ class SatelliteErrorProcess:
         and reflection kernels called directly, and the (N, S) sums and masks in one kernel
         (:func:`_assemble`)."""
         p = self.params
-        los, az, el = self.sky.look(p.constellation_time_s + t)
-        above = el >= self.mask
-        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
-        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
-                  + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
-        sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
+        los, az, el, above, sin_el, common, sig_n = self._sky_terms(t)
         xy = np.ascontiguousarray(xy, dtype=np.float64)
         n, s = len(xy), el.size
         mode = 0  # no buildings (or no receiver): every satellite above the mask, no extra path
@@ -487,12 +494,7 @@ class SatelliteErrorProcess:
                                      rate: list | None = None):
         """:meth:`pseudorange_errors` in numpy around the line of sight and reflection functions (its reference)."""
         p = self.params
-        los, az, el = self.sky.look(p.constellation_time_s + t)
-        above = el >= self.mask
-        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
-        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * klobuchar_obliquity(el) * self.sv[:, 1]
-                  + p.tropo_zenith_m * tropo_mapping(el) * self.tropo)
-        sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
+        los, az, el, above, sin_el, common, sig_n = self._sky_terms(t)
         eps = _pseudorange_sum(common, sig_n, np.ascontiguousarray(white, dtype=np.float64), p.multipath_m / sin_el,
                                np.ascontiguousarray(u, dtype=np.float64))
         n = len(xy)
