@@ -304,6 +304,18 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "common_tau_s": ("s", "Two-state model: correlation time of the common-mode bias. Default 1800 s "
                               "(residuals of the broadcast atmosphere and orbit/clock models change over tens of "
                               "minutes: Kaplan and Hegarty 2017, Sec. 7.2)."),
+        "common_sigma_m": ("m", "Two-state model: the common-mode bias's own size per axis, added to its share "
+                                "of the report: stationary covariance common_share R_pos + sigma^2 I. The error "
+                                "every range shares with other receivers (clock/orbit, atmosphere) moves the fix "
+                                "but not the residuals, so a covariance scaled from the residuals "
+                                "(`[gnss_error] reported_covariance = \"residual\"`) does not carry it; this is "
+                                "the integrator's size for it, from the receiver's open-sky accuracy. Default 0 "
+                                "(the share alone)."),
+        "velocity_gate": (NO_UNIT, "Two-state model: level of a chi-square test (2 dof) on the fix's velocity "
+                                   "innovation; a velocity with d^2 above the threshold t is taken with its noise "
+                                   "times d^2 / t (robust Kalman filter of G. Chang, J. Geodesy 88, 2014). For "
+                                   "range-rate velocities that carry a reflected signal's path rate. Default 0 "
+                                   "(no test)."),
         "local_share": (NO_UNIT, "Two-state model: share of the reported position variance that is the local "
                                  "bias, in [0, 1). Default 0.45 (assumption; chosen on the tuning seeds 101-103)."),
         "local_length_m": ("m", "Two-state model: correlation length of the local bias in distance travelled, "

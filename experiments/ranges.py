@@ -273,6 +273,10 @@ RANGES: dict[str, Range] = {
                                         high_open=True),
     "gnss_model.common_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance", high_open=True),
     "gnss_model.common_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
+    "gnss_model.velocity_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would test nothing",
+                                      high_open=True),
+    "gnss_model.common_sigma_m": Range(0.0, 100.0, "m", "a receiver's open-sky error is metres; 100 m is a "
+                                       "receiver without a fix"),
     "gnss_model.local_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance", high_open=True),
     "gnss_model.local_length_m": Range(0.0, 1e5, "m", "a correlation length of at most 100 km", low_open=True),
     "gnss_model.local_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),

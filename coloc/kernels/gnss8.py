@@ -53,13 +53,17 @@ def _sandwich8(a, p, out, tmp):
 @njit(cache=True)
 def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, common_share,
                local_share, decay_c, local_tau_s, local_length_m, consider, gate_threshold, max_exclusions,
-               common_mode, with_ind, sym_predict, tmap, mapped):
+               common_mode, with_ind, sym_predict, tmap, mapped, common_var, vel_threshold):
     """One step of the 8-state filter for every row: predict where ``predict`` (``decay_c`` = exp(-dt /
     common_tau_s); the local decay per row from its prior speed), then the fix with the gate (a row that does
     not predict is never gated; nor one whose ``streak`` reached ``max_exclusions``; ``gate_threshold`` inf:
     no gate). ``with_ind``: the independent part ``ind`` carried (module docstring); ``sym_predict``: the
     predicted covariance symmetrized as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does;
-    ``mapped``: the biases mapped by ``tmap`` (N, 2, 2) (``bias_follows_report``). Returns new (mean, cov, ind,
+    ``mapped``: the biases mapped by ``tmap`` (N, 2, 2) (``bias_follows_report``); ``common_var``: the
+    common-mode bias's own variance per axis (``common_sigma_m``^2, added to its share of the report);
+    ``vel_threshold``: the velocity gate's chi-square threshold (inf: none; a predicted row whose velocity
+    innovation's d^2 exceeds it has its velocity noise scaled by d^2 / threshold,
+    :func:`coloc.methods.gnss_bias2.velocity_deweight`). Returns new (mean, cov, ind,
     excluded); inputs are not modified."""
     n = mean.shape[0]
     m = mean.copy()
@@ -103,6 +107,8 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             for a in range(2):
                 for b in range(2):
                     q[4 + a, 4 + b] = qc * r[i, a, b]
+                    if common_var > 0.0 and a == b:
+                        q[4 + a, 4 + b] += (1.0 - decay_c * decay_c) * common_var
                     q[6 + a, 6 + b] = ql * r[i, a, b]
             m0, m1, m2, m3 = m[i, 0], m[i, 1], m[i, 2], m[i, 3]
             m[i, 0] = m0 + dt * m2 + h * accel[i, 0]
@@ -154,6 +160,17 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
         innov[1] = z[i, 1] - (m[i, 1] + m[i, 5] + m[i, 7])
         innov[2] = z[i, 2] - m[i, 2]
         innov[3] = z[i, 3] - m[i, 3]
+        if predict[i] and vel_threshold < np.inf:
+            det = sm[2, 2] * sm[3, 3] - sm[2, 3] * sm[3, 2]
+            w0 = (sm[3, 3] * innov[2] - sm[2, 3] * innov[3]) / det
+            w1 = (sm[2, 2] * innov[3] - sm[3, 2] * innov[2]) / det
+            d2 = innov[2] * w0 + innov[3] * w1
+            if d2 > vel_threshold:
+                for a in range(2, 4):
+                    for b in range(2, 4):
+                        extra = (d2 / vel_threshold - 1.0) * rn[a, b]
+                        rn[a, b] += extra
+                        sm[a, b] += extra
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
             det = sm[0, 0] * sm[1, 1] - sm[0, 1] * sm[1, 0]

@@ -55,7 +55,8 @@ from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_
 from coloc.kernels.gnss6 import gnss6_step
 from coloc.kernels.gnss8 import gnss8_step
 from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior, report_map
-from coloc.methods.gnss_bias2 import H8, mapped_two_state_transition, two_state_entry_posterior, two_state_start
+from coloc.methods.gnss_bias2 import (H8, common_cov, mapped_two_state_transition, two_state_entry_posterior,
+                                      two_state_start, velocity_deweight)
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -210,6 +211,7 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     rn[:, :2, :2] *= white
     innov = z - m @ h.T
     sm = h @ p @ h.T + rn
+    velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]
@@ -263,7 +265,8 @@ def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       float(model.common_share), float(model.local_share), math.exp(-dt / model.common_tau_s),
                       float(model.local_tau_s), float(model.local_length_m), model.common_update == "consider",
                       float(model.gate_threshold), int(model.max_exclusions), bool(common_mode), bool(with_ind),
-                      not with_ind, c(tmap), mapped)
+                      not with_ind, c(tmap), mapped, float(model.common_sigma_m) ** 2,
+                      float(model.velocity_gate_threshold))
 
 
 def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -276,12 +279,12 @@ def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:
     return t, ti
 
 
-def _common_part(r_pos: np.ndarray, share: float) -> np.ndarray:
+def _common_part(r_pos: np.ndarray, model: GnssModelParams) -> np.ndarray:
     """(K, 8, 8): the covariance of the common-mode-driven error of the one-fix posterior (p = z: e_p = c + ...,
-    e_c = -c): s_c R on the position and on c, -s_c R between them."""
+    e_c = -c): C = s_c R (+ ``common_sigma_m``^2 I) on the position and on c, -C between them."""
     k = r_pos.shape[0]
     out = np.zeros((k, 8, 8))
-    b = share * r_pos
+    b = common_cov(r_pos, model)
     out[:, :2, :2] = out[:, 4:6, 4:6] = b
     out[:, :2, 4:6] = out[:, 4:6, :2] = -b
     return out
@@ -351,7 +354,7 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
     once = entry(m, p)
     # the receiver's fix, once: independent unless errors are shared (then only its common-mode-driven part)
     if common_mode:
-        pi[once] = _common_part(r[once, :2, :2], model.common_share) if two else 0.0
+        pi[once] = _common_part(r[once, :2, :2], model) if two else 0.0
     else:
         pi[once] = p[once]
     return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0),

@@ -137,6 +137,17 @@ class GnssModelParams:
     # 0.6 / 0.35 on the tuning seeds 101-103 (docs/validation/consistency.md, "Two bias states").
     common_share: float = 0.5
     common_tau_s: float = 1800.0
+    # Two-state model: a common-mode part of known size (m, per axis), added to the common-mode bias's
+    # stationary covariance, s_c R_pos + common_sigma_m^2 I. The receiver's report cannot carry the error its
+    # residuals do not show (what every satellite's range shares with the other receivers' moves the fix, not
+    # the residuals), so this part is what the integrator takes from the receiver's open-sky accuracy instead
+    # (coloc.methods.gnss_bias2). 0: the common-mode bias is the share of the report alone.
+    common_sigma_m: float = 0.0
+    # Two-state model: level of a chi-square test (2 dof) on the velocity innovation; 0: none. A velocity
+    # from range rates carries a reflected signal's path rate (metres per second where a vehicle drives toward
+    # the facade that reflects it) that the receiver's report does not know; a velocity that fails the test
+    # is taken with its noise scaled by d^2 / threshold (coloc.methods.gnss_bias2.velocity_deweight).
+    velocity_gate: float = 0.0
     # Two-state model, local bias (multipath): its share, its correlation length in distance travelled
     # (m; multipath decorrelates over metres to tens of metres of travel: Braasch, in Parkinson and
     # Spilker, "Global Positioning System: Theory and Applications" Vol. I, 1996, ch. 14; 30 m chosen over
@@ -161,8 +172,9 @@ class GnssModelParams:
         return 8 if self.two_state else 6
 
     def single_model(self) -> "GnssModelParams":
-        """The model for the methods that take the single bias only: this one with ``bias_model = "single"``."""
-        return self if not self.two_state else replace(self, bias_model="single")
+        """The model for the methods that take the single bias only: this one with ``bias_model = "single"``
+        (and no velocity test, which the single model does not have)."""
+        return self if not self.two_state else replace(self, bias_model="single", velocity_gate=0.0)
 
     def __post_init__(self):
         if self.bias_model not in BIAS_MODELS:
@@ -175,6 +187,15 @@ class GnssModelParams:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
                 raise ValueError(f"must be positive and finite ({what}), got {v!r}")
+        if not (isinstance(self.common_sigma_m, (int, float)) and not isinstance(self.common_sigma_m, bool)
+                and math.isfinite(self.common_sigma_m) and self.common_sigma_m >= 0):
+            raise ValueError(f"must be >= 0 and finite (the common-mode bias's own std per axis, m), "
+                             f"got {self.common_sigma_m!r}")
+        if not (isinstance(self.velocity_gate, (int, float)) and not isinstance(self.velocity_gate, bool)
+                and 0.0 <= self.velocity_gate < 1.0):
+            raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity gate), got {self.velocity_gate!r}")
+        if self.velocity_gate > 0 and not self.two_state:
+            raise ValueError("velocity_gate applies to the two-state model only (bias_model = \"two_state\")")
         for name in ("common_share", "local_share"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v < 1.0):
@@ -205,6 +226,11 @@ class GnssModelParams:
     def gate_threshold(self) -> float:
         """The chi-square quantile of 2 dof at the gate's level: -2 ln(1 - alpha) (inf: no gate)."""
         return math.inf if self.innovation_gate == 0 else -2.0 * math.log1p(-self.innovation_gate)
+
+    @property
+    def velocity_gate_threshold(self) -> float:
+        """The chi-square quantile of 2 dof at the velocity gate's level (inf: no gate)."""
+        return math.inf if self.velocity_gate == 0 else -2.0 * math.log1p(-self.velocity_gate)
 
 
 def entry_fix_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: np.ndarray, r: np.ndarray,

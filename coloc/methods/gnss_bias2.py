@@ -14,7 +14,13 @@ Model (s_c = ``common_share``, s_l = ``local_share``, R_pos,k the position block
 
 * kinematics: model (1), as the 6-state tracker;
 * common-mode bias: ``c_k = a_c c_{k-1} + w_c``, ``a_c = exp(-Ts / common_tau_s)``,
-  ``Var(w_c) = (1 - a_c^2) s_c R_pos,k``;
+  ``Var(w_c) = (1 - a_c^2) (s_c R_pos,k + sigma_c^2 I)``, sigma_c = ``common_sigma_m`` (0 by default). The
+  common-mode error of a single-point fix is what every range shares with other receivers' (broadcast clock
+  and orbit, ionosphere, troposphere): it moves the fix and leaves the least-squares residuals alone, so a
+  covariance the receiver scales from its residuals does not carry it (Kaplan and Hegarty, Sec. 7.3: the
+  position error is DOP x UERE whatever the residuals). ``common_sigma_m`` is the integrator's size for it,
+  from the receiver's open-sky accuracy, which is that error (a static open-sky receiver has little
+  multipath and averages its noise);
 * local bias: ``l_k = a_l l_{k-1} + w_l``, ``a_l = exp(-Ts / local_tau_s - |v| Ts / local_length_m)`` with
   |v| the estimator's OWN speed estimate (the prior mean's velocity, never the truth): a first-order
   Gauss-Markov process in the distance travelled, with a time constant at rest; ``Var(w_l) = (1 - a_l^2)
@@ -32,8 +38,8 @@ Model (s_c = ``common_share``, s_l = ``local_share``, R_pos,k the position block
   from believing it did.
 
 A fresh vehicle: the kinematic part from its prior, both biases at 0 with their stationary covariances;
-the entry protocol (prior = this step's fix) gives the one-fix posterior: p = z with the reported covariance,
-Cov(p, c) = -s_c R, Cov(p, l) = -s_l R, c and l uncorrelated. Fault exclusion, ``max_exclusions`` and
+the entry protocol (prior = this step's fix) gives the one-fix posterior: p = z with the reported covariance
+(plus sigma_c^2 I), Cov(p, c) = -(s_c R + sigma_c^2 I), Cov(p, l) = -s_l R, c and l uncorrelated. Fault exclusion, ``max_exclusions`` and
 ``bias_follows_report`` (both biases mapped) as in the 6-state model. With ``local_share = 0`` it is the
 6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s`` when ``common_update = "augmented"``
 (tests: to 1e-12).
@@ -54,9 +60,17 @@ H8[0, 0] = H8[1, 1] = H8[2, 2] = H8[3, 3] = 1.0
 H8[0, 4] = H8[1, 5] = H8[0, 6] = H8[1, 7] = 1.0
 
 
+def common_cov(r_pos: np.ndarray, model) -> np.ndarray:
+    """(K, 2, 2): the common-mode bias's stationary covariance, s_c R_pos + ``common_sigma_m``^2 I."""
+    out = model.common_share * r_pos
+    if model.common_sigma_m > 0:
+        out = out + model.common_sigma_m ** 2 * np.eye(2)
+    return out
+
+
 def two_state_start(cov: np.ndarray, rows: np.ndarray, r_pos: np.ndarray, model) -> None:
     """In place: the rows' bias blocks of an (N, 8, 8) covariance at their stationary values."""
-    cov[rows, 4:6, 4:6] = model.common_share * r_pos[rows]
+    cov[rows, 4:6, 4:6] = common_cov(r_pos[rows], model)
     cov[rows, 6:8, 6:8] = model.local_share * r_pos[rows]
 
 
@@ -74,6 +88,8 @@ def two_state_transition(mean, accel, r_pos, dt, motion: MotionParams, model):
     q = np.zeros((n, 8, 8))
     q[:, :4, :4] = driving_noise_cov(mean[:, 2:4], dt, motion)
     q[:, 4:6, 4:6] = (1.0 - a_c * a_c) * model.common_share * r_pos
+    if model.common_sigma_m > 0:
+        q[:, 4:6, 4:6] += (1.0 - a_c * a_c) * model.common_sigma_m ** 2 * np.eye(2)
     q[:, 6:8, 6:8] = ((1.0 - a_l * a_l) * model.local_share)[:, None, None] * r_pos
     m = np.einsum("nij,nj->ni", f, mean)
     m[:, 0:2] += 0.5 * dt * dt * accel
@@ -119,6 +135,7 @@ def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: M
     ph = p @ H8.T  # (N, 8, 4)
     sm = H8 @ ph + rn
     innov = z - m @ H8.T
+    velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]
@@ -129,6 +146,26 @@ def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: M
     fixed = slice(4, 6) if model.common_update == "consider" else None
     gated_joseph_update(m, p, ph, sm, rn, innov, excluded, H8, fixed)
     return m, p, excluded
+
+
+def velocity_deweight(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, predict_mask: np.ndarray, model) -> None:
+    """In place on the fix's noise ``rn`` and innovation covariance ``sm`` (N, 4, 4): where a predicted row's
+    velocity innovation fails the 2-dof chi-square test ``velocity_gate`` (nu_v^T S_vv^-1 nu_v = d^2 above the
+    threshold t), its velocity noise is scaled by d^2 / t, R_vv -> (d^2 / t) R_vv (and S_vv with it): the
+    Mahalanobis-distance rule of a robust Kalman filter (G. Chang, "Robust Kalman filtering based on
+    Mahalanobis distance as outlier judging criterion", J. Geodesy 88, 2014), in its one-step form. Not an
+    exclusion: excluding the velocity let trackers diverge where the predicted velocity had drifted (the gate
+    never reopened); a scaled fix keeps pulling back, and an outlier's pull is bounded."""
+    if model.velocity_gate <= 0:
+        return
+    nu = innov[:, 2:4]
+    d2 = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, 2:4, 2:4], nu[..., None])[..., 0])
+    thr = model.velocity_gate_threshold
+    out = predict_mask & (d2 > thr)
+    if out.any():
+        extra = (d2[out] / thr - 1.0)[:, None, None] * rn[out, 2:4, 2:4]
+        rn[out, 2:4, 2:4] += extra
+        sm[out, 2:4, 2:4] += extra
 
 
 def gated_joseph_update(m, p, ph, sm, rn, innov, excluded, h, fixed=None) -> None:
@@ -166,8 +203,10 @@ def two_state_entry_posterior(mean: np.ndarray, cov: np.ndarray, frame, fresh: n
         cov[once, 4:, :4] = 0.0
         cov[once, 4:, 4:] = 0.0
         mean[once, 4:] = 0.0
-        for sl, share in ((slice(4, 6), model.common_share), (slice(6, 8), model.local_share)):
-            cross = -share * rp
+        for sl, block in ((slice(4, 6), common_cov(rp, model)), (slice(6, 8), model.local_share * rp)):
+            cross = -block
             cov[once, :2, sl], cov[once, sl, :2] = cross, np.swapaxes(cross, -1, -2)
-            cov[once, sl, sl] = share * rp
+            cov[once, sl, sl] = block
+        if model.common_sigma_m > 0:  # the part the report does not carry: p = z - c - l - n
+            cov[once, :2, :2] += model.common_sigma_m ** 2 * np.eye(2)
     return once

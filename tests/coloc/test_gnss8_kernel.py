@@ -17,7 +17,9 @@ MODELS = (GnssModelParams(bias_model="two_state"),
           GnssModelParams(bias_model="two_state", innovation_gate=0.99, max_exclusions=3, local_length_m=5.0,
                           local_tau_s=10.0, common_tau_s=40.0),
           GnssModelParams(bias_model="two_state", bias_follows_report=True),
-          GnssModelParams(bias_model="two_state", bias_follows_report=True, common_update="augmented"))
+          GnssModelParams(bias_model="two_state", bias_follows_report=True, common_update="augmented"),
+          GnssModelParams(bias_model="two_state", common_share=0.0, common_sigma_m=1.3, velocity_gate=0.99),
+          GnssModelParams(bias_model="two_state", common_sigma_m=0.7, velocity_gate=0.5, common_update="augmented"))
 
 
 def spd(rng, n, k, scale):
@@ -34,6 +36,7 @@ def inputs(seed, n=300):
     r = spd(rng, n, 4, 2.0)
     z = mean @ H8.T + rng.normal(scale=2.0, size=(n, 4))
     z[rng.random(n) < 0.3, :2] += rng.normal(scale=40.0, size=(1, 2))  # faults for the gate
+    z[rng.random(n) < 0.3, 2:] += rng.normal(scale=6.0, size=(1, 2))  # faulty range rates for the velocity test
     accel = rng.normal(size=(n, 2))
     predict = rng.random(n) < 0.8
     streak = rng.integers(0, 12, size=n)

@@ -130,7 +130,10 @@ def test_consistent_where_its_model_is_the_truth(update):
                                 {"local_length_m": -1.0}, {"local_tau_s": math.inf}, {"common_share": 1.0},
                                 {"local_share": -0.1},
                                 {"bias_model": "two_state", "common_share": 0.6, "local_share": 0.4},
-                                {"bias_model": "two_state", "adaptive_window_s": 10.0}])
+                                {"bias_model": "two_state", "adaptive_window_s": 10.0},
+                                {"common_sigma_m": -0.1}, {"common_sigma_m": math.nan},
+                                {"bias_model": "two_state", "velocity_gate": 1.0},
+                                {"velocity_gate": 0.99}])
 def test_two_state_params_refuse_values_that_break_the_model(kw):
     with pytest.raises(ValueError):
         GnssModelParams(**kw)
@@ -142,3 +145,68 @@ def test_the_other_methods_keep_the_single_model():
     assert single.bias_model == "single" and single.state_dim == 6
     assert (single.bias_share, single.bias_tau_s) == (0.6, 50.0)
     assert TWO.state_dim == 8 and GnssModelParams().single_model() == GnssModelParams()
+    assert replace(TWO, velocity_gate=0.99).single_model().velocity_gate == 0.0
+
+
+@pytest.mark.parametrize("update", ["augmented", "consider"])
+def test_common_sigma_and_velocity_test_equal_filterpy(update):
+    """``common_sigma_m`` and ``velocity_gate``: the tracker against a filter written on filterpy with the
+    common-mode bias's covariance s_c R + sigma_c^2 I and, where the velocity innovation's d^2 (on the
+    prior) exceeds the threshold, the velocity noise scaled by d^2 / threshold (Chang 2014)."""
+    model = replace(TWO, common_update=update, common_sigma_m=1.3, velocity_gate=0.95)
+    frames = scripted_run(7, 200, model)
+    for fr in frames[::9]:  # reflected range rates: velocities metres per second off
+        fr.gnss_z[:, 2] += 4.0
+    est = GnssBiasTracker(motion=MOTION, model=model)
+    refs = {}
+    thr = chi2.ppf(model.velocity_gate, 2)
+    sig2 = model.common_sigma_m ** 2 * np.eye(2)
+    scaled = 0
+    for fr in frames:
+        out = est.step(fr)
+        for i, vid in enumerate(fr.vehicle_ids):
+            r = fr.gnss_R[i]
+            f, b, q, h, rn = reference_matrices(refs[vid].x if vid in refs else np.zeros(8), r, fr.dt, model)
+            a_c = math.exp(-fr.dt / model.common_tau_s)
+            q[4:6, 4:6] += (1.0 - a_c * a_c) * sig2
+            if fr.entered[i]:
+                p0 = np.zeros((8, 8))
+                p0[:4, :4] = fr.prior_R[i]
+                p0[4:6, 4:6] = model.common_share * r[:2, :2] + sig2
+                p0[6:8, 6:8] = model.local_share * r[:2, :2]
+                x0 = np.concatenate([fr.prior_z[i], np.zeros(4)])
+                refs[vid] = schmidt_kf(x0, p0) if update == "consider" else filterpy_kf(x0, p0)
+                refs[vid].update(fr.gnss_z[i], R=rn, H=h)
+            else:
+                kf = refs[vid]
+                kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
+                s = h @ kf.P @ h.T + rn
+                nu = (fr.gnss_z[i] - h @ kf.x)[2:]
+                d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
+                if d2 > thr:
+                    scaled += 1
+                    rn[2:, 2:] *= d2 / thr
+                kf.update(fr.gnss_z[i], R=rn, H=h)
+            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
+    assert scaled > 20
+
+
+def test_consider_keeps_the_common_sigma_in_the_position():
+    """Vehicles that start from their own receiver's fix (``start = "gnss_fix"``: the entry prior is the
+    fix, with the report's covariance plus sigma_c^2 I) and a consider common-mode bias of size sigma_c: no
+    number of fixes brings a position variance below sigma_c^2 per axis (a single receiver cannot tell that
+    error from its position); without it (sigma_c = 0) the variance falls below."""
+    low = {}
+    for sigma in (2.0, 0.0):
+        model = replace(TWO, common_update="consider", common_sigma_m=sigma)
+        est = GnssBiasTracker(motion=MOTION, model=model)
+        smallest = math.inf
+        for fr in scripted_run(3, 300, model):
+            fr = replace(fr, prior_R=np.where(fr.entered[:, None, None], fr.gnss_R, np.nan),
+                         prior_has_fix=np.asarray(fr.entered, dtype=bool))
+            out = est.step(fr)
+            smallest = min(smallest, np.linalg.eigvalsh(out.cov[:, :2, :2]).min())
+        low[sigma] = smallest
+    assert low[2.0] >= 4.0 * (1 - 1e-9)
+    assert low[0.0] < 4.0
