@@ -61,3 +61,28 @@ def test_independent_errors_do_not_correlate():
         # the standard error of a null correlation over n pairs is ~ 1 / sqrt(n): tolerance 5 of them
         tol = 5.0 / np.sqrt(block["pairs"])
         assert abs(block["x"]) < tol and abs(block["y"]) < tol
+
+
+def test_correlation_by_zone_keeps_the_pairs_of_one_zone():
+    """Zone A pairs share most of their error (rho 0.9), zone C pairs none, and mixed pairs (one vehicle in each
+    zone, 30 m apart) are independent too: the pooled rho mixes them, the per-zone blocks give each zone's own;
+    a mixed pair counts in no zone. 1500 steps x 40 pairs per kind: tolerance 0.03 (standard errors < 0.01)."""
+    rng = np.random.default_rng(2)
+    tally = GnssWorldTally()
+    k, rho = 40, 0.9
+    for _ in range(1500):
+        base = np.stack([np.arange(3 * k) * 3000.0, np.zeros(3 * k)], axis=1)
+        xy = np.concatenate([base, base + [30.0, 0.0]])
+        a = rng.standard_normal((3 * k, 2))
+        b = rng.standard_normal((3 * k, 2))
+        b[:k] = rho * a[:k] + np.sqrt(1 - rho ** 2) * b[:k]
+        zone = np.array(["A"] * k + ["C"] * k + ["A"] * k + ["A"] * k + ["C"] * k + ["C"] * k, dtype=object)
+        tally.add(_frame(xy, np.concatenate([a, b]), zone))
+    s = tally.summary()
+    by_zone = s["error_correlation_by_zone_and_separation"]
+    assert by_zone["A"]["10-50m"]["pairs"] == by_zone["C"]["10-50m"]["pairs"] == 1500 * k
+    assert by_zone["A"]["10-50m"]["x"] == pytest.approx(rho, abs=0.03)
+    assert by_zone["C"]["10-50m"]["y"] == pytest.approx(0.0, abs=0.03)
+    assert by_zone["A"]["200-1000m"]["pairs"] == 0 and by_zone["A"]["200-1000m"]["x"] is None
+    assert s["error_correlation_by_separation"]["10-50m"]["pairs"] == 1500 * 3 * k
+    assert s["error_correlation_by_separation"]["10-50m"]["x"] == pytest.approx(rho / 3, abs=0.03)
