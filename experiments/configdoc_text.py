@@ -353,6 +353,12 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                            "consensus average) of this step's other observers' own-sensor messages instead of the "
                            "sum of every message the track keeps: the other vehicles' messages may share their "
                            "receivers' errors. False: their sum (independent receivers)."),
+        "common_frame_messages": ("", "Two-state receiver model (`[gnss_model] bias_model = \"two_state\"`): a "
+                                      "vehicle's own-sensor message to the features (and ICP-DA-LC's tracks) is "
+                                      "its own track in the common-mode frame, [p + c, v] with that covariance, "
+                                      "the frame the feature evidence is taken in (coloc/methods/coop_fusion.py). "
+                                      "False: the position marginal, whose covariance holds the common-mode "
+                                      "variance. Default false."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

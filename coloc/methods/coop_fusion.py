@@ -32,8 +32,12 @@ prior, its driving noise, and the part of the one-fix entry posterior it drives:
 between them), so the fusion's covariance intersection never inflates c either: under ``common_update =
 "consider"`` the cooperative belief's common-mode covariance is the own track's, the consider bound, at
 every step (tests). With ``common_mode_gnss`` the local bias's driving noise and the fix's noise go to the
-dependent part, as the 6-state bias and fix do. What is sent to the features stays the own track's position
-marginal (its covariance holds Var(c): conservative for the common-mode frame). ``bias_follows_report`` maps
+dependent part, as the 6-state bias and fix do. What is sent to the features is the own track's position
+marginal (its covariance holds Var(c): conservative for the common-mode frame), or with
+``common_frame_messages`` its marginal in the common-mode frame, [p + c, v]: the features are then placed in
+the frame their evidence is taken in, as precise as the vehicles' own errors apart from c allow, and the
+cooperation refines p + c by what the receivers do not share (multipath, NLOS, noise) while Var(p) stays at or
+above Var(c). ``bias_follows_report`` maps
 both biases of both filters as :func:`coloc.methods.gnss_bias2.two_state_predict_update` does (the 6-state
 filters do not apply it). Nothing here reads the world: only the covariance the receiver reports,
 the V2F rows and the ``[gnss_model]`` / ``[fusion]`` values.
@@ -89,6 +93,11 @@ class FusionParams:
     # messages instead of the sum of every stored message (coloc.inference.split_ci.feature_evidence):
     # the other vehicles' messages may share their receivers' errors.
     feature_ci: bool = False
+    # Two-state model: what a vehicle sends to the features (and what ICP-DA-LC's tracks keep) is its own track
+    # in the common-mode frame, [p + c, v] with that covariance, the frame in which the feature evidence is
+    # taken (module docstring). False: the position marginal [p, v], whose covariance holds Var(c), so that
+    # every feature is at least as uncertain as the common-mode error the features cannot see.
+    common_frame_messages: bool = False
 
     def __post_init__(self):
         if self.rule not in FUSION_RULES:
@@ -152,11 +161,20 @@ class SplitPrior:
     own_cov: np.ndarray
     own_streak: np.ndarray
     rpos: np.ndarray | None = None  # this step's reported position covariances (SplitState.rpos)
+    common_frame_messages: bool = False  # FusionParams.common_frame_messages
 
     def marginal(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(b0_mean, b0_cov, own_mean, own_cov): the 4-D kinematic marginals."""
-        return (self.mean[:, :4].copy(), self.cov[:, :4, :4].copy(), self.own_mean[:, :4].copy(),
-                self.own_cov[:, :4, :4].copy())
+        """(b0_mean, b0_cov, own_mean, own_cov): the 4-D kinematic marginals, the own track's as
+        :meth:`own_marginal`."""
+        return (self.mean[:, :4].copy(), self.cov[:, :4, :4].copy(), *self.own_marginal())
+
+    def own_marginal(self) -> tuple[np.ndarray, np.ndarray]:
+        """The own track's 4-D marginal: [p, v], or with ``common_frame_messages`` and 8-D states the
+        common-mode frame's [p + c, v] (mean T x, covariance T P T^T of :func:`common_frame`)."""
+        if self.common_frame_messages and self.own_mean.shape[1] == 8:
+            t, _ = common_frame(8)
+            return (self.own_mean @ t.T)[:, :4], (t @ self.own_cov @ t.T)[:, :4, :4]
+        return self.own_mean[:, :4].copy(), self.own_cov[:, :4, :4].copy()
 
 
 def _carry(prev, match, fresh, n, shape, fill=0.0):
@@ -291,10 +309,11 @@ def _common_part(r_pos: np.ndarray, model: GnssModelParams) -> np.ndarray:
 
 
 def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel: np.ndarray, motion: MotionParams,
-                model: GnssModelParams, common_mode: bool = False) -> SplitPrior:
+                model: GnssModelParams, common_mode: bool = False, common_frame_messages: bool = False) -> SplitPrior:
     """Both filters carried to this frame (``match`` = ``match_ids(previous ids, frame.vehicle_ids)``),
     predicted with the input ``accel`` (frame order) and updated by the step's fix (``common_mode``:
-    :attr:`FusionParams.common_mode_gnss`). The two-state model: 8-D filters (module docstring)."""
+    :attr:`FusionParams.common_mode_gnss`; ``common_frame_messages``: :attr:`FusionParams.common_frame_messages`).
+    The two-state model: 8-D filters (module docstring)."""
     d = model.state_dim
     two = model.two_state
     state = state if state is not None else SplitState.empty(d)
@@ -358,7 +377,7 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
     else:
         pi[once] = p[once]
     return SplitPrior(m, p, pi, np.where(ex, streak + 1, 0), own_m, own_p, np.where(own_ex, own_streak + 1, 0),
-                      r[:, :2, :2].copy() if r_prev is not None else None)
+                      r[:, :2, :2].copy() if r_prev is not None else None, common_frame_messages)
 
 
 def fuse_evidence(mean, cov, ind, y_f, p_f, r_f, has):
@@ -386,7 +405,7 @@ def split_localization(prior: SplitPrior, owner: np.ndarray, feature: np.ndarray
     (same row arguments): the feature evidence of :func:`coloc.inference.split_ci.feature_evidence` fused
     into each observing vehicle's b^(0); vehicles without evidence keep b^(0). The result's messages are
     the own-sensor ones the tracks keep (so the step's feature beliefs are the store's moments)."""
-    own_mean, own_cov = prior.own_mean[:, :4], prior.own_cov[:, :4, :4]
+    own_mean, own_cov = prior.own_marginal()
     msg_lam, msg_eta, y_f, p_f, r_f, has, comm = feature_evidence(
         np.ascontiguousarray(own_mean), np.ascontiguousarray(own_cov), owner, feature, z, r, adjacency,
         feature_prior_lam, feature_prior_eta, params, v2x, feature_ci)

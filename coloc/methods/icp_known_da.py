@@ -126,7 +126,7 @@ def prior_pair(state: "IcpState", frame: Frame, params: IcpParams, match: np.nda
     if fusion is None:
         return (*vehicle_prior_pair(state, frame, params, match, accel), None)
     prior = split_prior(state.split, frame, match, frame.accel if accel is None else accel, params.motion,
-                        fusion.model, fusion.params.common_mode_gnss)
+                        fusion.model, fusion.params.common_mode_gnss, fusion.params.common_frame_messages)
     return (*prior.marginal(), prior)
 
 

@@ -126,15 +126,17 @@ def two_state_frames(seed, n=5, steps=15, n_feat=4, sigma_p=4.0, model=TWO):
     return out
 
 
-@pytest.mark.parametrize("common_mode", [False, True])
+@pytest.mark.parametrize("common_mode,frame_messages", [(False, False), (True, False), (True, True)])
 @pytest.mark.parametrize("follows", [False, True])
-def test_the_common_mode_variance_is_the_consider_bound_at_every_step(common_mode, follows):
+def test_the_common_mode_variance_is_the_consider_bound_at_every_step(common_mode, frame_messages, follows):
     """ICP with known association under [fusion] and the two-state model: at every step the cooperative belief's
     common-mode block is the own track's (the consider bound: what the fixes alone allow, here what the
-    prediction alone gives) and none of it is in the dependent part."""
+    prediction alone gives) and none of it is in the dependent part; with the messages in the common-mode frame
+    too."""
     model = replace(TWO, bias_follows_report=follows)
-    est = IcpKnownDA(IcpParams(motion=TRUE_MOTION), fusion=CoopFusion(FusionParams(common_mode_gnss=common_mode),
-                                                                      model))
+    est = IcpKnownDA(IcpParams(motion=TRUE_MOTION),
+                     fusion=CoopFusion(FusionParams(common_mode_gnss=common_mode,
+                                                    common_frame_messages=frame_messages), model))
     for f in two_state_frames(3, steps=12):
         est.step_with_association(f, f.truth.v2f_feature)
         s = est.state.split
@@ -160,19 +162,20 @@ def nees_runs(make, runs=100, steps=15):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("common_mode", [False, True])
-def test_nees_where_the_two_state_model_is_the_truth(common_mode):
+@pytest.mark.parametrize("common_mode,frame_messages", [(False, False), (True, False), (True, True)])
+def test_nees_where_the_two_state_model_is_the_truth(common_mode, frame_messages):
     """The scene's receiver is the estimators' two-state model (and driving noise, V2F noise, entry from the first
     fix): the mean position NEES of known DA and ICP-DA-LC over 100 runs x 5 vehicles is not above the 99 %
     chi-square band of its 500 samples (the split CI is a bound: below the band is allowed) and within 25 % of its
-    lower end; the single bias model in the same fusion, whose features shrink the shared error, is above it."""
-    fusion = CoopFusion(FusionParams(common_mode_gnss=common_mode), TWO)
+    lower end (messages in the common-mode frame too); the single bias model in the same fusion, whose features
+    shrink the shared error, is above it."""
+    fusion = CoopFusion(FusionParams(common_mode_gnss=common_mode, common_frame_messages=frame_messages), TWO)
     params = IcpParams(motion=TRUE_MOTION)
     band = chi2.ppf([0.005, 0.995], 2 * 500) / 500
     known = nees_runs(lambda: IcpKnownDA(params, fusion=fusion))
     lc = nees_runs(lambda: IcpDaLc(params, LcParams(), fusion=fusion))
     single = CoopFusion(FusionParams(common_mode_gnss=common_mode),
-                        GnssModelParams(bias_share=0.8, bias_tau_s=1e5, innovation_gate=0.0))
+                        GnssModelParams(bias_share=0.8, bias_tau_s=1e5, innovation_gate=0.0))  # 6-D: no frame
     one = nees_runs(lambda: IcpKnownDA(params, fusion=single))
     print(f"mean NEES: known {known.mean():.2f}, lc {lc.mean():.2f}, single model {one.mean():.2f}, band {band}")
     for v in (known, lc):
