@@ -79,8 +79,31 @@ def _lu_solve(s, lo, b, out, a):
 
 
 @njit(cache=True)
+def nis2(sm, innov, k):
+    """nu^T S^-1 nu of the 2-D block k..k+1 of the innovation ``innov`` (4,) and its covariance ``sm`` (4, 4):
+    the chi-square statistic of the position (k = 0) or velocity (k = 2) part of a fix, 2 dof."""
+    det = sm[k, k] * sm[k + 1, k + 1] - sm[k, k + 1] * sm[k + 1, k]
+    w0 = (sm[k + 1, k + 1] * innov[k] - sm[k, k + 1] * innov[k + 1]) / det
+    w1 = (sm[k, k] * innov[k + 1] - sm[k + 1, k] * innov[k]) / det
+    return innov[k] * w0 + innov[k + 1] * w1
+
+
+@njit(cache=True)
+def deweight_velocity(sm, rn, innov, vel_threshold):
+    """In place: where the velocity part's statistic d^2 exceeds ``vel_threshold``, R_vv and S_vv grow by
+    (d^2 / threshold - 1) R_vv (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
+    d2 = nis2(sm, innov, 2)
+    if d2 > vel_threshold:
+        for a in range(2, 4):
+            for b in range(2, 4):
+                extra = (d2 / vel_threshold - 1.0) * rn[a, b]
+                rn[a, b] += extra
+                sm[a, b] += extra
+
+
+@njit(cache=True)
 def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, share, decay,
-               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict):
+               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold):
     """One step of the 6-state filter for every row: predict where ``predict`` (decay a = exp(-dt/tau)),
     then the fix with the gate (a row that does not predict is never gated; nor one whose ``streak``
     reached ``max_exclusions``; ``gate_threshold`` inf: no gate). ``with_ind``: the independent part
@@ -161,12 +184,11 @@ def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
         innov[1] = z[i, 1] - (m[i, 1] + m[i, 5])
         innov[2] = z[i, 2] - m[i, 2]
         innov[3] = z[i, 3] - m[i, 3]
+        if predict[i] and vel_threshold < np.inf:
+            deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            det = sm[0, 0] * sm[1, 1] - sm[0, 1] * sm[1, 0]
-            w0 = (sm[1, 1] * innov[0] - sm[0, 1] * innov[1]) / det
-            w1 = (sm[0, 0] * innov[1] - sm[1, 0] * innov[0]) / det
-            if innov[0] * w0 + innov[1] * w1 > gate_threshold:
+            if nis2(sm, innov, 0) > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo

@@ -27,7 +27,7 @@ import math
 import numpy as np
 from numba import njit
 
-from coloc.kernels.gnss6 import _lu_solve
+from coloc.kernels.gnss6 import _lu_solve, deweight_velocity, nis2
 from coloc.kernels.kalman import _driving_q
 
 D = 8
@@ -161,22 +161,10 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
         innov[2] = z[i, 2] - m[i, 2]
         innov[3] = z[i, 3] - m[i, 3]
         if predict[i] and vel_threshold < np.inf:
-            det = sm[2, 2] * sm[3, 3] - sm[2, 3] * sm[3, 2]
-            w0 = (sm[3, 3] * innov[2] - sm[2, 3] * innov[3]) / det
-            w1 = (sm[2, 2] * innov[3] - sm[3, 2] * innov[2]) / det
-            d2 = innov[2] * w0 + innov[3] * w1
-            if d2 > vel_threshold:
-                for a in range(2, 4):
-                    for b in range(2, 4):
-                        extra = (d2 / vel_threshold - 1.0) * rn[a, b]
-                        rn[a, b] += extra
-                        sm[a, b] += extra
+            deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            det = sm[0, 0] * sm[1, 1] - sm[0, 1] * sm[1, 0]
-            w0 = (sm[1, 1] * innov[0] - sm[0, 1] * innov[1]) / det
-            w1 = (sm[0, 0] * innov[1] - sm[1, 0] * innov[0]) / det
-            if innov[0] * w0 + innov[1] * w1 > gate_threshold:
+            if nis2(sm, innov, 0) > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo

@@ -263,7 +263,8 @@ def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       c(r, dtype=float), c(predict_mask, dtype=np.bool_), c(streak, dtype=np.int64), float(dt),
                       float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
                       float(model.bias_share), math.exp(-dt / model.bias_tau_s), float(model.gate_threshold),
-                      int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind)
+                      int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind,
+                      float(model.velocity_gate_threshold))
 
 
 def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,

@@ -87,7 +87,7 @@ from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
 from coloc.methods.gnss_bias2 import (gated_joseph_update, two_state_entry_posterior, two_state_predict_update,
-                                      two_state_start)
+                                      two_state_start, velocity_deweight)
 from coloc.methods.registry import GNSS
 
 #: H of the fix for the state [p, v, b]: z_pos = p + b, z_vel = v.
@@ -143,7 +143,7 @@ class GnssModelParams:
     # the residuals), so this part is what the integrator takes from the receiver's open-sky accuracy instead
     # (coloc.methods.gnss_bias2). 0: the common-mode bias is the share of the report alone.
     common_sigma_m: float = 0.0
-    # Two-state model: level of a chi-square test (2 dof) on the velocity innovation; 0: none. A velocity
+    # Level of a chi-square test (2 dof) on the velocity innovation; 0: none. A velocity
     # from range rates carries a reflected signal's path rate (metres per second where a vehicle drives toward
     # the facade that reflects it) that the receiver's report does not know; a velocity that fails the test
     # is taken with its noise scaled by d^2 / threshold (coloc.methods.gnss_bias2.velocity_deweight).
@@ -172,9 +172,8 @@ class GnssModelParams:
         return 8 if self.two_state else 6
 
     def single_model(self) -> "GnssModelParams":
-        """The model for the methods that take the single bias only: this one with ``bias_model = "single"``
-        (and no velocity test, which the single model does not have)."""
-        return self if not self.two_state else replace(self, bias_model="single", velocity_gate=0.0)
+        """The model for the methods that take the single bias only: this one with ``bias_model = "single"``."""
+        return self if not self.two_state else replace(self, bias_model="single")
 
     def __post_init__(self):
         if self.bias_model not in BIAS_MODELS:
@@ -194,8 +193,6 @@ class GnssModelParams:
         if not (isinstance(self.velocity_gate, (int, float)) and not isinstance(self.velocity_gate, bool)
                 and 0.0 <= self.velocity_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity gate), got {self.velocity_gate!r}")
-        if self.velocity_gate > 0 and not self.two_state:
-            raise ValueError("velocity_gate applies to the two-state model only (bias_model = \"two_state\")")
         for name in ("common_share", "local_share"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v < 1.0):
@@ -330,6 +327,7 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
             p[:, 4:, 4:] += extra * (1.0 - a * a) * s * r_pos
             ph = p @ H.T
             sm = H @ ph + rn
+    velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
         nu = innov[:, :2]

@@ -11,7 +11,8 @@ from coloc.methods.gnss_bias import H, GnssModelParams, bias_predict_update
 
 MOTION = MotionParams(sigma_along=0.7, sigma_cross=0.3, heading_min_speed=1.0)
 MODELS = (GnssModelParams(), GnssModelParams(bias_share=0.0, innovation_gate=0.0),
-          GnssModelParams(bias_share=0.5, bias_tau_s=20.0, innovation_gate=0.99, max_exclusions=3))
+          GnssModelParams(bias_share=0.5, bias_tau_s=20.0, innovation_gate=0.99, max_exclusions=3),
+          GnssModelParams(velocity_gate=0.99), GnssModelParams(bias_share=0.3, velocity_gate=0.5, innovation_gate=0.0))
 
 
 def spd(rng, n, k, scale):
@@ -28,6 +29,7 @@ def inputs(seed, n=300):
     r = spd(rng, n, 4, 2.0)
     z = mean @ H.T + rng.normal(scale=2.0, size=(n, 4))
     z[rng.random(n) < 0.3, :2] += rng.normal(scale=40.0, size=(1, 2))  # faults for the gate
+    z[rng.random(n) < 0.3, 2:] += rng.normal(scale=6.0, size=(1, 2))  # faulty range rates for the velocity test
     accel = rng.normal(size=(n, 2))
     predict = rng.random(n) < 0.8
     streak = rng.integers(0, 12, size=n)

@@ -305,3 +305,37 @@ def test_a_50_m_jump_is_excluded_and_ordinary_fixes_are_kept():
 def test_params_refuse_values_that_break_the_model(kw):
     with pytest.raises(ValueError):
         GnssModelParams(**kw)
+
+
+def test_velocity_test_equals_filterpy():
+    """``velocity_gate`` in the single model: the tracker against filterpy on [p, v, b] with the velocity noise
+    scaled by d^2 / threshold where the velocity innovation's d^2 (on the prior) exceeds the threshold."""
+    model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=0.0, velocity_gate=0.95)
+    frames = scripted_run(4, 200, model)
+    for fr in frames[::7]:  # reflected range rates
+        fr.gnss_z[:, 3] -= 5.0
+    est = GnssBiasTracker(motion=MOTION, model=model)
+    thr = chi2.ppf(model.velocity_gate, 2)
+    refs, scaled = {}, 0
+    for fr in frames:
+        out = est.step(fr)
+        for i, vid in enumerate(fr.vehicle_ids):
+            r = fr.gnss_R[i]
+            if fr.entered[i]:
+                refs[vid] = filterpy_kf(np.concatenate([fr.prior_z[i], np.zeros(2)]),
+                                        block_diag(fr.prior_R[i], model.bias_share * r[:2, :2]))
+                _f, _b, _q, h, rn = reference_matrices(refs[vid].x, r, fr.dt, model)
+            else:
+                kf = refs[vid]
+                f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
+                kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
+                s = h @ kf.P @ h.T + rn
+                nu = (fr.gnss_z[i] - h @ kf.x)[2:]
+                d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
+                if d2 > thr:
+                    scaled += 1
+                    rn[2:, 2:] *= d2 / thr
+            refs[vid].update(fr.gnss_z[i], R=rn, H=h)
+            np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
+    assert scaled > 20
