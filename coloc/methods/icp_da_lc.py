@@ -517,8 +517,13 @@ def icp_da_lc_step(
     if lc.relocalize_radius_m > 0 and predicted.size:  # step 5b: lost vehicles relocalized against the confirmed tracks
         confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
         on_map = np.bincount(owner[(row_idx >= 0) & confirmed[np.maximum(row_idx, 0)]], minlength=frame.n_vehicles)
-        lost = (np.bincount(owner, minlength=frame.n_vehicles) >= lc.relocalize_min_support) & (on_map == 0)
-        shift = relocalization_offsets(b0_mean, owner, frame.v2f_z, lost, t_mean[confirmed, :2],
+        static = np.ones(o, dtype=bool)  # with classes only static landmarks anchor the translation
+        if row_cls is not None:
+            static = row_cls == 0
+            if predicted.klass is not None:
+                confirmed &= predicted.klass == 0
+        lost = (np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support) & (on_map == 0)
+        shift = relocalization_offsets(b0_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
                                        lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support)
         if shift.any():
             a_mean = b0_mean.copy()
