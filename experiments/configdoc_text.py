@@ -577,6 +577,14 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "own_consistency_gate": (NO_UNIT, "Chi-square probability (2 dof): a vehicle whose cooperative position "
                                           "leaves this gate of its own-sensor (GNSS + inertial) track is reset to "
                                           "that track. 0 = never (the paper)."),
+        "relocalize_radius_m": ("m", "ICP-DA-LC: a vehicle with at least `relocalize_min_support` rows and none "
+                                     "paired with a confirmed track is relocalized for the association by the "
+                                     "unique translation within this radius that puts the most of its rows within "
+                                     "`relocalize_tolerance_m` of distinct confirmed tracks (consensus voting, "
+                                     "Fischler and Bolles 1981; coloc/methods/lc_reloc.py). 0 = never (the paper)."),
+        "relocalize_tolerance_m": ("m", "How close a translated row must come to a confirmed track to support it."),
+        "relocalize_min_support": (NO_UNIT, "Rows a vehicle needs for relocalization, and rows on distinct "
+                                            "confirmed tracks a translation needs."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

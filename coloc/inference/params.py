@@ -201,6 +201,11 @@ class LcParams:
       a vehicle whose cooperative position estimate lies outside this gate
       of its own-sensor (GNSS + inertial) track is reset to that track; 0
       (default) = never (the paper).
+    * ``relocalize_radius_m``: step 5b (:mod:`coloc.methods.lc_reloc`): a vehicle with at least
+      ``relocalize_min_support`` rows and none paired with a confirmed track is relocalized for the
+      association by the unique translation, within this radius, that puts the most of its rows
+      within ``relocalize_tolerance_m`` of distinct confirmed tracks (at least ``relocalize_min_support``);
+      0 (default) = never.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -222,6 +227,9 @@ class LcParams:
     confirm_existence: float = 0.9
     drop_existence: float = 0.01
     own_consistency_gate: float = 0.0
+    relocalize_radius_m: float = 0.0
+    relocalize_tolerance_m: float = 1.5
+    relocalize_min_support: int = 3
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -250,6 +258,8 @@ class LcParams:
             raise ValueError("visibility must be in (0, 1] (1: no occlusion expected)")
         if not 0.0 <= self.own_consistency_gate < 1.0:
             raise ValueError("own_consistency_gate must be in [0, 1) (0: off)")
+        if self.relocalize_radius_m < 0 or self.relocalize_tolerance_m <= 0 or self.relocalize_min_support < 1:
+            raise ValueError("relocalize_radius_m must be >= 0, relocalize_tolerance_m > 0, relocalize_min_support >= 1")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
             raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
         if self.bp_iterations < 1 or self.bp_tol <= 0:

@@ -39,6 +39,9 @@ Per time step, with no knowledge of which feature produced a V2F row:
      same row: each pairing enters the likelihood (31), so a shared row is
      used once per track that took it. The row's reported assignment is the
      track of largest belief (scoring sees one track per row);
+5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
+   none of whose rows found a confirmed track is moved, for steps 3-6 and 9 of this step only, by the
+   translation that puts its rows on confirmed tracks, and steps 3-5 run again;
 6. feature tracks without a map (docs/architecture.md "Features without a map"): a row no
    track took whose "new" belief is >= ``birth_probability`` starts a track;
    rows of different vehicles whose implied feature positions (m_i + z_l)
@@ -123,6 +126,7 @@ from coloc.kernels.icp_fused import (
 )
 from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
+from coloc.methods.lc_reloc import relocalization_offsets
 from coloc.methods.lc_births import PRUNE_MARGIN, birth_clusters, birth_pairs, merge_candidates  # noqa: F401
 from coloc.methods.registry import ICP_DA_LC
 
@@ -497,50 +501,44 @@ def icp_da_lc_step(
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
     t_mean, t_cov = predicted.moments(params)
-    # (13) with the mean of b_i^(0) and the covariance of the own-sensor track: Gaussian loopy BP
-    # and its time recursion leave b_i^(0) overconfident (position NEES ~100 measured on the
-    # arterial), which gates out correct pairings (arterial TLR, 300 s: 1494 births and 1208
-    # merges with the b^(0) covariance, 171 births and no merge with the own-sensor one).
-    pv, pt, pr, w = association_weights(
-        b0_mean, gate_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection
-    )
+    r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability if lc.track_existence \
+        else None
+    a_mean = b0_mean  # the mean the association, births and existence see (step 5b may move it)
     row_cls = frame.v2f_class
-    if row_cls is not None:
-        # Class gating (SUMO pedestrians): the classifier's label is known, so a row of class c is
-        # only a candidate of tracks of class c (eta(alpha = l) = 0 otherwise).
-        t_cls = predicted.klass if predicted.klass is not None else np.zeros(predicted.size, np.int8)
-        w = np.where(t_cls[pt] == row_cls[pr], w, 0.0)
-    # BPA-DA (association_beliefs) keeps the pairs of positive weight only: the others (outside the
-    # gate, e.g. the clutter rows near a city's many tracks) are dropped before their P_D is computed.
-    gated = w > 0
-    if not gated.all():
-        pv, pt, pr, w = pv[gated], pt[gated], pr[gated], w[gated]
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
         if detection is None:
             return np.full(vi.size, lc.detection_probability)
-        return pair_detection_probability(b0_mean, t_mean, vi, ti, detection)
+        return pair_detection_probability(a_mean, t_mean, vi, ti, detection)
 
-    # (13)-(17); step 9: eta with the tracks' predicted existence r and the pairs' P_D.
-    missed, r_pred = None, None
-    if lc.track_existence:
-        r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability
-        w = w * r_pred[pt]
-        missed = 1.0 - r_pred[pt] * pd_of(pv, pt)
-    elif detection is not None:
-        missed = 1.0 - pd_of(pv, pt)
-    ab = association_beliefs(pv, pt, pr, w, frame.n_vehicles, o, lc, missed)
-    row_idx, row_new, extra_row, extra_idx = pairs_from_beliefs(ab, o, lc)
+    ab, row_idx, row_new, extra_row, extra_idx = _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner, frame,
+                                                            lc, detection, r_pred, pd_of)
+    if lc.relocalize_radius_m > 0 and predicted.size:  # step 5b: lost vehicles relocalized against the confirmed tracks
+        confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
+        on_map = np.bincount(owner[(row_idx >= 0) & confirmed[np.maximum(row_idx, 0)]], minlength=frame.n_vehicles)
+        static = np.ones(o, dtype=bool)  # with classes only static landmarks anchor the translation
+        if row_cls is not None:
+            static = row_cls == 0
+            if predicted.klass is not None:
+                confirmed &= predicted.klass == 0
+        lost = (np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support) & (on_map == 0)
+        shift = relocalization_offsets(b0_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
+                                       lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support)
+        if shift.any():
+            a_mean = b0_mean.copy()
+            a_mean[:, :2] += shift
+            ab, row_idx, row_new, extra_row, extra_idx = _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner,
+                                                                    frame, lc, detection, r_pred, pd_of)
     if lc.track_existence:  # r updated by the step
-        existence = existence_after_association(r_pred, ab, b0_mean, gate_cov, t_mean, t_cov, predicted.ids, pd_of,
+        existence = existence_after_association(r_pred, ab, a_mean, gate_cov, t_mean, t_cov, predicted.ids, pd_of,
                                                 lc, detection is None)
     row_track = np.where(row_idx >= 0, predicted.ids[np.maximum(row_idx, 0)] if predicted.size else -1, -1)
     # Births (step 6). A row no track explains may be a new feature or clutter: it starts a track
     # either way, and with clutter in the model the confirmation of step 9 tells them apart (a
     # static landmark and a false detection look alike in one scan).
     birth = np.flatnonzero((row_idx < 0) & (row_new >= lc.birth_probability))
-    implied = b0_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
+    implied = a_mean[owner[birth], :2] + frame.v2f_z[birth, :2]
     implied_cov = gate_cov[owner[birth], :2, :2] + frame.v2f_R[birth, :2, :2]
     if row_cls is None:
         labels = birth_clusters(owner[birth], implied, implied_cov, chi2_ppf(0.99, 2))
@@ -568,7 +566,7 @@ def icp_da_lc_step(
     # Confirmation (step 9): rows of tentative tracks update their track but not the vehicles.
     bpa_track = l_track
     if lc.track_existence:
-        share = new_feature_share(b0_mean[owner[birth]], gate_cov[owner[birth]], frame.v2f_z[birth],
+        share = new_feature_share(a_mean[owner[birth]], gate_cov[owner[birth]], frame.v2f_z[birth],
                                   frame.v2f_R[birth], lc)
         existence = existence.with_tracks(next_id - born + np.arange(born), birth_existence(share, labels, born))
         bpa_track = np.where(existence.confirmed(l_track, lc.confirm_existence), l_track, -1)
@@ -631,6 +629,37 @@ def icp_da_lc_step(
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     return (IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes,
                      sensor_heading, split_after), next_id, info)
+
+
+def _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner, frame: Frame, lc: LcParams,
+               detection: DetectionModel | None, r_pred: np.ndarray | None, pd_of):
+    """Steps 3-5 of one ICP-DA-LC step with the vehicles' means ``a_mean``: eta of (13) (class-gated), BPA-DA
+    (14)-(17) and the MAP pairing (30). Returns ``(beliefs, row_idx, row_new, extra_row, extra_idx)``."""
+    # (13) with the mean of b_i^(0) and the covariance of the own-sensor track: Gaussian loopy BP
+    # and its time recursion leave b_i^(0) overconfident (position NEES ~100 measured on the
+    # arterial), which gates out correct pairings (arterial TLR, 300 s: 1494 births and 1208
+    # merges with the b^(0) covariance, 171 births and no merge with the own-sensor one).
+    pv, pt, pr, w = association_weights(a_mean, gate_cov, t_mean, t_cov, owner, frame.v2f_z, frame.v2f_R, lc, detection)
+    row_cls = frame.v2f_class
+    if row_cls is not None:
+        # Class gating (SUMO pedestrians): the classifier's label is known, so a row of class c is
+        # only a candidate of tracks of class c (eta(alpha = l) = 0 otherwise).
+        t_cls = predicted.klass if predicted.klass is not None else np.zeros(predicted.size, np.int8)
+        w = np.where(t_cls[pt] == row_cls[pr], w, 0.0)
+    # BPA-DA (association_beliefs) keeps the pairs of positive weight only: the others (outside the
+    # gate, e.g. the clutter rows near a city's many tracks) are dropped before their P_D is computed.
+    gated = w > 0
+    if not gated.all():
+        pv, pt, pr, w = pv[gated], pt[gated], pr[gated], w[gated]
+    # (13)-(17); step 9: eta with the tracks' predicted existence r and the pairs' P_D.
+    missed = None
+    if r_pred is not None:
+        w = w * r_pred[pt]
+        missed = 1.0 - r_pred[pt] * pd_of(pv, pt)
+    elif detection is not None:
+        missed = 1.0 - pd_of(pv, pt)
+    ab = association_beliefs(pv, pt, pr, w, frame.n_vehicles, owner.size, lc, missed)
+    return (ab, *pairs_from_beliefs(ab, owner.size, lc))
 
 
 def existence_after_association(

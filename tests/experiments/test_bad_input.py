@@ -284,6 +284,18 @@ def run_existence_thresholds_crossed(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+@case("cfg.toml", "lc.relocalize_tolerance_m")
+def run_relocalize_tolerance_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_tolerance_m = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "lc.relocalize_min_support")
+def run_relocalize_min_support_zero(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_support = 0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
 def run_unknown_stop_rule(tmp, net, run):
     cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
@@ -1506,7 +1518,7 @@ def test_bad_input(name, tmp_path, cross_net, run_dir, capsys, monkeypatch):
 
 def test_corpus_size():
     """The corpus only grows: a case removed by mistake shows here."""
-    assert len(CASES) >= 198
+    assert len(CASES) >= 200
 
 
 # ----------------------------------------------------------------------------- what --out may replace

@@ -34,7 +34,8 @@ OVERLAYS = {
     "arterial_tlr_realistic.toml": ("arterial_tlr.toml", {
         "run.name", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
-        "lc.own_consistency_gate", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
+        "lc.own_consistency_gate", "lc.relocalize_radius_m", "lc.relocalize_tolerance_m",
+        "lc.relocalize_min_support", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
         "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start", "scenario.reference_point",
         "motion.sigma_cross"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
@@ -250,8 +251,10 @@ def test_preset_resolves_as_its_full_copy_did(name):
 
 #: Presets changed on purpose after the full copies: the [perception] sensors (front radar to the ARS 408-21
 #: near beam, road users, persistent clutter, detections in the sensor's frame), [estimator_sensors] and the
-#: [lc] values derived from them, the [gnss_error] field model and the entry from the receiver's first fix.
-CHANGED_SINCE = {name: ("clutter_intensity", "sensing_range_m") for name in
+#: [lc] values derived from them, the [gnss_error] field model and the entry from the receiver's first fix;
+#: the relocalization of lost vehicles ([lc] relocalize_*).
+CHANGED_SINCE = {name: ("clutter_intensity", "sensing_range_m", "relocalize_radius_m", "relocalize_tolerance_m",
+                        "relocalize_min_support") for name in
                  ("arterial_tlr_realistic.toml", "arterial_vsr_realistic.toml", "arterial_ped_tlr_realistic.toml")}
 
 

@@ -1,0 +1,77 @@
+"""Relocalization of a lost vehicle against ICP-DA-LC's confirmed tracks (``[lc] relocalize_radius_m``, off by default;
+:mod:`coloc.methods.icp_da_lc`, step 5b).
+
+A vehicle is *lost* at a step when it has at least ``relocalize_min_support`` rows and none of them was paired with a
+confirmed track: its belief b_i^(0) (mean and covariance) no longer overlaps the map, so every row falls outside its
+gate, the rows start tentative tracks and the vehicle gets no feature evidence (the failure the tuning-seed diagnosis
+of docs/validation/realistic_sensing.md, 2026-11-28, traces most of ICP-DA-LC's excess error over known association
+to). Its rows still carry the map's geometry: the translation that puts the most of their implied feature positions
+m_i + z_l onto confirmed tracks is found by consensus voting over the candidate translations each (row, track) pair
+proposes (hypothesise-and-verify as RANSAC, Fischler and Bolles, Commun. ACM 24(6), 1981; the translation-only
+point-set registration of map-based relocalization). A translation is taken only if at least
+``relocalize_min_support`` rows of the vehicle land within ``relocalize_tolerance_m`` of distinct confirmed tracks,
+and it is unique: no other translation at least 2 tolerances away has the same support (a near-periodic landmark
+layout, as the arterial's, proposes aliases that tie). Among those of maximal support the one nearest the prior
+wins. The translation only moves the mean the association, births and existence see at this step; the vehicle's
+belief is then updated by the feature evidence of the rows so paired (31), as any other vehicle's.
+
+Nothing here reads the truth: the vehicles' beliefs, their rows and the confirmed tracks' means.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["relocalization_offsets"]
+
+
+def relocalization_offsets(
+    v_mean: np.ndarray, owner: np.ndarray, z: np.ndarray, lost: np.ndarray, track_xy: np.ndarray,
+    radius_m: float, tolerance_m: float, min_support: int,
+) -> np.ndarray:
+    """(N, 2) translation of each vehicle's position for the association; 0 for vehicles not ``lost`` or for
+    which no unique translation within ``radius_m`` reaches ``min_support`` rows (module docstring).
+
+    ``v_mean`` (N, >= 2) the vehicles' means, ``owner`` (O,) and ``z`` (O, >= 2) the rows (relative position
+    in the net frame), ``lost`` (N,) bool, ``track_xy`` (T, 2) the confirmed tracks' predicted positions.
+    """
+    offsets = np.zeros((v_mean.shape[0], 2))
+    if track_xy.shape[0] == 0 or not lost.any():
+        return offsets
+    tree = cKDTree(track_xy)
+    owner = np.asarray(owner, dtype=np.int64)
+    # A few lost vehicles per step (about 3 % of vehicle-steps): one small voting problem each.
+    for i in np.flatnonzero(lost):
+        rows = np.flatnonzero(owner == i)
+        if rows.size < min_support:
+            continue
+        implied = v_mean[i, :2] + z[rows, :2]
+        near = tree.query_ball_point(implied, radius_m)
+        cand = [track_xy[k] - implied[l] for l, ks in enumerate(near) for k in ks]
+        if not cand:
+            continue
+        cand = np.asarray(cand)
+        cand = cand[np.hypot(cand[:, 0], cand[:, 1]) <= radius_m]
+        if cand.shape[0] == 0:
+            continue
+        # support of every candidate translation: the rows that land within the tolerance of a track, each
+        # track counted once (one vehicle's rows are distinct features)
+        moved = implied[None, :, :] + cand[:, None, :]  # (C, L, 2)
+        dist, idx = tree.query(moved.reshape(-1, 2), distance_upper_bound=tolerance_m)
+        hit = np.isfinite(dist).reshape(cand.shape[0], rows.size)
+        idx = idx.reshape(cand.shape[0], rows.size)
+        support = np.array([np.unique(idx[c][hit[c]]).size for c in range(cand.shape[0])])
+        best = int(support.max())
+        if best < min_support:
+            continue
+        top = np.flatnonzero(support == best)
+        norm = np.hypot(cand[top, 0], cand[top, 1])
+        pick = top[int(np.argmin(norm))]
+        rivals = cand[top] - cand[pick]
+        if (np.hypot(rivals[:, 0], rivals[:, 1]) >= 2.0 * tolerance_m).any():
+            continue  # an alias with the same support: ambiguous, leave the vehicle alone
+        # refine: the mean residual of the supporting rows
+        m = hit[pick]
+        offsets[i] = cand[pick] + np.mean(track_xy[idx[pick][m]] - moved[pick][m], axis=0)
+    return offsets

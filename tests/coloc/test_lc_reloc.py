@@ -1,0 +1,107 @@
+"""Relocalization of a lost vehicle (coloc/methods/lc_reloc.py, ``[lc] relocalize_radius_m``)."""
+
+import numpy as np
+import pytest
+
+from coloc.inference.params import IcpParams
+from coloc.methods.icp_da_lc import IcpDaLc, LcParams
+from coloc.methods.lc_reloc import relocalization_offsets
+from scenes import road_frames
+from tests.coloc.test_icp_known_da import MOTION
+
+
+def _seen(true_xy, tracks, rng, reach=30.0, noise=0.1):
+    """Rows of a vehicle at ``true_xy``: every track within ``reach``, relative, with noise."""
+    near = np.flatnonzero(np.hypot(*(tracks - true_xy).T) <= reach)
+    return tracks[near] - true_xy + rng.normal(0.0, noise, (near.size, 2))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_shifted_vehicle_is_moved_back_onto_an_irregular_map(seed):
+    rng = np.random.default_rng(seed)
+    tracks = rng.uniform(-60.0, 60.0, (60, 2))
+    true_xy = np.zeros(2)
+    z = _seen(true_xy, tracks, rng)
+    assert z.shape[0] >= 4
+    err = rng.uniform(-7.0, 7.0, 2)
+    v_mean = np.array([[*(true_xy + err), 10.0, 0.0], [5.0, 5.0, 0.0, 0.0]])
+    owner = np.zeros(z.shape[0], dtype=np.int64)
+    off = relocalization_offsets(v_mean, owner, z, np.array([True, True]), tracks, 10.0, 1.5, 3)
+    np.testing.assert_allclose(off[0], -err, atol=0.15)
+    np.testing.assert_array_equal(off[1], 0.0)  # lost, but no rows
+    # not lost, or fewer rows than the support asked for: left alone
+    assert not relocalization_offsets(v_mean, owner, z, np.array([False, False]), tracks, 10.0, 1.5, 3).any()
+    assert not relocalization_offsets(v_mean, owner, z, np.array([True, False]), tracks, 10.0, 1.5, z.shape[0] + 1).any()
+    # a radius below the error: no translation reaches it
+    assert not relocalization_offsets(v_mean, owner, z, np.array([True, False]), tracks,
+                                      0.5 * float(np.hypot(*err)) - 1.5, 1.5, 3).any()
+
+
+def test_a_periodic_layout_is_ambiguous_unless_the_radius_excludes_the_alias():
+    """Landmarks 12.4 m apart on both sides of a road (the arterial's layout): a translation by one period
+    explains the rows as well, so within a radius that holds it nothing is done; within one that does not,
+    the vehicle is moved back."""
+    rng = np.random.default_rng(4)
+    xs = np.arange(-40, 41) * 12.4
+    tracks = np.concatenate([np.stack([xs, np.full(xs.size, 9.4)], 1), np.stack([xs, np.full(xs.size, -9.4)], 1)])
+    z = _seen(np.zeros(2), tracks, rng)
+    v_mean = np.array([[4.0, 0.5, 10.0, 0.0]])
+    owner = np.zeros(z.shape[0], dtype=np.int64)
+    lost = np.array([True])
+    assert not relocalization_offsets(v_mean, owner, z, lost, tracks, 12.0, 1.5, 3).any()  # -4 and +8.4 tie
+    np.testing.assert_allclose(relocalization_offsets(v_mean, owner, z, lost, tracks, 6.0, 1.5, 3)[0], [-4.0, -0.5],
+                               atol=0.15)
+
+
+def test_on_when_no_vehicle_is_lost_changes_nothing():
+    """Features 30 m apart, every row paired from the third step (test_icp_da_lc): the relocalization finds
+    no lost vehicle with a confirmed track around and the estimates are byte for byte those without it."""
+    frames = road_frames(seed=1, steps=12, v2v_range=25.0)
+    params = IcpParams(motion=MOTION)
+    off, on = IcpDaLc(params, LcParams(sensing_range_m=30.0)), IcpDaLc(
+        params, LcParams(sensing_range_m=30.0, relocalize_radius_m=10.0))
+    for f in frames:
+        a, b = off.step(f.without_truth()), on.step(f.without_truth())
+        assert a.mean.tobytes() == b.mean.tobytes() and a.cov.tobytes() == b.cov.tobytes()
+        np.testing.assert_array_equal(a.v2f_assignment, b.v2f_assignment)
+
+
+def test_a_lost_vehicle_pairs_its_rows_again():
+    """A vehicle whose belief is moved 6 m off after the map is built pairs none of its rows without the
+    relocalization (all outside its gate), and pairs them with the tracks the others use with it."""
+    frames = road_frames(seed=2, steps=10, v2v_range=25.0)
+    params = IcpParams(motion=MOTION)
+    lc = LcParams(sensing_range_m=30.0, gate_probability=0.99, relocalize_min_support=2)  # two features in view
+    results = {}
+    for radius in (0.0, 10.0):
+        est = IcpDaLc(params, LcParams(**{**lc.__dict__, "relocalize_radius_m": radius}))
+        for f in frames[:-1]:
+            est.step(f.without_truth())
+        st = est.state
+        moved = st.mean.copy()
+        moved[0, :2] += [6.0, -3.0]
+        cov = st.cov.copy()
+        cov[0, :2, :2] = 0.04 * np.eye(2)  # a confident belief, off the map
+        own = st.own_mean.copy()
+        own[0, :2] += [6.0, -3.0]
+        own_cov = st.own_cov.copy()
+        own_cov[0, :2, :2] = 0.04 * np.eye(2)
+        est.state = type(st)(**{**st.__dict__, "mean": moved, "cov": cov, "own_mean": own, "own_cov": own_cov})
+        last = frames[-1]
+        results[radius] = (est.step(last.without_truth()), last, st.ids[0])
+    e0, last, vid = results[0.0]
+    e1 = results[10.0][0]
+    rows0 = np.asarray(last.v2f_owner) == list(last.vehicle_ids).index(vid)
+    assert rows0.sum() >= 2
+    fe = last.truth.v2f_feature
+
+    def on_the_others_tracks(e):
+        others = ~rows0 & (e.v2f_assignment >= 0)
+        track_of = dict(zip(fe[others].tolist(), e.v2f_assignment[others].tolist()))
+        mine = [(f, t) for f, t in zip(fe[rows0].tolist(), e.v2f_assignment[rows0].tolist()) if f in track_of]
+        assert mine
+        return [track_of[f] == t for f, t in mine]
+
+    # without: off the map, every row outside its gate starts a new track; with: on the others' tracks
+    assert not any(on_the_others_tracks(e0))
+    assert all(on_the_others_tracks(e1))
