@@ -91,7 +91,8 @@ def test_target_rows_kernel_equals_reference(seed, growth, with_buildings):
 
         from couplers.net.buildings import Buildings
 
-        boxes = [shapely.box(x, y, x + w, y + h) for x, y, w, h in rng.uniform([0, 0, 3, 3], [140, 140, 15, 15], (12, 4))]
+        corner_size = rng.uniform([0, 0, 3, 3], [140, 140, 15, 15], (12, 4))
+        boxes = [shapely.box(x, y, x + w, y + h) for x, y, w, h in corner_size]
         buildings = Buildings.from_polygons(boxes, list(rng.uniform(5.0, 30.0, len(boxes))))
     n, s = 40, 30
     xy = rng.uniform(0.0, 150.0, (n, 2))
