@@ -32,7 +32,14 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      after the reflection and assembly kernels (docs/performance.md, "The satellite receiver's frame cost"):
      2.29x (pairs 2.47, 2.29, 2.29, load 17-20) against 2.55x / 2.61x before, the realistic preset 1.9-2.1x;
      on a quieter machine (load 2-6) 3.54x against 3.44x, the realistic preset 2.8-2.9x: the ratios follow the
-     load, the idealised frames (mostly SUMO) speeding up more than the realistic ones;
+     load, the idealised frames (mostly SUMO) speeding up more than the realistic ones. The realistic presets
+     now are that satellite world (so "realistic preset" and "realistic+sat+reflect" time the same sensing);
+     after the sky block, the road-user kernel and the target columns (docs/performance.md, "The realistic
+     presets' frames against the idealised ones", 2026-11-28): realistic preset 2.57-2.71x (four runs of three
+     pairs, load 7-12; 267ce41 2.33-3.00 in the same sitting, 3.19 at load 0.2-3), the pairs spreading 1.9-3.9
+     for either: the realistic frames' own CPU -18 % timed one process at a time, the 2x not met. The
+     idealised frames are ~70 % SUMO (libsumo step and getters), and SUMO's own step takes 1.4-2.3x longer
+     inside the realistic run than inside the idealised one, so the ratio mostly follows SUMO's speed;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)

@@ -4,8 +4,9 @@ sensing kept the frames byte for byte.
     python bench/frame_hashes.py [--duration 120] [--seed 1] [--only tlr_realistic,...]
 
 Cases: TLR realistic, TLR realistic with ``[gnss_error] model = "satellites"`` (and with its reflections, Doppler
-velocity and residual covariance too, as experiments/sweeps/realistic_tuning_satellites.toml), VSR realistic, TLR idealised
-(experiments/arterial_*.toml). Arrays hash as dtype, shape and bytes (object arrays by each element's str),
+velocity and residual covariance too, as experiments/sweeps/realistic_tuning_satellites.toml; the realistic presets
+now are that world), the TLR realistic preset with the field model, VSR realistic, the pedestrian TLR realistic
+preset, TLR idealised (experiments/arterial_*.toml). Arrays hash as dtype, shape and bytes (object arrays by each element's str),
 sparse matrices by their CSR arrays, dataclasses field by field in order, other values by repr. Prints the
 first 16 hex digits per case.
 """
@@ -34,7 +35,9 @@ CASES = {"tlr_realistic": ("arterial_tlr_realistic.toml", {}),
          "tlr_realistic_satellites_full": ("arterial_tlr_realistic.toml", {
              "gnss_error.model": "satellites", "gnss_error.nlos": "reflect", "gnss_error.velocity": "doppler",
              "gnss_error.reported_covariance": "residual"}),
+         "tlr_realistic_field": ("arterial_tlr_realistic.toml", {"gnss_error.model": "field"}),
          "vsr_realistic": ("arterial_vsr_realistic.toml", {}),
+         "ped_tlr_realistic": ("arterial_ped_tlr_realistic.toml", {}),
          "tlr_idealised": ("arterial_tlr.toml", {})}
 
 

@@ -118,6 +118,7 @@ class SumoCoupler:
                            else None)
         self.persistent_sites: np.ndarray | None = None  # drawn at the first step (SUMO's lanes)
         self._persistent_part: tuple | None = None  # their targets, P_D, footprint, class and kind rows
+        self._target_cols: tuple = (None, ())  # (part sizes, the targets' P_D, footprint, class, kind) of the last step
         # [perception] detections = "range_bearing": the rows in each sensor's frame (couplers.sensing.sensor_frame).
         self.sensor_frame = (SensorFrameRows(self.perception, scenario.seed)
                              if self.perception is not None and self.perception.detections == "range_bearing" else None)
@@ -275,42 +276,63 @@ class SumoCoupler:
         """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users)."""
         p = self.perception
         det = replace(det, kind=ru.row_kinds(det.feature, feature_class))
-        parts = []  # (targets (M, 4), P_D (-1: the sensor's), footprint row, class, kind)
+        parts = []  # (targets (M, 4), what they are: "vehicle" | "person" | "persistent")
         if p.road_users:
             direction = road.direction if road.direction is not None else ru_unit(road.heading)
             centre = _front_bumpers(road) - 0.5 * dims[:, :1] * direction  # the body's middle, whatever road.xy is
-            m = len(road.ids)
-            parts.append((np.hstack([centre, road.velocity]), np.full(m, -1.0), np.arange(m),
-                          np.full(m, ru.CLASS_VEHICLE), np.full(m, ru.KIND_VEHICLE)))
+            parts.append((np.hstack([centre, road.velocity]), "vehicle"))
             if not self.pedestrians and self.scenario.net.persons is not None:
                 ps = person_states(sumo.libsumo.person)
-                q = len(ps.ids)
-                parts.append((np.hstack([ps.xy, ps.velocity]), np.full(q, -1.0), np.full(q, -1),
-                              np.full(q, ru.CLASS_PEDESTRIAN), np.full(q, ru.KIND_PEDESTRIAN)))
+                parts.append((np.hstack([ps.xy, ps.velocity]), "person"))
         if p.persistent_clutter_per_km > 0:
             if self.persistent_sites is None:
                 self.persistent_sites = ru.persistent_clutter_sites(self._road_lanes(), p.persistent_clutter_per_km,
                                                                     self.road_noise.sites)
                 s = self.persistent_sites.shape[0]  # the same part every step
-                self._persistent_part = (np.hstack([self.persistent_sites, np.zeros((s, 2))]),
-                                         np.full(s, p.persistent_clutter_pd), np.full(s, -1),
-                                         np.full(s, ru.CLASS_STATIC), np.full(s, ru.KIND_PERSISTENT_CLUTTER))
+                self._persistent_part = (np.hstack([self.persistent_sites, np.zeros((s, 2))]), "persistent")
             parts.append(self._persistent_part)
         extra = []
         if parts:
-            targets, pd, occ, klass, kind = (np.concatenate(c) for c in zip(*parts))
-            observer = np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids)
+            targets = np.concatenate([c[0] for c in parts])
+            key = tuple((c[0].shape[0], c[1]) for c in parts)
+            if self._target_cols[0] != key:  # the same columns for every step with these parts and sizes
+                self._target_cols = (key, self._target_columns(key))
+            pd, occ, klass, kind = self._target_cols[1]
             owner, tgt = points_in_range(states.xy, targets[:, :2], p.max_reach_m)
-            keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])  # a vehicle never sees itself
+            if states is road:  # observer i is footprint i (the vehicle part first): a vehicle never sees itself
+                keep = tgt != owner if p.road_users else slice(None)
+                observer = np.arange(len(states.ids))
+            else:
+                observer = match_ids(road.ids, states.ids)
+                keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])
             owner, tgt = owner[keep], tgt[keep]
             direction = states.direction if states.direction is not None else ru_unit(states.heading)
             r_owner, r_tgt, r_sensor, z, sp, sv = ru.perceive_targets(
                 x_true=x_true, direction=direction, heading=states.heading, targets=targets, target_pd=pd,
-                target_occluder=occ.astype(np.int64), pair_owner=owner, pair_target=tgt, params=p,
+                target_occluder=occ, pair_owner=owner, pair_target=tgt, params=p,
                 noise=self.road_noise, occluder_corners=corners, observer_occluder=observer,
                 buildings=self.scenario.net.buildings)
             extra.append((r_owner, z, sp, sv, r_sensor, klass[r_tgt], kind[r_tgt]))
         return ru.merged_rows(det, extra, self.road_noise, p.class_error)
+
+    def _target_columns(self, key: tuple) -> tuple:
+        """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,
+        what) each, in order): vehicles are footprint rows 0.. and detected with the sensor's P_D, persons with it
+        too, persistent sites with ``persistent_clutter_pd``."""
+        p = self.perception
+        cols = []
+        for size, what in key:
+            if what == "vehicle":
+                cols.append((np.full(size, -1.0), np.arange(size), np.full(size, ru.CLASS_VEHICLE),
+                             np.full(size, ru.KIND_VEHICLE)))
+            elif what == "person":
+                cols.append((np.full(size, -1.0), np.full(size, -1), np.full(size, ru.CLASS_PEDESTRIAN),
+                             np.full(size, ru.KIND_PEDESTRIAN)))
+            else:
+                cols.append((np.full(size, p.persistent_clutter_pd), np.full(size, -1), np.full(size, ru.CLASS_STATIC),
+                             np.full(size, ru.KIND_PERSISTENT_CLUTTER)))
+        pd, occ, klass, kind = (np.concatenate(c) for c in zip(*cols))
+        return pd, occ.astype(np.int64), klass, kind
 
 
 def _front_bumpers(states: VehicleStates) -> np.ndarray:

@@ -103,6 +103,7 @@ from couplers.sensing.perception import effect_rng
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
 MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
+SKY_BLOCK = 64  # steps whose sky terms are computed at once (SatelliteErrorProcess._sky_step)
 
 
 def klobuchar_obliquity(el: np.ndarray) -> np.ndarray:
@@ -424,7 +425,12 @@ class SatelliteErrorProcess:
         self._fix = np.empty((0, 2))  # absolute x/y of each receiver's last fix (NaN: none yet)
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
-        self._geom: tuple = ()  # this step's (los, el, used satellites, NLOS range-rate coefficients, fix)
+        self._geom: tuple = ()  # this step's (los, el, used satellites, NLOS range-rate coefficients, fix, sky)
+        self._sky_block: dict = {}  # the sky terms of SKY_BLOCK steps (_sky_step), by run time
+        self._sky_times: dict = {}  # run time -> row of the block
+        self._sky_next = 0  # the row expected next
+        self._sky_k = SKY_BLOCK  # 1 once a time was off the block's grid
+        self._sky_now: tuple = (None, {})  # (run time, _sky_step's terms) of the last call
 
     @property
     def posterior(self) -> bool:
@@ -449,6 +455,42 @@ class SatelliteErrorProcess:
         sig_n = np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el)
         return los, az, el, above, sin_el, common, sig_n
 
+    def _sky_step(self, t: float) -> dict:
+        """The terms of run time ``t`` that depend on ``t`` alone: :meth:`_sky_terms`' (the common-mode error aside:
+        its processes move every step), the trigonometry the line of sight and reflections take, and the receiver's
+        own variances by elevation (pseudorange, range rate) and the Doppler noise sigma. Computed for
+        :data:`SKY_BLOCK` steps at once (``t``, ``t + dt``, ...: :meth:`Sky.look_many` and the same numpy
+        expressions on (K, S) arrays, elementwise, so each step's values are the ones computed step by step,
+        tested); a ``t`` off the block's times (another step length's rounding, a jump) computes its own row and
+        every later step's so."""
+        if self._sky_now[0] == t:
+            return self._sky_now[1]
+        j = self._sky_times.get(t)
+        if j is None or j != self._sky_next:
+            if self._sky_times and self._sky_next < len(self._sky_times):
+                self._sky_k = 1  # off the grid before the block ran out
+            ts = t + self.dt * np.arange(self._sky_k) if self._sky_k > 1 else np.array([t])
+            ts[0] = t
+            self._sky_block = self._sky_rows(ts)
+            self._sky_times = {float(x): k for k, x in enumerate(ts)}
+            j = 0
+        self._sky_next = j + 1
+        self._sky_now = (t, {key: val[j] for key, val in self._sky_block.items()})
+        return self._sky_now[1]
+
+    def _sky_rows(self, ts: np.ndarray) -> dict:
+        """The arrays of :meth:`_sky_step` at the run times ``ts`` (K,): (K, S, ...) each."""
+        p = self.params
+        los, az, el = self.sky.look_many(p.constellation_time_s + ts)
+        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
+        return {"los": los, "az": az, "el": el, "above": el >= self.mask, "sin_el": sin_el,
+                "obliquity": klobuchar_obliquity(el), "tropo": tropo_mapping(el),
+                "sig_n": np.sqrt(p.code_noise_a_m ** 2 + p.code_noise_b_m ** 2 / sin_el),
+                "mp": p.multipath_m / sin_el, "sin_az": np.sin(az), "cos_az": np.cos(az), "tan_el": np.tan(el),
+                "cos_el": np.cos(el), "var_rx": receiver_variance(p, el),
+                "sig_doppler": p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el),
+                "var_rr": p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)}
+
     def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
         common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
@@ -457,7 +499,11 @@ class SatelliteErrorProcess:
         and reflection kernels called directly, and the (N, S) sums and masks in one kernel
         (:func:`_assemble`)."""
         p = self.params
-        los, az, el, above, sin_el, common, sig_n = self._sky_terms(t)
+        sky = self._sky_step(t)
+        los, el, above = sky["los"], sky["el"], sky["above"]
+        # _sky_terms' common-mode error, the same expression on the step's elevation terms
+        common = (p.sv_clock_orbit_m * self.sv[:, 0] + p.iono_vertical_m * sky["obliquity"] * self.sv[:, 1]
+                  + p.tropo_zenith_m * sky["tropo"] * self.tropo)
         xy = np.ascontiguousarray(xy, dtype=np.float64)
         n, s = len(xy), el.size
         mode = 0  # no buildings (or no receiver): every satellite above the mask, no extra path
@@ -471,19 +517,19 @@ class SatelliteErrorProcess:
             mode = {"block": 1, "delay": 2, "reflect": 3}[p.nlos]
             if self.radius > 0:  # else nothing is blocked (line_of_sight and reflections return before their kernels)
                 e = self.edges
-                az_c, el_c = az[cols], el[cols]
-                sa, ca, te = np.sin(az_c), np.cos(az_c), np.tan(el_c)  # as line_of_sight and reflections take them
+                # as line_of_sight and reflections take them: sin / cos of the azimuths, tan / cos of the elevations
+                sa, ca, te = sky["sin_az"][cols], sky["cos_az"][cols], sky["tan_el"][cols]
                 grid = e.grid(self.radius, LOS_GRID_DIVISIONS)
                 b, d = _los_kernel(xy, *grid, float(self.radius), e.edges, e.start, e.boxes, e.heights, sa, ca, te,
                                    float(p.antenna_height_m), True)
                 if mode >= 2:
-                    cos_c = np.cos(el_c)
+                    cos_c = sky["cos_el"][cols]
                 if mode == 3:
                     found, ex, g = reflect_kernel(xy, b, *e.grid(self.radius), float(self.radius), e.edges, e.start,
                                                   e.boxes, e.heights, sa, ca, te, cos_c, float(p.antenna_height_m),
                                                   facade_lines(e), *grid)
-        eps, usable, blocked, full = _assemble(common, sig_n, np.ascontiguousarray(white, dtype=np.float64),
-                                               p.multipath_m / sin_el, np.ascontiguousarray(u, dtype=np.float64),
+        eps, usable, blocked, full = _assemble(common, sky["sig_n"], np.ascontiguousarray(white, dtype=np.float64),
+                                               sky["mp"], np.ascontiguousarray(u, dtype=np.float64),
                                                above, cols, mode, b, d, cos_c, found, ex, g,
                                                mode == 3 and rate is not None)
         if mode == 3 and rate is not None:
@@ -555,7 +601,8 @@ class SatelliteErrorProcess:
             u = z.copy()
         rate: list = []
         eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
-        var_rx = receiver_variance(p, el)
+        sky = self._sky_step(t)  # the terms pseudorange_errors took
+        var_rx = sky["var_rx"]
         err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
                                                    var_rx, self.thr, self.posterior)
         if not ok.all():  # no fix: hold the last one, or one drawn at NO_FIX_SIGMA_M around a newcomer
@@ -565,11 +612,11 @@ class SatelliteErrorProcess:
             k = int((~held).sum())
             err[lost[~held]] = NO_FIX_SIGMA_M * self.no_fix.standard_normal((k, 2))
             cov[lost] = np.eye(2) * NO_FIX_SIGMA_M ** 2
-        above = el >= self.mask
+        above = sky["above"]
         nlos, nlos_received = _nlos_counts(blocked, above, usedm)
         self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
                      "nlos": nlos, "nlos_received": nlos_received}
-        self._geom = (los, el, usedm, rate[0] if rate else None, ok)
+        self._geom = (los, el, usedm, rate[0] if rate else None, ok, sky)
         self.reported_cov = cov
         self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
         return err
@@ -580,16 +627,15 @@ class SatelliteErrorProcess:
         WLS over the satellites of each fix (module docstring). Not solved (no fix): the caller keeps the zone's
         Doppler error."""
         p = self.params
-        los, el, usedm, rate, ok = self._geom
+        los, el, usedm, rate, ok, sky = self._geom
         n, s = usedm.shape
         w = self.doppler_noise.standard_normal((n, s))
-        sin_el = np.maximum(np.sin(el), MIN_SIN_EL)
-        sig = p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el)
+        sig = sky["sig_doppler"]  # doppler_noise_mps sqrt(1 + 1 / sin el), sin el floored at MIN_SIN_EL
         # sig w, plus a reflected signal's Doppler, the antenna image's: g . v (numpy's einsum differs from the
         # kernel's sum only in the sign of a zero, which the addition to sig w removes; tested)
         eps_rate = _range_rate_errors(sig, w, np.zeros((0, s, 2)) if rate is None else rate,
                                       np.ascontiguousarray(v_true, dtype=np.float64).reshape(-1, 2))
-        var_rr = p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)
+        var_rr = sky["var_rr"]  # rx_doppler_mps^2 (1 + 1 / sin el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
         err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
                                                 var_rr, self.thr, self.posterior)

@@ -159,6 +159,29 @@ class Sky:
         el = np.arcsin(np.clip(los[:, 2], -1.0, 1.0))
         return los, az, el
 
+    def look_many(self, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`look` at each time of ``ts`` (K,): (K, S, 3), (K, S), (K, S), the same values (tested): every
+        operation of :meth:`ecef` and :meth:`look` is elementwise (numpy's loops give each element the same
+        value whatever the array's shape) except the rotation into ENU, a BLAS product, which runs one time at a
+        time on the same (S, 3) operands as :meth:`look`'s."""
+        t = np.asarray(ts, dtype=np.float64)[:, None]
+        u = self.u0 + self.n * t
+        raan = self.raan0 - OMEGA_EARTH * t
+        cu, su = np.cos(u), np.sin(u)
+        ci, si, rec, rot = self._constants()
+        cr, sr = np.cos(raan), np.sin(raan)
+        x = self.a * (cr * cu - sr * su * ci)
+        y = self.a * (sr * cu + cr * su * ci)
+        z = self.a * (su * si)
+        e = np.stack([x, y, z], axis=2)
+        d = np.empty_like(e)
+        for k in range(e.shape[0]):
+            d[k] = (e[k] - rec) @ rot
+        los = d / np.linalg.norm(d, axis=2)[:, :, None]
+        az = np.arctan2(los[:, :, 0], los[:, :, 1])
+        el = np.arcsin(np.clip(los[:, :, 2], -1.0, 1.0))
+        return los, az, el
+
 
 def net_origin(net_path: Path | None) -> tuple[float, float, str]:
     """(lat, lon, how) of the net's x/y (0, 0): through its projection, else the default (module docstring)."""

@@ -36,16 +36,22 @@ switching these keys on keeps every landmark and clutter draw.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 from numba import njit
 
-from couplers.sensing.occlusion import OccluderIndex, _segments_occluded_by_buildings, _segments_occluded_by_vehicles
-from couplers.sensing.perception import _fov_params, effect_rng
-from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _range_fraction_and_sigma,
-                                                _sharper, _sight_lines)
+from couplers.sensing import streams
+from couplers.sensing.occlusion import (OCCLUDER_BUCKET_M, OccluderIndex, _building_hits, _occluded_by_quads_bucketed,
+                                        _occluder_buckets, _rectangles, _segments_occluded_by_buildings,
+                                        _segments_occluded_by_buildings_shapely, _segments_occluded_by_vehicles,
+                                        building_edges)
+from couplers.sensing.perception import _NO_BUILDINGS, _NO_CORNERS, _fov_params, effect_rng, unit_heading
+from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _fov_stage,
+                                                _range_fraction_and_sigma, _sharper, _sight_lines)
 from couplers.sensing.rows import shuffle_within_owner
+from couplers.sensing.streams import StreamHandles, stream
 
 #: Class the classifier reports for a vehicle (``Frame.v2f_class``; 0 static, 1 pedestrian).
 CLASS_VEHICLE = 2
@@ -70,6 +76,7 @@ class RoadUserNoise:
     def __init__(self, seed: int):
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, ROAD_USER_STREAM_TAG, name))
+        self.handles = StreamHandles(self, self.STREAMS)  # the same streams drawn in _targets_stage
 
 
 def persistent_clutter_sites(lanes: list[tuple[np.ndarray, float]], per_km: float,
@@ -110,8 +117,54 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     observer's and the target's own (``target_occluder``, -1: none) and of buildings, detection with
     the sensor's P_D(d) or, where ``target_pd`` >= 0, once per (vehicle, target) with that probability;
     one row per detected pair (the detecting sensor of smallest sigma_p, ties: the first listed).
-    Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v): rows in the order of the pairs. The detection
-    and the rows run in :func:`_target_rows` (numba; ``reference``: its numpy reference)."""
+    Returns (owner, target, sensor, z (D, 4), sigma_p, sigma_v): rows in the order of the pairs. The field of
+    view, the draws, the sight lines and their occlusion run in one kernel (:func:`_targets_stage`, the draws
+    inside it through :mod:`couplers.sensing.streams`), the detection and the rows in :func:`_target_rows`;
+    ``reference`` (or numba's draws not numpy's on this installation): :func:`_perceive_targets_stages`, the
+    same steps as separate kernels with numpy's draws and :func:`_target_rows_reference` (tested equal)."""
+    if reference or not streams.available():
+        return _perceive_targets_stages(x_true, direction, heading, targets, target_pd, target_occluder, pair_owner,
+                                        pair_target, params, noise, occluder_corners, observer_occluder, buildings,
+                                        reference)
+    a, k = params.arrays, params.kernel_consts
+    heading = np.asarray(heading, dtype=np.float64)
+    n = x_true.shape[0]
+    boresight = np.empty((len(params.sensors), n, 2))  # the sensors along the heading take ``direction`` instead
+    for s, spec in enumerate(params.sensors):
+        if not k["along_heading"][s]:
+            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    pair_owner = np.asarray(pair_owner, dtype=np.int64)
+    pair_target = np.asarray(pair_target, dtype=np.int64)
+    targets = np.ascontiguousarray(targets, dtype=np.float64)
+    use_vehicles = bool(params.occlusion_vehicles and occluder_corners is not None and len(occluder_corners))
+    corners = (np.ascontiguousarray(occluder_corners, dtype=np.float64).reshape(-1, 4, 2) if use_vehicles
+               else _NO_CORNERS)
+    use_buildings = bool(params.occlusion_buildings and buildings is not None and len(buildings))
+    if use_buildings:
+        g, bb = buildings.cells, buildings.boxes
+        grid = (g.x0, g.y0, g.cell, g.values, bb.start, bb.ids, bb.boxes, bb.margin) + building_edges(buildings)
+    else:
+        grid = _NO_BUILDINGS + (np.zeros(1, dtype=np.int64), np.empty((0, 4)))
+    h = noise.handles
+    pair, dist, sensor, u, w, line_of, clear, seg, rows, hits = _targets_stage(
+        h["detect"], h["noise"], np.ascontiguousarray(x_true[:, :2], dtype=np.float64),
+        np.ascontiguousarray(direction, dtype=np.float64), a["mount_x_m"], boresight, k["along_heading_array"],
+        targets, pair_owner, pair_target, a["range_m"], k["cos_half"], k["full"], heading, a["yaw_deg"],
+        a["fov_deg"], k["groups"], np.asarray(observer_occluder, dtype=np.int64),
+        np.asarray(target_occluder, dtype=np.int64), use_vehicles, corners, use_buildings, *grid)
+    odd = rows[hits == 2]  # a sight line that is not finite: shapely's test, as _segments_occluded_by_buildings
+    if odd.size:
+        clear[odd] = ~_segments_occluded_by_buildings_shapely(seg[odd], buildings)
+    return _target_rows(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_target,
+                        np.ascontiguousarray(target_pd, dtype=np.float64), targets,
+                        np.ascontiguousarray(x_true, dtype=np.float64), a["range_m"], a["pd_near"], a["pd_far"],
+                        a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
+
+
+def _perceive_targets_stages(x_true, direction, heading, targets, target_pd, target_occluder, pair_owner, pair_target,
+                             params, noise, occluder_corners, observer_occluder, buildings, reference):
+    """:func:`perceive_targets` as separate kernels with numpy between them and numpy's draws (its reference, and
+    its path where numba's draws are not numpy's); ``reference``: the detection and rows in numpy too."""
     a, k = params.arrays, params.kernel_consts
     xy = np.ascontiguousarray(x_true[:, :2], dtype=np.float64)
     origins = xy[None, :, :] + a["mount_x_m"][:, None, None] * direction[None, :, :]
@@ -136,6 +189,65 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
                 np.ascontiguousarray(target_pd, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
                 np.ascontiguousarray(x_true, dtype=np.float64), a["range_m"], a["pd_near"], a["pd_far"],
                 a["sigma_p_m"], a["sigma_growth"], a["sigma_v_mps"])
+
+
+@njit(cache=True)
+def _targets_stage(h_detect, h_noise, xy, direction, mount_x, boresight, along, targets, pair_owner, pair_target,
+                   range_m, cos_half, full, heading, yaw_deg, fov_deg, groups, observer_occluder, target_occluder,
+                   use_vehicles, corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin,
+                   edge_start, edges):
+    """The candidates of every sensor (:func:`couplers.sensing.perception_kernels._fov_stage` with the targets as
+    its features and no clutter), their detection uniforms and (C, 4) noise normals from the streams of the
+    handles ``h_*``, the distinct sight lines (:func:`_distinct_lines`), cleared of those a footprint other than
+    the observer's and the target's own hides (``use_vehicles``), and of those a building hides
+    (``use_buildings``: :func:`couplers.sensing.occlusion._building_hits` of the clear lines: 1 hidden, 2 to be
+    decided by shapely). Returns (pair, dist, sensor, u, w, line of each candidate, clear (L,), segments (L, 4),
+    the clear lines tested against the buildings, their hits)."""
+    n_s = mount_x.size
+    no_clutter = np.zeros(xy.shape[0] * n_s, dtype=np.int64)
+    origins, target, pair, dist, sensor, _, _, _, _ = _fov_stage(
+        xy, direction, mount_x, boresight, along, targets, pair_owner, pair_target, range_m, cos_half, full,
+        no_clutter, n_s, np.empty(0), np.empty(0), heading, yaw_deg, fov_deg)
+    u = stream(h_detect).random(pair.size)
+    w = stream(h_noise).standard_normal((pair.size, 4))
+    line, line_of = _distinct_lines(pair, sensor, groups, pair_owner.size)
+    m = line.size
+    seg = np.empty((m, 4))
+    skip_a = np.empty(m, dtype=np.int64)
+    skip_b = np.empty(m, dtype=np.int64)
+    for r in range(m):
+        c = line[r]
+        i = pair_owner[pair[c]]
+        seg[r, 0] = origins[sensor[c], i, 0]
+        seg[r, 1] = origins[sensor[c], i, 1]
+        seg[r, 2] = target[pair[c], 0]
+        seg[r, 3] = target[pair[c], 1]
+        skip_a[r] = observer_occluder[i]
+        skip_b[r] = target_occluder[pair_target[pair[c]]]
+    clear = np.ones(m, dtype=np.bool_)
+    if use_vehicles and m > 0 and corners.shape[0] > 0:
+        order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
+        hidden = _occluded_by_quads_bucketed(seg, skip_a, skip_b, corners, order, start, x0_b, width, xmin, xmax,
+                                             ymin, ymax, max_wx, _rectangles(corners))
+        for r in range(m):
+            clear[r] = not hidden[r]
+    n_clear = 0
+    for r in range(m):
+        if clear[r]:
+            n_clear += 1
+    if not use_buildings or n_clear == 0:
+        return pair, dist, sensor, u, w, line_of, clear, seg, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int8)
+    rows = np.empty(n_clear, dtype=np.int64)
+    q = 0
+    for r in range(m):
+        if clear[r]:
+            rows[q] = r
+            q += 1
+    hits = _building_hits(seg[rows], x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin, edge_start, edges)
+    for q in range(rows.size):
+        if hits[q] == 1:
+            clear[rows[q]] = False
+    return pair, dist, sensor, u, w, line_of, clear, seg, rows, hits
 
 
 def _target_rows_reference(pair, dist, sensor, clear, line_of, u, w, pair_owner, pair_target, target_pd, targets,

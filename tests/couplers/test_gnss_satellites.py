@@ -523,3 +523,36 @@ def test_residual_covariance_brings_canyon_nees_toward_two():
         assert dop > 10.0 and resid < min(bound, dop / 3), (nlos, dop, resid)
         assert res[(nlos, "residual")][1] > res[(nlos, "dop")][1] + 0.4  # inside the 95 % ellipse far more often
     assert res[("block", "residual")][0] < 2.0 and res[("block", "residual")][1] > 0.95
+
+
+def test_the_sky_computed_for_a_block_of_steps_equals_the_sky_of_each_step():
+    """Sky.look_many against Sky.look, and the receiver's per-step sky terms (computed SKY_BLOCK steps at a time)
+    against the numpy expressions of each step (its _sky_terms, receiver_variance, the trigonometry of the
+    satellites above the mask), bit for bit: over three blocks of the step grid, then off the grid (another step's
+    rounding), where each step computes its own row."""
+    from couplers.sensing.gnss_satellites import MIN_SIN_EL, SKY_BLOCK, receiver_variance
+
+    sky = Sky.build()
+    ts = np.r_[np.arange(1, 200) * 0.75 + 43200.0, np.random.default_rng(4).uniform(0.0, 86400.0, 50)]
+    many = sky.look_many(ts)
+    for k, t in enumerate(ts):
+        for a, b in zip(sky.look(t), many):
+            assert a.dtype == b.dtype and a.tobytes() == b[k].tobytes()
+    p = GnssErrorParams(model="satellites", velocity="doppler")
+    proc = SatelliteErrorProcess(p, 5, 0.75)
+    times = np.r_[np.arange(1, 3 * SKY_BLOCK + 5) * 0.75, 1000.1 + 0.1 * np.arange(5)]
+    for t in times:
+        got = proc._sky_step(float(t))
+        assert proc._sky_step(float(t)) is got  # asked again in the same step: the same terms
+        los, az, el, above, sin_el, _, sig_n = proc._sky_terms(float(t))
+        cols = np.flatnonzero(above)
+        want = {"los": los, "az": az, "el": el, "above": above, "sin_el": sin_el, "sig_n": sig_n,
+                "mp": p.multipath_m / sin_el, "var_rx": receiver_variance(p, el),
+                "sig_doppler": p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / np.maximum(np.sin(el), MIN_SIN_EL)),
+                "var_rr": p.rx_doppler_mps ** 2 * (1.0 + 1.0 / np.maximum(np.sin(el), MIN_SIN_EL))}
+        for key, val in want.items():
+            assert got[key].dtype == val.dtype and got[key].tobytes() == val.tobytes(), key
+        for key, val in (("sin_az", np.sin(az[cols])), ("cos_az", np.cos(az[cols])), ("tan_el", np.tan(el[cols])),
+                         ("cos_el", np.cos(el[cols]))):
+            assert got[key][cols].tobytes() == val.tobytes(), key
+    assert proc._sky_k == 1  # the off-grid times switched to one row at a time
