@@ -311,7 +311,7 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                 "(`[gnss_error] reported_covariance = \"residual\"`) does not carry it; this is "
                                 "the integrator's size for it, from the receiver's open-sky accuracy. Default 0 "
                                 "(the share alone)."),
-        "velocity_gate": (NO_UNIT, "Two-state model: level of a chi-square test (2 dof) on the fix's velocity "
+        "velocity_gate": (NO_UNIT, "Level of a chi-square test (2 dof) on the fix's velocity "
                                    "innovation; a velocity with d^2 above the threshold t is taken with its noise "
                                    "times d^2 / t (robust Kalman filter of G. Chang, J. Geodesy 88, 2014). For "
                                    "range-rate velocities that carry a reflected signal's path rate. Default 0 "

@@ -9,6 +9,8 @@ Model: (1) prediction with the velocity-oriented driving noise and the Gauss-Mar
 ``b' = a b + w_b``, ``Var(w_b) = (1 - a^2) s R_pos``; fix (3) ``z_pos = p + b + n``, ``Var(n) = (1 - s) R_pos``,
 ``z_vel = v + n_v``; the 2-dof chi-square gate on the position innovation (velocity-only update when
 excluded); Joseph-form covariance update (see the two numpy references for the sources).
+With ``velocity_gate`` the robust velocity of :func:`coloc.methods.gnss_bias2.velocity_deweight`
+(:func:`deweight_velocity`).
 """
 
 from __future__ import annotations

@@ -18,6 +18,8 @@ The independent part (``with_ind``; the split of :mod:`coloc.inference.split_ci`
 driving noise is always in it (the rule of :mod:`coloc.methods.coop_fusion`: the feature evidence is taken in
 the common-mode frame, so nothing of it is correlated with c); with ``common_mode`` the local bias's driving
 noise and the fix's noise go to the dependent part.
+With ``velocity_gate`` the robust velocity of :func:`coloc.methods.gnss_bias2.velocity_deweight`
+(:func:`coloc.kernels.gnss6.deweight_velocity`); ``common_sigma_m`` adds its variance to the common-mode bias.
 """
 
 from __future__ import annotations

@@ -33,6 +33,13 @@ velocity drifts, the position error outgrows the predicted covariance and the ga
 (docs/validation/gnss_benchmark.md). For the same reason, after ``max_exclusions`` consecutive
 exclusions the next fix is taken. A fresh vehicle's first fix is never gated (its prior comes from it).
 
+Robust velocity (``velocity_gate`` = level > 0; opt-in, both models): a velocity whose innovation fails the
+2-dof chi-square test at that level is taken with its noise scaled by d^2 / threshold
+(:func:`coloc.methods.gnss_bias2.velocity_deweight`; Chang, J. Geodesy 88, 2014): range-rate velocities carry
+reflected signals' path rates the receiver's report does not know. Scaled rather than excluded: excluding the
+velocity let trackers whose predicted velocity had drifted diverge (tuning seeds 101-103:
+docs/validation/consistency.md, "The receiver model of the satellite world").
+
 The bias follows the report (``bias_follows_report``; opt-in): where a vehicle's reported position
 covariance changes between steps (a zone change: a new geometry and environment), the bias is mapped,
 ``b_k = a T_k b_{k-1}``, ``T_k = L_k L_{k-1}^-1`` with ``L`` the Cholesky factor of the report, so that
