@@ -39,6 +39,17 @@ def filterpy_kf(x, p) -> KalmanFilter:
     return kf
 
 
+def scale_velocity_noise(kf, z, rn, h, threshold) -> bool:
+    """The robust velocity (Chang 2014) on a reference filter's predicted state: where the velocity part of the
+    innovation's d^2 exceeds ``threshold``, ``rn``'s velocity block (in place) times d^2 / threshold."""
+    s = h @ kf.P @ h.T + rn
+    nu = (z - h @ kf.x)[2:]
+    d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
+    if d2 > threshold:
+        rn[2:, 2:] *= d2 / threshold
+    return d2 > threshold
+
+
 def nis_pos(kf, z, r, h) -> float:
     """The gate's statistic: the position part of the fix's normalised innovation squared, on the prior."""
     s = h @ kf.P @ h.T + r
@@ -329,12 +340,7 @@ def test_velocity_test_equals_filterpy():
                 kf = refs[vid]
                 f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
                 kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
-                s = h @ kf.P @ h.T + rn
-                nu = (fr.gnss_z[i] - h @ kf.x)[2:]
-                d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
-                if d2 > thr:
-                    scaled += 1
-                    rn[2:, 2:] *= d2 / thr
+                scaled += scale_velocity_noise(kf, fr.gnss_z[i], rn, h, thr)
             refs[vid].update(fr.gnss_z[i], R=rn, H=h)
             np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
             np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)

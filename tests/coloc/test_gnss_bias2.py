@@ -16,7 +16,7 @@ from scipy.stats import chi2
 from coloc.core.models import MotionParams
 from coloc.methods.gnss_bias import GnssBiasTracker, GnssModelParams
 from tests.coloc.test_gnss_bias import (MOTION, augmented_matrices, filterpy_kf, make_frame, match_reference,
-                                        scripted_run)
+                                        scale_velocity_noise, scripted_run)
 
 TWO = GnssModelParams(bias_model="two_state", common_share=0.45, common_tau_s=300.0, local_share=0.35,
                       local_length_m=15.0, local_tau_s=90.0, innovation_gate=0.0)
@@ -178,12 +178,7 @@ def test_common_sigma_and_velocity_test_equal_filterpy(update):
             else:
                 kf = refs[vid]
                 kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
-                s = h @ kf.P @ h.T + rn
-                nu = (fr.gnss_z[i] - h @ kf.x)[2:]
-                d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
-                if d2 > thr:
-                    scaled += 1
-                    rn[2:, 2:] *= d2 / thr
+                scaled += scale_velocity_noise(kf, fr.gnss_z[i], rn, h, thr)
                 kf.update(fr.gnss_z[i], R=rn, H=h)
             np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
             np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)
