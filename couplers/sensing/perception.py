@@ -310,6 +310,16 @@ def _fov_all(origins: np.ndarray, heading: np.ndarray, owner: np.ndarray, target
                        np.array([spec.fov_deg >= 360.0 for spec in sensors]))
 
 
+def sensor_boresights(params, heading: np.ndarray, n: int) -> np.ndarray:
+    """(sensors, n, 2): each sensor's boresight per vehicle, the heading turned by its yaw; the rows of the sensors
+    along the heading are left for the caller to take the direction of travel (not written)."""
+    boresight = np.empty((len(params.sensors), n, 2))
+    for s, spec in enumerate(params.sensors):
+        if not params.kernel_consts["along_heading"][s]:
+            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    return boresight
+
+
 def _fov_params(origins: np.ndarray, heading: np.ndarray, direction: np.ndarray, owner: np.ndarray,
                 target: np.ndarray, params: "PerceptionParams"):
     """:func:`_fov_all` with the constants of ``params.kernel_consts``, and the boresight of a sensor with
@@ -420,11 +430,7 @@ def perceive(
         return _perceive_stages(x_true, heading, features_true, pair_owner, pair_feature, params, noise,
                                 occluder_corners, observer_occluder, buildings, feature_class, direction)
     a, k = params.arrays, params.kernel_consts
-    n_sensors = len(params.sensors)
-    boresight = np.empty((n_sensors, n, 2))  # rows of the sensors along the heading: ``direction`` instead
-    for s, spec in enumerate(params.sensors):
-        if not k["along_heading"][s]:
-            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    boresight = sensor_boresights(params, heading, n)
     xf = np.ascontiguousarray(x_true, dtype=np.float64)
     ft = np.ascontiguousarray(features_true, dtype=np.float64)
     pair_owner = np.asarray(pair_owner, dtype=np.int64)

@@ -303,13 +303,9 @@ def _fov_stage(xy, direction, mount_x, boresight, along, features, pair_owner, p
 
 
 @njit(cache=True)
-def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
-                     corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
-    """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
-    footprint other than the observer's hides (:func:`_occluded_by_quads_bucketed`); of the clear ones, the
-    lines that may meet a building (:func:`_needs_building_test`). Returns (line of each candidate, clear
-    (L,), segments (L, 4), the lines for the building query)."""
-    line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
+def line_segments(line, pair, sensor, pair_owner, origins, target, observer_occluder):
+    """The sight lines ``line`` (candidate indices) as segments (L, 4) from the sensor's origin to the target,
+    and the observer's own footprint of each (L,), which never hides its own lines."""
     m = line.size
     seg = np.empty((m, 4))
     skip_a = np.empty(m, dtype=np.int64)
@@ -321,6 +317,19 @@ def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target,
         seg[r, 2] = target[pair[c], 0]
         seg[r, 3] = target[pair[c], 1]
         skip_a[r] = observer_occluder[i]
+    return seg, skip_a
+
+
+@njit(cache=True)
+def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
+                     corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
+    """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
+    footprint other than the observer's hides (:func:`_occluded_by_quads_bucketed`); of the clear ones, the
+    lines that may meet a building (:func:`_needs_building_test`). Returns (line of each candidate, clear
+    (L,), segments (L, 4), the lines for the building query)."""
+    line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
+    m = line.size
+    seg, skip_a = line_segments(line, pair, sensor, pair_owner, origins, target, observer_occluder)
     clear = np.ones(m, dtype=np.bool_)
     if use_vehicles and m > 0 and corners.shape[0] > 0:
         order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)

@@ -36,7 +36,6 @@ switching these keys on keeps every landmark and clutter draw.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
@@ -47,9 +46,9 @@ from couplers.sensing.occlusion import (OCCLUDER_BUCKET_M, OccluderIndex, _build
                                         _occluder_buckets, _rectangles, _segments_occluded_by_buildings,
                                         _segments_occluded_by_buildings_shapely, _segments_occluded_by_vehicles,
                                         building_edges)
-from couplers.sensing.perception import _NO_BUILDINGS, _NO_CORNERS, _fov_params, effect_rng, unit_heading
+from couplers.sensing.perception import _NO_BUILDINGS, _NO_CORNERS, _fov_params, effect_rng, sensor_boresights
 from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _fov_stage,
-                                                _range_fraction_and_sigma, _sharper, _sight_lines)
+                                                _range_fraction_and_sigma, _sharper, _sight_lines, line_segments)
 from couplers.sensing.rows import shuffle_within_owner
 from couplers.sensing.streams import StreamHandles, stream
 
@@ -129,10 +128,7 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     a, k = params.arrays, params.kernel_consts
     heading = np.asarray(heading, dtype=np.float64)
     n = x_true.shape[0]
-    boresight = np.empty((len(params.sensors), n, 2))  # the sensors along the heading take ``direction`` instead
-    for s, spec in enumerate(params.sensors):
-        if not k["along_heading"][s]:
-            boresight[s] = unit_heading(heading + math.radians(spec.yaw_deg))
+    boresight = sensor_boresights(params, heading, n)  # the sensors along the heading take ``direction`` instead
     pair_owner = np.asarray(pair_owner, dtype=np.int64)
     pair_target = np.asarray(pair_target, dtype=np.int64)
     targets = np.ascontiguousarray(targets, dtype=np.float64)
@@ -212,18 +208,10 @@ def _targets_stage(h_detect, h_noise, xy, direction, mount_x, boresight, along, 
     w = stream(h_noise).standard_normal((pair.size, 4))
     line, line_of = _distinct_lines(pair, sensor, groups, pair_owner.size)
     m = line.size
-    seg = np.empty((m, 4))
-    skip_a = np.empty(m, dtype=np.int64)
-    skip_b = np.empty(m, dtype=np.int64)
+    seg, skip_a = line_segments(line, pair, sensor, pair_owner, origins, target, observer_occluder)
+    skip_b = np.empty(m, dtype=np.int64)  # a target's own footprint does not hide it either
     for r in range(m):
-        c = line[r]
-        i = pair_owner[pair[c]]
-        seg[r, 0] = origins[sensor[c], i, 0]
-        seg[r, 1] = origins[sensor[c], i, 1]
-        seg[r, 2] = target[pair[c], 0]
-        seg[r, 3] = target[pair[c], 1]
-        skip_a[r] = observer_occluder[i]
-        skip_b[r] = target_occluder[pair_target[pair[c]]]
+        skip_b[r] = target_occluder[pair_target[pair[line[r]]]]
     clear = np.ones(m, dtype=np.bool_)
     if use_vehicles and m > 0 and corners.shape[0] > 0:
         order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
