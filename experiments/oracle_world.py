@@ -57,6 +57,18 @@ def oracle_world(cfg):
     )
 
 
+def oracle_sensors(cfg):
+    """``cfg.sensors`` with ``[gnss_error] oracle_channel`` on for a run whose methods include ``joint_oracle`` under
+    ``model = "satellites"`` (the frames then carry :class:`coloc.core.frame.OracleGnss`, what the oracle is told of
+    the receivers); else ``cfg.sensors`` unchanged (frames byte-identical)."""
+    ge = getattr(cfg.sensors, "gnss_error", None)
+    if ge is None or ge.model != "satellites" or JOINT_ORACLE.name not in cfg.run.methods or ge.oracle_channel:
+        return cfg.sensors
+    from dataclasses import replace
+
+    return replace(cfg.sensors, gnss_error=replace(ge, oracle_channel=True))
+
+
 #: SUMO's default vehicle length (m), vClass passenger (SUMO documentation, "Vehicle Type Parameter Defaults")
 SUMO_DEFAULT_LENGTH_M = 5.0
 
