@@ -85,6 +85,15 @@ bumper and its heading the body axis, so a turning vehicle's bumper moves across
 ``front_lever_m`` times the yaw rate; :func:`_front_slip` adds that to the position prediction with a residual
 in Q (docs/validation/oracle.md, "Kinematics of the world").
 
+Satellite world (``gnss = "satellites"``, couplers/sensing/gnss_satellites.py): the frame's ``oracle_gnss`` gives each
+receiver's WLS gain K_i over the constellation, its satellites and which came by reflection. Shared states: per
+satellite its clock/orbit and vertical ionospheric errors, and the net's zenith troposphere (2 S + 1 unit
+Gauss-Markov states, ``sv_tau_s``); the vehicle's error state l_i is its fix's multipath part in metres (Gauss-Markov
+over the distance travelled, stationary covariance K_i diag((m / sin el)^2) K_i^T). Fix: z_i = p_i + l_i + K_i A(el)
+c + v_i, Var(v_i) = K_i diag(code noise + a reflected signal's extra-path variance) K_i^T, z less K_i times the extra
+paths' mean (:func:`_satellite_information`; no NLOS gate: the reflected signals are told). Velocity: v_i +
+K_v,i (Doppler noise + a reflected signal's path rate).
+
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
 the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).

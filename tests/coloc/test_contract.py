@@ -418,7 +418,7 @@ def test_satellite_oracle_reads_its_channel_and_no_truth():
 
     def oracle():
         return build_method("joint_oracle", MethodParams(motion=ROAD_MOTION, icp=IcpParams(motion=ROAD_MOTION),
-                                                         oracle_world=ORACLE_SATELLITES))
+                                                         lc=LcParams(), pf=PfParams(), oracle_world=ORACLE_SATELLITES))
 
     rng = np.random.default_rng(5)
     a, b, c, d = oracle(), oracle(), oracle(), oracle()
