@@ -60,10 +60,14 @@ def channel_frames(cfg, path: Path, stats: dict | None = None):
         if proc.doppler:
             proc.velocity_error(tr.x_true[:, 2:4])
         ch = proc.oracle_frame()
+        if stats is not None:
+            for key in ("ex", "found", "cols"):
+                stats.pop(key, None)
         if stats is not None and "last" in stats and len(fr.vehicle_ids):
             found, ex, g = stats.pop("last")
             el = proc._geom[1]
             cols = np.flatnonzero(el >= proc.mask)
+            stats.update(ex=ex, found=found, cols=cols)
             used = ch.reflected[:, cols]
             c2 = 2.0 * np.cos(el[cols])[None, :]
             stats.setdefault("D", []).append((ex / c2)[used])
@@ -71,7 +75,13 @@ def channel_frames(cfg, path: Path, stats: dict | None = None):
             rr = (g[..., 0] * tr.x_true[:, None, 2] + g[..., 1] * tr.x_true[:, None, 3]) / (c2 * np.maximum(v, 0.5)[:, None])
             stats.setdefault("rate", []).append(rr[used & (v[:, None] > 2.0)])
             stats.setdefault("zone", []).append(np.broadcast_to(np.asarray(tr.zone)[:, None], used.shape)[used])
-        yield replace(fr, oracle_gnss=ch)
+        nlos_part = None
+        if stats is not None:  # the fix's part from the reflected signals' extra paths (a diagnostic; truth)
+            full = np.zeros(ch.used.shape)
+            if "ex" in stats:
+                full[:, stats["cols"]] = stats["ex"]  # as the world adds it (gnss_satellites._assemble)
+            nlos_part = np.einsum("nis,ns->ni", ch.gain, full * ch.reflected)
+        yield replace(fr, oracle_gnss=ch), nlos_part
 
 
 def report(args, names, out, cpu, steps, nveh) -> dict:
@@ -104,6 +114,9 @@ def main() -> None:
     ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc,joint_oracle")
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--nlos-stats", action="store_true")
+    ap.add_argument("--nlos-known", action="store_true",
+                    help="diagnostic (reads truth): the oracle's fixes less their reflected signals' true extra "
+                         "paths through the gain, and its extra-path mean and std set to 0")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     cfg = load_config(args.config)
@@ -115,11 +128,16 @@ def main() -> None:
         for m, e in zip(names, ests):
             if m == "joint_oracle":
                 e.world = replace(e.world, **{k: parse_value(v)})
+    if args.nlos_known:
+        args.nlos_stats = True
+        for m, e in zip(names, ests):
+            if m == "joint_oracle":
+                e.world = replace(e.world, nlos_d_mean_m=0.0, nlos_d_std_m=0.0)
     stats = {} if args.nlos_stats else None
     out = {m: {"err": [], "nees": [], "zone": []} for m in names}
     cpu = {m: 0.0 for m in names}
     steps, t0, nveh = 0, None, []
-    for fr in channel_frames(cfg, args.frames, stats):
+    for fr, nlos_part in channel_frames(cfg, args.frames, stats):
         t0 = fr.t if t0 is None else t0
         if fr.t - t0 > args.to:
             break
@@ -127,8 +145,13 @@ def main() -> None:
         scored = fr.t - t0 >= args.t_from
         for m, est in zip(names, ests):
             c = time.process_time()
-            e = (est.step_with_association(blind, fr.truth.v2f_feature) if hasattr(est, "step_with_association")
-                 else est.step(blind))
+            seen = blind
+            if args.nlos_known and m == "joint_oracle":  # diagnostic: the extra paths' realisation taken out
+                gz = blind.gnss_z.copy()
+                gz[:, :2] -= nlos_part
+                seen = replace(blind, gnss_z=gz)
+            e = (est.step_with_association(seen, fr.truth.v2f_feature) if hasattr(est, "step_with_association")
+                 else est.step(seen))
             if scored:
                 cpu[m] += time.process_time() - c
             if not scored:
