@@ -500,6 +500,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "`\"dop\"`: its budget through the geometry, (H^T W H)^-1, or `\"residual\"`: "
                                     "that times the fit's a-posteriori variance factor r^T W r / (m - 4) when above "
                                     "1 (m > 4 satellites)."),
+        "oracle_channel": ("", "satellites: the frames also carry each receiver's WLS gains over the satellites, its "
+                               "satellites and which came by reflection (what `joint_oracle` is told; no other "
+                               "estimator reads it). Set by the runner for a run whose methods include "
+                               "`joint_oracle`; nothing else changes."),
     },
     "motion": {
         "sigma_along": ("m/s^2", "Along-track driving noise s_along of model (1)."),

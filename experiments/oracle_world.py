@@ -34,6 +34,8 @@ def oracle_world(cfg):
     ge = cfg.gnss_error
     if ge is None:
         return OracleWorld(**imu)
+    if ge.model == "satellites":
+        return OracleWorld(**imu, **satellite_world(cfg))
     if ge.model not in GNSS_WORLDS:
         raise InputError(cfg.path, "gnss_error.model",
                          f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
@@ -55,6 +57,46 @@ def oracle_world(cfg):
         field_tau_s=ge.field_tau_s, local_corr_length_m=ge.local_corr_length_m if field else math.inf,
         nlos=bool(rates and ge.nlos_bias_mean_m > 0), field_omega=omega, **imu,
     )
+
+
+#: A reflected signal's extra path is 2 cos(el) D (couplers/sensing/gnss_satellites.py, "reflect"): D = d cos(dphi),
+#: the reflecting facade's perpendicular distance times the cosine of the satellite azimuth's angle to its normal. The
+#: oracle is told D's mean and std, measured over the reflected signals used in the fixes of the realistic TLR preset,
+#: tuning seed 101, 0-660 s (docs/validation/oracle.md, "Satellite world"), not a realisation.
+NLOS_D_MEAN_M = 16.4  # 166 801 reflected signals: mean 16.4 m, median 15.5 m, p95 24.3 m
+NLOS_D_STD_M = 3.8
+#: The path rate of a reflected signal, -2 cos(el) cos(dphi) (n . v) (gnss_reflect.py), taken as zero-mean with std
+#: 2 cos(el) |v| times this share (the same measurement).
+NLOS_RATE_SHARE = 0.10  # RMS of -cos(dphi) (n . v) / |v| above 2 m/s: 0.097, mean 0.002
+
+
+def satellite_world(cfg) -> dict:
+    """The OracleWorld keys of ``[gnss_error] model = "satellites"``: the constellation's size, the satellites'
+    common errors (correlation time, sigmas), the receiver's own errors, the Doppler noise, and the structure of a
+    reflected signal's extra path (:data:`NLOS_D_MEAN_M`)."""
+    from couplers.sensing.gnss_sky import Sky
+
+    ge = cfg.gnss_error
+    reflect = ge.nlos == "reflect"
+    return dict(gnss="satellites", sv_count=Sky.build().size, sv_tau_s=ge.sv_tau_s,
+                sv_clock_orbit_m=ge.sv_clock_orbit_m, iono_vertical_m=ge.iono_vertical_m,
+                tropo_zenith_m=ge.tropo_zenith_m, code_noise_a_m=ge.code_noise_a_m, code_noise_b_m=ge.code_noise_b_m,
+                multipath_m=ge.multipath_m, multipath_corr_length_m=ge.multipath_corr_length_m,
+                doppler_noise_mps=ge.doppler_noise_mps,
+                nlos_d_mean_m=NLOS_D_MEAN_M if reflect else 0.0, nlos_d_std_m=NLOS_D_STD_M if reflect else 0.0,
+                nlos_rate_share=NLOS_RATE_SHARE if reflect else 0.0)
+
+
+def oracle_sensors(cfg):
+    """``cfg.sensors`` with ``[gnss_error] oracle_channel`` on for a run whose methods include ``joint_oracle`` under
+    ``model = "satellites"`` (the frames then carry :class:`coloc.core.frame.OracleGnss`, what the oracle is told of
+    the receivers); else ``cfg.sensors`` unchanged (frames byte-identical)."""
+    ge = getattr(cfg.sensors, "gnss_error", None)
+    if ge is None or ge.model != "satellites" or JOINT_ORACLE.name not in cfg.run.methods or ge.oracle_channel:
+        return cfg.sensors
+    from dataclasses import replace
+
+    return replace(cfg.sensors, gnss_error=replace(ge, oracle_channel=True))
 
 
 #: SUMO's default vehicle length (m), vClass passenger (SUMO documentation, "Vehicle Type Parameter Defaults")

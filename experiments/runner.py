@@ -57,7 +57,7 @@ from couplers.sumo_coupler import SumoCoupler, SumoScenario
 from experiments.config import Config
 from experiments.config_toml import config_to_toml
 from experiments.gnss_world import GnssWorldTally
-from experiments.oracle_world import oracle_world
+from experiments.oracle_world import oracle_sensors, oracle_world
 from experiments.pipeline import BATCH, estimator_stats, step_batch
 from experiments.rowstream import StreamLog, association_rows, concat_steps, estimate_rows, position_nees
 from experiments.run_checks import _empty_run, _nothing_to_estimate, check_finite_estimate  # noqa: F401
@@ -470,7 +470,7 @@ class _SumoSource:
             raise InputError(cfg.path, "scenario.control", f"no control named {cfg.scenario.control!r} in "
                                                            f"{net.root / 'scenario.toml'} (have {sorted(net.tls_off)})")
         self.scenario = sumo_scenario(cfg, net)
-        self.sensors = cfg.sensors
+        self.sensors = oracle_sensors(cfg)
         self.infra = infra_setup(cfg, net)
         self.coupler = None
 

@@ -77,6 +77,32 @@ class InfraFrame:
 
 
 @dataclass(frozen=True)
+class OracleGnss:
+    """What ``joint_oracle`` is told of the satellite receivers of one step (``[gnss_error] model = "satellites"``,
+    only in a run whose methods include ``joint_oracle``; every other estimator ignores it, the contract test
+    ``tests/coloc/test_contract.py`` checks it). S is every satellite of the constellation, at a fixed index.
+
+    * ``gain`` (N, 2, S): each receiver's weighted least-squares position gain, the east/north rows of
+      (H^T W H)^-1 H^T W over the satellites of its fix (zero columns elsewhere), so that its fix error is
+      ``gain[i] @ eps_i`` for its pseudorange errors eps_i (the clock column absorbs what all its ranges share);
+    * ``used`` (N, S): the satellites of the fix; ``reflected`` (N, S): received by reflection (NLOS);
+    * ``elevation`` (S,): rad; ``fix`` (N,): the receiver has a fix of its own this step (else it holds the last);
+    * ``velocity_gain`` (N, 2, S), ``velocity_used`` (N, S), ``velocity_solved`` (N,): the same for the Doppler
+      velocity (``velocity = "doppler"``; None otherwise).
+
+    The structure of the error, never its realisation (couplers/sensing/gnss_satellites.py, ``oracle_frame``)."""
+
+    gain: np.ndarray
+    used: np.ndarray
+    reflected: np.ndarray
+    elevation: np.ndarray
+    fix: np.ndarray
+    velocity_gain: np.ndarray | None = None
+    velocity_used: np.ndarray | None = None
+    velocity_solved: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class Frame:
     """Measurements of all connected vehicles at time ``t``.
 
@@ -139,6 +165,8 @@ class Frame:
     v2f_sensor: SensorDetections | None = None
     # (N,) bool: the entering vehicle's prior is this step's receiver fix (start = "gnss_fix"); None: none is.
     prior_has_fix: np.ndarray | None = None
+    # The satellite receivers' structure for joint_oracle alone (OracleGnss); None for every run without it.
+    oracle_gnss: OracleGnss | None = None
 
     @property
     def n_vehicles(self) -> int:

@@ -85,6 +85,15 @@ bumper and its heading the body axis, so a turning vehicle's bumper moves across
 ``front_lever_m`` times the yaw rate; :func:`_front_slip` adds that to the position prediction with a residual
 in Q (docs/validation/oracle.md, "Kinematics of the world").
 
+Satellite world (``gnss = "satellites"``, couplers/sensing/gnss_satellites.py): the frame's ``oracle_gnss`` gives each
+receiver's WLS gain K_i over the constellation, its satellites and which came by reflection. Shared states: per
+satellite its clock/orbit and vertical ionospheric errors, and the net's zenith troposphere (2 S + 1 unit
+Gauss-Markov states, ``sv_tau_s``); the vehicle's error state l_i is its fix's multipath part in metres (Gauss-Markov
+over the distance travelled, stationary covariance K_i diag((m / sin el)^2) K_i^T). Fix: z_i = p_i + l_i + K_i A(el)
+c + v_i, Var(v_i) = K_i diag(code noise + a reflected signal's extra-path variance) K_i^T, z less K_i times the extra
+paths' mean (:func:`_satellite_information`; no NLOS gate: the reflected signals are told). Velocity: v_i +
+K_v,i (Doppler noise + a reflected signal's path rate).
+
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
 the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
@@ -206,7 +215,14 @@ class JointOracle:
         fv[:, :4, :4] = a4
         qv = np.zeros((ns, vd, vd))
         qv[:, :4, :4] = driving_noise_cov(xv[:, 2:4], dt, p_icp.motion)
-        if w.correlated:
+        if w.gnss == "satellites":
+            # the receiver's multipath in metres: Gauss-Markov over the distance travelled (the oracle's |v| Ts),
+            # stationary covariance K diag((m / sin el)^2) K^T of this step's gain
+            a_l = np.exp(-np.hypot(xv[:, 2], xv[:, 3]) * dt / w.multipath_corr_length_m) if w.multipath_state \
+                else np.zeros(ns)
+            fv[:, 4, 4] = fv[:, 5, 5] = a_l
+            qv[:, 4:6, 4:6] = (1.0 - a_l * a_l)[:, None, None] * _multipath_cov(w, frame)[surv]
+        elif w.correlated:
             a_l = w.local_coefficient(np.hypot(xv[:, 2], xv[:, 3]) * dt, dt)
             fv[:, 4, 4] = fv[:, 5, 5] = a_l
             qv[:, 4, 4] = qv[:, 5, 5] = 1.0 - a_l * a_l
@@ -352,7 +368,10 @@ class JointOracle:
                 lp = np.linalg.inv(np.asarray(frame.prior_R, dtype=float)[pr])
                 ind = _idx(vd * pr, 4)
                 _scatter(lam, eta, ind, symmetrize(lp), np.einsum("nij,nj->ni", lp, prior_z))
-            if w.correlated:  # the local error state starts stationary
+            if w.gnss == "satellites":  # the multipath state starts stationary
+                ind = _idx(vd * fr + 4, 2)
+                _scatter(lam, eta, ind, symmetrize(np.linalg.inv(_multipath_cov(w, frame)[fr])), np.zeros((fr.size, 2)))
+            elif w.correlated:  # the local error state starts stationary
                 ind = _idx(vd * fr + 4, 2)
                 _scatter(lam, eta, ind, np.broadcast_to(np.eye(2), (fr.size, 2, 2)), np.zeros((fr.size, 2)))
             if w.imu:  # the bias of an IMU just switched on: turn-on plus stationary drift
@@ -481,6 +500,9 @@ class JointOracle:
     def _gnss_information(self, lam, eta, p_pred, frame, fresh, surv, mean_pred, sig, zg, rg, streak) -> np.ndarray:
         """Add every fix's information; returns which fixes' positions the gate left out."""
         w = self.world
+        if w.gnss == "satellites":
+            _satellite_information(w, lam, eta, frame, mean_pred, zg, rg)
+            return np.zeros(frame.n_vehicles, dtype=bool)
         vd, cd, fd = w.vehicle_dim, w.common_dim, w.field_dim
         n = frame.n_vehicles
         d = lam.shape[0]
@@ -612,3 +634,83 @@ class JointOracle:
         hth, htz = _information(h, rinv, z)
         _scatter(lam, eta, ind, hth, htz)
         return memory
+
+
+# --- the satellite world ([gnss_error] model = "satellites"; Frame.oracle_gnss) ------------------------------------
+
+MULTIPATH_FLOOR_M2 = 1e-6  # keeps the multipath state's covariance invertible for a receiver without a fix
+
+
+def _channel(w: OracleWorld, frame: Frame):
+    """(gain (N, 2, S), reflected (N, S), elevation (S,), fix (N,)) of the frame's OracleGnss; without one (a frame
+    of a world without the channel) no receiver has a gain: every fix is taken with its reported covariance."""
+    n, s = frame.n_vehicles, w.sv_count
+    ch = frame.oracle_gnss
+    if ch is None:
+        return np.zeros((n, 2, s)), np.zeros((n, s), dtype=bool), np.full(s, 0.5 * math.pi), np.zeros(n, dtype=bool)
+    if ch.gain.shape[2] != s:
+        raise ValueError(f"the frame's satellites ({ch.gain.shape[2]}) are not the oracle's ({s})")
+    return (np.asarray(ch.gain, dtype=float), np.asarray(ch.reflected, dtype=bool),
+            np.asarray(ch.elevation, dtype=float), np.asarray(ch.fix, dtype=bool))
+
+
+def _multipath_cov(w: OracleWorld, frame: Frame) -> np.ndarray:
+    """(N, 2, 2) stationary covariance of each fix's multipath part, K diag((m / sin el)^2) K^T (with
+    ``multipath_state``; the floor alone without it or without a fix)."""
+    gain, _, el, _ = _channel(w, frame)
+    _, mp = w.own_variances(el)
+    cov = np.einsum("nis,s,njs->nij", gain, mp, gain) if w.multipath_state else np.zeros((frame.n_vehicles, 2, 2))
+    return cov + MULTIPATH_FLOOR_M2 * np.eye(2)
+
+
+def _satellite_information(w: OracleWorld, lam, eta, frame: Frame, mean_pred, zg, rg) -> None:
+    """Every fix as z_i = p_i + l_i + K_i (A(el) c) + v_i (docs/validation/oracle.md, "Satellite world"): K_i the
+    receiver's WLS gain, c the 2 S + 1 unit satellite states (A: :meth:`OracleWorld.satellite_columns`), l_i its
+    multipath state, v_i white with Var = K_i diag(code noise (+ multipath without its state) + the extra path's
+    variance of a reflected signal) K_i^T, z less K_i times the extra paths' mean. The Doppler velocity: v_i +
+    K_v,i (white range-rate noise + a reflected signal's path rate), Var = K_v diag(...) K_v^T. A receiver without a
+    fix (or velocity) of its own: the reported block, no error state."""
+    n = frame.n_vehicles
+    if not n:
+        return
+    vd, sd = w.vehicle_dim, w.satellite_dim
+    d = lam.shape[0]
+    t0 = d - sd
+    gain, refl, el, fix = _channel(w, frame)
+    cos_el = np.cos(el)
+    white, _ = w.own_variances(el)
+    own = white[None, :] + refl * (2.0 * cos_el * w.nlos_d_std_m)[None, :] ** 2
+    r = np.einsum("nis,ns,njs->nij", gain, own, gain)
+    r[~fix] = rg[~fix, :2, :2]
+    z = zg[:, :2] - np.einsum("nis,ns->ni", gain, refl * (2.0 * cos_el * w.nlos_d_mean_m)[None, :])
+    ht = gain @ w.satellite_columns(el)  # (N, 2, 2S+1)
+    hv = np.zeros((n, 2, 4))
+    hv[:, :, :2] = np.eye(2)
+    hv[fix, :, 2:] = np.eye(2)
+    wi = symmetrize(np.linalg.inv(r))
+    vcols = vd * np.arange(n)[:, None] + np.array([0, 1, 4, 5])
+    hvw = np.swapaxes(hv, 1, 2) @ wi  # (N, 4, 2)
+    _scatter(lam, eta, vcols, hvw @ hv, np.einsum("nij,nj->ni", hvw, z))
+    cross = hvw @ ht  # (N, 4, T)
+    rows = vcols.ravel()
+    lam[rows, t0:] += cross.reshape(4 * n, sd)
+    lam[t0:, rows] += cross.reshape(4 * n, sd).T
+    htw = np.swapaxes(ht, 1, 2) @ wi  # (N, T, 2)
+    lam[t0:, t0:] += np.einsum("nti,niu->tu", htw, ht)
+    eta[t0:] += np.einsum("nti,ni->t", htw, z)
+    # velocity rows
+    ch = frame.oracle_gnss
+    rv = np.array(rg[:, 2:, 2:], dtype=float)
+    if ch is not None and ch.velocity_gain is not None:
+        kv = np.asarray(ch.velocity_gain, dtype=float)
+        ok = np.asarray(ch.velocity_solved, dtype=bool)
+        s_el = np.maximum(np.sin(el), 0.05)
+        speed = np.hypot(*mean_pred[:vd * n].reshape(n, vd)[:, 2:4].T)
+        var_v = (w.doppler_noise_mps ** 2 * (1.0 + 1.0 / s_el))[None, :] + (
+            (refl & np.asarray(ch.velocity_used, dtype=bool)) * (2.0 * cos_el[None, :] * speed[:, None]
+                                                                  * w.nlos_rate_share) ** 2)
+        rv_ch = np.einsum("nis,ns,njs->nij", kv, var_v, kv)
+        rv[ok] = rv_ch[ok]
+    vc = vd * np.arange(n)[:, None] + np.array([2, 3])
+    rv_inv = symmetrize(np.linalg.inv(rv))
+    _scatter(lam, eta, vc, rv_inv, np.einsum("nij,nj->ni", rv_inv, zg[:, 2:]))

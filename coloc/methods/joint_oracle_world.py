@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = ["GNSS_WORLDS", "OracleWorld"]
 
-GNSS_WORLDS = ("white", "per_vehicle", "field")
+GNSS_WORLDS = ("white", "per_vehicle", "field", "satellites")
 
 
 @dataclass(frozen=True)
@@ -99,6 +99,30 @@ class OracleWorld:
     # r the predicted position's RMS error; :func:`coloc.methods.joint_oracle_rows._field_read_share`); False: the
     # field read at the predicted position as exact.
     field_read_noise: bool = False
+    # "satellites" (couplers/sensing/gnss_satellites.py; the runner copies [gnss_error]): the satellites of the
+    # constellation (S), their common errors' correlation time and sigmas (clock/orbit per satellite, vertical
+    # ionosphere per satellite through the Klobuchar obliquity, one zenith troposphere through the SBAS mapping),
+    # the receiver's own errors (code noise a^2 + b^2 / sin el, multipath (m / sin el)^2 correlated over the
+    # distance travelled) and the Doppler noise. Each fix reads the shared states through its WLS gain
+    # (Frame.oracle_gnss). A reflected signal's extra path 2 cos(el) D is told by its structure: D (m, the facade's
+    # perpendicular distance times cos of the azimuth's angle to its normal) with mean nlos_d_mean_m and std
+    # nlos_d_std_m (docs/validation/oracle.md, measured on a tuning seed's geometry), its rate by
+    # 2 cos(el) |v| nlos_rate_share (std per m/s of speed).
+    sv_count: int = 0
+    sv_tau_s: float = 1800.0
+    sv_clock_orbit_m: float = 0.5
+    iono_vertical_m: float = 1.0
+    tropo_zenith_m: float = 0.1
+    code_noise_a_m: float = 0.3
+    code_noise_b_m: float = 0.3
+    multipath_m: float = 0.5
+    multipath_corr_length_m: float = 10.0
+    doppler_noise_mps: float = 0.05
+    nlos_d_mean_m: float = 0.0
+    nlos_d_std_m: float = 0.0
+    nlos_rate_share: float = 0.0
+    # the multipath part of each fix as a per-vehicle state correlated over the distance travelled (False: white)
+    multipath_state: bool = True
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -150,15 +174,47 @@ class OracleWorld:
         return 4 * len(self.field_omega)
 
     @property
+    def satellite_dim(self) -> int:
+        """"satellites": 2 S + 1 unit Gauss-Markov states, clock/orbit per satellite, vertical ionosphere per
+        satellite, the zenith troposphere (one for the net); else 0."""
+        return 2 * self.sv_count + 1 if self.gnss == "satellites" else 0
+
+    @property
     def tail_dim(self) -> int:
-        """The shared states after the features: common (``common_dim``), then field coefficients."""
-        return self.common_dim + self.field_dim
+        """The shared states after the features: common (``common_dim``), field coefficients, satellites."""
+        return self.common_dim + self.field_dim + self.satellite_dim
 
     def tail_coefficients(self, dt: float) -> np.ndarray:
-        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, then field)."""
+        """Gauss-Markov coefficient of every shared state for a step of ``dt`` (common, field, satellites)."""
         a_c = math.exp(-dt / self.common_tau_s) if self.common_tau_s > 0 else 0.0
         a_f = math.exp(-dt / self.field_tau_s) if self.field_tau_s > 0 else 0.0
-        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f)])
+        a_s = math.exp(-dt / self.sv_tau_s) if self.sv_tau_s > 0 else 0.0
+        return np.concatenate([np.full(self.common_dim, a_c), np.full(self.field_dim, a_f),
+                               np.full(self.satellite_dim, a_s)])
+
+    def satellite_columns(self, elevation: np.ndarray) -> np.ndarray:
+        """(S, 2 S + 1): d (common pseudorange error of each satellite) / d (satellite states) at the elevations
+        (rad): sv_clock_orbit, iono_vertical F(el), tropo_zenith m(el) (couplers/sensing/gnss_satellites.py)."""
+        el = np.asarray(elevation, dtype=float)
+        s = el.size
+        semi = el / math.pi
+        f_iono = 1.0 + 16.0 * (0.53 - semi) ** 3  # Klobuchar obliquity (IS-GPS-200, 20.3.3.5.2.5)
+        m_tropo = 1.001 / np.sqrt(0.002001 + np.sin(el) ** 2)  # RTCA DO-229, A.4.2.4
+        out = np.zeros((s, 2 * s + 1))
+        out[np.arange(s), np.arange(s)] = self.sv_clock_orbit_m
+        out[np.arange(s), s + np.arange(s)] = self.iono_vertical_m * f_iono
+        out[:, 2 * s] = self.tropo_zenith_m * m_tropo
+        return out
+
+    def own_variances(self, elevation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(white (S,), multipath (S,)) variances of a receiver's own pseudorange error per satellite: code noise
+        a^2 + b^2 / sin el, multipath (m / sin el)^2 (sin el floored at 0.05 as the world's)."""
+        s = np.maximum(np.sin(np.asarray(elevation, dtype=float)), 0.05)
+        mp = (self.multipath_m / s) ** 2
+        white = self.code_noise_a_m ** 2 + self.code_noise_b_m ** 2 / s
+        if not self.multipath_state:
+            white = white + mp
+        return white, mp
 
     def field_basis(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's

@@ -178,6 +178,9 @@ class GnssErrorParams:
     doppler_noise_mps: float = 0.05
     rx_doppler_mps: float = 0.05
     reported_covariance: str = "dop"
+    # "satellites": the frames carry each receiver's WLS gains and satellites (coloc.core.frame.OracleGnss), what
+    # joint_oracle is told; the runner sets it for a run whose methods include joint_oracle (off: no channel)
+    oracle_channel: bool = False
 
     def __post_init__(self):
         def finite(v):

@@ -312,6 +312,22 @@ def _carried_multipath(rows, prev, a, u_prev, z):
     return u
 
 
+def wls_gains(los: np.ndarray, used: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """(N, 2, S) east/north rows of each receiver's WLS gain (H^T W H)^-1 H^T W over its satellites ``used``
+    (N, S), H's rows (-e_s, 1) from ``los`` (S, 3), weights 1 / ``var`` (S,); zero columns for the other
+    satellites, all zero for a receiver with fewer than four. The fix error of :func:`_wls_kernel` is
+    ``gain @ eps`` (tested to 1e-9): what ``joint_oracle`` is told (``oracle_channel``)."""
+    n, s = used.shape
+    h = np.c_[-np.asarray(los, dtype=float), np.ones(s)]  # (S, 4)
+    hw = used[:, :, None] * (h / np.asarray(var, dtype=float)[:, None])[None]  # (N, S, 4)
+    out = np.zeros((n, 2, s))
+    ok = used.sum(axis=1) >= 4
+    if ok.any():
+        a = np.einsum("nsk,sl->nkl", hw[ok], h)
+        out[ok] = np.linalg.solve(a, np.swapaxes(hw[ok], 1, 2))[:, :2]
+    return out
+
+
 @njit(cache=True)
 def _pseudorange_sum(common, sig_n, white, mp, u):
     """eps = common + sig_n white + mp u per (receiver, satellite), added in that order (numpy's broadcast sum)."""
@@ -401,6 +417,10 @@ class SatelliteErrorProcess:
     def __init__(self, params, seed: int, dt: float, buildings: Buildings | None = None,
                  net_path: Path | None = None):
         self.params = p = params
+        # ``oracle_frame`` after each step (``[gnss_error] oracle_channel``, set by the runner for a run with
+        # joint_oracle): computed from the step's geometry, no random draw, so the frames are otherwise the same
+        self.oracle_channel = bool(getattr(p, "oracle_channel", False))
+        self._oracle: dict = {}
         self.dt = float(dt)
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
@@ -617,6 +637,9 @@ class SatelliteErrorProcess:
         self.last = {"above": np.full(n, int(above.sum())), "used": used, "excluded": excluded, "fix": ok,
                      "nlos": nlos, "nlos_received": nlos_received}
         self._geom = (los, el, usedm, rate[0] if rate else None, ok, sky)
+        if self.oracle_channel:
+            self._oracle = {"gain": wls_gains(los, usedm & ok[:, None], var_rx), "used": usedm & ok[:, None],
+                            "reflected": blocked & usedm & ok[:, None], "elevation": el.copy(), "fix": ok.copy()}
         self.reported_cov = cov
         self._ids, self._xy, self._u, self._fix = np.asarray(ids, dtype=object), xy, u, xy + err
         return err
@@ -637,9 +660,23 @@ class SatelliteErrorProcess:
                                       np.ascontiguousarray(v_true, dtype=np.float64).reshape(-1, 2))
         var_rr = sky["var_rr"]  # rx_doppler_mps^2 (1 + 1 / sin el)
         # the same WLS and residual test as the fix (H rows (-e_s, 1): velocity and clock drift), over its satellites
-        err, cov, _, _, solved, _ = _wls_kernel(np.ascontiguousarray(los), usedm, np.ascontiguousarray(eps_rate),
-                                                var_rr, self.thr, self.posterior)
+        err, cov, _, _, solved, used_v = _wls_kernel(np.ascontiguousarray(los), usedm,
+                                                     np.ascontiguousarray(eps_rate), var_rr, self.thr, self.posterior)
+        if self.oracle_channel:
+            sv = solved & ok
+            self._oracle.update(velocity_gain=wls_gains(los, used_v & sv[:, None], var_rr),
+                                velocity_used=used_v & sv[:, None], velocity_solved=sv)
         return err, cov, solved & ok
+
+    def oracle_frame(self):
+        """The step's :class:`coloc.core.frame.OracleGnss` (``oracle_channel``; call after :meth:`step` and, under
+        ``velocity = "doppler"``, :meth:`velocity_error`): each receiver's WLS gains, its satellites, which of
+        them came by reflection, the elevations. None without the channel."""
+        if not self.oracle_channel or not self._oracle:
+            return None
+        from coloc.core.frame import OracleGnss
+
+        return OracleGnss(**self._oracle)
 
     @property
     def in_episode(self) -> np.ndarray:

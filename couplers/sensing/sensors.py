@@ -377,6 +377,7 @@ def synthesize_frame(
             verr, vcov, solved = gnss_error.velocity_error(x_true[:, 2:4])
             gnss_z[solved, 2:4] = x_true[solved, 2:4] + verr[solved]
             gnss_R[solved, 2:, 2:] = vcov[solved]
+    oracle_gnss = gnss_error.oracle_frame() if getattr(gnss_error, "oracle_channel", False) else None
     if gnss_fix:  # the receiver's first fix, its error included, and the covariance it reports
         prior_z[entered], prior_R[entered] = gnss_z[entered], gnss_R[entered]
 
@@ -417,4 +418,5 @@ def synthesize_frame(
         truth=truth,
         imu=imu,
         prior_has_fix=entered.copy() if gnss_fix else None,
+        oracle_gnss=oracle_gnss,
     )

@@ -377,3 +377,60 @@ def test_first_belief_is_the_receiver_fix(name):
     else:
         np.testing.assert_allclose(out.mean[k, :2], z, rtol=0, atol=1e-9)
         np.testing.assert_allclose(out.cov[k, :2, :2], r, rtol=1e-9, atol=1e-9)
+
+
+# --- the satellite receivers' channel for joint_oracle (Frame.oracle_gnss) ------------------------------------------
+
+ORACLE_SATELLITES = OracleWorld(gnss="satellites", sv_count=6, nlos_d_mean_m=16.4, nlos_d_std_m=3.8,
+                                nlos_rate_share=0.1)
+
+
+def _with_channel(frames, rng, s=6):
+    """The frames with a random :class:`coloc.core.frame.OracleGnss` of ``s`` satellites."""
+    from coloc.core.frame import OracleGnss
+
+    out = []
+    for f in frames:
+        n = f.n_vehicles
+        used = rng.random((n, s)) < 0.9
+        out.append(replace(f, oracle_gnss=OracleGnss(
+            gain=rng.normal(0, 0.5, (n, 2, s)) * used[:, None], used=used, reflected=used & (rng.random((n, s)) < 0.3),
+            elevation=rng.uniform(0.2, 1.4, s), fix=rng.random(n) < 0.9,
+            velocity_gain=rng.normal(0, 0.5, (n, 2, s)) * used[:, None], velocity_used=used,
+            velocity_solved=rng.random(n) < 0.9)))
+    return out
+
+
+@pytest.mark.parametrize("name", RUNNABLE)
+def test_oracle_channel_is_read_by_the_oracle_alone(name):
+    """Every estimator but joint_oracle in the satellite world gives the same bytes with or without the oracle's
+    channel (it is the structure of the simulated receivers' errors, which no other estimator is told)."""
+    frames = frames_for(name)
+    told = _with_channel(frames, np.random.default_rng(2))
+    a, b = build(name), build(name)
+    for f, g in zip(frames, told):
+        ea, eb = step(name, a, f), step(name, b, g)
+        assert ea.mean.tobytes() == eb.mean.tobytes() and ea.cov.tobytes() == eb.cov.tobytes()
+
+
+def test_satellite_oracle_reads_its_channel_and_no_truth():
+    """joint_oracle in the satellite world: scrambled or absent truth, the same bytes; its channel changes its
+    output (so the test above could fail)."""
+    frames = _with_channel(frames_for("joint_oracle"), np.random.default_rng(4))
+
+    def oracle():
+        return build_method("joint_oracle", MethodParams(motion=ROAD_MOTION, icp=IcpParams(motion=ROAD_MOTION),
+                                                         lc=LcParams(), pf=PfParams(), oracle_world=ORACLE_SATELLITES))
+
+    rng = np.random.default_rng(5)
+    a, b, c, d = oracle(), oracle(), oracle(), oracle()
+    differs = False
+    for f in frames:
+        assoc = f.truth.v2f_feature.copy()
+        ea = step("joint_oracle", a, f, assoc)
+        assert_valid(ea, f)
+        for e in (step("joint_oracle", b, scrambled(f, rng), assoc), step("joint_oracle", c, f.without_truth(), assoc)):
+            assert ea.mean.tobytes() == e.mean.tobytes() and ea.cov.tobytes() == e.cov.tobytes()
+        ed = step("joint_oracle", d, replace(f, oracle_gnss=None), assoc)
+        differs |= ea.mean.tobytes() != ed.mean.tobytes()
+    assert differs

@@ -556,3 +556,53 @@ def test_the_sky_computed_for_a_block_of_steps_equals_the_sky_of_each_step():
                          ("cos_el", np.cos(el[cols]))):
             assert got[key][cols].tobytes() == val.tobytes(), key
     assert proc._sky_k == 1  # the off-grid times switched to one row at a time
+
+
+def test_oracle_channel_gain_gives_the_fix_error_exactly():
+    """``oracle_channel``: the fix error is the WLS gain times the pseudorange errors, to 1e-9. With the own errors
+    set to zero (open sky) the gain times the satellites' common errors alone; in a canyon with reflections, fault
+    exclusion and every error on, the gain times that step's errors (the clock column absorbs what is common to a
+    receiver's ranges: each gain row sums to zero). The same for the Doppler velocity. Off: no channel, same
+    fixes."""
+    quiet = SatelliteErrorProcess(GnssErrorParams(**SAT, code_noise_a_m=0.0, code_noise_b_m=0.0, multipath_m=0.0,
+                                                  oracle_channel=True), 2, 0.75)
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 1000, (12, 2))
+    for k in range(5):
+        err = quiet.step(k * 0.75, _ids(12), np.full(12, k == 0), None, None, None, xy + k)
+        ch = quiet.oracle_frame()
+        common = quiet._sky_terms(k * 0.75)[5]
+        np.testing.assert_allclose(ch.gain @ common, err, rtol=0, atol=1e-9)
+        assert ch.fix.all() and not ch.reflected.any() and ch.velocity_gain is None
+        np.testing.assert_allclose(ch.gain.sum(axis=2), 0.0, atol=1e-9)
+    params = dict(**SAT, nlos="reflect", velocity="doppler")
+    on = SatelliteErrorProcess(GnssErrorParams(**params, oracle_channel=True), 9, 0.75, _canyon())
+    off = SatelliteErrorProcess(GnssErrorParams(**params), 9, 0.75, _canyon())
+    seen = {"eps": None}
+    inner = on.pseudorange_errors
+
+    def spy(*a, **kw):
+        out = inner(*a, **kw)
+        seen["eps"] = out[0]
+        return out
+
+    on.pseudorange_errors = spy
+    xy = np.c_[np.linspace(-250, 100, 40), rng.uniform(-3, 3, 40)]
+    excluded = reflected = 0
+    for k in range(30):
+        pos = xy + [k * 0.5, 0]
+        e_on = on.step(k * 0.75, _ids(40), np.full(40, k == 0), None, None, None, pos)
+        e_off = off.step(k * 0.75, _ids(40), np.full(40, k == 0), None, None, None, pos)
+        assert e_on.tobytes() == e_off.tobytes() and off.oracle_frame() is None
+        v = np.tile([0.4, 0.3], (40, 1))
+        ve_on, vc_on, ok_on = on.velocity_error(v)
+        ve_off, _, _ = off.velocity_error(v)
+        assert ve_on.tobytes() == ve_off.tobytes()
+        ch = on.oracle_frame()
+        np.testing.assert_allclose(np.einsum("nis,ns->ni", ch.gain, seen["eps"])[ch.fix], e_on[ch.fix], rtol=0,
+                                   atol=1e-9)
+        assert ch.velocity_solved.tolist() == ok_on.tolist() and (ch.velocity_used <= ch.used).all()
+        excluded += int(on.last["excluded"].sum())
+        reflected += int(ch.reflected.sum())
+        assert (ch.used.sum(axis=1) == on.last["used"]).all()
+    assert excluded > 0 and reflected > 0

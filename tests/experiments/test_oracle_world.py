@@ -94,15 +94,24 @@ def test_field_coefficient_states_reproduce_the_worlds_field():
                            atol=1e-3)
 
 
-def test_satellite_world_is_refused_in_one_line():
-    """The presets' satellite receiver has no oracle yet (its structure is per satellite, not per vehicle): a
-    run that asks for joint_oracle there gets the file and field, not a wrong reference."""
-    import pytest
+def test_satellite_world_tells_the_receivers_structure_and_turns_the_channel_on():
+    """The presets' satellite receiver: the oracle is told the constellation's size, the satellites' common
+    errors and the receiver's own (the [gnss_error] values), and only a run with the oracle gets the channel."""
+    from couplers.sensing.gnss_sky import Sky
+    from experiments.oracle_world import NLOS_D_MEAN_M, oracle_sensors
 
-    from couplers.errors import InputError
-
+    plain = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml")
+    assert oracle_world(plain) is None and oracle_sensors(plain) is plain.sensors
+    assert not plain.sensors.gnss_error.oracle_channel
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", overrides={"run.methods": ["joint_oracle"]})
-    assert cfg.gnss_error.model == "satellites"
-    with pytest.raises(InputError) as err:
-        oracle_world(cfg)
-    assert "gnss_error.model" in str(err.value) and "satellites" in str(err.value)
+    ge = cfg.gnss_error
+    assert ge.model == "satellites" and ge.nlos == "reflect"
+    w = oracle_world(cfg)
+    assert (w.gnss, w.sv_count, w.satellite_dim) == ("satellites", Sky.build().size, 2 * Sky.build().size + 1)
+    assert (w.sv_tau_s, w.sv_clock_orbit_m, w.iono_vertical_m, w.tropo_zenith_m) == (
+        ge.sv_tau_s, ge.sv_clock_orbit_m, ge.iono_vertical_m, ge.tropo_zenith_m)
+    assert (w.code_noise_a_m, w.multipath_m, w.multipath_corr_length_m) == (ge.code_noise_a_m, ge.multipath_m,
+                                                                            ge.multipath_corr_length_m)
+    assert w.nlos_d_mean_m == NLOS_D_MEAN_M > 0 and not w.nlos  # no gate: the reflected signals are told
+    assert w.tail_dim == w.satellite_dim and w.common_dim == w.field_dim == 0
+    assert oracle_sensors(cfg).gnss_error.oracle_channel and not cfg.sensors.gnss_error.oracle_channel
