@@ -199,7 +199,8 @@ class GnssModelParams:
                              f"got {self.common_sigma_m!r}")
         if not (isinstance(self.velocity_gate, (int, float)) and not isinstance(self.velocity_gate, bool)
                 and 0.0 <= self.velocity_gate < 1.0):
-            raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity gate), got {self.velocity_gate!r}")
+            raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity test), "
+                             f"got {self.velocity_gate!r}")
         for name in ("common_share", "local_share"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v < 1.0):

@@ -39,10 +39,10 @@ Model (s_c = ``common_share``, s_l = ``local_share``, R_pos,k the position block
 
 A fresh vehicle: the kinematic part from its prior, both biases at 0 with their stationary covariances;
 the entry protocol (prior = this step's fix) gives the one-fix posterior: p = z with the reported covariance
-(plus sigma_c^2 I), Cov(p, c) = -(s_c R + sigma_c^2 I), Cov(p, l) = -s_l R, c and l uncorrelated. Fault exclusion, ``max_exclusions`` and
-``bias_follows_report`` (both biases mapped) as in the 6-state model. With ``local_share = 0`` it is the
-6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s`` when ``common_update = "augmented"``
-(tests: to 1e-12).
+(plus sigma_c^2 I), Cov(p, c) = -(s_c R + sigma_c^2 I), Cov(p, l) = -s_l R, c and l uncorrelated. Fault
+exclusion, ``max_exclusions`` and ``bias_follows_report`` (both biases mapped) as in the 6-state model. With
+``local_share = 0`` it is the 6-state model with ``bias_share = common_share``, ``bias_tau_s = common_tau_s``
+when ``common_update = "augmented"`` (tests: to 1e-12).
 """
 
 from __future__ import annotations
