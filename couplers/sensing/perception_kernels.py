@@ -321,6 +321,25 @@ def line_segments(line, pair, sensor, pair_owner, origins, target, observer_occl
 
 
 @njit(cache=True)
+def clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners):
+    """(clear (L,), count): the sight lines ``seg`` no vehicle footprint hides (the observer's ``skip_a`` and the
+    target's ``skip_b`` footprints excepted; -1: none), all clear without ``use_vehicles`` or footprints."""
+    m = seg.shape[0]
+    clear = np.ones(m, dtype=np.bool_)
+    if use_vehicles and m > 0 and corners.shape[0] > 0:
+        order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
+        hidden = _occluded_by_quads_bucketed(seg, skip_a, skip_b, corners, order, start, x0_b, width, xmin, xmax,
+                                             ymin, ymax, max_wx, _rectangles(corners))
+        for r in range(m):
+            clear[r] = not hidden[r]
+    n_clear = 0
+    for r in range(m):
+        if clear[r]:
+            n_clear += 1
+    return clear, n_clear
+
+
+@njit(cache=True)
 def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target, observer_occluder, use_vehicles,
                      corners, use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin):
     """The distinct sight lines (:func:`_distinct_lines`, :func:`_sight_lines`), cleared of those a vehicle
@@ -330,18 +349,8 @@ def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target,
     line, line_of = _distinct_lines(pair, sensor, groups, n_pairs)
     m = line.size
     seg, skip_a = line_segments(line, pair, sensor, pair_owner, origins, target, observer_occluder)
-    clear = np.ones(m, dtype=np.bool_)
-    if use_vehicles and m > 0 and corners.shape[0] > 0:
-        order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
-        no_target = np.full(m, -1, dtype=np.int64)  # the targets are features, not footprints
-        hidden = _occluded_by_quads_bucketed(seg, skip_a, no_target, corners, order, start, x0_b, width, xmin, xmax,
-                                             ymin, ymax, max_wx, _rectangles(corners))
-        for r in range(m):
-            clear[r] = not hidden[r]
-    n_clear = 0
-    for r in range(m):
-        if clear[r]:
-            n_clear += 1
+    no_target = np.full(m, -1, dtype=np.int64)  # the targets are features, not footprints
+    clear, n_clear = clear_of_vehicles(seg, skip_a, no_target, use_vehicles, corners)
     if not use_buildings or n_clear == 0:
         return line_of, clear, seg, np.empty(0, dtype=np.int64)
     rows = np.empty(n_clear, dtype=np.int64)

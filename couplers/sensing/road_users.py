@@ -42,13 +42,13 @@ import numpy as np
 from numba import njit
 
 from couplers.sensing import streams
-from couplers.sensing.occlusion import (OCCLUDER_BUCKET_M, OccluderIndex, _building_hits, _occluded_by_quads_bucketed,
-                                        _occluder_buckets, _rectangles, _segments_occluded_by_buildings,
+from couplers.sensing.occlusion import (OccluderIndex, _building_hits, _segments_occluded_by_buildings,
                                         _segments_occluded_by_buildings_shapely, _segments_occluded_by_vehicles,
                                         building_edges)
 from couplers.sensing.perception import _NO_BUILDINGS, _NO_CORNERS, _fov_params, effect_rng, sensor_boresights
 from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _fov_stage,
-                                                _range_fraction_and_sigma, _sharper, _sight_lines, line_segments)
+                                                _range_fraction_and_sigma, _sharper, _sight_lines, clear_of_vehicles,
+                                                line_segments)
 from couplers.sensing.rows import shuffle_within_owner
 from couplers.sensing.streams import StreamHandles, stream
 
@@ -212,17 +212,7 @@ def _targets_stage(h_detect, h_noise, xy, direction, mount_x, boresight, along, 
     skip_b = np.empty(m, dtype=np.int64)  # a target's own footprint does not hide it either
     for r in range(m):
         skip_b[r] = target_occluder[pair_target[pair[line[r]]]]
-    clear = np.ones(m, dtype=np.bool_)
-    if use_vehicles and m > 0 and corners.shape[0] > 0:
-        order, start, x0_b, width, xmin, xmax, ymin, ymax, max_wx = _occluder_buckets(corners, OCCLUDER_BUCKET_M)
-        hidden = _occluded_by_quads_bucketed(seg, skip_a, skip_b, corners, order, start, x0_b, width, xmin, xmax,
-                                             ymin, ymax, max_wx, _rectangles(corners))
-        for r in range(m):
-            clear[r] = not hidden[r]
-    n_clear = 0
-    for r in range(m):
-        if clear[r]:
-            n_clear += 1
+    clear, n_clear = clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners)
     if not use_buildings or n_clear == 0:
         return pair, dist, sensor, u, w, line_of, clear, seg, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int8)
     rows = np.empty(n_clear, dtype=np.int64)
