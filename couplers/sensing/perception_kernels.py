@@ -322,8 +322,9 @@ def line_segments(line, pair, sensor, pair_owner, origins, target, observer_occl
 
 @njit(cache=True)
 def clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners):
-    """(clear (L,), count): the sight lines ``seg`` no vehicle footprint hides (the observer's ``skip_a`` and the
-    target's ``skip_b`` footprints excepted; -1: none), all clear without ``use_vehicles`` or footprints."""
+    """(clear (L,), the indices of the clear lines): the sight lines ``seg`` no vehicle footprint hides (the
+    observer's ``skip_a`` and the target's ``skip_b`` footprints excepted; -1: none), all clear without
+    ``use_vehicles`` or footprints."""
     m = seg.shape[0]
     clear = np.ones(m, dtype=np.bool_)
     if use_vehicles and m > 0 and corners.shape[0] > 0:
@@ -336,7 +337,13 @@ def clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners):
     for r in range(m):
         if clear[r]:
             n_clear += 1
-    return clear, n_clear
+    rows = np.empty(n_clear, dtype=np.int64)
+    q = 0
+    for r in range(m):
+        if clear[r]:
+            rows[q] = r
+            q += 1
+    return clear, rows
 
 
 @njit(cache=True)
@@ -350,15 +357,9 @@ def _occlusion_stage(pair, sensor, groups, n_pairs, origins, pair_owner, target,
     m = line.size
     seg, skip_a = line_segments(line, pair, sensor, pair_owner, origins, target, observer_occluder)
     no_target = np.full(m, -1, dtype=np.int64)  # the targets are features, not footprints
-    clear, n_clear = clear_of_vehicles(seg, skip_a, no_target, use_vehicles, corners)
-    if not use_buildings or n_clear == 0:
+    clear, rows = clear_of_vehicles(seg, skip_a, no_target, use_vehicles, corners)
+    if not use_buildings or rows.size == 0:
         return line_of, clear, seg, np.empty(0, dtype=np.int64)
-    rows = np.empty(n_clear, dtype=np.int64)
-    q = 0
-    for r in range(m):
-        if clear[r]:
-            rows[q] = r
-            q += 1
     needs = _needs_building_test(seg[rows], x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin)
     return line_of, clear, seg, rows[needs]
 

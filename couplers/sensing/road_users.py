@@ -212,15 +212,9 @@ def _targets_stage(h_detect, h_noise, xy, direction, mount_x, boresight, along, 
     skip_b = np.empty(m, dtype=np.int64)  # a target's own footprint does not hide it either
     for r in range(m):
         skip_b[r] = target_occluder[pair_target[pair[line[r]]]]
-    clear, n_clear = clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners)
-    if not use_buildings or n_clear == 0:
+    clear, rows = clear_of_vehicles(seg, skip_a, skip_b, use_vehicles, corners)
+    if not use_buildings or rows.size == 0:
         return pair, dist, sensor, u, w, line_of, clear, seg, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int8)
-    rows = np.empty(n_clear, dtype=np.int64)
-    q = 0
-    for r in range(m):
-        if clear[r]:
-            rows[q] = r
-            q += 1
     hits = _building_hits(seg[rows], x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin, edge_start, edges)
     for q in range(rows.size):
         if hits[q] == 1:

@@ -58,14 +58,20 @@ def _frame(t, n, rng, entered, sig, zg, vel_sig, owner, rows_z, rows_r, prior_z=
     )
 
 
-def _scenario(rng, n=3, k=3, steps=6):
-    """Random measurements (any values do for the equality test): a list of (frame, association)."""
-    frames = []
+def random_priors(rng, n):
+    """(prior_z (n, 4), prior_R (n, 4, 4)): random entry priors, SPD covariances."""
     prior_z = rng.normal(0, 5, (n, 4))
     prior_r = np.zeros((n, 4, 4))
     for i in range(n):
         a = rng.normal(size=(4, 4))
         prior_r[i] = a @ a.T + np.diag([4.0, 4.0, 0.5, 0.5])
+    return prior_z, prior_r
+
+
+def _scenario(rng, n=3, k=3, steps=6):
+    """Random measurements (any values do for the equality test): a list of (frame, association)."""
+    frames = []
+    prior_z, prior_r = random_priors(rng, n)
     for step in range(steps):
         sig = rng.uniform(2.0, 9.0, n)  # zone changes: the reported sigma moves
         zg = rng.normal(0, 5, (n, 4))

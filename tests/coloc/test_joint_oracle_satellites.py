@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from coloc.core.frame import Frame, OracleGnss
 from coloc.core.models import driving_noise_cov, input_matrix, transition_matrix
 from coloc.methods.joint_oracle import JointOracle, OracleWorld
-from test_joint_oracle import DT, PARAMS, _factor
+from test_joint_oracle import DT, PARAMS, _factor, random_priors
 
 S = 5
 WORLD = OracleWorld(gnss="satellites", sv_count=S, sv_tau_s=40.0, multipath_corr_length_m=math.inf,
@@ -22,11 +22,7 @@ WORLD = OracleWorld(gnss="satellites", sv_count=S, sv_tau_s=40.0, multipath_corr
 
 def _scene(rng, n=2, steps=4):
     frames = []
-    prior_z = rng.normal(0, 5, (n, 4))
-    prior_r = np.zeros((n, 4, 4))
-    for i in range(n):
-        a = rng.normal(size=(4, 4))
-        prior_r[i] = a @ a.T + np.diag([4.0, 4.0, 0.5, 0.5])
+    prior_z, prior_r = random_priors(rng, n)
     for step in range(steps):
         used = rng.random((n, S)) < 0.9
         gain = rng.normal(0, 0.6, (n, 2, S)) * used[:, None, :]
