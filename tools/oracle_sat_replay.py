@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from couplers.net.folder import load_net_folder  # noqa: E402
 from couplers.sensing import gnss_satellites as gs  # noqa: E402
+from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA, JOINT_ORACLE  # noqa: E402
 from experiments.config import load_config  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
 from tools.frame_recording import read_frames  # noqa: E402
@@ -111,7 +112,7 @@ def main() -> None:
     ap.add_argument("frames", type=Path)
     ap.add_argument("--from", dest="t_from", type=float, default=600.0)
     ap.add_argument("--to", type=float, default=660.0)
-    ap.add_argument("--methods", default="gnss,icp_known_da,icp_da_lc,joint_oracle")
+    ap.add_argument("--methods", default=",".join(m.name for m in (GNSS, ICP_KNOWN_DA, ICP_DA_LC, JOINT_ORACLE)))
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--nlos-stats", action="store_true")
     ap.add_argument("--nlos-known", action="store_true",
@@ -126,12 +127,12 @@ def main() -> None:
     for kv in args.set:
         k, v = kv.split("=", 1)
         for m, e in zip(names, ests):
-            if m == "joint_oracle":
+            if m == JOINT_ORACLE.name:
                 e.world = replace(e.world, **{k: parse_value(v)})
     if args.nlos_known:
         args.nlos_stats = True
         for m, e in zip(names, ests):
-            if m == "joint_oracle":
+            if m == JOINT_ORACLE.name:
                 e.world = replace(e.world, nlos_d_mean_m=0.0, nlos_d_std_m=0.0)
     stats = {} if args.nlos_stats else None
     out = {m: {"err": [], "nees": [], "zone": []} for m in names}
@@ -146,7 +147,7 @@ def main() -> None:
         for m, est in zip(names, ests):
             c = time.process_time()
             seen = blind
-            if args.nlos_known and m == "joint_oracle":  # diagnostic: the extra paths' realisation taken out
+            if args.nlos_known and m == JOINT_ORACLE.name:  # diagnostic: the extra paths' realisation taken out
                 gz = blind.gnss_z.copy()
                 gz[:, :2] -= nlos_part
                 seen = replace(blind, gnss_z=gz)
