@@ -325,6 +325,17 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                 "the tuning seeds 101-103)."),
         "local_tau_s": ("s", "Two-state model: correlation time of the local bias at rest. Default 120 s "
                              "(static multipath changes with the satellites' motion over minutes: ibid.)."),
+        "degraded_above_m": ("m", "The receiver's report calibrated against a reference trajectory "
+                                  "(`coloc/methods/report_calibration.py`): above this reported per-axis position "
+                                  "std the fix's position and velocity covariances are scaled by the two factors "
+                                  "below, for every method that takes `[gnss_model]` (not `joint_oracle`). A "
+                                  "residual-scaled report under-states reflected signals' errors where few signals "
+                                  "remain. Default 0 (the report as it is)."),
+        "degraded_position_scale": (NO_UNIT, "Factor on the reported position std above `degraded_above_m`. "
+                                             "Default 1."),
+        "degraded_velocity_scale": (NO_UNIT, "Factor on the reported velocity std above `degraded_above_m` "
+                                             "(it also stands for the time correlation of a reflected signal's "
+                                             "path-rate error). Default 1."),
         "common_update": ("", "Two-state model: the common-mode bias as a state of the filter (`augmented`) or "
                               "a Schmidt consider state (`consider`: its correlations carried, its estimate never "
                               "updated; Simon 2006, Sec. 7.5). Default `consider` (the more consistent on the "

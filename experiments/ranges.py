@@ -284,6 +284,12 @@ RANGES: dict[str, Range] = {
     "gnss_model.local_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance", high_open=True),
     "gnss_model.local_length_m": Range(0.0, 1e5, "m", "a correlation length of at most 100 km", low_open=True),
     "gnss_model.local_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
+    "gnss_model.degraded_above_m": Range(0.0, 100.0, "m", "a reported per-axis std; 100 m is a receiver without "
+                                         "a fix (0: off)"),
+    "gnss_model.degraded_position_scale": Range(0.0, 100.0, NO_UNIT, "a factor on the reported std",
+                                                low_open=True),
+    "gnss_model.degraded_velocity_scale": Range(0.0, 100.0, NO_UNIT, "a factor on the reported std",
+                                                low_open=True),
 }
 # [estimator_sensors]: the estimators' own datasheet table has the keys (and so the ranges) of the world's sensors.
 RANGES.update({"estimator_sensors.sensors." + k[len("perception.sensors."):]: r for k, r in list(RANGES.items())

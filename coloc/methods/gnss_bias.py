@@ -168,6 +168,19 @@ class GnssModelParams:
     # in every candidate on the tuning seeds (a single receiver cannot tell its common-mode error from its
     # position).
     common_update: str = "consider"
+    # The receiver's report calibrated against a reference trajectory (coloc.methods.report_calibration):
+    # above a reported per-axis position std of degraded_above_m (m; 0: the report as it is) the position
+    # covariance is taken degraded_position_scale^2 and the velocity covariance degraded_velocity_scale^2
+    # times larger. Applies to every method that takes [gnss_model], through coloc.methods.registry.
+    degraded_above_m: float = 0.0
+    degraded_position_scale: float = 1.0
+    degraded_velocity_scale: float = 1.0
+
+    @property
+    def calibrates_report(self) -> bool:
+        """The estimators get the calibrated report (coloc.methods.report_calibration)."""
+        return self.degraded_above_m > 0 and (self.degraded_position_scale != 1.0
+                                              or self.degraded_velocity_scale != 1.0)
 
     @property
     def two_state(self) -> bool:
@@ -197,6 +210,14 @@ class GnssModelParams:
                 and math.isfinite(self.common_sigma_m) and self.common_sigma_m >= 0):
             raise ValueError(f"must be >= 0 and finite (the common-mode bias's own std per axis, m), "
                              f"got {self.common_sigma_m!r}")
+        if not (isinstance(self.degraded_above_m, (int, float)) and not isinstance(self.degraded_above_m, bool)
+                and math.isfinite(self.degraded_above_m) and self.degraded_above_m >= 0):
+            raise ValueError(f"must be >= 0 and finite (a reported per-axis position std, m; 0: off), "
+                             f"got {self.degraded_above_m!r}")
+        for name in ("degraded_position_scale", "degraded_velocity_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                raise ValueError(f"must be positive and finite (a factor on the reported std), got {v!r}")
         if not (isinstance(self.velocity_gate, (int, float)) and not isinstance(self.velocity_gate, bool)
                 and 0.0 <= self.velocity_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity test), "

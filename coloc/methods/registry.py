@@ -194,4 +194,10 @@ def build_method(name: str, params: MethodParams):
     method = METHODS.get(name)
     if method is None or not method.runnable:
         raise ValueError(f"no estimator for method {name!r} (available: {', '.join(runnable_methods())})")
-    return method.build(params)
+    est = method.build(params)
+    model = params.gnss_model
+    if model is not None and model.calibrates_report and name != JOINT_ORACLE.name:
+        from coloc.methods.report_calibration import ReportCalibrated
+
+        return ReportCalibrated(est, model)
+    return est

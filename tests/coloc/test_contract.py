@@ -34,7 +34,8 @@ from scenes import infra_frames, road_frames, scrambled, select_vehicles
 # ``gnss+gnss_model``: ``gnss`` built with a [gnss_model] (coloc.methods.gnss_bias); ``joint_oracle+world``: the
 # oracle told a correlated GNSS world, first fixes and an IMU (coloc.methods.joint_oracle.OracleWorld);
 # ``X+fusion``: X with [fusion] (coloc.methods.coop_fusion, white receiver); ``X+fusion+gnss_model``: with both tables;
-# ``+two_state``: [gnss_model] with bias_model = "two_state" (coloc.methods.gnss_bias2).
+# ``+two_state``: [gnss_model] with bias_model = "two_state" (coloc.methods.gnss_bias2); ``+calibrated``: that model
+# with the receiver's report calibrated (coloc.methods.report_calibration).
 FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf", "icp_known_da_pf")
          for tail in ("", "+gnss_model", "+two_state")]
 # Infrastructure methods with the receiver model (fg_topology_new, sme), sme with [fusion] (re-entry CI) and
@@ -42,6 +43,8 @@ FUSED = [f"{m}+fusion{tail}" for m in ("icp_known_da", "icp_da_lc", "icp_da_pf",
 INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", "sme+fusion+gnss_model",
                   "rsu_bp+fusion", "rsu_bp+fusion+gnss_model"]
 RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "gnss+two_state",
+                                                                   "gnss+two_state+calibrated",
+                                                                   "icp_da_lc+fusion+two_state+calibrated",
                                                                    "joint_oracle+world", "joint_oracle+heading",
                                                                    "joint_oracle+heading+gate"] + FUSED
             + INFRA_VARIANTS)
@@ -66,6 +69,9 @@ def _receiver(name: str):
     """[gnss_model] of a parametrization name: the single model, the two-state one, or None."""
     if name.endswith("+gnss_model"):
         return GnssModelParams()
+    if name.endswith("+calibrated"):  # the calibrated report (coloc.methods.report_calibration)
+        return GnssModelParams(bias_model="two_state", degraded_above_m=0.5, degraded_position_scale=2.0,
+                               degraded_velocity_scale=3.0)
     return GnssModelParams(bias_model="two_state") if name.endswith("+two_state") else None
 
 
