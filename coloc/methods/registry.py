@@ -197,7 +197,7 @@ def build_method(name: str, params: MethodParams):
     est = method.build(params)
     model = params.gnss_model
     if model is not None and model.calibrates_report and name != JOINT_ORACLE.name:
-        from coloc.methods.report_calibration import ReportCalibrated
+        from coloc.methods.report_calibration import report_calibrated
 
-        return ReportCalibrated(est, model)
+        return report_calibrated(est, model)
     return est

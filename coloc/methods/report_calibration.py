@@ -15,7 +15,7 @@ the path-rate error, which a white measurement cannot carry: the white-equivalen
 error, as the GNSS benchmark's bias state does for the position). Below the threshold the report is taken as it
 is. The estimator reads only the report (``frame.gnss_R``), never the truth or the world's parameters.
 
-:func:`calibrated_report` is the math; :class:`ReportCalibrated` gives a method's estimator the calibrated
+:func:`calibrated_report` is the math; :func:`report_calibrated` gives a method's estimator the calibrated
 frames (``coloc.methods.registry.build_method`` wraps every method that takes ``[gnss_model]``; the joint oracle,
 told the world's error structure, is not wrapped).
 """
@@ -60,11 +60,22 @@ class ReportCalibrated:
     def step(self, frame):
         return self.inner.step(self._frame(frame))
 
-    def step_with_association(self, frame, v2f_feature):
-        return self.inner.step_with_association(self._frame(frame), v2f_feature)
-
     def __getattr__(self, name):
         inner = self.__dict__.get("inner")
         if inner is None or name.startswith("__"):
             raise AttributeError(name)
         return getattr(inner, name)
+
+
+class ReportCalibratedKnown(ReportCalibrated):
+    """:class:`ReportCalibrated` for an estimator told the association (it has ``step_with_association``)."""
+
+    def step_with_association(self, frame, v2f_feature):
+        return self.inner.step_with_association(self._frame(frame), v2f_feature)
+
+
+def report_calibrated(inner, model) -> ReportCalibrated:
+    """``inner`` given the calibrated report, with the same steps as ``inner`` (``step_with_association`` only
+    where it has one, so that callers that test for it still tell the two kinds apart)."""
+    known = callable(getattr(inner, "step_with_association", None))
+    return (ReportCalibratedKnown if known else ReportCalibrated)(inner, model)

@@ -45,6 +45,7 @@ INFRA_VARIANTS = ["fg_topology_new+gnss_model", "sme+gnss_model", "sme+fusion", 
 RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model", "gnss+two_state",
                                                                    "gnss+two_state+calibrated",
                                                                    "icp_da_lc+fusion+two_state+calibrated",
+                                                                   "icp_known_da+fusion+two_state+calibrated",
                                                                    "joint_oracle+world", "joint_oracle+heading",
                                                                    "joint_oracle+heading+gate"] + FUSED
             + INFRA_VARIANTS)

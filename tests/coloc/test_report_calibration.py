@@ -13,7 +13,7 @@ from coloc.inference.params import IcpParams
 from coloc.methods.gnss_bias import GnssModelParams
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.icp_da_pf import PfParams
-from coloc.methods.registry import GNSS, MethodParams, build_method
+from coloc.methods.registry import GNSS, ICP_KNOWN_DA, MethodParams, build_method
 from coloc.methods.report_calibration import ReportCalibrated, calibrated_report
 from tests.coloc.test_gnss_bias import scripted_run
 
@@ -55,7 +55,10 @@ def test_off_by_default_and_on_only_with_a_threshold_and_a_factor():
     assert not replace(CAL, degraded_above_m=0.0).calibrates_report
     assert not replace(CAL, degraded_position_scale=1.0, degraded_velocity_scale=1.0).calibrates_report
     assert not isinstance(build_method(GNSS.name, _params(replace(CAL, degraded_above_m=0.0))), ReportCalibrated)
-    assert isinstance(build_method(GNSS.name, _params(CAL)), ReportCalibrated)
+    wrapped = build_method(GNSS.name, _params(CAL))
+    assert isinstance(wrapped, ReportCalibrated) and not hasattr(wrapped, "step_with_association")
+    known = build_method(ICP_KNOWN_DA.name, _params(CAL))
+    assert isinstance(known, ReportCalibrated) and callable(known.step_with_association)
 
 
 def test_the_wrapped_method_equals_its_estimator_on_calibrated_frames():
