@@ -17,10 +17,18 @@ between two SUMO steps, the variants alternated round by round in one process:
 - ``sleep:T``: the idealised frames, then T ms asleep (the core left to other processes).
 
     python bench/sumo_step_interference.py [--duration 300] [--rounds 3] [--variants idealised,realistic,...]
+    python bench/sumo_step_interference.py --paired --variants none,realistic,compute:1,touch:16,sleep:4
     python bench/sumo_step_interference.py --measure   # the realistic synthesis' CPU and transient bytes a step
 
-Prints per variant the median over rounds of each run's per-step median and mean (steps after the first 60 s),
-in microseconds, and every round's value. Not a test: it asserts nothing.
+Without --paired: one run per variant and round; prints per variant the median over rounds of each run's
+per-step median and mean (steps after the first 60 s), in microseconds, and every round's value. Between separate
+runs the machine's state moves SUMO's step by up to 2x on a shared machine, so these cannot resolve a 10 % effect.
+With --paired (the decisive form): one idealised run per variant and round, the work done before a seeded random
+half of its steps only (``realistic``: the realistic preset's synthesis on that run's latest states, by a second
+coupler fed them), and SUMO's step after the work against without it, in the same run. Measured 2026-11-28 at
+load 7-8 (docs/performance.md, "SUMO's step beside the realistic sensing"): the realistic synthesis +0.2 ms
+(+10 %), a register-only loop of 1 ms +0.16 ms, 16 MiB streamed +0.25 ms, nothing +0.02 ms.
+Not a test: it asserts nothing.
 """
 
 from __future__ import annotations
@@ -241,7 +249,7 @@ def main() -> None:
     over = {"run.duration_s": args.duration, "run.seed": 1}
     ideal = load_config(ROOT / "experiments" / "arterial_tlr.toml", over)
     real = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", over)
-    skip = int(WARM_S / ideal.sumo.step_length) if hasattr(ideal, "sumo") else 80
+    skip = int(round(WARM_S / ideal.scenario.step_s))  # steps of the warm-up, left out
     if args.measure:
         measure(real, skip)
         return
@@ -253,10 +261,10 @@ def main() -> None:
         for r in range(args.rounds):
             for v in variants:
                 res[v].append(paired(v, ideal, real, skip, 100 + r))
-                print(f"round {r} {v:<12} SUMO step after it: median {res[v][-1][0]:7.1f} us (mean {res[v][-1][2]:7.1f}), "
-                      f"without: {res[v][-1][1]:7.1f} (mean {res[v][-1][3]:7.1f}) | getters {res[v][-1][4]:6.1f} / "
-                      f"{res[v][-1][5]:6.1f} | load {os.getloadavg()[0]:.1f}",
-                      flush=True)
+                x = res[v][-1]
+                print(f"round {r} {v:<12} SUMO step after it: median {x[0]:7.1f} us (mean {x[2]:7.1f}), without: "
+                      f"{x[1]:7.1f} (mean {x[3]:7.1f}) | getters {x[4]:6.1f} / {x[5]:6.1f} | load "
+                      f"{os.getloadavg()[0]:.1f}", flush=True)
         print("variant      SUMO step after it - without (us), median over rounds of the runs' median differences "
               "[rounds]; ratio after / without; the getters' difference")
         for v, rows in res.items():
