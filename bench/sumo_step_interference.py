@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import os
 import sys
 import time
@@ -242,6 +243,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--variants", default="idealised,realistic,touch:4,alloc:4,spin:4,sleep:4")
     ap.add_argument("--measure", action="store_true")
+    ap.add_argument("--no-gc", action="store_true", help="Python's cyclic garbage collector off for the timed runs")
     ap.add_argument("--paired", action="store_true",
                     help="each interference before a seeded random half of one idealised run's steps: SUMO's step "
                          "after it against without it, in the same run")
@@ -254,6 +256,8 @@ def main() -> None:
         measure(real, skip)
         return
     variants = args.variants.split(",")
+    if args.no_gc:
+        gc.disable()
     warm = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml", {**over, "run.duration_s": 60.0})
     run("realistic", ideal, warm, 0)  # numba caches loaded, not timed
     if args.paired:
