@@ -26,8 +26,9 @@ runs the machine's state moves SUMO's step by up to 2x on a shared machine, so t
 With --paired (the decisive form): one idealised run per variant and round, the work done before a seeded random
 half of its steps only (``realistic``: the realistic preset's synthesis on that run's latest states, by a second
 coupler fed them), and SUMO's step after the work against without it, in the same run. Measured 2026-11-28 at
-load 7-8 (docs/performance.md, "SUMO's step beside the realistic sensing"): the realistic synthesis +0.2 ms
-(+10 %), a register-only loop of 1 ms +0.16 ms, 16 MiB streamed +0.25 ms, nothing +0.02 ms.
+load 7-15 (docs/performance.md, "SUMO's step beside the realistic sensing"): the realistic synthesis +0.13 to
++0.23 ms (+7 to +10 %, five batches; the same with --no-gc), a register-only loop of 1 ms +0.03 to +0.18 ms,
+16 MiB streamed +0.25 ms, nothing -0.04 to +0.02 ms.
 Not a test: it asserts nothing.
 """
 
