@@ -38,8 +38,10 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      presets' frames against the idealised ones", 2026-11-28): realistic preset 2.57-2.71x (four runs of three
      pairs, load 7-12; 267ce41 2.33-3.00 in the same sitting, 3.19 at load 0.2-3), the pairs spreading 1.9-3.9
      for either: the realistic frames' own CPU -18 % timed one process at a time, the 2x not met. The
-     idealised frames are ~70 % SUMO (libsumo step and getters), and SUMO's own step takes 1.4-2.3x longer
-     inside the realistic run than inside the idealised one, so the ratio mostly follows SUMO's speed;
+     idealised frames are ~70 % SUMO (libsumo step and getters), so the ratio mostly follows SUMO's speed;
+     within one run SUMO's step is about 0.2 ms (+10 %) slower after the realistic synthesis than without it
+     at load 7-8 (bench/sumo_step_interference.py; docs/performance.md, "SUMO's step beside the realistic
+     sensing"), the larger figures came from comparing separate runs;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)

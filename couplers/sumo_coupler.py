@@ -190,12 +190,17 @@ class SumoCoupler:
                 imu=imu,
                 start=self.scenario.start,
             )
-            if self.sensor_frame is not None:
-                frame = self.sensor_frame.apply(frame, detections, x_true, states.heading, feats_true)
+            # The fields the sensing sets after the frame, in one replace where nothing in between reads them.
+            upd = ({} if self.sensor_frame is None
+                   else self.sensor_frame.fields(frame, detections, x_true, states.heading, feats_true))
             if self.pedestrians:
+                if upd:
+                    frame, upd = replace(frame, **upd), {}
                 frame = self._with_registry_rows(frame, present, klass)
             if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
-                frame = replace(frame, v2f_class=detections.klass, truth=replace(frame.truth, v2f_kind=detections.kind))
+                upd.update(v2f_class=detections.klass, truth=replace(frame.truth, v2f_kind=detections.kind))
+            if upd:
+                frame = replace(frame, **upd)
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.infra is not None:
@@ -275,7 +280,7 @@ class SumoCoupler:
                          corners, dims, feature_class) -> Detections:
         """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users)."""
         p = self.perception
-        det = replace(det, kind=ru.row_kinds(det.feature, feature_class))
+        kinds = ru.row_kinds(det.feature, feature_class)  # the perception's rows' kinds (merged_rows sets them)
         parts = []  # (targets (M, 4), what they are: "vehicle" | "person" | "persistent")
         if p.road_users:
             direction = road.direction if road.direction is not None else ru_unit(road.heading)
@@ -313,7 +318,7 @@ class SumoCoupler:
                 noise=self.road_noise, occluder_corners=corners, observer_occluder=observer,
                 buildings=self.scenario.net.buildings)
             extra.append((r_owner, z, sp, sv, r_sensor, klass[r_tgt], kind[r_tgt]))
-        return ru.merged_rows(det, extra, self.road_noise, p.class_error)
+        return ru.merged_rows(det, extra, self.road_noise, p.class_error, kind=kinds)
 
     def _target_columns(self, key: tuple) -> tuple:
         """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,

@@ -325,21 +325,26 @@ def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarr
     return kind
 
 
-def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float):
+def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float, kind: np.ndarray | None = None):
     """The perception's rows ``det`` (:class:`couplers.sensing.perception.Detections`) and the ``extra`` rows
     ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each
-    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set. The
+    vehicle, classes as the classifier reports them; returns a Detections with ``kind`` (truth) set. ``kind``:
+    the kinds of ``det``'s rows when ``det`` does not carry them (None: ``det.kind``). The
     gathers and the extra rows' covariances run in one numba pass (:func:`_merge_gather`);
     :func:`merged_rows_reference` is the numpy reference."""
-    owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64)
+    owner = np.concatenate([det.owner] + [e[0] for e in extra]).astype(np.int64, copy=False)
     perm = shuffle_within_owner(owner, noise.shuffle)
-    ex = [np.concatenate(c) for c in zip(*extra)] if extra else [np.empty(0)] * 7
+    if len(extra) == 1:  # one part: its columns as they are (a concatenation would copy them)
+        ex = list(extra[0])
+    else:
+        ex = [np.concatenate(c) for c in zip(*extra)] if extra else [np.empty(0)] * 7
     m = ex[0].size
     z, R, feature, sensor, klass, kind = _merge_gather(
         perm, np.ascontiguousarray(det.z, dtype=np.float64).reshape(-1, 4),
         np.ascontiguousarray(det.R, dtype=np.float64).reshape(-1, 4, 4),
         np.ascontiguousarray(det.feature, dtype=np.int64), np.ascontiguousarray(det.sensor, dtype=np.int64),
-        np.ascontiguousarray(det.klass, dtype=np.int8), np.ascontiguousarray(det.kind, dtype=np.int8),
+        np.ascontiguousarray(det.klass, dtype=np.int8),
+        np.ascontiguousarray(det.kind if kind is None else kind, dtype=np.int8),
         np.ascontiguousarray(ex[1], dtype=np.float64).reshape(m, 4), np.ascontiguousarray(ex[2], dtype=np.float64),
         np.ascontiguousarray(ex[3], dtype=np.float64), np.ascontiguousarray(ex[4], dtype=np.int64),
         np.ascontiguousarray(ex[5], dtype=np.int8), np.ascontiguousarray(ex[6], dtype=np.int8))

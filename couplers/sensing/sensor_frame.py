@@ -66,14 +66,17 @@ def wrap(a: np.ndarray) -> np.ndarray:
 def sensor_frame_rows(
     rel: np.ndarray, heading: np.ndarray, mount_x: np.ndarray, yaw: np.ndarray, w: np.ndarray,
     sigma_r: np.ndarray, sigma_b: np.ndarray, sigma_rdot: np.ndarray, yaw_rate: np.ndarray | None = None,
+    cos_sin: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(range, bearing, range rate) (O,) of relative states ``rel`` (O, 4) = x_F - x_V (from the vehicle
     position), seen by a sensor ``mount_x`` (O,) along ``heading`` (O,) with boresight ``heading + yaw``;
     ``w`` (O, 3) standard normal draws scaled by the sigmas (module docstring). ``yaw_rate`` (O,): the owner's
-    yaw rate, whose lever arm moves the sensor (``lever_arm_range_rate``); None: the vehicle's velocity."""
+    yaw rate, whose lever arm moves the sensor (``lever_arm_range_rate``); None: the vehicle's velocity.
+    ``cos_sin``: numpy's cos and sin of ``heading`` when the caller has them (gathered from its vehicles' rows:
+    an elementwise function of the same values)."""
     rel = np.asarray(rel, dtype=float)
     psi = np.asarray(heading, dtype=float)
-    cp, sp = np.cos(psi), np.sin(psi)
+    cp, sp = (np.cos(psi), np.sin(psi)) if cos_sin is None else cos_sin
     px = rel[:, 0] - mount_x * cp
     py = rel[:, 1] - mount_x * sp
     d = np.hypot(px, py)
@@ -164,7 +167,10 @@ class SensorFrameRows:
         mount, yaw = self._mount[sensor], self._yaw[sensor]
         sr, sb, srd = self._sr[sensor], self._sb[sensor], self._srd[sensor]
         om = None if yaw_rate is None else np.asarray(yaw_rate, dtype=float)[owner]
-        r, b, rdot = sensor_frame_rows(rel, np.asarray(heading, dtype=float)[owner], mount, yaw, w, sr, sb, srd, om)
+        heading = np.asarray(heading, dtype=float)
+        # cos / sin once per vehicle, then per row (the rows outnumber the vehicles several times)
+        r, b, rdot = sensor_frame_rows(rel, heading[owner], mount, yaw, w, sr, sb, srd, om,
+                                       cos_sin=(np.cos(heading)[owner], np.sin(heading)[owner]))
         cls = SensorDetections if yaw_rate is None else MountSensorDetections
         return cls(range=r, bearing=b, range_rate=rdot, mount_x=mount, yaw=yaw, sigma_range=sr, sigma_bearing=sb,
                    sigma_range_rate=srd)
@@ -184,8 +190,12 @@ class SensorFrameRows:
               features_true: np.ndarray) -> Frame:
         """``frame`` with ``v2f_sensor`` set and ``v2f_z`` / ``v2f_R`` NaN (rows in ``det``'s order, which is
         the frame's)."""
+        return replace(frame, **self.fields(frame, det, x_true, heading, features_true))
+
+    def fields(self, frame: Frame, det: Detections, x_true: np.ndarray, heading: np.ndarray,
+               features_true: np.ndarray) -> dict:
+        """The fields :meth:`apply` sets, for a caller that sets others in the same ``replace``."""
         om = (self.true_yaw_rate(frame.vehicle_ids, frame.entered, heading, float(frame.dt)) if self.lever_arm
               else None)
         sd = self.detections(det, x_true, heading, features_true, om)
-        return replace(frame, v2f_sensor=sd, v2f_z=np.full_like(frame.v2f_z, np.nan),
-                       v2f_R=np.full_like(frame.v2f_R, np.nan))
+        return dict(v2f_sensor=sd, v2f_z=np.full_like(frame.v2f_z, np.nan), v2f_R=np.full_like(frame.v2f_R, np.nan))

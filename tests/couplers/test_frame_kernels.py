@@ -2,12 +2,14 @@
 the noise-free relative states of the sensor-frame rows and the merge of the perception's rows with the other
 road users' (couplers.sensing.sensor_frame, couplers.sensing.road_users)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from couplers.sensing.perception import Detections
 from couplers.sensing.road_users import KIND_PEDESTRIAN, KIND_VEHICLE, RoadUserNoise, merged_rows, merged_rows_reference
-from couplers.sensing.sensor_frame import relative_states, relative_states_reference
+from couplers.sensing.sensor_frame import relative_states, relative_states_reference, sensor_frame_rows
 
 
 def _det(rng, o, n, k, with_kind=True):
@@ -33,6 +35,24 @@ def test_relative_states_equal_the_numpy_reference(with_kind):
         assert moving.any() and np.array_equal(new[moving, 2:], det.z[moving, 2:])
 
 
+def test_range_bearing_rows_with_cos_sin_per_vehicle_equal_per_row():
+    """cos / sin of each vehicle's heading gathered to its rows (couplers.sensing.sensor_frame.SensorFrameRows)
+    give the rows of cos / sin taken per row, bit for bit, with and without the lever arm's yaw rate."""
+    rng = np.random.default_rng(13)
+    n, o = 37, 900
+    heading = rng.uniform(-4, 4, n)
+    heading[:3] = (0.0, np.pi, -np.pi / 2)
+    owner = np.sort(rng.integers(0, n, o))
+    args = (rng.normal(0, 40, (o, 4)), heading[owner], rng.choice([0.0, 2.25, -1.0], o),
+            rng.choice([0.0, np.pi / 2, np.pi], o), rng.standard_normal((o, 3)), rng.uniform(0.1, 0.4, o),
+            rng.uniform(0.001, 0.02, o), rng.uniform(0.01, 0.1, o))
+    for yaw_rate in (None, rng.normal(0, 0.3, o)):
+        per_row = sensor_frame_rows(*args, yaw_rate)
+        gathered = sensor_frame_rows(*args, yaw_rate, cos_sin=(np.cos(heading)[owner], np.sin(heading)[owner]))
+        for a, b in zip(per_row, gathered):
+            assert a.tobytes() == b.tobytes()
+
+
 @pytest.mark.parametrize("class_error", [0.0, 0.2])
 def test_merged_rows_equal_the_numpy_reference(class_error):
     """Same rows, order, covariances, dtypes and random streams as the numpy merge, with none, one and two extra
@@ -46,9 +66,12 @@ def test_merged_rows_equal_the_numpy_reference(class_error):
                  for m in sizes]
         new = merged_rows(det, extra, RoadUserNoise(3), class_error)
         ref = merged_rows_reference(det, extra, RoadUserNoise(3), class_error)
+        # the kinds handed over instead of carried (the SUMO coupler's call)
+        handed = merged_rows(replace(det, kind=None), extra, RoadUserNoise(3), class_error, kind=det.kind)
         for name in ("z", "owner", "R", "feature", "sensor", "klass", "kind"):
-            a, b = getattr(new, name), getattr(ref, name)
+            a, b, c = getattr(new, name), getattr(ref, name), getattr(handed, name)
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+            assert c.dtype == b.dtype and c.tobytes() == b.tobytes(), name
         if sizes:
             assert (new.feature == -1).sum() >= sum(sizes)
 
