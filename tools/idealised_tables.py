@@ -40,16 +40,30 @@ def _f(v) -> float:
     return math.nan if v is None else float(v)
 
 
+def preset_label(folder: Path) -> str:
+    """The preset's arm as ``factor=label`` from the sweep folder's sweep.toml (``preset`` without factors)."""
+    import tomllib
+
+    path = folder / "sweep.toml"
+    factors = (tomllib.loads(path.read_text()).get("sweep", {}).get("factors") or {}) if path.exists() else {}
+    for name, levels in factors.items():
+        for lv in levels:
+            if lv.get("preset"):
+                return f"{name}={lv['label']}"
+    return "preset"
+
+
 def run_rows(folder: Path) -> pd.DataFrame:
     """One row per (control, arm, seed, method, zone) of every finished run in ``folder/runs``."""
     rows = []
+    preset = preset_label(folder)
     for summ in sorted((folder / "runs").glob("*/summary.json")):
         m = _SEED.match(summ.parent.name)
         if m is None:
             continue
-        parts = dict(p.split("=", 1) for p in m["arm"].split(","))
+        parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in m["arm"].split(","))
         control = parts.pop("control", "-")
-        arm = ",".join(f"{k}={v}" for k, v in parts.items()) or "preset"
+        arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
         data = json.loads(summ.read_text())
         for method, b in (data.get("methods") or {}).items():
             nees = b.get("nees_pos") or {}
@@ -164,13 +178,13 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("folder", type=Path, help="sweep folder of experiments/sweeps/idealised_consistency.toml")
+    ap.add_argument("folder", type=Path, nargs="+", help="sweep folder(s) of experiments/sweeps/idealised_consistency.toml")
     ap.add_argument("--reference", default="arm=bpa_front", help="the arm the differences are taken against")
     ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
     args = ap.parse_args(argv)
-    rows = run_rows(args.folder)
+    rows = pd.concat([run_rows(f) for f in args.folder], ignore_index=True)
     if not len(rows):
-        print(f"{args.folder}: no finished run", file=sys.stderr)
+        print(f"{', '.join(map(str, args.folder))}: no finished run", file=sys.stderr)
         return 2
     if args.csv:
         rows.to_csv(args.csv, index=False)
