@@ -107,6 +107,7 @@ def paired_rows(rows: pd.DataFrame, reference: str) -> pd.DataFrame:
                     continue
                 a = wide[arm].to_numpy()
                 mean, lo, hi, n = paired_ci(a, b)
+                # the per-seed change in per cent, 100 (a / b - 1), and its t interval
                 pm, plo, phi, _ = paired_ci(100.0 * a / b, np.full_like(b, 100.0))
                 out.append(dict(control=control, arm=arm, zone=zone, method=method, stat=stat, mean=mean,
                                 lo=lo, hi=hi, seeds=n, pct=pm, pct_lo=plo, pct_hi=phi))
@@ -169,7 +170,7 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
                             continue
                         r = r.iloc[0]
                         cells += [f"{r['mean']:+.3f} [{r.lo:+.3f}, {r.hi:+.3f}]",
-                                  f"{r.pct - 100:+.1f} [{r.pct_lo - 100:+.1f}, {r.pct_hi - 100:+.1f}]"]
+                                  f"{r.pct:+.1f} [{r.pct_lo:+.1f}, {r.pct_hi:+.1f}]"]
                     if cells != ["-"] * 4:
                         lines.append(f"| {arm} | {zone} | {SHORT[method]} | " + " | ".join(cells) + " |")
         lines.append("")
