@@ -11,7 +11,7 @@ Then, per arm against the reference arm (``--reference``, default the paper conf
 difference of each method's RMSE (same seed, same traffic): mean [95 % paired t interval] in metres and
 in per cent of the reference (the per-seed ratios a / b - 1, their mean and paired t interval).
 
-    python tools/idealised_tables.py /tmp/ideal_sweep/idealised_consistency > tables.md
+    python tools/idealised_tables.py results/idealised_consistency > tables.md
 """
 
 from __future__ import annotations
@@ -180,7 +180,7 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path, nargs="+", help="sweep folder(s) of experiments/sweeps/idealised_consistency.toml")
-    ap.add_argument("--reference", default="arm=bpa_front", help="the arm the differences are taken against")
+    ap.add_argument("--reference", default="arm=paper", help="the arm the differences are taken against")
     ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
     args = ap.parse_args(argv)
     rows = pd.concat([run_rows(f) for f in args.folder], ignore_index=True)
