@@ -1,0 +1,197 @@
+#!/usr/bin/env python3
+"""The tables of docs/validation/consistency.md "Idealised paper configs under consistent fusion: the
+protocol" from a sweep folder of experiments/sweeps/idealised_consistency.toml, read from the runs'
+summary.json files (a sweep cut short gives the tables of the runs it finished; every table states its seeds).
+
+An arm is a run folder's name without its seed (``control=tlr,arm=sci_centre``). Per control, arm, GNSS zone
+("all" pools them) and method: the mean over the seeds of the run's RMSE and p95 of the 2-D position error,
+the average NEES over the seeds (each run's time-averaged NEES) with its chi-square band for that many runs
+(experiments/sweep/consistency.py), the mean share of samples inside the 95 % ellipse and the lowest run's.
+Then, per arm against the reference arm (``--reference``, default the paper configs as shipped), the paired
+difference of each method's RMSE (same seed, same traffic): mean [95 % paired t interval] in metres and
+in per cent of the reference (the per-seed ratios a / b - 1, their mean and paired t interval).
+
+    python tools/idealised_tables.py results/idealised_consistency > tables.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from coloc.methods import registry  # noqa: E402
+from experiments.sweep.consistency import anees_band  # noqa: E402
+from experiments.sweep.paired import paired_ci  # noqa: E402
+
+ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
+SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
+_SEED = re.compile(r"^(?P<arm>.*),seed=(?P<seed>\d+)$")
+
+
+def _f(v) -> float:
+    return math.nan if v is None else float(v)
+
+
+def preset_label(folder: Path) -> str:
+    """The preset's arm as ``factor=label`` from the sweep folder's sweep.toml (``preset`` without factors)."""
+    import tomllib
+
+    path = folder / "sweep.toml"
+    factors = (tomllib.loads(path.read_text()).get("sweep", {}).get("factors") or {}) if path.exists() else {}
+    for name, levels in factors.items():
+        for lv in levels:
+            if lv.get("preset"):
+                return f"{name}={lv['label']}"
+    return "preset"
+
+
+def run_rows(folder: Path) -> pd.DataFrame:
+    """One row per (control, arm, seed, method, zone) of every finished run in ``folder/runs``."""
+    rows = []
+    preset = preset_label(folder)
+    for summ in sorted((folder / "runs").glob("*/summary.json")):
+        m = _SEED.match(summ.parent.name)
+        if m is None:
+            continue
+        parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in m["arm"].split(","))
+        control = parts.pop("control", "-")
+        arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
+        data = json.loads(summ.read_text())
+        for method, b in (data.get("methods") or {}).items():
+            nees = b.get("nees_pos") or {}
+            zones = {"all": (b, nees)}
+            for z, zb in sorted((b.get("by_zone") or {}).items()):
+                zn = (nees.get("by_zone") or {}).get(z)
+                zones[z] = (zb, zn if isinstance(zn, dict) else {})
+            for zone, (st, ns) in zones.items():
+                rows.append({"control": control, "arm": arm, "seed": int(m["seed"]), "method": method,
+                             "zone": zone, "rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
+                             "nees": _f(ns.get("mean")), "inside_95": _f(ns.get("inside_95")),
+                             "wall_s": _f(data.get("wall_seconds"))})
+    return pd.DataFrame(rows)
+
+
+def method_table(rows: pd.DataFrame) -> pd.DataFrame:
+    out = []
+    for key, g in rows.groupby(["control", "arm", "zone", "method"], sort=True):
+        s = int(g["seed"].nunique())
+        lo, hi = anees_band(s)
+        anees = float(g["nees"].mean())
+        out.append(dict(zip(["control", "arm", "zone", "method"], key), seeds=s, rmse=float(g["rmse"].mean()),
+                        p95=float(g["p95"].mean()), anees=anees, band_lo=lo, band_hi=hi,
+                        in_band=bool(lo <= anees <= hi), inside=float(g["inside_95"].mean()),
+                        inside_min=float(g["inside_95"].min())))
+    return pd.DataFrame(out)
+
+
+def paired_rows(rows: pd.DataFrame, reference: str) -> pd.DataFrame:
+    """Per (control, arm != reference, zone, method): RMSE and p95 of the arm minus the reference's, paired by
+    seed, in metres and in per cent."""
+    out = []
+    for (control, zone, method), g in rows.groupby(["control", "zone", "method"], sort=True):
+        for stat in ("rmse", "p95"):
+            wide = g.pivot_table(index="seed", columns="arm", values=stat, aggfunc="first")
+            if reference not in wide:
+                continue
+            b = wide[reference].to_numpy()
+            for arm in wide.columns:
+                if arm == reference:
+                    continue
+                a = wide[arm].to_numpy()
+                mean, lo, hi, n = paired_ci(a, b)
+                # the per-seed change in per cent, 100 (a / b - 1), and its t interval
+                pm, plo, phi, _ = paired_ci(100.0 * a / b, np.full_like(b, 100.0))
+                out.append(dict(control=control, arm=arm, zone=zone, method=method, stat=stat, mean=mean,
+                                lo=lo, hi=hi, seeds=n, pct=pm, pct_lo=plo, pct_hi=phi))
+    return pd.DataFrame(out)
+
+
+def _zone_order(z: str) -> tuple:
+    return (z == "all", z)
+
+
+def _g(v: float) -> str:
+    return "-" if not math.isfinite(v) else (f"{v:.2f}" if v < 100 else f"{v:.0f}")
+
+
+def _seed_text(seeds) -> str:
+    seeds = sorted(int(s) for s in seeds)
+    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}-{seeds[-1]} ({len(seeds)})"
+    return ", ".join(map(str, seeds)) + f" ({len(seeds)})"
+
+
+def markdown(rows: pd.DataFrame, reference: str) -> str:
+    mt, pr = method_table(rows), paired_rows(rows, reference)
+    lines = []
+    methods = [m for m in ORDER if m in set(rows["method"])]
+    for control in sorted(rows["control"].unique(), key=lambda c: (c != "tlr", c)):
+        for arm in sorted(rows[rows.control == control]["arm"].unique(), key=lambda a: (a != reference, a)):
+            sub = mt[(mt.control == control) & (mt.arm == arm)]
+            seeds = rows[(rows.control == control) & (rows.arm == arm)]["seed"].unique()
+            s = int(sub["seeds"].max())
+            lo, hi = anees_band(s)
+            lines += [f"#### {control.upper()}, {arm}: seeds {_seed_text(seeds)}", "",
+                      f"ANEES band for {s} runs [{lo:.2f}, {hi:.2f}]; inside: mean share of samples inside the "
+                      "95 % ellipse (lowest run in brackets).", "",
+                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
+                      "|---|---|---|---|---|---|---|"]
+            for zone in sorted(sub["zone"].unique(), key=_zone_order):
+                for method in methods:
+                    r = sub[(sub.zone == zone) & (sub.method == method)]
+                    if not len(r):
+                        continue
+                    r = r.iloc[0]
+                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {_g(r.anees)} | "
+                                 f"{'yes' if r.in_band else 'no'} | {100 * r.inside:.1f} ({100 * r.inside_min:.1f}) % |")
+            lines.append("")
+        ps = pr[pr.control == control] if len(pr) else pr
+        if not len(ps):
+            continue
+        lines += [f"#### {control.upper()}: against {reference} (paired by seed)", "",
+                  "Mean difference [95 % paired t interval], in metres and in per cent of the reference run's value.",
+                  "", "| arm | zone | method | RMSE (m) | RMSE (%) | p95 (m) | p95 (%) |", "|---|---|---|---|---|---|---|"]
+        for arm in sorted(ps["arm"].unique()):
+            for zone in sorted(ps[ps.arm == arm]["zone"].unique(), key=_zone_order):
+                for method in methods:
+                    cells = []
+                    for stat in ("rmse", "p95"):
+                        r = ps[(ps.arm == arm) & (ps.zone == zone) & (ps.method == method) & (ps.stat == stat)]
+                        if not len(r):
+                            cells += ["-", "-"]
+                            continue
+                        r = r.iloc[0]
+                        cells += [f"{r['mean']:+.3f} [{r.lo:+.3f}, {r.hi:+.3f}]",
+                                  f"{r.pct:+.1f} [{r.pct_lo:+.1f}, {r.pct_hi:+.1f}]"]
+                    if cells != ["-"] * 4:
+                        lines.append(f"| {arm} | {zone} | {SHORT[method]} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", type=Path, nargs="+", help="sweep folder(s) of experiments/sweeps/idealised_consistency.toml")
+    ap.add_argument("--reference", default="arm=paper", help="the arm the differences are taken against")
+    ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
+    args = ap.parse_args(argv)
+    rows = pd.concat([run_rows(f) for f in args.folder], ignore_index=True)
+    if not len(rows):
+        print(f"{', '.join(map(str, args.folder))}: no finished run", file=sys.stderr)
+        return 2
+    if args.csv:
+        rows.to_csv(args.csv, index=False)
+    print(markdown(rows, args.reference))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
