@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from coloc.methods import registry  # noqa: E402
 from experiments.sweep.consistency import anees_band  # noqa: E402
 from experiments.sweep.paired import paired_ci  # noqa: E402
+from tools.protocol_tables import zone_cells  # noqa: E402
 
 ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
 SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
@@ -65,17 +66,9 @@ def run_rows(folder: Path) -> pd.DataFrame:
         control = parts.pop("control", "-")
         arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
         data = json.loads(summ.read_text())
-        for method, b in (data.get("methods") or {}).items():
-            nees = b.get("nees_pos") or {}
-            zones = {"all": (b, nees)}
-            for z, zb in sorted((b.get("by_zone") or {}).items()):
-                zn = (nees.get("by_zone") or {}).get(z)
-                zones[z] = (zb, zn if isinstance(zn, dict) else {})
-            for zone, (st, ns) in zones.items():
-                rows.append({"control": control, "arm": arm, "seed": int(m["seed"]), "method": method,
-                             "zone": zone, "rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
-                             "nees": _f(ns.get("mean")), "inside_95": _f(ns.get("inside_95")),
-                             "wall_s": _f(data.get("wall_seconds"))})
+        for method, zone, cell in zone_cells(data):
+            rows.append({"control": control, "arm": arm, "seed": int(m["seed"]), "method": method, "zone": zone,
+                         **cell, "wall_s": _f(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
 
 

@@ -65,23 +65,29 @@ def run_rows(folder: Path) -> pd.DataFrame:
         if m is None:
             continue
         data = json.loads(summ.read_text())
-        for method, b in (data.get("methods") or {}).items():
-            nees = b.get("nees_pos") or {}
-            zones = {"all": (b, nees)}
-            for z, zb in sorted((b.get("by_zone") or {}).items()):
-                zn = (nees.get("by_zone") or {}).get(z)
-                zones[z] = (zb, zn if isinstance(zn, dict) else {})
-            for zone, (st, ns) in zones.items():
-                rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]), "method": method,
-                             "zone": zone, "rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
-                             "n": int(st.get("n") or 0), "nees": _f(ns.get("mean")),
-                             "inside_95": _f(ns.get("inside_95")),
-                             "wall_s": _f(data.get("wall_seconds"))})
+        for method, zone, cell in zone_cells(data):
+            rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]),
+                         "method": method, "zone": zone, **cell, "wall_s": _f(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
 
 
 def _f(v) -> float:
     return math.nan if v is None else float(v)
+
+
+def zone_cells(data: dict):
+    """(method, zone, cell) of a run's ``summary.json``, zone "all" first, then its zones in order; cell: RMSE and
+    p95 of the 2-D position error (m), samples, mean 2-D NEES and the share inside the 95 % ellipse."""
+    for method, b in (data.get("methods") or {}).items():
+        nees = b.get("nees_pos") or {}
+        zones = {"all": (b, nees)}
+        for z, zb in sorted((b.get("by_zone") or {}).items()):
+            zn = (nees.get("by_zone") or {}).get(z)
+            zones[z] = (zb, zn if isinstance(zn, dict) else {})
+        for zone, (st, ns) in zones.items():
+            yield method, zone, {"rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
+                                 "n": int(st.get("n") or 0), "nees": _f(ns.get("mean")),
+                                 "inside_95": _f(ns.get("inside_95"))}
 
 
 def method_table(rows: pd.DataFrame) -> pd.DataFrame:
