@@ -5,12 +5,16 @@ the tool stops), then ``gnss``, ``icp_known_da``, ``icp_da_lc`` and ``joint_orac
 builds them and scored by zone from ``--from`` seconds after the first frame to ``--to``.
 
     python tools/oracle_sat_replay.py CONFIG FRAMES.pkl --from 600 --to 660 [--methods ...] [--set key=value]
-        [--nlos-stats] [--out OUT.json]
+        [--oracle-start SECONDS] [--nlos-stats] [--out OUT.json] [--seed-json OUT.json] [--estimates OUT.parquet]
 
 ``--set`` overrides an OracleWorld key (e.g. ``multipath_state=false``, ``nlos_d_std_m=20``). ``--nlos-stats``:
 the distribution of D = extra path / (2 cos el) and of the path rate / (2 cos el |v|) over the reflected signals
-of the fixes (what :data:`experiments.oracle_world.NLOS_D_MEAN_M` is measured from). Tuning seeds only. Not a
-test.
+of the fixes (what :data:`experiments.oracle_world.NLOS_D_MEAN_M` is measured from). Tuning seeds only.
+``--oracle-start S`` (a cost saving, opt-in): ``joint_oracle`` sees the frames from S seconds after the first one
+only, and takes every vehicle on the road then as entering (prior: its fix of that step with the reported
+covariance, as ``[scenario] start = "gnss_fix"``); the other methods see every frame. ``--seed-json``: per method
+and zone rmse, p95, nees_mean, inside, n (the protocol's pairing format). ``--estimates``: the oracle's scored
+estimates (t, vehicle, x, y, cov_xx, cov_xy, cov_yy) as parquet. Not a test.
 """
 
 from __future__ import annotations
@@ -85,6 +89,24 @@ def channel_frames(cfg, path: Path, stats: dict | None = None):
         yield replace(fr, oracle_gnss=ch), nlos_part
 
 
+def late_start_frame(fr):
+    """The frame as the first one of a filter started now: every vehicle entering, its prior the step's fix with
+    the reported covariance and said to be that fix (``prior_has_fix``, so it is not applied twice)."""
+    n = fr.n_vehicles
+    return replace(fr, entered=np.ones(n, dtype=bool), prior_z=np.array(fr.gnss_z, dtype=float, copy=True),
+                   prior_R=np.array(fr.gnss_R, dtype=float, copy=True), prior_has_fix=np.ones(n, dtype=bool))
+
+
+def seed_table(res: dict) -> dict:
+    """``report``'s table as {method: {zone: {rmse, p95, nees_mean, inside, n}}}."""
+    out: dict = {}
+    for key, row in res["table"].items():
+        m, z = key.split("/")
+        out.setdefault(m, {})[z] = dict(rmse=row["rmse"], p95=row["p95"], nees_mean=row["nees"],
+                                         inside=row["inside"], n=row["n"])
+    return out
+
+
 def report(args, names, out, cpu, steps, nveh) -> dict:
     """The table by method and zone of the vehicle-steps scored so far (printed)."""
     res = {"steps": steps, "vehicles_mean": float(np.mean(nveh)) if nveh else 0.0,
@@ -119,6 +141,10 @@ def main() -> None:
                     help="diagnostic (reads truth): the oracle's fixes less their reflected signals' true extra "
                          "paths through the gain, and its extra-path mean and std set to 0")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--oracle-start", type=float, default=0.0,
+                    help="joint_oracle starts at this many seconds after the first frame (vehicles then entering)")
+    ap.add_argument("--seed-json", type=Path)
+    ap.add_argument("--estimates", type=Path, help="the oracle's scored estimates as parquet")
     args = ap.parse_args()
     cfg = load_config(args.config)
     cfg = replace(cfg, run=replace(cfg.run, methods=tuple(args.methods.split(",")) if args.methods else ()))
@@ -138,15 +164,22 @@ def main() -> None:
     out = {m: {"err": [], "nees": [], "zone": []} for m in names}
     cpu = {m: 0.0 for m in names}
     steps, t0, nveh = 0, None, []
+    oracle_on = False
+    rows = {k: [] for k in ("t", "vehicle", "x", "y", "cov_xx", "cov_xy", "cov_yy")}
     for fr, nlos_part in channel_frames(cfg, args.frames, stats):
         t0 = fr.t if t0 is None else t0
         if fr.t - t0 > args.to:
             break
         blind = fr.without_truth()
         scored = fr.t - t0 >= args.t_from
+        oracle_now = fr.t - t0 >= args.oracle_start - 1e-9
         for m, est in zip(names, ests):
+            if m == JOINT_ORACLE.name and not oracle_now:
+                continue
             c = time.process_time()
             seen = blind
+            if m == JOINT_ORACLE.name and not oracle_on and args.oracle_start > 0:
+                seen = late_start_frame(seen)
             if args.nlos_known and m == JOINT_ORACLE.name:  # diagnostic: the extra paths' realisation taken out
                 gz = blind.gnss_z.copy()
                 gz[:, :2] -= nlos_part
@@ -155,8 +188,17 @@ def main() -> None:
                  else est.step(seen))
             if scored:
                 cpu[m] += time.process_time() - c
+            if m == JOINT_ORACLE.name:
+                oracle_on = True
             if not scored:
                 continue
+            if m == JOINT_ORACLE.name and args.estimates:
+                rows["t"].append(np.full(fr.n_vehicles, fr.t))
+                rows["vehicle"].append(np.asarray(fr.vehicle_ids).astype(str))
+                rows["x"].append(e.mean[:, 0])
+                rows["y"].append(e.mean[:, 1])
+                for k, (i, j) in (("cov_xx", (0, 0)), ("cov_xy", (0, 1)), ("cov_yy", (1, 1))):
+                    rows[k].append(e.cov[:, i, j])
             d = e.mean[:, :2] - fr.truth.x_true[:, :2]
             out[m]["nees"].append(np.einsum("ni,ni->n", d, np.linalg.solve(e.cov[:, :2, :2], d[..., None])[..., 0]))
             out[m]["err"].append(np.hypot(d[:, 0], d[:, 1]))
@@ -177,6 +219,12 @@ def main() -> None:
         print("nlos", res["nlos"])
     if args.out:
         args.out.write_text(json.dumps(res, indent=1))
+    if args.seed_json:
+        args.seed_json.write_text(json.dumps(seed_table(res), indent=1))
+    if args.estimates and rows["t"]:
+        import pandas as pd
+
+        pd.DataFrame({k: np.concatenate(v) for k, v in rows.items()}).to_parquet(args.estimates, index=False)
 
 
 if __name__ == "__main__":
