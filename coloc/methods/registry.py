@@ -190,7 +190,9 @@ def runnable_methods() -> tuple[str, ...]:
 
 
 def build_method(name: str, params: MethodParams):
-    """The estimator of method ``name`` (ValueError for a name the registry cannot build)."""
+    """The estimator of method ``name`` (ValueError for a name the registry cannot build). Under a
+    ``[gnss_model]`` with the receiver's report calibrated (``degraded_*``), every method but the joint oracle
+    steps on the calibrated report (:func:`coloc.methods.report_calibration.report_calibrated`)."""
     method = METHODS.get(name)
     if method is None or not method.runnable:
         raise ValueError(f"no estimator for method {name!r} (available: {', '.join(runnable_methods())})")
