@@ -1393,6 +1393,18 @@ def run_gnss_model_negative_adaptive_window(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_model.degraded_above_m", ">= 0")
+def run_gnss_model_negative_degraded_threshold(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ndegraded_above_m = -2.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "gnss_model.degraded_velocity_scale", "positive")
+def run_gnss_model_zero_velocity_scale(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_model]\ndegraded_above_m = 2.0\ndegraded_velocity_scale = 0.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_follows_report", "true or false")
 def run_gnss_model_follow_not_bool(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_follows_report = \"yes\"\n")
