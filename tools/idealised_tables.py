@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 import sys
 from pathlib import Path
@@ -30,15 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from coloc.methods import registry  # noqa: E402
 from experiments.sweep.consistency import anees_band  # noqa: E402
 from experiments.sweep.paired import paired_ci  # noqa: E402
-from tools.protocol_tables import zone_cells  # noqa: E402
+from tools.protocol_tables import as_float, seed_text, short_number, zone_cells, zone_order  # noqa: E402
 
 ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
 SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
 _SEED = re.compile(r"^(?P<arm>.*),seed=(?P<seed>\d+)$")
-
-
-def _f(v) -> float:
-    return math.nan if v is None else float(v)
 
 
 def preset_label(folder: Path) -> str:
@@ -68,7 +63,7 @@ def run_rows(folder: Path) -> pd.DataFrame:
         data = json.loads(summ.read_text())
         for method, zone, cell in zone_cells(data):
             rows.append({"control": control, "arm": arm, "seed": int(m["seed"]), "method": method, "zone": zone,
-                         **cell, "wall_s": _f(data.get("wall_seconds"))})
+                         **cell, "wall_s": as_float(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
 
 
@@ -107,21 +102,6 @@ def paired_rows(rows: pd.DataFrame, reference: str) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def _zone_order(z: str) -> tuple:
-    return (z == "all", z)
-
-
-def _g(v: float) -> str:
-    return "-" if not math.isfinite(v) else (f"{v:.2f}" if v < 100 else f"{v:.0f}")
-
-
-def _seed_text(seeds) -> str:
-    seeds = sorted(int(s) for s in seeds)
-    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
-        return f"{seeds[0]}-{seeds[-1]} ({len(seeds)})"
-    return ", ".join(map(str, seeds)) + f" ({len(seeds)})"
-
-
 def markdown(rows: pd.DataFrame, reference: str) -> str:
     mt, pr = method_table(rows), paired_rows(rows, reference)
     lines = []
@@ -132,18 +112,18 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
             seeds = rows[(rows.control == control) & (rows.arm == arm)]["seed"].unique()
             s = int(sub["seeds"].max())
             lo, hi = anees_band(s)
-            lines += [f"#### {control.upper()}, {arm}: seeds {_seed_text(seeds)}", "",
+            lines += [f"#### {control.upper()}, {arm}: seeds {seed_text(seeds)}", "",
                       f"ANEES band for {s} runs [{lo:.2f}, {hi:.2f}]; inside: mean share of samples inside the "
                       "95 % ellipse (lowest run in brackets).", "",
                       "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
                       "|---|---|---|---|---|---|---|"]
-            for zone in sorted(sub["zone"].unique(), key=_zone_order):
+            for zone in sorted(sub["zone"].unique(), key=zone_order):
                 for method in methods:
                     r = sub[(sub.zone == zone) & (sub.method == method)]
                     if not len(r):
                         continue
                     r = r.iloc[0]
-                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {_g(r.anees)} | "
+                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {short_number(r.anees)} | "
                                  f"{'yes' if r.in_band else 'no'} | {100 * r.inside:.1f} ({100 * r.inside_min:.1f}) % |")
             lines.append("")
         ps = pr[pr.control == control] if len(pr) else pr
@@ -153,7 +133,7 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
                   "Mean difference [95 % paired t interval], in metres and in per cent of the reference run's value.",
                   "", "| arm | zone | method | RMSE (m) | RMSE (%) | p95 (m) | p95 (%) |", "|---|---|---|---|---|---|---|"]
         for arm in sorted(ps["arm"].unique()):
-            for zone in sorted(ps[ps.arm == arm]["zone"].unique(), key=_zone_order):
+            for zone in sorted(ps[ps.arm == arm]["zone"].unique(), key=zone_order):
                 for method in methods:
                     cells = []
                     for stat in ("rmse", "p95"):

@@ -67,11 +67,12 @@ def run_rows(folder: Path) -> pd.DataFrame:
         data = json.loads(summ.read_text())
         for method, zone, cell in zone_cells(data):
             rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]),
-                         "method": method, "zone": zone, **cell, "wall_s": _f(data.get("wall_seconds"))})
+                         "method": method, "zone": zone, **cell, "wall_s": as_float(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
 
 
-def _f(v) -> float:
+def as_float(v) -> float:
+    """A summary value as a float (None: NaN)."""
     return math.nan if v is None else float(v)
 
 
@@ -85,9 +86,9 @@ def zone_cells(data: dict):
             zn = (nees.get("by_zone") or {}).get(z)
             zones[z] = (zb, zn if isinstance(zn, dict) else {})
         for zone, (st, ns) in zones.items():
-            yield method, zone, {"rmse": _f(st.get("rmse_pos_m")), "p95": _f(st.get("p95_pos_m")),
-                                 "n": int(st.get("n") or 0), "nees": _f(ns.get("mean")),
-                                 "inside_95": _f(ns.get("inside_95"))}
+            yield method, zone, {"rmse": as_float(st.get("rmse_pos_m")), "p95": as_float(st.get("p95_pos_m")),
+                                 "n": int(st.get("n") or 0), "nees": as_float(ns.get("mean")),
+                                 "inside_95": as_float(ns.get("inside_95"))}
 
 
 def method_table(rows: pd.DataFrame) -> pd.DataFrame:
@@ -123,7 +124,8 @@ def paired_rows(rows: pd.DataFrame, half: float = 0.15) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def _zone_order(z: str) -> tuple:
+def zone_order(z: str) -> tuple:
+    """Sort key: the zones by name, "all" last."""
     return (z == "all", z)
 
 
@@ -138,19 +140,19 @@ def markdown(rows: pd.DataFrame) -> str:
             seeds = sorted(rows[(rows.control == control) & (rows.rule == rule)]["seed"].unique())
             s = int(sub["seeds"].max())
             lo, hi = anees_band(s)
-            lines += [f"### {control.upper()}, {ARMS[rule]}: seeds {_seed_text(seeds)}", "",
+            lines += [f"### {control.upper()}, {ARMS[rule]}: seeds {seed_text(seeds)}", "",
                       f"Mean over the seeds; ANEES = average NEES over the runs, chi-square band for {s} runs "
                       f"[{lo:.2f}, {hi:.2f}] (2 is consistent); inside = mean share of samples inside the 95 % "
                       "ellipse.", "",
                       "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
                       "|---|---|---|---|---|---|---|"]
-            for zone in sorted(sub["zone"].unique(), key=_zone_order):
+            for zone in sorted(sub["zone"].unique(), key=zone_order):
                 for method in (GNSS, KNOWN, LC):
                     r = sub[(sub.zone == zone) & (sub.method == method)]
                     if not len(r):
                         continue
                     r = r.iloc[0]
-                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {_g(r.anees)} | "
+                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {short_number(r.anees)} | "
                                  f"{'yes' if r.inside_band else 'no'} | {100 * r.inside_95:.1f} % |")
             lines += ["", "Paired differences over the seeds (same seed, same traffic), mean [95 % paired t "
                           "interval], seeds where the first is lower, SD of the per-seed differences and the "
@@ -158,7 +160,7 @@ def markdown(rows: pd.DataFrame) -> str:
                       "| zone | difference | RMSE (m) | lower on | SD | seeds for +-0.15 | p95 (m) | lower on | SD "
                       "| seeds for +-0.15 |", "|---|---|---|---|---|---|---|---|---|---|"]
             ps = pr[(pr.control == control) & (pr.rule == rule)]
-            for zone in sorted(ps["zone"].unique(), key=_zone_order):
+            for zone in sorted(ps["zone"].unique(), key=zone_order):
                 for a, b in PAIRS:
                     cells = []
                     for stat in ("rmse", "p95"):
@@ -176,13 +178,15 @@ def markdown(rows: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def _g(v: float) -> str:
+def short_number(v: float) -> str:
+    """An ANEES as a table prints it: two decimals below 100, none above, "-" if not finite."""
     return "-" if not math.isfinite(v) else (f"{v:.2f}" if v < 100 else f"{v:.0f}")
 
 
-def _seed_text(seeds) -> str:
-    seeds = [int(s) for s in seeds]
-    if seeds and seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+def seed_text(seeds) -> str:
+    """The seeds as a table heading says them: "11-20 (10)" for a run of three or more, else listed."""
+    seeds = sorted(int(s) for s in seeds)
+    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
         return f"{seeds[0]}-{seeds[-1]} ({len(seeds)})"
     return ", ".join(map(str, seeds)) + f" ({len(seeds)})"
 
