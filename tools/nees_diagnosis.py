@@ -1,7 +1,11 @@
 """Where a method's overconfidence lives: 2-D position NEES and the share inside the 95 % ellipse of
 runs' ``estimates.parquet``, binned by one covariate at a time, per method (and zone).
 
-``python tools/nees_diagnosis.py RUN_DIR [RUN_DIR ...] --switch-on 600 [--by since_on|since_entry|speed|gnss_nis]``
+``python tools/nees_diagnosis.py RUN_DIR [RUN_DIR ...] --switch-on 600 [--from 600] [--by since_on|since_entry|speed|gnss_nis]``
+
+Rows with ``t`` before ``--from`` (default: the switch-on) are left out after the covariates are computed, so the
+cells score what ``summary.json`` and ``tools/nees_table.py --from`` score: a run with a sensed warm-up keeps its
+warm-up rows in ``estimates.parquet`` (``[analysis] warmup_s`` only moves what the statistics score).
 
 Covariates (all from the files, nothing rerun):
 * ``since_on``: t minus the switch-on time (``--switch-on``, the end of a traffic-only warm-up);
@@ -28,7 +32,9 @@ from coloc.methods.registry import GNSS  # noqa: E402
 GATE = chi2.ppf(0.95, 2)
 
 
-def load(runs: list[Path], switch_on: float) -> pd.DataFrame:
+def load(runs: list[Path], switch_on: float, scored_from: float | None = None) -> pd.DataFrame:
+    """Every run's rows with the NEES and the covariates; with ``scored_from``, the rows with ``t >= scored_from``
+    only (entries are found on every row first)."""
     parts = []
     for i, r in enumerate(runs):
         d = pd.read_parquet(Path(r) / "estimates.parquet",
@@ -47,6 +53,8 @@ def load(runs: list[Path], switch_on: float) -> pd.DataFrame:
     d["since_entry"] = np.where(first <= start + 1e-6, np.nan, d.t - first)
     g = d[d.method == GNSS.name][["run", "t", "vehicle", "nees"]].rename(columns={"nees": "gnss_nees"})
     d = d.merge(g, on=["run", "t", "vehicle"], how="left")
+    if scored_from is not None:
+        d = d[d.t >= scored_from].reset_index(drop=True)
     return d
 
 
@@ -110,11 +118,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--switch-on", type=float, default=600.0)
+    ap.add_argument("--from", dest="scored_from", type=float, default=None,
+                    help="score rows with t >= this (s; default: the switch-on)")
     ap.add_argument("--by", nargs="+", default=["since_on", "since_entry", "speed", "gnss_nees"])
     ap.add_argument("--zones", action="store_true")
     ap.add_argument("--pivot", action="store_true", help="one row per method and zone, one column per bin")
     a = ap.parse_args()
-    d = load(a.runs, a.switch_on)
+    d = load(a.runs, a.switch_on, a.switch_on if a.scored_from is None else a.scored_from)
     with pd.option_context("display.width", 250, "display.max_columns", 20, "display.max_rows", 500, "display.float_format", "{:.3f}".format):
         for by in a.by:
             print(f"\n== by {by}")

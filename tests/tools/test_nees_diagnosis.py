@@ -52,3 +52,24 @@ def test_nees_covariates_and_bins(tmp_path):
     assert list(p.columns) == ["on", "0-15", "15-60", "60-120", "120-300.1"]
     on = d[(d.method == "gnss") & d.since_entry.isna()]
     assert p.loc[("gnss", "all"), "on"].startswith(f"{100 * np.mean(on.nees <= GATE):.1f} (")
+
+
+def test_rows_before_the_scored_window_left_out(tmp_path):
+    """A sensed warm-up keeps its rows in the file: the cells score t >= --from only, as summary.json does, and the
+    entries are still found on every row (vehicle b, now on from the run's first row, is not an entry; a is)."""
+    rng = np.random.default_rng(3)
+    run = _run(tmp_path, rng)
+    f = pd.read_parquet(run / "estimates.parquet")
+    early = f[f.vehicle == "b"].copy()
+    early["t"] -= 200.0  # vehicle b's rows moved to 450.25-699.25: it entered before the window
+    early["px"] += 50.0  # and those rows are far off, so scoring them would show
+    pd.concat([f[f.vehicle == "a"], early]).to_parquet(run / "estimates.parquet")
+    every = load([run], 600.0)
+    scored = load([run], 600.0, 600.0)
+    assert every.t.min() < 600.0 and scored.t.min() >= 600.0
+    assert len(scored) == int((every.t >= 600.0).sum())
+    assert scored[scored.vehicle == "b"].since_entry.isna().all()  # on at the run's first row, before the window
+    a = scored[scored.vehicle == "a"]
+    assert np.allclose(a.since_entry, a.t - 600.75)
+    assert table(scored, "speed", zones=False).loc["gnss"].inside_95.min() < 0.9 < \
+        table(scored[scored.vehicle == "a"], "speed", zones=False).loc["gnss"].inside_95.min()
