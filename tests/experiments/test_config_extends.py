@@ -252,9 +252,10 @@ def test_preset_resolves_as_its_full_copy_did(name):
 #: Presets changed on purpose after the full copies: the [perception] sensors (front radar to the ARS 408-21
 #: near beam, road users, persistent clutter, detections in the sensor's frame), [estimator_sensors] and the
 #: [lc] values derived from them, the [gnss_error] field model and the entry from the receiver's first fix;
-#: the relocalization of lost vehicles ([lc] relocalize_*).
+#: the relocalization of lost vehicles ([lc] relocalize_*); the reset to the own-sensor track ([lc]
+#: own_consistency_gate), on again with the receiver model that makes the own track consistent.
 CHANGED_SINCE = {name: ("clutter_intensity", "sensing_range_m", "relocalize_radius_m", "relocalize_tolerance_m",
-                        "relocalize_min_support") for name in
+                        "relocalize_min_support", "own_consistency_gate") for name in
                  ("arterial_tlr_realistic.toml", "arterial_vsr_realistic.toml", "arterial_ped_tlr_realistic.toml")}
 
 
