@@ -96,14 +96,16 @@ from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net.buildings import Buildings
 from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
-from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, _los_kernel, clearance_radius,
-                                       line_of_sight, net_origin, reflections)
+from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, building_candidates, clearance_radius,
+                                       line_of_sight, los_listed, net_origin, reflections)
 from couplers.sensing.perception import effect_rng
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
 MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
 SKY_BLOCK = 64  # steps whose sky terms are computed at once (SatelliteErrorProcess._sky_step)
+_NO_CANDIDATES = (np.empty((0, 2), dtype=np.int64), (np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+                                                     np.empty(0)))
 
 
 def klobuchar_obliquity(el: np.ndarray) -> np.ndarray:
@@ -451,6 +453,8 @@ class SatelliteErrorProcess:
         self._sky_next = 0  # the row expected next
         self._sky_k = SKY_BLOCK  # 1 once a time was off the block's grid
         self._sky_now: tuple = (None, {})  # (run time, _sky_step's terms) of the last call
+        # the last pseudorange_errors' antenna positions (their bits) and candidate buildings (CSR)
+        self._cands: tuple = _NO_CANDIDATES
 
     @property
     def posterior(self) -> bool:
@@ -511,13 +515,16 @@ class SatelliteErrorProcess:
                 "sig_doppler": p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el),
                 "var_rr": p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)}
 
-    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
+    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None,
+                           prev: np.ndarray | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
         common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
         the (N, S, 2) range-rate coefficients of the received reflections (zero elsewhere). The values of
         :meth:`pseudorange_errors_reference` (tested): numpy's trigonometry on the same arrays, the line of sight
         and reflection kernels called directly, and the (N, S) sums and masks in one kernel
-        (:func:`_assemble`)."""
+        (:func:`_assemble`). The candidate buildings of each antenna are listed once for both kernels
+        (:func:`couplers.sensing.gnss_sky.building_candidates`); ``prev`` (N,): each antenna's row in the previous
+        call (-1: none), whose list an antenna at bitwise the same position takes over."""
         p = self.params
         sky = self._sky_step(t)
         los, el, above = sky["los"], sky["el"], sky["above"]
@@ -540,14 +547,18 @@ class SatelliteErrorProcess:
                 # as line_of_sight and reflections take them: sin / cos of the azimuths, tan / cos of the elevations
                 sa, ca, te = sky["sin_az"][cols], sky["cos_az"][cols], sky["tan_el"][cols]
                 grid = e.grid(self.radius, LOS_GRID_DIVISIONS)
-                b, d = _los_kernel(xy, *grid, float(self.radius), e.edges, e.start, e.boxes, e.heights, sa, ca, te,
-                                   float(p.antenna_height_m), True)
+                h_ant, bits = float(p.antenna_height_m), xy.view(np.int64)
+                pxy, cand = self._cands
+                rows = np.full(n, -1, dtype=np.int64) if prev is None else np.asarray(prev, dtype=np.int64)
+                cand = building_candidates(xy, rows, bits, pxy, *cand, *e.grid(self.radius), float(self.radius),
+                                           e.boxes, e.heights, h_ant)
+                self._cands = (bits.copy(), cand)  # a copy: the caller's positions may change in place
+                b, d = los_listed(xy, *cand, e.edges, e.start, e.boxes, e.heights, sa, ca, te, h_ant)
                 if mode >= 2:
                     cos_c = sky["cos_el"][cols]
                 if mode == 3:
-                    found, ex, g = reflect_kernel(xy, b, *e.grid(self.radius), float(self.radius), e.edges, e.start,
-                                                  e.boxes, e.heights, sa, ca, te, cos_c, float(p.antenna_height_m),
-                                                  facade_lines(e), *grid)
+                    found, ex, g = reflect_kernel(xy, b, *cand, float(self.radius), e.edges, e.start, e.boxes,
+                                                  e.heights, sa, ca, te, cos_c, h_ant, facade_lines(e), *grid)
         eps, usable, blocked, full = _assemble(common, sky["sig_n"], np.ascontiguousarray(white, dtype=np.float64),
                                                sky["mp"], np.ascontiguousarray(u, dtype=np.float64),
                                                above, cols, mode, b, d, cos_c, found, ex, g,
@@ -620,7 +631,7 @@ class SatelliteErrorProcess:
         else:
             u = z.copy()
         rate: list = []
-        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
+        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate, prev=idx)
         sky = self._sky_step(t)  # the terms pseudorange_errors took
         var_rx = sky["var_rx"]
         err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
