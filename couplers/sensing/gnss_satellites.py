@@ -80,8 +80,14 @@ while at least six remain; an assumption: a receiver screening its range rates a
 a fix keep the zone's Doppler error.
 
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
-"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Every step draws for every satellite (visible or not) and every vehicle, so the
-streams do not depend on the geometry.
+"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Under ``draws = "all"`` (the
+default) every step draws w, u's innovations and the range-rate noise for every satellite (visible or not) and every
+vehicle, so the streams do not depend on the geometry. ``draws = "visible"`` draws them only for the satellites
+above the elevation mask (the only ones a receiver uses), (N, M) each step with M of the 48 above the mask, taking
+the same normals for the same terms: each term keeps its distribution, the streams' values go to other terms. A
+satellite's multipath process u of a vehicle is carried while the satellite stays above the mask and starts from a
+fresh draw when it rises, as for a vehicle that enters (its stationary law; under "all" it evolves below the mask
+unseen); the columns below the mask are 0 and never read.
 """
 
 from __future__ import annotations
@@ -314,6 +320,33 @@ def _carried_multipath(rows, prev, a, u_prev, z):
     return u
 
 
+@njit(cache=True)
+def _spread(x, cols, s):
+    """(N, s) zeros with column cols[j] set to x[:, j] (``draws = "visible"``: the draws of the satellites above the
+    mask in their columns)."""
+    out = np.zeros((x.shape[0], s))
+    for i in range(x.shape[0]):
+        for j in range(cols.size):
+            out[i, cols[j]] = x[i, j]
+    return out
+
+
+@njit(cache=True)
+def _carried_multipath_visible(rows, prev, a, u_prev, z, cols, above_prev):
+    """``draws = "visible"``: u (N, S), zero off the columns ``cols`` (the satellites above the mask), z[:, j] in
+    column cols[j], and for the rows ``rows`` carried from ``u_prev[prev]`` where the satellite was above the mask
+    the step before (``above_prev``): a u_prev + sqrt(1 - a^2) z, as :func:`_carried_multipath`."""
+    u = _spread(z, cols, u_prev.shape[1])
+    for r in range(rows.size):
+        i, q, ar = rows[r], prev[r], a[r]
+        b = np.sqrt(1.0 - ar * ar)
+        for j in range(cols.size):
+            k = cols[j]
+            if above_prev[k]:
+                u[i, k] = ar * u_prev[q, k] + b * z[i, j]
+    return u
+
+
 def wls_gains(los: np.ndarray, used: np.ndarray, var: np.ndarray) -> np.ndarray:
     """(N, 2, S) east/north rows of each receiver's WLS gain (H^T W H)^-1 H^T W over its satellites ``used``
     (N, S), H's rows (-e_s, 1) from ``los`` (S, 3), weights 1 / ``var`` (S,); zero columns for the other
@@ -444,6 +477,7 @@ class SatelliteErrorProcess:
         self._ids = np.empty(0, dtype=object)
         self._xy = np.empty((0, 2))
         self._u = np.empty((0, s))
+        self._above = np.zeros(s, dtype=bool)  # draws = "visible": the satellites above the mask at the last step
         self._fix = np.empty((0, 2))  # absolute x/y of each receiver's last fix (NaN: none yet)
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
@@ -616,8 +650,15 @@ class SatelliteErrorProcess:
         b_sv = math.sqrt(1.0 - self.a_sv ** 2)
         self.sv = self.a_sv * self.sv + b_sv * self.sv_common.standard_normal((s, 2))
         self.tropo = self.a_sv * self.tropo + b_sv * float(self.sv_common.standard_normal())
-        white = self.code_noise.standard_normal((n, s))
-        z = self.multipath.standard_normal((n, s))
+        visible = p.draws == "visible"
+        if visible:  # the satellites above the mask only (module docstring, "Random streams")
+            above = self._sky_step(t)["above"]
+            cols = np.flatnonzero(above)
+            white = _spread(self.code_noise.standard_normal((n, cols.size)), cols, s)
+            z = self.multipath.standard_normal((n, cols.size))
+        else:
+            white = self.code_noise.standard_normal((n, s))
+            z = self.multipath.standard_normal((n, s))
         # multipath: correlated over the distance travelled this step
         carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
         fix_prev = np.full((n, 2), np.nan)
@@ -626,10 +667,13 @@ class SatelliteErrorProcess:
             prev = idx[rows]
             d = np.hypot(*(xy[rows] - self._xy[prev]).T)
             a = np.exp(-d / p.multipath_corr_length_m)
-            u = _carried_multipath(rows, prev, a, self._u, z)
+            u = (_carried_multipath_visible(rows, prev, a, self._u, z, cols, self._above) if visible
+                 else _carried_multipath(rows, prev, a, self._u, z))
             fix_prev[rows] = self._fix[prev]
         else:
-            u = z.copy()
+            u = _spread(z, cols, s) if visible else z.copy()
+        if visible:
+            self._above = above
         rate: list = []
         eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate, prev=idx)
         sky = self._sky_step(t)  # the terms pseudorange_errors took
@@ -663,7 +707,11 @@ class SatelliteErrorProcess:
         p = self.params
         los, el, usedm, rate, ok, sky = self._geom
         n, s = usedm.shape
-        w = self.doppler_noise.standard_normal((n, s))
+        if p.draws == "visible":  # the satellites above the mask only (module docstring, "Random streams")
+            cols = np.flatnonzero(sky["above"])
+            w = _spread(self.doppler_noise.standard_normal((n, cols.size)), cols, s)
+        else:
+            w = self.doppler_noise.standard_normal((n, s))
         sig = sky["sig_doppler"]  # doppler_noise_mps sqrt(1 + 1 / sin el), sin el floored at MIN_SIN_EL
         # sig w, plus a reflected signal's Doppler, the antenna image's: g . v (numpy's einsum differs from the
         # kernel's sum only in the sign of a zero, which the addition to sig w removes; tested)
