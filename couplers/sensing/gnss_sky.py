@@ -33,6 +33,10 @@ the building is left at the first satellite whose ray its bounding box is alread
 (a box at distance b cannot block when b tan(el) + h_ant >= h, nor then at any higher elevation); a satellite whose
 horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`) is skipped: no edge can be crossed. Blocked sets and
 distances are those of testing every satellite against every edge (``line_of_sight(..., box_test=False)``, tested).
+The receiver (:meth:`couplers.sensing.gnss_satellites.SatelliteErrorProcess.pseudorange_errors`) lists each
+antenna's candidate buildings once a step for the line of sight and the reflections (:func:`building_candidates`,
+:func:`los_listed`, the same results, tested); the list depends on the position alone, so a vehicle at bitwise the
+same position as at the last step takes its list over.
 """
 
 from __future__ import annotations
