@@ -511,6 +511,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "`\"dop\"`: its budget through the geometry, (H^T W H)^-1, or `\"residual\"`: "
                                     "that times the fit's a-posteriori variance factor r^T W r / (m - 4) when above "
                                     "1 (m > 4 satellites)."),
+        "draws": ("", "satellites: the receiver noise, multipath and Doppler normals are drawn `\"all\"`: for every "
+                      "satellite of the constellation each step (the streams do not depend on the sky), or "
+                      "`\"visible\"`: only for those above the elevation mask (fewer draws, the same distributions; "
+                      "another sequence of values, so other frames than `\"all\"`). A satellite's multipath "
+                      "process starts afresh when it rises."),
         "oracle_channel": ("", "satellites: the frames also carry each receiver's WLS gains over the satellites, its "
                                "satellites and which came by reflection (what `joint_oracle` is told; no other "
                                "estimator reads it). Set by the runner for a run whose methods include "

@@ -129,6 +129,10 @@ VELOCITY_MODES = ("zone", "doppler")
 #: The ``[gnss_error] reported_covariance`` values under "satellites": the receiver's budget through the
 #: geometry (DOP), or that scaled by the fit's a-posteriori variance factor (couplers.sensing.gnss_satellites).
 REPORTED_COVARIANCE_MODES = ("dop", "residual")
+#: The ``[gnss_error] draws`` values under "satellites": the receiver noise, multipath and Doppler normals drawn
+#: for every satellite of the constellation (the streams do not depend on the sky), or only for those above the
+#: elevation mask (couplers.sensing.gnss_satellites, "Random streams").
+DRAW_MODES = ("all", "visible")
 
 
 @dataclass(frozen=True)
@@ -178,6 +182,7 @@ class GnssErrorParams:
     doppler_noise_mps: float = 0.05
     rx_doppler_mps: float = 0.05
     reported_covariance: str = "dop"
+    draws: str = "all"
     # "satellites": the frames carry each receiver's WLS gains and satellites (coloc.core.frame.OracleGnss), what
     # joint_oracle is told; the runner sets it for a run whose methods include joint_oracle (off: no channel)
     oracle_channel: bool = False
@@ -198,6 +203,8 @@ class GnssErrorParams:
         if self.reported_covariance not in REPORTED_COVARIANCE_MODES:
             raise InputError(None, "reported_covariance", f"unknown value {self.reported_covariance!r} "
                                                           f"(available: {', '.join(REPORTED_COVARIANCE_MODES)})")
+        if self.draws not in DRAW_MODES:
+            raise InputError(None, "draws", f"unknown value {self.draws!r} (available: {', '.join(DRAW_MODES)})")
         for key in ("antenna_height_m", "multipath_corr_length_m"):
             if not (finite(getattr(self, key)) and getattr(self, key) > 0):
                 raise InputError(None, key, f"must be positive and finite, got {getattr(self, key)!r}")

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit
 
-from couplers.sensing.gnss_sky import BOX_MARGIN_M, BuildingEdges, _box_distance, _candidates
+from couplers.sensing.gnss_sky import BOX_MARGIN_M, BuildingEdges, _box_distance
 
 
 def facade_lines(edges: BuildingEdges) -> np.ndarray:
@@ -138,19 +138,19 @@ def _leg_candidates(sx, sy, dx, dy, t0, t1, x0, y0, cell, nx, ny, gstart, gids, 
 
 
 @njit(cache=True)
-def reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn,
-                   tan_el, cos_el, h_ant, lines, fx0, fy0, fcell, fnx, fny, fstart, fids):
-    """(found, extra, rate) as the reference kernel (module docstring): ``x0 .. gids`` the coarse grid (one cell
-    per clearance radius, the reference's), ``lines`` :func:`facade_lines`, ``fx0 .. fids`` the fine grid."""
+def reflect_kernel(xy, blocked, cstart, cids, cbd, radius, edges, estart, boxes, heights, de, dn, tan_el, cos_el,
+                   h_ant, lines, fx0, fy0, fcell, fnx, fny, fstart, fids):
+    """(found, extra, rate) as the reference kernel (module docstring): ``cstart, cids, cbd`` each antenna's
+    candidate buildings and their box distances (:func:`couplers.sensing.gnss_sky.building_candidates` on the
+    coarse grid, one cell per clearance radius: the reference's buildings in the reference's order), ``lines``
+    :func:`facade_lines`, ``fx0 .. fids`` the fine grid."""
     n, s = blocked.shape
     found = np.zeros((n, s), dtype=np.bool_)
     extra = np.zeros((n, s))
     rate = np.zeros((n, s, 2))
     nb = heights.size
     seen = np.full(nb, -1, dtype=np.int64)
-    cand = np.empty(nb, dtype=np.int64)
     cand2 = np.empty(nb, dtype=np.int64)
-    bdist = np.empty(nb)
     geo_of = np.full(nb, -1, dtype=np.int64)  # the vehicle whose facade distances a building holds
     ne = edges.shape[0]
     c_ex = np.empty(ne)  # this pair's specular facades: extra path, edge, t, normal, cos(dphi)
@@ -174,11 +174,9 @@ def reflect_kernel(xy, blocked, x0, y0, cell, nx, ny, gstart, gids, radius, edge
                 break
         if not any_blocked:
             continue
-        m = _candidates(px, py, x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant, seen, stamp,
-                        cand)
-        stamp += 1
-        for q in range(m):
-            bdist[q] = _box_distance(px, py, boxes[cand[q]])
+        c0 = cstart[i]
+        m = cstart[i + 1] - c0
+        cand, bdist = cids[c0:c0 + m], cbd[c0:c0 + m]
         for k in range(s):
             if not blocked[i, k] or tan_el[k] <= 0.0:
                 continue

@@ -80,8 +80,14 @@ while at least six remain; an assumption: a receiver screening its range rates a
 a fix keep the zone's Doppler error.
 
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
-"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Every step draws for every satellite (visible or not) and every vehicle, so the
-streams do not depend on the geometry.
+"multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Under ``draws = "all"`` (the
+default) every step draws w, u's innovations and the range-rate noise for every satellite (visible or not) and every
+vehicle, so the streams do not depend on the geometry. ``draws = "visible"`` draws them only for the satellites
+above the elevation mask (the only ones a receiver uses), (N, M) each step with M of the 48 above the mask, taking
+the same normals for the same terms: each term keeps its distribution, the streams' values go to other terms. A
+satellite's multipath process u of a vehicle is carried while the satellite stays above the mask and starts from a
+fresh draw when it rises, as for a vehicle that enters (its stationary law; under "all" it evolves below the mask
+unseen); the columns below the mask are 0 and never read.
 """
 
 from __future__ import annotations
@@ -96,14 +102,16 @@ from coloc.core.vehicles import match_ids
 from couplers.errors import InputError
 from couplers.net.buildings import Buildings
 from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
-from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, _los_kernel, clearance_radius,
-                                       line_of_sight, net_origin, reflections)
+from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, building_candidates, clearance_radius,
+                                       line_of_sight, los_listed, net_origin, reflections)
 from couplers.sensing.perception import effect_rng
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
 MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
 SKY_BLOCK = 64  # steps whose sky terms are computed at once (SatelliteErrorProcess._sky_step)
+_NO_CANDIDATES = (np.empty((0, 2), dtype=np.int64), (np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+                                                     np.empty(0)))
 
 
 def klobuchar_obliquity(el: np.ndarray) -> np.ndarray:
@@ -312,6 +320,33 @@ def _carried_multipath(rows, prev, a, u_prev, z):
     return u
 
 
+@njit(cache=True)
+def _spread(x, cols, s):
+    """(N, s) zeros with column cols[j] set to x[:, j] (``draws = "visible"``: the draws of the satellites above the
+    mask in their columns)."""
+    out = np.zeros((x.shape[0], s))
+    for i in range(x.shape[0]):
+        for j in range(cols.size):
+            out[i, cols[j]] = x[i, j]
+    return out
+
+
+@njit(cache=True)
+def _carried_multipath_visible(rows, prev, a, u_prev, z, cols, above_prev):
+    """``draws = "visible"``: u (N, S), zero off the columns ``cols`` (the satellites above the mask), z[:, j] in
+    column cols[j], and for the rows ``rows`` carried from ``u_prev[prev]`` where the satellite was above the mask
+    the step before (``above_prev``): a u_prev + sqrt(1 - a^2) z, as :func:`_carried_multipath`."""
+    u = _spread(z, cols, u_prev.shape[1])
+    for r in range(rows.size):
+        i, q, ar = rows[r], prev[r], a[r]
+        b = np.sqrt(1.0 - ar * ar)
+        for j in range(cols.size):
+            k = cols[j]
+            if above_prev[k]:
+                u[i, k] = ar * u_prev[q, k] + b * z[i, j]
+    return u
+
+
 def wls_gains(los: np.ndarray, used: np.ndarray, var: np.ndarray) -> np.ndarray:
     """(N, 2, S) east/north rows of each receiver's WLS gain (H^T W H)^-1 H^T W over its satellites ``used``
     (N, S), H's rows (-e_s, 1) from ``los`` (S, 3), weights 1 / ``var`` (S,); zero columns for the other
@@ -442,6 +477,7 @@ class SatelliteErrorProcess:
         self._ids = np.empty(0, dtype=object)
         self._xy = np.empty((0, 2))
         self._u = np.empty((0, s))
+        self._above = np.zeros(s, dtype=bool)  # draws = "visible": the satellites above the mask at the last step
         self._fix = np.empty((0, 2))  # absolute x/y of each receiver's last fix (NaN: none yet)
         self.reported_cov = np.empty((0, 2, 2))
         self.last: dict[str, np.ndarray] = {}
@@ -451,6 +487,8 @@ class SatelliteErrorProcess:
         self._sky_next = 0  # the row expected next
         self._sky_k = SKY_BLOCK  # 1 once a time was off the block's grid
         self._sky_now: tuple = (None, {})  # (run time, _sky_step's terms) of the last call
+        # the last pseudorange_errors' antenna positions (their bits) and candidate buildings (CSR)
+        self._cands: tuple = _NO_CANDIDATES
 
     @property
     def posterior(self) -> bool:
@@ -511,13 +549,16 @@ class SatelliteErrorProcess:
                 "sig_doppler": p.doppler_noise_mps * np.sqrt(1.0 + 1.0 / sin_el),
                 "var_rr": p.rx_doppler_mps ** 2 * (1.0 + 1.0 / sin_el)}
 
-    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None):
+    def pseudorange_errors(self, t: float, xy: np.ndarray, u: np.ndarray, white: np.ndarray, rate: list | None = None,
+                           prev: np.ndarray | None = None):
         """(eps (N, S), usable (N, S), los (S, 3), el (S,), blocked (N, S)) at run time ``t`` for the current
         common processes and the per-receiver draws. ``rate``: a list that receives, under ``nlos = "reflect"``,
         the (N, S, 2) range-rate coefficients of the received reflections (zero elsewhere). The values of
         :meth:`pseudorange_errors_reference` (tested): numpy's trigonometry on the same arrays, the line of sight
         and reflection kernels called directly, and the (N, S) sums and masks in one kernel
-        (:func:`_assemble`)."""
+        (:func:`_assemble`). The candidate buildings of each antenna are listed once for both kernels
+        (:func:`couplers.sensing.gnss_sky.building_candidates`); ``prev`` (N,): each antenna's row in the previous
+        call (-1: none), whose list an antenna at bitwise the same position takes over."""
         p = self.params
         sky = self._sky_step(t)
         los, el, above = sky["los"], sky["el"], sky["above"]
@@ -540,14 +581,18 @@ class SatelliteErrorProcess:
                 # as line_of_sight and reflections take them: sin / cos of the azimuths, tan / cos of the elevations
                 sa, ca, te = sky["sin_az"][cols], sky["cos_az"][cols], sky["tan_el"][cols]
                 grid = e.grid(self.radius, LOS_GRID_DIVISIONS)
-                b, d = _los_kernel(xy, *grid, float(self.radius), e.edges, e.start, e.boxes, e.heights, sa, ca, te,
-                                   float(p.antenna_height_m), True)
+                h_ant, bits = float(p.antenna_height_m), xy.view(np.int64)
+                pxy, cand = self._cands
+                rows = np.full(n, -1, dtype=np.int64) if prev is None else np.asarray(prev, dtype=np.int64)
+                cand = building_candidates(xy, rows, bits, pxy, *cand, *e.grid(self.radius), float(self.radius),
+                                           e.boxes, e.heights, h_ant)
+                self._cands = (bits.copy(), cand)  # a copy: the caller's positions may change in place
+                b, d = los_listed(xy, *cand, e.edges, e.start, e.boxes, e.heights, sa, ca, te, h_ant)
                 if mode >= 2:
                     cos_c = sky["cos_el"][cols]
                 if mode == 3:
-                    found, ex, g = reflect_kernel(xy, b, *e.grid(self.radius), float(self.radius), e.edges, e.start,
-                                                  e.boxes, e.heights, sa, ca, te, cos_c, float(p.antenna_height_m),
-                                                  facade_lines(e), *grid)
+                    found, ex, g = reflect_kernel(xy, b, *cand, float(self.radius), e.edges, e.start, e.boxes,
+                                                  e.heights, sa, ca, te, cos_c, h_ant, facade_lines(e), *grid)
         eps, usable, blocked, full = _assemble(common, sky["sig_n"], np.ascontiguousarray(white, dtype=np.float64),
                                                sky["mp"], np.ascontiguousarray(u, dtype=np.float64),
                                                above, cols, mode, b, d, cos_c, found, ex, g,
@@ -605,8 +650,15 @@ class SatelliteErrorProcess:
         b_sv = math.sqrt(1.0 - self.a_sv ** 2)
         self.sv = self.a_sv * self.sv + b_sv * self.sv_common.standard_normal((s, 2))
         self.tropo = self.a_sv * self.tropo + b_sv * float(self.sv_common.standard_normal())
-        white = self.code_noise.standard_normal((n, s))
-        z = self.multipath.standard_normal((n, s))
+        visible = p.draws == "visible"
+        if visible:  # the satellites above the mask only (module docstring, "Random streams")
+            above = self._sky_step(t)["above"]
+            cols = np.flatnonzero(above)
+            white = _spread(self.code_noise.standard_normal((n, cols.size)), cols, s)
+            z = self.multipath.standard_normal((n, cols.size))
+        else:
+            white = self.code_noise.standard_normal((n, s))
+            z = self.multipath.standard_normal((n, s))
         # multipath: correlated over the distance travelled this step
         carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
         fix_prev = np.full((n, 2), np.nan)
@@ -615,12 +667,15 @@ class SatelliteErrorProcess:
             prev = idx[rows]
             d = np.hypot(*(xy[rows] - self._xy[prev]).T)
             a = np.exp(-d / p.multipath_corr_length_m)
-            u = _carried_multipath(rows, prev, a, self._u, z)
+            u = (_carried_multipath_visible(rows, prev, a, self._u, z, cols, self._above) if visible
+                 else _carried_multipath(rows, prev, a, self._u, z))
             fix_prev[rows] = self._fix[prev]
         else:
-            u = z.copy()
+            u = _spread(z, cols, s) if visible else z.copy()
+        if visible:
+            self._above = above
         rate: list = []
-        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate)
+        eps, usable, los, el, blocked = self.pseudorange_errors(t, xy, u, white, rate, prev=idx)
         sky = self._sky_step(t)  # the terms pseudorange_errors took
         var_rx = sky["var_rx"]
         err, cov, used, excluded, ok, usedm = _wls_kernel(np.ascontiguousarray(los), usable, np.ascontiguousarray(eps),
@@ -652,7 +707,11 @@ class SatelliteErrorProcess:
         p = self.params
         los, el, usedm, rate, ok, sky = self._geom
         n, s = usedm.shape
-        w = self.doppler_noise.standard_normal((n, s))
+        if p.draws == "visible":  # the satellites above the mask only (module docstring, "Random streams")
+            cols = np.flatnonzero(sky["above"])
+            w = _spread(self.doppler_noise.standard_normal((n, cols.size)), cols, s)
+        else:
+            w = self.doppler_noise.standard_normal((n, s))
         sig = sky["sig_doppler"]  # doppler_noise_mps sqrt(1 + 1 / sin el), sin el floored at MIN_SIN_EL
         # sig w, plus a reflected signal's Doppler, the antenna image's: g . v (numpy's einsum differs from the
         # kernel's sum only in the sign of a zero, which the addition to sig w removes; tested)

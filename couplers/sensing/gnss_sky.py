@@ -33,6 +33,10 @@ the building is left at the first satellite whose ray its bounding box is alread
 (a box at distance b cannot block when b tan(el) + h_ant >= h, nor then at any higher elevation); a satellite whose
 horizontal ray misses the box (grown by :data:`BOX_MARGIN_M`) is skipped: no edge can be crossed. Blocked sets and
 distances are those of testing every satellite against every edge (``line_of_sight(..., box_test=False)``, tested).
+The receiver (:meth:`couplers.sensing.gnss_satellites.SatelliteErrorProcess.pseudorange_errors`) lists each
+antenna's candidate buildings once a step for the line of sight and the reflections (:func:`building_candidates`,
+:func:`los_listed`, the same results, tested); the list depends on the position alone, so a vehicle at bitwise the
+same position as at the last step takes its list over.
 """
 
 from __future__ import annotations
@@ -363,6 +367,102 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
     return blocked, dist
 
 
+@njit(cache=True)
+def building_candidates(xy, prev, bits, prev_bits, prev_start, prev_ids, prev_bd, x0, y0, cell, nx, ny, gstart, gids,
+                        radius, boxes, heights, h_ant):
+    """(start (N+1,), ids, box distances): every antenna's candidate buildings as CSR rows, the buildings taller
+    than the antenna whose box lies within ``radius`` (:func:`_candidates` on the grid ``x0 .. gids``, in its
+    order) and their :func:`_box_distance`. Both depend on the antenna's position alone. ``prev`` (N,): each
+    antenna's row among the previous call's antennas (-1: none), whose positions' bits are ``prev_bits`` and lists
+    ``prev_*``; ``bits``: the bits of ``xy`` (``xy.view(np.int64)``). An antenna whose x and y are bitwise those
+    of its previous row (a vehicle standing since the last step) takes that row's list: every row is the one
+    computed afresh (tested)."""
+    n, nb = xy.shape[0], heights.size
+    carry = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        q = prev[i]
+        if 0 <= q < prev_bits.shape[0] and bits[i, 0] == prev_bits[q, 0] and bits[i, 1] == prev_bits[q, 1]:
+            carry[i] = q
+    start = np.zeros(n + 1, dtype=np.int64)
+    ids = np.empty(max(64, 16 * n), dtype=np.int64)
+    bd = np.empty(ids.size)
+    seen = np.full(nb, -1, dtype=np.int64)
+    cand = np.empty(nb, dtype=np.int64)
+    for i in range(n):
+        q = carry[i]
+        if q >= 0:
+            a = prev_start[q]
+            m = prev_start[q + 1] - a
+        else:
+            m = _candidates(xy[i, 0], xy[i, 1], x0, y0, cell, nx, ny, gstart, gids, radius, boxes, heights, h_ant,
+                            seen, i, cand)
+        o = start[i]
+        if o + m > ids.size:  # grow by doubling
+            k = max(2 * ids.size, o + m)
+            ids2, bd2 = np.empty(k, dtype=np.int64), np.empty(k)
+            ids2[:o], bd2[:o] = ids[:o], bd[:o]
+            ids, bd = ids2, bd2
+        if q >= 0:
+            for j in range(m):
+                ids[o + j], bd[o + j] = prev_ids[a + j], prev_bd[a + j]
+        else:
+            for j in range(m):
+                b = cand[j]
+                ids[o + j], bd[o + j] = b, _box_distance(xy[i, 0], xy[i, 1], boxes[b])
+        start[i + 1] = o + m
+    return start, ids[:start[n]].copy(), bd[:start[n]].copy()
+
+
+@njit(cache=True)
+def los_listed(xy, cstart, cids, cbd, edges, estart, boxes, heights, de, dn, tan_el, h_ant):
+    """:func:`_los_kernel` with ``box_test`` over the candidate buildings of :func:`building_candidates` instead of
+    its own grid search: the same set of buildings (the same test), visited in another order, and a satellite's
+    result is an "or" (blocked) and a minimum (distance) over the buildings, which the order does not change
+    (tested equal)."""
+    n, s = xy.shape[0], de.size
+    blocked = np.zeros((n, s), dtype=np.bool_)
+    dist = np.full((n, s), np.inf)
+    order = np.argsort(tan_el)
+    for i in range(n):
+        px, py = xy[i, 0], xy[i, 1]
+        for q in range(cstart[i], cstart[i + 1]):
+            b = cids[q]
+            hb = heights[b]
+            bd = cbd[q]
+            bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
+            bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
+            for kk in range(s):
+                k = order[kk]
+                if tan_el[k] <= 0.0:
+                    continue  # under the horizon (not used)
+                if bd * tan_el[k] + h_ant >= hb:
+                    break  # the box is already cleared at this elevation, and at every higher one
+                dx, dy = de[k], dn[k]
+                if not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+                    continue
+                crossings = 0
+                tmin = np.inf
+                for e in range(estart[b], estart[b + 1]):
+                    ax, ay = edges[e, 0] - px, edges[e, 1] - py
+                    ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+                    den = dx * ey - dy * ex
+                    if den == 0.0:
+                        continue
+                    t = (ax * ey - ay * ex) / den
+                    u = (ax * dy - ay * dx) / den
+                    if t >= 0.0 and 0.0 <= u < 1.0:
+                        crossings += 1
+                        if t < tmin:
+                            tmin = t
+                if crossings == 0:
+                    continue
+                if crossings % 2 == 1 or tmin * tan_el[k] + h_ant < hb:
+                    blocked[i, k] = True
+                    if tmin < dist[i, k]:
+                        dist[i, k] = tmin
+    return blocked, dist
+
+
 #: Cells per clearance radius of the line-of-sight grid (speed only: a finer grid lists fewer buildings outside
 #: a vehicle's disc; the buildings' results are combined by "or" and "min", whatever their order).
 LOS_GRID_DIVISIONS = 4
@@ -430,7 +530,12 @@ def reflections(edges: BuildingEdges, xy: np.ndarray, az: np.ndarray, el: np.nda
         return _reflect_kernel_reference(*args)
     from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
 
-    return reflect_kernel(*args, facade_lines(edges), *edges.grid(radius, LOS_GRID_DIVISIONS))
+    none = np.full(n, -1, dtype=np.int64)
+    no_bits = np.empty((0, 2), dtype=np.int64)
+    cand = building_candidates(xy, none, no_bits, no_bits, none[:1] * 0, none[:0], np.empty(0), x0, y0, cell, nx, ny,
+                               start, ids, float(radius), edges.boxes, edges.heights, float(antenna_height_m))
+    return reflect_kernel(args[0], args[1], *cand, *args[9:], facade_lines(edges),
+                          *edges.grid(radius, LOS_GRID_DIVISIONS))
 
 
 @njit(cache=True)

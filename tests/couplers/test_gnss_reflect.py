@@ -140,3 +140,114 @@ def test_receiver_kernels_equal_the_numpy_expressions_they_replaced():
         assert _range_rate_errors(sig, w, np.zeros((0, s, 2)), v).tobytes() == (sig[None, :] * w).tobytes()
         want = sig[None, :] * w + np.einsum("nsk,nk->ns", rate, v)
         assert _range_rate_errors(sig, w, rate, v).tobytes() == want.tobytes()
+
+
+def _fresh_candidates(edges, xy, r, h_ant):
+    from couplers.sensing.gnss_sky import building_candidates
+
+    none = np.full(len(xy), -1, dtype=np.int64)
+    no_bits = np.empty((0, 2), dtype=np.int64)
+    return building_candidates(xy, none, xy.view(np.int64), no_bits, np.zeros(1, dtype=np.int64), none[:0],
+                               np.empty(0), *edges.grid(r), float(r), edges.boxes, edges.heights, h_ant)
+
+
+def test_listed_line_of_sight_equals_the_grid_kernel():
+    """los_listed over building_candidates' lists (the coarse grid's buildings in its order) against the
+    line-of-sight kernel's own fine-grid search: blocked sets and distances bit for bit (an "or" and a minimum
+    over the same buildings), on random scenes, the shared-wall canyon and antennas on cell borders."""
+    from couplers.sensing.gnss_sky import los_listed
+
+    rng = np.random.default_rng(31)
+    scenes = [BuildingEdges.build(_random_scene(rng, 40)) for _ in range(5)]
+    scenes.append(BuildingEdges.build(_shared_wall_canyon()))
+    blocked_total = 0
+    for edges in scenes:
+        r = clearance_radius(edges.heights, 1.5, 10.0)
+        xy = np.c_[rng.uniform(-150, 150, 60), rng.uniform(-100, 100, 60)]
+        xy[:4] = edges.grid(r)[:2]  # on the grid's origin and cell corners
+        xy[4:8] = np.asarray(edges.grid(r)[:2]) + edges.grid(r)[2]
+        az = np.concatenate([rng.uniform(-np.pi, np.pi, 30), [0.0, np.pi / 2, np.pi, -np.pi / 2]])
+        el = np.radians(rng.uniform(5, 85, az.size))
+        want = line_of_sight(edges, xy, az, el, 1.5, r)
+        got = los_listed(xy, *_fresh_candidates(edges, xy, r, 1.5), edges.edges, edges.start, edges.boxes,
+                         edges.heights, np.sin(az), np.cos(az), np.tan(el), 1.5)
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        blocked_total += int(want[0].sum())
+    assert blocked_total > 0
+
+
+def test_candidates_carried_for_standing_vehicles_equal_fresh_ones():
+    """building_candidates with the previous step's lists: a vehicle that stops, moves, stops again (and one
+    that moves by the last bit of x only, and rows whose previous row is another vehicle's) gets exactly the
+    lists computed afresh; only a bitwise-equal position is carried."""
+    from couplers.sensing.gnss_sky import building_candidates
+
+    edges = BuildingEdges.build(_shared_wall_canyon())
+    r = clearance_radius(edges.heights, 1.5, 10.0)
+    rng = np.random.default_rng(5)
+    xy = np.c_[rng.uniform(-190, 190, 6), rng.uniform(-7, 7, 6)]
+    moves = [(0, 0, 1, 1, 0, 0, 1), (0, 1, 1, 0, 0, 1, 1)]  # per step: vehicles 0 and 1 stand (0) or move (1)
+    prev_bits, prev = np.empty((0, 2), dtype=np.int64), (np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+                                                          np.empty(0))
+    carried = 0
+    for step in range(len(moves[0])):
+        xy = xy.copy()
+        for v in (0, 1):
+            if moves[v][step]:
+                xy[v, 0] += 7.5
+        xy[2, 0] = np.nextafter(xy[2, 0], np.inf)  # moves by one ulp: not carried
+        xy[3:] += 0.5
+        rows = np.arange(6, dtype=np.int64) if step else np.full(6, -1, dtype=np.int64)
+        if step % 3 == 2:
+            rows = rows[::-1].copy()  # the previous rows of other vehicles: positions differ, nothing carried
+        got = building_candidates(xy, rows, xy.view(np.int64), prev_bits, *prev, *edges.grid(r), float(r),
+                                  edges.boxes, edges.heights, 1.5)
+        want = _fresh_candidates(edges, xy, r, 1.5)
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        # the same call with every previous list replaced by building 0 at distance -1: exactly the rows whose
+        # position is bitwise their previous row's take it
+        m = prev[0].size - 1
+        poison = (np.arange(m + 1, dtype=np.int64), np.zeros(m, dtype=np.int64), np.full(m, -1.0))
+        marked = building_candidates(xy, rows, xy.view(np.int64), prev_bits, *poison, *edges.grid(r), float(r),
+                                     edges.boxes, edges.heights, 1.5)
+        same = np.array([0 <= q < len(prev_bits) and (xy.view(np.int64)[i] == prev_bits[q]).all()
+                         for i, q in enumerate(rows)], dtype=bool)
+        for i in range(6):
+            row = marked[2][marked[0][i]:marked[0][i + 1]]
+            assert (row.tolist() == [-1.0]) == bool(same[i])
+        carried += int(same.sum())
+        prev_bits, prev = xy.view(np.int64).copy(), got
+    assert carried == 4 and np.diff(want[0]).min() > 0  # every antenna has candidates in the canyon
+
+
+def test_the_receiver_with_its_carried_candidates_equals_one_without():
+    """SatelliteErrorProcess.step with the candidate buildings carried for standing vehicles against the same
+    process made to list every antenna's buildings afresh each step: fixes, reported covariances and Doppler
+    velocities bit for bit, vehicles stopping, moving, stopping, entering and leaving."""
+    from couplers.sensing.gnss_error import GnssErrorParams
+    from couplers.sensing import gnss_satellites as gs
+
+    params = GnssErrorParams(model="satellites", nlos="reflect", velocity="doppler", reported_covariance="residual")
+    carry = gs.SatelliteErrorProcess(params, 4, 0.75, _shared_wall_canyon())
+    fresh = gs.SatelliteErrorProcess(params, 4, 0.75, _shared_wall_canyon())
+    rng = np.random.default_rng(9)
+    n = 30
+    ids = np.array([f"v{i}" for i in range(n)], dtype=object)
+    xy = np.c_[rng.uniform(-190, 190, n), rng.uniform(-7, 7, n)]
+    stand = rng.random(n) < 0.5
+    for k in range(12):
+        if k % 4 == 0:
+            stand = rng.random(n) < 0.5
+        xy = xy + np.where(stand[:, None], 0.0, [0.6, 0.0])
+        keep = np.ones(n, dtype=bool)
+        keep[(k * 3) % n] = False  # one vehicle missing this step (leaves, comes back as entered)
+        fresh._cands = gs._NO_CANDIDATES
+        entered = np.full(int(keep.sum()), k == 0)
+        a = carry.step(k * 0.75, ids[keep], entered, None, None, None, xy[keep])
+        b = fresh.step(k * 0.75, ids[keep], entered, None, None, None, xy[keep])
+        assert a.tobytes() == b.tobytes() and carry.reported_cov.tobytes() == fresh.reported_cov.tobytes()
+        v = np.tile([0.6 / 0.75, 0.0], (int(keep.sum()), 1))
+        for x, y in zip(carry.velocity_error(v), fresh.velocity_error(v)):
+            assert x.tobytes() == y.tobytes()

@@ -606,3 +606,85 @@ def test_oracle_channel_gain_gives_the_fix_error_exactly():
         reflected += int(ch.reflected.sum())
         assert (ch.used.sum(axis=1) == on.last["used"]).all()
     assert excluded > 0 and reflected > 0
+
+
+class _Spy:
+    """A Generator's draws, recorded (shapes and values) as they are made."""
+
+    def __init__(self, rng):
+        self.rng, self.calls = rng, []
+
+    def standard_normal(self, size=None):
+        out = self.rng.standard_normal(size)
+        self.calls.append(np.array(out, copy=True))
+        return out
+
+
+def test_visible_draws_take_n_by_m_normals_for_the_satellites_above_the_mask():
+    """``draws = "visible"``: the code noise, multipath and Doppler streams give (N, M) normals a step, M the
+    satellites above the mask, in those satellites' columns (zeros elsewhere); a standing vehicle keeps its
+    multipath for a satellite that stays above the mask and starts from its fresh draw for one that rises; the
+    common-mode and no-fix streams are those of ``draws = "all"``; same seed same bytes, another seed differs."""
+    from couplers.sensing.perception import effect_rng
+    from couplers.sensing.gnss_satellites import GNSS_ERROR_STREAM_TAG
+
+    params = dict(**SAT, nlos="reflect", velocity="doppler")
+    vis = SatelliteErrorProcess(GnssErrorParams(**params, draws="visible"), 5, 0.75, _canyon())
+    every = SatelliteErrorProcess(GnssErrorParams(**params), 5, 0.75, _canyon())
+    for name in ("code_noise", "multipath", "doppler_noise"):
+        setattr(vis, name, _Spy(getattr(vis, name)))
+    n = 20
+    xy = np.c_[np.linspace(-250, 100, n), np.zeros(n)]
+    moving = np.arange(n) % 2 == 0
+    seen_rise = kept = 0
+    u_prev = above_prev = None
+    for k in range(8):
+        t = 1500.0 * k  # 25 min a step: satellites rise and set
+        pos = xy + np.where(moving[:, None], [3.0 * k, 0.0], 0.0)
+        e = vis.step(t, _ids(n), np.full(n, k == 0), None, None, None, pos)
+        every.step(t, _ids(n), np.full(n, k == 0), None, None, None, pos)
+        vis.velocity_error(np.zeros((n, 2)))
+        every.velocity_error(np.zeros((n, 2)))
+        above = vis._sky_step(t)["above"]
+        cols = np.flatnonzero(above)
+        for name in ("code_noise", "multipath", "doppler_noise"):
+            assert getattr(vis, name).calls[-1].shape == (n, cols.size)
+        z = vis.multipath.calls[-1]
+        assert not vis._u[:, ~above].any() and e.shape == (n, 2) and np.isfinite(e).all()
+        if k:  # standing vehicles (odd rows): carried where the satellite stays above, the fresh draw where it rose
+            stay, rose = above & above_prev, above & ~above_prev
+            still = ~moving
+            np.testing.assert_array_equal(vis._u[still][:, stay], u_prev[still][:, stay])
+            np.testing.assert_array_equal(vis._u[:, rose], z[:, np.searchsorted(cols, np.flatnonzero(rose))])
+            seen_rise += int(rose.sum())
+            kept += int(stay.sum())
+        else:
+            np.testing.assert_array_equal(vis._u[:, cols], z)
+        u_prev, above_prev = vis._u.copy(), above.copy()
+    assert seen_rise > 0 and kept > 0
+    # the draws are each stream's own sequence, in order
+    for name in ("code_noise", "multipath", "doppler_noise"):
+        ref = effect_rng(5, GNSS_ERROR_STREAM_TAG, name)
+        for got in getattr(vis, name).calls:
+            assert ref.standard_normal(got.shape).tobytes() == got.tobytes()
+    # the common-mode processes and the other streams are untouched by the setting
+    assert vis.sv.tobytes() == every.sv.tobytes() and vis.tropo == every.tropo
+    for name in ("sv_common", "no_fix"):
+        assert getattr(vis, name).bit_generator.state == getattr(every, name).bit_generator.state
+
+    def run(seed):
+        proc = SatelliteErrorProcess(GnssErrorParams(**params, draws="visible"), seed, 0.75, _canyon())
+        out = b""
+        for k in range(6):
+            out += proc.step(0.75 * k, _ids(n), np.full(n, k == 0), None, None, None, xy + [0.5 * k, 0]).tobytes()
+            out += proc.reported_cov.tobytes() + proc.velocity_error(np.tile([0.6, 0.0], (n, 1)))[0].tobytes()
+        return out
+
+    assert run(3) == run(3) and run(3) != run(4)
+
+
+def test_unknown_draws_are_refused():
+    for bad in ("some", "", 1, None):
+        with pytest.raises(InputError) as exc:
+            GnssErrorParams(**SAT, draws=bad)
+        assert exc.value.field == "draws"

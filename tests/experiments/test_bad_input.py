@@ -586,6 +586,12 @@ def run_gnss_satellites_unknown_reported_covariance(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_error.draws", "visible")
+def run_gnss_satellites_unknown_draws(tmp, net, run):
+    cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\ndraws = 'some'\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_error.rx_doppler_mps")
 def run_gnss_satellites_zero_doppler_budget(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_error]\nmodel = 'satellites'\nvelocity = 'doppler'\nrx_doppler_mps = 0.0\n")
