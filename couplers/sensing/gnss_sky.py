@@ -298,6 +298,28 @@ def _box_distance(px, py, box):
 
 
 @njit(cache=True)
+def _edge_crossings(px, py, dx, dy, edges, e0, e1):
+    """How many of the edges ``e0:e1`` (one building's footprint) the horizontal ray from (px, py) along the unit
+    vector (dx, dy) crosses, and the distance along the ray of the nearest crossing (inf without one); an edge's end
+    point counts once (u in [0, 1))."""
+    crossings = 0
+    tmin = np.inf
+    for e in range(e0, e1):
+        ax, ay = edges[e, 0] - px, edges[e, 1] - py
+        ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
+        den = dx * ey - dy * ex  # cross(dir, edge)
+        if den == 0.0:
+            continue  # parallel
+        t = (ax * ey - ay * ex) / den  # distance along the ray
+        u = (ax * dy - ay * dx) / den  # fraction along the edge
+        if t >= 0.0 and 0.0 <= u < 1.0:
+            crossings += 1
+            if t < tmin:
+                tmin = t
+    return crossings, tmin
+
+
+@njit(cache=True)
 def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, boxes, heights, de, dn, tan_el,
                 h_ant, box_test):
     """Every (vehicle, candidate building, satellite) (module docstring). Per (vehicle, building) the satellites
@@ -340,20 +362,7 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                         dx, dy = de[k], dn[k]
                         if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
                             continue  # no edge of the footprint can be crossed: every crossing lies in the box
-                        crossings = 0
-                        tmin = np.inf
-                        for e in range(estart[b], estart[b + 1]):
-                            ax, ay = edges[e, 0] - px, edges[e, 1] - py
-                            ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
-                            den = dx * ey - dy * ex  # cross(dir, edge)
-                            if den == 0.0:
-                                continue  # parallel
-                            t = (ax * ey - ay * ex) / den  # distance along the ray
-                            u = (ax * dy - ay * dx) / den  # fraction along the edge
-                            if t >= 0.0 and 0.0 <= u < 1.0:
-                                crossings += 1
-                                if t < tmin:
-                                    tmin = t
+                        crossings, tmin = _edge_crossings(px, py, dx, dy, edges, estart[b], estart[b + 1])
                         if crossings == 0:
                             continue
                         if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
@@ -440,20 +449,7 @@ def los_listed(xy, cstart, cids, cbd, edges, estart, boxes, heights, de, dn, tan
                 dx, dy = de[k], dn[k]
                 if not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
                     continue
-                crossings = 0
-                tmin = np.inf
-                for e in range(estart[b], estart[b + 1]):
-                    ax, ay = edges[e, 0] - px, edges[e, 1] - py
-                    ex, ey = edges[e, 2] - edges[e, 0], edges[e, 3] - edges[e, 1]
-                    den = dx * ey - dy * ex
-                    if den == 0.0:
-                        continue
-                    t = (ax * ey - ay * ex) / den
-                    u = (ax * dy - ay * dx) / den
-                    if t >= 0.0 and 0.0 <= u < 1.0:
-                        crossings += 1
-                        if t < tmin:
-                            tmin = t
+                crossings, tmin = _edge_crossings(px, py, dx, dy, edges, estart[b], estart[b + 1])
                 if crossings == 0:
                     continue
                 if crossings % 2 == 1 or tmin * tan_el[k] + h_ant < hb:
