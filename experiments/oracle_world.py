@@ -71,9 +71,10 @@ def oracle_world(cfg):
         return OracleWorld(**imu, **fix_world(cfg))
     if ge.model == "satellites":
         return OracleWorld(**imu, **satellite_world(cfg))
-    if ge.model not in GNSS_WORLDS:
+    models = tuple(m for m in GNSS_WORLDS[1:] if m != "fix")  # "fix": the satellite world told at fix level
+    if ge.model not in models:
         raise InputError(cfg.path, "gnss_error.model",
-                         f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
+                         f"joint_oracle knows the models {', '.join(models)} only, got {ge.model!r}")
     field = ge.model == "field"
     omega = None
     if field and ge.field_share > 0:
