@@ -16,7 +16,7 @@ NO_UNIT = "1"
 
 #: What each table is for (one paragraph under its heading).
 TABLE_DOCS: dict[str, str] = {
-    "joint_oracle": "Optional: the settings of the `joint_oracle` reference (docs/validation/oracle.md). Absent: as "
+    "oracle": "Optional: the settings of the `joint_oracle` reference (docs/validation/oracle.md). Absent: as "
                     "`gnss_channel = \"receiver\"`.",
     "analysis": "Optional: how a run is scored. summary.json, the reports' CDFs and the sweeps' tables "
                 "leave out the estimates with t < `scenario.begin_s` + `warmup_s` (the net fills from empty); "
@@ -161,7 +161,7 @@ _SCENARIO_COMMON: dict[str, tuple[str, str]] = {
 #: (unit, meaning) of every key the loader accepts, per table. Unit NO_UNIT for a
 #: dimensionless number, "" for strings, booleans and lists of names.
 KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
-    "joint_oracle": {
+    "oracle": {
         "gnss_channel": ("", "What the oracle sees of the receivers under `[gnss_error] model = \"satellites\"`: "
                              "`receiver` (each receiver's WLS gain over the satellites, the satellites it used and "
                              "which came by reflection; the satellites' shared errors as states) or `fix` (only the "

@@ -17,35 +17,36 @@ from coloc.methods.registry import JOINT_ORACLE
 from couplers.errors import InputError
 
 
-#: [joint_oracle] gnss_channel: what the oracle sees of the receivers in the satellite world
+#: [oracle] gnss_channel: what the oracle sees of the receivers in the satellite world
 GNSS_CHANNELS = ("receiver", "fix")
 
 
 @dataclass(frozen=True)
-class JointOracleSection:
-    """[joint_oracle], optional: the oracle's own settings. ``gnss_channel`` (``[gnss_error] model = "satellites"``):
+class OracleSection:
+    """[oracle], optional: the oracle's own settings. ``gnss_channel`` (``[gnss_error] model = "satellites"``):
     "receiver" (each receiver's WLS gain, satellites and reflections, ``Frame.oracle_gnss``) or "fix" (the fixes
     and their reports only, as every method; told the world's fix-level error structure, :func:`fix_world`)."""
 
     gnss_channel: str = "receiver"
 
 
-def validate_joint_oracle(cfg) -> None:
+def validate_oracle(cfg) -> None:
     """A known ``gnss_channel``; "fix" only in the satellite world."""
-    jo = getattr(cfg, "joint_oracle", None)
+    jo = getattr(cfg, "oracle", None)
     if jo is None:
         return
     if jo.gnss_channel not in GNSS_CHANNELS:
-        raise InputError(cfg.path, "joint_oracle.gnss_channel",
+        raise InputError(cfg.path, "oracle.gnss_channel",
                          f"unknown value {jo.gnss_channel!r} (available: {', '.join(GNSS_CHANNELS)})")
     ge = cfg.gnss_error
     if jo.gnss_channel == "fix" and (ge is None or ge.model != "satellites"):
-        raise InputError(cfg.path, "joint_oracle.gnss_channel",
-                         '"fix" needs [gnss_error] model = "satellites" (the other worlds are told at fix level already)')
+        raise InputError(cfg.path, "oracle.gnss_channel",
+                         '"fix" needs [gnss_error] model = "satellites" (the other worlds are told at fix level '
+                         'already)')
 
 
 def _fix_channel(cfg) -> bool:
-    jo = getattr(cfg, "joint_oracle", None)
+    jo = getattr(cfg, "oracle", None)
     return jo is not None and jo.gnss_channel == "fix"
 
 
@@ -126,7 +127,7 @@ def satellite_world(cfg) -> dict:
                 nlos_rate_share=NLOS_RATE_SHARE if reflect else 0.0)
 
 
-#: The fix-level world ([joint_oracle] gnss_channel = "fix"), measured with tools/fix_error_stats.py on the realistic
+#: The fix-level world ([oracle] gnss_channel = "fix"), measured with tools/fix_error_stats.py on the realistic
 #: TLR preset's tuning seed 101, 600-900 s (docs/validation/oracle.md, "Seventh round"), unless said otherwise.
 #: The common error c_t (per step, the mean raw fix error over the zone-A vehicles): its per-axis RMS over the
 #: thirty tuning seeds 101-130, 600-900 s (docs/validation/consistency.md, "The receiver's report calibrated");
@@ -152,7 +153,7 @@ FIX_VELOCITY_SCALE = 1.35
 
 
 def fix_world(cfg) -> dict:
-    """The OracleWorld keys of ``[joint_oracle] gnss_channel = "fix"`` in the satellite world: the fix-level error
+    """The OracleWorld keys of ``[oracle] gnss_channel = "fix"`` in the satellite world: the fix-level error
     structure (:data:`FIX_COMMON_SIGMA_M` ..), the common error's correlation time the satellites' (sv_tau_s), the
     NLOS gate on (the world reflects signals)."""
     ge = cfg.gnss_error

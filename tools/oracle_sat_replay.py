@@ -7,7 +7,7 @@ builds them and scored by zone from ``--from`` seconds after the first frame to 
     python tools/oracle_sat_replay.py CONFIG FRAMES.pkl --from 600 --to 660 [--methods ...] [--set key=value]
         [--oracle-start SECONDS] [--nlos-stats] [--out OUT.json] [--seed-json OUT.json] [--estimates OUT.parquet]
 
-``--fix-oracle`` adds the fix-level oracle (``[joint_oracle] gnss_channel = "fix"``: the fixes and their reports only,
+``--fix-oracle`` adds the fix-level oracle (``[oracle] gnss_channel = "fix"``: the fixes and their reports only,
 the world's fix-level error structure; docs/validation/oracle.md, "Seventh round") as the column
 ``joint_oracle_fix``; ``--set-fix key=value`` overrides its OracleWorld keys. Without ``joint_oracle`` among
 ``--methods`` the frames are replayed as recorded (no second receiver process: the fix-level oracle does not need
@@ -161,11 +161,11 @@ def main() -> None:
     cfg = replace(cfg, run=replace(cfg.run, methods=tuple(args.methods.split(",")) if args.methods else ()))
     names = list(cfg.run.methods)
     ests = build_estimators(cfg) if names else []
-    if args.fix_oracle:  # the fix-level oracle, built as `coloc run` builds it with [joint_oracle] gnss_channel = "fix"
-        from experiments.oracle_world import JointOracleSection
+    if args.fix_oracle:  # the fix-level oracle, built as `coloc run` builds it with [oracle] gnss_channel = "fix"
+        from experiments.oracle_world import OracleSection
 
         fix_cfg = replace(cfg, run=replace(cfg.run, methods=(JOINT_ORACLE.name,)),
-                          joint_oracle=JointOracleSection(gnss_channel="fix"))
+                          oracle=OracleSection(gnss_channel="fix"))
         fix_est = build_estimators(fix_cfg)[0]
         for kv in args.set_fix:
             k, v = kv.split("=", 1)

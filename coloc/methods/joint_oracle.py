@@ -94,7 +94,7 @@ c + v_i, Var(v_i) = K_i diag(code noise + a reflected signal's extra-path varian
 paths' mean (:func:`_satellite_information`; no NLOS gate: the reflected signals are told). Velocity: v_i +
 K_v,i (Doppler noise + a reflected signal's path rate).
 
-Fix-level satellite world (``gnss = "fix"``, ``[joint_oracle] gnss_channel = "fix"``): no ``oracle_gnss``; the oracle
+Fix-level satellite world (``gnss = "fix"``, ``[oracle] gnss_channel = "fix"``): no ``oracle_gnss``; the oracle
 sees the fixes, their reported covariance and velocity as every method does and is told the world's fix-level error
 structure (:class:`OracleWorld`, "fix"): z_i = p_i + l_i + sigma_c c + n, c one unit 2-D common state, l_i + n the
 local error in metres (covariance C_i: the report calibrated; n its white share ``fix_noise_share``, l_i the rest,

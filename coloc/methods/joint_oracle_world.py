@@ -123,7 +123,7 @@ class OracleWorld:
     nlos_rate_share: float = 0.0
     # the multipath part of each fix as a per-vehicle state correlated over the distance travelled (False: white)
     multipath_state: bool = True
-    # "fix" (the satellite world told at fix level, [joint_oracle] gnss_channel = "fix"; docs/validation/oracle.md,
+    # "fix" (the satellite world told at fix level, [oracle] gnss_channel = "fix"; docs/validation/oracle.md,
     # "Seventh round"): the oracle sees what every method sees (the fix, its reported covariance, the velocity) and
     # is told the world's error structure at fix level, z_i = p_i + fix_common_sigma_m c + l_i + n: c a unit 2-D
     # Gauss-Markov state shared by every receiver (common_tau_s), l_i + n the receiver's local error in metres of

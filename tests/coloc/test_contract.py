@@ -58,7 +58,7 @@ ORACLE_HEADING = replace(ORACLE_WORLD, gyro_turn_on_sigma=0.5, gyro_bias_sigma=0
                          gyro_noise_density=0.01944, heading_state=True)
 # ``joint_oracle+heading+gate``: the heading state with the linearization gate (heading_row_max_std_deg)
 ORACLE_HEADING_GATE = replace(ORACLE_HEADING, heading_row_max_std_deg=2.0)
-# ``joint_oracle+fix``: the satellite world told at fix level ([joint_oracle] gnss_channel = "fix"), every term on
+# ``joint_oracle+fix``: the satellite world told at fix level ([oracle] gnss_channel = "fix"), every term on
 ORACLE_FIX = OracleWorld(gnss="fix", fix_common_sigma_m=1.11, fix_local_above_m=2.0, fix_local_scale=2.0,
                          fix_local_below_scale=0.6, fix_noise_share=0.17, local_corr_length_m=35.0, tau_s=300.0,
                          common_tau_s=1800.0, fix_velocity_scale=1.35, nlos=True, accel_turn_on_sigma=0.196,

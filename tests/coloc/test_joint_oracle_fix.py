@@ -1,4 +1,4 @@
-"""``joint_oracle`` told the satellite world at fix level (``OracleWorld(gnss="fix")``, ``[joint_oracle] gnss_channel
+"""``joint_oracle`` told the satellite world at fix level (``OracleWorld(gnss="fix")``, ``[oracle] gnss_channel
 = "fix"``): z_i = p_i + l_i + sigma_c c + n with l_i in metres (stationary covariance the calibrated report less the
 common part) and c one unit common state.
 

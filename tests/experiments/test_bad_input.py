@@ -1465,21 +1465,21 @@ def run_warmup_start_unknown(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("cfg.toml", "joint_oracle.gnss_channel", "unknown value", "receiver")
+@case("cfg.toml", "oracle.gnss_channel", "unknown value", "receiver")
 def run_joint_oracle_channel_unknown(tmp, net, run):
-    cfg = _config(tmp, net, "[joint_oracle]\ngnss_channel = \"pseudoranges\"\n")
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = \"pseudoranges\"\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("cfg.toml", "joint_oracle.gnss_channel", "satellites")
+@case("cfg.toml", "oracle.gnss_channel", "satellites")
 def run_joint_oracle_fix_channel_without_satellites(tmp, net, run):
-    cfg = _config(tmp, net, "[joint_oracle]\ngnss_channel = \"fix\"\n")
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = \"fix\"\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
-@case("cfg.toml", "joint_oracle.gnss_channel", "expected")
+@case("cfg.toml", "oracle.gnss_channel", "expected")
 def run_joint_oracle_channel_not_a_string(tmp, net, run):
-    cfg = _config(tmp, net, "[joint_oracle]\ngnss_channel = 3\n")
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = 3\n")
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 

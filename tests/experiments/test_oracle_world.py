@@ -121,14 +121,14 @@ def _with_oracle_table(tmp_path, channel: str | None):
     text = (f'extends = "{(ROOT / "experiments" / "arterial_tlr_realistic.toml").resolve()}"\n'
             '[run]\nmethods = ["gnss", "joint_oracle"]\n')
     if channel is not None:
-        text += f'[joint_oracle]\ngnss_channel = "{channel}"\n'
+        text += f'[oracle]\ngnss_channel = "{channel}"\n'
     path = tmp_path / f"cfg_{channel}.toml"
     path.write_text(text)
     return load_config(path)
 
 
 def test_fix_channel_tells_the_fix_level_world_and_leaves_the_frames_alone(tmp_path):
-    """[joint_oracle] gnss_channel = "fix": the fix-level world (one common state, the local error sized by the
+    """[oracle] gnss_channel = "fix": the fix-level world (one common state, the local error sized by the
     calibrated report, the gate on, the satellites' correlation time) and the frames of a run without the oracle
     (no channel); "receiver" is the table's absence (the oracle as before, byte for byte)."""
     from experiments.oracle_world import FIX_COMMON_SIGMA_M, FIX_LOCAL_SCALE, oracle_sensors
