@@ -1,7 +1,7 @@
 """The tables of docs/validation/oracle.md from the per-seed JSONs of ``tools/oracle_sat_replay.py --seed-json``:
 per seed and zone RMSE / p95 (m), mean NEES, inside the 95 % ellipse for each method; the average over seeds of the
 mean NEES (ANEES) and of the share inside; and a method's share of a reference's gain over ``gnss``,
-(gnss - X) / (gnss - reference), RMSE and p95, per seed and from the means over the seeds.
+(gnss - X) / (gnss - reference), RMSE and p95, per seed and from the means over the seeds (n.d. where the reference gains less than 0.05 m).
 
     python tools/oracle_shares.py tlr_11.json tlr_12.json ... [--method icp_da_lc] [--reference joint_oracle_fix]
 
@@ -25,9 +25,13 @@ from coloc.methods.registry import GNSS, ICP_DA_LC, JOINT_ORACLE  # noqa: E402
 ZONES = ("A", "B", "C", "all")
 
 
+#: below this gain of the reference over gnss (m) a share is not defined (n.d.): the tables print 0.01 m
+MIN_GAIN_M = 0.05
+
+
 def share(g: float, x: float, ref: float) -> float | None:
-    """(g - x) / (g - ref); None where the reference gains nothing over g."""
-    return (g - x) / (g - ref) if g - ref > 1e-9 else None
+    """(g - x) / (g - ref); None where the reference gains less than :data:`MIN_GAIN_M` over g."""
+    return (g - x) / (g - ref) if g - ref >= MIN_GAIN_M else None
 
 
 def _pct(v: float | None) -> str:
