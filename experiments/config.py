@@ -76,6 +76,7 @@ from couplers.sensing.v2x import V2xParams
 from experiments.config_extends import KEY as EXTENDS
 from experiments.config_extends import chain_text, origin_of, resolve_extends
 from experiments.ranges import check_ranges_of
+from experiments.oracle_world import OracleSection, validate_oracle
 from experiments.warmup_start import validate_warmup_start
 
 SCENARIO_KINDS = ("sumo", "single_road", "crossroad")
@@ -244,6 +245,8 @@ class Config:
     fusion: FusionParams | None = None
     # [analysis], optional: the scoring warm-up (experiments.scoring.scored_from).
     analysis: AnalysisSection | None = None
+    # [oracle], optional: the oracle's own settings (experiments.oracle_world).
+    oracle: OracleSection | None = None
     # (dotted field or table name, comment) pairs written into the saved config:
     # where a derived value comes from.
     notes: tuple[tuple[str, str], ...] = ()
@@ -282,7 +285,7 @@ OPTIONAL_SECTIONS: dict[str, type] = {"infra": InfraSection, "perception": Perce
                                       "inertial": InertialParams, "features": FeaturesParams,
                                       "estimator_sensors": EstimatorSensors,
                                       "gnss_model": GnssModelParams, "fusion": FusionParams,
-                                      "analysis": AnalysisSection}
+                                      "analysis": AnalysisSection, "oracle": OracleSection}
 #: Optional tables of the coupler (realistic sensing, realistic V2X), carried to it inside
 #: [sensors].
 SENSING_SECTIONS = ("perception", "gnss_error", "v2x", "inertial", "features")
@@ -443,6 +446,7 @@ def _validate(cfg: Config) -> None:
             raise InputError(p, "scenario.reference_point", f"unknown value {cfg.scenario.reference_point!r} "
                              f"(available: {', '.join(REFERENCE_POINTS)})")
     validate_warmup_start(cfg)
+    validate_oracle(cfg)
     _validate_pedestrians(cfg)
     _validate_infra(cfg)
     if cfg.gnss_error is not None and cfg.gnss_error.model == "satellites" and cfg.scenario.kind == "sumo":

@@ -16,6 +16,8 @@ NO_UNIT = "1"
 
 #: What each table is for (one paragraph under its heading).
 TABLE_DOCS: dict[str, str] = {
+    "oracle": "Optional: the settings of the `joint_oracle` reference (docs/validation/oracle.md). Absent: as "
+                    "`gnss_channel = \"receiver\"`.",
     "analysis": "Optional: how a run is scored. summary.json, the reports' CDFs and the sweeps' tables "
                 "leave out the estimates with t < `scenario.begin_s` + `warmup_s` (the net fills from empty); "
                 "estimates.parquet keeps every row, so the statistics can be recomputed. summary.json "
@@ -159,6 +161,16 @@ _SCENARIO_COMMON: dict[str, tuple[str, str]] = {
 #: (unit, meaning) of every key the loader accepts, per table. Unit NO_UNIT for a
 #: dimensionless number, "" for strings, booleans and lists of names.
 KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
+    "oracle": {
+        "gnss_channel": ("", "What the oracle sees of the receivers under `[gnss_error] model = \"satellites\"`: "
+                             "`receiver` (each receiver's WLS gain over the satellites, the satellites it used and "
+                             "which came by reflection; the satellites' shared errors as states) or `fix` (only the "
+                             "fixes, their reported covariance and velocity, as every other method; told the "
+                             "world's fix-level error structure measured on tuning seeds: one common-mode error "
+                             "shared by every receiver, a local error per vehicle sized by the calibrated report; "
+                             "the frames are then those of a run without the oracle). `fix` in the satellite "
+                             "world only."),
+    },
     "analysis": {
         "warmup_s": ("s", "Scoring warm-up after the begin (0: score everything). The realistic arterial "
                           "presets use 600 s: the TLR net holds about 150 vehicles from minute 6 on "

@@ -10,10 +10,44 @@ from __future__ import annotations
 import gzip
 import math
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 
 from coloc.methods.registry import JOINT_ORACLE
 from couplers.errors import InputError
+
+
+#: [oracle] gnss_channel: what the oracle sees of the receivers in the satellite world
+GNSS_CHANNELS = ("receiver", "fix")
+
+
+@dataclass(frozen=True)
+class OracleSection:
+    """[oracle], optional: the oracle's own settings. ``gnss_channel`` (``[gnss_error] model = "satellites"``):
+    "receiver" (each receiver's WLS gain, satellites and reflections, ``Frame.oracle_gnss``) or "fix" (the fixes
+    and their reports only, as every method; told the world's fix-level error structure, :func:`fix_world`)."""
+
+    gnss_channel: str = "receiver"
+
+
+def validate_oracle(cfg) -> None:
+    """A known ``gnss_channel``; "fix" only in the satellite world."""
+    jo = getattr(cfg, "oracle", None)
+    if jo is None:
+        return
+    if jo.gnss_channel not in GNSS_CHANNELS:
+        raise InputError(cfg.path, "oracle.gnss_channel",
+                         f"unknown value {jo.gnss_channel!r} (available: {', '.join(GNSS_CHANNELS)})")
+    ge = cfg.gnss_error
+    if jo.gnss_channel == "fix" and (ge is None or ge.model != "satellites"):
+        raise InputError(cfg.path, "oracle.gnss_channel",
+                         '"fix" needs [gnss_error] model = "satellites" (the other worlds are told at fix level '
+                         'already)')
+
+
+def _fix_channel(cfg) -> bool:
+    jo = getattr(cfg, "oracle", None)
+    return jo is not None and jo.gnss_channel == "fix"
 
 
 def oracle_world(cfg):
@@ -34,11 +68,14 @@ def oracle_world(cfg):
     ge = cfg.gnss_error
     if ge is None:
         return OracleWorld(**imu)
+    if ge.model == "satellites" and _fix_channel(cfg):
+        return OracleWorld(**imu, **fix_world(cfg))
     if ge.model == "satellites":
         return OracleWorld(**imu, **satellite_world(cfg))
-    if ge.model not in GNSS_WORLDS:
+    models = tuple(m for m in GNSS_WORLDS[1:] if m != "fix")  # "fix": the satellite world told at fix level
+    if ge.model not in models:
         raise InputError(cfg.path, "gnss_error.model",
-                         f"joint_oracle knows the models {', '.join(GNSS_WORLDS[1:])} only, got {ge.model!r}")
+                         f"joint_oracle knows the models {', '.join(models)} only, got {ge.model!r}")
     field = ge.model == "field"
     omega = None
     if field and ge.field_share > 0:
@@ -90,12 +127,52 @@ def satellite_world(cfg) -> dict:
                 nlos_rate_share=NLOS_RATE_SHARE if reflect else 0.0)
 
 
+#: The fix-level world ([oracle] gnss_channel = "fix"), measured with tools/fix_error_stats.py on the realistic
+#: TLR preset's tuning seed 101, 600-900 s (docs/validation/oracle.md, "Seventh round"), unless said otherwise.
+#: The common error c_t (per step, the mean raw fix error over the zone-A vehicles): its per-axis RMS over the
+#: thirty tuning seeds 101-130, 600-900 s (docs/validation/consistency.md, "The receiver's report calibrated");
+#: its correlation time is the satellites' (sv_tau_s, copied from [gnss_error]: seed 101's c_t keeps 0.94 of its
+#: correlation over 60 s and 0.91 over 150 s, exp(-150 / 1800) = 0.92).
+FIX_COMMON_SIGMA_M = 1.11
+#: The local error (the fix's error less c_t) against the report's per-axis std: 0.53-0.65 of it up to 2 m (the
+#: report includes the common part), 2.0-2.1 times it from 2 to 6 m, 1.2-1.4 above (reflected signals absorbed).
+FIX_LOCAL_ABOVE_M = 2.0
+FIX_LOCAL_BELOW_SCALE = 0.6
+FIX_LOCAL_SCALE = 2.0
+FIX_LOCAL_COMMON_M2 = 0.0
+FIX_LOCAL_FLOOR_M = 0.3
+#: the local error's correlation between fixes of one vehicle: 0.83 at the same place (0.76 after 30 s standing),
+#: 0.67 after 5-10 m, 0.53 after 10-20 m, 0.33 after 20-50 m: a white share 0.17 and 0.83 exp(-d / 35 m), the
+#: standing decay exp(-t / 340 s)
+FIX_LOCAL_WHITE_SHARE = 0.17
+FIX_LOCAL_CORR_LENGTH_M = 35.0
+FIX_LOCAL_TAU_S = 300.0
+#: the velocity's mean NEES against the reported block: 1.8 up to a reported position std of 3 m, 3.4-4.9 above
+#: (1.8x the variance: 1.35^2); its correlation between steps of a moving vehicle is below 0.06 (white)
+FIX_VELOCITY_SCALE = 1.35
+
+
+def fix_world(cfg) -> dict:
+    """The OracleWorld keys of ``[oracle] gnss_channel = "fix"`` in the satellite world: the fix-level error
+    structure (:data:`FIX_COMMON_SIGMA_M` ..), the common error's correlation time the satellites' (sv_tau_s), the
+    NLOS gate on (the world reflects signals)."""
+    ge = cfg.gnss_error
+    return dict(gnss="fix", common_tau_s=ge.sv_tau_s, fix_common_sigma_m=FIX_COMMON_SIGMA_M,
+                fix_local_above_m=FIX_LOCAL_ABOVE_M, fix_local_scale=FIX_LOCAL_SCALE,
+                fix_local_below_scale=FIX_LOCAL_BELOW_SCALE, fix_noise_share=FIX_LOCAL_WHITE_SHARE,
+                fix_local_common_m2=FIX_LOCAL_COMMON_M2, fix_local_floor_m=FIX_LOCAL_FLOOR_M,
+                local_corr_length_m=FIX_LOCAL_CORR_LENGTH_M, tau_s=FIX_LOCAL_TAU_S,
+                fix_velocity_scale=FIX_VELOCITY_SCALE, nlos=ge.nlos in ("delay", "reflect"))
+
+
 def oracle_sensors(cfg):
     """``cfg.sensors`` with ``[gnss_error] oracle_channel`` on for a run whose methods include ``joint_oracle`` under
     ``model = "satellites"`` (the frames then carry :class:`coloc.core.frame.OracleGnss`, what the oracle is told of
     the receivers); else ``cfg.sensors`` unchanged (frames byte-identical)."""
     ge = getattr(cfg.sensors, "gnss_error", None)
     if ge is None or ge.model != "satellites" or JOINT_ORACLE.name not in cfg.run.methods or ge.oracle_channel:
+        return cfg.sensors
+    if _fix_channel(cfg):  # the fix-level oracle sees what every method sees: frames byte-identical
         return cfg.sensors
     from dataclasses import replace
 

@@ -7,14 +7,18 @@ builds them and scored by zone from ``--from`` seconds after the first frame to 
     python tools/oracle_sat_replay.py CONFIG FRAMES.pkl --from 600 --to 660 [--methods ...] [--set key=value]
         [--oracle-start SECONDS] [--nlos-stats] [--out OUT.json] [--seed-json OUT.json] [--estimates OUT.parquet]
 
-``--set`` overrides an OracleWorld key (e.g. ``multipath_state=false``, ``nlos_d_std_m=20``). ``--nlos-stats``:
+``--fix-oracle`` adds the fix-level oracle (``[oracle] gnss_channel = "fix"``: the fixes and their reports only,
+the world's fix-level error structure; docs/validation/oracle.md, "Seventh round") as the column
+``joint_oracle_fix``; ``--set-fix key=value`` overrides its OracleWorld keys. Without ``joint_oracle`` among
+``--methods`` the frames are replayed as recorded (no second receiver process: the fix-level oracle does not need
+the channel). ``--set`` overrides an OracleWorld key (e.g. ``multipath_state=false``, ``nlos_d_std_m=20``). ``--nlos-stats``:
 the distribution of D = extra path / (2 cos el) and of the path rate / (2 cos el |v|) over the reflected signals
 of the fixes (what :data:`experiments.oracle_world.NLOS_D_MEAN_M` is measured from). Tuning seeds only.
 ``--oracle-start S`` (a cost saving, opt-in): ``joint_oracle`` sees the frames from S seconds after the first one
 only, and takes every vehicle on the road then as entering (prior: its fix of that step with the reported
 covariance, as ``[scenario] start = "gnss_fix"``); the other methods see every frame. ``--seed-json``: per method
 and zone rmse, p95, nees_mean, inside, n (the protocol's pairing format). ``--estimates``: the oracle's scored
-estimates (t, vehicle, x, y, cov_xx, cov_xy, cov_yy) as parquet. Not a test.
+estimates (method, t, vehicle, x, y, cov_xx, cov_xy, cov_yy) as parquet. Not a test.
 """
 
 from __future__ import annotations
@@ -40,9 +44,10 @@ from tools.frame_recording import read_frames  # noqa: E402
 from tools.gnss_model_replay import INSIDE_95, parse_value  # noqa: E402
 
 ZONES = ("A", "B", "C", "all")
+FIX_ORACLE = f"{JOINT_ORACLE.name}_fix"  # the fix-level oracle's column
 
 
-def channel_frames(cfg, path: Path, stats: dict | None = None):
+def channel_frames(cfg, path: Path, stats: dict | None = None, channel: bool = True):
     """The recorded frames with ``oracle_gnss`` from a second receiver process over their truth."""
     ge = replace(cfg.sensors.gnss_error, oracle_channel=True)
     net = load_net_folder(cfg.net_dir)
@@ -57,6 +62,10 @@ def channel_frames(cfg, path: Path, stats: dict | None = None):
             return found, ex, g
 
         gs.reflect_kernel = spy
+    if not channel:  # the frames as recorded
+        for fr in read_frames(path):
+            yield fr, None
+        return
     for fr in read_frames(path):
         tr = fr.truth
         err = proc.step(fr.t, fr.vehicle_ids, fr.entered, None, None, None, tr.x_true[:, :2])
@@ -136,6 +145,8 @@ def main() -> None:
     ap.add_argument("--to", type=float, default=660.0)
     ap.add_argument("--methods", default=",".join(m.name for m in (GNSS, ICP_KNOWN_DA, ICP_DA_LC, JOINT_ORACLE)))
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--fix-oracle", action="store_true", help="add the fix-level oracle (column joint_oracle_fix)")
+    ap.add_argument("--set-fix", action="append", default=[], help="an OracleWorld key of the fix-level oracle")
     ap.add_argument("--nlos-stats", action="store_true")
     ap.add_argument("--nlos-known", action="store_true",
                     help="diagnostic (reads truth): the oracle's fixes less their reflected signals' true extra "
@@ -149,7 +160,19 @@ def main() -> None:
     cfg = load_config(args.config)
     cfg = replace(cfg, run=replace(cfg.run, methods=tuple(args.methods.split(",")) if args.methods else ()))
     names = list(cfg.run.methods)
-    ests = build_estimators(cfg)
+    ests = build_estimators(cfg) if names else []
+    if args.fix_oracle:  # the fix-level oracle, built as `coloc run` builds it with [oracle] gnss_channel = "fix"
+        from experiments.oracle_world import OracleSection
+
+        fix_cfg = replace(cfg, run=replace(cfg.run, methods=(JOINT_ORACLE.name,)),
+                          oracle=OracleSection(gnss_channel="fix"))
+        fix_est = build_estimators(fix_cfg)[0]
+        for kv in args.set_fix:
+            k, v = kv.split("=", 1)
+            fix_est.world = replace(fix_est.world, **{k: parse_value(v)})
+        print("fix-level oracle:", fix_est.world)
+        names.append(FIX_ORACLE)
+        ests.append(fix_est)
     for kv in args.set:
         k, v = kv.split("=", 1)
         for m, e in zip(names, ests):
@@ -165,8 +188,8 @@ def main() -> None:
     cpu = {m: 0.0 for m in names}
     steps, t0, nveh = 0, None, []
     oracle_on = False
-    rows = {k: [] for k in ("t", "vehicle", "x", "y", "cov_xx", "cov_xy", "cov_yy")}
-    for fr, nlos_part in channel_frames(cfg, args.frames, stats):
+    rows = {k: [] for k in ("method", "t", "vehicle", "x", "y", "cov_xx", "cov_xy", "cov_yy")}
+    for fr, nlos_part in channel_frames(cfg, args.frames, stats, channel=JOINT_ORACLE.name in cfg.run.methods):
         t0 = fr.t if t0 is None else t0
         if fr.t - t0 > args.to:
             break
@@ -192,7 +215,8 @@ def main() -> None:
                 oracle_on = True
             if not scored:
                 continue
-            if m == JOINT_ORACLE.name and args.estimates:
+            if m in (JOINT_ORACLE.name, FIX_ORACLE) and args.estimates:
+                rows["method"].append(np.full(fr.n_vehicles, m))
                 rows["t"].append(np.full(fr.n_vehicles, fr.t))
                 rows["vehicle"].append(np.asarray(fr.vehicle_ids).astype(str))
                 rows["x"].append(e.mean[:, 0])

@@ -94,6 +94,12 @@ c + v_i, Var(v_i) = K_i diag(code noise + a reflected signal's extra-path varian
 paths' mean (:func:`_satellite_information`; no NLOS gate: the reflected signals are told). Velocity: v_i +
 K_v,i (Doppler noise + a reflected signal's path rate).
 
+Fix-level satellite world (``gnss = "fix"``, ``[oracle] gnss_channel = "fix"``): no ``oracle_gnss``; the oracle
+sees the fixes, their reported covariance and velocity as every method does and is told the world's fix-level error
+structure (:class:`OracleWorld`, "fix"): z_i = p_i + l_i + sigma_c c + n, c one unit 2-D common state, l_i + n the
+local error in metres (covariance C_i: the report calibrated; n its white share ``fix_noise_share``, l_i the rest,
+Gauss-Markov over the distance travelled and time), the NLOS gate as above.
+
 Features unseen for ``feature_keep_s`` are marginalized (dropped). Cost: two Cholesky inversions of the
 joint information and covariance (dimension (4 + 2 + 2) N + 4 K + 2 + 4 M with every option) per step, O(d^3);
 the rest O(d^2) (the fixes' information is dense over the field states: O(N d^2) with a small constant).
@@ -222,6 +228,11 @@ class JointOracle:
                 else np.zeros(ns)
             fv[:, 4, 4] = fv[:, 5, 5] = a_l
             qv[:, 4:6, 4:6] = (1.0 - a_l * a_l)[:, None, None] * _multipath_cov(w, frame)[surv]
+        elif w.gnss == "fix":  # the local error in metres, stationary covariance from this step's report
+            a_l = w.local_coefficient(np.hypot(xv[:, 2], xv[:, 3]) * dt, dt)
+            fv[:, 4, 4] = fv[:, 5, 5] = a_l
+            qv[:, 4:6, 4:6] = ((1.0 - a_l * a_l) * (1.0 - w.fix_noise_share))[:, None, None] * \
+                w.fix_local_cov(frame.gnss_R)[surv]
         elif w.correlated:
             a_l = w.local_coefficient(np.hypot(xv[:, 2], xv[:, 3]) * dt, dt)
             fv[:, 4, 4] = fv[:, 5, 5] = a_l
@@ -371,6 +382,10 @@ class JointOracle:
             if w.gnss == "satellites":  # the multipath state starts stationary
                 ind = _idx(vd * fr + 4, 2)
                 _scatter(lam, eta, ind, symmetrize(np.linalg.inv(_multipath_cov(w, frame)[fr])), np.zeros((fr.size, 2)))
+            elif w.gnss == "fix":  # the local error starts stationary
+                ind = _idx(vd * fr + 4, 2)
+                lc = (1.0 - w.fix_noise_share) * w.fix_local_cov(rg)[fr]
+                _scatter(lam, eta, ind, symmetrize(np.linalg.inv(lc)), np.zeros((fr.size, 2)))
             elif w.correlated:  # the local error state starts stationary
                 ind = _idx(vd * fr + 4, 2)
                 _scatter(lam, eta, ind, np.broadcast_to(np.eye(2), (fr.size, 2, 2)), np.zeros((fr.size, 2)))
@@ -511,7 +526,14 @@ class JointOracle:
         # sqrt(1 - f) with the exact field), sigma sqrt(s) I, sigma sqrt(1 - s) sqrt(f) dF/dcoef at the predicted
         # position (linearized: the field's gradient times the position error is left out).
         s = w.common_share if cd else 0.0
-        if w.correlated:
+        if w.gnss == "fix":  # z = p + l + sigma_c c + n (module docstring), l in metres
+            pcols = np.concatenate([vd * np.arange(n)[:, None] + np.array([0, 1, 4, 5]),
+                                    np.broadcast_to(c0 + np.arange(cd), (n, cd))], axis=1)
+            hp = np.zeros((n, 2, 6))
+            hp[:, :, :2] = hp[:, :, 2:4] = np.eye(2)
+            hp[:, :, 4:] = w.fix_common_sigma_m * np.eye(2)
+            rp = w.fix_noise_share * w.fix_local_cov(rg)
+        elif w.correlated:
             own = math.sqrt(1.0 - w.field_share) if fd else 1.0
             cols = [vd * np.arange(n)[:, None] + np.array([0, 1, 4, 5])]
             hp = np.zeros((n, 2, 4 + cd + fd))
@@ -568,7 +590,7 @@ class JointOracle:
             _scatter(lam, eta, pcols[take], hth, htz)
         # velocity rows: v + white noise with the reported block
         vcols = vd * np.arange(n)[:, None] + np.array([2, 3])
-        rv_inv = np.linalg.inv(rg[:, 2:, 2:])
+        rv_inv = np.linalg.inv(w.fix_velocity_cov(rg) if w.gnss == "fix" else rg[:, 2:, 2:])
         _scatter(lam, eta, vcols, symmetrize(rv_inv), np.einsum("nij,nj->ni", rv_inv, zg[:, 2:]))
         return excluded
 

@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = ["GNSS_WORLDS", "OracleWorld"]
 
-GNSS_WORLDS = ("white", "per_vehicle", "field", "satellites")
+GNSS_WORLDS = ("white", "per_vehicle", "field", "satellites", "fix")
 
 
 @dataclass(frozen=True)
@@ -123,6 +123,22 @@ class OracleWorld:
     nlos_rate_share: float = 0.0
     # the multipath part of each fix as a per-vehicle state correlated over the distance travelled (False: white)
     multipath_state: bool = True
+    # "fix" (the satellite world told at fix level, [oracle] gnss_channel = "fix"; docs/validation/oracle.md,
+    # "Seventh round"): the oracle sees what every method sees (the fix, its reported covariance, the velocity) and
+    # is told the world's error structure at fix level, z_i = p_i + fix_common_sigma_m c + l_i + n: c a unit 2-D
+    # Gauss-Markov state shared by every receiver (common_tau_s), l_i + n the receiver's local error in metres of
+    # covariance C_i: the report's position block times fix_local_scale^2 where the reported per-axis std exceeds
+    # fix_local_above_m, else times fix_local_below_scale^2, less fix_local_common_m2 I, floored at
+    # fix_local_floor_m^2 per axis (:meth:`fix_local_cov`); l_i (1 - fix_noise_share) C_i stationary, Gauss-Markov
+    # over the distance travelled (local_corr_length_m) and time (tau_s), n white fix_noise_share C_i. The
+    # velocity: the reported block times fix_velocity_scale^2 above the same threshold. NLOS: the innovation gate.
+    fix_common_sigma_m: float = 1.0
+    fix_local_above_m: float = math.inf
+    fix_local_scale: float = 1.0
+    fix_local_below_scale: float = 1.0
+    fix_local_common_m2: float = 0.0
+    fix_local_floor_m: float = 0.3
+    fix_velocity_scale: float = 1.0
 
     def __post_init__(self):
         if self.gnss not in GNSS_WORLDS:
@@ -164,6 +180,8 @@ class OracleWorld:
 
     @property
     def common_dim(self) -> int:
+        if self.gnss == "fix":
+            return 2
         return 2 if self.correlated and self.common_share > 0 else 0
 
     @property
@@ -215,6 +233,26 @@ class OracleWorld:
         if not self.multipath_state:
             white = white + mp
         return white, mp
+
+    def fix_local_cov(self, gnss_r: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) covariance C_i of each receiver's local error ("fix"): the reported position block, times
+        fix_local_scale^2 where its per-axis std exceeds fix_local_above_m (else fix_local_below_scale^2), less
+        fix_local_common_m2 I, its eigenvalues floored at fix_local_floor_m^2."""
+        r = np.asarray(gnss_r, dtype=float)[:, :2, :2]
+        std = np.sqrt(0.5 * (r[:, 0, 0] + r[:, 1, 1]))
+        k = np.where(std > self.fix_local_above_m, self.fix_local_scale ** 2, self.fix_local_below_scale ** 2)
+        cov = k[:, None, None] * r - self.fix_local_common_m2 * np.eye(2)
+        lam, vec = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+        lam = np.maximum(lam, self.fix_local_floor_m ** 2)
+        return np.einsum("nij,nj,nkj->nik", vec, lam, vec)
+
+    def fix_velocity_cov(self, gnss_r: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) the reported velocity block, times fix_velocity_scale^2 where the reported per-axis position
+        std exceeds fix_local_above_m ("fix")."""
+        r = np.asarray(gnss_r, dtype=float)
+        std = np.sqrt(0.5 * (r[:, 0, 0] + r[:, 1, 1]))
+        k = np.where(std > self.fix_local_above_m, self.fix_velocity_scale ** 2, 1.0)
+        return k[:, None, None] * r[:, 2:, 2:]
 
     def field_basis(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2, field_dim): d F(p_i) / d coefficients per axis, at the points ``xy`` (layout of the world's

@@ -47,7 +47,8 @@ RUNNABLE = ([m.name for m in METHODS.values() if m.runnable] + ["gnss+gnss_model
                                                                    "icp_da_lc+fusion+two_state+calibrated",
                                                                    "icp_known_da+fusion+two_state+calibrated",
                                                                    "joint_oracle+world", "joint_oracle+heading",
-                                                                   "joint_oracle+heading+gate"] + FUSED
+                                                                   "joint_oracle+heading+gate", "joint_oracle+fix"]
+            + FUSED
             + INFRA_VARIANTS)
 ORACLE_WORLD = OracleWorld(gnss="field", common_share=0.5, field_share=0.5, field_corr_length_m=50.0,
                            local_corr_length_m=20.0, nlos=True, accel_turn_on_sigma=0.196,
@@ -57,6 +58,11 @@ ORACLE_HEADING = replace(ORACLE_WORLD, gyro_turn_on_sigma=0.5, gyro_bias_sigma=0
                          gyro_noise_density=0.01944, heading_state=True)
 # ``joint_oracle+heading+gate``: the heading state with the linearization gate (heading_row_max_std_deg)
 ORACLE_HEADING_GATE = replace(ORACLE_HEADING, heading_row_max_std_deg=2.0)
+# ``joint_oracle+fix``: the satellite world told at fix level ([oracle] gnss_channel = "fix"), every term on
+ORACLE_FIX = OracleWorld(gnss="fix", fix_common_sigma_m=1.11, fix_local_above_m=2.0, fix_local_scale=2.0,
+                         fix_local_below_scale=0.6, fix_noise_share=0.17, local_corr_length_m=35.0, tau_s=300.0,
+                         common_tau_s=1800.0, fix_velocity_scale=1.35, nlos=True, accel_turn_on_sigma=0.196,
+                         accel_bias_sigma=0.0735, accel_noise_density=0.004)
 
 
 def _method(name: str):
@@ -85,7 +91,7 @@ def build(name: str):
         infra=InfraMethodParams(motion=motion, rsu_bp_particles=60),
         gnss_model=_receiver(name),
         oracle_world=ORACLE_WORLD if name.endswith("+world") else ORACLE_HEADING if name.endswith("+heading")
-        else ORACLE_HEADING_GATE if name.endswith("+heading+gate") else None,
+        else ORACLE_HEADING_GATE if name.endswith("+heading+gate") else ORACLE_FIX if name.endswith("+fix") else None,
         fusion=CoopFusion.from_config(FusionParams(), _receiver(name)) if "+fusion" in name else None,
     )
     est = build_method(method.name, params)
@@ -357,7 +363,7 @@ def _enter_from_fix(frame, k: int, first: bool):
 
 @pytest.mark.parametrize("name", [n for n in RUNNABLE
                                   if n not in ("joint_oracle+world", "joint_oracle+heading",
-                                               "joint_oracle+heading+gate")])
+                                               "joint_oracle+heading+gate", "joint_oracle+fix")])
 def test_first_belief_is_the_receiver_fix(name):
     """The entry protocol (start = "gnss_fix"): a vehicle whose prior is its receiver's fix of the step has,
     as its belief written at that step, the fix and the covariance the receiver reports (position part),

@@ -1471,6 +1471,24 @@ def run_warmup_start_unknown(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "oracle.gnss_channel", "unknown value", "receiver")
+def run_joint_oracle_channel_unknown(tmp, net, run):
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = \"pseudoranges\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "oracle.gnss_channel", "satellites")
+def run_joint_oracle_fix_channel_without_satellites(tmp, net, run):
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = \"fix\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "oracle.gnss_channel", "expected")
+def run_joint_oracle_channel_not_a_string(tmp, net, run):
+    cfg = _config(tmp, net, "[oracle]\ngnss_channel = 3\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "analysis.warmup_s", "leaves nothing to sense")
 def run_warmup_start_traffic_whole_run(tmp, net, run):
     cfg = _config(tmp, net, "[analysis]\nwarmup_s = 30.0\nwarmup_start = \"traffic\"\n")

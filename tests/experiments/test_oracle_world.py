@@ -115,3 +115,31 @@ def test_satellite_world_tells_the_receivers_structure_and_turns_the_channel_on(
     assert w.nlos_d_mean_m == NLOS_D_MEAN_M > 0 and not w.nlos  # no gate: the reflected signals are told
     assert w.tail_dim == w.satellite_dim and w.common_dim == w.field_dim == 0
     assert oracle_sensors(cfg).gnss_error.oracle_channel and not cfg.sensors.gnss_error.oracle_channel
+
+
+def _with_oracle_table(tmp_path, channel: str | None):
+    text = (f'extends = "{(ROOT / "experiments" / "arterial_tlr_realistic.toml").resolve()}"\n'
+            '[run]\nmethods = ["gnss", "joint_oracle"]\n')
+    if channel is not None:
+        text += f'[oracle]\ngnss_channel = "{channel}"\n'
+    path = tmp_path / f"cfg_{channel}.toml"
+    path.write_text(text)
+    return load_config(path)
+
+
+def test_fix_channel_tells_the_fix_level_world_and_leaves_the_frames_alone(tmp_path):
+    """[oracle] gnss_channel = "fix": the fix-level world (one common state, the local error sized by the
+    calibrated report, the gate on, the satellites' correlation time) and the frames of a run without the oracle
+    (no channel); "receiver" is the table's absence (the oracle as before, byte for byte)."""
+    from experiments.oracle_world import FIX_COMMON_SIGMA_M, FIX_LOCAL_SCALE, oracle_sensors
+
+    absent, receiver, fix = (_with_oracle_table(tmp_path, c) for c in (None, "receiver", "fix"))
+    assert oracle_world(absent) == oracle_world(receiver)
+    assert oracle_world(absent).field_omega == oracle_world(receiver).field_omega  # compare=False field
+    assert oracle_sensors(receiver).gnss_error.oracle_channel
+    w = oracle_world(fix)
+    assert (w.gnss, w.common_dim, w.satellite_dim, w.tail_dim) == ("fix", 2, 0, 2)
+    assert w.fix_common_sigma_m == FIX_COMMON_SIGMA_M and w.fix_local_scale == FIX_LOCAL_SCALE
+    assert w.common_tau_s == fix.gnss_error.sv_tau_s and w.nlos and w.gate_threshold < math.inf
+    assert w.vehicle_dim == oracle_world(receiver).vehicle_dim  # the same block layout: [p, v, l, bias]
+    assert oracle_sensors(fix) is fix.sensors and not fix.sensors.gnss_error.oracle_channel
