@@ -217,10 +217,10 @@ def test_batch_differs_when_the_model_does():
     assert np.abs(est.state.mean - mean).max() > 1e-3
 
 
-def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
-    """One run drawn from the oracle's own model (linear world, features static on average): frames,
-    associations and the final true vehicle states."""
-    vd = world.vehicle_dim
+def _scene_start(rng, n: int, k: int):
+    """The start of a drawn run: model (1)'s and model (2)'s matrices and driving-noise factors, the vehicles' true
+    states (20 m apart), their priors N(x, diag(4, 4, 0.25, 0.25)) and the features' true states. Returns (a4, b4,
+    lv, lf, prior_r, x, prior_z, feat)."""
     a4, b4 = transition_matrix(DT), input_matrix(DT)
     lv = _factor(driving_noise_cov(np.zeros((1, 2)), DT, MOTION)[0])
     lf = _factor(feature_track_q(np.zeros((1, 4)), DT, PARAMS)[0])
@@ -232,6 +232,14 @@ def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
     feat = np.zeros((k, 4))
     feat[:, :2] = rng.uniform(-30, 60, (k, 2))
     feat[:, 2:] = rng.normal(0, PARAMS.feature_velocity_prior_sigma, (k, 2))
+    return a4, b4, lv, lf, prior_r, x, prior_z, feat
+
+
+def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
+    """One run drawn from the oracle's own model (linear world, features static on average): frames,
+    associations and the final true vehicle states."""
+    vd = world.vehicle_dim
+    a4, b4, lv, lf, prior_r, x, prior_z, feat = _scene_start(rng, n, k)
     u = rng.standard_normal((n, 2))
     c = rng.standard_normal(2)
     s = world.common_share if world.common_dim else 0.0

@@ -21,10 +21,8 @@ import pytest
 from scipy.stats import chi2
 
 from coloc.core.frame import Frame
-from coloc.core.models import driving_noise_cov, input_matrix, transition_matrix
-from coloc.inference.feature_store import feature_track_q
 from coloc.methods.joint_oracle import JointOracle, OracleWorld
-from test_joint_oracle import DT, MOTION, PARAMS, _factor, _frame, _scenario
+from test_joint_oracle import DT, PARAMS, _frame, _scenario, _scene_start
 
 S = 0.4
 SIG = 3.0
@@ -88,17 +86,7 @@ def test_local_covariance_is_the_calibrated_report_less_the_common_part():
 
 def _simulate_fix(rng, world: OracleWorld, n=3, k=4, steps=25):
     """One run drawn from the fix model: frames, associations and the final true vehicle states."""
-    a4, b4 = transition_matrix(DT), input_matrix(DT)
-    lv = _factor(driving_noise_cov(np.zeros((1, 2)), DT, MOTION)[0])
-    lf = _factor(feature_track_q(np.zeros((1, 4)), DT, PARAMS)[0])
-    prior_r = np.tile(np.diag([4.0, 4.0, 0.25, 0.25]), (n, 1, 1))
-    x = np.zeros((n, 4))
-    x[:, 2:] = rng.normal(0, 3, (n, 2))
-    x[:, :2] = np.array([[20.0 * i, 0.0] for i in range(n)])
-    prior_z = x + np.einsum("nij,nj->ni", np.linalg.cholesky(prior_r), rng.standard_normal((n, 4)))
-    feat = np.zeros((k, 4))
-    feat[:, :2] = rng.uniform(-30, 60, (k, 2))
-    feat[:, 2:] = rng.normal(0, PARAMS.feature_velocity_prior_sigma, (k, 2))
+    a4, b4, lv, lf, prior_r, x, prior_z, feat = _scene_start(rng, n, k)
     c = rng.standard_normal(2)
     a_l = float(world.local_coefficient(np.zeros(1), DT)[0])
     a_c = math.exp(-DT / world.common_tau_s)
