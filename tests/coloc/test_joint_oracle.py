@@ -235,6 +235,21 @@ def _scene_start(rng, n: int, k: int):
     return a4, b4, lv, lf, prior_r, x, prior_z, feat
 
 
+def _drawn_rows(rng, x, feat, first: bool):
+    """One step's V2F rows of a drawn run: each (vehicle, feature) pair seen with probability 0.5 (vehicle 0 sees
+    every feature at the first step), noise std 0.3 m / 0.2 m/s. Returns (owner, assoc, rows, rows' covariance)."""
+    n, k = len(x), len(feat)
+    owner = np.repeat(np.arange(n), k)
+    assoc = np.tile(np.arange(k), n)
+    keep = rng.random(owner.size) < 0.5
+    if first:
+        keep[:k] = True
+    owner, assoc = owner[keep], assoc[keep]
+    rr = np.tile(np.diag([0.3, 0.3, 0.2, 0.2]) ** 2, (owner.size, 1, 1))
+    rows = feat[assoc] - x[owner] + rng.standard_normal((owner.size, 4)) * np.array([0.3, 0.3, 0.2, 0.2])
+    return owner, assoc, rows, rr
+
+
 def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
     """One run drawn from the oracle's own model (linear world, features static on average): frames,
     associations and the final true vehicle states."""
@@ -262,14 +277,7 @@ def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
         else:
             zg[:, :2] += sig[:, None] * rng.standard_normal((n, 2))
         zg[:, 2:] += vel_sig[:, None] * rng.standard_normal((n, 2))
-        owner = np.repeat(np.arange(n), k)
-        assoc = np.tile(np.arange(k), n)
-        keep = rng.random(owner.size) < 0.5
-        if step == 0:
-            keep[:k] = True
-        owner, assoc = owner[keep], assoc[keep]
-        rr = np.tile(np.diag([0.3, 0.3, 0.2, 0.2]) ** 2, (owner.size, 1, 1))
-        rows = feat[assoc] - x[owner] + rng.standard_normal((owner.size, 4)) * np.array([0.3, 0.3, 0.2, 0.2])
+        owner, assoc, rows, rr = _drawn_rows(rng, x, feat, first=step == 0)
         f = _frame(step * DT, n, rng, np.full(n, step == 0), sig, zg, vel_sig, owner, rows, rr,
                    prior_z if step == 0 else None, prior_r if step == 0 else None)
         f = Frame(**{**f.__dict__, "accel": accel})

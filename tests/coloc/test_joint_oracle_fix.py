@@ -22,7 +22,7 @@ from scipy.stats import chi2
 
 from coloc.core.frame import Frame
 from coloc.methods.joint_oracle import JointOracle, OracleWorld
-from test_joint_oracle import DT, PARAMS, _frame, _scenario, _scene_start
+from test_joint_oracle import DT, PARAMS, _drawn_rows, _frame, _scenario, _scene_start
 
 S = 0.4
 SIG = 3.0
@@ -113,14 +113,7 @@ def _simulate_fix(rng, world: OracleWorld, n=3, k=4, steps=25):
         zg[:, :2] += loc + world.fix_common_sigma_m * c[None, :] + white
         lvel = np.linalg.cholesky(world.fix_velocity_cov(f.gnss_R))
         zg[:, 2:] += np.einsum("nij,nj->ni", lvel, rng.standard_normal((n, 2)))
-        owner = np.repeat(np.arange(n), k)
-        assoc = np.tile(np.arange(k), n)
-        keep = rng.random(owner.size) < 0.5
-        if step == 0:
-            keep[:k] = True
-        owner, assoc = owner[keep], assoc[keep]
-        rr = np.tile(np.diag([0.3, 0.3, 0.2, 0.2]) ** 2, (owner.size, 1, 1))
-        rows = feat[assoc] - x[owner] + rng.standard_normal((owner.size, 4)) * np.array([0.3, 0.3, 0.2, 0.2])
+        owner, assoc, rows, rr = _drawn_rows(rng, x, feat, first=step == 0)
         f = Frame(**{**f.__dict__, "accel": accel, "gnss_z": zg, "v2f_z": rows, "v2f_owner": owner, "v2f_R": rr,
                      "prior_z": prior_z if step == 0 else f.prior_z,
                      "prior_R": prior_r if step == 0 else f.prior_R})
