@@ -285,6 +285,14 @@ def _simulate(rng, world: OracleWorld, n=3, k=4, steps=25):
     return out, x
 
 
+def _final_nees(est, frames, x_true) -> float:
+    """Vehicle 0's 2-D position NEES after ``est`` is stepped through a drawn run, told its association."""
+    for f, assoc in frames:
+        res = est.step_with_association(f, assoc)
+    e = res.mean[0, :2] - x_true[0, :2]
+    return float(e @ np.linalg.solve(res.cov[0, :2, :2], e))
+
+
 @pytest.mark.slow  # 100 runs per world: about a minute on the 2-core machine
 @pytest.mark.parametrize("world_name", ["white", "field"])
 def test_nees_inside_the_99_band_where_the_model_is_the_truth(world_name):
@@ -293,11 +301,7 @@ def test_nees_inside_the_99_band_where_the_model_is_the_truth(world_name):
     nees = []
     for seed in range(runs):
         frames, x_true = _simulate(np.random.default_rng(1000 + seed), world)
-        est = JointOracle(params=PARAMS, world=world)
-        for f, assoc in frames:
-            res = est.step_with_association(f, assoc)
-        e = res.mean[0, :2] - x_true[0, :2]
-        nees.append(float(e @ np.linalg.solve(res.cov[0, :2, :2], e)))
+        nees.append(_final_nees(JointOracle(params=PARAMS, world=world), frames, x_true))
     lo, hi = chi2.ppf([0.005, 0.995], 2 * runs) / runs
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
 

@@ -22,7 +22,7 @@ from scipy.stats import chi2
 
 from coloc.core.frame import Frame
 from coloc.methods.joint_oracle import JointOracle, OracleWorld
-from test_joint_oracle import DT, PARAMS, _drawn_rows, _frame, _scenario, _scene_start
+from test_joint_oracle import DT, PARAMS, _drawn_rows, _final_nees, _frame, _scenario, _scene_start
 
 S = 0.4
 SIG = 3.0
@@ -125,11 +125,7 @@ def _mean_nees(told: OracleWorld, runs: int) -> float:
     nees = []
     for seed in range(runs):
         frames, x_true = _simulate_fix(np.random.default_rng(2000 + seed), FIX)
-        est = JointOracle(params=PARAMS, world=told)
-        for f, assoc in frames:
-            res = est.step_with_association(f, assoc)
-        e = res.mean[0, :2] - x_true[0, :2]
-        nees.append(float(e @ np.linalg.solve(res.cov[0, :2, :2], e)))
+        nees.append(_final_nees(JointOracle(params=PARAMS, world=told), frames, x_true))
     return float(np.mean(nees))
 
 
