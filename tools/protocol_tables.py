@@ -10,7 +10,14 @@ samples inside the 95 % ellipse. Then the paired differences (same seed, same tr
 known DA - GNSS of RMSE and of p95, with their 95 % paired t intervals (experiments/sweep/paired.py), and
 the seeds a +-0.15 m half-width would need from the per-seed differences' standard deviation.
 
-    python tools/protocol_tables.py /work/proto_out/sweep/realistic_protocol > tables.md
+    python tools/protocol_tables.py /work/proto_out/sweep/realistic_protocol [--shared] > tables.md
+
+``--shared`` (reads every run's estimates.parquet from its scored start on): per cell also the share of the
+whitened errors' second moment that the samples of one step share (experiments/sweep/consistency.py,
+``shared_error_moments``, pooled over the seeds), the correlation time of that shared part (pooled over the
+seeds: the non-centred autocorrelation of the steps' mean whitened error at a lag of 240 s, tau = -240 / ln rho,
+infinite when rho >= 1) and the 95 % band of the mean share inside for a consistent estimator with those
+(``inside_share_band``; the scored window's length as the window).
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from coloc.methods import registry
-from experiments.sweep.consistency import anees_band
+from experiments.sweep.consistency import anees_band, inside_share_band, shared_error_moments, whitened_errors
 from experiments.sweep.paired import paired_ci
 
 GNSS, KNOWN, LC = (m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC))
@@ -69,6 +76,64 @@ def run_rows(folder: Path) -> pd.DataFrame:
             rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]),
                          "method": method, "zone": zone, **cell, "wall_s": as_float(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
+
+
+#: The lag of the shared part's correlation time (s): the largest that a 300 s window pairs for a fifth of it.
+TAU_LAG_S = 240.0
+
+
+def shared_rows(folder: Path) -> pd.DataFrame:
+    """One row per (arm, control, seed, method, zone) of every finished run: the shared fraction of the
+    whitened errors' shared and total moments (``shared_m``, ``total_m``), the scored window (``window_s``)
+    and, for the correlation time, the means of the steps' mean whitened error products at lag 0 (less the
+    mean's own sampling variance) and at ``TAU_LAG_S`` (``c0``, ``c1``)."""
+    rows = []
+    for summ in sorted((folder / "runs").glob("*/summary.json")):
+        m = _ID.match(summ.parent.name)
+        if m is None or not (summ.parent / "estimates.parquet").exists():
+            continue
+        t0 = float(json.loads(summ.read_text())["analysis"]["scored_from_s"])
+        est = pd.read_parquet(summ.parent / "estimates.parquet",
+                              columns=["method", "t", "zone", "px", "py", "px_true", "py_true", "var_px", "var_py",
+                                       "cov_pxy"])
+        est = est[est["t"] >= t0]
+        wx, wy = whitened_errors(est["px"] - est["px_true"], est["py"] - est["py_true"], est["var_px"],
+                                 est["var_py"], est["cov_pxy"])
+        est = est.assign(wx=wx, wy=wy, zone=est["zone"].astype(str))
+        window = float(est["t"].max() - t0) if len(est) else math.nan
+        for method, gm in est.groupby("method", sort=True):
+            for zone, g in [("all", gm), *gm.groupby("zone", sort=True)]:
+                grouped = g.groupby("t", sort=True)[["wx", "wy"]]
+                mean, var, n = grouped.mean(), grouped.var(ddof=1).sum(axis=1), grouped.count()["wx"]
+                # lag 0 without the step mean's own noise (its sample variance over n), as the lagged
+                # products have none: unbiased for |c|^2 (shared_error_moments)
+                c0 = ((mean.to_numpy() ** 2).sum(axis=1) - (var / n).to_numpy())[n.to_numpy() >= 2]
+                mean.index = np.round(mean.index.to_numpy(dtype=float), 6)
+                lagged = mean.set_index(np.round(mean.index.to_numpy() + TAU_LAG_S, 6)).add_suffix("_lag")
+                both = mean.join(lagged, how="inner")
+                rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]),
+                             "method": method, "zone": zone, "window_s": window,
+                             **dict(zip(("shared_m", "total_m"), shared_error_moments(g["t"], g["wx"], g["wy"]))),
+                             "c0": float(c0.mean()) if c0.size else math.nan,
+                             "c1": float((both[["wx", "wy"]].to_numpy() * both[["wx_lag", "wy_lag"]].to_numpy())
+                                         .sum(axis=1).mean()) if len(both) else math.nan})
+    return pd.DataFrame(rows)
+
+
+def shared_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per (control, zone, rule, method): the shared fraction pooled over the seeds (their shared moments over
+    their total, clipped to [0, 1]), the pooled correlation time (s) and the 95 % band of the mean share inside
+    for a consistent estimator over that many runs."""
+    out = []
+    for key, g in rows.groupby(["control", "zone", "rule", "method"], sort=True):
+        total = float(g["total_m"].sum())
+        f = np.full(len(g), min(1.0, max(0.0, float(g["shared_m"].sum()) / total))) if total > 0 else np.empty(0)
+        rho = float(g["c1"].mean() / g["c0"].mean()) if g["c0"].mean() > 0 else math.nan
+        tau = -TAU_LAG_S / math.log(rho) if 0 < rho < 1 else math.inf
+        lo, hi = inside_share_band(f, tau_s=tau, window_s=float(g["window_s"].median())) if f.size else (math.nan,) * 2
+        out.append(dict(zip(["control", "zone", "rule", "method"], key), shared=float(f.mean()) if f.size else math.nan,
+                        tau_s=tau, inside_lo=lo, inside_hi=hi))
+    return pd.DataFrame(out)
 
 
 def as_float(v) -> float:
@@ -129,8 +194,10 @@ def zone_order(z: str) -> tuple:
     return (z == "all", z)
 
 
-def markdown(rows: pd.DataFrame) -> str:
+def markdown(rows: pd.DataFrame, shared: pd.DataFrame | None = None) -> str:
     mt, pr = method_table(rows), paired_rows(rows)
+    if shared is not None and len(shared):
+        mt = mt.merge(shared, on=["control", "zone", "rule", "method"], how="left")
     lines = []
     for control in sorted(rows["control"].unique(), key=lambda c: (c != "tlr", c)):
         for rule in [r for r in ARMS if r in set(rows["rule"])]:
@@ -144,22 +211,31 @@ def markdown(rows: pd.DataFrame) -> str:
                       f"Mean over the seeds; ANEES = average NEES over the runs, chi-square band for {s} runs "
                       f"[{lo:.2f}, {hi:.2f}] (2 is consistent); inside = mean share of samples inside the 95 % "
                       "ellipse.", "",
-                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
-                      "|---|---|---|---|---|---|---|"]
+                      *(["Shared = share of the whitened errors' second moment common to the samples of a step; "
+                         "tau = its correlation time; band = the 95 % band of the mean share inside for a consistent "
+                         "estimator with that shared part over these runs.", ""] if "shared" in sub else []),
+                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |"
+                      + (" shared | tau (s) | band of inside |" if "shared" in sub else ""),
+                      "|---|---|---|---|---|---|---|" + ("---|---|---|" if "shared" in sub else "")]
             for zone in sorted(sub["zone"].unique(), key=zone_order):
                 for method in (GNSS, KNOWN, LC):
                     r = sub[(sub.zone == zone) & (sub.method == method)]
                     if not len(r):
                         continue
                     r = r.iloc[0]
-                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {short_number(r.anees)} | "
-                                 f"{'yes' if r.inside_band else 'no'} | {100 * r.inside_95:.1f} % |")
+                    line = (f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {short_number(r.anees)} | "
+                            f"{'yes' if r.inside_band else 'no'} | {100 * r.inside_95:.1f} % |")
+                    if "shared" in sub:
+                        tau = "inf" if not math.isfinite(r.tau_s) else f"{r.tau_s:.0f}"
+                        line += (f" {r.shared:.2f} | {tau} | [{100 * r.inside_lo:.1f}, {100 * r.inside_hi:.1f}] % |"
+                                 if math.isfinite(r.shared) else " - | - | - |")
+                    lines.append(line)
             lines += ["", "Paired differences over the seeds (same seed, same traffic), mean [95 % paired t "
                           "interval], seeds where the first is lower, SD of the per-seed differences and the "
                           "seeds a +-0.15 m half-width needs:", "",
                       "| zone | difference | RMSE (m) | lower on | SD | seeds for +-0.15 | p95 (m) | lower on | SD "
                       "| seeds for +-0.15 |", "|---|---|---|---|---|---|---|---|---|---|"]
-            ps = pr[(pr.control == control) & (pr.rule == rule)]
+            ps = pr[(pr.control == control) & (pr.rule == rule)] if len(pr) else pd.DataFrame(columns=["zone"])
             for zone in sorted(ps["zone"].unique(), key=zone_order):
                 for a, b in PAIRS:
                     cells = []
@@ -195,6 +271,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path, help="sweep folder of experiments/sweeps/realistic_protocol.toml")
     ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
+    ap.add_argument("--shared", action="store_true", help="also the shared error fraction and the band of the "
+                                                          "share inside (reads every run's estimates.parquet)")
     args = ap.parse_args(argv)
     rows = run_rows(args.folder)
     if not len(rows):
@@ -202,7 +280,7 @@ def main(argv=None) -> int:
         return 2
     if args.csv:
         rows.to_csv(args.csv, index=False)
-    print(markdown(rows))
+    print(markdown(rows, shared_table(shared_rows(args.folder)) if args.shared else None))
     return 0
 
 

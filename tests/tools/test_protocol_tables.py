@@ -12,7 +12,8 @@ import pytest
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
-from protocol_tables import markdown, method_table, paired_rows, run_rows, seeds_for_half_width  # noqa: E402
+from protocol_tables import (markdown, method_table, paired_rows, run_rows, seeds_for_half_width,  # noqa: E402
+                             shared_rows, shared_table)
 
 
 @pytest.mark.parametrize("sd", [0.05, 0.2, 0.37, 1.0, 2.5])
@@ -88,3 +89,43 @@ def test_a_sweep_without_the_fusion_arm_is_the_shipped_arm(tmp_path):
     rows = run_rows(tmp_path)
     assert set(zip(rows["rule"], rows["control"])) == {("split_ci", "vsr"), ("bp", "tlr")}
     assert set(rows["seed"]) == {12}
+
+
+def test_shared_columns_from_the_estimates(tmp_path):
+    """--shared: runs whose vehicles share a constant error of known size, whitened by a known covariance:
+    each run's shared moment is its drawn error's, the pooled fraction the moments' ratio, the correlation
+    time far longer than the run (the shared part does not change) and the band inside_share_band's for that fraction."""
+    import pandas as pd
+
+    from experiments.sweep.consistency import inside_share_band
+
+    rng = np.random.default_rng(3)
+    f, steps, n, sigma = 0.6, 400, 20, 2.0
+    drawn = {}
+    for seed in (11, 12):
+        c = drawn[seed] = rng.standard_normal(2) * math.sqrt(f) * sigma
+        t = np.repeat(600.0 + np.arange(steps), n)
+        e = c + rng.standard_normal((steps * n, 2)) * math.sqrt(1 - f) * sigma
+        est = pd.DataFrame({"method": "gnss", "t": t, "zone": "A", "px": e[:, 0], "py": e[:, 1], "px_true": 0.0,
+                            "py_true": 0.0, "var_px": sigma ** 2, "var_py": sigma ** 2, "cov_pxy": 0.0})
+        d = tmp_path / "runs" / f"control=tlr,seed={seed}"
+        d.mkdir(parents=True)
+        est.to_parquet(d / "estimates.parquet")
+        (d / "summary.json").write_text(json.dumps({**_summary({"gnss": 1.0}, {"gnss": 2.0}, {"gnss": 2.0},
+                                                               {"gnss": 0.95}), "analysis": {"scored_from_s": 600.0}}))
+    rows = shared_rows(tmp_path)
+    assert len(rows) == 4  # 2 runs x ("all", "A")
+    for _, r in rows.iterrows():
+        # per sample: |c|^2 / sigma^2 shared, about that plus 2 (1 - f) in all (400 steps: a few per cent)
+        want = float((drawn[r.seed] ** 2).sum()) / sigma ** 2
+        assert r.shared_m / (steps * n) == pytest.approx(want, abs=0.05), (r.seed, r.shared_m / (steps * n), want)
+        assert r.total_m / (steps * n) == pytest.approx(want + 2 * (1 - f), rel=0.05)
+    tab = shared_table(rows)
+    a = tab[tab.zone == "A"].iloc[0]
+    ra = rows[rows.zone == "A"]
+    pooled = ra["shared_m"].sum() / ra["total_m"].sum()
+    assert a.shared == pytest.approx(pooled)
+    assert a.tau_s > 20 * steps  # the shared part does not change: rho at the lag is 1 but for sampling noise
+    assert (a.inside_lo, a.inside_hi) == pytest.approx(inside_share_band([pooled, pooled]))
+    text = markdown(run_rows(tmp_path), tab)
+    assert "band of inside" in text and "| A | GNSS |" in text
