@@ -382,6 +382,14 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                       "the frame the feature evidence is taken in (coloc/methods/coop_fusion.py). "
                                       "False: the position marginal, whose covariance holds the common-mode "
                                       "variance. Default false."),
+        "belief_innovation_gate": (NO_UNIT, "The cooperative belief's fault exclusion of the receiver's fix: the "
+                                            "chi-square level (2 dof) of its gate on the position innovation, where "
+                                            "it differs from `[gnss_model] innovation_gate` (which the own-sensor "
+                                            "track and `gnss` keep). -1 (default): `[gnss_model]`'s."),
+        "belief_max_exclusions": (NO_UNIT, "The cooperative belief's longest run of excluded fixes before it takes "
+                                           "the next one, where it differs from `[gnss_model] max_exclusions`: the "
+                                           "belief has the landmarks' evidence, so it can ride out a longer run of "
+                                           "reflected fixes than a receiver alone. -1 (default): `[gnss_model]`'s."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

@@ -275,6 +275,10 @@ RANGES: dict[str, Range] = {
     "gnss_model.adaptive_window_s": Range(0.0, WEEK_S, "s", "a time constant of at most 7 days (0: off)"),
     "gnss_model.innovation_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would gate nothing",
                                         high_open=True),
+    "fusion.belief_innovation_gate": Range(-1.0, 1.0, NO_UNIT, "a probability level, or -1 for [gnss_model]'s",
+                                           high_open=True),
+    "fusion.belief_max_exclusions": Range(-1, 1_000_000, NO_UNIT, "consecutive excluded fixes, or -1 for "
+                                          "[gnss_model]'s"),
     "gnss_model.common_share": Range(0.0, 1.0, NO_UNIT, "a share of the reported variance", high_open=True),
     "gnss_model.common_tau_s": Range(0.0, WEEK_S, "s", "a correlation time of at most 7 days", low_open=True),
     "gnss_model.velocity_gate": Range(0.0, 1.0, NO_UNIT, "a probability level; 1 would test nothing",

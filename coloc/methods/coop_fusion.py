@@ -46,7 +46,7 @@ the V2F rows and the ``[gnss_model]`` / ``[fusion]`` values.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -98,10 +98,25 @@ class FusionParams:
     # taken (module docstring). False: the position marginal [p, v], whose covariance holds Var(c), so that
     # every feature is at least as uncertain as the common-mode error the features cannot see.
     common_frame_messages: bool = False
+    # The cooperative belief's own fault exclusion of the receiver's fix, where it differs from the own-sensor
+    # track's ([gnss_model] innovation_gate and max_exclusions, which the own track and the `gnss` benchmark
+    # keep): the belief is predicted from a step that had the landmarks' evidence, so a run of reflected fixes
+    # can be excluded for longer than a receiver alone may without losing the road (after max_exclusions the
+    # own track takes the next fix, its only way back). -1: [gnss_model]'s value.
+    belief_innovation_gate: float = -1.0
+    belief_max_exclusions: int = -1
 
     def __post_init__(self):
         if self.rule not in FUSION_RULES:
             raise ValueError(f"must be one of {', '.join(FUSION_RULES)}, got {self.rule!r}")
+        g = self.belief_innovation_gate
+        if not (isinstance(g, (int, float)) and not isinstance(g, bool) and (g == -1 or 0.0 <= g < 1.0)):
+            raise ValueError(f"must be in [0, 1) (the chi-square gate's level; 0: no exclusion) or -1 "
+                             f"([gnss_model]'s), got {g!r}")
+        k = self.belief_max_exclusions
+        if not (isinstance(k, int) and not isinstance(k, bool) and k >= -1):
+            raise ValueError(f"must be a non-negative integer (consecutive excluded fixes) or -1 ([gnss_model]'s), "
+                             f"got {k!r}")
 
 
 @dataclass(frozen=True)
@@ -118,6 +133,17 @@ class CoopFusion:
             return None
         model = gnss_model if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
         return CoopFusion(params, model)
+
+    @property
+    def belief_model(self) -> GnssModelParams:
+        """The receiver model of the cooperative belief's fix: ``model`` with ``[fusion]``'s belief gate and
+        exclusion run where they are set (the model itself where neither is)."""
+        p, changes = self.params, {}
+        if p.belief_innovation_gate != -1:
+            changes["innovation_gate"] = float(p.belief_innovation_gate)
+        if p.belief_max_exclusions != -1:
+            changes["max_exclusions"] = int(p.belief_max_exclusions)
+        return replace(self.model, **changes) if changes else self.model
 
 
 @dataclass(frozen=True)
@@ -310,11 +336,13 @@ def _common_part(r_pos: np.ndarray, model: GnssModelParams) -> np.ndarray:
 
 
 def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel: np.ndarray, motion: MotionParams,
-                model: GnssModelParams, common_mode: bool = False, common_frame_messages: bool = False) -> SplitPrior:
+                model: GnssModelParams, common_mode: bool = False, common_frame_messages: bool = False,
+                belief_model: GnssModelParams | None = None) -> SplitPrior:
     """Both filters carried to this frame (``match`` = ``match_ids(previous ids, frame.vehicle_ids)``),
     predicted with the input ``accel`` (frame order) and updated by the step's fix (``common_mode``:
     :attr:`FusionParams.common_mode_gnss`; ``common_frame_messages``: :attr:`FusionParams.common_frame_messages`).
-    The two-state model: 8-D filters (module docstring)."""
+    The two-state model: 8-D filters (module docstring). ``belief_model`` (:attr:`CoopFusion.belief_model`):
+    the cooperative belief's fault exclusion where it differs from ``model``'s; None: ``model``."""
     d = model.state_dim
     two = model.two_state
     state = state if state is not None else SplitState.empty(d)
@@ -370,7 +398,8 @@ def split_prior(state: SplitState | None, frame: Frame, match: np.ndarray, accel
     else:
         pi[fresh] = init_p[fresh]
     streak = _carry(state.streak, match, fresh, n, ())
-    m, p, pi, ex = step(m, p, pi, accel, z, r, keep, float(frame.dt), motion, model, streak, common_mode)
+    m, p, pi, ex = step(m, p, pi, accel, z, r, keep, float(frame.dt), motion,
+                        model if belief_model is None else belief_model, streak, common_mode)
     once = entry(m, p)
     # the receiver's fix, once: independent unless errors are shared (then only its common-mode-driven part)
     if common_mode:

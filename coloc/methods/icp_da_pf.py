@@ -316,7 +316,8 @@ def icp_da_pf_step(
         # sets drawn from their kinematic marginals, equally weighted; the association gates on b^(0)'s
         # consistent covariance, as ICP-DA-LC.
         split = split_prior(state.split, frame, idx, frame.accel if accel is None else accel, params.motion,
-                            fusion.model, fusion.params.common_mode_gnss, fusion.params.common_frame_messages)
+                            fusion.model, fusion.params.common_mode_gnss, fusion.params.common_frame_messages,
+                            belief_model=fusion.belief_model)
         v_mean, v_cov, own_mean, own_cov = split.marginal()
         particles, log_gnss = gaussian_sets(v_mean, v_cov, ents, step, pf.seed, "split_belief", jv)
         own, log_own = (gaussian_sets(own_mean, own_cov, ents, step, pf.seed, "split_own", jv) if latest

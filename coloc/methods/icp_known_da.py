@@ -126,7 +126,8 @@ def prior_pair(state: "IcpState", frame: Frame, params: IcpParams, match: np.nda
     if fusion is None:
         return (*vehicle_prior_pair(state, frame, params, match, accel), None)
     prior = split_prior(state.split, frame, match, frame.accel if accel is None else accel, params.motion,
-                        fusion.model, fusion.params.common_mode_gnss, fusion.params.common_frame_messages)
+                        fusion.model, fusion.params.common_mode_gnss, fusion.params.common_frame_messages,
+                        belief_model=fusion.belief_model)
     return (*prior.marginal(), prior)
 
 

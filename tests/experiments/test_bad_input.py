@@ -1381,6 +1381,18 @@ def run_fusion_feature_ci_not_bool(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "fusion.belief_max_exclusions", "non-negative integer")
+def run_fusion_belief_max_exclusions_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[fusion]\nbelief_max_exclusions = -3\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
+@case("cfg.toml", "fusion.belief_innovation_gate", "[0, 1)")
+def run_fusion_belief_gate_one(tmp, net, run):
+    cfg = _config(tmp, net, "[fusion]\nbelief_innovation_gate = 1.0\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
 def run_gnss_model_bias_share_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
