@@ -29,7 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from coloc.methods import registry  # noqa: E402
 from experiments.sweep.consistency import anees_band  # noqa: E402
 from experiments.sweep.paired import paired_ci  # noqa: E402
-from tools.protocol_tables import as_float, seed_text, short_number, zone_cells, zone_order  # noqa: E402
+from tools.protocol_tables import (as_float, seed_text, shared_rows, shared_table, short_number,  # noqa: E402
+                                  zone_cells, zone_order)
 
 ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
 SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
@@ -49,20 +50,29 @@ def preset_label(folder: Path) -> str:
     return "preset"
 
 
+def run_ident(name: str, preset: str) -> dict | None:
+    """A run folder's name as (control, arm, seed); ``preset``: the preset arm's label; None: a foreign folder."""
+    m = _SEED.match(name)
+    if m is None:
+        return None
+    parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in m["arm"].split(","))
+    control = parts.pop("control", "-")
+    arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
+    return {"control": control, "arm": arm, "seed": int(m["seed"])}
+
+
 def run_rows(folder: Path) -> pd.DataFrame:
     """One row per (control, arm, seed, method, zone) of every finished run in ``folder/runs``."""
     rows = []
     preset = preset_label(folder)
     for summ in sorted((folder / "runs").glob("*/summary.json")):
-        m = _SEED.match(summ.parent.name)
-        if m is None:
+        key = run_ident(summ.parent.name, preset)
+        if key is None:
             continue
-        parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in m["arm"].split(","))
-        control = parts.pop("control", "-")
-        arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
+        control, arm = key["control"], key["arm"]
         data = json.loads(summ.read_text())
         for method, zone, cell in zone_cells(data):
-            rows.append({"control": control, "arm": arm, "seed": int(m["seed"]), "method": method, "zone": zone,
+            rows.append({"control": control, "arm": arm, "seed": key["seed"], "method": method, "zone": zone,
                          **cell, "wall_s": as_float(data.get("wall_seconds"))})
     return pd.DataFrame(rows)
 
@@ -102,8 +112,10 @@ def paired_rows(rows: pd.DataFrame, reference: str) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def markdown(rows: pd.DataFrame, reference: str) -> str:
+def markdown(rows: pd.DataFrame, reference: str, shared: pd.DataFrame | None = None) -> str:
     mt, pr = method_table(rows), paired_rows(rows, reference)
+    if shared is not None and len(shared):
+        mt = mt.merge(shared, on=["control", "arm", "zone", "method"], how="left")
     lines = []
     methods = [m for m in ORDER if m in set(rows["method"])]
     for control in sorted(rows["control"].unique(), key=lambda c: (c != "tlr", c)):
@@ -114,17 +126,24 @@ def markdown(rows: pd.DataFrame, reference: str) -> str:
             lo, hi = anees_band(s)
             lines += [f"#### {control.upper()}, {arm}: seeds {seed_text(seeds)}", "",
                       f"ANEES band for {s} runs [{lo:.2f}, {hi:.2f}]; inside: mean share of samples inside the "
-                      "95 % ellipse (lowest run in brackets).", "",
-                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |",
-                      "|---|---|---|---|---|---|---|"]
+                      "95 % ellipse (lowest run in brackets)"
+                      + ("; shared, tau, band: as tools/protocol_tables.py --shared." if "shared" in sub else "."), "",
+                      "| zone | method | RMSE (m) | p95 (m) | ANEES | in band | inside 95 % |"
+                      + (" shared | tau (s) | band of inside |" if "shared" in sub else ""),
+                      "|---|---|---|---|---|---|---|" + ("---|---|---|" if "shared" in sub else "")]
             for zone in sorted(sub["zone"].unique(), key=zone_order):
                 for method in methods:
                     r = sub[(sub.zone == zone) & (sub.method == method)]
                     if not len(r):
                         continue
                     r = r.iloc[0]
-                    lines.append(f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {short_number(r.anees)} | "
-                                 f"{'yes' if r.in_band else 'no'} | {100 * r.inside:.1f} ({100 * r.inside_min:.1f}) % |")
+                    line = (f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {short_number(r.anees)} | "
+                            f"{'yes' if r.in_band else 'no'} | {100 * r.inside:.1f} ({100 * r.inside_min:.1f}) % |")
+                    if "shared" in sub:
+                        tau = "inf" if not np.isfinite(r.tau_s) else f"{r.tau_s:.0f}"
+                        line += (f" {r.shared:.2f} | {tau} | [{100 * r.inside_lo:.1f}, {100 * r.inside_hi:.1f}] % |"
+                                 if np.isfinite(r.shared) else " - | - | - |")
+                    lines.append(line)
             lines.append("")
         ps = pr[pr.control == control] if len(pr) else pr
         if not len(ps):
@@ -155,6 +174,8 @@ def main(argv=None) -> int:
     ap.add_argument("folder", type=Path, nargs="+", help="sweep folder(s) of experiments/sweeps/idealised_consistency.toml")
     ap.add_argument("--reference", default="arm=paper", help="the arm the differences are taken against")
     ap.add_argument("--csv", type=Path, help="also write the per-run rows here")
+    ap.add_argument("--shared", action="store_true", help="also the shared error fraction and the band of the "
+                                                          "share inside (tools/protocol_tables.py --shared)")
     args = ap.parse_args(argv)
     rows = pd.concat([run_rows(f) for f in args.folder], ignore_index=True)
     if not len(rows):
@@ -162,7 +183,12 @@ def main(argv=None) -> int:
         return 2
     if args.csv:
         rows.to_csv(args.csv, index=False)
-    print(markdown(rows, args.reference))
+    shared = None
+    if args.shared:
+        shared = shared_table(pd.concat([shared_rows(f, lambda name, p=preset_label(f): run_ident(name, p))
+                                         for f in args.folder], ignore_index=True),
+                              keys=("control", "arm", "zone", "method"))
+    print(markdown(rows, args.reference, shared))
     return 0
 
 

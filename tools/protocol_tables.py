@@ -82,15 +82,21 @@ def run_rows(folder: Path) -> pd.DataFrame:
 TAU_LAG_S = 240.0
 
 
-def shared_rows(folder: Path) -> pd.DataFrame:
-    """One row per (arm, control, seed, method, zone) of every finished run: the shared fraction of the
+def protocol_ident(name: str) -> dict | None:
+    """A run folder's name as (rule, control, seed) of this sweep; None for a foreign folder."""
+    m = _ID.match(name)
+    return None if m is None else {"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"])}
+
+
+def shared_rows(folder: Path, ident=protocol_ident) -> pd.DataFrame:
+    """One row per run (its ``ident`` columns, which hold ``seed``), method and zone of every finished run: the
     whitened errors' shared and total moments (``shared_m``, ``total_m``), the scored window (``window_s``)
     and, for the correlation time, the means of the steps' mean whitened error products at lag 0 (less the
     mean's own sampling variance) and at ``TAU_LAG_S`` (``c0``, ``c1``)."""
     rows = []
     for summ in sorted((folder / "runs").glob("*/summary.json")):
-        m = _ID.match(summ.parent.name)
-        if m is None or not (summ.parent / "estimates.parquet").exists():
+        key = ident(summ.parent.name)
+        if key is None or not (summ.parent / "estimates.parquet").exists():
             continue
         t0 = float(json.loads(summ.read_text())["analysis"]["scored_from_s"])
         est = pd.read_parquet(summ.parent / "estimates.parquet",
@@ -111,8 +117,7 @@ def shared_rows(folder: Path) -> pd.DataFrame:
                 mean.index = np.round(mean.index.to_numpy(dtype=float), 6)
                 lagged = mean.set_index(np.round(mean.index.to_numpy() + TAU_LAG_S, 6)).add_suffix("_lag")
                 both = mean.join(lagged, how="inner")
-                rows.append({"rule": m["rule"] or "split_ci", "control": m["control"], "seed": int(m["seed"]),
-                             "method": method, "zone": zone, "window_s": window,
+                rows.append({**key, "method": method, "zone": zone, "window_s": window,
                              **dict(zip(("shared_m", "total_m"), shared_error_moments(g["t"], g["wx"], g["wy"]))),
                              "c0": float(c0.mean()) if c0.size else math.nan,
                              "c1": float((both[["wx", "wy"]].to_numpy() * both[["wx_lag", "wy_lag"]].to_numpy())
@@ -120,18 +125,19 @@ def shared_rows(folder: Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def shared_table(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per (control, zone, rule, method): the shared fraction pooled over the seeds (their shared moments over
-    their total, clipped to [0, 1]), the pooled correlation time (s) and the 95 % band of the mean share inside
-    for a consistent estimator over that many runs."""
+def shared_table(rows: pd.DataFrame, keys=("control", "zone", "rule", "method")) -> pd.DataFrame:
+    """Per ``keys`` (every column of :func:`shared_rows` but the seed and the numbers): the shared fraction
+    pooled over the seeds (their shared moments over their total, clipped to [0, 1]), the pooled correlation
+    time (s) and the 95 % band of the mean share inside for a consistent estimator over that many runs."""
+    keys = list(keys)
     out = []
-    for key, g in rows.groupby(["control", "zone", "rule", "method"], sort=True):
+    for key, g in rows.groupby(keys, sort=True):
         total = float(g["total_m"].sum())
         f = np.full(len(g), min(1.0, max(0.0, float(g["shared_m"].sum()) / total))) if total > 0 else np.empty(0)
         rho = float(g["c1"].mean() / g["c0"].mean()) if g["c0"].mean() > 0 else math.nan
         tau = -TAU_LAG_S / math.log(rho) if 0 < rho < 1 else math.inf
         lo, hi = inside_share_band(f, tau_s=tau, window_s=float(g["window_s"].median())) if f.size else (math.nan,) * 2
-        out.append(dict(zip(["control", "zone", "rule", "method"], key), shared=float(f.mean()) if f.size else math.nan,
+        out.append(dict(zip(keys, key), shared=float(f.mean()) if f.size else math.nan,
                         tau_s=tau, inside_lo=lo, inside_hi=hi))
     return pd.DataFrame(out)
 
