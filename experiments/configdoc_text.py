@@ -348,6 +348,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "degraded_velocity_scale": (NO_UNIT, "Factor on the reported velocity std above `degraded_above_m` "
                                              "(it also stands for the time correlation of a reflected signal's "
                                              "path-rate error). Default 1."),
+        "gate_on": ("", "The fault exclusion's statistic on the calibrated report (`calibrated`, default) or "
+                        "on the report as the receiver gives it (`report`: the receiver's own claim, as RAIM "
+                        "reads it); the update takes the calibrated report either way "
+                        "(coloc/methods/report_calibration.py). `report` needs `degraded_position_scale` >= 1."),
         "common_update": ("", "Two-state model: the common-mode bias as a state of the filter (`augmented`) or "
                               "a Schmidt consider state (`consider`: its correlations carried, its estimate never "
                               "updated; Simon 2006, Sec. 7.5). Default `consider` (the more consistent on the "

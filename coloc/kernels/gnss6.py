@@ -105,14 +105,15 @@ def deweight_velocity(sm, rn, innov, vel_threshold):
 
 @njit(cache=True)
 def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, share, decay,
-               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold):
+               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold, gate_scale):
     """One step of the 6-state filter for every row: predict where ``predict`` (decay a = exp(-dt/tau)),
     then the fix with the gate (a row that does not predict is never gated; nor one whose ``streak``
     reached ``max_exclusions``; ``gate_threshold`` inf: no gate). ``with_ind``: the independent part
     ``ind`` carried as in :func:`coloc.methods.coop_fusion._split_gnss_step` (``common_mode``: the bias
     driving noise and the fix's noise go to the dependent part); ``sym_predict``: the predicted
-    covariance symmetrized as :func:`coloc.methods.gnss_bias.bias_predict_update` does. Returns new
-    (mean, cov, ind, excluded); inputs are not modified."""
+    covariance symmetrized as :func:`coloc.methods.gnss_bias.bias_predict_update` does; ``gate_scale`` (N,):
+    the gate's factor on the fix's position noise (:func:`coloc.methods.gnss_bias2.gate_nis`; 1: the
+    noise the update takes). Returns new (mean, cov, ind, excluded); inputs are not modified."""
     n = mean.shape[0]
     m = mean.copy()
     p = cov.copy()
@@ -129,6 +130,7 @@ def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
     out = np.empty((6, 6))
     hp = np.empty((4, 6))
     sm = np.empty((4, 4))
+    sg = np.zeros((4, 4))
     x = np.empty((4, 6))
     gain = np.empty((6, 4))
     ikh = np.empty((6, 6))
@@ -190,7 +192,16 @@ def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            if nis2(sm, innov, 0) > gate_threshold:
+            # the gate's statistic on the receiver's own report where gate_scale < 1 (S - (1 - g) R_n on
+            # the position block: coloc.methods.gnss_bias2.gate_nis)
+            if gate_scale[i] == 1.0:
+                nis = nis2(sm, innov, 0)
+            else:
+                for a in range(2):
+                    for b in range(2):
+                        sg[a, b] = sm[a, b] - (1.0 - gate_scale[i]) * rn[a, b]
+                nis = nis2(sg, innov, 0)
+            if nis > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo

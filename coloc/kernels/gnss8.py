@@ -55,7 +55,7 @@ def _sandwich8(a, p, out, tmp):
 @njit(cache=True)
 def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, common_share,
                local_share, decay_c, local_tau_s, local_length_m, consider, gate_threshold, max_exclusions,
-               common_mode, with_ind, sym_predict, tmap, mapped, common_var, vel_threshold):
+               common_mode, with_ind, sym_predict, tmap, mapped, common_var, vel_threshold, gate_scale):
     """One step of the 8-state filter for every row: predict where ``predict`` (``decay_c`` = exp(-dt /
     common_tau_s); the local decay per row from its prior speed), then the fix with the gate (a row that does
     not predict is never gated; nor one whose ``streak`` reached ``max_exclusions``; ``gate_threshold`` inf:
@@ -65,8 +65,9 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
     common-mode bias's own variance per axis (``common_sigma_m``^2, added to its share of the report);
     ``vel_threshold``: the velocity gate's chi-square threshold (inf: none; a predicted row whose velocity
     innovation's d^2 exceeds it has its velocity noise scaled by d^2 / threshold,
-    :func:`coloc.methods.gnss_bias2.velocity_deweight`). Returns new (mean, cov, ind,
-    excluded); inputs are not modified."""
+    :func:`coloc.methods.gnss_bias2.velocity_deweight`); ``gate_scale`` (N,): the gate's factor on the fix's
+    position noise (:func:`coloc.methods.gnss_bias2.gate_nis`; 1: the noise the update takes). Returns new
+    (mean, cov, ind, excluded); inputs are not modified."""
     n = mean.shape[0]
     m = mean.copy()
     p = cov.copy()
@@ -82,6 +83,7 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
     out = np.empty((D, D))
     hp = np.empty((4, D))
     sm = np.empty((4, 4))
+    sg = np.zeros((4, 4))
     x = np.empty((4, D))
     gain = np.empty((D, 4))
     ikh = np.empty((D, D))
@@ -166,7 +168,16 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            if nis2(sm, innov, 0) > gate_threshold:
+            # the gate's statistic on the receiver's own report where gate_scale < 1 (S - (1 - g) R_n on
+            # the position block: coloc.methods.gnss_bias2.gate_nis)
+            if gate_scale[i] == 1.0:
+                nis = nis2(sm, innov, 0)
+            else:
+                for a in range(2):
+                    for b in range(2):
+                        sg[a, b] = sm[a, b] - (1.0 - gate_scale[i]) * rn[a, b]
+                nis = nis2(sg, innov, 0)
+            if nis > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo

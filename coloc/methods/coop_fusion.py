@@ -59,8 +59,9 @@ from coloc.inference.split_ci import SEARCH_ITERATIONS, feature_evidence, split_
 from coloc.kernels.gnss6 import gnss6_step
 from coloc.kernels.gnss8 import gnss8_step
 from coloc.methods.gnss_bias import H, GnssModelParams, bias_transition, entry_fix_posterior, report_map
-from coloc.methods.gnss_bias2 import (H8, common_cov, mapped_two_state_transition, two_state_entry_posterior,
-                                      two_state_start, velocity_deweight)
+from coloc.methods.gnss_bias2 import (H8, common_cov, gate_nis, mapped_two_state_transition,
+                                      two_state_entry_posterior, two_state_start, velocity_deweight)
+from coloc.methods.report_calibration import gate_noise_scale
 
 __all__ = ["FUSION_RULES", "FusionParams", "CoopFusion", "SplitState", "SplitPrior", "split_prior",
            "split_localization", "WHITE_RECEIVER"]
@@ -258,8 +259,7 @@ def _split_gnss_step(mean, cov, ind, accel, z, r, predict_mask, dt, motion: Moti
     velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
-        nu = innov[:, :2]
-        nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        nis = gate_nis(innov, sm, rn, r, model)
         excluded = predict_mask & (nis > model.gate_threshold) & (streak < model.max_exclusions)
     for rows, sel in ((slice(0, 4), ~excluded), (slice(2, 4), excluded)):
         if not sel.any():
@@ -290,7 +290,7 @@ def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
                       float(model.bias_share), math.exp(-dt / model.bias_tau_s), float(model.gate_threshold),
                       int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind,
-                      float(model.velocity_gate_threshold))
+                      float(model.velocity_gate_threshold), gate_noise_scale(r, model))
 
 
 def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,
@@ -311,7 +311,7 @@ def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       float(model.local_tau_s), float(model.local_length_m), model.common_update == "consider",
                       float(model.gate_threshold), int(model.max_exclusions), bool(common_mode), bool(with_ind),
                       not with_ind, c(tmap), mapped, float(model.common_sigma_m) ** 2,
-                      float(model.velocity_gate_threshold))
+                      float(model.velocity_gate_threshold), gate_noise_scale(r, model))
 
 
 def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:

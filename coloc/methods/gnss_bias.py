@@ -93,7 +93,7 @@ from coloc.core.inertial import estimator_input
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import fresh_rows, keep_entry_fix, match_ids
 from coloc.inference.comm import CommCount
-from coloc.methods.gnss_bias2 import (gated_joseph_update, two_state_entry_posterior, two_state_predict_update,
+from coloc.methods.gnss_bias2 import (gate_nis, gated_joseph_update, two_state_entry_posterior, two_state_predict_update,
                                       two_state_start, velocity_deweight)
 from coloc.methods.registry import GNSS
 
@@ -103,6 +103,8 @@ H[0, 0] = H[1, 1] = H[2, 2] = H[3, 3] = H[0, 4] = H[1, 5] = 1.0
 
 #: ``[gnss_model] bias_model`` values; ``common_update`` values (coloc.methods.gnss_bias2).
 BIAS_MODELS = ("single", "two_state")
+#: ``[gnss_model] gate_on`` values (GnssModelParams.gate_on)
+GATE_ON = ("calibrated", "report")
 COMMON_UPDATES = ("augmented", "consider")
 
 
@@ -175,6 +177,10 @@ class GnssModelParams:
     degraded_above_m: float = 0.0
     degraded_position_scale: float = 1.0
     degraded_velocity_scale: float = 1.0
+    # The fault exclusion's statistic on the calibrated report ("calibrated") or on the report as the receiver
+    # gives it ("report": the receiver's own claim, the integrity reading of RAIM), the update on the calibrated
+    # one either way (coloc.methods.report_calibration.gate_noise_scale). Needs degraded_position_scale >= 1.
+    gate_on: str = "calibrated"
 
     @property
     def calibrates_report(self) -> bool:
@@ -218,6 +224,11 @@ class GnssModelParams:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
                 raise ValueError(f"must be positive and finite (a factor on the reported std), got {v!r}")
+        if self.gate_on not in GATE_ON:
+            raise ValueError(f"must be one of {', '.join(map(repr, GATE_ON))}, got {self.gate_on!r}")
+        if self.gate_on == "report" and self.degraded_position_scale < 1.0:
+            raise ValueError("gate_on = \"report\" needs degraded_position_scale >= 1 (the calibration is then "
+                             f"invertible from the calibrated report), got {self.degraded_position_scale!r}")
         if not (isinstance(self.velocity_gate, (int, float)) and not isinstance(self.velocity_gate, bool)
                 and 0.0 <= self.velocity_gate < 1.0):
             raise ValueError(f"must be in [0, 1) (a chi-square level; 0: no velocity test), "
@@ -359,8 +370,7 @@ def bias_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: Motion
     velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
-        nu = innov[:, :2]
-        nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        nis = gate_nis(innov, sm, rn, r, model)
         excluded = predict_mask & (nis > model.gate_threshold)
         if streak is not None:
             excluded &= streak < model.max_exclusions

@@ -138,14 +138,29 @@ def two_state_predict_update(mean, cov, accel, z, r, predict_mask, dt, motion: M
     velocity_deweight(innov, sm, rn, predict_mask, model)
     excluded = np.zeros(n, dtype=bool)
     if model.innovation_gate > 0:
-        nu = innov[:, :2]
-        nis = np.einsum("ni,ni->n", nu, np.linalg.solve(sm[:, :2, :2], nu[..., None])[..., 0])
+        nis = gate_nis(innov, sm, rn, r, model)
         excluded = predict_mask & (nis > model.gate_threshold)
         if streak is not None:
             excluded &= streak < model.max_exclusions
     fixed = slice(4, 6) if model.common_update == "consider" else None
     gated_joseph_update(m, p, ph, sm, rn, innov, excluded, H8, fixed)
     return m, p, excluded
+
+
+def gate_nis(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, r: np.ndarray, model) -> np.ndarray:
+    """(N,) the fault exclusion's statistic nu_p^T S_g^-1 nu_p on the position innovation: S_g = S's position
+    block, with the fix's noise ``rn`` (its position block the white share of the report ``r``) taken at the
+    receiver's own report where ``model.gate_on = "report"``: S_g = S - (1 - g) R_n,pos, g from
+    :func:`coloc.methods.report_calibration.gate_noise_scale` (1 everywhere otherwise, and then S_g is S's
+    block itself, bit for bit)."""
+    from coloc.methods.report_calibration import gate_noise_scale
+
+    nu = innov[:, :2]
+    sg = sm[:, :2, :2]
+    g = gate_noise_scale(r, model)
+    if (g != 1.0).any():
+        sg = sg - (1.0 - g)[:, None, None] * rn[:, :2, :2]
+    return np.einsum("ni,ni->n", nu, np.linalg.solve(sg, nu[..., None])[..., 0])
 
 
 def velocity_deweight(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, predict_mask: np.ndarray, model) -> None:

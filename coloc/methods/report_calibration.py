@@ -49,6 +49,23 @@ def calibrated_report(gnss_r: np.ndarray, above_m: float, position_scale: float,
     return r
 
 
+def gate_noise_scale(r_cal: np.ndarray, model) -> np.ndarray:
+    """(N,) the factor that takes a calibrated report's position block back to the receiver's own: 1 /
+    ``degraded_position_scale``^2 on the rows the calibration scaled, 1 elsewhere, where ``model.gate_on`` is
+    "report" and the model calibrates the report; ones otherwise. The estimator sees only the calibrated report
+    ``r_cal`` (N, 4, 4), so the rows are found from it: with a scale s >= 1 the calibration takes a reported
+    per-axis std above ``degraded_above_m`` (a) to s times that, above s a, and leaves the others at or below
+    a, so a calibrated std above s a marks a scaled row (none falls in (a, s a])."""
+    r_cal = np.asarray(r_cal, dtype=float)
+    g = np.ones(len(r_cal))
+    if getattr(model, "gate_on", "calibrated") != "report" or not model.calibrates_report or len(r_cal) == 0:
+        return g
+    s = float(model.degraded_position_scale)
+    std = np.sqrt(0.5 * (r_cal[:, 0, 0] + r_cal[:, 1, 1]))
+    g[std > s * model.degraded_above_m] = 1.0 / (s * s)
+    return g
+
+
 class ReportCalibrated:
     """An estimator that is given frames whose ``gnss_R`` is :func:`calibrated_report` of the received one;
     everything else (its name, its statistics, its feature tracks) is the wrapped estimator's."""

@@ -12,7 +12,9 @@ from coloc.methods.gnss_bias import H, GnssModelParams, bias_predict_update
 MOTION = MotionParams(sigma_along=0.7, sigma_cross=0.3, heading_min_speed=1.0)
 MODELS = (GnssModelParams(), GnssModelParams(bias_share=0.0, innovation_gate=0.0),
           GnssModelParams(bias_share=0.5, bias_tau_s=20.0, innovation_gate=0.99, max_exclusions=3),
-          GnssModelParams(velocity_gate=0.99), GnssModelParams(bias_share=0.3, velocity_gate=0.5, innovation_gate=0.0))
+          GnssModelParams(velocity_gate=0.99), GnssModelParams(bias_share=0.3, velocity_gate=0.5, innovation_gate=0.0),
+          # the gate on the receiver's own report (rows with a calibrated std above 2 x 1.5 m taken back by 1/4)
+          GnssModelParams(gate_on="report", degraded_above_m=1.5, degraded_position_scale=2.0))
 
 
 def spd(rng, n, k, scale):
@@ -73,3 +75,22 @@ def test_empty_batch():
     m, p, pi, ex = _gnss6(e6, e66, e66, np.empty((0, 2)), np.empty((0, 4)), np.empty((0, 4, 4)),
                           np.empty(0, bool), 0.1, MOTION, GnssModelParams(), np.empty(0, np.int64))
     assert m.shape == (0, 6) and p.shape == (0, 6, 6) and ex.shape == (0,)
+
+
+def test_gate_on_the_report_in_the_kernel_where_it_decides():
+    """Fixes near the gate, so that the receiver's own report and the calibrated one exclude different rows: the
+    kernel equals its numpy references row for row in both filters."""
+    from dataclasses import replace
+
+    mean, cov, ind, accel, z, r, predict, streak = inputs(4)
+    cov, ind = 0.01 * cov, 0.005 * ind  # a tight prediction: the fix's noise decides the gate
+    z = z.copy()
+    z[:, :2] = (mean @ H.T)[:, :2] + np.random.default_rng(5).normal(scale=2.0, size=(len(z), 2))
+    model = MODELS[-1]
+    got = _gnss6(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak)
+    ref = _split_gnss_step(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, False)
+    base = _gnss6(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, replace(model, gate_on="calibrated"), streak)
+    assert (got[3] & ~base[3]).sum() > 3 and not (base[3] & ~got[3]).any()
+    np.testing.assert_array_equal(got[3], ref[3])
+    for g, e in zip(got[:3], ref[:3]):  # the tight prediction costs digits: 1e-9 of the largest entry
+        np.testing.assert_allclose(g, e, rtol=0, atol=1e-9 * max(1.0, np.abs(e).max()))

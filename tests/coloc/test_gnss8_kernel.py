@@ -19,7 +19,10 @@ MODELS = (GnssModelParams(bias_model="two_state"),
           GnssModelParams(bias_model="two_state", bias_follows_report=True),
           GnssModelParams(bias_model="two_state", bias_follows_report=True, common_update="augmented"),
           GnssModelParams(bias_model="two_state", common_share=0.0, common_sigma_m=1.3, velocity_gate=0.99),
-          GnssModelParams(bias_model="two_state", common_sigma_m=0.7, velocity_gate=0.5, common_update="augmented"))
+          GnssModelParams(bias_model="two_state", common_sigma_m=0.7, velocity_gate=0.5, common_update="augmented"),
+          # the gate on the receiver's own report (rows with a calibrated std above 2 x 1.5 m taken back by 1/4)
+          GnssModelParams(bias_model="two_state", gate_on="report", degraded_above_m=1.5,
+                          degraded_position_scale=2.0, velocity_gate=0.99))
 
 
 def spd(rng, n, k, scale):
@@ -93,3 +96,22 @@ def test_empty_batch():
                           np.empty(0, bool), 0.1, MOTION, GnssModelParams(bias_model="two_state"),
                           np.empty(0, np.int64))
     assert m.shape == (0, 8) and p.shape == (0, 8, 8) and ex.shape == (0,)
+
+
+def test_gate_on_the_report_in_the_kernel_where_it_decides():
+    """Fixes near the gate, so that the receiver's own report and the calibrated one exclude different rows: the
+    kernel equals its numpy references row for row in both filters."""
+    from dataclasses import replace
+
+    mean, cov, ind, accel, z, r, predict, streak, r_prev = inputs(4)
+    cov, ind = 0.01 * cov, 0.005 * ind  # a tight prediction: the fix's noise decides the gate
+    z = z.copy()
+    z[:, :2] = (mean @ H8.T)[:, :2] + np.random.default_rng(5).normal(scale=2.0, size=(len(z), 2))
+    model = MODELS[-1]
+    got = _gnss8(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, r_prev=r_prev)
+    ref = _split_gnss_step(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, model, streak, False, r_prev)
+    base = _gnss8(mean, cov, ind, accel, z, r, predict, 0.1, MOTION, replace(model, gate_on="calibrated"), streak, r_prev=r_prev)
+    assert (got[3] & ~base[3]).sum() > 3 and not (base[3] & ~got[3]).any()
+    np.testing.assert_array_equal(got[3], ref[3])
+    for g, e in zip(got[:3], ref[:3]):  # the tight prediction costs digits: 1e-9 of the largest entry
+        np.testing.assert_allclose(g, e, rtol=0, atol=1e-9 * max(1.0, np.abs(e).max()))

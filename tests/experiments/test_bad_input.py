@@ -1393,6 +1393,12 @@ def run_fusion_belief_gate_one(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_model.gate_on", "'calibrated', 'report'")
+def run_gnss_model_gate_on_unknown(tmp, net, run):
+    cfg = _config(tmp, net, '[gnss_model]\ngate_on = "raw"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
 def run_gnss_model_bias_share_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
