@@ -131,3 +131,48 @@ def test_building_sight_lines_in_numba_equal_shapely():
     got, ref = _segments_occluded_by_buildings(seg, b), _segments_occluded_by_buildings_shapely(seg, b)
     assert got.dtype == bool and (got == ref).all()
     assert 0.2 < got.mean() < 0.9  # both kinds of segment are tested
+
+
+@pytest.mark.parametrize("lever_arm", [False, True])
+def test_range_bearing_kernels_equal_sensor_frame_rows(lever_arm):
+    """SensorFrameRows.detections (two kernels around numpy's hypot and arctan2) gives sensor_frame_rows of
+    relative_states, with the per-row gathers of the numpy path, bit for bit: rows on the mount point (range 0),
+    bearings at +-pi, with and without kinds and the lever arm's yaw rate."""
+    from couplers.sensing.perception import PerceptionParams, SensorSpec
+    from couplers.sensing.sensor_frame import SensorFrameRows
+
+    sensors = (SensorSpec(name="front", mount_x_m=2.25, sigma_b_deg=0.5), SensorSpec(name="rear", yaw_deg=180.0,
+               mount_x_m=-1.0, sigma_r_m=0.3), SensorSpec(name="surround", fov_deg=360.0, range_m=30.0))
+    params = PerceptionParams(sensors=sensors, detections="range_bearing", lever_arm_range_rate=lever_arm)
+    rng = np.random.default_rng(17)
+    n_s = len(params.sensors)
+    for o, with_kind in ((0, True), (1, False), (300, True), (900, False)):
+        n, k = 25, 40
+        det = replace(_det(rng, o, n, k, with_kind), sensor=rng.integers(0, n_s, o))
+        x_true, feats = rng.normal(0, 60, (n, 4)), rng.normal(0, 60, (k, 4))
+        heading = rng.uniform(-4, 4, n)
+        heading[:4] = (0.0, np.pi, -np.pi, np.pi / 2)
+        if o >= 300:  # a target on the mount point, and targets straight behind (bearing wraps at +-pi)
+            det.feature[:3] = -1
+            det.z[0, :2] = [params.sensors[det.sensor[0]].mount_x_m * np.cos(heading[det.owner[0]]),
+                            params.sensors[det.sensor[0]].mount_x_m * np.sin(heading[det.owner[0]])]
+            det.z[1:3, :2] = -5.0 * np.stack([np.cos(heading[det.owner[1:3]]), np.sin(heading[det.owner[1:3]])], 1)
+        yaw_rate = rng.normal(0, 0.3, n) if lever_arm else None
+        rows = SensorFrameRows(params, 4)
+        got = rows.detections(det, x_true, heading, feats, yaw_rate)
+        ref_rng = SensorFrameRows(params, 4).rng
+        w = ref_rng.standard_normal((o, 3))
+        s = det.sensor
+        mount = np.array([x.mount_x_m for x in params.sensors])[s]
+        yaw = np.deg2rad([x.yaw_deg for x in params.sensors])[s]
+        sr = np.array([x.sigma_r_m for x in params.sensors])[s]
+        sb = np.deg2rad([x.sigma_b_deg for x in params.sensors])[s]
+        srd = np.array([x.sigma_rdot_mps for x in params.sensors])[s]
+        ref = sensor_frame_rows(relative_states_reference(det, x_true, feats), heading[det.owner], mount, yaw, w, sr,
+                                sb, srd, None if yaw_rate is None else yaw_rate[det.owner])
+        for a, b in zip((got.range, got.bearing, got.range_rate), ref):
+            assert a.dtype == b.dtype and a.shape == b.shape == (o,) and a.tobytes() == b.tobytes()
+        for a, b in zip((got.mount_x, got.yaw, got.sigma_range, got.sigma_bearing, got.sigma_range_rate),
+                        (mount, yaw, sr, sb, srd)):
+            assert a.tobytes() == b.tobytes()
+        assert rows.rng.bit_generator.state == ref_rng.bit_generator.state
