@@ -308,6 +308,29 @@ def _wls_kernel(los, usable, eps, var_rx, thr, posterior=False):
 
 
 @njit(cache=True)
+def _carried_rows(idx, entered, xy, xy_prev, fix_prev_all):
+    """The receivers carried from the previous step (idx >= 0 and not entered): their rows, previous rows, moves
+    xy - xy_prev (M, 2), and (N, 2) last fixes, NaN for the others (numpy's mask, flatnonzero and gathers)."""
+    n = idx.size
+    rows = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if idx[i] >= 0 and not entered[i]:
+            rows[m] = i
+            m += 1
+    prev = np.empty(m, dtype=np.int64)
+    moved = np.empty((m, 2))
+    fix_prev = np.full((n, 2), np.nan)
+    for r in range(m):
+        i, q = rows[r], idx[rows[r]]
+        prev[r] = q
+        moved[r, 0] = xy[i, 0] - xy_prev[q, 0]
+        moved[r, 1] = xy[i, 1] - xy_prev[q, 1]
+        fix_prev[i, 0], fix_prev[i, 1] = fix_prev_all[q, 0], fix_prev_all[q, 1]
+    return rows[:m], prev, moved, fix_prev
+
+
+@njit(cache=True)
 def _carried_multipath(rows, prev, a, u_prev, z):
     """The multipath draws ``z`` (N, S) with the rows ``rows`` carried from ``u_prev[prev]``: u = a u_prev +
     sqrt(1 - a^2) z, row by row (numpy's a * u_prev + np.sqrt(1.0 - a * a) * z, the same operations)."""
@@ -660,16 +683,14 @@ class SatelliteErrorProcess:
             white = self.code_noise.standard_normal((n, s))
             z = self.multipath.standard_normal((n, s))
         # multipath: correlated over the distance travelled this step
-        carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
-        fix_prev = np.full((n, 2), np.nan)
-        if carried.any():
-            rows = np.flatnonzero(carried)
-            prev = idx[rows]
-            d = np.hypot(*(xy[rows] - self._xy[prev]).T)
+        # the rows carried (in the previous step and not entered), their moves and last fixes (NaN for the others)
+        rows, prev, moved, fix_prev = _carried_rows(idx, np.asarray(entered, dtype=np.bool_),
+                                                    np.ascontiguousarray(xy, dtype=np.float64), self._xy, self._fix)
+        if rows.size:
+            d = np.hypot(*moved.T)  # numpy's, on the (M, 2) moves' columns as before
             a = np.exp(-d / p.multipath_corr_length_m)
             u = (_carried_multipath_visible(rows, prev, a, self._u, z, cols, self._above) if visible
                  else _carried_multipath(rows, prev, a, self._u, z))
-            fix_prev[rows] = self._fix[prev]
         else:
             u = _spread(z, cols, s) if visible else z.copy()
         if visible:

@@ -176,3 +176,46 @@ def test_range_bearing_kernels_equal_sensor_frame_rows(lever_arm):
                         (mount, yaw, sr, sb, srd)):
             assert a.tobytes() == b.tobytes()
         assert rows.rng.bit_generator.state == ref_rng.bit_generator.state
+
+
+def test_receiver_rows_equal_the_numpy_assignments():
+    """The receiver's fix, reported covariance and range-rate solution written into model (3)'s rows
+    (couplers.sensing.sensors._receiver_rows) as the numpy assignments, bit for bit, with each part off."""
+    from couplers.sensing.sensors import _NO_COV, _NO_VELOCITY, _receiver_rows, _receiver_rows_reference
+
+    rng = np.random.default_rng(23)
+    for n in (0, 1, 60):
+        x = rng.normal(0, 500, (n, 4))
+        err, cov = rng.normal(0, 5, (n, 2)), rng.normal(0, 3, (n, 2, 2))
+        verr, vcov, solved = rng.normal(0, 0.1, (n, 2)), rng.normal(0, 0.01, (n, 2, 2)), rng.random(n) < 0.8
+        for has_cov, doppler in ((False, False), (True, False), (True, True)):
+            z0, R0 = rng.normal(0, 500, (n, 4)), rng.normal(0, 1, (n, 4, 4))
+            z1, R1, z2, R2 = z0.copy(), R0.copy(), z0.copy(), R0.copy()
+            _receiver_rows(z1, R1, x, err, cov if has_cov else _NO_COV, has_cov,
+                           *((verr, vcov, solved) if doppler else _NO_VELOCITY), doppler)
+            _receiver_rows_reference(z2, R2, x, err, cov if has_cov else None, verr if doppler else None, vcov, solved)
+            assert z1.tobytes() == z2.tobytes() and R1.tobytes() == R2.tobytes()
+
+
+def test_carried_receiver_rows_equal_the_numpy_mask_and_gathers():
+    """The receivers carried from the previous step (couplers.sensing.gnss_satellites._carried_rows): rows,
+    previous rows, moves and last fixes as numpy's mask, flatnonzero and gathers, bit for bit, on strided
+    positions (the coupler's x_true[:, :2])."""
+    from couplers.sensing.gnss_satellites import _carried_rows
+
+    rng = np.random.default_rng(29)
+    for n, n_prev in ((0, 0), (5, 0), (40, 35), (80, 90)):
+        x = rng.normal(0, 300, (n, 4))
+        xy, xy_prev = x[:, :2], rng.normal(0, 300, (n_prev, 4))[:, :2]
+        fix = rng.normal(0, 300, (n_prev, 2))
+        fix[::7] = np.nan
+        idx = np.where(rng.random(n) < 0.8, rng.integers(0, max(n_prev, 1), n), -1) if n_prev else np.full(n, -1)
+        entered = rng.random(n) < 0.1
+        rows, prev, moved, fix_prev = _carried_rows(idx, entered, xy, xy_prev, fix)
+        carried = (idx >= 0) & ~entered
+        ref_rows = np.flatnonzero(carried)
+        ref_fix = np.full((n, 2), np.nan)
+        ref_fix[ref_rows] = fix[idx[ref_rows]]
+        assert rows.tobytes() == ref_rows.tobytes() and prev.tobytes() == idx[ref_rows].tobytes()
+        assert moved.tobytes() == (xy[ref_rows] - xy_prev[idx[ref_rows]]).tobytes()
+        assert fix_prev.tobytes() == ref_fix.tobytes()
