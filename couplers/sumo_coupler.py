@@ -167,6 +167,16 @@ class SumoCoupler:
             # The IMU draws from its own streams: computed before the frame so that the frame is built once.
             imu = (self.inertial.step(states.ids, states.entered, states.heading, states.accel, idx=prev_row)
                    if self.inertial is not None else None)
+            # The fields the sensing sets beside synthesize_frame's: with the frame where nothing in between reads
+            # them (no pedestrians: their registry rows come first), else in one replace after it.
+            upd, truth_upd = {}, {}
+            if self.sensor_frame is not None:
+                upd = self.sensor_frame.frame_fields(detections, x_true, states.heading, feats_true, states.ids,
+                                                     states.entered, float(dt))
+            if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
+                upd["v2f_class"] = detections.klass
+                truth_upd["v2f_kind"] = detections.kind
+            early = not self.pedestrians
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -189,18 +199,16 @@ class SumoCoupler:
                 prev_row=prev_row,
                 imu=imu,
                 start=self.scenario.start,
+                frame_fields=upd if early else None,
+                truth_fields=truth_upd if early else None,
             )
-            # The fields the sensing sets after the frame, in one replace where nothing in between reads them.
-            upd = ({} if self.sensor_frame is None
-                   else self.sensor_frame.fields(frame, detections, x_true, states.heading, feats_true))
-            if self.pedestrians:
-                if upd:
-                    frame, upd = replace(frame, **upd), {}
+            if not early:
+                sensor_upd = {k: v for k, v in upd.items() if k != "v2f_class"}
+                if sensor_upd:
+                    frame = replace(frame, **sensor_upd)
                 frame = self._with_registry_rows(frame, present, klass)
-            if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
-                upd.update(v2f_class=detections.klass, truth=replace(frame.truth, v2f_kind=detections.kind))
-            if upd:
-                frame = replace(frame, **upd)
+                if truth_upd:
+                    frame = replace(frame, v2f_class=detections.klass, truth=replace(frame.truth, **truth_upd))
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.infra is not None:

@@ -256,7 +256,17 @@ class SensorFrameRows:
     def fields(self, frame: Frame, det: Detections, x_true: np.ndarray, heading: np.ndarray,
                features_true: np.ndarray) -> dict:
         """The fields :meth:`apply` sets, for a caller that sets others in the same ``replace``."""
-        om = (self.true_yaw_rate(frame.vehicle_ids, frame.entered, heading, float(frame.dt)) if self.lever_arm
-              else None)
+        return self.frame_fields(det, x_true, heading, features_true, frame.vehicle_ids, frame.entered,
+                                 float(frame.dt), frame.v2f_z, frame.v2f_R)
+
+    def frame_fields(self, det: Detections, x_true: np.ndarray, heading: np.ndarray, features_true: np.ndarray,
+                     ids: np.ndarray, entered: np.ndarray, dt: float, v2f_z: np.ndarray | None = None,
+                     v2f_R: np.ndarray | None = None) -> dict:
+        """:meth:`fields` before the frame exists (its vehicles ``ids``, ``entered``, step ``dt``; the net-frame
+        rows ``v2f_z`` / ``v2f_R`` it would carry, by default ``det``'s), for a caller that builds the frame with
+        them."""
+        om = self.true_yaw_rate(ids, entered, heading, dt) if self.lever_arm else None
         sd = self.detections(det, x_true, heading, features_true, om)
-        return dict(v2f_sensor=sd, v2f_z=np.full_like(frame.v2f_z, np.nan), v2f_R=np.full_like(frame.v2f_R, np.nan))
+        v2f_z = det.z if v2f_z is None else v2f_z
+        v2f_R = det.R if v2f_R is None else v2f_R
+        return dict(v2f_sensor=sd, v2f_z=np.full_like(v2f_z, np.nan), v2f_R=np.full_like(v2f_R, np.nan))

@@ -368,6 +368,8 @@ def synthesize_frame(
     prev_row: np.ndarray | None = None,
     imu: ImuFrame | None = None,
     start: str = "fast_start",
+    frame_fields: dict | None = None,
+    truth_fields: dict | None = None,
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
@@ -382,7 +384,9 @@ def synthesize_frame(
     ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
     prior N(x_true, diag(sp^2, sp^2, sv^2, sv^2)) for entering vehicles) or "gnss_fix" (an entering vehicle's
     prior is its receiver's fix of this step, ``gnss_z`` and ``gnss_R``: nothing of its truth; the frame's
-    ``prior_has_fix`` says so, and the estimators do not update that prior with the same fix again)."""
+    ``prior_has_fix`` says so, and the estimators do not update that prior with the same fix again).
+    ``frame_fields`` / ``truth_fields``: further fields of the :class:`Frame` / :class:`Truth` (or values that
+    replace the ones set here), so that a caller with more of the frame builds it once instead of replacing it."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
@@ -425,7 +429,7 @@ def synthesize_frame(
             noise.v2f.standard_normal((owner.size, 4)),
             np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2))
 
-    truth = Truth(
+    truth = dict(
         x_true=x_true,
         v2f_feature=feat,
         features_true=features_true,
@@ -434,7 +438,9 @@ def synthesize_frame(
         heading=heading,
         feature_ids=feature_ids,
     )
-    return Frame(
+    if truth_fields:
+        truth.update(truth_fields)
+    fields = dict(
         t=float(t),
         dt=float(dt),
         vehicle_ids=vehicle_ids,
@@ -448,8 +454,11 @@ def synthesize_frame(
         v2f_owner=owner,
         v2f_R=v2f_R,
         neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
-        truth=truth,
+        truth=Truth(**truth),
         imu=imu,
         prior_has_fix=entered.copy() if gnss_fix else None,
         oracle_gnss=oracle_gnss,
     )
+    if frame_fields:
+        fields.update(frame_fields)
+    return Frame(**fields)
