@@ -19,7 +19,7 @@ from couplers.sensing.infra import InfraSetup, InfraSynth
 from couplers.net.folder import NetFolder
 from couplers.sensing.pedestrians import FeatureRegistry, person_states
 from couplers.sensing.occlusion import _footprints, vehicle_footprints
-from couplers.sensing.perception import Detections, PerceptionNoise, perceive
+from couplers.sensing.perception import Detections, PerceptionNoise, perceive, sensor_boresights
 from couplers.sensing import road_users as ru
 from couplers.sensing.sensor_frame import SensorFrameRows
 from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, points_in_range, synthesize_frame
@@ -247,24 +247,27 @@ class SumoCoupler:
         (pedestrians do not: couplers.sensing.pedestrians)."""
         p = self.perception
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
-        corners, dims = None, None
+        corners, dims, front = None, None, None
         if p.occlusion_vehicles or p.road_users:
             dims = self._vehicle_dims(road.ids, road.prev_row)
         if p.occlusion_vehicles:  # footprints behind the front bumper (couplers.sensing.occlusion)
             front = _front_bumpers(road)
             corners = (_footprints(front, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
                        else vehicle_footprints(front, road.heading, dims[:, 0], dims[:, 1]))
+        # the sensors' boresights, the same for the landmarks' and the road users' perception of this step
+        boresight = sensor_boresights(p, np.asarray(states.heading, dtype=np.float64), len(states.ids))
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
             observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
             buildings=self.scenario.net.buildings, feature_class=feature_class, direction=states.direction,
+            boresight=boresight,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
         if p.extended:
-            det = self._with_road_users(det, road, states, x_true, corners, dims, feature_class)
+            det = self._with_road_users(det, road, states, x_true, corners, dims, feature_class, front, boresight)
         self.last_detections = det
         return det
 
@@ -285,15 +288,18 @@ class SumoCoupler:
         return out
 
     def _with_road_users(self, det: Detections, road: VehicleStates, states: VehicleStates, x_true: np.ndarray,
-                         corners, dims, feature_class) -> Detections:
-        """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users)."""
+                         corners, dims, feature_class, front=None, boresight=None) -> Detections:
+        """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users).
+        ``front``: the road's front bumpers when the caller has them; ``boresight``: the sensors' boresights of
+        the frame's vehicles (couplers.sensing.perception.sensor_boresights) when the caller has them."""
         p = self.perception
         kinds = ru.row_kinds(det.feature, feature_class)  # the perception's rows' kinds (merged_rows sets them)
         parts = []  # (targets (M, 4), what they are: "vehicle" | "person" | "persistent")
         if p.road_users:
             direction = road.direction if road.direction is not None else ru_unit(road.heading)
-            centre = _front_bumpers(road) - 0.5 * dims[:, :1] * direction  # the body's middle, whatever road.xy is
-            parts.append((np.hstack([centre, road.velocity]), "vehicle"))
+            front = _front_bumpers(road) if front is None else front
+            # the body's middle, whatever road.xy is, and its velocity
+            parts.append((ru.body_centre_states(front, dims, direction, road.velocity), "vehicle"))
             if not self.pedestrians and self.scenario.net.persons is not None:
                 ps = person_states(sumo.libsumo.person)
                 parts.append((np.hstack([ps.xy, ps.velocity]), "person"))
@@ -313,18 +319,19 @@ class SumoCoupler:
             pd, occ, klass, kind = self._target_cols[1]
             owner, tgt = points_in_range(states.xy, targets[:, :2], p.max_reach_m)
             if states is road:  # observer i is footprint i (the vehicle part first): a vehicle never sees itself
-                keep = tgt != owner if p.road_users else slice(None)
+                if p.road_users:
+                    owner, tgt = ru.other_pairs(owner, tgt)
                 observer = np.arange(len(states.ids))
             else:
                 observer = match_ids(road.ids, states.ids)
                 keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])
-            owner, tgt = owner[keep], tgt[keep]
+                owner, tgt = owner[keep], tgt[keep]
             direction = states.direction if states.direction is not None else ru_unit(states.heading)
             r_owner, r_tgt, r_sensor, z, sp, sv = ru.perceive_targets(
                 x_true=x_true, direction=direction, heading=states.heading, targets=targets, target_pd=pd,
                 target_occluder=occ, pair_owner=owner, pair_target=tgt, params=p,
                 noise=self.road_noise, occluder_corners=corners, observer_occluder=observer,
-                buildings=self.scenario.net.buildings)
+                buildings=self.scenario.net.buildings, boresight=boresight)
             extra.append((r_owner, z, sp, sv, r_sensor, klass[r_tgt], kind[r_tgt]))
         return ru.merged_rows(det, extra, self.road_noise, p.class_error, kind=kinds)
 

@@ -219,3 +219,25 @@ def test_carried_receiver_rows_equal_the_numpy_mask_and_gathers():
         assert rows.tobytes() == ref_rows.tobytes() and prev.tobytes() == idx[ref_rows].tobytes()
         assert moved.tobytes() == (xy[ref_rows] - xy_prev[idx[ref_rows]]).tobytes()
         assert fix_prev.tobytes() == ref_fix.tobytes()
+
+
+def test_road_user_kernels_equal_the_numpy_expressions():
+    """The road-user part's glue in numba (couplers.sensing.road_users): the perception rows' kinds, the vehicles'
+    body centres and velocities, the pairs without the observer itself, bit for bit as the numpy expressions."""
+    from couplers.sensing.road_users import body_centre_states, other_pairs, row_kinds, row_kinds_reference
+
+    rng = np.random.default_rng(31)
+    for n in (0, 1, 50):
+        feature = np.where(rng.random(n * 3) < 0.6, rng.integers(0, 20, n * 3), -1)
+        for klass in (None, rng.integers(0, 3, 20).astype(np.int8)):
+            got, ref = row_kinds(feature, klass), row_kinds_reference(feature, klass)
+            assert got.dtype == ref.dtype and got.shape == ref.shape and got.tobytes() == ref.tobytes()
+        front, dims = rng.normal(0, 300, (n, 4))[:, 1:3], rng.uniform(3, 12, (n, 2))
+        heading = rng.uniform(-4, 4, n)
+        direction, velocity = np.stack([np.cos(heading), np.sin(heading)], 1), rng.normal(0, 10, (n, 2))
+        ref = np.hstack([front - 0.5 * dims[:, :1] * direction, velocity])
+        assert body_centre_states(front, dims, direction, velocity).tobytes() == ref.tobytes()
+        owner, tgt = np.sort(rng.integers(0, 9, 4 * n)), rng.integers(0, 9, 4 * n)
+        keep = tgt != owner
+        o, t = other_pairs(owner, tgt)
+        assert o.tobytes() == owner[keep].tobytes() and t.tobytes() == tgt[keep].tobytes()
