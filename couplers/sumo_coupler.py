@@ -337,22 +337,8 @@ class SumoCoupler:
 
     def _target_columns(self, key: tuple) -> tuple:
         """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,
-        what) each, in order): vehicles are footprint rows 0.. and detected with the sensor's P_D, persons with it
-        too, persistent sites with ``persistent_clutter_pd``."""
-        p = self.perception
-        cols = []
-        for size, what in key:
-            if what == "vehicle":
-                cols.append((np.full(size, -1.0), np.arange(size), np.full(size, ru.CLASS_VEHICLE),
-                             np.full(size, ru.KIND_VEHICLE)))
-            elif what == "person":
-                cols.append((np.full(size, -1.0), np.full(size, -1), np.full(size, ru.CLASS_PEDESTRIAN),
-                             np.full(size, ru.KIND_PEDESTRIAN)))
-            else:
-                cols.append((np.full(size, p.persistent_clutter_pd), np.full(size, -1), np.full(size, ru.CLASS_STATIC),
-                             np.full(size, ru.KIND_PERSISTENT_CLUTTER)))
-        pd, occ, klass, kind = (np.concatenate(c) for c in zip(*cols))
-        return pd, occ.astype(np.int64), klass, kind
+        what) each, in order): :func:`couplers.sensing.road_users.target_columns`."""
+        return ru.target_columns(key, self.perception.persistent_clutter_pd)
 
 
 def _front_bumpers(states: VehicleStates) -> np.ndarray:

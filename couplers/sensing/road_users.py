@@ -387,6 +387,59 @@ def other_pairs(owner, tgt):
     return o, t
 
 
+TARGET_PARTS = ("vehicle", "person", "persistent")
+
+
+def target_columns(key: tuple, persistent_pd: float) -> tuple:
+    """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,
+    what) each, in order, what one of :data:`TARGET_PARTS`): vehicles are footprint rows 0.. and detected with the
+    sensor's P_D, persons with it too, persistent sites with ``persistent_pd``. One numba pass
+    (:func:`_target_columns`); :func:`target_columns_reference` is the numpy reference."""
+    sizes = np.array([size for size, _ in key], dtype=np.int64)
+    whats = np.array([TARGET_PARTS.index(what) for _, what in key], dtype=np.int64)
+    return _target_columns(sizes, whats, float(persistent_pd))
+
+
+@njit(cache=True)
+def _target_columns(sizes, whats, persistent_pd):
+    """:func:`target_columns_reference`'s columns, part after part (``whats``: 0 vehicle, 1 person, 2 persistent)."""
+    total = 0
+    for p in range(sizes.size):
+        total += sizes[p]
+    pd = np.empty(total)
+    occ = np.empty(total, dtype=np.int64)
+    klass = np.empty(total, dtype=np.int64)
+    kind = np.empty(total, dtype=np.int64)
+    r = 0
+    for p in range(sizes.size):
+        for i in range(sizes[p]):
+            if whats[p] == 0:
+                pd[r], occ[r], klass[r], kind[r] = -1.0, i, CLASS_VEHICLE, KIND_VEHICLE
+            elif whats[p] == 1:
+                pd[r], occ[r], klass[r], kind[r] = -1.0, -1, CLASS_PEDESTRIAN, KIND_PEDESTRIAN
+            else:
+                pd[r], occ[r], klass[r], kind[r] = persistent_pd, -1, CLASS_STATIC, KIND_PERSISTENT_CLUTTER
+            r += 1
+    return pd, occ, klass, kind
+
+
+def target_columns_reference(key: tuple, persistent_pd: float) -> tuple:
+    """:func:`target_columns` in numpy (its reference in the tests)."""
+    cols = []
+    for size, what in key:
+        if what == "vehicle":
+            cols.append((np.full(size, -1.0), np.arange(size), np.full(size, CLASS_VEHICLE),
+                         np.full(size, KIND_VEHICLE)))
+        elif what == "person":
+            cols.append((np.full(size, -1.0), np.full(size, -1), np.full(size, CLASS_PEDESTRIAN),
+                         np.full(size, KIND_PEDESTRIAN)))
+        else:
+            cols.append((np.full(size, persistent_pd), np.full(size, -1), np.full(size, CLASS_STATIC),
+                         np.full(size, KIND_PERSISTENT_CLUTTER)))
+    pd, occ, klass, kind = (np.concatenate(c) for c in zip(*cols))
+    return pd, occ.astype(np.int64), klass, kind
+
+
 def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float, kind: np.ndarray | None = None):
     """The perception's rows ``det`` (:class:`couplers.sensing.perception.Detections`) and the ``extra`` rows
     ((owner, z, sigma_p, sigma_v, sensor, class, kind) tuples of per-row arrays), shuffled within each
@@ -469,5 +522,5 @@ def merged_rows_reference(det, extra: list, noise: RoadUserNoise, class_error: f
 
 __all__ = ["CLASS_VEHICLE", "CLASS_STATIC", "CLASS_PEDESTRIAN", "KIND_NAMES", "RoadUserNoise",
            "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "row_kinds_reference",
-           "body_centre_states", "other_pairs", "merged_rows",
+           "body_centre_states", "other_pairs", "target_columns", "target_columns_reference", "merged_rows",
            "merged_rows_reference"]

@@ -241,3 +241,16 @@ def test_road_user_kernels_equal_the_numpy_expressions():
         keep = tgt != owner
         o, t = other_pairs(owner, tgt)
         assert o.tobytes() == owner[keep].tobytes() and t.tobytes() == tgt[keep].tobytes()
+
+
+def test_target_columns_equal_the_numpy_columns():
+    """The road-user targets' P_D, footprint row, class and kind columns (couplers.sensing.road_users.target_columns)
+    equal the numpy construction, dtypes included, for every order and size of the parts."""
+    from couplers.sensing.road_users import target_columns, target_columns_reference
+
+    for key in ((("vehicle", 0),), (("vehicle", 12), ("persistent", 5)), (("vehicle", 3), ("person", 4),
+                                                                         ("persistent", 2)), (("persistent", 7),)):
+        key = tuple((size, what) for what, size in key)
+        got, ref = target_columns(key, 0.85), target_columns_reference(key, 0.85)
+        for a, b in zip(got, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
