@@ -593,10 +593,7 @@ class SatelliteErrorProcess:
         mode = 0  # no buildings (or no receiver): every satellite above the mask, no extra path
         cols = np.flatnonzero(above)
         m = cols.size
-        b = found = np.zeros((n, m), dtype=np.bool_)
-        d = ex = np.zeros((n, m))
-        g = np.zeros((n, m, 2))
-        cos_c = np.zeros(m)
+        b = d = found = ex = g = cos_c = None  # what the kernels below do not compute: zeros (after them)
         if self.edges is not None and n:
             mode = {"block": 1, "delay": 2, "reflect": 3}[p.nlos]
             if self.radius > 0:  # else nothing is blocked (line_of_sight and reflections return before their kernels)
@@ -616,6 +613,12 @@ class SatelliteErrorProcess:
                 if mode == 3:
                     found, ex, g = reflect_kernel(xy, b, *cand, float(self.radius), e.edges, e.start, e.boxes,
                                                   e.heights, sa, ca, te, cos_c, h_ant, facade_lines(e), *grid)
+        if b is None:
+            b, d = np.zeros((n, m), dtype=np.bool_), np.zeros((n, m))
+        if found is None:
+            found, ex, g = np.zeros((n, m), dtype=np.bool_), np.zeros((n, m)), np.zeros((n, m, 2))
+        if cos_c is None:
+            cos_c = np.zeros(m)
         eps, usable, blocked, full = _assemble(common, sky["sig_n"], np.ascontiguousarray(white, dtype=np.float64),
                                                sky["mp"], np.ascontiguousarray(u, dtype=np.float64),
                                                above, cols, mode, b, d, cos_c, found, ex, g,
