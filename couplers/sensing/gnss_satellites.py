@@ -104,7 +104,9 @@ from couplers.net.buildings import Buildings
 from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
 from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, building_candidates, clearance_radius,
                                        line_of_sight, los_listed, net_origin, reflections)
+from couplers.sensing import streams
 from couplers.sensing.perception import effect_rng
+from couplers.sensing.streams import StreamHandles, stream
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
@@ -343,6 +345,28 @@ def _carried_multipath(rows, prev, a, u_prev, z):
     return u
 
 
+_NO_ROWS_F = np.empty(0)
+
+
+@njit(cache=True)
+def _normals(h, n, s):
+    """(n, s) standard normals of the stream of handle ``h`` (numpy's ``standard_normal((n, s))`` on it)."""
+    return stream(h).standard_normal((n, s))
+
+
+@njit(cache=True)
+def _drawn_multipath(h, n, s, rows, prev, a, u_prev):
+    """:func:`_carried_multipath` of (n, s) normals drawn here from the stream of handle ``h`` (numpy's
+    ``standard_normal((n, s))``), carried in place: the same operations on the same values."""
+    u = stream(h).standard_normal((n, s))
+    for r in range(rows.size):
+        i, q, ar = rows[r], prev[r], a[r]
+        b = np.sqrt(1.0 - ar * ar)
+        for k in range(s):
+            u[i, k] = ar * u_prev[q, k] + b * u[i, k]
+    return u
+
+
 @njit(cache=True)
 def _spread(x, cols, s):
     """(N, s) zeros with column cols[j] set to x[:, j] (``draws = "visible"``: the draws of the satellites above the
@@ -482,6 +506,7 @@ class SatelliteErrorProcess:
         self.dt = float(dt)
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
+        self.handles = StreamHandles(self, ("code_noise", "multipath", "doppler_noise"))  # drawn in kernels
         self.lat, self.lon, self.origin_how = net_origin(net_path)
         self.sky = Sky.build(self.lat, self.lon)
         bad = missing_heights(buildings)
@@ -677,11 +702,16 @@ class SatelliteErrorProcess:
         self.sv = self.a_sv * self.sv + b_sv * self.sv_common.standard_normal((s, 2))
         self.tropo = self.a_sv * self.tropo + b_sv * float(self.sv_common.standard_normal())
         visible = p.draws == "visible"
+        # under draws = "all", where numba's draws are numpy's, the normals are drawn inside the kernels below
+        # (couplers.sensing.streams: the same numbers in the same order from each stream)
+        in_kernel = not visible and streams.available()
         if visible:  # the satellites above the mask only (module docstring, "Random streams")
             above = self._sky_step(t)["above"]
             cols = np.flatnonzero(above)
             white = _spread(self.code_noise.standard_normal((n, cols.size)), cols, s)
             z = self.multipath.standard_normal((n, cols.size))
+        elif in_kernel:
+            white = _normals(self.handles["code_noise"], n, s)
         else:
             white = self.code_noise.standard_normal((n, s))
             z = self.multipath.standard_normal((n, s))
@@ -689,9 +719,10 @@ class SatelliteErrorProcess:
         # the rows carried (in the previous step and not entered), their moves and last fixes (NaN for the others)
         rows, prev, moved, fix_prev = _carried_rows(idx, np.asarray(entered, dtype=np.bool_),
                                                     np.ascontiguousarray(xy, dtype=np.float64), self._xy, self._fix)
-        if rows.size:
-            d = np.hypot(*moved.T)  # numpy's, on the (M, 2) moves' columns as before
-            a = np.exp(-d / p.multipath_corr_length_m)
+        a = np.exp(-np.hypot(*moved.T) / p.multipath_corr_length_m) if rows.size else _NO_ROWS_F
+        if in_kernel:
+            u = _drawn_multipath(self.handles["multipath"], n, s, rows, prev, a, self._u)
+        elif rows.size:  # numpy's hypot and exp above, on the (M, 2) moves' columns as before
             u = (_carried_multipath_visible(rows, prev, a, self._u, z, cols, self._above) if visible
                  else _carried_multipath(rows, prev, a, self._u, z))
         else:
@@ -734,6 +765,8 @@ class SatelliteErrorProcess:
         if p.draws == "visible":  # the satellites above the mask only (module docstring, "Random streams")
             cols = np.flatnonzero(sky["above"])
             w = _spread(self.doppler_noise.standard_normal((n, cols.size)), cols, s)
+        elif streams.available():  # numba's draws are numpy's: the same normals, drawn in a kernel
+            w = _normals(self.handles["doppler_noise"], n, s)
         else:
             w = self.doppler_noise.standard_normal((n, s))
         sig = sky["sig_doppler"]  # doppler_noise_mps sqrt(1 + 1 / sin el), sin el floored at MIN_SIN_EL
