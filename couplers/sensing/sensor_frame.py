@@ -51,9 +51,11 @@ from numba import njit
 from coloc.core.detections import MountSensorDetections, SensorDetections
 from coloc.core.vehicles import match_ids
 from coloc.core.frame import Frame
+from couplers.sensing import streams
 from couplers.sensing.inertial import true_body_motion
 from couplers.sensing.road_users import KIND_PEDESTRIAN, KIND_VEHICLE
 from couplers.sensing.perception import PERCEPTION_STREAM_TAG, Detections, PerceptionParams, effect_rng
+from couplers.sensing.streams import StreamHandles, stream
 
 RANGE_BEARING_STREAM = "range_bearing"
 
@@ -178,6 +180,19 @@ def _range_bearing_rows(px, py, d, ang, rel, psi, cp, sp, mount, yaw, w, sr, sb,
     return r, b, rdot
 
 
+@njit(cache=True)
+def _range_bearing_rows_drawn(h, px, py, d, ang, rel, psi, cp, sp, mount, yaw, sr, sb, srd, owner, yaw_rate,
+                              lever_arm):
+    """:func:`_range_bearing_rows` with its (O, 3) noise normals drawn here from the stream of handle ``h`` (numpy's
+    ``standard_normal((O, 3))`` on it, couplers.sensing.streams)."""
+    w = stream(h).standard_normal((px.size, 3))
+    return _range_bearing_rows(px, py, d, ang, rel, psi, cp, sp, mount, yaw, w, sr, sb, srd, owner, yaw_rate,
+                               lever_arm)
+
+
+_NO_W = np.empty((0, 3))
+
+
 def relative_states_reference(det: Detections, x_true: np.ndarray, features_true: np.ndarray) -> np.ndarray:
     """:func:`relative_states` in numpy (its reference in the tests)."""
     owner = np.asarray(det.owner, dtype=np.int64)
@@ -201,6 +216,7 @@ class SensorFrameRows:
     def __init__(self, params: PerceptionParams, seed: int):
         self.params = params
         self.rng = effect_rng(seed, PERCEPTION_STREAM_TAG, RANGE_BEARING_STREAM)
+        self.handles = StreamHandles(self, ("rng",))  # the same stream, drawn in a kernel
         specs = params.sensors
         self._mount = np.array([s.mount_x_m for s in specs], dtype=float)
         self._yaw = np.deg2rad([s.yaw_deg for s in specs])
@@ -216,7 +232,9 @@ class SensorFrameRows:
         """The rows in the sensors' frames; ``yaw_rate`` (N,) per vehicle: the sensors move with their lever arm
         (:class:`MountSensorDetections`), None: with the vehicle."""
         owner = np.ascontiguousarray(det.owner, dtype=np.int64)
-        w = self.rng.standard_normal((owner.size, 3))
+        # the noise normals: numpy's, or where numba's draws are numpy's the same drawn in the rows' kernel
+        in_kernel = streams.available()
+        w = _NO_W if in_kernel else self.rng.standard_normal((owner.size, 3))
         heading = np.ascontiguousarray(heading, dtype=np.float64)
         kind = getattr(det, "kind", None)
         # The rows of sensor_frame_rows(relative_states(...), ...) (its reference, tested bit for bit): the
@@ -230,8 +248,10 @@ class SensorFrameRows:
             _NO_KIND if kind is None else np.ascontiguousarray(kind, dtype=np.int8), kind is not None,
             heading, np.cos(heading), np.sin(heading), self._mount, self._yaw, self._sr, self._sb, self._srd)
         om = _NO_RATE if yaw_rate is None else np.ascontiguousarray(yaw_rate, dtype=np.float64)
-        r, b, rdot = _range_bearing_rows(px, py, np.hypot(px, py), np.arctan2(py, px), rel, psi, cp, sp, mount, yaw,
-                                         w, sr, sb, srd, owner, om, yaw_rate is not None)
+        rows = (px, py, np.hypot(px, py), np.arctan2(py, px), rel, psi, cp, sp, mount, yaw)
+        tail = (sr, sb, srd, owner, om, yaw_rate is not None)
+        r, b, rdot = (_range_bearing_rows_drawn(self.handles["rng"], *rows, *tail) if in_kernel
+                      else _range_bearing_rows(*rows, w, *tail))
         cls = SensorDetections if yaw_rate is None else MountSensorDetections
         return cls(range=r, bearing=b, range_rate=rdot, mount_x=mount, yaw=yaw, sigma_range=sr, sigma_bearing=sb,
                    sigma_range_rate=srd)

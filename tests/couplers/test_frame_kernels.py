@@ -133,13 +133,21 @@ def test_building_sight_lines_in_numba_equal_shapely():
     assert 0.2 < got.mean() < 0.9  # both kinds of segment are tested
 
 
+@pytest.mark.parametrize("kernel_draws", [True, False])
 @pytest.mark.parametrize("lever_arm", [False, True])
-def test_range_bearing_kernels_equal_sensor_frame_rows(lever_arm):
-    """SensorFrameRows.detections (two kernels around numpy's hypot and arctan2) gives sensor_frame_rows of
-    relative_states, with the per-row gathers of the numpy path, bit for bit: rows on the mount point (range 0),
+def test_range_bearing_kernels_equal_sensor_frame_rows(lever_arm, kernel_draws, monkeypatch):
+    """SensorFrameRows.detections (two kernels around numpy's hypot and arctan2, the noise drawn in the second
+    where numba's draws are numpy's, else by numpy) gives sensor_frame_rows of relative_states, with the per-row
+    gathers of the numpy path, bit for bit, the stream's state after included: rows on the mount point (range 0),
     bearings at +-pi, with and without kinds and the lever arm's yaw rate."""
+    from couplers.sensing import streams
     from couplers.sensing.perception import PerceptionParams, SensorSpec
     from couplers.sensing.sensor_frame import SensorFrameRows
+
+    if not kernel_draws:
+        monkeypatch.setattr(streams, "available", lambda: False)
+    elif not streams.available():
+        pytest.skip("numba's draws are not numpy's on this installation")
 
     sensors = (SensorSpec(name="front", mount_x_m=2.25, sigma_b_deg=0.5), SensorSpec(name="rear", yaw_deg=180.0,
                mount_x_m=-1.0, sigma_r_m=0.3), SensorSpec(name="surround", fov_deg=360.0, range_m=30.0))
