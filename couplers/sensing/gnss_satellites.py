@@ -82,7 +82,8 @@ a fix keep the zone's Doppler error.
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
 "multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Under ``draws = "all"`` (the
 default) every step draws w, u's innovations and the range-rate noise for every satellite (visible or not) and every
-vehicle, so the streams do not depend on the geometry. ``draws = "visible"`` draws them only for the satellites
+vehicle, so the streams do not depend on the geometry (inside kernels through :mod:`couplers.sensing.streams`, the
+same numbers in the same order, where numba's draws are numpy's). ``draws = "visible"`` draws them only for the satellites
 above the elevation mask (the only ones a receiver uses), (N, M) each step with M of the 48 above the mask, taking
 the same normals for the same terms: each term keeps its distribution, the streams' values go to other terms. A
 satellite's multipath process u of a vehicle is carried while the satellite stays above the mask and starts from a
@@ -112,6 +113,7 @@ GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
 MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
 SKY_BLOCK = 64  # steps whose sky terms are computed at once (SatelliteErrorProcess._sky_step)
+_NO_ROWS_F = np.empty(0)
 _NO_CANDIDATES = (np.empty((0, 2), dtype=np.int64), (np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
                                                      np.empty(0)))
 
@@ -343,9 +345,6 @@ def _carried_multipath(rows, prev, a, u_prev, z):
         for k in range(z.shape[1]):
             u[i, k] = ar * u_prev[q, k] + b * z[i, k]
     return u
-
-
-_NO_ROWS_F = np.empty(0)
 
 
 @njit(cache=True)
