@@ -43,7 +43,9 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      at load 7-8 (bench/sumo_step_interference.py; docs/performance.md, "SUMO's step beside the realistic
      sensing"), the larger figures came from comparing separate runs; after the receiver's candidate buildings
      listed once and carried (docs/performance.md, "fourth pass", load 1.7-5.7): realistic preset 3.15x against
-     main's 3.17x (medians of fifteen pairs, five runs each, the pairs spreading 2.2-4.6), the 2x not met;
+     main's 3.17x (medians of fifteen pairs, five runs each, the pairs spreading 2.2-4.6), the 2x not met; after the
+     glue and the receiver's draws moved into kernels (docs/performance.md, "fifth pass", load 1.5-3.8): 2.89x against
+     7b69d5c's 3.03x (fifteen pairs each, spreading 2.2-4.1), the 2x not met;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)

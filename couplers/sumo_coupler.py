@@ -19,7 +19,7 @@ from couplers.sensing.infra import InfraSetup, InfraSynth
 from couplers.net.folder import NetFolder
 from couplers.sensing.pedestrians import FeatureRegistry, person_states
 from couplers.sensing.occlusion import _footprints, vehicle_footprints
-from couplers.sensing.perception import Detections, PerceptionNoise, perceive
+from couplers.sensing.perception import Detections, PerceptionNoise, perceive, sensor_boresights
 from couplers.sensing import road_users as ru
 from couplers.sensing.sensor_frame import SensorFrameRows
 from couplers.sensing.sensors import SensorNoise, SensorParams, features_in_range, points_in_range, synthesize_frame
@@ -167,6 +167,16 @@ class SumoCoupler:
             # The IMU draws from its own streams: computed before the frame so that the frame is built once.
             imu = (self.inertial.step(states.ids, states.entered, states.heading, states.accel, idx=prev_row)
                    if self.inertial is not None else None)
+            # The fields the sensing sets beside synthesize_frame's: with the frame where nothing in between reads
+            # them (no pedestrians: their registry rows come first), else in one replace after it.
+            upd, truth_upd = {}, {}
+            if self.sensor_frame is not None:
+                upd = self.sensor_frame.frame_fields(detections, x_true, states.heading, feats_true, states.ids,
+                                                     states.entered, float(dt))
+            if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
+                upd["v2f_class"] = detections.klass
+                truth_upd["v2f_kind"] = detections.kind
+            early = not self.pedestrians
             frame = synthesize_frame(
                 t=states.t,
                 dt=dt,
@@ -189,18 +199,16 @@ class SumoCoupler:
                 prev_row=prev_row,
                 imu=imu,
                 start=self.scenario.start,
+                frame_fields=upd if early else None,
+                truth_fields=truth_upd if early else None,
             )
-            # The fields the sensing sets after the frame, in one replace where nothing in between reads them.
-            upd = ({} if self.sensor_frame is None
-                   else self.sensor_frame.fields(frame, detections, x_true, states.heading, feats_true))
-            if self.pedestrians:
-                if upd:
-                    frame, upd = replace(frame, **upd), {}
+            if not early:
+                sensor_upd = {k: v for k, v in upd.items() if k != "v2f_class"}
+                if sensor_upd:
+                    frame = replace(frame, **sensor_upd)
                 frame = self._with_registry_rows(frame, present, klass)
-            if detections is not None and detections.kind is not None:  # the classifier's classes, the truth's kinds
-                upd.update(v2f_class=detections.klass, truth=replace(frame.truth, v2f_kind=detections.kind))
-            if upd:
-                frame = replace(frame, **upd)
+                if truth_upd:
+                    frame = replace(frame, v2f_class=detections.klass, truth=replace(frame.truth, **truth_upd))
             if self.v2x is not None:
                 frame = replace(frame, v2x=self.v2x.frame(states.xy, frame.neighbors))
             if self.infra is not None:
@@ -239,24 +247,27 @@ class SumoCoupler:
         (pedestrians do not: couplers.sensing.pedestrians)."""
         p = self.perception
         owner, feat = features_in_range(states.xy, feature_tree, p.max_reach_m)
-        corners, dims = None, None
+        corners, dims, front = None, None, None
         if p.occlusion_vehicles or p.road_users:
             dims = self._vehicle_dims(road.ids, road.prev_row)
         if p.occlusion_vehicles:  # footprints behind the front bumper (couplers.sensing.occlusion)
             front = _front_bumpers(road)
             corners = (_footprints(front, road.direction, dims[:, 0], dims[:, 1]) if road.direction is not None
                        else vehicle_footprints(front, road.heading, dims[:, 0], dims[:, 1]))
+        # the sensors' boresights, the same for the landmarks' and the road users' perception of this step
+        boresight = sensor_boresights(p, np.asarray(states.heading, dtype=np.float64), len(states.ids))
         det = perceive(
             x_true=x_true, heading=states.heading, features_true=features_true,
             pair_owner=owner, pair_feature=feat, params=p, noise=self.perception_noise,
             occluder_corners=corners,
             observer_occluder=np.arange(len(states.ids)) if states is road else match_ids(road.ids, states.ids),
             buildings=self.scenario.net.buildings, feature_class=feature_class, direction=states.direction,
+            boresight=boresight,
         )
         for key, val in det.stats.items():
             self.perception_totals[key] = self.perception_totals.get(key, 0) + val
         if p.extended:
-            det = self._with_road_users(det, road, states, x_true, corners, dims, feature_class)
+            det = self._with_road_users(det, road, states, x_true, corners, dims, feature_class, front, boresight)
         self.last_detections = det
         return det
 
@@ -277,15 +288,18 @@ class SumoCoupler:
         return out
 
     def _with_road_users(self, det: Detections, road: VehicleStates, states: VehicleStates, x_true: np.ndarray,
-                         corners, dims, feature_class) -> Detections:
-        """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users)."""
+                         corners, dims, feature_class, front=None, boresight=None) -> Detections:
+        """The perception's rows plus other road users and persistent clutter (couplers.sensing.road_users).
+        ``front``: the road's front bumpers when the caller has them; ``boresight``: the sensors' boresights of
+        the frame's vehicles (couplers.sensing.perception.sensor_boresights) when the caller has them."""
         p = self.perception
         kinds = ru.row_kinds(det.feature, feature_class)  # the perception's rows' kinds (merged_rows sets them)
         parts = []  # (targets (M, 4), what they are: "vehicle" | "person" | "persistent")
         if p.road_users:
             direction = road.direction if road.direction is not None else ru_unit(road.heading)
-            centre = _front_bumpers(road) - 0.5 * dims[:, :1] * direction  # the body's middle, whatever road.xy is
-            parts.append((np.hstack([centre, road.velocity]), "vehicle"))
+            front = _front_bumpers(road) if front is None else front
+            # the body's middle, whatever road.xy is, and its velocity
+            parts.append((ru.body_centre_states(front, dims, direction, road.velocity), "vehicle"))
             if not self.pedestrians and self.scenario.net.persons is not None:
                 ps = person_states(sumo.libsumo.person)
                 parts.append((np.hstack([ps.xy, ps.velocity]), "person"))
@@ -305,39 +319,26 @@ class SumoCoupler:
             pd, occ, klass, kind = self._target_cols[1]
             owner, tgt = points_in_range(states.xy, targets[:, :2], p.max_reach_m)
             if states is road:  # observer i is footprint i (the vehicle part first): a vehicle never sees itself
-                keep = tgt != owner if p.road_users else slice(None)
+                if p.road_users:
+                    owner, tgt = ru.other_pairs(owner, tgt)
                 observer = np.arange(len(states.ids))
             else:
                 observer = match_ids(road.ids, states.ids)
                 keep = (occ[tgt] < 0) | (occ[tgt] != observer[owner])
-            owner, tgt = owner[keep], tgt[keep]
+                owner, tgt = owner[keep], tgt[keep]
             direction = states.direction if states.direction is not None else ru_unit(states.heading)
             r_owner, r_tgt, r_sensor, z, sp, sv = ru.perceive_targets(
                 x_true=x_true, direction=direction, heading=states.heading, targets=targets, target_pd=pd,
                 target_occluder=occ, pair_owner=owner, pair_target=tgt, params=p,
                 noise=self.road_noise, occluder_corners=corners, observer_occluder=observer,
-                buildings=self.scenario.net.buildings)
+                buildings=self.scenario.net.buildings, boresight=boresight)
             extra.append((r_owner, z, sp, sv, r_sensor, klass[r_tgt], kind[r_tgt]))
         return ru.merged_rows(det, extra, self.road_noise, p.class_error, kind=kinds)
 
     def _target_columns(self, key: tuple) -> tuple:
         """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,
-        what) each, in order): vehicles are footprint rows 0.. and detected with the sensor's P_D, persons with it
-        too, persistent sites with ``persistent_clutter_pd``."""
-        p = self.perception
-        cols = []
-        for size, what in key:
-            if what == "vehicle":
-                cols.append((np.full(size, -1.0), np.arange(size), np.full(size, ru.CLASS_VEHICLE),
-                             np.full(size, ru.KIND_VEHICLE)))
-            elif what == "person":
-                cols.append((np.full(size, -1.0), np.full(size, -1), np.full(size, ru.CLASS_PEDESTRIAN),
-                             np.full(size, ru.KIND_PEDESTRIAN)))
-            else:
-                cols.append((np.full(size, p.persistent_clutter_pd), np.full(size, -1), np.full(size, ru.CLASS_STATIC),
-                             np.full(size, ru.KIND_PERSISTENT_CLUTTER)))
-        pd, occ, klass, kind = (np.concatenate(c) for c in zip(*cols))
-        return pd, occ.astype(np.int64), klass, kind
+        what) each, in order): :func:`couplers.sensing.road_users.target_columns`."""
+        return ru.target_columns(key, self.perception.persistent_clutter_pd)
 
 
 def _front_bumpers(states: VehicleStates) -> np.ndarray:

@@ -82,7 +82,8 @@ a fix keep the zone's Doppler error.
 Random streams (``SeedSequence([seed, 0x6E5, crc32(name)])``): "sv_common" (c, I, T), "code_noise" (w),
 "multipath" (u), "no_fix", "doppler_noise" (drawn only under ``velocity = "doppler"``). Under ``draws = "all"`` (the
 default) every step draws w, u's innovations and the range-rate noise for every satellite (visible or not) and every
-vehicle, so the streams do not depend on the geometry. ``draws = "visible"`` draws them only for the satellites
+vehicle, so the streams do not depend on the geometry (inside kernels through :mod:`couplers.sensing.streams`, the
+same numbers in the same order, where numba's draws are numpy's). ``draws = "visible"`` draws them only for the satellites
 above the elevation mask (the only ones a receiver uses), (N, M) each step with M of the 48 above the mask, taking
 the same normals for the same terms: each term keeps its distribution, the streams' values go to other terms. A
 satellite's multipath process u of a vehicle is carried while the satellite stays above the mask and starts from a
@@ -104,12 +105,15 @@ from couplers.net.buildings import Buildings
 from couplers.sensing.gnss_reflect import facade_lines, reflect_kernel
 from couplers.sensing.gnss_sky import (LOS_GRID_DIVISIONS, BuildingEdges, Sky, building_candidates, clearance_radius,
                                        line_of_sight, los_listed, net_origin, reflections)
+from couplers.sensing import streams
 from couplers.sensing.perception import effect_rng
+from couplers.sensing.streams import StreamHandles, stream
 
 GNSS_ERROR_STREAM_TAG = 0x6E5  # as couplers.sensing.gnss_error
 NO_FIX_SIGMA_M = 100.0  # per axis, reported while no fix (large: an estimator all but ignores it)
 MIN_SIN_EL = 0.05  # sin of ~2.9 deg: the mapping of satellites under the horizon stays finite (never used)
 SKY_BLOCK = 64  # steps whose sky terms are computed at once (SatelliteErrorProcess._sky_step)
+_NO_ROWS_F = np.empty(0)
 _NO_CANDIDATES = (np.empty((0, 2), dtype=np.int64), (np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
                                                      np.empty(0)))
 
@@ -308,6 +312,29 @@ def _wls_kernel(los, usable, eps, var_rx, thr, posterior=False):
 
 
 @njit(cache=True)
+def _carried_rows(idx, entered, xy, xy_prev, fix_prev_all):
+    """The receivers carried from the previous step (idx >= 0 and not entered): their rows, previous rows, moves
+    xy - xy_prev (M, 2), and (N, 2) last fixes, NaN for the others (numpy's mask, flatnonzero and gathers)."""
+    n = idx.size
+    rows = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if idx[i] >= 0 and not entered[i]:
+            rows[m] = i
+            m += 1
+    prev = np.empty(m, dtype=np.int64)
+    moved = np.empty((m, 2))
+    fix_prev = np.full((n, 2), np.nan)
+    for r in range(m):
+        i, q = rows[r], idx[rows[r]]
+        prev[r] = q
+        moved[r, 0] = xy[i, 0] - xy_prev[q, 0]
+        moved[r, 1] = xy[i, 1] - xy_prev[q, 1]
+        fix_prev[i, 0], fix_prev[i, 1] = fix_prev_all[q, 0], fix_prev_all[q, 1]
+    return rows[:m], prev, moved, fix_prev
+
+
+@njit(cache=True)
 def _carried_multipath(rows, prev, a, u_prev, z):
     """The multipath draws ``z`` (N, S) with the rows ``rows`` carried from ``u_prev[prev]``: u = a u_prev +
     sqrt(1 - a^2) z, row by row (numpy's a * u_prev + np.sqrt(1.0 - a * a) * z, the same operations)."""
@@ -317,6 +344,25 @@ def _carried_multipath(rows, prev, a, u_prev, z):
         b = np.sqrt(1.0 - ar * ar)
         for k in range(z.shape[1]):
             u[i, k] = ar * u_prev[q, k] + b * z[i, k]
+    return u
+
+
+@njit(cache=True)
+def _normals(h, n, s):
+    """(n, s) standard normals of the stream of handle ``h`` (numpy's ``standard_normal((n, s))`` on it)."""
+    return stream(h).standard_normal((n, s))
+
+
+@njit(cache=True)
+def _drawn_multipath(h, n, s, rows, prev, a, u_prev):
+    """:func:`_carried_multipath` of (n, s) normals drawn here from the stream of handle ``h`` (numpy's
+    ``standard_normal((n, s))``), carried in place: the same operations on the same values."""
+    u = stream(h).standard_normal((n, s))
+    for r in range(rows.size):
+        i, q, ar = rows[r], prev[r], a[r]
+        b = np.sqrt(1.0 - ar * ar)
+        for k in range(s):
+            u[i, k] = ar * u_prev[q, k] + b * u[i, k]
     return u
 
 
@@ -459,6 +505,7 @@ class SatelliteErrorProcess:
         self.dt = float(dt)
         for name in self.STREAMS:
             setattr(self, name, effect_rng(seed, GNSS_ERROR_STREAM_TAG, name))
+        self.handles = StreamHandles(self, ("code_noise", "multipath", "doppler_noise"))  # drawn in kernels
         self.lat, self.lon, self.origin_how = net_origin(net_path)
         self.sky = Sky.build(self.lat, self.lon)
         bad = missing_heights(buildings)
@@ -570,10 +617,7 @@ class SatelliteErrorProcess:
         mode = 0  # no buildings (or no receiver): every satellite above the mask, no extra path
         cols = np.flatnonzero(above)
         m = cols.size
-        b = found = np.zeros((n, m), dtype=np.bool_)
-        d = ex = np.zeros((n, m))
-        g = np.zeros((n, m, 2))
-        cos_c = np.zeros(m)
+        b = d = found = ex = g = cos_c = None  # what the kernels below do not compute: zeros (after them)
         if self.edges is not None and n:
             mode = {"block": 1, "delay": 2, "reflect": 3}[p.nlos]
             if self.radius > 0:  # else nothing is blocked (line_of_sight and reflections return before their kernels)
@@ -593,6 +637,12 @@ class SatelliteErrorProcess:
                 if mode == 3:
                     found, ex, g = reflect_kernel(xy, b, *cand, float(self.radius), e.edges, e.start, e.boxes,
                                                   e.heights, sa, ca, te, cos_c, h_ant, facade_lines(e), *grid)
+        if b is None:
+            b, d = np.zeros((n, m), dtype=np.bool_), np.zeros((n, m))
+        if found is None:
+            found, ex, g = np.zeros((n, m), dtype=np.bool_), np.zeros((n, m)), np.zeros((n, m, 2))
+        if cos_c is None:
+            cos_c = np.zeros(m)
         eps, usable, blocked, full = _assemble(common, sky["sig_n"], np.ascontiguousarray(white, dtype=np.float64),
                                                sky["mp"], np.ascontiguousarray(u, dtype=np.float64),
                                                above, cols, mode, b, d, cos_c, found, ex, g,
@@ -651,25 +701,29 @@ class SatelliteErrorProcess:
         self.sv = self.a_sv * self.sv + b_sv * self.sv_common.standard_normal((s, 2))
         self.tropo = self.a_sv * self.tropo + b_sv * float(self.sv_common.standard_normal())
         visible = p.draws == "visible"
+        # under draws = "all", where numba's draws are numpy's, the normals are drawn inside the kernels below
+        # (couplers.sensing.streams: the same numbers in the same order from each stream)
+        in_kernel = not visible and streams.available()
         if visible:  # the satellites above the mask only (module docstring, "Random streams")
             above = self._sky_step(t)["above"]
             cols = np.flatnonzero(above)
             white = _spread(self.code_noise.standard_normal((n, cols.size)), cols, s)
             z = self.multipath.standard_normal((n, cols.size))
+        elif in_kernel:
+            white = _normals(self.handles["code_noise"], n, s)
         else:
             white = self.code_noise.standard_normal((n, s))
             z = self.multipath.standard_normal((n, s))
         # multipath: correlated over the distance travelled this step
-        carried = (idx >= 0) & ~np.asarray(entered, dtype=bool)
-        fix_prev = np.full((n, 2), np.nan)
-        if carried.any():
-            rows = np.flatnonzero(carried)
-            prev = idx[rows]
-            d = np.hypot(*(xy[rows] - self._xy[prev]).T)
-            a = np.exp(-d / p.multipath_corr_length_m)
+        # the rows carried (in the previous step and not entered), their moves and last fixes (NaN for the others)
+        rows, prev, moved, fix_prev = _carried_rows(idx, np.asarray(entered, dtype=np.bool_),
+                                                    np.ascontiguousarray(xy, dtype=np.float64), self._xy, self._fix)
+        a = np.exp(-np.hypot(*moved.T) / p.multipath_corr_length_m) if rows.size else _NO_ROWS_F
+        if in_kernel:
+            u = _drawn_multipath(self.handles["multipath"], n, s, rows, prev, a, self._u)
+        elif rows.size:  # numpy's hypot and exp above, on the (M, 2) moves' columns as before
             u = (_carried_multipath_visible(rows, prev, a, self._u, z, cols, self._above) if visible
                  else _carried_multipath(rows, prev, a, self._u, z))
-            fix_prev[rows] = self._fix[prev]
         else:
             u = _spread(z, cols, s) if visible else z.copy()
         if visible:
@@ -710,6 +764,8 @@ class SatelliteErrorProcess:
         if p.draws == "visible":  # the satellites above the mask only (module docstring, "Random streams")
             cols = np.flatnonzero(sky["above"])
             w = _spread(self.doppler_noise.standard_normal((n, cols.size)), cols, s)
+        elif streams.available():  # numba's draws are numpy's: the same normals, drawn in a kernel
+            w = _normals(self.handles["doppler_noise"], n, s)
         else:
             w = self.doppler_noise.standard_normal((n, s))
         sig = sky["sig_doppler"]  # doppler_noise_mps sqrt(1 + 1 / sin el), sin el floored at MIN_SIN_EL

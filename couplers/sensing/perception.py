@@ -403,6 +403,7 @@ def perceive(
     feature_class: np.ndarray | None = None,
     direction: np.ndarray | None = None,
     reference: bool = False,
+    boresight: np.ndarray | None = None,
 ) -> Detections:
     """The V2F rows of one step.
 
@@ -411,7 +412,8 @@ def perceive(
     footprints of every vehicle on the road; ``observer_occluder`` (N,): the footprint row of each
     measuring vehicle (-1 if it has none). ``feature_class`` (K,): the class of each feature
     (None: all static); a detection carries its feature's class, clutter ``CLASS_STATIC``. ``direction``
-    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``).
+    (N, 2): ``unit_heading(heading)`` when the caller has it (the SUMO coupler: ``VehicleStates.direction``);
+    ``boresight``: :func:`sensor_boresights` of ``heading`` when the caller has it.
 
     Two numba stages around numpy's trigonometry and shapely's building query (the kernels of
     :func:`perceive_reference`, same operations in the same order, the same draws from each stream in the same
@@ -430,7 +432,8 @@ def perceive(
         return _perceive_stages(x_true, heading, features_true, pair_owner, pair_feature, params, noise,
                                 occluder_corners, observer_occluder, buildings, feature_class, direction)
     a, k = params.arrays, params.kernel_consts
-    boresight = sensor_boresights(params, heading, n)
+    if boresight is None:
+        boresight = sensor_boresights(params, heading, n)
     xf = np.ascontiguousarray(x_true, dtype=np.float64)
     ft = np.ascontiguousarray(features_true, dtype=np.float64)
     pair_owner = np.asarray(pair_owner, dtype=np.int64)

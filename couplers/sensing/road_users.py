@@ -45,7 +45,8 @@ from couplers.sensing import streams
 from couplers.sensing.occlusion import (OccluderIndex, _building_hits, _segments_occluded_by_buildings,
                                         _segments_occluded_by_buildings_shapely, _segments_occluded_by_vehicles,
                                         building_edges)
-from couplers.sensing.perception import _NO_BUILDINGS, _NO_CORNERS, _fov_params, effect_rng, sensor_boresights
+from couplers.sensing.perception import (_NO_BUILDINGS, _NO_CORNERS, Detections, _fov_params, effect_rng,
+                                         sensor_boresights)
 from couplers.sensing.perception_kernels import (CLASS_PEDESTRIAN, CLASS_STATIC, _distinct_lines, _fov_stage,
                                                 _range_fraction_and_sigma, _sharper, _sight_lines, clear_of_vehicles,
                                                 line_segments)
@@ -110,7 +111,7 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
                      target_pd: np.ndarray, target_occluder: np.ndarray, pair_owner: np.ndarray,
                      pair_target: np.ndarray, params, noise: RoadUserNoise,
                      occluder_corners: np.ndarray | None, observer_occluder: np.ndarray, buildings=None,
-                     reference: bool = False):
+                     reference: bool = False, boresight: np.ndarray | None = None):
     """Detections of the targets (M, 4) (true states) by the vehicles ``x_true``: candidates of every
     sensor (the perception's field of view), sight lines cleared of every vehicle footprint but the
     observer's and the target's own (``target_occluder``, -1: none) and of buildings, detection with
@@ -120,7 +121,8 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     view, the draws, the sight lines and their occlusion run in one kernel (:func:`_targets_stage`, the draws
     inside it through :mod:`couplers.sensing.streams`), the detection and the rows in :func:`_target_rows`;
     ``reference`` (or numba's draws not numpy's on this installation): :func:`_perceive_targets_stages`, the
-    same steps as separate kernels with numpy's draws and :func:`_target_rows_reference` (tested equal)."""
+    same steps as separate kernels with numpy's draws and :func:`_target_rows_reference` (tested equal).
+    ``boresight``: :func:`couplers.sensing.perception.sensor_boresights` of ``heading`` when the caller has it."""
     if reference or not streams.available():
         return _perceive_targets_stages(x_true, direction, heading, targets, target_pd, target_occluder, pair_owner,
                                         pair_target, params, noise, occluder_corners, observer_occluder, buildings,
@@ -128,7 +130,8 @@ def perceive_targets(*, x_true: np.ndarray, direction: np.ndarray, heading: np.n
     a, k = params.arrays, params.kernel_consts
     heading = np.asarray(heading, dtype=np.float64)
     n = x_true.shape[0]
-    boresight = sensor_boresights(params, heading, n)  # the sensors along the heading take ``direction`` instead
+    if boresight is None:  # the sensors along the heading take ``direction`` instead
+        boresight = sensor_boresights(params, heading, n)
     pair_owner = np.asarray(pair_owner, dtype=np.int64)
     pair_target = np.asarray(pair_target, dtype=np.int64)
     targets = np.ascontiguousarray(targets, dtype=np.float64)
@@ -315,7 +318,34 @@ def confuse_classes(klass: np.ndarray, class_error: float, rng: np.random.Genera
 
 
 def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarray:
-    """``Truth.v2f_kind`` of the perception's own rows: landmark (or pedestrian feature) or clutter."""
+    """``Truth.v2f_kind`` of the perception's own rows: landmark (or pedestrian feature) or clutter (one numba
+    pass, :func:`_row_kinds`; :func:`row_kinds_reference` is the numpy reference)."""
+    classed = feature_class is not None
+    return _row_kinds(np.ascontiguousarray(feature, dtype=np.int64).reshape(-1),
+                      np.ascontiguousarray(feature_class, dtype=np.int8) if classed else _NO_CLASS, classed
+                      ).reshape(np.shape(feature))
+
+
+_NO_CLASS = np.zeros(0, dtype=np.int8)
+
+
+@njit(cache=True)
+def _row_kinds(feature, feature_class, classed):
+    """:func:`row_kinds_reference` row by row."""
+    kind = np.empty(feature.size, dtype=np.int8)
+    for r in range(feature.size):
+        f = feature[r]
+        if f < 0:
+            kind[r] = KIND_CLUTTER
+        elif classed and feature_class[f] == CLASS_PEDESTRIAN:
+            kind[r] = KIND_PEDESTRIAN
+        else:
+            kind[r] = KIND_LANDMARK
+    return kind
+
+
+def row_kinds_reference(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarray:
+    """:func:`row_kinds` in numpy (its reference in the tests)."""
     kind = np.full(feature.shape, KIND_CLUTTER, dtype=np.int8)
     real = feature >= 0
     kind[real] = KIND_LANDMARK
@@ -323,6 +353,91 @@ def row_kinds(feature: np.ndarray, feature_class: np.ndarray | None) -> np.ndarr
         kind[real] = np.where(np.asarray(feature_class)[feature[real]] == CLASS_PEDESTRIAN, KIND_PEDESTRIAN,
                               KIND_LANDMARK)
     return kind
+
+
+@njit(cache=True)
+def body_centre_states(front, dims, direction, velocity):
+    """(N, 4) targets of the vehicle part: the body's middle front - (0.5 length) direction (``dims`` (N, 2) length
+    and width) and the velocity, numpy's ``np.hstack([front - 0.5 * dims[:, :1] * direction, velocity])`` (the same
+    products in the same order)."""
+    n = front.shape[0]
+    out = np.empty((n, 4))
+    for i in range(n):
+        half = 0.5 * dims[i, 0]
+        out[i, 0] = front[i, 0] - half * direction[i, 0]
+        out[i, 1] = front[i, 1] - half * direction[i, 1]
+        out[i, 2], out[i, 3] = velocity[i, 0], velocity[i, 1]
+    return out
+
+
+@njit(cache=True)
+def other_pairs(owner, tgt):
+    """The (owner, target) pairs with target != owner (a vehicle never sees itself), in order."""
+    m = 0
+    for k in range(owner.size):
+        if tgt[k] != owner[k]:
+            m += 1
+    o = np.empty(m, dtype=owner.dtype)
+    t = np.empty(m, dtype=tgt.dtype)
+    m = 0
+    for k in range(owner.size):
+        if tgt[k] != owner[k]:
+            o[m], t[m] = owner[k], tgt[k]
+            m += 1
+    return o, t
+
+
+TARGET_PARTS = ("vehicle", "person", "persistent")
+
+
+def target_columns(key: tuple, persistent_pd: float) -> tuple:
+    """(P_D (-1: the sensor's), footprint row (-1: none), class, kind) of the targets of parts ``key`` ((size,
+    what) each, in order, what one of :data:`TARGET_PARTS`): vehicles are footprint rows 0.. and detected with the
+    sensor's P_D, persons with it too, persistent sites with ``persistent_pd``. One numba pass
+    (:func:`_target_columns`); :func:`target_columns_reference` is the numpy reference."""
+    sizes = np.array([size for size, _ in key], dtype=np.int64)
+    whats = np.array([TARGET_PARTS.index(what) for _, what in key], dtype=np.int64)
+    return _target_columns(sizes, whats, float(persistent_pd))
+
+
+@njit(cache=True)
+def _target_columns(sizes, whats, persistent_pd):
+    """:func:`target_columns_reference`'s columns, part after part (``whats``: 0 vehicle, 1 person, 2 persistent)."""
+    total = 0
+    for p in range(sizes.size):
+        total += sizes[p]
+    pd = np.empty(total)
+    occ = np.empty(total, dtype=np.int64)
+    klass = np.empty(total, dtype=np.int64)
+    kind = np.empty(total, dtype=np.int64)
+    r = 0
+    for p in range(sizes.size):
+        for i in range(sizes[p]):
+            if whats[p] == 0:
+                pd[r], occ[r], klass[r], kind[r] = -1.0, i, CLASS_VEHICLE, KIND_VEHICLE
+            elif whats[p] == 1:
+                pd[r], occ[r], klass[r], kind[r] = -1.0, -1, CLASS_PEDESTRIAN, KIND_PEDESTRIAN
+            else:
+                pd[r], occ[r], klass[r], kind[r] = persistent_pd, -1, CLASS_STATIC, KIND_PERSISTENT_CLUTTER
+            r += 1
+    return pd, occ, klass, kind
+
+
+def target_columns_reference(key: tuple, persistent_pd: float) -> tuple:
+    """:func:`target_columns` in numpy (its reference in the tests)."""
+    cols = []
+    for size, what in key:
+        if what == "vehicle":
+            cols.append((np.full(size, -1.0), np.arange(size), np.full(size, CLASS_VEHICLE),
+                         np.full(size, KIND_VEHICLE)))
+        elif what == "person":
+            cols.append((np.full(size, -1.0), np.full(size, -1), np.full(size, CLASS_PEDESTRIAN),
+                         np.full(size, KIND_PEDESTRIAN)))
+        else:
+            cols.append((np.full(size, persistent_pd), np.full(size, -1), np.full(size, CLASS_STATIC),
+                         np.full(size, KIND_PERSISTENT_CLUTTER)))
+    pd, occ, klass, kind = (np.concatenate(c) for c in zip(*cols))
+    return pd, occ.astype(np.int64), klass, kind
 
 
 def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float, kind: np.ndarray | None = None):
@@ -349,7 +464,8 @@ def merged_rows(det, extra: list, noise: RoadUserNoise, class_error: float, kind
         np.ascontiguousarray(ex[3], dtype=np.float64), np.ascontiguousarray(ex[4], dtype=np.int64),
         np.ascontiguousarray(ex[5], dtype=np.int8), np.ascontiguousarray(ex[6], dtype=np.int8))
     klass = confuse_classes(klass, class_error, getattr(noise, "class"))
-    return replace(det, z=z, owner=owner[perm], R=R, feature=feature, sensor=sensor, klass=klass, kind=kind)
+    return Detections(z=z, owner=owner[perm], R=R, feature=feature, sensor=sensor, klass=klass, stats=det.stats,
+                      kind=kind)
 
 
 @njit(cache=True)
@@ -405,5 +521,6 @@ def merged_rows_reference(det, extra: list, noise: RoadUserNoise, class_error: f
 
 
 __all__ = ["CLASS_VEHICLE", "CLASS_STATIC", "CLASS_PEDESTRIAN", "KIND_NAMES", "RoadUserNoise",
-           "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "merged_rows",
+           "persistent_clutter_sites", "perceive_targets", "confuse_classes", "row_kinds", "row_kinds_reference",
+           "body_centre_states", "other_pairs", "target_columns", "target_columns_reference", "merged_rows",
            "merged_rows_reference"]

@@ -51,9 +51,11 @@ from numba import njit
 from coloc.core.detections import MountSensorDetections, SensorDetections
 from coloc.core.vehicles import match_ids
 from coloc.core.frame import Frame
+from couplers.sensing import streams
 from couplers.sensing.inertial import true_body_motion
 from couplers.sensing.road_users import KIND_PEDESTRIAN, KIND_VEHICLE
 from couplers.sensing.perception import PERCEPTION_STREAM_TAG, Detections, PerceptionParams, effect_rng
+from couplers.sensing.streams import StreamHandles, stream
 
 RANGE_BEARING_STREAM = "range_bearing"
 
@@ -123,6 +125,74 @@ def _relative_states(owner, feat, z, x_true, features_true, kind, has_kind):
     return rel
 
 
+_NO_KIND = np.zeros(0, dtype=np.int8)
+_NO_RATE = np.zeros(0)
+
+
+@njit(cache=True)
+def _range_bearing_geometry(owner, sensor, feat, z, x_true, features_true, kind, has_kind, heading, cos_h, sin_h,
+                            mount_s, yaw_s, sr_s, sb_s, srd_s):
+    """Per row: the mount point's offset to the target (px, py) of :func:`sensor_frame_rows`, the relative state of
+    :func:`relative_states`, and the row's heading, its cos / sin (``cos_h`` / ``sin_h`` per vehicle, numpy's),
+    mount, yaw and sigmas gathered by owner and sensor (the same subtractions and products as the reference)."""
+    o = owner.size
+    rel = _relative_states(owner, feat, z, x_true, features_true, kind, has_kind)
+    px = np.empty(o)
+    py = np.empty(o)
+    psi = np.empty(o)
+    cp = np.empty(o)
+    sp = np.empty(o)
+    mount = np.empty(o)
+    yaw = np.empty(o)
+    sr = np.empty(o)
+    sb = np.empty(o)
+    srd = np.empty(o)
+    for k in range(o):
+        i, s = owner[k], sensor[k]
+        psi[k], cp[k], sp[k] = heading[i], cos_h[i], sin_h[i]
+        mount[k], yaw[k], sr[k], sb[k], srd[k] = mount_s[s], yaw_s[s], sr_s[s], sb_s[s], srd_s[s]
+        px[k] = rel[k, 0] - mount[k] * cp[k]
+        py[k] = rel[k, 1] - mount[k] * sp[k]
+    return px, py, rel, psi, cp, sp, mount, yaw, sr, sb, srd
+
+
+@njit(cache=True)
+def _range_bearing_rows(px, py, d, ang, rel, psi, cp, sp, mount, yaw, w, sr, sb, srd, owner, yaw_rate, lever_arm):
+    """(range, bearing, range rate) of :func:`sensor_frame_rows` from numpy's ``d`` = hypot(px, py) and ``ang`` =
+    arctan2(py, px): the same operations in the same order (np.maximum's NaN kept, :func:`wrap` with numba's
+    float ``%``, which is Python's, as numpy's remainder); ``yaw_rate`` (N,) per vehicle under ``lever_arm``."""
+    o = px.size
+    r = np.empty(o)
+    b = np.empty(o)
+    rdot = np.empty(o)
+    two_pi = 2.0 * np.pi
+    for k in range(o):
+        safe = 1e-300 if d[k] < 1e-300 else d[k]  # np.maximum(d, 1e-300), NaN kept
+        if lever_arm:
+            arm = yaw_rate[owner[k]] * mount[k]
+            rd = (px[k] * (rel[k, 2] + arm * sp[k]) + py[k] * (rel[k, 3] - arm * cp[k])) / safe
+        else:
+            rd = (px[k] * rel[k, 2] + py[k] * rel[k, 3]) / safe
+        a = ang[k] - psi[k] - yaw[k]
+        r[k] = d[k] + sr[k] * w[k, 0]
+        b[k] = ((a + np.pi) % two_pi - np.pi) + sb[k] * w[k, 1]
+        rdot[k] = rd + srd[k] * w[k, 2]
+    return r, b, rdot
+
+
+@njit(cache=True)
+def _range_bearing_rows_drawn(h, px, py, d, ang, rel, psi, cp, sp, mount, yaw, sr, sb, srd, owner, yaw_rate,
+                              lever_arm):
+    """:func:`_range_bearing_rows` with its (O, 3) noise normals drawn here from the stream of handle ``h`` (numpy's
+    ``standard_normal((O, 3))`` on it, couplers.sensing.streams)."""
+    w = stream(h).standard_normal((px.size, 3))
+    return _range_bearing_rows(px, py, d, ang, rel, psi, cp, sp, mount, yaw, w, sr, sb, srd, owner, yaw_rate,
+                               lever_arm)
+
+
+_NO_W = np.empty((0, 3))
+
+
 def relative_states_reference(det: Detections, x_true: np.ndarray, features_true: np.ndarray) -> np.ndarray:
     """:func:`relative_states` in numpy (its reference in the tests)."""
     owner = np.asarray(det.owner, dtype=np.int64)
@@ -146,6 +216,7 @@ class SensorFrameRows:
     def __init__(self, params: PerceptionParams, seed: int):
         self.params = params
         self.rng = effect_rng(seed, PERCEPTION_STREAM_TAG, RANGE_BEARING_STREAM)
+        self.handles = StreamHandles(self, ("rng",))  # the same stream, drawn in a kernel
         specs = params.sensors
         self._mount = np.array([s.mount_x_m for s in specs], dtype=float)
         self._yaw = np.deg2rad([s.yaw_deg for s in specs])
@@ -160,17 +231,27 @@ class SensorFrameRows:
                    features_true: np.ndarray, yaw_rate: np.ndarray | None = None) -> SensorDetections:
         """The rows in the sensors' frames; ``yaw_rate`` (N,) per vehicle: the sensors move with their lever arm
         (:class:`MountSensorDetections`), None: with the vehicle."""
-        sensor = np.asarray(det.sensor, dtype=np.int64)
-        owner = np.asarray(det.owner, dtype=np.int64)
-        w = self.rng.standard_normal((owner.size, 3))
-        rel = relative_states(det, x_true, features_true)
-        mount, yaw = self._mount[sensor], self._yaw[sensor]
-        sr, sb, srd = self._sr[sensor], self._sb[sensor], self._srd[sensor]
-        om = None if yaw_rate is None else np.asarray(yaw_rate, dtype=float)[owner]
-        heading = np.asarray(heading, dtype=float)
-        # cos / sin once per vehicle, then per row (the rows outnumber the vehicles several times)
-        r, b, rdot = sensor_frame_rows(rel, heading[owner], mount, yaw, w, sr, sb, srd, om,
-                                       cos_sin=(np.cos(heading)[owner], np.sin(heading)[owner]))
+        owner = np.ascontiguousarray(det.owner, dtype=np.int64)
+        # the noise normals: numpy's, or where numba's draws are numpy's the same drawn in the rows' kernel
+        in_kernel = streams.available()
+        w = _NO_W if in_kernel else self.rng.standard_normal((owner.size, 3))
+        heading = np.ascontiguousarray(heading, dtype=np.float64)
+        kind = getattr(det, "kind", None)
+        # The rows of sensor_frame_rows(relative_states(...), ...) (its reference, tested bit for bit): the
+        # gathers, relative states and mount offsets in one kernel, numpy's hypot and arctan2 on its output, the
+        # rest in a second kernel. cos / sin once per vehicle (numpy's), gathered per row in the kernel.
+        px, py, rel, psi, cp, sp, mount, yaw, sr, sb, srd = _range_bearing_geometry(
+            owner, np.ascontiguousarray(det.sensor, dtype=np.int64), np.ascontiguousarray(det.feature, dtype=np.int64),
+            np.ascontiguousarray(det.z, dtype=np.float64).reshape(-1, 4),
+            np.ascontiguousarray(x_true, dtype=np.float64).reshape(-1, 4),
+            np.ascontiguousarray(features_true, dtype=np.float64).reshape(-1, 4),
+            _NO_KIND if kind is None else np.ascontiguousarray(kind, dtype=np.int8), kind is not None,
+            heading, np.cos(heading), np.sin(heading), self._mount, self._yaw, self._sr, self._sb, self._srd)
+        om = _NO_RATE if yaw_rate is None else np.ascontiguousarray(yaw_rate, dtype=np.float64)
+        rows = (px, py, np.hypot(px, py), np.arctan2(py, px), rel, psi, cp, sp, mount, yaw)
+        tail = (sr, sb, srd, owner, om, yaw_rate is not None)
+        r, b, rdot = (_range_bearing_rows_drawn(self.handles["rng"], *rows, *tail) if in_kernel
+                      else _range_bearing_rows(*rows, w, *tail))
         cls = SensorDetections if yaw_rate is None else MountSensorDetections
         return cls(range=r, bearing=b, range_rate=rdot, mount_x=mount, yaw=yaw, sigma_range=sr, sigma_bearing=sb,
                    sigma_range_rate=srd)
@@ -195,7 +276,17 @@ class SensorFrameRows:
     def fields(self, frame: Frame, det: Detections, x_true: np.ndarray, heading: np.ndarray,
                features_true: np.ndarray) -> dict:
         """The fields :meth:`apply` sets, for a caller that sets others in the same ``replace``."""
-        om = (self.true_yaw_rate(frame.vehicle_ids, frame.entered, heading, float(frame.dt)) if self.lever_arm
-              else None)
+        return self.frame_fields(det, x_true, heading, features_true, frame.vehicle_ids, frame.entered,
+                                 float(frame.dt), frame.v2f_z, frame.v2f_R)
+
+    def frame_fields(self, det: Detections, x_true: np.ndarray, heading: np.ndarray, features_true: np.ndarray,
+                     ids: np.ndarray, entered: np.ndarray, dt: float, v2f_z: np.ndarray | None = None,
+                     v2f_R: np.ndarray | None = None) -> dict:
+        """:meth:`fields` before the frame exists (its vehicles ``ids``, ``entered``, step ``dt``; the net-frame
+        rows ``v2f_z`` / ``v2f_R`` it would carry, by default ``det``'s), for a caller that builds the frame with
+        them."""
+        om = self.true_yaw_rate(ids, entered, heading, dt) if self.lever_arm else None
         sd = self.detections(det, x_true, heading, features_true, om)
-        return dict(v2f_sensor=sd, v2f_z=np.full_like(frame.v2f_z, np.nan), v2f_R=np.full_like(frame.v2f_R, np.nan))
+        v2f_z = det.z if v2f_z is None else v2f_z
+        v2f_R = det.R if v2f_R is None else v2f_R
+        return dict(v2f_sensor=sd, v2f_z=np.full_like(v2f_z, np.nan), v2f_R=np.full_like(v2f_R, np.nan))

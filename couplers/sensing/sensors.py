@@ -111,6 +111,40 @@ def _gnss_rows(x_true, w, sigma_p, sigma_v):
     return z, R
 
 
+@njit(cache=True)
+def _receiver_rows(gnss_z, gnss_R, x_true, err, cov, has_cov, verr, vcov, solved, doppler):
+    """The receiver's rows written into model (3)'s, in place, the assignments of :func:`_receiver_rows_reference`:
+    position x + err, its 2 x 2 block the reported ``cov`` (``has_cov``); under ``doppler`` the solved rows'
+    velocity x + verr and its block ``vcov``."""
+    for i in range(gnss_z.shape[0]):
+        gnss_z[i, 0] = x_true[i, 0] + err[i, 0]
+        gnss_z[i, 1] = x_true[i, 1] + err[i, 1]
+        if has_cov:
+            for r in range(2):
+                for c in range(2):
+                    gnss_R[i, r, c] = cov[i, r, c]
+        if doppler and solved[i]:
+            gnss_z[i, 2] = x_true[i, 2] + verr[i, 0]
+            gnss_z[i, 3] = x_true[i, 3] + verr[i, 1]
+            for r in range(2):
+                for c in range(2):
+                    gnss_R[i, 2 + r, 2 + c] = vcov[i, r, c]
+
+
+def _receiver_rows_reference(gnss_z, gnss_R, x_true, err, cov, verr, vcov, solved):
+    """:func:`_receiver_rows` in numpy (``cov`` / ``verr`` None: not set)."""
+    gnss_z[:, :2] = x_true[:, :2] + err
+    if cov is not None:
+        gnss_R[:, :2, :2] = cov
+    if verr is not None:
+        gnss_z[solved, 2:4] = x_true[solved, 2:4] + verr[solved]
+        gnss_R[solved, 2:, 2:] = vcov[solved]
+
+
+_NO_COV = np.empty((0, 2, 2))
+_NO_VELOCITY = (np.empty((0, 2)), np.empty((0, 2, 2)), np.zeros(0, dtype=np.bool_))
+
+
 def _gnss_rows_reference(x_true, w, sigma_p, sigma_v):
     """:func:`_gnss_rows` in numpy."""
     return x_true + w * np.stack([sigma_p, sigma_p, sigma_v, sigma_v], axis=1), gnss_cov(sigma_p, sigma_v)
@@ -334,6 +368,8 @@ def synthesize_frame(
     prev_row: np.ndarray | None = None,
     imu: ImuFrame | None = None,
     start: str = "fast_start",
+    frame_fields: dict | None = None,
+    truth_fields: dict | None = None,
 ) -> Frame:
     """Turn true states into one frame of measurements (models (1), (3), (4)).
 
@@ -348,7 +384,9 @@ def synthesize_frame(
     ``accel`` is NaN (the net-frame input would carry the true heading). ``start``: "fast_start" (the paper's
     prior N(x_true, diag(sp^2, sp^2, sv^2, sv^2)) for entering vehicles) or "gnss_fix" (an entering vehicle's
     prior is its receiver's fix of this step, ``gnss_z`` and ``gnss_R``: nothing of its truth; the frame's
-    ``prior_has_fix`` says so, and the estimators do not update that prior with the same fix again)."""
+    ``prior_has_fix`` says so, and the estimators do not update that prior with the same fix again).
+    ``frame_fields`` / ``truth_fields``: further fields of the :class:`Frame` / :class:`Truth` (or values that
+    replace the ones set here), so that a caller with more of the frame builds it once instead of replacing it."""
     n = x_true.shape[0]
     entered = np.asarray(entered, dtype=bool)
 
@@ -360,23 +398,22 @@ def synthesize_frame(
     prior_z, prior_R = _prior_rows(entered, xf, w,
                                    np.array([params.prior_sigma_p] * 2 + [params.prior_sigma_v] * 2))
 
-    accel = accel_true + params.accel_sigma * noise.accel.standard_normal((n, 2))
-    if imu is not None:
-        accel = np.full_like(accel, np.nan)
+    accel_w = noise.accel.standard_normal((n, 2))  # drawn with or without the IMU (the stream's contract)
+    accel = np.full((n, 2), np.nan) if imu is not None else accel_true + params.accel_sigma * accel_w
 
     # GNSS, model (3): z = x + n, zone-dependent R.
     gnss_w = noise.gnss.standard_normal((n, 4))
     gnss_z, gnss_R = _gnss_rows(xf, gnss_w, np.asarray(gnss_sigma_p, dtype=np.float64),
                                 np.asarray(gnss_sigma_v, dtype=np.float64))
     if gnss_error is not None:
-        gnss_z[:, :2] = x_true[:, :2] + gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone,
-                                                        x_true[:, :2], idx=prev_row)
-        if getattr(gnss_error, "reported_cov", None) is not None:  # "satellites": the covariance the receiver reports
-            gnss_R[:, :2, :2] = gnss_error.reported_cov
-        if getattr(gnss_error, "doppler", False):  # "satellites", velocity = "doppler": the range-rate solution
-            verr, vcov, solved = gnss_error.velocity_error(x_true[:, 2:4])
-            gnss_z[solved, 2:4] = x_true[solved, 2:4] + verr[solved]
-            gnss_R[solved, 2:, 2:] = vcov[solved]
+        err = gnss_error.step(t, vehicle_ids, entered, gnss_w[:, :2], gnss_sigma_p, zone, x_true[:, :2], idx=prev_row)
+        # "satellites": the covariance the receiver reports; with velocity = "doppler" the range-rate solution
+        cov = getattr(gnss_error, "reported_cov", None)
+        doppler = bool(getattr(gnss_error, "doppler", False))
+        verr, vcov, solved = gnss_error.velocity_error(x_true[:, 2:4]) if doppler else _NO_VELOCITY
+        _receiver_rows(gnss_z, gnss_R, xf, np.ascontiguousarray(err, dtype=np.float64),
+                       _NO_COV if cov is None else np.ascontiguousarray(cov, dtype=np.float64), cov is not None,
+                       verr, vcov, solved, doppler)
     oracle_gnss = gnss_error.oracle_frame() if getattr(gnss_error, "oracle_channel", False) else None
     if gnss_fix:  # the receiver's first fix, its error included, and the covariance it reports
         prior_z[entered], prior_R[entered] = gnss_z[entered], gnss_R[entered]
@@ -392,7 +429,7 @@ def synthesize_frame(
             noise.v2f.standard_normal((owner.size, 4)),
             np.array([params.v2f_sigma_p] * 2 + [params.v2f_sigma_v] * 2))
 
-    truth = Truth(
+    truth = dict(
         x_true=x_true,
         v2f_feature=feat,
         features_true=features_true,
@@ -401,7 +438,9 @@ def synthesize_frame(
         heading=heading,
         feature_ids=feature_ids,
     )
-    return Frame(
+    if truth_fields:
+        truth.update(truth_fields)
+    fields = dict(
         t=float(t),
         dt=float(dt),
         vehicle_ids=vehicle_ids,
@@ -415,8 +454,11 @@ def synthesize_frame(
         v2f_owner=owner,
         v2f_R=v2f_R,
         neighbors=neighbor_graph(x_true[:, :2], params.v2v_range_m),
-        truth=truth,
+        truth=Truth(**truth),
         imu=imu,
         prior_has_fix=entered.copy() if gnss_fix else None,
         oracle_gnss=oracle_gnss,
     )
+    if frame_fields:
+        fields.update(frame_fields)
+    return Frame(**fields)

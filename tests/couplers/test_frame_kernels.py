@@ -131,3 +131,134 @@ def test_building_sight_lines_in_numba_equal_shapely():
     got, ref = _segments_occluded_by_buildings(seg, b), _segments_occluded_by_buildings_shapely(seg, b)
     assert got.dtype == bool and (got == ref).all()
     assert 0.2 < got.mean() < 0.9  # both kinds of segment are tested
+
+
+@pytest.mark.parametrize("kernel_draws", [True, False])
+@pytest.mark.parametrize("lever_arm", [False, True])
+def test_range_bearing_kernels_equal_sensor_frame_rows(lever_arm, kernel_draws, monkeypatch):
+    """SensorFrameRows.detections (two kernels around numpy's hypot and arctan2, the noise drawn in the second
+    where numba's draws are numpy's, else by numpy) gives sensor_frame_rows of relative_states, with the per-row
+    gathers of the numpy path, bit for bit, the stream's state after included: rows on the mount point (range 0),
+    bearings at +-pi, with and without kinds and the lever arm's yaw rate."""
+    from couplers.sensing import streams
+    from couplers.sensing.perception import PerceptionParams, SensorSpec
+    from couplers.sensing.sensor_frame import SensorFrameRows
+
+    if not kernel_draws:
+        monkeypatch.setattr(streams, "available", lambda: False)
+    elif not streams.available():
+        pytest.skip("numba's draws are not numpy's on this installation")
+
+    sensors = (SensorSpec(name="front", mount_x_m=2.25, sigma_b_deg=0.5), SensorSpec(name="rear", yaw_deg=180.0,
+               mount_x_m=-1.0, sigma_r_m=0.3), SensorSpec(name="surround", fov_deg=360.0, range_m=30.0))
+    params = PerceptionParams(sensors=sensors, detections="range_bearing", lever_arm_range_rate=lever_arm)
+    rng = np.random.default_rng(17)
+    n_s = len(params.sensors)
+    for o, with_kind in ((0, True), (1, False), (300, True), (900, False)):
+        n, k = 25, 40
+        det = replace(_det(rng, o, n, k, with_kind), sensor=rng.integers(0, n_s, o))
+        x_true, feats = rng.normal(0, 60, (n, 4)), rng.normal(0, 60, (k, 4))
+        heading = rng.uniform(-4, 4, n)
+        heading[:4] = (0.0, np.pi, -np.pi, np.pi / 2)
+        if o >= 300:  # a target on the mount point, and targets straight behind (bearing wraps at +-pi)
+            det.feature[:3] = -1
+            det.z[0, :2] = [params.sensors[det.sensor[0]].mount_x_m * np.cos(heading[det.owner[0]]),
+                            params.sensors[det.sensor[0]].mount_x_m * np.sin(heading[det.owner[0]])]
+            det.z[1:3, :2] = -5.0 * np.stack([np.cos(heading[det.owner[1:3]]), np.sin(heading[det.owner[1:3]])], 1)
+        yaw_rate = rng.normal(0, 0.3, n) if lever_arm else None
+        rows = SensorFrameRows(params, 4)
+        got = rows.detections(det, x_true, heading, feats, yaw_rate)
+        ref_rng = SensorFrameRows(params, 4).rng
+        w = ref_rng.standard_normal((o, 3))
+        s = det.sensor
+        mount = np.array([x.mount_x_m for x in params.sensors])[s]
+        yaw = np.deg2rad([x.yaw_deg for x in params.sensors])[s]
+        sr = np.array([x.sigma_r_m for x in params.sensors])[s]
+        sb = np.deg2rad([x.sigma_b_deg for x in params.sensors])[s]
+        srd = np.array([x.sigma_rdot_mps for x in params.sensors])[s]
+        ref = sensor_frame_rows(relative_states_reference(det, x_true, feats), heading[det.owner], mount, yaw, w, sr,
+                                sb, srd, None if yaw_rate is None else yaw_rate[det.owner])
+        for a, b in zip((got.range, got.bearing, got.range_rate), ref):
+            assert a.dtype == b.dtype and a.shape == b.shape == (o,) and a.tobytes() == b.tobytes()
+        for a, b in zip((got.mount_x, got.yaw, got.sigma_range, got.sigma_bearing, got.sigma_range_rate),
+                        (mount, yaw, sr, sb, srd)):
+            assert a.tobytes() == b.tobytes()
+        assert rows.rng.bit_generator.state == ref_rng.bit_generator.state
+
+
+def test_receiver_rows_equal_the_numpy_assignments():
+    """The receiver's fix, reported covariance and range-rate solution written into model (3)'s rows
+    (couplers.sensing.sensors._receiver_rows) as the numpy assignments, bit for bit, with each part off."""
+    from couplers.sensing.sensors import _NO_COV, _NO_VELOCITY, _receiver_rows, _receiver_rows_reference
+
+    rng = np.random.default_rng(23)
+    for n in (0, 1, 60):
+        x = rng.normal(0, 500, (n, 4))
+        err, cov = rng.normal(0, 5, (n, 2)), rng.normal(0, 3, (n, 2, 2))
+        verr, vcov, solved = rng.normal(0, 0.1, (n, 2)), rng.normal(0, 0.01, (n, 2, 2)), rng.random(n) < 0.8
+        for has_cov, doppler in ((False, False), (True, False), (True, True)):
+            z0, R0 = rng.normal(0, 500, (n, 4)), rng.normal(0, 1, (n, 4, 4))
+            z1, R1, z2, R2 = z0.copy(), R0.copy(), z0.copy(), R0.copy()
+            _receiver_rows(z1, R1, x, err, cov if has_cov else _NO_COV, has_cov,
+                           *((verr, vcov, solved) if doppler else _NO_VELOCITY), doppler)
+            _receiver_rows_reference(z2, R2, x, err, cov if has_cov else None, verr if doppler else None, vcov, solved)
+            assert z1.tobytes() == z2.tobytes() and R1.tobytes() == R2.tobytes()
+
+
+def test_carried_receiver_rows_equal_the_numpy_mask_and_gathers():
+    """The receivers carried from the previous step (couplers.sensing.gnss_satellites._carried_rows): rows,
+    previous rows, moves and last fixes as numpy's mask, flatnonzero and gathers, bit for bit, on strided
+    positions (the coupler's x_true[:, :2])."""
+    from couplers.sensing.gnss_satellites import _carried_rows
+
+    rng = np.random.default_rng(29)
+    for n, n_prev in ((0, 0), (5, 0), (40, 35), (80, 90)):
+        x = rng.normal(0, 300, (n, 4))
+        xy, xy_prev = x[:, :2], rng.normal(0, 300, (n_prev, 4))[:, :2]
+        fix = rng.normal(0, 300, (n_prev, 2))
+        fix[::7] = np.nan
+        idx = np.where(rng.random(n) < 0.8, rng.integers(0, max(n_prev, 1), n), -1) if n_prev else np.full(n, -1)
+        entered = rng.random(n) < 0.1
+        rows, prev, moved, fix_prev = _carried_rows(idx, entered, xy, xy_prev, fix)
+        carried = (idx >= 0) & ~entered
+        ref_rows = np.flatnonzero(carried)
+        ref_fix = np.full((n, 2), np.nan)
+        ref_fix[ref_rows] = fix[idx[ref_rows]]
+        assert rows.tobytes() == ref_rows.tobytes() and prev.tobytes() == idx[ref_rows].tobytes()
+        assert moved.tobytes() == (xy[ref_rows] - xy_prev[idx[ref_rows]]).tobytes()
+        assert fix_prev.tobytes() == ref_fix.tobytes()
+
+
+def test_road_user_kernels_equal_the_numpy_expressions():
+    """The road-user part's glue in numba (couplers.sensing.road_users): the perception rows' kinds, the vehicles'
+    body centres and velocities, the pairs without the observer itself, bit for bit as the numpy expressions."""
+    from couplers.sensing.road_users import body_centre_states, other_pairs, row_kinds, row_kinds_reference
+
+    rng = np.random.default_rng(31)
+    for n in (0, 1, 50):
+        feature = np.where(rng.random(n * 3) < 0.6, rng.integers(0, 20, n * 3), -1)
+        for klass in (None, rng.integers(0, 3, 20).astype(np.int8)):
+            got, ref = row_kinds(feature, klass), row_kinds_reference(feature, klass)
+            assert got.dtype == ref.dtype and got.shape == ref.shape and got.tobytes() == ref.tobytes()
+        front, dims = rng.normal(0, 300, (n, 4))[:, 1:3], rng.uniform(3, 12, (n, 2))
+        heading = rng.uniform(-4, 4, n)
+        direction, velocity = np.stack([np.cos(heading), np.sin(heading)], 1), rng.normal(0, 10, (n, 2))
+        ref = np.hstack([front - 0.5 * dims[:, :1] * direction, velocity])
+        assert body_centre_states(front, dims, direction, velocity).tobytes() == ref.tobytes()
+        owner, tgt = np.sort(rng.integers(0, 9, 4 * n)), rng.integers(0, 9, 4 * n)
+        keep = tgt != owner
+        o, t = other_pairs(owner, tgt)
+        assert o.tobytes() == owner[keep].tobytes() and t.tobytes() == tgt[keep].tobytes()
+
+
+def test_target_columns_equal_the_numpy_columns():
+    """The road-user targets' P_D, footprint row, class and kind columns (couplers.sensing.road_users.target_columns)
+    equal the numpy construction, dtypes included, for every order and size of the parts."""
+    from couplers.sensing.road_users import target_columns, target_columns_reference
+
+    for key in ((("vehicle", 0),), (("vehicle", 12), ("persistent", 5)), (("vehicle", 3), ("person", 4),
+                                                                         ("persistent", 2)), (("persistent", 7),)):
+        key = tuple((size, what) for what, size in key)
+        got, ref = target_columns(key, 0.85), target_columns_reference(key, 0.85)
+        for a, b in zip(got, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()

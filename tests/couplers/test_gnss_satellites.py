@@ -688,3 +688,37 @@ def test_unknown_draws_are_refused():
         with pytest.raises(InputError) as exc:
             GnssErrorParams(**SAT, draws=bad)
         assert exc.value.field == "draws"
+
+
+def test_the_receivers_draws_in_kernels_equal_numpys_draws(monkeypatch):
+    """Under draws = "all" the code-noise, multipath and Doppler normals are drawn inside kernels
+    (couplers.sensing.streams): fixes, reported covariances, velocities and every stream's state after equal the
+    numpy draws' (streams.available() False), with receivers that enter, stay, stand still and leave."""
+    from couplers.sensing import streams
+
+    params = GnssErrorParams(**SAT, nlos="reflect", velocity="doppler", reported_covariance="residual")
+    runs = []
+    for kernel_draws in (True, False):
+        if not kernel_draws:
+            monkeypatch.setattr(streams, "available", lambda: False)
+        elif not streams.available():
+            pytest.skip("numba's draws are not numpy's on this installation")
+        proc, rng = SatelliteErrorProcess(params, 3, 0.75, _canyon()), np.random.default_rng(4)
+        ids, xy, out = _ids(0), np.empty((0, 2)), []
+        for k in range(12):
+            keep = rng.random(ids.size) < 0.85  # some leave, some enter
+            new = rng.integers(0, 3)
+            ids = np.concatenate([ids[keep], np.array([f"v{k}_{j}" for j in range(new)], dtype=object)])
+            moved = np.where(rng.random((int(keep.sum()), 1)) < 0.3, 0.0, rng.normal(0, 6, (int(keep.sum()), 2)))
+            xy = np.vstack([xy[keep] + moved, np.column_stack([rng.uniform(-250, 250, new), rng.uniform(-8, 8, new)])])
+            entered = np.r_[np.zeros(int(keep.sum()), dtype=bool), np.ones(new, dtype=bool)]
+            err = proc.step(k * 0.75, ids, entered, None, None, None, xy)
+            verr, vcov, solved = proc.velocity_error(rng.normal(0, 10, (ids.size, 2)))
+            out.append((err, proc.reported_cov, verr, vcov, solved, proc._u))
+        states = [getattr(proc, name).bit_generator.state for name in SatelliteErrorProcess.STREAMS]
+        runs.append((out, states))
+    (a, sa), (b, sb) = runs
+    assert sa == sb
+    for x, y in zip(a, b):
+        for u, v in zip(x, y):
+            assert u.dtype == v.dtype and u.shape == v.shape and u.tobytes() == v.tobytes()
