@@ -620,7 +620,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "drop_existence": (NO_UNIT, "Existence below which a track is dropped."),
         "own_consistency_gate": (NO_UNIT, "Chi-square probability (2 dof): a vehicle whose cooperative position "
                                           "leaves this gate of its own-sensor (GNSS + inertial) track is reset to "
-                                          "that track. 0 = never (the paper)."),
+                                          "that track (ICP-DA-LC; ICP-DA-PF under `[fusion]`, with its split "
+                                          "filters' own track). 0 = never (the paper)."),
         "relocalize_radius_m": ("m", "ICP-DA-LC: a vehicle with at least `relocalize_min_support` rows and none "
                                      "paired with a confirmed track is relocalized for the association by the "
                                      "unique translation within this radius that puts the most of its rows within "

@@ -144,6 +144,7 @@ from coloc.methods.icp_da_lc import (
     merge_candidates,
     new_feature_log_density,
     new_feature_share,
+    own_consistency_reset,
 )
 from coloc.methods.coop_fusion import CoopFusion, SplitState, split_prior
 from coloc.methods.pf_fusion import gaussian_sets, pf_split_localization
@@ -558,6 +559,12 @@ def icp_da_pf_step(
             else row_track
         mean, cov, split_after = pf_split_localization(split, frame, owner, loc_track, z, r, params,
                                                        fusion.params.feature_ci)
+        if lc.own_consistency_gate > 0 and known_association is None:
+            # ICP-DA-LC's step 10 ([lc] own_consistency_gate, coloc.methods.icp_da_lc): a vehicle whose fused
+            # position leaves the gate of its own-sensor track takes that track, in its filters too.
+            mean, cov, reset = own_consistency_reset(mean, cov, own_mean, own_cov, lc.own_consistency_gate)
+            if reset.any():
+                split_after = split_after.reset_to_own(reset)
     f_mean, f_cov = weighted_moments(t_particles, t_post) if t_ids.size else (np.empty((0, 4)), np.empty((0, 4, 4)))
     # Tracks observed this step: a detected option (belief >= 0.5) or a birth.
     observed_ids = np.unique(row_track[row_track >= 0])

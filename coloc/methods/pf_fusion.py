@@ -31,6 +31,10 @@ vehicle belief is instead moment-matched to a Gaussian, which is what split CI n
   more than the stored information, and the fused covariance fell below the centralized joint KF's on small
   scenes (smallest eigenvalue of the difference -0.24 m^2; tests/coloc/test_pf_split_ci.py checks the order).
 
+With ``[lc] own_consistency_gate`` the fused belief then takes ICP-DA-LC's step 10
+(:func:`coloc.methods.icp_da_lc.own_consistency_reset`): a vehicle whose position leaves that chi-square gate of
+its own-sensor track takes the track (mean, covariance and the carried filters); not the known-DA variant.
+
 The PF's particle weights of the vehicles (27) are then not used for the estimate. No parameter is tuned.
 Nothing here reads the world: the receiver's reported covariance, the V2F rows and the config values.
 """

@@ -121,3 +121,31 @@ def test_the_receiver_bias_reaches_the_pf():
     white = run(IcpDaPf(params, LcParams(), PF, fusion=CoopFusion(FusionParams())), frames)[-1]
     bias = run(IcpDaPf(params, LcParams(), PF, fusion=CoopFusion(FusionParams(), GnssModelParams())), frames)[-1]
     assert np.all(np.trace(bias.cov[:, :2, :2], axis1=1, axis2=2) > np.trace(white.cov[:, :2, :2], axis1=1, axis2=2))
+
+
+def test_the_own_track_reset_reaches_the_pf():
+    """[lc] own_consistency_gate (ICP-DA-LC's step 10) in the fused PF, by its own association: with a gate
+    so narrow that any fused position leaves it, every vehicle's estimate is its own-sensor track (the 6-D
+    filters' own marginal, also carried as the cooperative belief); off (0), the fused estimate is tighter than
+    that track for some vehicle, so the check can fail. The known-DA variant does not take the reset (as
+    icp_known_da)."""
+    frames = road_frames(seed=3, n=4, steps=8, n_feat=3)
+    params = IcpParams(motion=TRUE_MOTION)
+    fusion = CoopFusion(FusionParams())
+    narrow = LcParams(own_consistency_gate=1e-9)
+    reset = IcpDaPf(params, narrow, PF, fusion=fusion)
+    free = run(IcpDaPf(params, LcParams(), PF, fusion=fusion), frames, known=False)
+    tighter = False
+    for f, b in zip(frames, free):
+        a = reset.step(f)
+        own = reset.state.split
+        np.testing.assert_allclose(a.mean, own.own_mean[:, :4], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.cov, own.own_cov[:, :4, :4], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(own.mean, own.own_mean, rtol=0, atol=1e-9)
+        tighter |= bool((np.trace(b.cov[:, :2, :2], axis1=1, axis2=2)
+                         < np.trace(a.cov[:, :2, :2], axis1=1, axis2=2) - 1e-6).any())
+    assert tighter
+    known = run(IcpDaPf(params, narrow, PF, fusion=fusion), frames)
+    told = run(IcpDaPf(params, LcParams(), PF, fusion=fusion), frames)
+    for x, y in zip(known, told):
+        assert x.mean.tobytes() == y.mean.tobytes() and x.cov.tobytes() == y.cov.tobytes()
