@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from coloc.methods import registry  # noqa: E402
 from experiments.sweep.consistency import anees_band  # noqa: E402
 from experiments.sweep.paired import paired_ci  # noqa: E402
-from tools.protocol_tables import (as_float, seed_text, shared_rows, shared_table, short_number,  # noqa: E402
-                                  zone_cells, zone_order)
+from tools.protocol_tables import (as_float, seed_text, shared_cells, shared_rows, shared_table,  # noqa: E402
+                                  short_number, zone_cells, zone_order)
 
 ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
 SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
@@ -139,11 +139,7 @@ def markdown(rows: pd.DataFrame, reference: str, shared: pd.DataFrame | None = N
                     r = r.iloc[0]
                     line = (f"| {zone} | {SHORT[method]} | {r.rmse:.3f} | {r.p95:.3f} | {short_number(r.anees)} | "
                             f"{'yes' if r.in_band else 'no'} | {100 * r.inside:.1f} ({100 * r.inside_min:.1f}) % |")
-                    if "shared" in sub:
-                        tau = "inf" if not np.isfinite(r.tau_s) else f"{r.tau_s:.0f}"
-                        line += (f" {r.shared:.2f} | {tau} | [{100 * r.inside_lo:.1f}, {100 * r.inside_hi:.1f}] % |"
-                                 if np.isfinite(r.shared) else " - | - | - |")
-                    lines.append(line)
+                    lines.append(line + (shared_cells(r) if "shared" in sub else ""))
             lines.append("")
         ps = pr[pr.control == control] if len(pr) else pr
         if not len(ps):

@@ -142,6 +142,15 @@ def shared_table(rows: pd.DataFrame, keys=("control", "zone", "rule", "method"))
     return pd.DataFrame(out)
 
 
+def shared_cells(r) -> str:
+    """The three ``--shared`` cells of a table row ``r`` (from :func:`shared_table`): shared fraction, correlation
+    time, band of the share inside."""
+    if not math.isfinite(r.shared):
+        return " - | - | - |"
+    tau = "inf" if not math.isfinite(r.tau_s) else f"{r.tau_s:.0f}"
+    return f" {r.shared:.2f} | {tau} | [{100 * r.inside_lo:.1f}, {100 * r.inside_hi:.1f}] % |"
+
+
 def as_float(v) -> float:
     """A summary value as a float (None: NaN)."""
     return math.nan if v is None else float(v)
@@ -231,11 +240,7 @@ def markdown(rows: pd.DataFrame, shared: pd.DataFrame | None = None) -> str:
                     r = r.iloc[0]
                     line = (f"| {zone} | {SHORT[method]} | {r.rmse:.2f} | {r.p95:.2f} | {short_number(r.anees)} | "
                             f"{'yes' if r.inside_band else 'no'} | {100 * r.inside_95:.1f} % |")
-                    if "shared" in sub:
-                        tau = "inf" if not math.isfinite(r.tau_s) else f"{r.tau_s:.0f}"
-                        line += (f" {r.shared:.2f} | {tau} | [{100 * r.inside_lo:.1f}, {100 * r.inside_hi:.1f}] % |"
-                                 if math.isfinite(r.shared) else " - | - | - |")
-                    lines.append(line)
+                    lines.append(line + (shared_cells(r) if "shared" in sub else ""))
             lines += ["", "Paired differences over the seeds (same seed, same traffic), mean [95 % paired t "
                           "interval], seeds where the first is lower, SD of the per-seed differences and the "
                           "seeds a +-0.15 m half-width needs:", "",

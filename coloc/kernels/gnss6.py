@@ -91,6 +91,19 @@ def nis2(sm, innov, k):
 
 
 @njit(cache=True)
+def gate_nis2(sm, rn, innov, g, sg):
+    """The fault exclusion's statistic of the fix's position: :func:`nis2` of ``sm``, or where the gate's factor
+    ``g`` is not 1 of S - (1 - g) R_n on the position block (the receiver's own report:
+    :func:`coloc.methods.gnss_bias2.gate_nis`), built in the scratch ``sg`` (4, 4)."""
+    if g == 1.0:
+        return nis2(sm, innov, 0)
+    for a in range(2):
+        for b in range(2):
+            sg[a, b] = sm[a, b] - (1.0 - g) * rn[a, b]
+    return nis2(sg, innov, 0)
+
+
+@njit(cache=True)
 def deweight_velocity(sm, rn, innov, vel_threshold):
     """In place: where the velocity part's statistic d^2 exceeds ``vel_threshold``, R_vv and S_vv grow by
     (d^2 / threshold - 1) R_vv (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
@@ -192,16 +205,7 @@ def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            # the gate's statistic on the receiver's own report where gate_scale < 1 (S - (1 - g) R_n on
-            # the position block: coloc.methods.gnss_bias2.gate_nis)
-            if gate_scale[i] == 1.0:
-                nis = nis2(sm, innov, 0)
-            else:
-                for a in range(2):
-                    for b in range(2):
-                        sg[a, b] = sm[a, b] - (1.0 - gate_scale[i]) * rn[a, b]
-                nis = nis2(sg, innov, 0)
-            if nis > gate_threshold:
+            if gate_nis2(sm, rn, innov, gate_scale[i], sg) > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo

@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from coloc.kernels.gnss6 import _lu_solve, deweight_velocity, nis2
+from coloc.kernels.gnss6 import _lu_solve, deweight_velocity, gate_nis2, nis2
 from coloc.kernels.kalman import _driving_q
 
 D = 8
@@ -168,16 +168,7 @@ def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
             deweight_velocity(sm, rn, innov, vel_threshold)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
-            # the gate's statistic on the receiver's own report where gate_scale < 1 (S - (1 - g) R_n on
-            # the position block: coloc.methods.gnss_bias2.gate_nis)
-            if gate_scale[i] == 1.0:
-                nis = nis2(sm, innov, 0)
-            else:
-                for a in range(2):
-                    for b in range(2):
-                        sg[a, b] = sm[a, b] - (1.0 - gate_scale[i]) * rn[a, b]
-                nis = nis2(sg, innov, 0)
-            if nis > gate_threshold:
+            if gate_nis2(sm, rn, innov, gate_scale[i], sg) > gate_threshold:
                 excluded[i] = True
                 lo = 2
         k = 4 - lo
