@@ -53,6 +53,7 @@ import numpy as np
 
 from coloc.core.models import MotionParams, driving_noise_cov
 from coloc.core.vehicles import keep_entry_fix
+from coloc.methods.report_calibration import gate_noise_scale
 
 #: H of the fix for the state [p, v, c, l]: z_pos = p + c + l, z_vel = v.
 H8 = np.zeros((4, 8))
@@ -153,8 +154,6 @@ def gate_nis(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, r: np.ndarray, m
     receiver's own report where ``model.gate_on = "report"``: S_g = S - (1 - g) R_n,pos, g from
     :func:`coloc.methods.report_calibration.gate_noise_scale` (1 everywhere otherwise, and then S_g is S's
     block itself, bit for bit)."""
-    from coloc.methods.report_calibration import gate_noise_scale
-
     nu = innov[:, :2]
     sg = sm[:, :2, :2]
     g = gate_noise_scale(r, model)
