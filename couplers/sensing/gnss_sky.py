@@ -349,31 +349,39 @@ def _los_kernel(xy, x0, y0, cell, nx, ny, gstart, gids, radius, edges, estart, b
                     bd = _box_distance(px, py, boxes[b])
                     if bd > radius:
                         continue
-                    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
-                    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
-                    for kk in range(s):
-                        k = order[kk]
-                        if tan_el[k] <= 0.0:
-                            continue  # under the horizon (not used)
-                        if bd * tan_el[k] + h_ant >= hb:
-                            if box_test:
-                                break  # the box is already cleared at this elevation, and at every higher one
-                            continue
-                        dx, dy = de[k], dn[k]
-                        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
-                            continue  # no edge of the footprint can be crossed: every crossing lies in the box
-                        crossings, tmin = _edge_crossings(px, py, dx, dy, edges, estart[b], estart[b + 1])
-                        if crossings == 0:
-                            continue
-                        if crossings % 2 == 1:  # the antenna stands inside the footprint, below the roof
-                            hit = True
-                        else:
-                            hit = tmin * tan_el[k] + h_ant < hb
-                        if hit:
-                            blocked[i, k] = True
-                            if tmin < dist[i, k]:
-                                dist[i, k] = tmin
+                    _building_blocks(i, px, py, b, bd, hb, h_ant, boxes, order, tan_el, de, dn, edges, estart,
+                                     box_test, blocked, dist)
     return blocked, dist
+
+
+@njit(cache=True)
+def _building_blocks(i, px, py, b, bd, hb, h_ant, boxes, order, tan_el, de, dn, edges, estart, box_test, blocked,
+                     dist):
+    """One antenna ``i`` at (px, py) against one candidate building ``b`` (box distance ``bd``, height ``hb``): every
+    satellite, in ``order``, that the building blocks is marked in ``blocked[i]``, with the smallest crossing
+    distance in ``dist[i]``. ``box_test``: skip the rays that miss the grown box, and stop at the first elevation
+    that clears the box (``order`` rising); False: the reference, every satellite tested."""
+    bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
+    bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
+    for kk in range(de.size):
+        k = order[kk]
+        if tan_el[k] <= 0.0:
+            continue  # under the horizon (not used)
+        if bd * tan_el[k] + h_ant >= hb:
+            if box_test:
+                break  # the box is already cleared at this elevation, and at every higher one
+            continue
+        dx, dy = de[k], dn[k]
+        if box_test and not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
+            continue  # no edge of the footprint can be crossed: every crossing lies in the box
+        crossings, tmin = _edge_crossings(px, py, dx, dy, edges, estart[b], estart[b + 1])
+        if crossings == 0:
+            continue
+        # an odd count: the antenna stands inside the footprint, below the roof
+        if crossings % 2 == 1 or tmin * tan_el[k] + h_ant < hb:
+            blocked[i, k] = True
+            if tmin < dist[i, k]:
+                dist[i, k] = tmin
 
 
 @njit(cache=True)
@@ -437,25 +445,8 @@ def los_listed(xy, cstart, cids, cbd, edges, estart, boxes, heights, de, dn, tan
         for q in range(cstart[i], cstart[i + 1]):
             b = cids[q]
             hb = heights[b]
-            bd = cbd[q]
-            bx0, by0 = boxes[b, 0] - BOX_MARGIN_M, boxes[b, 1] - BOX_MARGIN_M
-            bx1, by1 = boxes[b, 2] + BOX_MARGIN_M, boxes[b, 3] + BOX_MARGIN_M
-            for kk in range(s):
-                k = order[kk]
-                if tan_el[k] <= 0.0:
-                    continue  # under the horizon (not used)
-                if bd * tan_el[k] + h_ant >= hb:
-                    break  # the box is already cleared at this elevation, and at every higher one
-                dx, dy = de[k], dn[k]
-                if not _ray_meets_box(px, py, dx, dy, bx0, by0, bx1, by1):
-                    continue
-                crossings, tmin = _edge_crossings(px, py, dx, dy, edges, estart[b], estart[b + 1])
-                if crossings == 0:
-                    continue
-                if crossings % 2 == 1 or tmin * tan_el[k] + h_ant < hb:
-                    blocked[i, k] = True
-                    if tmin < dist[i, k]:
-                        dist[i, k] = tmin
+            _building_blocks(i, px, py, b, cbd[q], hb, h_ant, boxes, order, tan_el, de, dn, edges, estart, True,
+                             blocked, dist)
     return blocked, dist
 
 
