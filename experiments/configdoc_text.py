@@ -394,6 +394,12 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                            "the next one, where it differs from `[gnss_model] max_exclusions`: the "
                                            "belief has the landmarks' evidence, so it can ride out a longer run of "
                                            "reflected fixes than a receiver alone. -1 (default): `[gnss_model]`'s."),
+        "map_drift": ("", "With `common_frame_messages` and the two-state model: the part of every track that "
+                          "came from vehicles no longer observing it (the folded messages of (12)) drifts as the "
+                          "common-mode frame does, by the common-mode bias's driving noise "
+                          "common_sigma_m^2 (1 - exp(-2 dt / common_tau_s)) per axis and step (`[gnss_model]`), so "
+                          "a map kept over the run follows the frame the vehicles see now. Default false: model "
+                          "(2) alone."),
     },
     "features": {
         "pedestrians": ("", "Every SUMO person is a moving feature with class pedestrian (needs a net folder "

@@ -223,15 +223,25 @@ class FeatureStore:
         self.__dict__["_moments_last"] = (params, cache[params])
         return cache[params]
 
-    def predict(self, dt: float, params: IcpParams) -> "FeatureStore":
-        """Eq. (12): every factor of every track predicted by model (2) (no input)."""
+    def predict(self, dt: float, params: IcpParams, folded_drift: float = 0.0) -> "FeatureStore":
+        """Eq. (12): every factor of every track predicted by model (2) (no input).
+
+        ``folded_drift`` (m^2 per axis, this step): position noise added to Q_F of the folded part of every
+        track only (the messages of vehicles that stopped observing it): the map's frame drifting by that
+        much a step (:meth:`coloc.methods.coop_fusion.CoopFusion.map_drift`). 0: model (2) alone."""
         if self.ids.size == 0:
             return self
         mean, _ = self.moments(params)
         q = feature_track_q(mean, dt, params, self.klass)
+        q_folded = q
+        if folded_drift > 0.0:
+            q_folded = q.copy()
+            q_folded[:, 0, 0] += folded_drift
+            q_folded[:, 1, 1] += folded_drift
         if icp_fused.FUSED:  # one numba pass, same operations (coloc.kernels.icp_fused.predict_store_kernel)
             folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta = predict_store_kernel(
-                self.folded_lam, self.folded_eta, np.ascontiguousarray(q), self.lookup(self.msg_track),
+                self.folded_lam, self.folded_eta, np.ascontiguousarray(q), np.ascontiguousarray(q_folded),
+                self.lookup(self.msg_track),
                 np.ascontiguousarray(self.msg_mean), np.ascontiguousarray(self.msg_cov), float(dt))
             out = dataclasses.replace(
                 self, folded_lam=folded_lam, folded_eta=folded_eta, msg_mean=msg_mean, msg_cov=msg_cov
@@ -241,7 +251,7 @@ class FeatureStore:
         has = np.abs(folded_lam).sum(axis=(1, 2)) > 0
         if has.any():
             fm, fp = from_information(folded_lam[has], folded_eta[has])
-            fm, fp = predict_no_input_kernel(fm, fp, np.ascontiguousarray(q[has]), float(dt))
+            fm, fp = predict_no_input_kernel(fm, fp, np.ascontiguousarray(q_folded[has]), float(dt))
             folded_lam[has], folded_eta[has] = to_information(fm, fp)
         msg_mean, msg_cov = self.msg_mean, self.msg_cov
         if self.msg_track.size:

@@ -322,11 +322,12 @@ def carry_gnss_kernel(mean_a, cov_a, mean_b, cov_b, match, fresh, prior_z, prior
 
 
 @njit(cache=True)
-def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov, dt):
+def predict_store_kernel(folded_lam, folded_eta, q, q_folded, msg_rows, msg_mean, msg_cov, dt):
     """Eq. (12) on the track store (``FeatureStore.predict``, the same numbers): every nonzero folded
-    part to moments, predicted by model (2) with its track's Q_F, back to information; every stored
-    message predicted with its track's Q_F (``msg_rows``), and its information (:func:`information_rows`,
-    as ``to_information`` gives it). Returns (folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta)."""
+    part to moments, predicted by model (2) with its track's ``q_folded`` (Q_F, or Q_F with the map's
+    drift), back to information; every stored message predicted with its track's Q_F ``q``
+    (``msg_rows``), and its information (:func:`information_rows`, as ``to_information`` gives it).
+    Returns (folded_lam, folded_eta, msg_mean, msg_cov, msg_lam, msg_eta)."""
     t = folded_lam.shape[0]
     out_lam = folded_lam.copy()
     out_eta = folded_eta.copy()
@@ -349,7 +350,7 @@ def predict_store_kernel(folded_lam, folded_eta, q, msg_rows, msg_mean, msg_cov,
         for j in range(idx.size):
             fl[j] = folded_lam[idx[j]]
             fe[j] = folded_eta[idx[j]]
-            fq[j] = q[idx[j]]
+            fq[j] = q_folded[idx[j]]
         fp, fm = information_rows(fe, fl)  # from_information: (P, m) = (Lambda^-1, Lambda^-1 eta)
         fm, fp = predict_no_input_rows(fm, fp, fq, dt)  # byte for byte predict_no_input_kernel
         nl, ne = information_rows(fm, fp)

@@ -106,6 +106,13 @@ class FusionParams:
     # own track takes the next fix, its only way back). -1: [gnss_model]'s value.
     belief_innovation_gate: float = -1.0
     belief_max_exclusions: int = -1
+    # With common_frame_messages the features are placed in the common-mode frame, which moves as the
+    # common-mode bias does. True: the part of every track's belief that came from vehicles no longer observing
+    # it (the folded messages of (12)) drifts with it, by the bias's Gauss-Markov driving noise
+    # common_sigma_m^2 (1 - exp(-2 dt / common_tau_s)) per axis and step ([gnss_model]), so a map kept over
+    # the run follows the frame the vehicles see now. False: model (2) alone (the map keeps the frame of the
+    # minutes it was built in).
+    map_drift: bool = False
 
     def __post_init__(self):
         if self.rule not in FUSION_RULES:
@@ -134,6 +141,17 @@ class CoopFusion:
             return None
         model = gnss_model if (params.bias_state and gnss_model is not None) else WHITE_RECEIVER
         return CoopFusion(params, model)
+
+    def map_drift(self, dt: float) -> float:
+        """The folded map's position noise of a step (m^2 per axis; :attr:`FusionParams.map_drift`): the
+        common-mode bias's driving noise of the two-state model, sigma_c^2 (1 - exp(-2 dt / tau_c)) with sigma_c =
+        ``common_sigma_m``, tau_c = ``common_tau_s`` (its report-scaled share has no fixed size and is left
+        out). 0 when the key is off, the messages are not in the common-mode frame, or the model has no
+        common-mode size."""
+        p = self.params
+        if not (p.map_drift and p.common_frame_messages) or self.model.bias_model != "two_state":
+            return 0.0
+        return self.model.common_sigma_m ** 2 * -math.expm1(-2.0 * dt / self.model.common_tau_s)
 
     @property
     def belief_model(self) -> GnssModelParams:

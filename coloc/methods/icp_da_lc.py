@@ -497,7 +497,7 @@ def icp_da_lc_step(
     # (coloc.core.detections; as coloc.methods.icp_known_da).
     frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
                                                 params.motion.heading_min_speed)
-    predicted = state.features.predict(frame.dt, params)
+    predicted = state.features.predict(frame.dt, params, 0.0 if fusion is None else fusion.map_drift(frame.dt))
     owner = np.asarray(frame.v2f_owner, dtype=np.int64)
     o = owner.size
     t_mean, t_cov = predicted.moments(params)

@@ -154,7 +154,7 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     # (coloc.core.detections).
     frame, sensor_heading = with_net_detections(frame, own_mean, own_cov, match, state.sensor_heading,
                                                 params.motion.heading_min_speed)
-    predicted = state.features.predict(frame.dt, params)
+    predicted = state.features.predict(frame.dt, params, 0.0 if fusion is None else fusion.map_drift(frame.dt))
     used = assoc >= 0
     owner_used = np.asarray(frame.v2f_owner, dtype=np.int64)[used]
     row_vehicle = np.asarray(frame.vehicle_ids, dtype=object)[owner_used]

@@ -1381,6 +1381,12 @@ def run_fusion_feature_ci_not_bool(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "fusion.map_drift", "true or false")
+def run_fusion_map_drift_not_bool(tmp, net, run):
+    cfg = _config(tmp, net, '[fusion]\nmap_drift = "yes"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "fusion.belief_max_exclusions", "non-negative integer")
 def run_fusion_belief_max_exclusions_negative(tmp, net, run):
     cfg = _config(tmp, net, "[fusion]\nbelief_max_exclusions = -3\n")
