@@ -20,7 +20,8 @@ discarded, and the share of clutter and persistent-clutter rows it used (diagnos
 step). ``--cohorts``: the same cells for the vehicles on the road at the first frame (a traffic-only warm-up
 switches them all on together, with no map) and for those that entered later. ``--report-scale K`` (a what-if,
 not an estimator setting): every estimator is given the receiver's reported covariance times K. ``--dump``: every
-scored vehicle-step (seed, t, vehicle, zone, error, NEES per method) for row-by-row comparisons.
+scored vehicle-step (seed, t, vehicle, zone, error, NEES and the whitened error wx, wy per method) for
+row-by-row comparisons and the shared part of the errors (experiments/sweep/consistency.py).
 Tuning seeds only (docs/protocol.md). Not a test.
 """
 
@@ -38,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA  # noqa: E402
 from experiments.config import load_config  # noqa: E402
+from experiments.sweep.consistency import whitened_errors  # noqa: E402
 from experiments.runner import build_estimators  # noqa: E402
 from tools.gnss_model_replay import INSIDE_95, frames, parse_value, record  # noqa: E402
 
@@ -56,7 +58,7 @@ def replay(cfg, path: Path, scored_from: float, report_scale: float) -> dict:
     fate of its rows."""
     ests = build_estimators(cfg)
     names = list(cfg.run.methods)
-    out = {m: {"err": [], "nees": [], "zone": [], "t": [], "veh": [], "on": []} for m in names}
+    out = {m: {"err": [], "nees": [], "zone": [], "t": [], "veh": [], "on": [], "wx": [], "wy": []} for m in names}
     rows = {"kind": [], "feat": [], "track": [], "zone": []}
     t0, at_start = None, set()
     for fr in frames(path):
@@ -77,6 +79,9 @@ def replay(cfg, path: Path, scored_from: float, report_scale: float) -> dict:
             o = out[m]
             o["nees"].append(np.einsum("ni,ni->n", d, np.linalg.solve(e.cov[:, :2, :2], d[..., None])[..., 0]))
             o["err"].append(np.hypot(d[:, 0], d[:, 1]))
+            w = whitened_errors(d[:, 0], d[:, 1], e.cov[:, 0, 0], e.cov[:, 1, 1], e.cov[:, 0, 1])
+            o["wx"].append(w[0])
+            o["wy"].append(w[1])
             o["zone"].append(zone)
             o["t"].append(np.full(zone.size, fr.t))
             o["veh"].append(ids)
