@@ -56,7 +56,14 @@ def capture(duration: float, seed: int, out: Path) -> None:
         rec["targets"].append((step[0], (None, None) + _copy(args[2:])))
         return inner_t(*args)
 
-    gsat.reflect_kernel, ru._targets_stage = spy_r, spy_t
+    inner_rows = ru._target_rows
+
+    def spy_rows(*args):  # the detection's constants, which the stage takes too since its lines' pre-check
+        s, a = rec["targets"][-1]
+        rec["targets"][-1] = (s, a + (args[13].copy(), args[14].copy(), args[9].copy()))
+        return inner_rows(*args)
+
+    gsat.reflect_kernel, ru._targets_stage, ru._target_rows = spy_r, spy_t, spy_rows
     cfg = load_config(ROOT / "experiments" / "arterial_tlr_realistic.toml",
                       {"run.duration_s": duration, "run.seed": seed})
     with SumoCoupler(sumo_scenario(cfg, load_net_folder(cfg.net_dir)), cfg.sensors) as coupler:
@@ -89,6 +96,28 @@ def _load_old(old: Path):
     return mods
 
 
+def _fit(args: tuple, f) -> tuple:
+    """The targets stage's captured arguments for ``f``: those of the checkout's ``_targets_stage`` (32), then the
+    detection's pd_near, pd_far and target P_D (captured from ``_target_rows``), which later stages take."""
+    n = f.py_func.__code__.co_argcount
+    return args[:n]
+
+
+def _detectable(out: tuple, args: tuple) -> tuple:
+    """What of the targets stage's result reaches the rows: the candidates, their draws, lines and segments, and
+    per candidate "its line is clear and its uniform passes its detection test" (``_target_rows``' test; a line on
+    which no candidate passes may be left untested)."""
+    pair, dist, sensor, u, w, line_of, clear, seg = out[:8]
+    pair_target, range_m = args[9], args[10]
+    pd_near, pd_far, target_pd = args[32:35]
+    frac = np.minimum(np.maximum(dist / range_m[sensor], 0.0), 1.0)
+    fixed = target_pd[pair_target[pair]]
+    first = np.full(pair_target.size, -1, dtype=np.int64)
+    first[pair[::-1]] = np.arange(pair.size)[::-1]
+    passes = np.where(fixed >= 0, u[first[pair]] < fixed, u < pd_near[sensor] + (pd_far[sensor] - pd_near[sensor]) * frac)
+    return pair, dist, sensor, u, w, line_of, seg, clear[line_of] & passes
+
+
 def _same(a, b) -> bool:
     if isinstance(a, tuple):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
@@ -115,7 +144,7 @@ def replay(path: Path, old: Path, rounds: int, first: int, last: int, what: str)
             a = calls[0][1]
             if name == "targets":
                 g1, g2 = effect_rng(0, 1, "d"), effect_rng(0, 1, "n")
-                a = (handle(g1), handle(g2)) + a[2:]
+                a = _fit((handle(g1), handle(g2)) + a[2:], f)
             f(*a)
         for r in range(rounds):
             for j, (s, args) in enumerate(calls):
@@ -125,17 +154,22 @@ def replay(path: Path, old: Path, rounds: int, first: int, last: int, what: str)
                     a = args
                     if name == "targets":  # the same draws for both versions
                         g1, g2 = effect_rng(j, 1, "d"), effect_rng(j, 1, "n")
-                        a = (handle(g1), handle(g2)) + args[2:]
+                        a = _fit((handle(g1), handle(g2)) + args[2:], f)
                     t0 = time.process_time()
                     out[v] = f(*a)
                     dt = time.process_time() - t0
                     times[v][s] = times[v].get(s, 0.0) + dt
+                if name == "targets" and r == 0:
+                    out = [_detectable(o, args) for o in out]
                 if r == 0 and not _same(out[0], out[1]):
                     raise SystemExit(f"{name}: step {s}: the two versions differ")
         med = [1e6 * np.median(np.array(list(times[v].values()))) / rounds for v in (0, 1)]
         mean = [1e6 * np.mean(np.array(list(times[v].values()))) / rounds for v in (0, 1)]
+        steps = sorted(times[0])
+        diff = np.array([times[1][s] - times[0][s] for s in steps]) / rounds * 1e6
         print(f"{name}: {len(calls)} calls, per step median old {med[0]:.1f} us new {med[1]:.1f} us, "
-              f"mean old {mean[0]:.1f} new {mean[1]:.1f} ({rounds} rounds, identical outputs)")
+              f"mean old {mean[0]:.1f} new {mean[1]:.1f}, new - old per step: median {np.median(diff):.1f} "
+              f"mean {diff.mean():.1f} us ({rounds} rounds, identical outputs)")
 
 
 # --- counting copies of the kernels (the same control flow, with counters) -------------------------------------
@@ -475,7 +509,7 @@ def target_counts(path: Path, first: int, last: int) -> None:
     for _, a in calls:
         (_, _, xy, direction, mount_x, boresight, along, targets, pair_owner, pair_target, range_m, cos_half, full,
          heading, yaw_deg, fov_deg, groups, observer_occluder, target_occluder, use_vehicles, corners,
-         use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin, edge_start, edges) = a
+         use_buildings, x0, y0, cell, near, b_start, b_ids, b_boxes, b_margin, edge_start, edges) = a[:32]
         n_s = mount_x.size
         origins, target, pair, dist, sensor, _, _, _, _ = _fov_stage(
             xy, direction, mount_x, boresight, along, targets, pair_owner, pair_target, range_m, cos_half, full,
