@@ -2,13 +2,17 @@
 targets stage (``_targets_stage``), their work counted and two versions timed on the same inputs in one process.
 
     python bench/world_kernels.py capture [--duration 300] [--seed 1] [--out /tmp/world_kernels.pkl]
-    python bench/world_kernels.py replay --old DIR [--rounds 6] [--first 80] [--last 400]
+    python bench/world_kernels.py counts [--first 80] [--last 400]
+    python bench/world_kernels.py replay --old DIR [--rounds 6] [--first 80] [--last 400] [--what reflect,targets]
 
 ``capture`` runs the TLR realistic preset (experiments/arterial_tlr_realistic.toml) and records every call's
 arguments (the stream handles of the targets stage are not kept: replay draws from scratch generators).
-``replay`` times, per step, the kernels of this checkout and of the checkout ``DIR`` (its ``couplers/sensing``
-modules loaded under other names), alternating their order by step and round, checks that both return the same
-bytes, and prints the medians of the per-step process times (steps first+1 .. last).
+``counts`` replays the calls through copies of c3bf628's kernels with counters (candidates, facades, legs,
+footprints, walk samples ...) and prints their means per step. ``replay`` times, per step, the kernels of this
+checkout and of the checkout ``DIR`` (its ``couplers/sensing`` modules loaded under other names), alternating
+their order by step and round, checks that both return the same bytes (the targets stage: what reaches the
+rows, :func:`_detectable`), and prints the medians of the per-step process times (steps first+1 .. last) and of
+their per-step differences. docs/performance.md, "sixth pass", has what it measured.
 
 Not a test: it asserts only that both versions agree, and prints numbers.
 """
@@ -114,7 +118,8 @@ def _detectable(out: tuple, args: tuple) -> tuple:
     fixed = target_pd[pair_target[pair]]
     first = np.full(pair_target.size, -1, dtype=np.int64)
     first[pair[::-1]] = np.arange(pair.size)[::-1]
-    passes = np.where(fixed >= 0, u[first[pair]] < fixed, u < pd_near[sensor] + (pd_far[sensor] - pd_near[sensor]) * frac)
+    pd = pd_near[sensor] + (pd_far[sensor] - pd_near[sensor]) * frac
+    passes = np.where(fixed >= 0, u[first[pair]] < fixed, u < pd)
     return pair, dist, sensor, u, w, line_of, seg, clear[line_of] & passes
 
 
