@@ -45,7 +45,9 @@ coupled gnss + icp_known_da + icp_da_lc within 3x.
      listed once and carried (docs/performance.md, "fourth pass", load 1.7-5.7): realistic preset 3.15x against
      main's 3.17x (medians of fifteen pairs, five runs each, the pairs spreading 2.2-4.6), the 2x not met; after the
      glue and the receiver's draws moved into kernels (docs/performance.md, "fifth pass", load 1.5-3.8): 2.89x against
-     7b69d5c's 3.03x (fifteen pairs each, spreading 2.2-4.1), the 2x not met;
+     7b69d5c's 3.03x (fifteen pairs each, spreading 2.2-4.1), the 2x not met; after the reflections' path sort
+     (docs/performance.md, "sixth pass", load 1.9-5.1): 2.42x against c3bf628's 2.59x (fifteen pairs each,
+     spreading 2.1-3.5), the 2x not met;
      --workers N also times the coupled run with the estimators spread over SUMO's process and N worker
      processes, as `coloc run --workers N` runs them (experiments.pipeline.assign_methods): wall time, and
      the CPU seconds of all processes together)

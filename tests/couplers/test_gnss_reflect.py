@@ -9,8 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
+from numba import njit
 
 from couplers.net.buildings import Buildings
+from couplers.sensing.gnss_reflect import _argsort_into
 from couplers.sensing.gnss_sky import BuildingEdges, clearance_radius, line_of_sight, reflections
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -251,3 +253,23 @@ def test_the_receiver_with_its_carried_candidates_equals_one_without():
         v = np.tile([0.6 / 0.75, 0.0], (int(keep.sum()), 1))
         for x, y in zip(carry.velocity_error(v), fresh.velocity_error(v)):
             assert x.tobytes() == y.tobytes()
+
+
+@njit
+def _numba_argsort(a):
+    return np.argsort(a)
+
+
+def test_small_argsort_is_numbas_argsort():
+    """The paths' order (couplers.sensing.gnss_reflect._argsort_into) is numba's np.argsort index for index:
+    ties (numba's quicksort is not stable above its insertion-sort size), NaN, every length 0-40."""
+    rng = np.random.default_rng(7)
+    for n in range(41):
+        for trial in range(30):
+            a = rng.integers(0, 4, n).astype(float) if trial % 2 else rng.normal(size=n)
+            if trial % 5 == 0 and n:
+                a[rng.integers(0, n)] = np.nan
+            buf = np.concatenate([a, rng.normal(size=3)])  # values past n are not read
+            order = np.full(buf.size, -7, dtype=np.int64)
+            _argsort_into(buf, n, order)
+            assert order[:n].tolist() == _numba_argsort(a).tolist()
