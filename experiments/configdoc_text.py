@@ -398,7 +398,8 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                           "came from vehicles no longer observing it (the folded messages of (12)) drifts as the "
                           "common-mode frame does, by the common-mode bias's driving noise "
                           "common_sigma_m^2 (1 - exp(-2 dt / common_tau_s)) per axis and step (`[gnss_model]`), so "
-                          "a map kept over the run follows the frame the vehicles see now. Default false: model "
+                          "a map kept over the run follows the frame the vehicles see now (`icp_known_da`, "
+                          "`icp_da_lc`; ICP-DA-PF's particle tracks have no folded part). Default false: model "
                           "(2) alone."),
     },
     "features": {
