@@ -34,7 +34,7 @@ from tools.protocol_tables import (as_float, seed_text, shared_cells, shared_row
 
 ORDER = [m.name for m in (registry.GNSS, registry.ICP_KNOWN_DA, registry.ICP_DA_LC, registry.JOINT_ORACLE)]
 SHORT = dict(zip(ORDER, ("GNSS", "known DA", "LC", "oracle")))
-_SEED = re.compile(r"^(?P<arm>.*),seed=(?P<seed>\d+)$")
+_SEED = re.compile(r"^(?:(?P<arm>.*),)?seed=(?P<seed>\d+)$")  # a sweep without grid or factors: "seed=N"
 
 
 def preset_label(folder: Path) -> str:
@@ -55,7 +55,7 @@ def run_ident(name: str, preset: str) -> dict | None:
     m = _SEED.match(name)
     if m is None:
         return None
-    parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in m["arm"].split(","))
+    parts = dict((p.split("=", 1) if "=" in p else (p, None)) for p in (m["arm"] or "").split(",") if p)
     control = parts.pop("control", "-")
     arm = ",".join(preset if v is None else f"{k}={v}" for k, v in parts.items()) or preset
     return {"control": control, "arm": arm, "seed": int(m["seed"])}
@@ -70,6 +70,10 @@ def run_rows(folder: Path) -> pd.DataFrame:
         if key is None:
             continue
         control, arm = key["control"], key["arm"]
+        if control == "-" and (summ.parent / "config.toml").exists():  # not in the name: the run's own config
+            import tomllib
+
+            control = tomllib.loads((summ.parent / "config.toml").read_text()).get("scenario", {}).get("control", "-")
         data = json.loads(summ.read_text())
         for method, zone, cell in zone_cells(data):
             rows.append({"control": control, "arm": arm, "seed": key["seed"], "method": method, "zone": zone,

@@ -50,3 +50,13 @@ def test_arms_and_paired_differences(tmp_path):
     assert abs(p.pct - (ratio.mean() - 100)) < 1e-9
     text = markdown(rows, "arm=paper")
     assert "TLR, arm=sci: seeds 11-13 (3)" in text and "against arm=paper" in text
+
+
+def test_a_sweep_without_grid_or_factors(tmp_path):
+    """Run folders named ``seed=N`` (no grid, no factor): the preset arm, the control from the run's config."""
+    (tmp_path / "sweep.toml").write_text('[sweep]\nname = "x"\n')
+    for seed in (11, 12):
+        _write(tmp_path, f"seed={seed}", {"joint_oracle": 0.4}, {"joint_oracle": 1.8}, {"joint_oracle": 0.97})
+        (tmp_path / "runs" / f"seed={seed}" / "config.toml").write_text('[scenario]\ncontrol = "vsr"\n')
+    rows = run_rows(tmp_path)
+    assert set(rows["arm"]) == {"preset"} and set(rows["control"]) == {"vsr"} and set(rows["seed"]) == {11, 12}
