@@ -61,19 +61,26 @@ def run_ident(name: str, preset: str) -> dict | None:
     return {"control": control, "arm": arm, "seed": int(m["seed"])}
 
 
+def run_key(run_dir: Path, preset: str) -> dict | None:
+    """:func:`run_ident` of a run folder, the control read from the run's own config when its name has none (a
+    sweep without grid or factors names its runs ``seed=N``)."""
+    key = run_ident(run_dir.name, preset)
+    if key is not None and key["control"] == "-" and (run_dir / "config.toml").exists():
+        import tomllib
+
+        key["control"] = tomllib.loads((run_dir / "config.toml").read_text()).get("scenario", {}).get("control", "-")
+    return key
+
+
 def run_rows(folder: Path) -> pd.DataFrame:
     """One row per (control, arm, seed, method, zone) of every finished run in ``folder/runs``."""
     rows = []
     preset = preset_label(folder)
     for summ in sorted((folder / "runs").glob("*/summary.json")):
-        key = run_ident(summ.parent.name, preset)
+        key = run_key(summ.parent, preset)
         if key is None:
             continue
         control, arm = key["control"], key["arm"]
-        if control == "-" and (summ.parent / "config.toml").exists():  # not in the name: the run's own config
-            import tomllib
-
-            control = tomllib.loads((summ.parent / "config.toml").read_text()).get("scenario", {}).get("control", "-")
         data = json.loads(summ.read_text())
         for method, zone, cell in zone_cells(data):
             rows.append({"control": control, "arm": arm, "seed": key["seed"], "method": method, "zone": zone,
@@ -185,8 +192,8 @@ def main(argv=None) -> int:
         rows.to_csv(args.csv, index=False)
     shared = None
     if args.shared:
-        shared = shared_table(pd.concat([shared_rows(f, lambda name, p=preset_label(f): run_ident(name, p))
-                                         for f in args.folder], ignore_index=True),
+        ident = [lambda name, f=f, p=preset_label(f): run_key(f / "runs" / name, p) for f in args.folder]
+        shared = shared_table(pd.concat([shared_rows(f, i) for f, i in zip(args.folder, ident)], ignore_index=True),
                               keys=("control", "arm", "zone", "method"))
     print(markdown(rows, args.reference, shared))
     return 0

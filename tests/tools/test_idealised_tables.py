@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
-from idealised_tables import markdown, method_table, paired_rows, run_rows  # noqa: E402
+from idealised_tables import markdown, method_table, paired_rows, run_key, run_rows  # noqa: E402
 
 
 def _write(folder: Path, name: str, rmse: dict, nees: dict, inside: dict) -> None:
@@ -60,3 +60,5 @@ def test_a_sweep_without_grid_or_factors(tmp_path):
         (tmp_path / "runs" / f"seed={seed}" / "config.toml").write_text('[scenario]\ncontrol = "vsr"\n')
     rows = run_rows(tmp_path)
     assert set(rows["arm"]) == {"preset"} and set(rows["control"]) == {"vsr"} and set(rows["seed"]) == {11, 12}
+    # the --shared rows' ident reads the same key from the folder
+    assert run_key(tmp_path / "runs" / "seed=11", "preset") == {"control": "vsr", "arm": "preset", "seed": 11}
