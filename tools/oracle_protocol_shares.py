@@ -31,23 +31,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from coloc.methods.registry import GNSS, ICP_DA_LC, ICP_KNOWN_DA  # noqa: E402
+from experiments.rowstream import position_nees  # noqa: E402
+from experiments.scoring import CHI2_2_95  # noqa: E402
+from tools.oracle_shares import MIN_GAIN_M, _pct, share  # noqa: E402
 
 ZONES = ("A", "B", "C", "all")
-#: the 95 % ellipse of a 2-D Gaussian: chi-square(2) quantile
-INSIDE_95 = 5.991464547107979
-#: below this gain of the oracle over gnss (m) a share is not defined, as in tools/oracle_shares.py
-MIN_GAIN_M = 0.05
 
 
 def _scores(err2: np.ndarray, nees: np.ndarray) -> dict:
     e = np.sqrt(err2)
     return {"rmse": float(np.sqrt(err2.mean())), "p95": float(np.percentile(e, 95)),
-            "nees_mean": float(nees.mean()), "inside": float((nees <= INSIDE_95).mean()), "n": int(e.size)}
-
-
-def _nees(dx, dy, sxx, sxy, syy) -> np.ndarray:
-    det = sxx * syy - sxy * sxy
-    return (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / det
+            "nees_mean": float(nees.mean()), "inside": float((nees <= CHI2_2_95).mean()), "n": int(e.size)}
 
 
 def seed_scores(oracle: pd.DataFrame, run: pd.DataFrame, methods: tuple[str, ...]) -> dict:
@@ -73,16 +67,17 @@ def seed_scores(oracle: pd.DataFrame, run: pd.DataFrame, methods: tuple[str, ...
                    jm["zone"])
     for m, (dx, dy, sxx, sxy, syy, zone) in cols.items():
         dx, dy, sxx, sxy, syy = (np.asarray(v, dtype=float) for v in (dx, dy, sxx, sxy, syy))
-        err2, nees, zone = dx * dx + dy * dy, _nees(dx, dy, sxx, sxy, syy), np.asarray(zone).astype(str)
+        err2, nees, zone = dx * dx + dy * dy, position_nees(dx, dy, sxx, syy, sxy), np.asarray(zone).astype(str)
         out[m] = {z: _scores(err2[zone == z] if z != "all" else err2, nees[zone == z] if z != "all" else nees)
                   for z in ZONES if z == "all" or (zone == z).any()}
     return out
 
 
 def share_of_gain(g: np.ndarray, x: np.ndarray, ref: np.ndarray) -> float | None:
-    """(mean g - mean x) / (mean g - mean ref) over the seeds; None where the reference gains < MIN_GAIN_M."""
-    gain = float(np.mean(g) - np.mean(ref))
-    return float((np.mean(g) - np.mean(x)) / gain) if gain >= MIN_GAIN_M else None
+    """:func:`tools.oracle_shares.share` of the means over the seeds: (mean g - mean x) / (mean g - mean ref);
+    None where the reference gains < MIN_GAIN_M."""
+    v = share(float(np.mean(g)), float(np.mean(x)), float(np.mean(ref)))
+    return None if v is None else float(v)
 
 
 def share_interval(g, x, ref, rng: np.random.Generator, draws: int = 10_000) -> tuple[float, float] | None:
@@ -97,10 +92,6 @@ def share_interval(g, x, ref, rng: np.random.Generator, draws: int = 10_000) -> 
     s = (gm[ok] - xm[ok]) / (gm[ok] - rm[ok])
     lo, hi = np.percentile(s, [2.5, 97.5])
     return float(lo), float(hi)
-
-
-def _pct(v) -> str:
-    return "n.d." if v is None else f"{100 * v:.0f}"
 
 
 def main(argv=None) -> int:
@@ -160,8 +151,7 @@ def main(argv=None) -> int:
             for k in ("rmse", "p95"):
                 g, x, r = ([t[n][z][k] for t in tabs] for n in (GNSS.name, m, ref))
                 ci = share_interval(g, x, r, rng)
-                per = " / ".join(_pct(share_of_gain(np.array([a]), np.array([b]), np.array([c])))
-                                 for a, b, c in zip(g, x, r))
+                per = " / ".join(_pct(share(a, b, c)) for a, b, c in zip(g, x, r))
                 s = share_of_gain(g, x, r)
                 cells.append(f"{_pct(s)}{'' if s is None else ' %'} "
                              f"[{'n.d.' if ci is None else f'{_pct(ci[0])}, {_pct(ci[1])}'}] ({per})")

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
-from oracle_protocol_shares import INSIDE_95, main, seed_scores, share_interval, share_of_gain  # noqa: E402
+from oracle_protocol_shares import CHI2_2_95, main, seed_scores, share_interval, share_of_gain  # noqa: E402
 
 SIGMA = {"gnss": 2.0, "icp_known_da": 1.5, "icp_da_lc": 1.6}
 
@@ -47,7 +47,7 @@ def test_every_method_on_the_oracles_samples():
     assert got["icp_da_lc"]["all"]["rmse"] == pytest.approx(np.sqrt(err2.mean()))
     assert got["icp_da_lc"]["all"]["p95"] == pytest.approx(np.percentile(np.sqrt(err2), 95))
     assert got["icp_da_lc"]["all"]["nees_mean"] == pytest.approx(err2.mean() / 1.6 ** 2)
-    assert got["icp_da_lc"]["all"]["inside"] == pytest.approx((err2 / 1.6 ** 2 <= INSIDE_95).mean())
+    assert got["icp_da_lc"]["all"]["inside"] == pytest.approx((err2 / 1.6 ** 2 <= CHI2_2_95).mean())
 
 
 def test_a_missing_run_row_is_an_error():
