@@ -637,6 +637,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "relocalize_tolerance_m": ("m", "How close a translated row must come to a confirmed track to support it."),
         "relocalize_min_support": (NO_UNIT, "Rows a vehicle needs for relocalization, and rows on distinct "
                                             "confirmed tracks a translation needs."),
+        "relocalize_min_gain": (NO_UNIT, "With `relocalize_radius_m` > 0: a vehicle with rows on confirmed tracks "
+                                         "is relocalized too when the vote's translation puts at least this many "
+                                         "more of its rows on distinct confirmed tracks than its own mean does "
+                                         "(coloc/methods/lc_reloc.py). 0 = lost vehicles only."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

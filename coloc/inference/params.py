@@ -206,6 +206,9 @@ class LcParams:
       association by the unique translation, within this radius, that puts the most of its rows
       within ``relocalize_tolerance_m`` of distinct confirmed tracks (at least ``relocalize_min_support``);
       0 (default) = never.
+    * ``relocalize_min_gain``: step 5b for vehicles that are not lost: with g > 0 a vehicle with some rows on
+      confirmed tracks takes the vote's translation too when it puts at least g more of its rows on distinct
+      confirmed tracks than its own mean does (the same tolerance); 0 (default) = lost vehicles only.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -230,6 +233,7 @@ class LcParams:
     relocalize_radius_m: float = 0.0
     relocalize_tolerance_m: float = 1.5
     relocalize_min_support: int = 3
+    relocalize_min_gain: int = 0
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -260,6 +264,8 @@ class LcParams:
             raise ValueError("own_consistency_gate must be in [0, 1) (0: off)")
         if self.relocalize_radius_m < 0 or self.relocalize_tolerance_m <= 0 or self.relocalize_min_support < 1:
             raise ValueError("relocalize_radius_m must be >= 0, relocalize_tolerance_m > 0, relocalize_min_support >= 1")
+        if self.relocalize_min_gain < 0:
+            raise ValueError("relocalize_min_gain must be >= 0 (0: lost vehicles only)")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
             raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
         if self.bp_iterations < 1 or self.bp_tol <= 0:

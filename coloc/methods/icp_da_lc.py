@@ -41,7 +41,8 @@ Per time step, with no knowledge of which feature produced a V2F row:
      track of largest belief (scoring sees one track per row);
 5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
    none of whose rows found a confirmed track is moved, for steps 3-6 and 9 of this step only, by the
-   translation that puts its rows on confirmed tracks, and steps 3-5 run again;
+   translation that puts its rows on confirmed tracks, and steps 3-5 run again (with
+   ``relocalize_min_gain`` also a vehicle partly on the map whose translation gains that many rows);
 6. feature tracks without a map (docs/architecture.md "Features without a map"): a row no
    track took whose "new" belief is >= ``birth_probability`` starts a track;
    rows of different vehicles whose implied feature positions (m_i + z_l)
@@ -522,9 +523,11 @@ def icp_da_lc_step(
             static = row_cls == 0
             if predicted.klass is not None:
                 confirmed &= predicted.klass == 0
-        lost = (np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support) & (on_map == 0)
+        enough = np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support
+        lost = enough & (on_map == 0)
         shift = relocalization_offsets(b0_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
-                                       lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support)
+                                       lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support,
+                                       enough & (on_map > 0), lc.relocalize_min_gain)
         if shift.any():
             a_mean = b0_mean.copy()
             a_mean[:, :2] += shift

@@ -15,6 +15,12 @@ layout, as the arterial's, proposes aliases that tie). Among those of maximal su
 wins. The translation only moves the mean the association, births and existence see at this step; the vehicle's
 belief is then updated by the feature evidence of the rows so paired (31), as any other vehicle's.
 
+A vehicle can also be *partly* off the map (``relocalize_min_gain`` g > 0): some of its rows were paired with
+confirmed tracks, but its mean, carried by a run of its receiver's fixes, puts most of its rows beside them, so
+they start tentative tracks or are taken as clutter, and what is paired may be the wrong neighbour. The same vote is
+asked of it, and its translation taken only when it puts at least g more rows on distinct confirmed tracks than the
+zero translation does (the support of the vehicle's own mean, counted the same way), besides the conditions above.
+
 Nothing here reads the truth: the vehicles' beliefs, their rows and the confirmed tracks' means.
 """
 
@@ -28,25 +34,34 @@ __all__ = ["relocalization_offsets"]
 
 def relocalization_offsets(
     v_mean: np.ndarray, owner: np.ndarray, z: np.ndarray, lost: np.ndarray, track_xy: np.ndarray,
-    radius_m: float, tolerance_m: float, min_support: int,
+    radius_m: float, tolerance_m: float, min_support: int, partial: np.ndarray | None = None, min_gain: int = 0,
 ) -> np.ndarray:
-    """(N, 2) translation of each vehicle's position for the association; 0 for vehicles not ``lost`` or for
-    which no unique translation within ``radius_m`` reaches ``min_support`` rows (module docstring).
+    """(N, 2) translation of each vehicle's position for the association; 0 for vehicles neither ``lost`` nor
+    ``partial``, or for which no unique translation within ``radius_m`` reaches ``min_support`` rows (and, for a
+    ``partial`` one, the zero translation's support + ``min_gain``) (module docstring).
 
     ``v_mean`` (N, >= 2) the vehicles' means, ``owner`` (O,) and ``z`` (O, >= 2) the rows (relative position
-    in the net frame), ``lost`` (N,) bool, ``track_xy`` (T, 2) the confirmed tracks' predicted positions.
+    in the net frame), ``lost`` (N,) bool, ``track_xy`` (T, 2) the confirmed tracks' predicted positions,
+    ``partial`` (N,) bool or None: vehicles with rows on the map asked the vote too (``min_gain`` > 0).
     """
     offsets = np.zeros((v_mean.shape[0], 2))
-    if track_xy.shape[0] == 0 or not lost.any():
+    ask = lost if partial is None or min_gain <= 0 else lost | partial
+    if track_xy.shape[0] == 0 or not ask.any():
         return offsets
     tree = cKDTree(track_xy)
     owner = np.asarray(owner, dtype=np.int64)
     # A few lost vehicles per step (about 3 % of vehicle-steps): one small voting problem each.
-    for i in np.flatnonzero(lost):
+    for i in np.flatnonzero(ask):
         rows = np.flatnonzero(owner == i)
         if rows.size < min_support:
             continue
         implied = v_mean[i, :2] + z[rows, :2]
+        need = min_support
+        if not lost[i]:  # partly on the map: the vote must beat the vehicle's own mean by min_gain rows
+            d0, i0 = tree.query(implied, distance_upper_bound=tolerance_m)
+            need = max(min_support, np.unique(i0[np.isfinite(d0)]).size + min_gain)
+            if rows.size < need:
+                continue
         near = tree.query_ball_point(implied, radius_m)
         cand = [track_xy[k] - implied[l] for l, ks in enumerate(near) for k in ks]
         if not cand:
@@ -63,7 +78,7 @@ def relocalization_offsets(
         idx = idx.reshape(cand.shape[0], rows.size)
         support = np.array([np.unique(idx[c][hit[c]]).size for c in range(cand.shape[0])])
         best = int(support.max())
-        if best < min_support:
+        if best < need:
             continue
         top = np.flatnonzero(support == best)
         norm = np.hypot(cand[top, 0], cand[top, 1])
