@@ -641,6 +641,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                          "is relocalized too when the vote's translation puts at least this many "
                                          "more of its rows on distinct confirmed tracks than its own mean does "
                                          "(coloc/methods/lc_reloc.py). 0 = lost vehicles only."),
+        "reset_map_margin": (NO_UNIT, "With `own_consistency_gate` > 0: a vehicle whose rows land on at least "
+                                      "this many more distinct confirmed tracks (within `relocalize_tolerance_m`) "
+                                      "from its cooperative position than from its own track's is not reset to "
+                                      "its own track: the map arbitrates between the two. 0 = the gate alone "
+                                      "decides."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

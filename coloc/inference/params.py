@@ -209,6 +209,9 @@ class LcParams:
     * ``relocalize_min_gain``: step 5b for vehicles that are not lost: with g > 0 a vehicle with some rows on
       confirmed tracks takes the vote's translation too when it puts at least g more of its rows on distinct
       confirmed tracks than its own mean does (the same tolerance); 0 (default) = lost vehicles only.
+    * ``reset_map_margin``: step 10 with m > 0: a vehicle whose rows land on at least m more distinct confirmed
+      tracks (within ``relocalize_tolerance_m``) from its cooperative position than from its own track's is not
+      reset; 0 (default) = the gate alone decides.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -234,6 +237,7 @@ class LcParams:
     relocalize_tolerance_m: float = 1.5
     relocalize_min_support: int = 3
     relocalize_min_gain: int = 0
+    reset_map_margin: int = 0
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -266,6 +270,8 @@ class LcParams:
             raise ValueError("relocalize_radius_m must be >= 0, relocalize_tolerance_m > 0, relocalize_min_support >= 1")
         if self.relocalize_min_gain < 0:
             raise ValueError("relocalize_min_gain must be >= 0 (0: lost vehicles only)")
+        if self.reset_map_margin < 0:
+            raise ValueError("reset_map_margin must be >= 0 (0: the gate alone decides)")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:
             raise ValueError("existence thresholds must satisfy 0 < drop_existence < confirm_existence < 1")
         if self.bp_iterations < 1 or self.bp_tol <= 0:

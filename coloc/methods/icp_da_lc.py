@@ -81,6 +81,9 @@ Per time step, with no knowledge of which feature produced a V2F row:
    of its own-sensor track is reset to that track (:func:`own_consistency_reset`),
    an innovation-based fault check in the spirit of receiver autonomous
    integrity monitoring. It bounds what a wrong pairing can do to a vehicle.
+   With ``reset_map_margin`` m > 0 the map arbitrates: a vehicle whose static rows land on at least m more
+   distinct confirmed tracks from its cooperative position than from its own track's is not reset (the own
+   receiver is in an excursion the landmarks do not share; :func:`coloc.methods.lc_reloc.map_support`).
 
 11. classes (frames with ``v2f_class``, ``[features] pedestrians``): the
    classifier's label of a row is known, so in step 3 a row is a candidate of tracks of its own
@@ -127,7 +130,7 @@ from coloc.kernels.icp_fused import (
 )
 from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
-from coloc.methods.lc_reloc import relocalization_offsets
+from coloc.methods.lc_reloc import map_support, relocalization_offsets
 from coloc.methods.lc_births import PRUNE_MARGIN, birth_clusters, birth_pairs, merge_candidates  # noqa: F401
 from coloc.methods.registry import ICP_DA_LC
 
@@ -621,7 +624,21 @@ def icp_da_lc_step(
         row_track = np.where(existence.confirmed(row_track, lc.confirm_existence), row_track, -1)
     v_mean, v_cov, resets = res.mean, res.cov, 0
     if lc.own_consistency_gate > 0:
-        v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate)
+        kept = None
+        if lc.reset_map_margin > 0 and predicted.size:  # the map arbitrates between the two positions
+            confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
+            static = np.ones(o, dtype=bool) if row_cls is None else row_cls == 0
+            if row_cls is not None and predicted.klass is not None:
+                confirmed &= predicted.klass == 0
+            track_xy = t_mean[confirmed, :2]
+            z_static = frame.v2f_z[static]
+            on_coop = map_support(res.mean, owner[static], z_static, track_xy, lc.relocalize_tolerance_m,
+                                  frame.n_vehicles)
+            on_own = map_support(own_mean, owner[static], z_static, track_xy, lc.relocalize_tolerance_m,
+                                 frame.n_vehicles)
+            kept = on_coop >= on_own + lc.reset_map_margin
+        v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate,
+                                                     kept)
         resets = int(reset.sum())
         if split_after is not None and resets:  # the 6-D filters too: the own track, all of it independent
             split_after = split_after.reset_to_own(reset)
@@ -688,16 +705,21 @@ def existence_after_association(
 
 
 def own_consistency_reset(
-    mean: np.ndarray, cov: np.ndarray, own_mean: np.ndarray, own_cov: np.ndarray, gate_probability: float
+    mean: np.ndarray, cov: np.ndarray, own_mean: np.ndarray, own_cov: np.ndarray, gate_probability: float,
+    kept: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 10: vehicles whose cooperative position is outside the ``gate_probability`` chi-square
     gate (2 dof) of their own-sensor track, d^T P_own^-1 d with d = m - m_own (positions), take the
     own-sensor belief. The own-sensor track (GNSS + inertial) carries no feature evidence, so a
     vehicle pulled away by a wrong pairing (a false detection next to a landmark) and made
-    overconfident by it returns to what its own sensors support. Returns (mean, cov, reset mask)."""
+    overconfident by it returns to what its own sensors support. ``kept`` (N,) bool or None: vehicles whose
+    cooperative position the map supports better than the own track's (``reset_map_margin``) are not reset.
+    Returns (mean, cov, reset mask)."""
     d = mean[:, :2] - own_mean[:, :2]
     d2 = np.einsum("ni,ni->n", d, np.linalg.solve(own_cov[:, :2, :2], d[..., None])[..., 0])
     reset = d2 > chi2_ppf(gate_probability, 2)
+    if kept is not None:
+        reset &= ~kept
     if not reset.any():
         return mean, cov, reset
     mean, cov = mean.copy(), cov.copy()

@@ -29,7 +29,21 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["relocalization_offsets"]
+__all__ = ["map_support", "relocalization_offsets"]
+
+
+def map_support(xy: np.ndarray, owner: np.ndarray, z: np.ndarray, track_xy: np.ndarray, tolerance_m: float,
+                n_vehicles: int) -> np.ndarray:
+    """(N,) the number of distinct confirmed tracks each vehicle's rows land within ``tolerance_m`` of when the
+    vehicle is at ``xy`` (N, 2): the support of the zero translation in the vote above, for all vehicles at once.
+    ``owner`` (O,), ``z`` (O, >= 2) the rows, ``track_xy`` (T, 2) the confirmed tracks' predicted positions."""
+    owner = np.asarray(owner, dtype=np.int64)
+    if track_xy.shape[0] == 0 or owner.size == 0:
+        return np.zeros(n_vehicles, dtype=np.int64)
+    dist, idx = cKDTree(track_xy).query(xy[owner, :2] + z[:, :2], distance_upper_bound=tolerance_m)
+    hit = np.isfinite(dist)
+    pairs = np.unique(np.stack([owner[hit], idx[hit]], 1), axis=0)  # (vehicle, track), each track once
+    return np.bincount(pairs[:, 0], minlength=n_vehicles) if pairs.size else np.zeros(n_vehicles, dtype=np.int64)
 
 
 def relocalization_offsets(

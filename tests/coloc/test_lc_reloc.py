@@ -105,3 +105,47 @@ def test_a_lost_vehicle_pairs_its_rows_again():
     # without: off the map, every row outside its gate starts a new track; with: on the others' tracks
     assert not any(on_the_others_tracks(e0))
     assert all(on_the_others_tracks(e1))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_vehicle_partly_on_the_map_is_moved_when_the_vote_gains_enough_rows(seed):
+    """``relocalize_min_gain``: a vehicle whose mean is off by a few metres, with one row that happens to land
+    on a track (the zero translation's support 1 or so), is moved back when the vote gains at least g rows, left
+    alone when g is more than the vote can gain, or when it is not asked (g = 0, ``partial`` None); a vehicle on
+    the map gains nothing and stays."""
+    rng = np.random.default_rng(seed)
+    tracks = rng.uniform(-60.0, 60.0, (60, 2))
+    z = _seen(np.zeros(2), tracks, rng)
+    err = rng.uniform(3.0, 7.0, 2) * rng.choice([-1.0, 1.0], 2)
+    v_mean = np.array([[*err, 10.0, 0.0]])
+    owner = np.zeros(z.shape[0], dtype=np.int64)
+    lost, partial = np.array([False]), np.array([True])
+    implied = err + z
+    sup0 = int((np.min(np.hypot(*(implied[:, None] - tracks[None]).transpose(2, 0, 1)), axis=1) <= 1.5).sum())
+    gain = z.shape[0] - sup0
+    assert gain >= 2
+    off = relocalization_offsets(v_mean, owner, z, lost, tracks, 10.0, 1.5, 3, partial, gain)
+    np.testing.assert_allclose(off[0], -err, atol=0.15)
+    assert not relocalization_offsets(v_mean, owner, z, lost, tracks, 10.0, 1.5, 3, partial, gain + 1).any()
+    assert not relocalization_offsets(v_mean, owner, z, lost, tracks, 10.0, 1.5, 3, partial, 0).any()
+    assert not relocalization_offsets(v_mean, owner, z, lost, tracks, 10.0, 1.5, 3).any()
+    on_map = np.array([[0.05, -0.05, 10.0, 0.0]])
+    assert not relocalization_offsets(on_map, owner, z, lost, tracks, 10.0, 1.5, 3, partial, 1).any()
+
+
+def test_min_gain_keeps_the_lost_vehicles_rule():
+    """A lost vehicle's translation does not depend on ``relocalize_min_gain``."""
+    rng = np.random.default_rng(7)
+    tracks = rng.uniform(-60.0, 60.0, (60, 2))
+    z = _seen(np.zeros(2), tracks, rng)
+    v_mean = np.array([[4.0, -3.0, 10.0, 0.0]])
+    owner = np.zeros(z.shape[0], dtype=np.int64)
+    a = relocalization_offsets(v_mean, owner, z, np.array([True]), tracks, 10.0, 1.5, 3)
+    b = relocalization_offsets(v_mean, owner, z, np.array([True]), tracks, 10.0, 1.5, 3, np.array([False]), 50)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(a[0], [-4.0, 3.0], atol=0.15)
+
+
+def test_min_gain_must_not_be_negative():
+    with pytest.raises(ValueError, match="relocalize_min_gain"):
+        LcParams(relocalize_min_gain=-1)

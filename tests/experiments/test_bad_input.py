@@ -296,6 +296,12 @@ def run_relocalize_min_support_zero(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+@case("cfg.toml", "lc.relocalize_min_gain")
+def run_relocalize_min_gain_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_gain = -1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
 def run_unknown_stop_rule(tmp, net, run):
     cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
