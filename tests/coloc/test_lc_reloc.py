@@ -1,5 +1,7 @@
 """Relocalization of a lost vehicle (coloc/methods/lc_reloc.py, ``[lc] relocalize_radius_m``)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -149,3 +151,70 @@ def test_min_gain_keeps_the_lost_vehicles_rule():
 def test_min_gain_must_not_be_negative():
     with pytest.raises(ValueError, match="relocalize_min_gain"):
         LcParams(relocalize_min_gain=-1)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_map_support_counts_distinct_tracks_as_a_brute_force_count(seed):
+    """``map_support``: per vehicle, the distinct confirmed tracks within the tolerance of its rows' implied
+    positions, against a double loop (two rows on one track count once)."""
+    from coloc.methods.lc_reloc import map_support
+
+    rng = np.random.default_rng(seed)
+    tracks = rng.uniform(-30.0, 30.0, (40, 2))
+    n = 6
+    xy = rng.uniform(-10.0, 10.0, (n, 2))
+    owner = rng.integers(0, n - 1, 50)  # the last vehicle has no rows
+    z = tracks[rng.integers(0, 40, 50)] - xy[owner] + rng.normal(0.0, 1.0, (50, 2))
+    got = map_support(xy, owner, z, tracks, 1.5, n)
+    want = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        hit = set()
+        for r in np.flatnonzero(owner == i):
+            d = np.hypot(*(tracks - (xy[i] + z[r])).T)
+            if d.min() <= 1.5:
+                hit.add(int(np.argmin(d)))
+        want[i] = len(hit)
+    np.testing.assert_array_equal(got, want)
+    assert want[-1] == 0 and want.sum() > 0
+    assert not map_support(xy, owner, z, np.zeros((0, 2)), 1.5, n).any()
+
+
+def test_a_kept_vehicle_is_not_reset_to_its_own_track():
+    """``reset_map_margin``: the reset's veto only removes vehicles from the gate's decision."""
+    from coloc.methods.icp_da_lc import own_consistency_reset
+
+    own_mean = np.zeros((3, 4))
+    own_cov = np.repeat(np.diag([4.0, 4.0, 0.1, 0.1])[None], 3, 0)
+    mean = np.array([[9.0, 0.0, 0, 0], [9.0, 0.0, 0, 0], [1.0, 0.0, 0, 0]])
+    cov = np.repeat(np.eye(4)[None] * 0.01, 3, 0)
+    m, c, reset = own_consistency_reset(mean, cov, own_mean, own_cov, 0.9999, np.array([True, False, True]))
+    assert reset.tolist() == [False, True, False]
+    np.testing.assert_array_equal(m[0], mean[0])
+    np.testing.assert_array_equal(m[1], own_mean[1])
+    with pytest.raises(ValueError, match="reset_map_margin"):
+        LcParams(reset_map_margin=-1)
+
+
+def test_the_map_keeps_a_vehicle_whose_receiver_goes_off():
+    """A vehicle's receiver jumps 15 m off the road for the last steps of a run whose landmarks are mapped. With
+    the reset alone it takes its own track and follows the receiver; with ``reset_map_margin`` its rows, which
+    still land on the mapped landmarks, keep it near its true position while they do."""
+    frames = road_frames(seed=3, n=5, steps=22, n_feat=10, v2f_range=45.0, gnss_sp=1.0)
+    bad = []
+    for t, fr in enumerate(frames):
+        if t >= 12:
+            gz = fr.gnss_z.copy()
+            gz[2, 1] += 15.0
+            fr = replace(fr, gnss_z=gz)
+        bad.append(fr)
+    params = IcpParams(motion=MOTION)
+    err = {}
+    for m in (0, 2):
+        lc = LcParams(sensing_range_m=45.0, own_consistency_gate=0.9999, reset_map_margin=m)
+        est = IcpDaLc(params, lc)
+        e = [est.step(fr.without_truth()).mean[2, :2] - fr.truth.x_true[2, :2] for fr in bad]
+        err[m] = np.hypot(*np.array(e[14:]).T)
+    assert (err[0][:5] > 6.0).all()  # followed the receiver
+    # kept while its rows land on the map (here no fault exclusion: the fixes still pull it, until its rows leave
+    # the tolerance and the gate decides again)
+    assert (err[2][:5] < 2.5).all()

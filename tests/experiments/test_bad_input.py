@@ -302,6 +302,12 @@ def run_relocalize_min_gain_negative(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+@case("cfg.toml", "lc.reset_map_margin")
+def run_reset_map_margin_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nown_consistency_gate = 0.9999\nreset_map_margin = -2\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
 def run_unknown_stop_rule(tmp, net, run):
     cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
