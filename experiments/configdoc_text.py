@@ -646,6 +646,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                       "from its cooperative position than from its own track's is not reset to "
                                       "its own track: the map arbitrates between the two. 0 = the gate alone "
                                       "decides."),
+        "fix_map_margin": (NO_UNIT, "ICP-DA-LC: a vehicle whose motion prediction (before this step's fix) puts "
+                                    "at least this many more rows on distinct confirmed tracks (within "
+                                    "`relocalize_tolerance_m`) than its belief after the fix is associated at the "
+                                    "prediction: the map arbitrates a fix that moves the vehicle off its "
+                                    "landmarks. 0 = the association at the belief after the fix (the paper)."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

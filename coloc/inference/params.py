@@ -212,6 +212,9 @@ class LcParams:
     * ``reset_map_margin``: step 10 with m > 0: a vehicle whose rows land on at least m more distinct confirmed
       tracks (within ``relocalize_tolerance_m``) from its cooperative position than from its own track's is not
       reset; 0 (default) = the gate alone decides.
+    * ``fix_map_margin``: step 5a with m > 0: a vehicle whose motion prediction (before this step's fix) puts at
+      least m more rows on distinct confirmed tracks than b^(0)'s mean is associated at the prediction; 0
+      (default) = at b^(0)'s mean.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -238,6 +241,7 @@ class LcParams:
     relocalize_min_support: int = 3
     relocalize_min_gain: int = 0
     reset_map_margin: int = 0
+    fix_map_margin: int = 0
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -270,6 +274,8 @@ class LcParams:
             raise ValueError("relocalize_radius_m must be >= 0, relocalize_tolerance_m > 0, relocalize_min_support >= 1")
         if self.relocalize_min_gain < 0:
             raise ValueError("relocalize_min_gain must be >= 0 (0: lost vehicles only)")
+        if self.fix_map_margin < 0:
+            raise ValueError("fix_map_margin must be >= 0 (0: the association at b^(0)'s mean)")
         if self.reset_map_margin < 0:
             raise ValueError("reset_map_margin must be >= 0 (0: the gate alone decides)")
         if not 0.0 < self.drop_existence < self.confirm_existence < 1.0:

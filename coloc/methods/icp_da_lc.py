@@ -39,6 +39,9 @@ Per time step, with no knowledge of which feature produced a V2F row:
      same row: each pairing enters the likelihood (31), so a shared row is
      used once per track that took it. The row's reported assignment is the
      track of largest belief (scoring sees one track per row);
+5a. the fix arbitrated by the map (``fix_map_margin``, off by default; :func:`_fix_arbitrated_mean`): a
+   vehicle whose motion prediction puts more of its rows on confirmed tracks than b^(0)'s mean (this step's
+   fix included) is associated at the prediction;
 5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
    none of whose rows found a confirmed track is moved, for steps 3-6 and 9 of this step only, by the
    translation that puts its rows on confirmed tracks, and steps 3-5 run again (with
@@ -507,8 +510,10 @@ def icp_da_lc_step(
     t_mean, t_cov = predicted.moments(params)
     r_pred = (existence or TrackExistence()).of(predicted.ids) * lc.survival_probability if lc.track_existence \
         else None
-    a_mean = b0_mean  # the mean the association, births and existence see (step 5b may move it)
+    a_mean = b0_mean  # the mean the association, births and existence see (steps 5a and 5b may move it)
     row_cls = frame.v2f_class
+    if lc.fix_map_margin > 0 and predicted.size:  # step 5a: the map arbitrates this step's fix for the association
+        a_mean = _fix_arbitrated_mean(b0_mean, state, frame, match, accel, owner, t_mean, r_pred, predicted, lc)
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
@@ -528,11 +533,11 @@ def icp_da_lc_step(
                 confirmed &= predicted.klass == 0
         enough = np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support
         lost = enough & (on_map == 0)
-        shift = relocalization_offsets(b0_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
+        shift = relocalization_offsets(a_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
                                        lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support,
                                        enough & (on_map > 0), lc.relocalize_min_gain)
         if shift.any():
-            a_mean = b0_mean.copy()
+            a_mean = a_mean.copy()
             a_mean[:, :2] += shift
             ab, row_idx, row_new, extra_row, extra_idx = _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner,
                                                                     frame, lc, detection, r_pred, pd_of)
@@ -702,6 +707,36 @@ def existence_after_association(
         missed &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
     pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
     return TrackExistence(track_ids.copy(), existence_update(r_pred, ab, pd_combo, ct[missed], pd_c[missed]))
+
+
+def _fix_arbitrated_mean(b0_mean, state, frame: Frame, match, accel, owner, t_mean, r_pred, predicted,
+                         lc: LcParams) -> np.ndarray:
+    """Step 5a (``fix_map_margin`` m > 0): b^(0)'s mean, except for vehicles whose motion prediction (the previous
+    belief's position advanced by its velocity and this step's input, before this step's fix) puts at least m
+    more static rows on distinct confirmed tracks than b^(0)'s mean: they are associated at the prediction.
+    A reflected fix that moves b^(0) metres off would otherwise take the vehicle's rows out of their gates
+    before its landmarks could outweigh it. Only the association, births and existence see the moved mean."""
+    carried = (match >= 0) & ~np.asarray(frame.entered, dtype=bool)
+    if not carried.any():
+        return b0_mean
+    confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
+    static = np.ones(owner.size, dtype=bool) if frame.v2f_class is None else frame.v2f_class == 0
+    if frame.v2f_class is not None and predicted.klass is not None:
+        confirmed &= predicted.klass == 0
+    prev = state.mean[match[carried]]
+    u = np.asarray(frame.accel if accel is None else accel, dtype=float)[carried]
+    u = np.where(np.isfinite(u), u, 0.0)
+    pred_xy = b0_mean[:, :2].copy()
+    pred_xy[carried] = prev[:, :2] + frame.dt * prev[:, 2:4] + 0.5 * frame.dt ** 2 * u  # model (1)'s mean
+    track_xy, z = t_mean[confirmed, :2], frame.v2f_z[static]
+    on_fix = map_support(b0_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    on_pred = map_support(pred_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    use = carried & (on_pred >= on_fix + lc.fix_map_margin)
+    if not use.any():
+        return b0_mean
+    a_mean = b0_mean.copy()
+    a_mean[use, :2] = pred_xy[use]
+    return a_mean
 
 
 def own_consistency_reset(
