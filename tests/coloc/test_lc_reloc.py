@@ -218,3 +218,9 @@ def test_the_map_keeps_a_vehicle_whose_receiver_goes_off():
     # kept while its rows land on the map (here no fault exclusion: the fixes still pull it, until its rows leave
     # the tolerance and the gate decides again)
     assert (err[2][:5] < 2.5).all()
+
+
+
+def test_fix_map_margin_must_not_be_negative():
+    with pytest.raises(ValueError, match="fix_map_margin"):
+        LcParams(fix_map_margin=-1)
