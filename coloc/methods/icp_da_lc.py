@@ -39,7 +39,8 @@ Per time step, with no knowledge of which feature produced a V2F row:
      same row: each pairing enters the likelihood (31), so a shared row is
      used once per track that took it. The row's reported assignment is the
      track of largest belief (scoring sees one track per row);
-5a. the fix arbitrated by the map (``fix_map_margin``, off by default; :func:`_fix_arbitrated_mean`): a
+5a. the fix arbitrated by the map (``fix_map_margin``, off by default;
+   :func:`coloc.methods.lc_reloc.fix_arbitrated_mean`): a
    vehicle whose motion prediction puts more of its rows on confirmed tracks than b^(0)'s mean (this step's
    fix included) is associated at the prediction;
 5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
@@ -133,7 +134,7 @@ from coloc.kernels.icp_fused import (
 )
 from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
-from coloc.methods.lc_reloc import map_support, relocalization_offsets
+from coloc.methods.lc_reloc import fix_arbitrated_mean, map_anchors, map_support, relocalization_offsets
 from coloc.methods.lc_births import PRUNE_MARGIN, birth_clusters, birth_pairs, merge_candidates  # noqa: F401
 from coloc.methods.registry import ICP_DA_LC
 
@@ -513,7 +514,7 @@ def icp_da_lc_step(
     a_mean = b0_mean  # the mean the association, births and existence see (steps 5a and 5b may move it)
     row_cls = frame.v2f_class
     if lc.fix_map_margin > 0 and predicted.size:  # step 5a: the map arbitrates this step's fix for the association
-        a_mean = _fix_arbitrated_mean(b0_mean, state, frame, match, accel, owner, t_mean, r_pred, predicted, lc)
+        a_mean = fix_arbitrated_mean(b0_mean, state, frame, match, accel, owner, t_mean, r_pred, predicted, lc)
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
@@ -524,16 +525,11 @@ def icp_da_lc_step(
     ab, row_idx, row_new, extra_row, extra_idx = _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner, frame,
                                                             lc, detection, r_pred, pd_of)
     if lc.relocalize_radius_m > 0 and predicted.size:  # step 5b: lost vehicles relocalized against the confirmed tracks
-        confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
+        confirmed, anchor, static = map_anchors(predicted, r_pred, row_cls, o, lc)
         on_map = np.bincount(owner[(row_idx >= 0) & confirmed[np.maximum(row_idx, 0)]], minlength=frame.n_vehicles)
-        static = np.ones(o, dtype=bool)  # with classes only static landmarks anchor the translation
-        if row_cls is not None:
-            static = row_cls == 0
-            if predicted.klass is not None:
-                confirmed &= predicted.klass == 0
         enough = np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support
         lost = enough & (on_map == 0)
-        shift = relocalization_offsets(a_mean, owner[static], frame.v2f_z[static], lost, t_mean[confirmed, :2],
+        shift = relocalization_offsets(a_mean, owner[static], frame.v2f_z[static], lost, t_mean[anchor, :2],
                                        lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support,
                                        enough & (on_map > 0), lc.relocalize_min_gain)
         if shift.any():
@@ -631,11 +627,8 @@ def icp_da_lc_step(
     if lc.own_consistency_gate > 0:
         kept = None
         if lc.reset_map_margin > 0 and predicted.size:  # the map arbitrates between the two positions
-            confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
-            static = np.ones(o, dtype=bool) if row_cls is None else row_cls == 0
-            if row_cls is not None and predicted.klass is not None:
-                confirmed &= predicted.klass == 0
-            track_xy = t_mean[confirmed, :2]
+            _, anchor, static = map_anchors(predicted, r_pred, row_cls, o, lc)
+            track_xy = t_mean[anchor, :2]
             z_static = frame.v2f_z[static]
             on_coop = map_support(res.mean, owner[static], z_static, track_xy, lc.relocalize_tolerance_m,
                                   frame.n_vehicles)
@@ -707,36 +700,6 @@ def existence_after_association(
         missed &= ~np.isin(cv * n_t + ct, ab.combo_vehicle * n_t + ab.combo_track)
     pd_combo = pd_of(ab.combo_vehicle, ab.combo_track) if ab is not None else np.empty(0)
     return TrackExistence(track_ids.copy(), existence_update(r_pred, ab, pd_combo, ct[missed], pd_c[missed]))
-
-
-def _fix_arbitrated_mean(b0_mean, state, frame: Frame, match, accel, owner, t_mean, r_pred, predicted,
-                         lc: LcParams) -> np.ndarray:
-    """Step 5a (``fix_map_margin`` m > 0): b^(0)'s mean, except for vehicles whose motion prediction (the previous
-    belief's position advanced by its velocity and this step's input, before this step's fix) puts at least m
-    more static rows on distinct confirmed tracks than b^(0)'s mean: they are associated at the prediction.
-    A reflected fix that moves b^(0) metres off would otherwise take the vehicle's rows out of their gates
-    before its landmarks could outweigh it. Only the association, births and existence see the moved mean."""
-    carried = (match >= 0) & ~np.asarray(frame.entered, dtype=bool)
-    if not carried.any():
-        return b0_mean
-    confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
-    static = np.ones(owner.size, dtype=bool) if frame.v2f_class is None else frame.v2f_class == 0
-    if frame.v2f_class is not None and predicted.klass is not None:
-        confirmed &= predicted.klass == 0
-    prev = state.mean[match[carried]]
-    u = np.asarray(frame.accel if accel is None else accel, dtype=float)[carried]
-    u = np.where(np.isfinite(u), u, 0.0)
-    pred_xy = b0_mean[:, :2].copy()
-    pred_xy[carried] = prev[:, :2] + frame.dt * prev[:, 2:4] + 0.5 * frame.dt ** 2 * u  # model (1)'s mean
-    track_xy, z = t_mean[confirmed, :2], frame.v2f_z[static]
-    on_fix = map_support(b0_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    on_pred = map_support(pred_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    use = carried & (on_pred >= on_fix + lc.fix_map_margin)
-    if not use.any():
-        return b0_mean
-    a_mean = b0_mean.copy()
-    a_mean[use, :2] = pred_xy[use]
-    return a_mean
 
 
 def own_consistency_reset(

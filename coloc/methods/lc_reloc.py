@@ -1,5 +1,6 @@
 """Relocalization of a lost vehicle against ICP-DA-LC's confirmed tracks (``[lc] relocalize_radius_m``, off by default;
-:mod:`coloc.methods.icp_da_lc`, step 5b).
+:mod:`coloc.methods.icp_da_lc`, step 5b), and the map's support of a vehicle's position that steps 5a
+(``fix_map_margin``) and 10 (``reset_map_margin``) decide on.
 
 A vehicle is *lost* at a step when it has at least ``relocalize_min_support`` rows and none of them was paired with a
 confirmed track: its belief b_i^(0) (mean and covariance) no longer overlaps the map, so every row falls outside its
@@ -26,10 +27,16 @@ Nothing here reads the truth: the vehicles' beliefs, their rows and the confirme
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["map_support", "relocalization_offsets"]
+if TYPE_CHECKING:
+    from coloc.core.frame import Frame
+    from coloc.inference.params import LcParams
+
+__all__ = ["fix_arbitrated_mean", "map_anchors", "map_support", "relocalization_offsets"]
 
 
 def map_support(xy: np.ndarray, owner: np.ndarray, z: np.ndarray, track_xy: np.ndarray, tolerance_m: float,
@@ -104,3 +111,40 @@ def relocalization_offsets(
         m = hit[pick]
         offsets[i] = cand[pick] + np.mean(track_xy[idx[pick][m]] - moved[pick][m], axis=0)
     return offsets
+
+
+def map_anchors(predicted, r_pred, row_cls, n_rows: int, lc: "LcParams"):
+    """(confirmed (T,), anchors (T,), static rows (O,)): the predicted tracks confirmed at this step (all without
+    ``lc.track_existence``); those of them that can anchor a vehicle's position (with classes, static landmarks
+    only); the rows of the static class (all without classes). Steps 5a, 5b and 10's map support."""
+    confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
+    static = np.ones(n_rows, dtype=bool) if row_cls is None else row_cls == 0
+    anchor = confirmed & (predicted.klass == 0) if row_cls is not None and predicted.klass is not None else confirmed
+    return confirmed, anchor, static
+
+
+def fix_arbitrated_mean(b0_mean, state, frame: "Frame", match, accel, owner, t_mean, r_pred, predicted,
+                         lc: "LcParams") -> np.ndarray:
+    """Step 5a (``fix_map_margin`` m > 0): b^(0)'s mean, except for vehicles whose motion prediction (the previous
+    belief's position advanced by its velocity and this step's input, before this step's fix) puts at least m
+    more static rows on distinct confirmed tracks than b^(0)'s mean: they are associated at the prediction.
+    A reflected fix that moves b^(0) metres off would otherwise take the vehicle's rows out of their gates
+    before its landmarks could outweigh it. Only the association, births and existence see the moved mean."""
+    carried = (match >= 0) & ~np.asarray(frame.entered, dtype=bool)
+    if not carried.any():
+        return b0_mean
+    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
+    prev = state.mean[match[carried]]
+    u = np.asarray(frame.accel if accel is None else accel, dtype=float)[carried]
+    u = np.where(np.isfinite(u), u, 0.0)
+    pred_xy = b0_mean[:, :2].copy()
+    pred_xy[carried] = prev[:, :2] + frame.dt * prev[:, 2:4] + 0.5 * frame.dt ** 2 * u  # model (1)'s mean
+    track_xy, z = t_mean[anchor, :2], frame.v2f_z[static]
+    on_fix = map_support(b0_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    on_pred = map_support(pred_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    use = carried & (on_pred >= on_fix + lc.fix_map_margin)
+    if not use.any():
+        return b0_mean
+    a_mean = b0_mean.copy()
+    a_mean[use, :2] = pred_xy[use]
+    return a_mean
