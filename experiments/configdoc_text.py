@@ -651,6 +651,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                     "`relocalize_tolerance_m`) than its belief after the fix is associated at the "
                                     "prediction: the map arbitrates a fix that moves the vehicle off its "
                                     "landmarks. 0 = the association at the belief after the fix (the paper)."),
+        "anchor_margin": (NO_UNIT, "ICP-DA-LC: each vehicle keeps a map-anchored position that no fix moves "
+                                   "(carried by its velocity, refreshed to its estimate whenever that has rows "
+                                   "on at least 2 confirmed tracks); a vehicle whose anchor puts at least "
+                                   "max(2, this many more) rows on confirmed tracks than its association mean is "
+                                   "associated at its anchor (coloc/methods/lc_reloc.py). 0 = no anchor."),
         "bp_iterations": (NO_UNIT, "BPA-DA iterations (14)-(17), at most."),
         "bp_tol": (NO_UNIT, "BPA-DA stops when its messages change by less than this."),
     },

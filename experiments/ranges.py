@@ -178,6 +178,7 @@ RANGES: dict[str, Range] = {
     "lc.relocalize_min_gain": Range(0, 1000, NO_UNIT, "rows of one vehicle in one scan"),
     "lc.reset_map_margin": Range(0, 1000, NO_UNIT, "rows of one vehicle in one scan"),
     "lc.fix_map_margin": Range(0, 1000, NO_UNIT, "rows of one vehicle in one scan"),
+    "lc.anchor_margin": Range(0, 1000, NO_UNIT, "rows of one vehicle in one scan"),
     "lc.bp_iterations": ITER,
     "lc.bp_tol": Range(0.0, 1.0, NO_UNIT, "a change of beliefs (probabilities)"),
     # 1e5 particles, ten times the largest preset (10000): the arterial's ~200 vehicles hold 0.64 GB a copy

@@ -215,6 +215,10 @@ class LcParams:
     * ``fix_map_margin``: step 5a with m > 0: a vehicle whose motion prediction (before this step's fix) puts at
       least m more rows on distinct confirmed tracks than b^(0)'s mean is associated at the prediction; 0
       (default) = at b^(0)'s mean.
+    * ``anchor_margin``: step 5a with m > 0: each vehicle keeps a map-anchored position that no fix moves
+      (carried by its velocity, refreshed to the posterior whenever that has rows on >= 2 confirmed tracks); a
+      vehicle whose anchor puts at least max(2, the association mean's support + m) rows on the map is associated
+      at its anchor; 0 (default) = no anchor.
     * ``bp_iterations`` / ``bp_tol``: BPA-DA iterations (14)-(17).
     """
 
@@ -242,6 +246,7 @@ class LcParams:
     relocalize_min_gain: int = 0
     reset_map_margin: int = 0
     fix_map_margin: int = 0
+    anchor_margin: int = 0
     bp_iterations: int = 50
     bp_tol: float = 1e-6
 
@@ -274,6 +279,8 @@ class LcParams:
             raise ValueError("relocalize_radius_m must be >= 0, relocalize_tolerance_m > 0, relocalize_min_support >= 1")
         if self.relocalize_min_gain < 0:
             raise ValueError("relocalize_min_gain must be >= 0 (0: lost vehicles only)")
+        if self.anchor_margin < 0:
+            raise ValueError("anchor_margin must be >= 0 (0: no map-anchored position)")
         if self.fix_map_margin < 0:
             raise ValueError("fix_map_margin must be >= 0 (0: the association at b^(0)'s mean)")
         if self.reset_map_margin < 0:

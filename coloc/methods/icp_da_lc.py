@@ -43,6 +43,9 @@ Per time step, with no knowledge of which feature produced a V2F row:
    :func:`coloc.methods.lc_reloc.fix_arbitrated_mean`): a
    vehicle whose motion prediction puts more of its rows on confirmed tracks than b^(0)'s mean (this step's
    fix included) is associated at the prediction;
+   With ``anchor_margin`` m > 0, or at its map-anchored position, which no fix moves (refreshed to the
+   posterior whenever the map supports it), where that puts more rows on the map
+   (:func:`coloc.methods.lc_reloc.anchored_mean`);
 5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
    none of whose rows found a confirmed track is moved, for steps 3-6 and 9 of this step only, by the
    translation that puts its rows on confirmed tracks, and steps 3-5 run again (with
@@ -134,7 +137,8 @@ from coloc.kernels.icp_fused import (
 )
 from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
-from coloc.methods.lc_reloc import fix_arbitrated_mean, map_anchors, map_support, relocalization_offsets
+from coloc.methods.lc_reloc import (anchored_mean, fix_arbitrated_mean, map_anchors, map_support, predicted_anchor,
+                                    refreshed_anchor, relocalization_offsets)
 from coloc.methods.lc_births import PRUNE_MARGIN, birth_clusters, birth_pairs, merge_candidates  # noqa: F401
 from coloc.methods.registry import ICP_DA_LC
 
@@ -515,6 +519,11 @@ def icp_da_lc_step(
     row_cls = frame.v2f_class
     if lc.fix_map_margin > 0 and predicted.size:  # step 5a: the map arbitrates this step's fix for the association
         a_mean = fix_arbitrated_mean(b0_mean, state, frame, match, accel, owner, t_mean, r_pred, predicted, lc)
+    anchor_xy = None
+    if lc.anchor_margin > 0:  # step 5a: or the vehicle's map-anchored position, which takes no fix
+        anchor_xy = predicted_anchor(state.anchor, match, frame, b0_mean)
+        if predicted.size:
+            a_mean = anchored_mean(a_mean, anchor_xy, owner, frame, t_mean, r_pred, predicted, lc)
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
@@ -645,8 +654,12 @@ def icp_da_lc_step(
                       existence if lc.track_existence else None, resets,
                       res.comm + announcements(owner[birth], frame.n_vehicles, LC_BIRTH_WORDS))
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
+    anchor_next = None
+    if anchor_xy is not None:
+        anchor_next = anchor_xy if not predicted.size else refreshed_anchor(anchor_xy, v_mean, owner, frame, t_mean,
+                                                                            r_pred, predicted, lc)
     return (IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes,
-                     sensor_heading, split_after), next_id, info)
+                     sensor_heading, split_after, anchor_next), next_id, info)
 
 
 def _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner, frame: Frame, lc: LcParams,

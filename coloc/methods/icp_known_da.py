@@ -210,6 +210,9 @@ class IcpState:
     sensor_heading: HeadingMemory | None = None
     # [fusion] only: the 6-D cooperative and own-sensor filters (coloc.methods.coop_fusion); None otherwise.
     split: SplitState | None = None
+    # ICP-DA-LC with [lc] anchor_margin only: each vehicle's map-anchored position (N, 2), which takes no fix
+    # (coloc.methods.lc_reloc.anchored_mean); None otherwise.
+    anchor: np.ndarray | None = None
 
     def estimate(self, v2f_assignment: np.ndarray, params: IcpParams) -> StepEstimate:
         f_mean, f_cov = self.features.moments(params) if self.feature_beliefs is None else self.feature_beliefs

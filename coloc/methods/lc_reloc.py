@@ -36,7 +36,8 @@ if TYPE_CHECKING:
     from coloc.core.frame import Frame
     from coloc.inference.params import LcParams
 
-__all__ = ["fix_arbitrated_mean", "map_anchors", "map_support", "relocalization_offsets"]
+__all__ = ["anchored_mean", "fix_arbitrated_mean", "map_anchors", "map_support", "predicted_anchor",
+           "refreshed_anchor", "relocalization_offsets"]
 
 
 def map_support(xy: np.ndarray, owner: np.ndarray, z: np.ndarray, track_xy: np.ndarray, tolerance_m: float,
@@ -148,3 +149,48 @@ def fix_arbitrated_mean(b0_mean, state, frame: "Frame", match, accel, owner, t_m
     a_mean = b0_mean.copy()
     a_mean[use, :2] = pred_xy[use]
     return a_mean
+
+
+# The map-anchored position (``[lc] anchor_margin``): a second candidate mean for the association that no fix moves.
+# A receiver whose fix ramps metres off over seconds, under a report that does not know it, pulls b^(0) and with it
+# the gates off the vehicle's landmarks, one step at a time (docs/validation/consistency.md, "ICP-DA-LC's association
+# when the vehicle is off its landmarks"); the anchor stays where the map last placed the vehicle, carried by its
+# velocity.
+ANCHOR_REFRESH_SUPPORT = 2  # rows on distinct confirmed tracks that make a posterior the new anchor (our choice)
+
+
+def predicted_anchor(anchor: np.ndarray | None, match: np.ndarray, frame: "Frame", b0_mean: np.ndarray) -> np.ndarray:
+    """(N, 2) the anchors at this step: the previous step's, moved by b^(0)'s velocity over ``frame.dt``; b^(0)'s
+    position for a vehicle without one (entering, or the first step)."""
+    out = b0_mean[:, :2].copy()
+    if anchor is None:
+        return out
+    carried = (match >= 0) & ~np.asarray(frame.entered, dtype=bool)
+    out[carried] = anchor[match[carried]] + frame.dt * b0_mean[carried, 2:4]
+    return out
+
+
+def anchored_mean(a_mean: np.ndarray, anchor_xy: np.ndarray, owner: np.ndarray, frame: "Frame", t_mean: np.ndarray,
+                  r_pred, predicted, lc: "LcParams") -> np.ndarray:
+    """``a_mean`` with the position of every vehicle whose anchor puts at least max(2, its support at ``a_mean`` +
+    ``lc.anchor_margin``) static rows on distinct confirmed tracks replaced by the anchor."""
+    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
+    track_xy, z = t_mean[anchor, :2], frame.v2f_z[static]
+    on_mean = map_support(a_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    on_anchor = map_support(anchor_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
+    use = on_anchor >= np.maximum(ANCHOR_REFRESH_SUPPORT, on_mean + lc.anchor_margin)
+    if not use.any():
+        return a_mean
+    out = a_mean.copy()
+    out[use, :2] = anchor_xy[use]
+    return out
+
+
+def refreshed_anchor(anchor_xy: np.ndarray, v_mean: np.ndarray, owner: np.ndarray, frame: "Frame",
+                     t_mean: np.ndarray, r_pred, predicted, lc: "LcParams") -> np.ndarray:
+    """(N, 2) the anchors carried to the next step: the posterior's position where its static rows land on at least
+    ``ANCHOR_REFRESH_SUPPORT`` distinct confirmed tracks, the anchor otherwise."""
+    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
+    on_post = map_support(v_mean, owner[static], frame.v2f_z[static], t_mean[anchor, :2], lc.relocalize_tolerance_m,
+                          frame.n_vehicles)
+    return np.where((on_post >= ANCHOR_REFRESH_SUPPORT)[:, None], v_mean[:, :2], anchor_xy)
