@@ -262,11 +262,12 @@ def with_clutter_and_pedestrians(frame, rng):
 
 @pytest.mark.parametrize("name", ["icp_known_da", "icp_da_lc", "icp_known_da+fusion+gnss_model",
                                   "icp_da_lc+fusion+gnss_model", "icp_da_lc+fusion+gnss_model+reloc",
-                                  "icp_da_lc+fusion+gnss_model+reloc+gain+arbiter"])
+                                  "icp_da_lc+fusion+gnss_model+reloc+gain+arbiter+anchor"])
 def test_truth_blind_with_clutter_and_pedestrians(name):
     """Clutter rows (truth -1), pedestrian rows (class 1) and the existence / clutter model of ICP-DA-LC
     (``+reloc``: with the relocalization of lost vehicles, ``[lc] relocalize_radius_m``; ``+gain+arbiter``: also of
-    vehicles partly on the map, ``relocalize_min_gain``, and the map's veto of the reset, ``reset_map_margin``):
+    vehicles partly on the map, ``relocalize_min_gain``, and the map's veto of the reset, ``reset_map_margin``;
+    ``+anchor``: the fix's arbitration and the map-anchored position, ``fix_map_margin``, ``anchor_margin``):
     scrambled truth or none gives the same bytes, pairings and tracks."""
     from coloc.methods.icp_da_lc import IcpDaLc
     from coloc.methods.icp_known_da import IcpKnownDA
@@ -275,7 +276,9 @@ def test_truth_blind_with_clutter_and_pedestrians(name):
                   relocalize_radius_m=10.0 if "+reloc" in name else 0.0,
                   relocalize_min_gain=1 if "+gain" in name else 0,
                   own_consistency_gate=0.99 if "+arbiter" in name else 0.0,
-                  reset_map_margin=1 if "+arbiter" in name else 0)
+                  reset_map_margin=1 if "+arbiter" in name else 0,
+                  fix_map_margin=1 if "+anchor" in name else 0,
+                  anchor_margin=1 if "+anchor" in name else 0)
     params = IcpParams(motion=ROAD_MOTION)
 
     def make():

@@ -224,3 +224,45 @@ def test_the_map_keeps_a_vehicle_whose_receiver_goes_off():
 def test_fix_map_margin_must_not_be_negative():
     with pytest.raises(ValueError, match="fix_map_margin"):
         LcParams(fix_map_margin=-1)
+
+
+def _anchor_scene():
+    """Two vehicles, landmarks every 7 m along y = +-5; vehicle 0 sees four of them, vehicle 1 three."""
+    from types import SimpleNamespace
+
+    xs = np.arange(-6, 7) * 7.0
+    tracks = np.concatenate([np.stack([xs, np.full(xs.size, 5.0)], 1), np.stack([xs, np.full(xs.size, -5.0)], 1)])
+    true_xy = np.array([[0.0, 0.0], [21.0, 0.0]])
+    z = np.array([[7.0, 5.0], [-7.0, 5.0], [0.0, -5.0], [7.0, -5.0], [0.0, 5.0], [7.0, 5.0], [0.0, -5.0]])
+    owner = np.array([0, 0, 0, 0, 1, 1, 1])
+    z = tracks[[np.argmin(np.hypot(*(tracks - true_xy[o] - zz).T)) for o, zz in zip(owner, z)]] - true_xy[owner]
+    frame = SimpleNamespace(v2f_class=None, v2f_z=z, n_vehicles=2, dt=0.5, entered=np.array([False, True]))
+    predicted = SimpleNamespace(size=tracks.shape[0], klass=None)
+    return tracks, true_xy, owner, frame, predicted
+
+
+def test_the_anchor_is_carried_by_the_velocity_and_taken_where_the_map_supports_it():
+    """``anchor_margin``: the anchor moves with b^(0)'s velocity (an entering vehicle starts at b^(0)); a vehicle
+    whose fix-updated mean is 4 m off its landmarks is associated at its anchor, one on them keeps its mean; the
+    anchor is refreshed to a posterior that the map supports and kept otherwise."""
+    from coloc.methods.lc_reloc import anchored_mean, predicted_anchor, refreshed_anchor
+
+    tracks, true_xy, owner, frame, predicted = _anchor_scene()
+    lc = LcParams(anchor_margin=1)
+    b0 = np.array([[0.0, 4.0, 2.0, 0.0], [21.0, 0.0, 0.0, 0.0]])  # vehicle 0 pulled 4 m across
+    prev = np.array([[-1.0, 0.0], [99.0, 99.0]])
+    anchor = predicted_anchor(prev, np.array([0, 1]), frame, b0)
+    np.testing.assert_allclose(anchor, [[0.0, 0.0], [21.0, 0.0]])  # -1 + 0.5 * 2; entering: b^(0)
+    assert predicted_anchor(None, np.array([0, 1]), frame, b0) is not None
+    t_mean = np.concatenate([tracks, np.zeros_like(tracks)], 1)
+    a = anchored_mean(b0, anchor, owner, frame, t_mean, None, predicted, lc)
+    np.testing.assert_array_equal(a[0, :2], [0.0, 0.0])
+    np.testing.assert_array_equal(a[1], b0[1])
+    np.testing.assert_array_equal(a[0, 2:], b0[0, 2:])
+    far = anchor + [[0.0, 4.0], [0.0, 0.0]]  # an anchor off the map is not taken
+    np.testing.assert_array_equal(anchored_mean(b0, far, owner, frame, t_mean, None, predicted, lc), b0)
+    post = np.array([[0.2, 0.1, 2.0, 0.0], [21.0, 4.0, 0.0, 0.0]])  # vehicle 1's posterior off the map
+    np.testing.assert_allclose(refreshed_anchor(far, post, owner, frame, t_mean, None, predicted, lc),
+                               [[0.2, 0.1], far[1]])
+    with pytest.raises(ValueError, match="anchor_margin"):
+        LcParams(anchor_margin=-1)

@@ -308,6 +308,18 @@ def run_reset_map_margin_negative(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+@case("cfg.toml", "lc.anchor_margin")
+def run_anchor_margin_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nanchor_margin = -1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
+@case("cfg.toml", "lc.fix_map_margin")
+def run_fix_map_margin_negative(tmp, net, run):
+    cfg = _config(tmp, net, "[lc]\nfix_map_margin = -1\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
 def run_unknown_stop_rule(tmp, net, run):
     cfg = _config(tmp, net, '[icp]\nstop_on = "features"\n')
