@@ -1,6 +1,6 @@
 """Relocalization of a lost vehicle against ICP-DA-LC's confirmed tracks (``[lc] relocalize_radius_m``, off by default;
 :mod:`coloc.methods.icp_da_lc`, step 5b), and the map's support of a vehicle's position that steps 5a
-(``fix_map_margin``) and 10 (``reset_map_margin``) decide on.
+(``fix_map_margin``, ``anchor_margin``: the map-anchored position at the end) and 10 (``reset_map_margin``) decide on.
 
 A vehicle is *lost* at a step when it has at least ``relocalize_min_support`` rows and none of them was paired with a
 confirmed track: its belief b_i^(0) (mean and covariance) no longer overlaps the map, so every row falls outside its
