@@ -266,58 +266,55 @@ def run_unknown_pairing_rule(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
 
 
+def _lc_run(tmp, net, lc_table: str):
+    """``coloc run`` of gnss and icp_da_lc on a config with this ``[lc]`` table."""
+    cfg = _config(tmp, net, lc_table)
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+
+
 @case("cfg.toml", "lc.new_feature_density", ">= 0")
 def run_negative_new_feature_density(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nnew_feature_density = -1e-5\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nnew_feature_density = -1e-5\n")
 
 
 @case("cfg.toml", "lc.sensor_fov", "[perception]")
 def run_sensor_fov_without_perception(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nsensor_fov = true\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nsensor_fov = true\n")
 
 
 @case("cfg.toml", "lc.confirm_existence", "drop_existence")
 def run_existence_thresholds_crossed(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\ntrack_existence = true\nconfirm_existence = 0.005\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\ntrack_existence = true\nconfirm_existence = 0.005\n")
 
 
 @case("cfg.toml", "lc.relocalize_tolerance_m")
 def run_relocalize_tolerance_zero(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_tolerance_m = 0.0\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_tolerance_m = 0.0\n")
 
 
 @case("cfg.toml", "lc.relocalize_min_support")
 def run_relocalize_min_support_zero(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_support = 0\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_support = 0\n")
 
 
 @case("cfg.toml", "lc.relocalize_min_gain")
 def run_relocalize_min_gain_negative(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_gain = -1\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nrelocalize_radius_m = 10.0\nrelocalize_min_gain = -1\n")
 
 
 @case("cfg.toml", "lc.reset_map_margin")
 def run_reset_map_margin_negative(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nown_consistency_gate = 0.9999\nreset_map_margin = -2\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nown_consistency_gate = 0.9999\nreset_map_margin = -2\n")
 
 
 @case("cfg.toml", "lc.anchor_margin")
 def run_anchor_margin_negative(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nanchor_margin = -1\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nanchor_margin = -1\n")
 
 
 @case("cfg.toml", "lc.fix_map_margin")
 def run_fix_map_margin_negative(tmp, net, run):
-    cfg = _config(tmp, net, "[lc]\nfix_map_margin = -1\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nfix_map_margin = -1\n")
 
 
 @case("cfg.toml", "icp.stop_on", "vehicles_and_features")
@@ -929,8 +926,7 @@ def run_inertial_turn_on_huge(tmp, net, run):
 @case("cfg.toml", "lc.bp_iterations", "100000000000000000000 is outside [0, 100000]")
 def run_iterations_beyond_int64(tmp, net, run):
     # TOML integers are 64-bit; Python's reader takes 1e20 as an int all the same: refused by its range.
-    cfg = _config(tmp, net, "[lc]\nbp_iterations = 100000000000000000000\n")
-    return ["run", str(cfg), "--out", str(tmp / "o"), "--methods", "gnss,icp_da_lc", "--quiet"], None
+    return _lc_run(tmp, net, "[lc]\nbp_iterations = 100000000000000000000\n")
 
 
 @case("cfg.toml", "icp.consensus_iterations", "is outside [0, 100000]")
