@@ -39,13 +39,11 @@ Per time step, with no knowledge of which feature produced a V2F row:
      same row: each pairing enters the likelihood (31), so a shared row is
      used once per track that took it. The row's reported assignment is the
      track of largest belief (scoring sees one track per row);
-5a. the fix arbitrated by the map (``fix_map_margin``, off by default;
-   :func:`coloc.methods.lc_reloc.fix_arbitrated_mean`): a
-   vehicle whose motion prediction puts more of its rows on confirmed tracks than b^(0)'s mean (this step's
-   fix included) is associated at the prediction;
-   With ``anchor_margin`` m > 0, or at its map-anchored position, which no fix moves (refreshed to the
-   posterior whenever the map supports it), where that puts more rows on the map
-   (:func:`coloc.methods.lc_reloc.anchored_mean`);
+5a. the fix arbitrated by the map (``fix_map_margin`` and ``anchor_margin``, off by default;
+   :mod:`coloc.methods.lc_reloc`): a vehicle whose motion prediction puts more of its rows on confirmed
+   tracks than b^(0)'s mean (this step's fix included) is associated at the prediction; with
+   ``anchor_margin``, one whose map-anchored position (which no fix moves, refreshed to the posterior
+   whenever the map supports it) puts more rows on the map is associated there;
 5b. relocalization (``relocalize_radius_m``, off by default; :mod:`coloc.methods.lc_reloc`): a vehicle
    none of whose rows found a confirmed track is moved, for steps 3-6 and 9 of this step only, by the
    translation that puts its rows on confirmed tracks, and steps 3-5 run again (with
