@@ -135,8 +135,8 @@ from coloc.kernels.icp_fused import (
 )
 from coloc.methods.coop_fusion import CoopFusion
 from coloc.methods.icp_known_da import IcpState, frame_vehicle_codes, localize, prior_pair
-from coloc.methods.lc_reloc import (anchored_mean, fix_arbitrated_mean, map_anchors, map_support, predicted_anchor,
-                                    refreshed_anchor, relocalization_offsets)
+from coloc.methods.lc_reloc import (anchored_mean, fix_arbitrated_mean, map_rows, predicted_anchor, refreshed_anchor,
+                                    relocalization_offsets)
 from coloc.methods.lc_births import PRUNE_MARGIN, birth_clusters, birth_pairs, merge_candidates  # noqa: F401
 from coloc.methods.registry import ICP_DA_LC
 
@@ -515,13 +515,16 @@ def icp_da_lc_step(
         else None
     a_mean = b0_mean  # the mean the association, births and existence see (steps 5a and 5b may move it)
     row_cls = frame.v2f_class
+    # The step's rows and confirmed tracks for the map's support of a position (steps 5a, 5b, 10).
+    uses_map = lc.relocalize_radius_m > 0 or lc.fix_map_margin > 0 or lc.anchor_margin > 0 or lc.reset_map_margin > 0
+    rows = map_rows(predicted, r_pred, t_mean, frame, owner, lc) if uses_map else None
     if lc.fix_map_margin > 0 and predicted.size:  # step 5a: the map arbitrates this step's fix for the association
-        a_mean = fix_arbitrated_mean(b0_mean, state, frame, match, accel, owner, t_mean, r_pred, predicted, lc)
+        a_mean = fix_arbitrated_mean(b0_mean, state, frame, match, accel, rows, lc.fix_map_margin)
     anchor_xy = None
     if lc.anchor_margin > 0:  # step 5a: or the vehicle's map-anchored position, which takes no fix
         anchor_xy = predicted_anchor(state.anchor, match, frame, b0_mean)
         if predicted.size:
-            a_mean = anchored_mean(a_mean, anchor_xy, owner, frame, t_mean, r_pred, predicted, lc)
+            a_mean = anchored_mean(a_mean, anchor_xy, rows, lc.anchor_margin)
 
     def pd_of(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
         """P_D of (vehicle, predicted track) pairs."""
@@ -532,11 +535,11 @@ def icp_da_lc_step(
     ab, row_idx, row_new, extra_row, extra_idx = _associate(a_mean, gate_cov, t_mean, t_cov, predicted, owner, frame,
                                                             lc, detection, r_pred, pd_of)
     if lc.relocalize_radius_m > 0 and predicted.size:  # step 5b: lost vehicles relocalized against the confirmed tracks
-        confirmed, anchor, static = map_anchors(predicted, r_pred, row_cls, o, lc)
-        on_map = np.bincount(owner[(row_idx >= 0) & confirmed[np.maximum(row_idx, 0)]], minlength=frame.n_vehicles)
-        enough = np.bincount(owner[static], minlength=frame.n_vehicles) >= lc.relocalize_min_support
+        on_map = np.bincount(owner[(row_idx >= 0) & rows.confirmed[np.maximum(row_idx, 0)]],
+                             minlength=frame.n_vehicles)
+        enough = np.bincount(rows.owner, minlength=frame.n_vehicles) >= lc.relocalize_min_support
         lost = enough & (on_map == 0)
-        shift = relocalization_offsets(a_mean, owner[static], frame.v2f_z[static], lost, t_mean[anchor, :2],
+        shift = relocalization_offsets(a_mean, rows.owner, rows.z, lost, rows.track_xy,
                                        lc.relocalize_radius_m, lc.relocalize_tolerance_m, lc.relocalize_min_support,
                                        enough & (on_map > 0), lc.relocalize_min_gain)
         if shift.any():
@@ -634,14 +637,7 @@ def icp_da_lc_step(
     if lc.own_consistency_gate > 0:
         kept = None
         if lc.reset_map_margin > 0 and predicted.size:  # the map arbitrates between the two positions
-            _, anchor, static = map_anchors(predicted, r_pred, row_cls, o, lc)
-            track_xy = t_mean[anchor, :2]
-            z_static = frame.v2f_z[static]
-            on_coop = map_support(res.mean, owner[static], z_static, track_xy, lc.relocalize_tolerance_m,
-                                  frame.n_vehicles)
-            on_own = map_support(own_mean, owner[static], z_static, track_xy, lc.relocalize_tolerance_m,
-                                 frame.n_vehicles)
-            kept = on_coop >= on_own + lc.reset_map_margin
+            kept = rows.support(res.mean) >= rows.support(own_mean) + lc.reset_map_margin
         v_mean, v_cov, reset = own_consistency_reset(res.mean, res.cov, own_mean, own_cov, lc.own_consistency_gate,
                                                      kept)
         resets = int(reset.sum())
@@ -654,8 +650,7 @@ def icp_da_lc_step(
     beliefs = step_feature_beliefs(store, params, bpa_track[used], res)
     anchor_next = None
     if anchor_xy is not None:
-        anchor_next = anchor_xy if not predicted.size else refreshed_anchor(anchor_xy, v_mean, owner, frame, t_mean,
-                                                                            r_pred, predicted, lc)
+        anchor_next = anchor_xy if not predicted.size else refreshed_anchor(anchor_xy, v_mean, rows)
     return (IcpState(frame.vehicle_ids, v_mean, v_cov, own_mean, own_cov, store, beliefs, heading, codes,
                      sensor_heading, split_after, anchor_next), next_id, info)
 

@@ -27,6 +27,7 @@ Nothing here reads the truth: the vehicles' beliefs, their rows and the confirme
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,7 +37,7 @@ if TYPE_CHECKING:
     from coloc.core.frame import Frame
     from coloc.inference.params import LcParams
 
-__all__ = ["anchored_mean", "fix_arbitrated_mean", "map_anchors", "map_support", "predicted_anchor",
+__all__ = ["MapRows", "anchored_mean", "fix_arbitrated_mean", "map_rows", "map_support", "predicted_anchor",
            "refreshed_anchor", "relocalization_offsets"]
 
 
@@ -67,23 +68,23 @@ def relocalization_offsets(
     ``partial`` (N,) bool or None: vehicles with rows on the map asked the vote too (``min_gain`` > 0).
     """
     offsets = np.zeros((v_mean.shape[0], 2))
-    ask = lost if partial is None or min_gain <= 0 else lost | partial
+    voting_partial = partial is not None and min_gain > 0
+    ask = lost | partial if voting_partial else lost
     if track_xy.shape[0] == 0 or not ask.any():
         return offsets
-    tree = cKDTree(track_xy)
     owner = np.asarray(owner, dtype=np.int64)
+    # rows a translation needs: min_support; a vehicle partly on the map must also beat its own mean by min_gain
+    need = np.full(v_mean.shape[0], min_support)
+    if voting_partial:
+        own = map_support(v_mean, owner, z, track_xy, tolerance_m, v_mean.shape[0])
+        need = np.where(lost, min_support, np.maximum(min_support, own + min_gain))
+    tree = cKDTree(track_xy)
     # A few lost vehicles per step (about 3 % of vehicle-steps): one small voting problem each.
     for i in np.flatnonzero(ask):
         rows = np.flatnonzero(owner == i)
-        if rows.size < min_support:
+        if rows.size < need[i]:
             continue
         implied = v_mean[i, :2] + z[rows, :2]
-        need = min_support
-        if not lost[i]:  # partly on the map: the vote must beat the vehicle's own mean by min_gain rows
-            d0, i0 = tree.query(implied, distance_upper_bound=tolerance_m)
-            need = max(min_support, np.unique(i0[np.isfinite(d0)]).size + min_gain)
-            if rows.size < need:
-                continue
         near = tree.query_ball_point(implied, radius_m)
         cand = [track_xy[k] - implied[l] for l, ks in enumerate(near) for k in ks]
         if not cand:
@@ -100,7 +101,7 @@ def relocalization_offsets(
         idx = idx.reshape(cand.shape[0], rows.size)
         support = np.array([np.unique(idx[c][hit[c]]).size for c in range(cand.shape[0])])
         best = int(support.max())
-        if best < need:
+        if best < need[i]:
             continue
         top = np.flatnonzero(support == best)
         norm = np.hypot(cand[top, 0], cand[top, 1])
@@ -114,18 +115,37 @@ def relocalization_offsets(
     return offsets
 
 
-def map_anchors(predicted, r_pred, row_cls, n_rows: int, lc: "LcParams"):
-    """(confirmed (T,), anchors (T,), static rows (O,)): the predicted tracks confirmed at this step (all without
-    ``lc.track_existence``); those of them that can anchor a vehicle's position (with classes, static landmarks
-    only); the rows of the static class (all without classes). Steps 5a, 5b and 10's map support."""
+@dataclass(frozen=True)
+class MapRows:
+    """One step's static rows and the confirmed tracks that can anchor a vehicle, for :func:`map_support` (steps
+    5a, 5b and 10). ``confirmed`` (T,) the predicted tracks confirmed at this step (all without
+    ``lc.track_existence``); ``track_xy`` (A, 2) those of them that can anchor a position (with classes, static
+    landmarks only); ``owner`` and ``z`` the rows of the static class (all rows without classes)."""
+
+    confirmed: np.ndarray
+    track_xy: np.ndarray
+    owner: np.ndarray
+    z: np.ndarray
+    tolerance_m: float
+    n_vehicles: int
+
+    def support(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) :func:`map_support` of the vehicles at ``xy``."""
+        return map_support(xy, self.owner, self.z, self.track_xy, self.tolerance_m, self.n_vehicles)
+
+
+def map_rows(predicted, r_pred, t_mean: np.ndarray, frame: "Frame", owner: np.ndarray, lc: "LcParams") -> MapRows:
+    """The step's :class:`MapRows` from the predicted tracks (``t_mean``, existence ``r_pred``, classes) and the
+    frame's rows."""
     confirmed = np.ones(predicted.size, dtype=bool) if r_pred is None else r_pred >= lc.confirm_existence
-    static = np.ones(n_rows, dtype=bool) if row_cls is None else row_cls == 0
+    row_cls = frame.v2f_class
+    static = np.ones(owner.size, dtype=bool) if row_cls is None else row_cls == 0
     anchor = confirmed & (predicted.klass == 0) if row_cls is not None and predicted.klass is not None else confirmed
-    return confirmed, anchor, static
+    return MapRows(confirmed, t_mean[anchor, :2], owner[static], frame.v2f_z[static], lc.relocalize_tolerance_m,
+                   frame.n_vehicles)
 
 
-def fix_arbitrated_mean(b0_mean, state, frame: "Frame", match, accel, owner, t_mean, r_pred, predicted,
-                         lc: "LcParams") -> np.ndarray:
+def fix_arbitrated_mean(b0_mean, state, frame: "Frame", match, accel, rows: MapRows, margin: int) -> np.ndarray:
     """Step 5a (``fix_map_margin`` m > 0): b^(0)'s mean, except for vehicles whose motion prediction (the previous
     belief's position advanced by its velocity and this step's input, before this step's fix) puts at least m
     more static rows on distinct confirmed tracks than b^(0)'s mean: they are associated at the prediction.
@@ -134,16 +154,12 @@ def fix_arbitrated_mean(b0_mean, state, frame: "Frame", match, accel, owner, t_m
     carried = (match >= 0) & ~np.asarray(frame.entered, dtype=bool)
     if not carried.any():
         return b0_mean
-    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
     prev = state.mean[match[carried]]
     u = np.asarray(frame.accel if accel is None else accel, dtype=float)[carried]
     u = np.where(np.isfinite(u), u, 0.0)
     pred_xy = b0_mean[:, :2].copy()
     pred_xy[carried] = prev[:, :2] + frame.dt * prev[:, 2:4] + 0.5 * frame.dt ** 2 * u  # model (1)'s mean
-    track_xy, z = t_mean[anchor, :2], frame.v2f_z[static]
-    on_fix = map_support(b0_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    on_pred = map_support(pred_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    use = carried & (on_pred >= on_fix + lc.fix_map_margin)
+    use = carried & (rows.support(pred_xy) >= rows.support(b0_mean) + margin)
     if not use.any():
         return b0_mean
     a_mean = b0_mean.copy()
@@ -170,15 +186,10 @@ def predicted_anchor(anchor: np.ndarray | None, match: np.ndarray, frame: "Frame
     return out
 
 
-def anchored_mean(a_mean: np.ndarray, anchor_xy: np.ndarray, owner: np.ndarray, frame: "Frame", t_mean: np.ndarray,
-                  r_pred, predicted, lc: "LcParams") -> np.ndarray:
+def anchored_mean(a_mean: np.ndarray, anchor_xy: np.ndarray, rows: MapRows, margin: int) -> np.ndarray:
     """``a_mean`` with the position of every vehicle whose anchor puts at least max(2, its support at ``a_mean`` +
-    ``lc.anchor_margin``) static rows on distinct confirmed tracks replaced by the anchor."""
-    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
-    track_xy, z = t_mean[anchor, :2], frame.v2f_z[static]
-    on_mean = map_support(a_mean, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    on_anchor = map_support(anchor_xy, owner[static], z, track_xy, lc.relocalize_tolerance_m, frame.n_vehicles)
-    use = on_anchor >= np.maximum(ANCHOR_REFRESH_SUPPORT, on_mean + lc.anchor_margin)
+    ``margin``) static rows on distinct confirmed tracks replaced by the anchor."""
+    use = rows.support(anchor_xy) >= np.maximum(ANCHOR_REFRESH_SUPPORT, rows.support(a_mean) + margin)
     if not use.any():
         return a_mean
     out = a_mean.copy()
@@ -186,11 +197,7 @@ def anchored_mean(a_mean: np.ndarray, anchor_xy: np.ndarray, owner: np.ndarray, 
     return out
 
 
-def refreshed_anchor(anchor_xy: np.ndarray, v_mean: np.ndarray, owner: np.ndarray, frame: "Frame",
-                     t_mean: np.ndarray, r_pred, predicted, lc: "LcParams") -> np.ndarray:
+def refreshed_anchor(anchor_xy: np.ndarray, v_mean: np.ndarray, rows: MapRows) -> np.ndarray:
     """(N, 2) the anchors carried to the next step: the posterior's position where its static rows land on at least
     ``ANCHOR_REFRESH_SUPPORT`` distinct confirmed tracks, the anchor otherwise."""
-    _, anchor, static = map_anchors(predicted, r_pred, frame.v2f_class, owner.size, lc)
-    on_post = map_support(v_mean, owner[static], frame.v2f_z[static], t_mean[anchor, :2], lc.relocalize_tolerance_m,
-                          frame.n_vehicles)
-    return np.where((on_post >= ANCHOR_REFRESH_SUPPORT)[:, None], v_mean[:, :2], anchor_xy)
+    return np.where((rows.support(v_mean) >= ANCHOR_REFRESH_SUPPORT)[:, None], v_mean[:, :2], anchor_xy)

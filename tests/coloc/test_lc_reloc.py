@@ -245,7 +245,7 @@ def test_the_anchor_is_carried_by_the_velocity_and_taken_where_the_map_supports_
     """``anchor_margin``: the anchor moves with b^(0)'s velocity (an entering vehicle starts at b^(0)); a vehicle
     whose fix-updated mean is 4 m off its landmarks is associated at its anchor, one on them keeps its mean; the
     anchor is refreshed to a posterior that the map supports and kept otherwise."""
-    from coloc.methods.lc_reloc import anchored_mean, predicted_anchor, refreshed_anchor
+    from coloc.methods.lc_reloc import anchored_mean, map_rows, predicted_anchor, refreshed_anchor
 
     tracks, true_xy, owner, frame, predicted = _anchor_scene()
     lc = LcParams(anchor_margin=1)
@@ -255,14 +255,15 @@ def test_the_anchor_is_carried_by_the_velocity_and_taken_where_the_map_supports_
     np.testing.assert_allclose(anchor, [[0.0, 0.0], [21.0, 0.0]])  # -1 + 0.5 * 2; entering: b^(0)
     assert predicted_anchor(None, np.array([0, 1]), frame, b0) is not None
     t_mean = np.concatenate([tracks, np.zeros_like(tracks)], 1)
-    a = anchored_mean(b0, anchor, owner, frame, t_mean, None, predicted, lc)
+    rows = map_rows(predicted, None, t_mean, frame, owner, lc)
+    a = anchored_mean(b0, anchor, rows, lc.anchor_margin)
     np.testing.assert_array_equal(a[0, :2], [0.0, 0.0])
     np.testing.assert_array_equal(a[1], b0[1])
     np.testing.assert_array_equal(a[0, 2:], b0[0, 2:])
     far = anchor + [[0.0, 4.0], [0.0, 0.0]]  # an anchor off the map is not taken
-    np.testing.assert_array_equal(anchored_mean(b0, far, owner, frame, t_mean, None, predicted, lc), b0)
+    np.testing.assert_array_equal(anchored_mean(b0, far, rows, lc.anchor_margin), b0)
     post = np.array([[0.2, 0.1, 2.0, 0.0], [21.0, 4.0, 0.0, 0.0]])  # vehicle 1's posterior off the map
-    np.testing.assert_allclose(refreshed_anchor(far, post, owner, frame, t_mean, None, predicted, lc),
+    np.testing.assert_allclose(refreshed_anchor(far, post, rows),
                                [[0.2, 0.1], far[1]])
     with pytest.raises(ValueError, match="anchor_margin"):
         LcParams(anchor_margin=-1)
