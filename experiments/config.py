@@ -55,7 +55,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from coloc.core.models import MotionParams
+from coloc.core.models import IMU_HEADINGS, MotionParams
 from coloc.inference.params import BUDGET_SPLITS, FEATURE_MESSAGES, PEDESTRIAN_SIGMA_PAR, STOP_RULES
 from coloc.methods.icp_da_lc import LcParams
 from coloc.methods.coop_fusion import FusionParams
@@ -434,6 +434,9 @@ def _validate(cfg: Config) -> None:
     for name in ("sigma_along", "sigma_cross"):
         if not getattr(cfg.motion, name) > 0:
             raise InputError(p, f"motion.{name}", "must be positive")
+    if cfg.motion.imu_heading not in IMU_HEADINGS:
+        raise InputError(p, "motion.imu_heading",
+                         f"unknown value {cfg.motion.imu_heading!r} (available: {', '.join(IMU_HEADINGS)})")
     if cfg.scenario.kind == "sumo":
         if not cfg.scenario.net_dir:
             raise InputError(p, "scenario.net_dir", "required for a SUMO scenario")

@@ -558,6 +558,10 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
                                  "instead of the paper's 0.001, see the Brambilla validation page)."),
         "heading_min_speed": ("m/s", "Below this estimated speed the heading is not trusted and the driving "
                                      "noise is isotropic with sigma_along on both axes."),
+        "imu_heading": ("", "With `[inertial]`: the heading an estimator rotates the body-frame IMU input with "
+                            "while its vehicle is below `heading_min_speed`. \"dead_reckoned\": the kept heading "
+                            "plus the gyroscope's yaw rate; \"held\": the kept heading unchanged (a gyroscope's "
+                            "bias is not integrated over a stop), as the sensor-frame detections' heading is."),
     },
     "icp": {
         "consensus_iterations": (NO_UNIT, "Average-consensus iterations per feature (BPA-L)."),

@@ -15,7 +15,9 @@ An estimator rotates it into the net frame by :func:`net_frame_input`:
     a_{t-1} = R(psi_mid) accel_body                                 (the input of model (1))
     psi_t   = psi_0 + r Ts                                          (kept for the next step)
 
-with r the measured yaw rate. A vehicle that (re)enters starts its kept heading from the velocity of
+with r the measured yaw rate. With ``hold`` (``[motion] imu_heading = "held"``) a vehicle below
+min_speed keeps its heading unchanged instead (r taken as 0 for it: psi_mid = psi_t = psi_0), so that a
+gyroscope's bias is not integrated over a stop. A vehicle that (re)enters starts its kept heading from the velocity of
 its fast-start prior (it is not predicted at that step). The estimator never sees the true heading;
 the kept headings are a small per-vehicle memory the estimator carries between steps, in the order
 of its vehicle rows.
@@ -68,6 +70,7 @@ def net_frame_input(
     kept_heading: np.ndarray,
     fresh: np.ndarray,
     min_speed: float,
+    hold: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Net-frame input a_{t-1} of model (1) from the body-frame IMU and the estimated heading.
 
@@ -75,7 +78,8 @@ def net_frame_input(
     ``fresh`` vehicle, the velocity of its fast-start prior); ``kept_heading`` (N,): the heading the
     estimator kept for it after the previous step (NaN: none). Returns (accel (N, 2), heading (N,)):
     the input rotated at the mid-interval heading, and the heading at t to keep for the next step.
-    Rows of fresh vehicles get the heading of the prior's velocity and an input rotated by it (not
+    ``hold``: slow vehicles keep their heading (no yaw-rate integration; module docstring). Rows of
+    fresh vehicles get the heading of the prior's velocity and an input rotated by it (not
     used: a fresh vehicle is not predicted)."""
     v = np.asarray(velocity, dtype=float).reshape(-1, 2)
     fresh = np.asarray(fresh, dtype=bool)
@@ -84,7 +88,7 @@ def net_frame_input(
     kept = np.asarray(kept_heading, dtype=float)
     slow = (np.hypot(v[:, 0], v[:, 1]) < min_speed) & np.isfinite(kept) & ~fresh
     psi0 = np.where(slow, kept, from_velocity)
-    step = np.where(fresh, 0.0, r * dt)
+    step = np.where(fresh | (slow if hold else False), 0.0, r * dt)
     accel = rotate(np.asarray(imu.accel_body, dtype=float).reshape(-1, 2), psi0 + 0.5 * step)
     return accel, wrap_angle(psi0 + step)
 
@@ -101,6 +105,7 @@ def carried_heading(previous: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
 
 def estimator_input(
     frame: "Frame", idx: np.ndarray, previous_velocity: np.ndarray, previous_heading: np.ndarray | None, min_speed: float,
+    hold: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The input a_{t-1} an estimator uses this step, and the headings it keeps (rows in frame order).
 
@@ -116,4 +121,5 @@ def estimator_input(
     keep = ~fresh
     vel[keep] = np.asarray(previous_velocity, dtype=float)[idx[keep]]
     vel[fresh] = np.asarray(frame.prior_z, dtype=float)[fresh, 2:4]
-    return net_frame_input(frame.imu, float(frame.dt), vel, carried_heading(previous_heading, idx), fresh, min_speed)
+    return net_frame_input(frame.imu, float(frame.dt), vel, carried_heading(previous_heading, idx), fresh, min_speed,
+                           hold)

@@ -29,6 +29,15 @@ class MotionParams:
     # Below this speed the heading of the estimate is not trusted and the
     # driving noise is taken isotropic with sigma_along on both axes.
     heading_min_speed: float = 1.0
+    # The heading an estimator rotates its body-frame IMU input with while the vehicle is slower than
+    # heading_min_speed (coloc.core.inertial): "dead_reckoned" integrates the gyroscope's yaw rate from the
+    # heading it kept; "held" keeps that heading unchanged, as the sensor-frame detections' heading does
+    # (coloc.core.detections.vehicle_headings): a slow vehicle is mostly standing in a queue, where a
+    # gyroscope's bias alone (0.5 deg/s turn-on, RotorS) turns the integrated heading by 30 deg a minute.
+    imu_heading: str = "dead_reckoned"
+
+
+IMU_HEADINGS = ("dead_reckoned", "held")
 
 
 def transition_matrix(dt: float) -> np.ndarray:

@@ -61,6 +61,29 @@ def test_slow_vehicle_dead_reckons_the_kept_heading():
     np.testing.assert_allclose(h[0], math.atan2(0.1, 0.3) + 0.05, atol=1e-15)
 
 
+def test_held_heading_keeps_a_slow_vehicle_s_heading_and_leaves_the_fast_one_as_dead_reckoned():
+    """``[motion] imu_heading = "held"``: below the speed threshold the kept heading is neither advanced
+    nor rotated by the yaw rate (a gyroscope's bias at a stop); above it, and for a vehicle without a kept
+    heading, exactly the dead-reckoned input."""
+    dt = 0.5
+    imu = ImuFrame(np.array([[1.0, 0.2], [1.0, 0.2], [1.0, 0.2]]), np.array([0.1, 0.1, 0.1]))
+    vel = np.array([[0.3, 0.1], [3.0, 4.0], [0.3, 0.1]])  # slow, fast, slow without a kept heading
+    kept = np.array([2.0, -1.0, np.nan])
+    fresh = np.zeros(3, bool)
+    accel, heading = net_frame_input(imu, dt, vel, kept, fresh, 1.0, hold=True)
+    np.testing.assert_allclose(accel[0], rotate(imu.accel_body[:1], np.array([2.0]))[0], atol=1e-15)
+    assert heading[0] == 2.0
+    reckoned = net_frame_input(imu, dt, vel, kept, fresh, 1.0)
+    np.testing.assert_array_equal(accel[1:], reckoned[0][1:])
+    np.testing.assert_array_equal(heading[1:], reckoned[1][1:])
+    # A slow vehicle held over many steps keeps its heading whatever the gyroscope's bias
+    h = kept.copy()
+    for _ in range(80):  # a minute at 0.75 s
+        _, h = net_frame_input(ImuFrame(np.zeros((3, 2)), np.full(3, math.radians(0.5))), 0.75, vel, h, fresh, 1.0,
+                               hold=True)
+    assert h[0] == 2.0
+
+
 def test_new_vehicle_starts_from_its_prior_velocity():
     """A fresh vehicle's kept heading is its prior velocity's direction (not advanced: not predicted)."""
     frames = road_frames(steps=3, inertial=PERFECT)

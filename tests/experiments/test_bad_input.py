@@ -794,6 +794,12 @@ def run_lc_visibility_zero(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "motion.imu_heading", "dead_reckoned, held")
+def run_unknown_imu_heading(tmp, net, run):
+    cfg = _config(tmp, net, "[motion]\nimu_heading = \"gyro\"\n")
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "icp.budget_split", "greedy, even")
 def run_icp_unknown_budget_split(tmp, net, run):
     cfg = _config(tmp, net, "[icp]\nbudget_split = \"fair\"\n")
