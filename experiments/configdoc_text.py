@@ -348,6 +348,11 @@ KEY_DOCS: dict[str, dict[str, tuple[str, str]]] = {
         "degraded_velocity_scale": (NO_UNIT, "Factor on the reported velocity std above `degraded_above_m` "
                                              "(it also stands for the time correlation of a reflected signal's "
                                              "path-rate error). Default 1."),
+        "velocity_inflation": ("", "What the velocity gate (`velocity_gate`) inflates when a range-rate velocity fails "
+                                   "it: `noise` (default) scales the velocity's noise R_vv by d^2 / threshold; "
+                                   "`innovation` scales the innovation covariance S_vv by it, so that the inflated "
+                                   "statistic is the threshold even where the predicted velocity's covariance "
+                                   "dominates S."),
         "gate_on": ("", "The fault exclusion's statistic on the calibrated report (`calibrated`, default) or "
                         "on the report as the receiver gives it (`report`: the receiver's own claim, as RAIM "
                         "reads it); the update takes the calibrated report either way "

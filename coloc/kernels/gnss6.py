@@ -104,21 +104,30 @@ def gate_nis2(sm, rn, innov, g, sg):
 
 
 @njit(cache=True)
-def deweight_velocity(sm, rn, innov, vel_threshold):
+def deweight_velocity(sm, rn, innov, vel_threshold, on_innovation=False):
     """In place: where the velocity part's statistic d^2 exceeds ``vel_threshold``, R_vv and S_vv grow by
-    (d^2 / threshold - 1) R_vv (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
+    (d^2 / threshold - 1) R_vv, or with ``on_innovation`` by (d^2 / threshold - 1) S_vv
+    (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
     d2 = nis2(sm, innov, 2)
     if d2 > vel_threshold:
-        for a in range(2, 4):
-            for b in range(2, 4):
-                extra = (d2 / vel_threshold - 1.0) * rn[a, b]
-                rn[a, b] += extra
-                sm[a, b] += extra
+        f = d2 / vel_threshold - 1.0
+        e00 = f * (sm[2, 2] if on_innovation else rn[2, 2])
+        e01 = f * (sm[2, 3] if on_innovation else rn[2, 3])
+        e10 = f * (sm[3, 2] if on_innovation else rn[3, 2])
+        e11 = f * (sm[3, 3] if on_innovation else rn[3, 3])
+        rn[2, 2] += e00
+        rn[2, 3] += e01
+        rn[3, 2] += e10
+        rn[3, 3] += e11
+        sm[2, 2] += e00
+        sm[2, 3] += e01
+        sm[3, 2] += e10
+        sm[3, 3] += e11
 
 
 @njit(cache=True)
 def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, share, decay,
-               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold, gate_scale):
+               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold, gate_scale, vel_on_innovation=False):
     """One step of the 6-state filter for every row: predict where ``predict`` (decay a = exp(-dt/tau)),
     then the fix with the gate (a row that does not predict is never gated; nor one whose ``streak``
     reached ``max_exclusions``; ``gate_threshold`` inf: no gate). ``with_ind``: the independent part
@@ -202,7 +211,7 @@ def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cros
         innov[2] = z[i, 2] - m[i, 2]
         innov[3] = z[i, 3] - m[i, 3]
         if predict[i] and vel_threshold < np.inf:
-            deweight_velocity(sm, rn, innov, vel_threshold)
+            deweight_velocity(sm, rn, innov, vel_threshold, vel_on_innovation)
         lo = 0
         if predict[i] and streak[i] < max_exclusions and gate_threshold < np.inf:
             if gate_nis2(sm, rn, innov, gate_scale[i], sg) > gate_threshold:

@@ -308,7 +308,8 @@ def _gnss6(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       float(motion.sigma_along), float(motion.sigma_cross), float(motion.heading_min_speed),
                       float(model.bias_share), math.exp(-dt / model.bias_tau_s), float(model.gate_threshold),
                       int(model.max_exclusions), bool(common_mode), bool(with_ind), not with_ind,
-                      float(model.velocity_gate_threshold), gate_noise_scale(r, model))
+                      float(model.velocity_gate_threshold), gate_noise_scale(r, model),
+                      model.velocity_inflation == "innovation")
 
 
 def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, model: GnssModelParams, streak,
@@ -329,7 +330,8 @@ def _gnss8(mean, cov, ind, accel, z, r, predict_mask, dt, motion: MotionParams, 
                       float(model.local_tau_s), float(model.local_length_m), model.common_update == "consider",
                       float(model.gate_threshold), int(model.max_exclusions), bool(common_mode), bool(with_ind),
                       not with_ind, c(tmap), mapped, float(model.common_sigma_m) ** 2,
-                      float(model.velocity_gate_threshold), gate_noise_scale(r, model))
+                      float(model.velocity_gate_threshold), gate_noise_scale(r, model),
+                      model.velocity_inflation == "innovation")
 
 
 def common_frame(d: int) -> tuple[np.ndarray, np.ndarray]:

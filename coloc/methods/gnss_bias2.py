@@ -167,7 +167,10 @@ def velocity_deweight(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, predict
     velocity innovation fails the 2-dof chi-square test ``velocity_gate`` (nu_v^T S_vv^-1 nu_v = d^2 above the
     threshold t), its velocity noise is scaled by d^2 / t, R_vv -> (d^2 / t) R_vv (and S_vv with it): the
     Mahalanobis-distance rule of a robust Kalman filter (G. Chang, "Robust Kalman filtering based on
-    Mahalanobis distance as outlier judging criterion", J. Geodesy 88, 2014), in its one-step form. Not an
+    Mahalanobis distance as outlier judging criterion", J. Geodesy 88, 2014), in its one-step form. With
+    ``velocity_inflation = "innovation"`` S_vv itself is scaled by d^2 / t (R_vv grows by (d^2 / t - 1) S_vv), so
+    that the inflated statistic is t whatever the prediction's share of S: where the predicted velocity's
+    covariance dominates S, scaling R_vv alone leaves the gain near one and the outlier is followed. Not an
     exclusion: excluding the velocity let trackers diverge where the predicted velocity had drifted (the gate
     never reopened); a scaled fix keeps pulling back, and an outlier's pull is bounded."""
     if model.velocity_gate <= 0:
@@ -177,7 +180,8 @@ def velocity_deweight(innov: np.ndarray, sm: np.ndarray, rn: np.ndarray, predict
     thr = model.velocity_gate_threshold
     out = predict_mask & (d2 > thr)
     if out.any():
-        extra = (d2[out] / thr - 1.0)[:, None, None] * rn[out, 2:4, 2:4]
+        base = sm if model.velocity_inflation == "innovation" else rn
+        extra = (d2[out] / thr - 1.0)[:, None, None] * base[out, 2:4, 2:4]
         rn[out, 2:4, 2:4] += extra
         sm[out, 2:4, 2:4] += extra
 

@@ -13,6 +13,7 @@ MOTION = MotionParams(sigma_along=0.7, sigma_cross=0.3, heading_min_speed=1.0)
 MODELS = (GnssModelParams(), GnssModelParams(bias_share=0.0, innovation_gate=0.0),
           GnssModelParams(bias_share=0.5, bias_tau_s=20.0, innovation_gate=0.99, max_exclusions=3),
           GnssModelParams(velocity_gate=0.99), GnssModelParams(bias_share=0.3, velocity_gate=0.5, innovation_gate=0.0),
+          GnssModelParams(velocity_gate=0.99, velocity_inflation="innovation"),
           # the gate on the receiver's own report (rows with a calibrated std above 2 x 1.5 m taken back by 1/4)
           GnssModelParams(gate_on="report", degraded_above_m=1.5, degraded_position_scale=2.0))
 

@@ -20,6 +20,8 @@ MODELS = (GnssModelParams(bias_model="two_state"),
           GnssModelParams(bias_model="two_state", bias_follows_report=True, common_update="augmented"),
           GnssModelParams(bias_model="two_state", common_share=0.0, common_sigma_m=1.3, velocity_gate=0.99),
           GnssModelParams(bias_model="two_state", common_sigma_m=0.7, velocity_gate=0.5, common_update="augmented"),
+          GnssModelParams(bias_model="two_state", common_share=0.0, common_sigma_m=1.3, velocity_gate=0.99,
+                          velocity_inflation="innovation"),
           # the gate on the receiver's own report (rows with a calibrated std above 2 x 1.5 m taken back by 1/4)
           GnssModelParams(bias_model="two_state", gate_on="report", degraded_above_m=1.5,
                           degraded_position_scale=2.0, velocity_gate=0.99))

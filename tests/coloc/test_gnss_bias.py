@@ -39,14 +39,19 @@ def filterpy_kf(x, p) -> KalmanFilter:
     return kf
 
 
-def scale_velocity_noise(kf, z, rn, h, threshold) -> bool:
+def scale_velocity_noise(kf, z, rn, h, threshold, on_innovation=False) -> bool:
     """The robust velocity (Chang 2014) on a reference filter's predicted state: where the velocity part of the
-    innovation's d^2 exceeds ``threshold``, ``rn``'s velocity block (in place) times d^2 / threshold."""
+    innovation's d^2 exceeds ``threshold``, ``rn``'s velocity block (in place) times d^2 / threshold; with
+    ``on_innovation``, plus (d^2 / threshold - 1) times the innovation covariance's velocity block (so that the
+    velocity block of S is scaled by d^2 / threshold)."""
     s = h @ kf.P @ h.T + rn
     nu = (z - h @ kf.x)[2:]
     d2 = float(nu @ np.linalg.solve(s[2:, 2:], nu))
     if d2 > threshold:
-        rn[2:, 2:] *= d2 / threshold
+        if on_innovation:
+            rn[2:, 2:] += (d2 / threshold - 1.0) * s[2:, 2:]
+        else:
+            rn[2:, 2:] *= d2 / threshold
     return d2 > threshold
 
 
@@ -318,10 +323,13 @@ def test_params_refuse_values_that_break_the_model(kw):
         GnssModelParams(**kw)
 
 
-def test_velocity_test_equals_filterpy():
+@pytest.mark.parametrize("inflation", ["noise", "innovation"])
+def test_velocity_test_equals_filterpy(inflation):
     """``velocity_gate`` in the single model: the tracker against filterpy on [p, v, b] with the velocity noise
-    scaled by d^2 / threshold where the velocity innovation's d^2 (on the prior) exceeds the threshold."""
-    model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=0.0, velocity_gate=0.95)
+    scaled by d^2 / threshold where the velocity innovation's d^2 (on the prior) exceeds the threshold (or,
+    ``velocity_inflation = "innovation"``, the innovation covariance's velocity block scaled by it)."""
+    model = GnssModelParams(bias_share=0.7, bias_tau_s=40.0, innovation_gate=0.0, velocity_gate=0.95,
+                            velocity_inflation=inflation)
     frames = scripted_run(4, 200, model)
     for fr in frames[::7]:  # reflected range rates
         fr.gnss_z[:, 3] -= 5.0
@@ -340,7 +348,7 @@ def test_velocity_test_equals_filterpy():
                 kf = refs[vid]
                 f, b, q, h, rn = reference_matrices(kf.x, r, fr.dt, model)
                 kf.predict(u=fr.accel[i], B=b, F=f, Q=q)
-                scaled += scale_velocity_noise(kf, fr.gnss_z[i], rn, h, thr)
+                scaled += scale_velocity_noise(kf, fr.gnss_z[i], rn, h, thr, inflation == "innovation")
             refs[vid].update(fr.gnss_z[i], R=rn, H=h)
             np.testing.assert_allclose(out.mean[i], refs[vid].x[:4], rtol=0, atol=1e-9)
             np.testing.assert_allclose(out.cov[i], refs[vid].P[:4, :4], rtol=0, atol=1e-9)

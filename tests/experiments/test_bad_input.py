@@ -1431,6 +1431,12 @@ def run_gnss_model_gate_on_unknown(tmp, net, run):
     return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
 
 
+@case("cfg.toml", "gnss_model.velocity_inflation", "'noise', 'innovation'")
+def run_gnss_model_velocity_inflation_unknown(tmp, net, run):
+    cfg = _config(tmp, net, '[gnss_model]\nvelocity_inflation = "state"\n')
+    return ["run", str(cfg), "--out", str(tmp / "o"), "--quiet"], None
+
+
 @case("cfg.toml", "gnss_model.bias_share", "[0, 1)")
 def run_gnss_model_bias_share_one(tmp, net, run):
     cfg = _config(tmp, net, "[gnss_model]\nbias_share = 1.0\n")
