@@ -37,7 +37,7 @@ OVERLAYS = {
         "lc.own_consistency_gate", "lc.relocalize_radius_m", "lc.relocalize_tolerance_m",
         "lc.relocalize_min_support", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
         "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start", "scenario.reference_point",
-        "motion.sigma_cross"}),
+        "motion.sigma_cross", "motion.heading_min_speed", "motion.imu_heading"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
                                                                     "lc.visibility"}),
     "arterial_ped_tlr.toml": ("arterial_tlr.toml", {"run.name", "scenario.net_dir", "icp.pedestrian_sigma_par",
