@@ -81,7 +81,8 @@ def one(control: str, sensing: str, duration: float, start: float, top: int) -> 
     total = (clock() - c0) / n * 1e3
     sumo = acc.pop("SUMO", [0.0, 0])[0] / n * 1e3
     kernels = sorted(((t / n * 1e3, name) for name, (t, _c) in acc.items()), reverse=True)
-    print(f"{sensing:>9}: frame step {total:6.3f} ms, SUMO's step {sumo:6.3f} ms, kernels {sum(k for k, _ in kernels):6.3f} ms"
+    kernel_sum = sum(k for k, _ in kernels)
+    print(f"{sensing:>9}: frame step {total:6.3f} ms, SUMO's step {sumo:6.3f} ms, kernels {kernel_sum:6.3f} ms"
           + "".join(f"\n           {t:6.3f} ms  {name}" for t, name in kernels[:top]), flush=True)
 
 

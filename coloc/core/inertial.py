@@ -17,8 +17,8 @@ An estimator rotates it into the net frame by :func:`net_frame_input`:
 
 with r the measured yaw rate. With ``hold`` (``[motion] imu_heading = "held"``) a vehicle below
 min_speed keeps its heading unchanged instead (r taken as 0 for it: psi_mid = psi_t = psi_0), so that a
-gyroscope's bias is not integrated over a stop. A vehicle that (re)enters starts its kept heading from the velocity of
-its fast-start prior (it is not predicted at that step). The estimator never sees the true heading;
+gyroscope's bias is not integrated over a stop. A vehicle that (re)enters starts its kept heading from
+the velocity of its fast-start prior (it is not predicted at that step). The estimator never sees the true heading;
 the kept headings are a small per-vehicle memory the estimator carries between steps, in the order
 of its vehicle rows.
 

@@ -127,7 +127,8 @@ def deweight_velocity(sm, rn, innov, vel_threshold, on_innovation=False):
 
 @njit(cache=True)
 def gnss6_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, share, decay,
-               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold, gate_scale, vel_on_innovation=False):
+               gate_threshold, max_exclusions, common_mode, with_ind, sym_predict, vel_threshold, gate_scale,
+               vel_on_innovation=False):
     """One step of the 6-state filter for every row: predict where ``predict`` (decay a = exp(-dt/tau)),
     then the fix with the gate (a row that does not predict is never gated; nor one whose ``streak``
     reached ``max_exclusions``; ``gate_threshold`` inf: no gate). ``with_ind``: the independent part

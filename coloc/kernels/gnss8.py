@@ -55,7 +55,8 @@ def _sandwich8(a, p, out, tmp):
 @njit(cache=True)
 def gnss8_step(mean, cov, ind, accel, z, r, predict, streak, dt, s_along, s_cross, min_speed, common_share,
                local_share, decay_c, local_tau_s, local_length_m, consider, gate_threshold, max_exclusions,
-               common_mode, with_ind, sym_predict, tmap, mapped, common_var, vel_threshold, gate_scale, vel_on_innovation=False):
+               common_mode, with_ind, sym_predict, tmap, mapped, common_var, vel_threshold, gate_scale,
+               vel_on_innovation=False):
     """One step of the 8-state filter for every row: predict where ``predict`` (``decay_c`` = exp(-dt /
     common_tau_s); the local decay per row from its prior speed), then the fix with the gate (a row that does
     not predict is never gated; nor one whose ``streak`` reached ``max_exclusions``; ``gate_threshold`` inf:

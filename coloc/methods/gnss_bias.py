@@ -160,9 +160,11 @@ class GnssModelParams:
     velocity_gate: float = 0.0
     # What the velocity gate inflates: "noise", R_vv by d^2 / threshold (the one-step form); "innovation", S_vv
     # by d^2 / threshold (R_vv grows by (d^2 / threshold - 1) S_vv), so that the inflated statistic is the
-    # threshold even where the predicted velocity's covariance dominates S. A range-rate velocity 1-2 m/s off
-    # at a start from a stop, reported at 0.07 m/s, was otherwise followed with a gain near one
-    # (docs/validation/consistency.md, "A start from a stop").
+    # threshold even where the predicted velocity's covariance dominates S (a range-rate velocity 1-2 m/s off at
+    # a start from a stop, reported at 0.07 m/s, is followed with a gain near one under "noise"). Measured on the
+    # tuning seeds and not adopted: an outlier's pull then falls as 1/d, so a prediction that has drifted is not
+    # pulled back by correct velocities either (TLR icp_da_lc 1.64 -> 3.03 m; docs/validation/consistency.md,
+    # "A start from a stop").
     velocity_inflation: str = "noise"
     # Two-state model, local bias (multipath): its share, its correlation length in distance travelled
     # (m; multipath decorrelates over metres to tens of metres of travel: Braasch, in Parkinson and
