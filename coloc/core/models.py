@@ -36,6 +36,11 @@ class MotionParams:
     # gyroscope's bias alone (0.5 deg/s turn-on, RotorS) turns the integrated heading by 30 deg a minute.
     imu_heading: str = "dead_reckoned"
 
+    @property
+    def holds_heading(self) -> bool:
+        """``imu_heading == "held"``: what :func:`coloc.core.inertial.estimator_input` takes as ``hold``."""
+        return self.imu_heading == "held"
+
 
 IMU_HEADINGS = ("dead_reckoned", "held")
 

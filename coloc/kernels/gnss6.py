@@ -110,19 +110,11 @@ def deweight_velocity(sm, rn, innov, vel_threshold, on_innovation=False):
     (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
     d2 = nis2(sm, innov, 2)
     if d2 > vel_threshold:
-        f = d2 / vel_threshold - 1.0
-        e00 = f * (sm[2, 2] if on_innovation else rn[2, 2])
-        e01 = f * (sm[2, 3] if on_innovation else rn[2, 3])
-        e10 = f * (sm[3, 2] if on_innovation else rn[3, 2])
-        e11 = f * (sm[3, 3] if on_innovation else rn[3, 3])
-        rn[2, 2] += e00
-        rn[2, 3] += e01
-        rn[3, 2] += e10
-        rn[3, 3] += e11
-        sm[2, 2] += e00
-        sm[2, 3] += e01
-        sm[3, 2] += e10
-        sm[3, 3] += e11
+        for a in range(2, 4):
+            for b in range(2, 4):  # each entry's extra reads only that entry, before it is written
+                extra = (d2 / vel_threshold - 1.0) * (sm[a, b] if on_innovation else rn[a, b])
+                rn[a, b] += extra
+                sm[a, b] += extra
 
 
 @njit(cache=True)

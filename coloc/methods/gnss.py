@@ -55,7 +55,7 @@ class GnssTracker:
         idx = match_ids(self._ids, frame.vehicle_ids)
         accel, self._heading = estimator_input(frame, idx, self._mean[:, 2:], self._heading,
                                                self.motion.heading_min_speed,
-                                               self.motion.imu_heading == "held")
+                                               self.motion.holds_heading)
         mean, cov, fresh = carry_states(
             self._ids, self._mean, self._cov, frame.vehicle_ids, frame.entered, frame.prior_z, frame.prior_R, idx
         )

@@ -419,7 +419,7 @@ class GnssBiasTracker:
         idx = match_ids(self._ids, frame.vehicle_ids)
         accel, self._heading = estimator_input(frame, idx, self._mean[:, 2:4], self._heading,
                                                self.motion.heading_min_speed,
-                                               self.motion.imu_heading == "held")
+                                               self.motion.holds_heading)
         prior_z = np.asarray(frame.prior_z, dtype=float)
         fresh = fresh_rows(idx, frame.entered, prior_z)
         r = np.asarray(frame.gnss_R, dtype=float)

@@ -500,7 +500,7 @@ def icp_da_lc_step(
     match = match_ids(state.ids, frame.vehicle_ids)
     # [inertial]: the body-frame IMU rotated by the heading of the previous belief (22) (None: frame.accel).
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed,
-                                     params.motion.imu_heading == "held")
+                                     params.motion.holds_heading)
     b0_mean, b0_cov, own_mean, own_cov, split = prior_pair(state, frame, params, match, accel, fusion)
     # The covariance the association, the births and the existence see with b^(0)'s mean (below).
     gate_cov = own_cov if split is None else b0_cov

@@ -283,7 +283,7 @@ def icp_da_pf_step(
     if fusion is not None and state.split is not None and frame.imu is not None:
         prev_velocity = state.split.mean[:, 2:4]  # the previous belief's mean velocity, as ICP-DA-LC
     accel, heading = estimator_input(frame, idx, prev_velocity, state.heading, params.motion.heading_min_speed,
-                                     params.motion.imu_heading == "held")
+                                     params.motion.holds_heading)
 
     # Model (1)'s driving noise for the vehicle particles: [motion]'s, or the PF's own (PfParams).
     v_params = params

@@ -149,7 +149,7 @@ def icp_known_da_step(state: "IcpState", frame: Frame, v2f_feature: np.ndarray, 
     assoc = validate_association(frame.v2f_owner, v2f_feature, frame.v2f_z.shape[0])
     match = match_ids(state.ids, frame.vehicle_ids)
     accel, heading = estimator_input(frame, match, state.mean[:, 2:], state.heading, params.motion.heading_min_speed,
-                                     params.motion.imu_heading == "held")
+                                     params.motion.holds_heading)
     b0_mean, b0_cov, own_mean, own_cov, split = prior_pair(state, frame, params, match, accel, fusion)
     # Sensor-frame detections (frame.v2f_sensor): model (4)'s rows by the heading of the own-sensor track at t
     # (coloc.core.detections).
