@@ -35,7 +35,7 @@ OVERLAYS = {
         "run.name", "lc.sensor_fov", "lc.visibility", "lc.track_existence",
         "lc.survival_probability", "lc.confirm_existence", "lc.drop_existence", "lc.new_feature_velocity_sigma",
         "lc.own_consistency_gate", "lc.relocalize_radius_m", "lc.relocalize_tolerance_m",
-        "lc.relocalize_min_support", "lc.relocalize_min_gain", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
+        "lc.relocalize_min_support", "lc.relocalize_min_gain", "lc.reset_map_margin", "pf.sigma_along", "pf.sigma_cross", "perception", "gnss_error", "inertial",
         "estimator_sensors", "gnss_model", "fusion", "analysis", "scenario.start", "scenario.reference_point",
         "motion.sigma_cross", "motion.heading_min_speed", "motion.imu_heading"}),
     "arterial_vsr_realistic.toml": ("arterial_tlr_realistic.toml", {"run.name", "scenario.control",
@@ -254,9 +254,11 @@ def test_preset_resolves_as_its_full_copy_did(name):
 #: [lc] values derived from them, the [gnss_error] field model and the entry from the receiver's first fix;
 #: the relocalization of lost vehicles ([lc] relocalize_*); the reset to the own-sensor track ([lc]
 #: own_consistency_gate), on again with the receiver model that makes the own track consistent; the same vote for
-#: vehicles with rows on the map ([lc] relocalize_min_gain), adopted with the map of [fusion].
+#: vehicles with rows on the map ([lc] relocalize_min_gain) and the map's veto on that reset ([lc]
+#: reset_map_margin), adopted with the map of [fusion].
 CHANGED_SINCE = {name: ("clutter_intensity", "sensing_range_m", "relocalize_radius_m", "relocalize_tolerance_m",
-                        "relocalize_min_support", "relocalize_min_gain", "own_consistency_gate") for name in
+                        "relocalize_min_support", "relocalize_min_gain", "own_consistency_gate",
+                        "reset_map_margin") for name in
                  ("arterial_tlr_realistic.toml", "arterial_vsr_realistic.toml", "arterial_ped_tlr_realistic.toml")}
 
 
