@@ -110,9 +110,10 @@ def deweight_velocity(sm, rn, innov, vel_threshold, on_innovation=False):
     (:func:`coloc.methods.gnss_bias2.velocity_deweight`, Chang 2014)."""
     d2 = nis2(sm, innov, 2)
     if d2 > vel_threshold:
+        f = d2 / vel_threshold - 1.0
         for a in range(2, 4):
             for b in range(2, 4):  # each entry's extra reads only that entry, before it is written
-                extra = (d2 / vel_threshold - 1.0) * (sm[a, b] if on_innovation else rn[a, b])
+                extra = f * (sm[a, b] if on_innovation else rn[a, b])
                 rn[a, b] += extra
                 sm[a, b] += extra
 
